@@ -1,0 +1,103 @@
+"""The embedded CLEVR-veggie-like dataset: generated offline on first use, then read from disk.
+
+Expected tree (written by ``threedq data generate`` or by :meth:`ClevrVeggieDataModule.prepare_data`)::
+
+    <data_dir>/
+      index.json
+      train/scene_000000.npz ...
+      val/scene_000000.npz ...
+      test/scene_000000.npz ...
+
+41 categories (CLEVR's 3 shapes x 8 colours + 17 scanned YCB meshes), up to 3 objects per scene,
+28 posed RGB-D views per scene by default. See ``threedq.data.generate`` for the scene model.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from datamodules.scene_folder import SceneFolderDataModule
+from threedq.data.generate import GeneratorConfig, generate_dataset
+from threedq.scene import INDEX_NAME, SceneValidationError, load_index
+
+__all__ = ["ClevrVeggieDataModule"]
+
+log = logging.getLogger(__name__)
+
+
+class ClevrVeggieDataModule(SceneFolderDataModule):
+    """Scenes of the embedded generator; generates (and caches) them when ``data_dir`` has no index.
+
+    Args:
+        data_dir: dataset folder (created and filled on first use).
+        num_scenes: scenes to generate in all splits.
+        split_fractions: train/val/test fractions of ``num_scenes``.
+        generator_seed: seed of the scene generator (the test split uses its own derived stream).
+        image_size: rendered ``[H, W]``.
+        num_views: cameras per scene.
+        max_objects: objects per scene (also the padding size of samples).
+        generator_workers: processes used for generation.
+        batch_size, num_workers, num_input_views, num_target_views, seed: as in
+            :class:`~datamodules.scene_folder.SceneFolderDataModule`.
+    """
+
+    def __init__(
+        self,
+        data_dir: str = "data/clevr_veggie",
+        num_scenes: int = 300,
+        split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1),
+        generator_seed: int = 0,
+        image_size: tuple[int, int] = (128, 128),
+        num_views: int = 28,
+        max_objects: int = 3,
+        generator_workers: int = 2,
+        batch_size: int = 2,
+        num_workers: int = 0,
+        num_input_views: int = 1,
+        num_target_views: int = 1,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(
+            data_dir=data_dir,
+            batch_size=batch_size,
+            num_workers=num_workers,
+            num_input_views=num_input_views,
+            num_target_views=num_target_views,
+            max_objects=max_objects,
+            seed=seed,
+        )
+        self.num_scenes = num_scenes
+        self.split_fractions = tuple(split_fractions)
+        self.generator_seed = generator_seed
+        self.generator_workers = generator_workers
+        self.generator_config = GeneratorConfig(
+            image_size=tuple(image_size), num_views=num_views, max_objects=max_objects
+        )
+
+    def prepare_data(self) -> None:
+        """Generate the dataset if ``data_dir`` has no ``index.json`` (Lightning runs this on one process)."""
+        if not (self.data_dir / INDEX_NAME).is_file():
+            log.info("generating %d scenes into %s", self.num_scenes, self.data_dir)
+            generate_dataset(
+                self.data_dir,
+                num_scenes=self.num_scenes,
+                seed=self.generator_seed,
+                config=self.generator_config,
+                split_fractions=self.split_fractions,
+                workers=self.generator_workers,
+            )
+            return
+        index = load_index(self.data_dir)
+        made_with = index.generator.get("config_hash")
+        if made_with is not None and made_with != self.generator_config.hash():
+            raise SceneValidationError(
+                str(self.data_dir / INDEX_NAME),
+                "generator",
+                "the dataset was generated with a different generator config than this DataModule asks for; "
+                "point data_dir elsewhere or delete the folder to regenerate",
+            )
+
+    def setup(self, stage: str | None = None) -> None:
+        if not (self.data_dir / INDEX_NAME).is_file():
+            self.prepare_data()
+        super().setup(stage)

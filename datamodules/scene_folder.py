@@ -1,0 +1,220 @@
+"""A LightningDataModule over a folder of canonical scene records (``index.json`` + ``<split>/*.npz``).
+
+Expected tree::
+
+    <data_dir>/
+      index.json                 # categories, symmetry, scene bounds, scenes with their split
+      train/scene_000000.npz ...
+      val/scene_000000.npz ...
+      test/scene_000000.npz ...
+
+Each sample is one scene: ``num_input_views`` input views followed by ``num_target_views`` target
+views (distinct views of the same scene), and the scene's ground-truth objects padded to
+``max_objects`` with a mask. Everything is expressed in the reference frame R, which for a canonical
+record is its world frame (metres, z up, centred on the scene).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from threedq.boxes import boxes_to_aabb
+from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_scene
+
+__all__ = ["SceneDataset", "SceneFolderDataModule"]
+
+SPLITS = ("train", "val", "test")
+
+
+class SceneDataset(Dataset):
+    """Scenes of one split; item ``i`` is a dict of tensors (see :meth:`__getitem__`).
+
+    Args:
+        root: dataset folder holding ``index.json``.
+        index: the parsed index.
+        split: ``train``, ``val`` or ``test``.
+        num_input_views: input views per sample (>= 1).
+        num_target_views: target views per sample (>= 0), distinct from the inputs.
+        max_objects: objects are padded to this many; a scene with more is an error.
+        random_views: draw views at random per call (training) instead of a fixed per-scene choice.
+        seed: seed of the fixed per-scene view choice.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        index: DatasetIndex,
+        split: str,
+        num_input_views: int = 1,
+        num_target_views: int = 1,
+        max_objects: int = 3,
+        random_views: bool = False,
+        seed: int = 0,
+    ) -> None:
+        if split not in SPLITS:
+            raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
+        if num_input_views < 1:
+            raise ValueError(f"num_input_views: expected >= 1, got {num_input_views}")
+        if num_target_views < 0:
+            raise ValueError(f"num_target_views: expected >= 0, got {num_target_views}")
+        self.root = Path(root)
+        self.index = index
+        self.split = split
+        self.files = index.files(split)
+        self.num_input_views = num_input_views
+        self.num_target_views = num_target_views
+        self.max_objects = max_objects
+        self.random_views = random_views
+        self.seed = seed
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def _choose_views(self, i: int, num_views: int, path: Path) -> np.ndarray:
+        need = self.num_input_views + self.num_target_views
+        if need > num_views:
+            raise SceneValidationError(
+                str(path), "rgb", f"sample needs {need} distinct views but the scene has {num_views}"
+            )
+        if self.random_views:
+            # torch's global generator: seeded by seed_everything (and per worker by Lightning).
+            return torch.randperm(num_views)[:need].numpy()
+        rng = np.random.default_rng([self.seed, i])
+        return rng.permutation(num_views)[:need]
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        """One scene.
+
+        Returns:
+            ``rgb`` [S,3,H,W] float in [0,1]; ``depth`` [S,H,W] metres (0 invalid); ``K`` [S,3,3];
+            ``R_T_cam`` [S,4,4]; ``instance`` [S,H,W] long (only if the record has masks); ``view_ids`` [S];
+            ``boxes`` [M,7] oriented boxes, ``aabb`` [M,6] axis-aligned hulls ``(xmin..zmax)``,
+            ``categories`` [M] long (-1 pad), ``box_mask`` [M] bool, with M = ``max_objects``;
+            ``scene_index`` long. The first ``num_input_views`` of the S views are inputs, the rest targets.
+
+        Convention: frame R = the record's world frame (metres, z up); OpenCV camera axes.
+        """
+        path = self.root / self.files[i]
+        rec = load_scene(path, bounds=self.index.scene_bounds, num_categories=len(self.index.categories))
+        if rec.num_objects > self.max_objects:
+            raise SceneValidationError(
+                str(path), "boxes", f"{rec.num_objects} objects but max_objects is {self.max_objects}"
+            )
+        views = self._choose_views(i, rec.num_views, path)
+        M = self.max_objects
+        boxes = np.zeros((M, 7), np.float32)
+        boxes[: rec.num_objects] = rec.boxes
+        aabb = np.zeros((M, 6), np.float32)
+        aabb[: rec.num_objects] = boxes_to_aabb(rec.boxes.astype(np.float64))
+        cats = np.full((M,), -1, np.int64)
+        cats[: rec.num_objects] = rec.categories
+        out: dict[str, Any] = {
+            "rgb": torch.from_numpy(rec.rgb[views]).permute(0, 3, 1, 2).float().div_(255.0),
+            "depth": torch.from_numpy(rec.depth[views].astype(np.float32)),
+            "K": torch.from_numpy(rec.K[views].astype(np.float32)),
+            "R_T_cam": torch.from_numpy(rec.world_T_cam[views].astype(np.float32)),
+            "view_ids": torch.from_numpy(views.astype(np.int64)),
+            "boxes": torch.from_numpy(boxes),
+            "aabb": torch.from_numpy(aabb),
+            "categories": torch.from_numpy(cats),
+            "box_mask": torch.arange(M) < rec.num_objects,
+            "scene_index": torch.tensor(i, dtype=torch.long),
+        }
+        if rec.instance is not None:
+            out["instance"] = torch.from_numpy(rec.instance[views].astype(np.int64))
+        return out
+
+
+class SceneFolderDataModule(L.LightningDataModule):
+    """Any folder of canonical scene records (see the module docstring for the tree).
+
+    Args:
+        data_dir: the dataset folder.
+        batch_size: scenes per batch.
+        num_workers: DataLoader worker processes.
+        num_input_views: input views per sample; at test time a single view suffices.
+        num_target_views: held-out target views per sample (view prediction).
+        max_objects: objects per scene are padded to this many.
+        seed: seed of the fixed view choice of val/test samples.
+    """
+
+    def __init__(
+        self,
+        data_dir: str = "data/scenes",
+        batch_size: int = 2,
+        num_workers: int = 0,
+        num_input_views: int = 1,
+        num_target_views: int = 1,
+        max_objects: int = 3,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if batch_size < 1:
+            raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
+        if num_workers < 0:
+            raise ValueError(f"num_workers: expected >= 0, got {num_workers}")
+        self.data_dir = Path(data_dir)
+        self.batch_size = batch_size
+        self.num_workers = num_workers
+        self.num_input_views = num_input_views
+        self.num_target_views = num_target_views
+        self.max_objects = max_objects
+        self.seed = seed
+        self._index: DatasetIndex | None = None
+        self.datasets: dict[str, SceneDataset] = {}
+
+    @property
+    def index(self) -> DatasetIndex:
+        if self._index is None:
+            self._index = load_index(self.data_dir)
+        return self._index
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.index.categories)
+
+    def setup(self, stage: str | None = None) -> None:
+        for split in SPLITS:
+            if split not in self.datasets and self.index.files(split):
+                self.datasets[split] = SceneDataset(
+                    self.data_dir,
+                    self.index,
+                    split,
+                    num_input_views=self.num_input_views,
+                    num_target_views=self.num_target_views,
+                    max_objects=self.max_objects,
+                    random_views=split == "train",
+                    seed=self.seed,
+                )
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        if split not in self.datasets:
+            self.setup()
+        if split not in self.datasets:
+            raise SceneValidationError(str(self.data_dir / "index.json"), "scenes", f"no scenes in split {split!r}")
+        return DataLoader(
+            self.datasets[split],
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            drop_last=False,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)
+
+    def predict_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)

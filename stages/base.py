@@ -1,0 +1,149 @@
+"""The shared 3D encoder and its checkpoint contract, common to every stage.
+
+Every stage is a LightningModule that owns ``self.encoder`` (a :class:`~threedq.nets.UNet3D` over
+``cat[occ, occ * rgb]`` of the input grid, producing L2-normalised features at half resolution).
+View prediction trains it; later stages load it:
+
+* ``encoder_ckpt``: a Lightning checkpoint of any stage (its ``encoder.*`` weights are used) or a plain
+  ``state_dict`` of the encoder saved with ``torch.save``. Loaded with ``weights_only=True``. Shapes
+  must match the stage's encoder; a mismatch is an error naming the file and the parameter.
+* ``freeze_encoder``: keep those weights fixed (no gradient, BatchNorm in eval mode) or fine-tune them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from threedq.geometry import VoxelGridSpec, occupancy_from_depth, unproject_rgb
+from threedq.nets import UNet3D
+
+__all__ = ["EncoderStage", "load_encoder_state", "encoder_state_from_checkpoint"]
+
+
+def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
+    """The encoder's ``state_dict`` stored in ``path`` (a Lightning checkpoint or a plain state dict).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: the file holds no encoder weights (message names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"encoder_ckpt: no such file: {path}")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt files
+        raise ValueError(f"{path}: field 'encoder_ckpt': cannot be loaded safely ({type(e).__name__}: {e})") from e
+    is_checkpoint = isinstance(obj, dict) and "state_dict" in obj
+    state = obj["state_dict"] if is_checkpoint else obj
+    if not isinstance(state, dict):
+        raise ValueError(f"{path}: field 'state_dict': expected a checkpoint or a state dict")
+    enc = {k[len("encoder."):]: v for k, v in state.items() if k.startswith("encoder.")}
+    if not enc and not is_checkpoint and state and all(isinstance(v, Tensor) for v in state.values()):
+        enc = dict(state)  # a plain encoder state dict
+    if not enc:
+        raise ValueError(f"{path}: field 'state_dict': no 'encoder.*' weights in this checkpoint")
+    return enc
+
+
+def load_encoder_state(encoder: torch.nn.Module, path: str | Path) -> None:
+    """Load the encoder weights of ``path`` into ``encoder`` (strict: every key and shape must match)."""
+    state = encoder_state_from_checkpoint(path)
+    own = encoder.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    if missing or unexpected:
+        raise ValueError(
+            f"{path}: field 'state_dict': encoder weights do not fit this encoder "
+            f"(missing {missing[:3]}, unexpected {unexpected[:3]})"
+        )
+    for k, v in state.items():
+        if own[k].shape != v.shape:
+            raise ValueError(
+                f"{path}: field 'encoder.{k}': shape {tuple(v.shape)} does not fit {tuple(own[k].shape)} "
+                "(different feature_dim or channels?)"
+            )
+    encoder.load_state_dict(state)
+
+
+class EncoderStage(L.LightningModule):
+    """Base of every stage: the voxel grid, the shared encoder and multi-view encoding.
+
+    Args:
+        grid_min: ``(xmin, ymin, zmin)`` of the input grid in R, metres.
+        grid_max: ``(xmax, ymax, zmax)``.
+        grid_resolution: ``(nx, ny, nz)`` voxels of the input grid (each divisible by 8); features come
+            out at half this resolution.
+        feature_dim: channels of the feature grid.
+        encoder_ckpt: optional checkpoint to load the encoder from (see the module docstring).
+        freeze_encoder: keep the encoder fixed.
+
+    Convention: frame R metres, z up; volumes ``[B, C, Z, Y, X]``.
+    """
+
+    def __init__(
+        self,
+        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
+        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
+        grid_resolution: tuple[int, int, int] = (64, 64, 32),
+        feature_dim: int = 32,
+        encoder_ckpt: str | None = None,
+        freeze_encoder: bool = False,
+    ) -> None:
+        super().__init__()
+        self.grid = VoxelGridSpec(tuple(grid_min), tuple(grid_max), tuple(grid_resolution))
+        self.feature_grid = self.grid.half()
+        self.encoder = UNet3D(in_channels=4, out_channels=feature_dim)
+        self.freeze_encoder = freeze_encoder
+        if encoder_ckpt:
+            load_encoder_state(self.encoder, encoder_ckpt)
+        if freeze_encoder:
+            self.encoder.requires_grad_(False)
+
+    def train(self, mode: bool = True) -> EncoderStage:
+        super().train(mode)
+        if self.freeze_encoder:
+            self.encoder.eval()  # frozen BatchNorm statistics too
+        return self
+
+    def encoder_input(self, rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> tuple[Tensor, Tensor]:
+        """Unproject views into the input grid.
+
+        Args:
+            rgb: ``[N, 3, H, W]`` in [0, 1]; depth ``[N, H, W]``; K ``[N, 3, 3]``; R_T_cam ``[N, 4, 4]``.
+
+        Returns:
+            ``x`` ``[N, 4, Z, Y, X]`` = ``cat[occ, occ * rgb]`` and ``seen`` ``[N, 1, Z, Y, X]``, 1 where the
+            voxel centre projects into the image in front of the camera.
+        """
+        occ = occupancy_from_depth(depth, K, R_T_cam, self.grid)
+        ones = torch.ones_like(rgb[:, :1])
+        sampled = unproject_rgb(torch.cat([rgb, ones], dim=1), K, R_T_cam, self.grid)
+        rgb_vol, seen = sampled[:, :3], (sampled[:, 3:] > 0.5).to(rgb.dtype)
+        return torch.cat([occ, occ * rgb_vol], dim=1), seen
+
+    def encode_views(self, rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
+        """Encode each of S views of B scenes and aggregate them in R (mean over the views that see a voxel).
+
+        Args:
+            rgb: ``[B, S, 3, H, W]``; depth ``[B, S, H, W]``; K ``[B, S, 3, 3]``; R_T_cam ``[B, S, 4, 4]``.
+
+        Returns:
+            ``[B, C, Z/2, Y/2, X/2]`` features, L2-normalised per voxel.
+        """
+        B, S = rgb.shape[:2]
+        x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
+        feats = self.encoder(x)  # [B*S, C, z, y, x]
+        if S == 1:
+            return feats
+        w = torch.nn.functional.max_pool3d(seen, 2)  # seen at feature resolution
+        feats = feats.view(B, S, *feats.shape[1:])
+        w = w.view(B, S, *w.shape[1:])
+        agg = (feats * w).sum(1) / w.sum(1).clamp_min(1.0)
+        none = w.sum(1) == 0
+        agg = torch.where(none, feats.mean(1), agg)  # voxels no view sees: plain mean
+        return torch.nn.functional.normalize(agg, dim=1, eps=1e-6)

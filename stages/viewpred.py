@@ -1,0 +1,224 @@
+"""View prediction (GIGN pre-training, paper Sec. 3.1): learn the 3D feature grid by predicting other views.
+
+Input views are unprojected into the grid in R and encoded by the 3D U-Net; the aggregated feature grid
+is resampled into a held-out target camera's frustum and decoded to the target's RGB (L1 over valid
+pixels), and an occupancy head predicts, per voxel, occupied vs free space with a class-balanced
+logistic loss. Occupancy labels come from the depth of every view of the sample (input and target):
+occupied where depth points fall, free along each camera ray in front of the observed surface.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from stages.base import EncoderStage
+from threedq.atomic_io import atomic_write_bytes
+from threedq.geometry import free_space_from_depth, occupancy_from_depth, resample_to_frustum, scale_intrinsics
+from threedq.nets import OccupancyHead, ViewDecoder, balanced_occupancy_loss, masked_l1, occupancy_balanced_accuracy
+
+__all__ = ["ViewPrediction"]
+
+
+class ViewPrediction(EncoderStage):
+    """The view-prediction stage.
+
+    Args:
+        grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder: see
+            :class:`~stages.base.EncoderStage`.
+        num_planes: depth planes of the target frustum.
+        depth_range: ``(near, far)`` camera depth of the frustum, metres.
+        pool: max-pool of the frustum along depth in the decoder.
+        free_samples_per_ray: points sampled along each camera ray for free-space labels.
+        rgb_weight: weight of the RGB L1 loss.
+        occ_weight: weight of the occupancy loss.
+        lr: Adam learning rate (paper: 1e-3).
+        image_every_n_steps: write a PNG of (input, predicted, true target, occupancy slices) this often;
+            0 disables.
+
+    Convention: frame R metres, z up; RGB in [0, 1] (the decoder predicts ``rgb - 0.5``); images at half
+    the input resolution.
+    """
+
+    def __init__(
+        self,
+        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
+        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
+        grid_resolution: tuple[int, int, int] = (64, 64, 32),
+        feature_dim: int = 32,
+        encoder_ckpt: str | None = None,
+        freeze_encoder: bool = False,
+        num_planes: int = 32,
+        depth_range: tuple[float, float] = (1.2, 5.2),
+        pool: int = 8,
+        free_samples_per_ray: int = 32,
+        rgb_weight: float = 1.0,
+        occ_weight: float = 1.0,
+        lr: float = 1e-3,
+        image_every_n_steps: int = 200,
+    ) -> None:
+        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder)
+        self.save_hyperparameters()
+        self.decoder = ViewDecoder(in_channels=feature_dim, num_planes=num_planes, pool=pool)
+        self.occ_head = OccupancyHead(in_channels=feature_dim)
+
+    # ------------------------------------------------------------------ pieces
+    def occupancy_labels(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> tuple[Tensor, Tensor]:
+        """Occupied and free voxels of the feature grid from ``S`` views per scene, aggregated in R.
+
+        Args:
+            depth ``[B, S, H, W]``, K ``[B, S, 3, 3]``, R_T_cam ``[B, S, 4, 4]``.
+
+        Returns:
+            ``occupied``, ``free``: ``[B, 1, Z', Y', X']`` float 0/1, disjoint (occupied wins).
+        """
+        B, S = depth.shape[:2]
+        d, k, p = depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1)
+        occ = occupancy_from_depth(d, k, p, self.feature_grid).view(B, S, 1, *self.feature_grid.volume_shape)
+        free = free_space_from_depth(d, k, p, self.feature_grid, samples_per_ray=self.hparams.free_samples_per_ray)
+        free = free.view(B, S, 1, *self.feature_grid.volume_shape)
+        occ = occ.amax(1)
+        return occ, free.amax(1) * (1 - occ)
+
+    def predict_view(self, feats: Tensor, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int]) -> Tensor:
+        """Decode the feature grid ``[B, C, Z', Y', X']`` to the RGB of a camera ``[B, 3, H/2, W/2]`` in [-0.5, 0.5]."""
+        H, W = image_size
+        k_half = scale_intrinsics(K, 0.5, 0.5)
+        frustum = resample_to_frustum(
+            feats, self.feature_grid, k_half, R_T_cam, (H // 2, W // 2), tuple(self.hparams.depth_range),
+            self.hparams.num_planes,
+        )
+        return self.decoder(frustum)
+
+    def forward(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        n_in = batch["rgb"].shape[1] - self._num_targets(batch)
+        feats = self.encode_views(
+            batch["rgb"][:, :n_in], batch["depth"][:, :n_in], batch["K"][:, :n_in], batch["R_T_cam"][:, :n_in]
+        )
+        return {"features": feats, "occ_logits": self.occ_head(feats)}
+
+    @staticmethod
+    def _num_targets(batch: dict[str, Tensor]) -> int:
+        S = batch["rgb"].shape[1]
+        if S < 2:
+            raise ValueError(f"rgb: view prediction needs >= 2 views per sample (inputs + target), got {S}")
+        return 1
+
+    def _step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        out = self(batch)
+        rgb_t, depth_t = batch["rgb"][:, -1], batch["depth"][:, -1]
+        H, W = rgb_t.shape[-2:]
+        pred = self.predict_view(out["features"], batch["K"][:, -1], batch["R_T_cam"][:, -1], (H, W))
+        target = F.avg_pool2d(rgb_t, 2) - 0.5
+        valid = (F.avg_pool2d((depth_t > 0).to(rgb_t.dtype)[:, None], 2) > 0.5).to(rgb_t.dtype)
+        occ, free = self.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
+        l1 = masked_l1(pred, target, valid)
+        occ_loss = balanced_occupancy_loss(out["occ_logits"], occ, free)
+        # Baseline: every valid target pixel predicted as the mean colour of the input views' valid pixels.
+        n_in = batch["rgb"].shape[1] - 1
+        in_valid = (batch["depth"][:, :n_in] > 0).to(rgb_t.dtype)[:, :, None]
+        mean_col = (batch["rgb"][:, :n_in] * in_valid).sum((1, 3, 4)) / in_valid.sum((1, 3, 4)).clamp_min(1)
+        base = masked_l1(mean_col[:, :, None, None].expand_as(pred) - 0.5, target, valid)
+        return {
+            "loss": self.hparams.rgb_weight * l1 + self.hparams.occ_weight * occ_loss,
+            "l1": l1,
+            "l1_mean_colour": base,
+            "occ_loss": occ_loss,
+            "occ_bacc": occupancy_balanced_accuracy(out["occ_logits"], occ, free),
+            "pred": pred,
+            "target": target,
+            "occ": occ,
+            "occ_logits": out["occ_logits"],
+        }
+
+    # ------------------------------------------------------------------ Lightning hooks
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        r = self._step(batch)
+        B = batch["rgb"].shape[0]
+        self.log_dict(
+            {"train/loss": r["loss"], "train/l1": r["l1"], "train/occ_loss": r["occ_loss"], "train/occ_bacc": r["occ_bacc"]},
+            prog_bar=True,
+            batch_size=B,
+        )
+        every = self.hparams.image_every_n_steps
+        if every and self.global_step % every == 0:
+            self._write_image(batch, r, "train")
+        return r["loss"]
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        r = self._step(batch)
+        B = batch["rgb"].shape[0]
+        self.log_dict(
+            {
+                "val/loss": r["loss"],
+                "val/l1": r["l1"],
+                "val/l1_mean_colour": r["l1_mean_colour"],
+                "val/occ_bacc": r["occ_bacc"],
+            },
+            prog_bar=True,
+            batch_size=B,
+            sync_dist=True,
+        )
+        if batch_idx == 0 and self.hparams.image_every_n_steps:
+            self._write_image(batch, r, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        r = self._step(batch)
+        self.log_dict(
+            {"test/l1": r["l1"], "test/l1_mean_colour": r["l1_mean_colour"], "test/occ_bacc": r["occ_bacc"]},
+            batch_size=batch["rgb"].shape[0],
+            sync_dist=True,
+        )
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        params = [p for p in self.parameters() if p.requires_grad]
+        return torch.optim.Adam(params, lr=self.hparams.lr, betas=(0.9, 0.999))
+
+    # ------------------------------------------------------------------ pictures
+    def _write_image(self, batch: dict[str, Tensor], r: dict[str, Tensor], tag: str) -> None:
+        if self.trainer is None or not self.trainer.is_global_zero or self.trainer.sanity_checking:
+            return
+        img = view_prediction_figure(
+            batch["rgb"][0, 0], r["pred"][0] + 0.5, r["target"][0] + 0.5, torch.sigmoid(r["occ_logits"][0, 0]), r["occ"][0, 0]
+        )
+        log_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+        ok, png = cv2.imencode(".png", img[:, :, ::-1])
+        if ok:
+            atomic_write_bytes(log_dir / "images" / f"{tag}_step{self.global_step:06d}.png", png.tobytes())
+        experiment = getattr(self.logger, "experiment", None)
+        if hasattr(experiment, "add_image"):
+            experiment.add_image(f"{tag}/view_prediction", img, self.global_step, dataformats="HWC")
+
+
+def _to_u8(img: Tensor, size: tuple[int, int]) -> np.ndarray:
+    a = (img.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
+    return cv2.resize(a, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
+
+
+def view_prediction_figure(
+    input_rgb: Tensor, pred_rgb: Tensor, true_rgb: Tensor, occ_prob: Tensor, occ_true: Tensor
+) -> np.ndarray:
+    """One row: input view | predicted target | true target | predicted occupancy | true occupancy.
+
+    Args:
+        input_rgb ``[3, H, W]``, pred_rgb and true_rgb ``[3, h, w]`` in [0, 1]; occ_prob, occ_true
+        ``[Z, Y, X]``. Occupancy is shown as a bird's-eye view: the max over the upper 70% of z (above
+        the ground of the embedded scenes, which sits at 25% of the grid height), x to the right, y up.
+
+    Returns:
+        ``[H', W', 3]`` uint8 RGB.
+    """
+    H, W = input_rgb.shape[-2:]
+    tiles = [_to_u8(input_rgb, (H, W)), _to_u8(pred_rgb, (H, W)), _to_u8(true_rgb, (H, W))]
+    lo = int(round(0.3 * occ_prob.shape[0]))  # skip the ground slab
+    for occ in (occ_prob, occ_true):
+        bev = occ[lo:].amax(0).flip(0)  # y up
+        tiles.append(_to_u8(bev[None].expand(3, -1, -1), (H, W)))
+    sep = np.full((H, 2, 3), 255, np.uint8)
+    row = [t for tile in tiles for t in (tile, sep)][:-1]
+    return np.concatenate(row, axis=1)

@@ -1,0 +1,23 @@
+"""Shared fixtures: a tiny dataset made by the real generator once per test session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+torch.set_num_threads(min(2, torch.get_num_threads()))
+
+TINY = {"image_size": (32, 32), "num_views": 4, "max_objects": 3}
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """12 scenes (train 8 / val 2 / test 2) of 4 views at 32x32, generated in-process."""
+    from threedq.data.generate import GeneratorConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("tiny_dataset")
+    generate_dataset(out, num_scenes=12, seed=5, config=GeneratorConfig(**TINY), split_fractions=(0.7, 0.15, 0.15),
+                     workers=1, progress=False)
+    return out

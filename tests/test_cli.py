@@ -1,0 +1,70 @@
+"""The threedq command: subcommands, packaged configs, data generate / check / show."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pytest
+
+from threedq.cli import main, packaged_configs_dir, resolve_config
+
+
+def test_help_lists_subcommands() -> None:
+    out = subprocess.run([sys.executable, "-m", "threedq", "--help"], capture_output=True, text=True, check=True).stdout
+    for sub in ("fit", "validate", "test", "predict", "data", "em"):
+        assert sub in out
+
+
+class TestResolveConfig:
+    def test_packaged_from_any_directory(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch.chdir(tmp_path)
+        p = resolve_config("stages/viewpred.yaml")
+        assert p == packaged_configs_dir() / "stages" / "viewpred.yaml" and p.is_file()
+
+    def test_local_file_wins(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch.chdir(tmp_path)
+        (tmp_path / "stages").mkdir()
+        (tmp_path / "stages" / "viewpred.yaml").write_text("seed_everything: 3\n")
+        assert resolve_config("stages/viewpred.yaml") == Path("stages/viewpred.yaml")
+
+    def test_missing(self) -> None:
+        with pytest.raises(FileNotFoundError, match="nope.yaml.*tried"):
+            resolve_config("stages/nope.yaml")
+
+    def test_fit_print_config_from_elsewhere(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+        monkeypatch.chdir(tmp_path)
+        with pytest.raises(SystemExit) as e:
+            main(["fit", "--config", "stages/viewpred.yaml", "--print_config"])
+        assert e.value.code == 0
+        out = capsys.readouterr().out
+        assert "stages.viewpred.ViewPrediction" in out and "ClevrVeggieDataModule" in out
+
+
+class TestDataCommands:
+    def test_generate_check_show(self, tmp_path: Path, capsys) -> None:
+        d = tmp_path / "d"
+        args = ["data", "generate", "--out", str(d), "--scenes", "3", "--seed", "1", "--image_size", "[32, 32]",
+                "--views", "3", "--workers", "1", "--progress", "false"]
+        assert main(args) == 0
+        assert "wrote 3 scenes" in capsys.readouterr().out
+        assert main(["data", "check", str(d)]) == 0
+        assert "3/3 scenes valid" in capsys.readouterr().out
+        png = tmp_path / "sheet.png"
+        assert main(["data", "show", str(d), "--out", str(png), "--scenes", "2"]) == 0
+        img = cv2.imread(str(png))
+        assert img is not None and img.std() > 5
+        # a corrupted scene is reported on one line naming the file and the field
+        victim = sorted(d.rglob("*.npz"))[0]
+        victim.write_bytes(victim.read_bytes()[:300])
+        assert main(["data", "check", str(d)]) == 1
+        out = capsys.readouterr().out.splitlines()
+        bad = [line for line in out if str(victim) in line]
+        assert len(bad) == 1 and "field '" in bad[0]
+        assert "2/3 scenes valid" in out[-1]
+
+    def test_bad_dataset_folder(self, tmp_path: Path, capsys) -> None:
+        assert main(["data", "check", str(tmp_path)]) == 2
+        assert "index.json" in capsys.readouterr().err

@@ -1,0 +1,103 @@
+"""The scene-folder and embedded-data DataModules: sample layout, determinism, generation on first use."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from datamodules.clevr_veggie import ClevrVeggieDataModule
+from datamodules.scene_folder import SceneDataset, SceneFolderDataModule
+from threedq.boxes import boxes_to_aabb
+from threedq.scene import SceneValidationError, load_index, load_scene
+
+
+class TestSceneFolderDataModule:
+    def test_sample_layout(self, tiny_dataset: Path) -> None:
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=2, num_input_views=2, num_target_views=1)
+        dm.setup("fit")
+        batch = next(iter(dm.train_dataloader()))
+        assert batch["rgb"].shape == (2, 3, 3, 32, 32) and batch["rgb"].dtype == torch.float32
+        assert 0 <= batch["rgb"].min() and batch["rgb"].max() <= 1
+        assert batch["depth"].shape == (2, 3, 32, 32)
+        assert batch["K"].shape == (2, 3, 3, 3) and batch["R_T_cam"].shape == (2, 3, 4, 4)
+        assert batch["instance"].shape == (2, 3, 32, 32)
+        assert batch["boxes"].shape == (2, 3, 7) and batch["aabb"].shape == (2, 3, 6)
+        assert batch["box_mask"].dtype == torch.bool
+        # views of one sample are distinct
+        for ids in batch["view_ids"]:
+            assert len(set(ids.tolist())) == 3
+        # padding: categories -1 and zero boxes exactly where the mask is off
+        assert torch.all((batch["categories"] >= 0) == batch["box_mask"])
+        assert torch.all(batch["boxes"][~batch["box_mask"]] == 0)
+
+    def test_matches_record(self, tiny_dataset: Path) -> None:
+        index = load_index(tiny_dataset)
+        ds = SceneDataset(tiny_dataset, index, "val", num_input_views=1, num_target_views=1, seed=3)
+        item = ds[0]
+        rec = load_scene(tiny_dataset / index.files("val")[0])
+        v = item["view_ids"].numpy()
+        np.testing.assert_array_equal((item["rgb"].permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8), rec.rgb[v])
+        np.testing.assert_array_equal(item["R_T_cam"].numpy(), rec.world_T_cam[v])
+        M = rec.num_objects
+        np.testing.assert_allclose(item["aabb"][:M].numpy(), boxes_to_aabb(rec.boxes.astype(np.float64)), atol=1e-5)
+        assert item["categories"][:M].tolist() == rec.categories.tolist()
+
+    def test_fixed_views_are_deterministic(self, tiny_dataset: Path) -> None:
+        index = load_index(tiny_dataset)
+        a = SceneDataset(tiny_dataset, index, "test", seed=1)[1]["view_ids"]
+        b = SceneDataset(tiny_dataset, index, "test", seed=1)[1]["view_ids"]
+        assert torch.equal(a, b)
+
+    def test_random_views_follow_the_seed(self, tiny_dataset: Path) -> None:
+        index = load_index(tiny_dataset)
+        ds = SceneDataset(tiny_dataset, index, "train", num_input_views=2, random_views=True)
+        L.seed_everything(11, verbose=False)
+        a = [ds[i]["view_ids"] for i in range(4)]
+        L.seed_everything(11, verbose=False)
+        b = [ds[i]["view_ids"] for i in range(4)]
+        assert all(torch.equal(x, y) for x, y in zip(a, b))
+
+    def test_errors(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        index = load_index(tiny_dataset)
+        with pytest.raises(ValueError, match="split"):
+            SceneDataset(tiny_dataset, index, "nope")
+        with pytest.raises(SceneValidationError, match="needs 5 distinct views but the scene has 4"):
+            SceneDataset(tiny_dataset, index, "train", num_input_views=4, num_target_views=1)[0]
+        with pytest.raises(SceneValidationError, match="max_objects"):
+            # a scene with more objects than the padding size is an error, not a silent truncation
+            big = next(i for i, f in enumerate(index.files("train")) if load_scene(tiny_dataset / f).num_objects > 1)
+            SceneDataset(tiny_dataset, index, "train", max_objects=1)[big]
+        with pytest.raises(SceneValidationError, match="index.json"):
+            SceneFolderDataModule(str(tmp_path)).setup()
+        # a corrupt scene file is named in the error
+        copy = tmp_path / "copy"
+        shutil.copytree(tiny_dataset, copy)
+        f = copy / index.files("train")[0]
+        f.write_bytes(f.read_bytes()[:100])
+        with pytest.raises(SceneValidationError, match=str(f.name)):
+            SceneDataset(copy, load_index(copy), "train")[0]
+
+
+class TestClevrVeggieDataModule:
+    def test_generates_on_first_use_then_reuses(self, tmp_path: Path) -> None:
+        kwargs = dict(num_scenes=3, image_size=(32, 32), num_views=3, generator_workers=1, batch_size=1)
+        dm = ClevrVeggieDataModule(data_dir=str(tmp_path / "d"), **kwargs)
+        dm.prepare_data()
+        index = load_index(tmp_path / "d")
+        assert len(index.scenes) == 3 and len(index.categories) == 41
+        before = {p: p.stat().st_mtime_ns for p in (tmp_path / "d").rglob("*.npz")}
+        dm2 = ClevrVeggieDataModule(data_dir=str(tmp_path / "d"), **kwargs)
+        dm2.prepare_data()  # cached: nothing rewritten
+        assert before == {p: p.stat().st_mtime_ns for p in (tmp_path / "d").rglob("*.npz")}
+        dm2.setup("fit")
+        assert next(iter(dm2.train_dataloader()))["rgb"].shape == (1, 2, 3, 32, 32)
+
+    def test_config_mismatch_is_an_error(self, tiny_dataset: Path) -> None:
+        dm = ClevrVeggieDataModule(data_dir=str(tiny_dataset), image_size=(64, 64), num_views=4)
+        with pytest.raises(SceneValidationError, match="different generator config"):
+            dm.prepare_data()

@@ -1,0 +1,171 @@
+"""Tests for threedq.geometry.crop."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from threedq.geometry import VoxelGridSpec, box_mask, crop_boxes
+
+GRID = VoxelGridSpec((-1.0, -0.5, 0.0), (1.0, 0.5, 0.75), (8, 4, 3))  # 0.25 m voxels, volume (3, 4, 8)
+
+
+def ramp(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    return 1.0 + 2.0 * x - 3.0 * y + 0.5 * z
+
+
+def ramp_volume(grid: VoxelGridSpec) -> torch.Tensor:
+    centres = grid.voxel_centres(dtype=torch.float64)
+    return ramp(*centres.unbind(-1))[None, None]
+
+
+def sample_points(box: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
+    """[sz, sy, sx, 3] centres of the output cells of one box."""
+    sz, sy, sx = size
+    axes = [
+        box[d] + (torch.arange(n, dtype=box.dtype) + 0.5) * (box[d + 3] - box[d]) / n
+        for d, n in enumerate((sx, sy, sz))
+    ]
+    zz, yy, xx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return torch.stack((xx, yy, zz), -1)
+
+
+def trilinear_naive(volume: torch.Tensor, grid: VoxelGridSpec, point: torch.Tensor) -> torch.Tensor:
+    """Trilinear interpolation [C] at one point, voxel values at centres, zero outside the grid."""
+    idx = [(point[d].item() - grid.bounds_min[d]) / grid.voxel_size[d] - 0.5 for d in range(3)]  # (i, j, k)
+    base = [math.floor(v) for v in idx]
+    out = torch.zeros(volume.shape[0], dtype=volume.dtype)
+    for di in (0, 1):
+        for dj in (0, 1):
+            for dk in (0, 1):
+                i, j, k = base[0] + di, base[1] + dj, base[2] + dk
+                if not (0 <= i < grid.resolution[0] and 0 <= j < grid.resolution[1] and 0 <= k < grid.resolution[2]):
+                    continue
+                w = 1.0
+                for d, offset in enumerate((di, dj, dk)):
+                    frac = idx[d] - base[d]
+                    w *= frac if offset else 1.0 - frac
+                out += w * volume[:, k, j, i]
+    return out
+
+
+def random_boxes(batch: int, n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    lo = torch.tensor(GRID.bounds_min, dtype=dtype) - 0.2
+    span = torch.tensor(GRID.bounds_max, dtype=dtype) - lo + 0.2
+    a = lo + torch.rand(batch, n, 3, dtype=dtype) * span * 0.6
+    b = a + (0.1 + torch.rand(batch, n, 3, dtype=dtype)) * span * 0.4
+    return torch.cat((a, b), -1)
+
+
+class TestCropBoxes:
+    def test_smoke(self) -> None:
+        out = crop_boxes(torch.rand(1, 2, 3, 4, 8), random_boxes(1, 3, torch.float32), GRID)
+        assert out.shape == (1, 3, 2, 16, 16, 16) and out.dtype == torch.float32
+
+    def test_exception(self) -> None:
+        volume, boxes = torch.rand(2, 2, 3, 4, 8), random_boxes(2, 3, torch.float32)
+        with pytest.raises(
+            ValueError, match=r"volume must have shape \[B, C, Z, Y, X\] with \(Z, Y, X\) = \(3, 4, 8\)"
+        ):
+            crop_boxes(volume[..., :4], boxes, GRID)
+        with pytest.raises(ValueError, match=r"boxes must have shape \[B, N, 6\]"):
+            crop_boxes(volume, boxes[..., :4], GRID)
+        with pytest.raises(ValueError, match=r"boxes must have shape \[B, N, 6\] with B=2"):
+            crop_boxes(volume, boxes[:1], GRID)
+        with pytest.raises(ValueError, match="size"):
+            crop_boxes(volume, boxes, GRID, size=0)
+        with pytest.raises(ValueError, match="size"):
+            crop_boxes(volume, boxes, GRID, size=(4, 4))
+        with pytest.raises(ValueError, match="grid must be a VoxelGridSpec"):
+            crop_boxes(volume, boxes, None)  # type: ignore[arg-type]
+
+    @pytest.mark.parametrize("batch", [1, 2])
+    @pytest.mark.parametrize("n_boxes", [0, 1, 5])
+    @pytest.mark.parametrize("size", [4, (2, 3, 5)])
+    def test_cardinality(self, batch: int, n_boxes: int, size: int | tuple[int, int, int]) -> None:
+        out = crop_boxes(torch.rand(batch, 3, 3, 4, 8), random_boxes(batch, n_boxes, torch.float32), GRID, size=size)
+        sz, sy, sx = (size,) * 3 if isinstance(size, int) else size
+        assert out.shape == (batch, n_boxes, 3, sz, sy, sx)
+
+    def test_feature_full_box_round_trip(self) -> None:
+        torch.manual_seed(0)
+        volume = torch.rand(2, 3, *GRID.volume_shape, dtype=torch.float64)
+        boxes = torch.tensor(GRID.bounds_min + GRID.bounds_max, dtype=torch.float64).expand(2, 1, 6)
+        out = crop_boxes(volume, boxes, GRID, size=GRID.volume_shape)
+        torch.testing.assert_close(out[:, 0], volume)
+
+    def test_feature_aligned_box_is_a_slice(self) -> None:
+        # voxels i in [2, 6), j in [1, 3), k in [0, 2) cropped at their own resolution
+        torch.manual_seed(1)
+        volume = torch.rand(1, 2, *GRID.volume_shape, dtype=torch.float64)
+        boxes = torch.tensor([[[-0.5, -0.25, 0.0, 0.5, 0.25, 0.5]]], dtype=torch.float64)
+        out = crop_boxes(volume, boxes, GRID, size=(2, 2, 4))
+        torch.testing.assert_close(out[:, 0], volume[:, :, 0:2, 1:3, 2:6])
+
+    def test_feature_ramp(self) -> None:
+        # trilinear interpolation reproduces a linear function exactly inside the hull of voxel centres
+        boxes = torch.tensor(
+            [[[-0.8, -0.3, 0.13, 0.7, 0.35, 0.6], [-0.2, -0.1, 0.2, 0.1, 0.3, 0.4], [0.5, 0.3, 0.5, 0.6, -0.3, 0.2]]],
+            dtype=torch.float64,
+        )
+        size = (3, 5, 7)
+        out = crop_boxes(ramp_volume(GRID), boxes, GRID, size=size)
+        for n in range(3):
+            expected = ramp(*sample_points(boxes[0, n], size).unbind(-1))
+            torch.testing.assert_close(out[0, n, 0], expected)
+
+    def test_feature_matches_naive(self) -> None:
+        torch.manual_seed(2)
+        volume = torch.rand(2, 3, *GRID.volume_shape, dtype=torch.float64)
+        boxes = random_boxes(2, 3)
+        size = (2, 3, 3)
+        out = crop_boxes(volume, boxes, GRID, size=size)
+        for b in range(2):
+            for n in range(3):
+                points = sample_points(boxes[b, n], size)
+                for idx in torch.cartesian_prod(*(torch.arange(s) for s in size)).tolist():
+                    expected = trilinear_naive(volume[b], GRID, points[tuple(idx)])
+                    torch.testing.assert_close(out[b, n, :, idx[0], idx[1], idx[2]], expected)
+
+    def test_feature_outside_is_zero(self) -> None:
+        boxes = torch.tensor([[[2.0, 2.0, 2.0, 3.0, 3.0, 3.0]]])
+        assert (crop_boxes(torch.rand(1, 2, 3, 4, 8) + 1.0, boxes, GRID, size=4) == 0).all()
+
+    def test_gradcheck(self) -> None:
+        torch.manual_seed(4)
+        volume = torch.rand(1, 2, *GRID.volume_shape, dtype=torch.float64, requires_grad=True)
+        boxes = random_boxes(1, 2)
+        assert torch.autograd.gradcheck(lambda v: crop_boxes(v, boxes, GRID, size=3), (volume,))
+
+
+class TestBoxMask:
+    def test_smoke(self) -> None:
+        assert box_mask(random_boxes(1, 2), GRID).shape == (1, 2, 3, 4, 8)
+
+    def test_exception(self) -> None:
+        with pytest.raises(ValueError, match=r"boxes must have shape \[B, N, 6\]"):
+            box_mask(torch.rand(2, 6), GRID)
+
+    @pytest.mark.parametrize("batch", [1, 3])
+    @pytest.mark.parametrize("n_boxes", [0, 4])
+    def test_cardinality(self, batch: int, n_boxes: int) -> None:
+        mask = box_mask(random_boxes(batch, n_boxes), GRID)
+        assert mask.shape == (batch, n_boxes, 3, 4, 8) and mask.dtype == torch.bool
+
+    def test_feature(self) -> None:
+        # centres x in {-0.875, ..., 0.875}, y in {-0.375, ..., 0.375}, z in {0.125, 0.375, 0.625}
+        boxes = torch.tensor([[[-0.5, -0.25, 0.0, 0.5, 0.25, 0.5], [0.6, -1.0, 0.3, 0.9, 0.0, 0.4]]])
+        mask = box_mask(boxes, GRID)
+        expected = torch.zeros(1, 2, 3, 4, 8, dtype=torch.bool)
+        expected[0, 0, 0:2, 1:3, 2:6] = True
+        expected[0, 1, 1, 0:2, 6:8] = True
+        assert torch.equal(mask, expected)
+        torch.manual_seed(3)
+        boxes = random_boxes(2, 5)
+        centres = GRID.voxel_centres(dtype=torch.float64)
+        brute = ((centres >= boxes[:, :, None, None, None, :3]) & (centres <= boxes[:, :, None, None, None, 3:])).all(
+            -1
+        )
+        assert torch.equal(box_mask(boxes, GRID), brute)

@@ -1,0 +1,124 @@
+"""Tests for threedq.nets.unet3d."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from threedq.nets import UNet3D
+
+# Small widths keep the functional tests fast; the paper's widths are checked by the parameter count.
+SMALL = (8, 16, 32)
+
+
+def small_net(**kwargs: object) -> UNet3D:
+    torch.manual_seed(0)
+    return UNet3D(channels=SMALL, **kwargs)  # type: ignore[arg-type]
+
+
+class TestUNet3D:
+    def test_smoke(self) -> None:
+        out = small_net()(torch.rand(1, 4, 16, 8, 8))
+        assert out.shape == (1, 32, 8, 4, 4)
+        assert out.dtype == torch.float32
+
+    def test_exception(self) -> None:
+        net = small_net()
+        with pytest.raises(ValueError, match="divisible by 8"):
+            net(torch.rand(1, 4, 16, 12, 16))
+        with pytest.raises(ValueError, match="divisible by 8"):
+            net(torch.rand(1, 4, 16, 16, 4))
+        with pytest.raises(ValueError, match=r"x must have shape \[B, 4, Z, Y, X\]"):
+            net(torch.rand(1, 3, 16, 16, 16))
+        with pytest.raises(ValueError, match=r"x must have shape"):
+            net(torch.rand(4, 16, 16, 16))
+        with pytest.raises(ValueError, match="channels"):
+            UNet3D(channels=(8, 16))  # type: ignore[arg-type]
+
+    @pytest.mark.parametrize("batch", [1, 2])
+    @pytest.mark.parametrize("zyx", [(8, 16, 8), (32, 16, 24), (16, 24, 8)])
+    def test_cardinality(self, batch: int, zyx: tuple[int, int, int]) -> None:
+        out = small_net()(torch.rand(batch, 4, *zyx))
+        assert out.shape == (batch, 32, zyx[0] // 2, zyx[1] // 2, zyx[2] // 2)
+
+    def test_custom_channels(self) -> None:
+        net = UNet3D(in_channels=2, out_channels=5, channels=(4, 8, 8))
+        assert net(torch.rand(1, 2, 16, 8, 8)).shape == (1, 5, 8, 4, 4)
+
+    def test_unit_norm(self) -> None:
+        out = small_net()(torch.randn(2, 4, 16, 8, 24))
+        torch.testing.assert_close(out.norm(dim=1), torch.ones(2, 8, 4, 12))
+
+    def test_unnormalized(self) -> None:
+        out = small_net(normalize=False)(torch.randn(1, 4, 16, 16, 16))
+        assert not torch.allclose(out.norm(dim=1), torch.ones(()))
+
+    def test_single_bottleneck_voxel_eval(self) -> None:
+        # An 8^3 input has a 1-voxel bottleneck: fine in eval mode (BatchNorm needs > 1 value only when training).
+        assert small_net().eval()(torch.rand(1, 4, 8, 8, 8)).shape == (1, 32, 4, 4, 4)
+
+    def test_zero_features_stay_finite(self) -> None:
+        net = small_net().eval()
+        with torch.no_grad():
+            for p in net.head.parameters():
+                p.zero_()
+        out = net(torch.randn(1, 4, 8, 8, 8))
+        assert torch.isfinite(out).all() and (out == 0).all()
+
+    def test_parameter_count(self) -> None:
+        # Paper widths: 4-2-64, 4-2-128, 4-2-256, 4-0.5-128, 4-0.5-64, 1-1-32 (~5.79 M).
+        count = sum(p.numel() for p in UNet3D().parameters())
+        assert count == 5_788_960
+        assert abs(count - 5.79e6) < 0.01e6
+
+    def test_paper_widths(self) -> None:
+        torch.manual_seed(0)
+        out = UNet3D()(torch.rand(1, 4, 16, 8, 16))
+        assert out.shape == (1, 32, 8, 4, 8)
+        torch.testing.assert_close(out.norm(dim=1), torch.ones(1, 8, 4, 8))
+
+    def test_gradient_flows(self) -> None:
+        net = small_net()
+        x = torch.randn(2, 4, 8, 16, 8, requires_grad=True)
+        (net(x) * torch.randn(2, 32, 4, 8, 4)).sum().backward()
+        assert x.grad is not None and x.grad.abs().sum() > 0
+        for name, p in net.named_parameters():
+            assert p.grad is not None and torch.isfinite(p.grad).all(), name
+            assert p.grad.abs().sum() > 0, name
+
+    def test_eval_determinism(self) -> None:
+        net = small_net()
+        net(torch.randn(2, 4, 16, 16, 16))  # update running stats once
+        net.eval()
+        x = torch.randn(1, 4, 16, 16, 16)
+        with torch.no_grad():
+            torch.testing.assert_close(net(x), net(x), rtol=0, atol=0)
+
+    def test_channels_last_3d(self) -> None:
+        net = small_net().eval()
+        x = torch.randn(2, 4, 16, 8, 24)
+        with torch.no_grad():
+            expected = net(x)
+            out_input_only = net(x.to(memory_format=torch.channels_last_3d))
+            net_cl = net.to(memory_format=torch.channels_last_3d)
+            out_both = net_cl(x.to(memory_format=torch.channels_last_3d))
+        torch.testing.assert_close(out_input_only, expected, rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(out_both, expected, rtol=1e-4, atol=1e-5)
+
+    def test_channels_last_3d_backward(self) -> None:
+        net = small_net().to(memory_format=torch.channels_last_3d)
+        x = torch.randn(1, 4, 8, 8, 16).to(memory_format=torch.channels_last_3d).requires_grad_()
+        net(x).sum().backward()
+        assert x.grad is not None and torch.isfinite(x.grad).all()
+
+    def test_bf16_autocast(self) -> None:
+        net = small_net().eval()
+        x = torch.randn(1, 4, 16, 16, 16)
+        with torch.no_grad():
+            expected = net(x)
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                out = net(x)
+        assert out.dtype == torch.bfloat16
+        torch.testing.assert_close(out.float().norm(dim=1), torch.ones(1, 8, 8, 8), rtol=0, atol=1e-2)
+        cosine = (out.float() * expected).sum(dim=1)
+        assert cosine.min() > 0.95

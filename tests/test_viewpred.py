@@ -1,0 +1,169 @@
+"""View-prediction stage: shapes, one-scene overfit, the shared-encoder contract, and `threedq em` resuming."""
+
+from __future__ import annotations
+
+import json
+import pickle
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+
+from datamodules.scene_folder import SceneFolderDataModule
+from stages.base import EncoderStage, load_encoder_state
+from stages.viewpred import ViewPrediction, view_prediction_figure
+
+SMALL = dict(grid_resolution=(32, 32, 16), image_every_n_steps=0)
+
+
+@pytest.fixture(scope="module")
+def batch(tiny_dataset: Path) -> dict[str, torch.Tensor]:
+    dm = SceneFolderDataModule(str(tiny_dataset), batch_size=1, num_input_views=1, num_target_views=1)
+    dm.setup()
+    return next(iter(dm.val_dataloader()))
+
+
+class TestViewPrediction:
+    def test_shapes(self, batch: dict[str, torch.Tensor]) -> None:
+        m = ViewPrediction(**SMALL)
+        out = m(batch)
+        assert out["features"].shape == (1, 32, 8, 16, 16)  # (nz, ny, nx) / 2
+        norms = out["features"].norm(dim=1)
+        assert torch.allclose(norms, torch.ones_like(norms), atol=1e-4)
+        r = m._step(batch)
+        assert r["pred"].shape == (1, 3, 16, 16) and r["pred"].abs().max() <= 0.5
+        occ, free = r["occ"], m.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])[1]
+        assert occ.shape == free.shape == (1, 1, 8, 16, 16)
+        assert occ.sum() > 0 and free.sum() > 0 and (occ * free).sum() == 0
+
+    def test_needs_a_target_view(self, batch: dict[str, torch.Tensor]) -> None:
+        one = {k: (v[:, :1] if k in ("rgb", "depth", "K", "R_T_cam") else v) for k, v in batch.items()}
+        with pytest.raises(ValueError, match=">= 2 views"):
+            ViewPrediction(**SMALL)._step(one)
+
+    def test_overfit_one_scene(self, batch: dict[str, torch.Tensor]) -> None:
+        L.seed_everything(0, verbose=False)
+        m = ViewPrediction(**SMALL)
+        opt = torch.optim.Adam(m.parameters(), lr=3e-3)
+        first = m._step(batch)
+        for _ in range(60):
+            r = m._step(batch)
+            opt.zero_grad()
+            r["loss"].backward()
+            opt.step()
+        last = m._step(batch)
+        assert last["l1"] < first["l1"] / 5
+        assert last["loss"] < first["loss"] / 2.5
+        assert last["occ_bacc"] > 0.9
+
+    def test_figure(self, batch: dict[str, torch.Tensor]) -> None:
+        m = ViewPrediction(**SMALL)
+        r = m._step(batch)
+        img = view_prediction_figure(batch["rgb"][0, 0], r["pred"][0] + 0.5, r["target"][0] + 0.5,
+                                     torch.sigmoid(r["occ_logits"][0, 0]), r["occ"][0, 0])
+        assert img.dtype.name == "uint8" and img.shape == (32, 5 * 32 + 4 * 2, 3)
+
+
+class TestEncoderContract:
+    def test_load_from_lightning_checkpoint(self, tmp_path: Path) -> None:
+        torch.manual_seed(1)
+        src = ViewPrediction(**SMALL)
+        ckpt = tmp_path / "vp.ckpt"
+        torch.save({"state_dict": src.state_dict(), "hyper_parameters": dict(src.hparams)}, ckpt)
+        dst = EncoderStage(grid_resolution=(32, 32, 16), encoder_ckpt=str(ckpt))
+        for (k, a), b in zip(src.encoder.state_dict().items(), dst.encoder.state_dict().values()):
+            assert torch.equal(a, b), k
+
+    def test_plain_state_dict_and_freezing(self, tmp_path: Path) -> None:
+        torch.manual_seed(2)
+        src = EncoderStage(grid_resolution=(32, 32, 16))
+        path = tmp_path / "encoder.pt"
+        torch.save(src.encoder.state_dict(), path)
+        dst = EncoderStage(grid_resolution=(32, 32, 16), encoder_ckpt=str(path), freeze_encoder=True)
+        dst.train()
+        assert not any(p.requires_grad for p in dst.encoder.parameters())
+        assert not dst.encoder.training  # frozen BatchNorm statistics
+        tuned = EncoderStage(grid_resolution=(32, 32, 16), encoder_ckpt=str(path), freeze_encoder=False)
+        assert all(p.requires_grad for p in tuned.encoder.parameters())
+
+    def test_errors(self, tmp_path: Path) -> None:
+        with pytest.raises(FileNotFoundError, match="encoder_ckpt"):
+            EncoderStage(encoder_ckpt=str(tmp_path / "missing.ckpt"))
+        other = EncoderStage(grid_resolution=(32, 32, 16), feature_dim=16)
+        path = tmp_path / "enc16.pt"
+        torch.save({"state_dict": other.state_dict()}, path)
+        with pytest.raises(ValueError, match=r"enc16\.pt: field 'encoder\.head\.weight'"):
+            EncoderStage(grid_resolution=(32, 32, 16), encoder_ckpt=str(path))
+        evil = tmp_path / "evil.ckpt"
+        evil.write_bytes(pickle.dumps({"state_dict": {"encoder.x": object()}}))
+        with pytest.raises(ValueError, match="cannot be loaded safely"):
+            load_encoder_state(other.encoder, evil)
+        no_enc = tmp_path / "noenc.ckpt"
+        torch.save({"state_dict": {"decoder.w": torch.zeros(1)}, "epoch": 3}, no_enc)
+        with pytest.raises(ValueError, match="no 'encoder"):
+            load_encoder_state(other.encoder, no_enc)
+
+
+def _em_config(tmp_path: Path, data_dir: Path) -> str:
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(
+        f"""
+model:
+  init_args:
+    grid_resolution: [32, 32, 16]
+    image_every_n_steps: 1
+data:
+  init_args:
+    data_dir: {data_dir}
+    num_scenes: 12
+    image_size: [32, 32]
+    num_views: 4
+    generator_workers: 1
+trainer:
+  max_steps: 2
+  log_every_n_steps: 1
+  limit_val_batches: 1
+  check_val_every_n_epoch: 1
+  enable_progress_bar: false
+  enable_model_summary: false
+"""
+    )
+    return str(cfg)
+
+
+class TestEm:
+    def test_runs_then_skips_finished_stages(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
+        from threedq.em import run_em
+
+        cfg = _em_config(tmp_path, tiny_dataset)
+        work = tmp_path / "em"
+        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg])
+        p = summary["eval_features"]["retrieval"]["precision_at_k"]
+        assert set(p) == {"learned", "raw_rgb_occupancy", "random_encoder"}
+        assert (work / "report.md").is_file() and json.loads((work / "metrics.json").read_text())["rounds"] == 1
+        run = work / "00_viewpred"
+        assert (run / "config.yaml").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
+        assert list((run / "images").glob("*.png")) and (run / "metrics.csv").is_file()
+        stamp = (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns
+        capsys.readouterr()
+        run_em(rounds=1, work_dir=str(work), extra_configs=[cfg])
+        assert "finished earlier" in capsys.readouterr().out
+        assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
+
+    def test_resume_an_interrupted_stage(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
+        from threedq.em import run_em
+
+        cfg = _em_config(tmp_path, tiny_dataset)
+        work = tmp_path / "em"
+        run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=1)
+        run = work / "00_viewpred"
+        (run / "stage.json").unlink()  # as if killed after its last checkpoint
+        (work / "01_eval_features" / "metrics.json").unlink()
+        with pytest.raises(RuntimeError, match="--resume"):
+            run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=3)
+        capsys.readouterr()
+        run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=3, resume=True)
+        assert "resuming from" in capsys.readouterr().out
+        state = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
+        assert state["global_step"] == 3

@@ -1,0 +1,7 @@
+"""``python -m threedq`` = the ``threedq`` command."""
+
+import sys
+
+from threedq.cli import main
+
+sys.exit(main())

@@ -1,0 +1,548 @@
+"""Pictures of scene records: projected 3D boxes, colourised depth and instance masks, a dataset contact sheet.
+
+The drawing helpers work on RGB ``uint8`` images (channel order R, G, B; colours are given as RGB
+tuples) and return new arrays; nothing is drawn in place. Only the final PNG encode converts to the
+BGR order OpenCV writes.
+
+Convention:
+    OpenCV camera axes (x right, y down, z forward); ``world_T_cam`` ``[4, 4]`` is camera-to-world;
+    ``K`` ``[3, 3]`` has pixel centres at integer coordinates, so ``u = fx * x / z + cx``. An image
+    upscaled ``s`` times by nearest neighbour maps original pixel coordinate ``u`` to ``s * u + (s - 1) / 2``.
+    Boxes are ``(cx, cy, cz, sx, sy, sz, yaw)`` in the world frame (z up, yaw counter-clockwise about +z),
+    with corners in :func:`threedq.boxes.box_corners` order.
+"""
+
+from __future__ import annotations
+
+import argparse
+import colorsys
+import zlib
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from threedq.atomic_io import atomic_write_bytes
+from threedq.boxes import box_corners
+from threedq.scene import SceneRecord, load_index, load_scene
+
+__all__ = [
+    "project_points",
+    "draw_boxes",
+    "colorize_depth",
+    "colorize_instances",
+    "distinct_colour",
+    "scene_row",
+    "contact_sheet",
+    "BOX_EDGES",
+    "PAD",
+    "TITLE_HEIGHT",
+    "CAPTION_HEIGHT",
+    "TILES_PER_VIEW",
+]
+
+#: The 12 edges of a box as corner-index pairs (corners differing in exactly one of the bits x, y, z).
+BOX_EDGES: tuple[tuple[int, int], ...] = tuple(
+    (i, i | bit) for bit in (1, 2, 4) for i in range(8) if not i & bit
+)
+_TOP_EDGES = tuple(e for e in BOX_EDGES if e[0] & 4 and e[1] & 4)  # edges of the top face (corners 4-7)
+
+#: Contact-sheet layout, in output pixels: outer margin and gap between tiles and rows.
+PAD = 4
+#: Height of the strip holding a row's title (the scene file name).
+TITLE_HEIGHT = 20
+#: Height of the strip holding the per-tile captions under a row's title.
+CAPTION_HEIGHT = 14
+#: Tiles drawn per view: RGB, depth, instance mask, RGB with GT boxes.
+TILES_PER_VIEW = 4
+
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_BACKGROUND = 32  # grey level of the contact-sheet background
+
+
+def _as_pose(K: np.ndarray, world_T_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    K = np.asarray(K, dtype=np.float64)
+    pose = np.asarray(world_T_cam, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K must have shape [3, 3], got {list(K.shape)}")
+    if pose.shape != (4, 4):
+        raise ValueError(f"world_T_cam must have shape [4, 4], got {list(pose.shape)}")
+    return K, pose
+
+
+def _to_camera(points_world: np.ndarray, world_T_cam: np.ndarray) -> np.ndarray:
+    """``[N, 3]`` world points -> ``[N, 3]`` camera-frame points (float64)."""
+    cam_T_world = np.linalg.inv(world_T_cam)
+    return points_world @ cam_T_world[:3, :3].T + cam_T_world[:3, 3]
+
+
+def project_points(
+    points_world: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points into a pinhole camera.
+
+    Args:
+        points_world: ``[N, 3]`` points in the world frame (metres).
+        K: ``[3, 3]`` intrinsics.
+        world_T_cam: ``[4, 4]`` camera-to-world pose.
+
+    Returns:
+        ``uv`` ``[N, 2]`` float64 pixel coordinates ``(u, v)`` (column, row) and ``z`` ``[N]`` float64
+        camera-frame depth. ``uv`` is NaN where ``z <= 0`` (the point is not in front of the camera).
+
+    Convention: OpenCV camera axes (x right, y down, z forward); pixel centres at integer coordinates,
+    ``u = fx * x / z + s * y / z + cx``, ``v = fy * y / z + cy``.
+    """
+    K, pose = _as_pose(K, world_T_cam)
+    pts = np.asarray(points_world, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points_world must have shape [N, 3], got {list(pts.shape)}")
+    cam = _to_camera(pts, pose)
+    z = cam[:, 2]
+    uv = np.full((pts.shape[0], 2), np.nan)
+    front = z > 0
+    if np.any(front):
+        h = cam[front] @ K.T
+        uv[front] = h[:, :2] / h[:, 2:3]
+    return uv, z
+
+
+def _clip_segment_2d(
+    p: np.ndarray, q: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Liang-Barsky clip of the 2D segment ``p -> q`` to the rectangle ``[lo, hi]``; ``None`` if outside."""
+    d = q - p
+    t0, t1 = 0.0, 1.0
+    for k in range(2):
+        for num, den in ((p[k] - lo[k], -d[k]), (hi[k] - p[k], d[k])):
+            if den == 0:
+                if num < 0:
+                    return None
+                continue
+            t = num / den
+            if den < 0:
+                t0 = max(t0, t)
+            else:
+                t1 = min(t1, t)
+            if t0 > t1:
+                return None
+    return p + t0 * d, p + t1 * d
+
+
+def _visible_segments(
+    corners_cam: np.ndarray, K: np.ndarray, edges: Sequence[tuple[int, int]], near: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Clip each 3D edge at the plane ``z = near`` and project what is in front; returns pixel segments."""
+    out = []
+    for a, b in edges:
+        pa, pb = corners_cam[a], corners_cam[b]
+        za, zb = pa[2], pb[2]
+        if za <= near and zb <= near:
+            continue
+        if za <= near or zb <= near:
+            t = (near - za) / (zb - za)  # za != zb here
+            cut = pa + t * (pb - pa)
+            cut[2] = near
+            if za <= near:
+                pa = cut
+            else:
+                pb = cut
+        ha, hb = K @ pa, K @ pb
+        out.append((ha[:2] / ha[2], hb[:2] / hb[2]))
+    return out
+
+
+def distinct_colour(key: int | str) -> tuple[int, int, int]:
+    """A fixed, saturated RGB colour for an integer id or a name (stable across runs and processes).
+
+    Integer ids step the hue by the golden ratio, so consecutive ids get well-separated colours;
+    names are hashed with CRC-32 first.
+    """
+    n = zlib.crc32(key.encode("utf-8")) if isinstance(key, str) else int(key)
+    hue = (n * 0.618033988749895) % 1.0
+    sat = 0.65 + 0.3 * ((n * 7) % 3) / 2  # 0.65, 0.8, 0.95
+    r, g, b = colorsys.hsv_to_rgb(hue, sat, 1.0)
+    return int(round(r * 255)), int(round(g * 255)), int(round(b * 255))
+
+
+def _text_colour(bg: tuple[int, int, int]) -> tuple[int, int, int]:
+    luma = 0.299 * bg[0] + 0.587 * bg[1] + 0.114 * bg[2]
+    return (0, 0, 0) if luma > 140 else (255, 255, 255)
+
+
+def _put_label(
+    img: np.ndarray,
+    text: str,
+    anchor: tuple[float, float],
+    colour: tuple[int, int, int],
+    scale: float,
+    placed: list[tuple[int, int, int, int]],
+) -> None:
+    """Write ``text`` on a filled tag in ``colour``, centred above ``anchor`` and kept inside the image.
+
+    A tag that would cover one already in ``placed`` (``(x0, y0, x1, y1)`` rectangles) is moved up, then
+    down, by whole tag heights until it is free (a few tries); its rectangle is appended to ``placed``.
+    """
+    H, W = img.shape[:2]
+    (tw, th), base = cv2.getTextSize(text, _FONT, scale, 1)
+    x = int(round(anchor[0] - tw / 2))
+    x = min(max(x, 1), max(W - tw - 1, 1))
+    y_lo, y_hi = th + 1, max(H - base - 1, th + 1)  # allowed baselines
+
+    def rect(y: int) -> tuple[int, int, int, int]:
+        return x - 1, y - th - 1, x + tw, y + base
+
+    def free(r: tuple[int, int, int, int]) -> bool:
+        return all(r[2] < p[0] or p[2] < r[0] or r[3] < p[1] or p[3] < r[1] for p in placed)
+
+    y0 = min(max(int(round(anchor[1])) - 3 - base, y_lo), y_hi)  # text baseline
+    step = th + base + 2
+    y = y0
+    for k in (0, -1, -2, -3, 1, 2, 3):
+        cand = min(max(y0 + k * step, y_lo), y_hi)
+        if free(rect(cand)):
+            y = cand
+            break
+    r = rect(y)
+    placed.append(r)
+    cv2.rectangle(img, r[:2], r[2:], colour, thickness=-1)
+    cv2.putText(img, text, (x, y), _FONT, scale, _text_colour(colour), 1, cv2.LINE_AA)
+
+
+def _upscale(img: np.ndarray, upscale: int) -> np.ndarray:
+    if int(upscale) != upscale or upscale < 1:
+        raise ValueError(f"upscale must be a positive integer, got {upscale!r}")
+    upscale = int(upscale)
+    if upscale == 1:
+        return np.ascontiguousarray(img).copy()
+    return cv2.resize(img, (img.shape[1] * upscale, img.shape[0] * upscale), interpolation=cv2.INTER_NEAREST)
+
+
+def draw_boxes(
+    rgb: np.ndarray,
+    boxes: np.ndarray,
+    labels: Sequence[str] | None,
+    K: np.ndarray,
+    world_T_cam: np.ndarray,
+    scores: Sequence[float] | None = None,
+    colour: tuple[int, int, int] | Sequence[tuple[int, int, int]] | None = None,
+    upscale: int = 3,
+    thickness: int = 2,
+    near: float = 1e-3,
+    heading: bool = True,
+    font_scale: float = 0.4,
+) -> np.ndarray:
+    """Draw oriented 3D boxes as projected wireframes with their labels.
+
+    The image is first upscaled ``upscale`` times (nearest neighbour) so that lines and text stay
+    legible on small renders; the box geometry is drawn with sub-pixel accuracy in the upscaled image.
+    Each edge is clipped at the near plane ``z = near`` (a box straddling the camera plane shows only
+    its part in front), then to the image. The label (``"name"`` or ``"name 0.87"`` with a score) is
+    written on a filled tag in the box colour above the topmost visible point of the box's top face
+    (of the box, if no top edge is visible), shifted by whole tag heights if it would cover an earlier
+    tag; boxes with nothing visible get no label, and an empty label string draws no tag. With
+    ``heading``, a line from the box centre to the centre of its +x face
+    shows the yaw (drawn only when both ends are in front of the camera).
+
+    Args:
+        rgb: ``[H, W, 3]`` uint8 image, RGB order.
+        boxes: ``[M, 7]`` ``(cx, cy, cz, sx, sy, sz, yaw)`` world-frame boxes.
+        labels: ``M`` names (or ``None`` for no text).
+        K: ``[3, 3]`` intrinsics of ``rgb`` (at its original size).
+        world_T_cam: ``[4, 4]`` camera-to-world pose.
+        scores: optional ``M`` confidences, written after the label with two decimals.
+        colour: one RGB colour for all boxes (e.g. green for ground truth, red for detections), ``M``
+            colours, or ``None`` for a fixed colour per label (:func:`distinct_colour`).
+        upscale: integer nearest-neighbour upscale factor of the output.
+        thickness: line thickness in output pixels.
+        near: near-plane depth in metres for clipping edges that go behind the camera.
+        heading: draw the yaw tick.
+        font_scale: OpenCV font scale of the labels (0.4 is about 9 output pixels high).
+
+    Returns:
+        ``[H * upscale, W * upscale, 3]`` uint8 RGB image (a new array).
+
+    Convention: OpenCV camera axes, ``world_T_cam`` camera-to-world, pixel centres at integer
+    coordinates; world z up, yaw counter-clockwise about +z; corners in :func:`box_corners` order.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb must be a [H, W, 3] uint8 image, got shape {list(rgb.shape)} dtype {rgb.dtype}")
+    K, pose = _as_pose(K, world_T_cam)
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    M = boxes.shape[0]
+    if labels is not None and len(labels) != M:
+        raise ValueError(f"labels: expected {M} names (one per box), got {len(labels)}")
+    if scores is not None and len(scores) != M:
+        raise ValueError(f"scores: expected {M} values (one per box), got {len(scores)}")
+    if colour is None:
+        colours = [distinct_colour(labels[m] if labels is not None else m + 1) for m in range(M)]
+    elif len(colour) == 3 and all(np.isscalar(c) for c in colour):
+        colours = [tuple(int(c) for c in colour)] * M  # type: ignore[union-attr]
+    else:
+        if len(colour) != M:
+            raise ValueError(f"colour: expected one RGB triple or {M} of them, got {len(colour)}")
+        colours = [tuple(int(c) for c in col) for col in colour]  # type: ignore[union-attr]
+
+    out = _upscale(rgb, upscale)
+    s = int(upscale)
+    H, W = out.shape[:2]
+    shift = 4  # cv2 fixed-point fractional bits: sub-pixel line placement
+    lo = np.array([-2.0 * thickness, -2.0 * thickness])
+    hi = np.array([W - 1 + 2.0 * thickness, H - 1 + 2.0 * thickness])
+    offset = (s - 1) / 2.0
+
+    def to_out(p: np.ndarray) -> np.ndarray:
+        return p * s + offset
+
+    def fixed(p: np.ndarray) -> tuple[int, int]:
+        return int(round(p[0] * (1 << shift))), int(round(p[1] * (1 << shift)))
+
+    if M == 0:
+        return out
+    corners = box_corners(boxes)  # [M, 8, 3]
+    placed: list[tuple[int, int, int, int]] = []
+    for m in range(M):
+        cam = _to_camera(corners[m], pose)
+        col = colours[m]
+        drawn: list[np.ndarray] = []
+        top: list[np.ndarray] = []
+        for edges, sink in ((BOX_EDGES, drawn), (_TOP_EDGES, top)):
+            for p, q in _visible_segments(cam, K, edges, near):
+                clipped = _clip_segment_2d(to_out(p), to_out(q), lo, hi)
+                if clipped is None:
+                    continue
+                sink.extend(clipped)
+                if sink is drawn:
+                    cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, thickness, cv2.LINE_AA, shift)
+        if heading:
+            ends = np.stack([corners[m].mean(axis=0), corners[m][[1, 3, 5, 7]].mean(axis=0)])
+            ends_cam = _to_camera(ends, pose)
+            if np.all(ends_cam[:, 2] > near):
+                h = ends_cam @ K.T
+                uv = h[:, :2] / h[:, 2:3]
+                clipped = _clip_segment_2d(to_out(uv[0]), to_out(uv[1]), lo, hi)
+                if clipped is not None:
+                    cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, max(1, thickness - 1), cv2.LINE_AA, shift)
+        text = "" if labels is None else str(labels[m])
+        if scores is not None:
+            text = f"{text} {float(scores[m]):.2f}".strip()
+        pts = top or drawn
+        if text and pts:
+            arr = np.clip(np.stack(pts), [0, 0], [W - 1, H - 1])
+            anchor = arr[int(np.argmin(arr[:, 1]))]
+            _put_label(out, text, (float(anchor[0]), float(anchor[1])), col, font_scale, placed)
+    return out
+
+
+def colorize_depth(
+    depth: np.ndarray,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    colormap: int = cv2.COLORMAP_VIRIDIS,
+    percentile: float = 1.0,
+) -> np.ndarray:
+    """Colourise a depth map with a perceptual colormap.
+
+    Args:
+        depth: ``[H, W]`` metric depth; ``0`` (or non-finite) is invalid.
+        vmin, vmax: depth range mapped to the colormap ends (values outside are clamped); default the
+            valid range of this image, robustly: its ``percentile`` and ``100 - percentile`` percentiles.
+        colormap: an OpenCV colormap id (default viridis: near dark blue, far yellow).
+        percentile: tail of valid depths (in percent) ignored at each end when picking the default range,
+            so a few stray far pixels (a window, the horizon) do not flatten the picture; 0 = min/max.
+
+    Returns:
+        ``[H, W, 3]`` uint8 RGB image; invalid pixels are black.
+
+    Convention: depth is metric z-depth, 0 = invalid.
+    """
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth must have shape [H, W], got {list(d.shape)}")
+    valid = np.isfinite(d) & (d > 0)
+    out = np.zeros((*d.shape, 3), dtype=np.uint8)
+    if not np.any(valid):
+        return out
+    p = min(max(float(percentile), 0.0), 50.0)
+    auto_lo, auto_hi = (float(x) for x in np.percentile(d[valid], [p, 100.0 - p]))
+    lo = auto_lo if vmin is None else float(vmin)
+    hi = auto_hi if vmax is None else float(vmax)
+    scaled = np.zeros(d.shape, dtype=np.float64)
+    scaled[valid] = np.clip((d[valid] - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
+    grey = np.clip(np.round(scaled * 255), 0, 255).astype(np.uint8)
+    coloured = cv2.cvtColor(cv2.applyColorMap(grey, colormap), cv2.COLOR_BGR2RGB)
+    out[valid] = coloured[valid]
+    return out
+
+
+def colorize_instances(instance: np.ndarray) -> np.ndarray:
+    """Colour an instance-id map with a fixed, distinct colour per id.
+
+    Args:
+        instance: ``[H, W]`` integer ids; ``0`` (and negative ids) is background.
+
+    Returns:
+        ``[H, W, 3]`` uint8 RGB image; background black, id ``i`` in ``distinct_colour(i)`` (the same
+        colour in every image).
+
+    Convention: ids as in :class:`threedq.scene.SceneRecord` ``instance`` (object ``i`` is row ``i - 1``
+    of ``boxes``).
+    """
+    inst = np.asarray(instance)
+    if inst.ndim != 2:
+        raise ValueError(f"instance must have shape [H, W], got {list(inst.shape)}")
+    ids, inverse = np.unique(inst.astype(np.int64), return_inverse=True)
+    lut = np.array([distinct_colour(int(i)) if i > 0 else (0, 0, 0) for i in ids], dtype=np.uint8).reshape(-1, 3)
+    return lut[inverse.reshape(inst.shape)]
+
+
+def _put_text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour=(235, 235, 235)) -> None:
+    cv2.putText(img, text, org, _FONT, scale, colour, 1, cv2.LINE_AA)
+
+
+def _default_views(num_views: int) -> list[int]:
+    """Two views spread across the rig (``0`` and ``V // 2``), or the only one."""
+    return [0] if num_views < 2 else [0, num_views // 2]
+
+
+def scene_row(
+    record: SceneRecord,
+    categories: Sequence[str],
+    views: Sequence[int] | None = None,
+    upscale: int = 3,
+    title: str = "",
+) -> np.ndarray:
+    """One contact-sheet row: a title strip, a caption strip and, per view, RGB | depth | instance | GT boxes.
+
+    GT boxes are coloured by category id (``distinct_colour(category)``) and labelled with its name.
+
+    Args:
+        record: the scene.
+        categories: category names, indexed by ``record.categories``.
+        views: view indices to show; default two views spread across the rig.
+        upscale: nearest-neighbour upscale of every tile.
+        title: text of the title strip.
+
+    Returns:
+        ``[TITLE_HEIGHT + CAPTION_HEIGHT + H * upscale, len(views) * 4 * (W * upscale + PAD) - PAD, 3]``
+        uint8 RGB image (no outer margin).
+
+    Convention: see the module docstring.
+    """
+    V = record.num_views
+    views = _default_views(V) if views is None else [int(v) for v in views]
+    if not views:
+        raise ValueError("views: need at least one view")
+    bad = [v for v in views if not -V <= v < V]
+    if bad:
+        raise ValueError(f"views {bad} out of range for a scene with {V} views")
+    H, W = record.image_size
+    th, tw = H * upscale, W * upscale
+    n_tiles = len(views) * TILES_PER_VIEW
+    row = np.full((TITLE_HEIGHT + CAPTION_HEIGHT + th, n_tiles * (tw + PAD) - PAD, 3), _BACKGROUND, np.uint8)
+    _put_text(row, title, (2, TITLE_HEIGHT - 6), 0.45)
+    names = [categories[c] if 0 <= c < len(categories) else f"cat{c}" for c in record.categories.tolist()]
+    box_colours = [distinct_colour(c) for c in record.categories.tolist()]  # one well-separated colour per category
+    for j, v in enumerate(views):
+        v = v % V
+        depth = record.depth[v]
+        valid = depth[np.isfinite(depth) & (depth > 0)]
+        drange = f"{valid.min():.2f}-{valid.max():.2f}m" if valid.size else "none valid"
+        if record.instance is not None:
+            inst = _upscale(colorize_instances(record.instance[v]), upscale)
+        else:
+            inst = np.full((th, tw, 3), 64, np.uint8)
+            _put_text(inst, "no instance mask", (4, th // 2), 0.4)
+        tiles = [
+            (f"view {v} rgb", _upscale(record.rgb[v], upscale)),
+            (f"depth {drange}", _upscale(colorize_depth(depth), upscale)),
+            ("instances", inst),
+            (f"GT boxes ({record.num_objects})", draw_boxes(
+                record.rgb[v], record.boxes, names, record.K[v], record.world_T_cam[v], colour=box_colours,
+                upscale=upscale,
+            )),
+        ]
+        for k, (caption, tile) in enumerate(tiles):
+            x = (j * TILES_PER_VIEW + k) * (tw + PAD)
+            row[TITLE_HEIGHT + CAPTION_HEIGHT:, x:x + tw] = tile
+            _put_text(row, caption, (x + 2, TITLE_HEIGHT + CAPTION_HEIGHT - 4), 0.35, (190, 190, 190))
+    return row
+
+
+def contact_sheet(
+    dataset_dir: str | Path,
+    out_png: str | Path,
+    num_scenes: int = 4,
+    views: Sequence[int] | None = None,
+    split: str | None = None,
+    upscale: int = 3,
+) -> Path:
+    """Write a PNG contact sheet of a dataset folder: one row per scene, a few views per row.
+
+    Reads ``index.json``, takes the first ``num_scenes`` scenes (of ``split`` if given) and draws, for
+    each, a row made by :func:`scene_row` titled with the scene file name and split. Rows are stacked
+    with a :data:`PAD`-pixel margin around and between them (narrower rows are padded on the right), so a
+    sheet of ``n`` scenes of ``H x W`` pixels showing ``k`` views each is
+    ``PAD + n * (TITLE_HEIGHT + CAPTION_HEIGHT + H * upscale + PAD)`` high and
+    ``PAD + 4 * k * (W * upscale + PAD)`` wide.
+
+    Args:
+        dataset_dir: folder holding ``index.json`` and the scene files.
+        out_png: destination PNG (written atomically; parent folders are created).
+        num_scenes: how many scenes (rows) to show at most.
+        views: view indices shown for every scene; default two views spread across each rig.
+        split: only scenes of this split (``"train"``, ``"val"``, ``"test"``).
+        upscale: nearest-neighbour upscale of every tile.
+
+    Returns:
+        The path of the written PNG.
+
+    Convention: the PNG holds true colours (converted from the RGB arrays to OpenCV's BGR on encode).
+    """
+    dataset_dir = Path(dataset_dir)
+    index = load_index(dataset_dir)
+    files = index.files(split)[: max(int(num_scenes), 0)]
+    if not files:
+        raise ValueError(
+            f"{dataset_dir / 'index.json'}: no scenes to show"
+            + (f" in split {split!r}" if split is not None else "")
+            + f" (num_scenes={num_scenes})"
+        )
+    split_of = {s["file"]: s["split"] for s in index.scenes}
+    rows = []
+    for f in files:
+        record = load_scene(dataset_dir / f, num_categories=len(index.categories))
+        title = f"{f}  [{split_of.get(f, '?')}]  {record.num_views} views, {record.num_objects} objects"
+        rows.append(scene_row(record, index.categories, views=views, upscale=upscale, title=title))
+    width = max(r.shape[1] for r in rows) + 2 * PAD
+    height = PAD + sum(r.shape[0] + PAD for r in rows)
+    sheet = np.full((height, width, 3), _BACKGROUND, np.uint8)
+    y = PAD
+    for r in rows:
+        sheet[y:y + r.shape[0], PAD:PAD + r.shape[1]] = r
+        y += r.shape[0] + PAD
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RuntimeError(f"{out_png}: PNG encoding failed")
+    return atomic_write_bytes(Path(out_png), buf.tobytes())
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    """``python -m threedq.data.show DATASET_DIR OUT.png [--num-scenes N] [--split S] [--views 0 4] [--upscale 3]``."""
+    p = argparse.ArgumentParser(prog="python -m threedq.data.show", description=contact_sheet.__doc__.split("\n")[0])
+    p.add_argument("dataset_dir")
+    p.add_argument("out_png")
+    p.add_argument("--num-scenes", type=int, default=4)
+    p.add_argument("--split", default=None)
+    p.add_argument("--views", type=int, nargs="+", default=None)
+    p.add_argument("--upscale", type=int, default=3)
+    a = p.parse_args(argv)
+    path = contact_sheet(a.dataset_dir, a.out_png, a.num_scenes, a.views, a.split, a.upscale)
+    print(path)
+    return path
+
+
+if __name__ == "__main__":
+    main()

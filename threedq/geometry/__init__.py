@@ -1,0 +1,22 @@
+"""Geometry core: voxel grids, cameras, unprojection, box crops and yaw rotation.
+
+Convention:
+    Metres; reference frame R right-handed with z up; yaw counter-clockwise about +z seen from above,
+    radians. Cameras use OpenCV axes, ``a_T_b`` maps frame b to frame a. Volumes are ``[B, C, Z, Y, X]``
+    on a cell-centred grid; every ``grid_sample`` uses ``align_corners=False``.
+"""
+
+from .camera import *  # noqa: F403
+from .camera import __all__ as _camera_all
+from .crop import *  # noqa: F403
+from .crop import __all__ as _crop_all
+from .frustum import *  # noqa: F403
+from .frustum import __all__ as _frustum_all
+from .grid import *  # noqa: F403
+from .grid import __all__ as _grid_all
+from .rotate import *  # noqa: F403
+from .rotate import __all__ as _rotate_all
+from .unproject import *  # noqa: F403
+from .unproject import __all__ as _unproject_all
+
+__all__ = [*_grid_all, *_camera_all, *_unproject_all, *_crop_all, *_rotate_all, *_frustum_all]

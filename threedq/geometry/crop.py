@@ -1,0 +1,108 @@
+"""Cropping axis-aligned boxes out of feature volumes.
+
+Convention:
+    Boxes are axis-aligned in the reference frame R (metres, z up): ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+    Volumes are ``[B, C, Z, Y, X]`` on a cell-centred :class:`VoxelGridSpec`; sampling uses
+    ``align_corners=False``.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .grid import VoxelGridSpec
+
+__all__ = ["box_mask", "crop_boxes"]
+
+
+def _check_boxes(boxes: Tensor) -> None:
+    if not isinstance(boxes, Tensor) or boxes.ndim != 3 or boxes.shape[-1] != 6:
+        shape = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
+        raise ValueError(f"boxes must have shape [B, N, 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {shape}")
+
+
+def _as_size(size: int | tuple[int, int, int]) -> tuple[int, int, int]:
+    sizes = (size,) * 3 if isinstance(size, int) else tuple(size)
+    if len(sizes) != 3 or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in sizes):
+        raise ValueError(f"size must be a positive int or a tuple of 3 positive ints (sz, sy, sx), got {size!r}")
+    return sizes  # type: ignore[return-value]
+
+
+def _box_sample_points(boxes: Tensor, size: tuple[int, int, int]) -> Tensor:
+    """Centres of the ``sz x sy x sx`` cells of each box: ``[B, N, sz, sy, sx, 3]`` (xyz) in R."""
+    lo, hi = boxes[..., :3], boxes[..., 3:]
+    sz, sy, sx = size
+    axes = [
+        (torch.arange(n, device=boxes.device, dtype=boxes.dtype) + 0.5) / n for n in (sx, sy, sz)
+    ]  # fractions along x, y, z
+    fz, fy, fx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    frac = torch.stack((fx, fy, fz), dim=-1)  # [sz, sy, sx, 3]
+    return lo[:, :, None, None, None, :] + frac * (hi - lo)[:, :, None, None, None, :]
+
+
+def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | tuple[int, int, int] = 16) -> Tensor:
+    """Crop boxes out of a volume and resize each to a fixed size (trilinear, aspect not kept).
+
+    One ``grid_sample`` call handles all boxes of all batch elements. Output cell ``(c, b, a)`` of a box
+    samples the volume at the centre of that cell of the box, e.g. ``x = xmin + (a + 0.5) * (xmax - xmin) / sx``.
+
+    Args:
+        volume: ``[B, C, Z, Y, X]`` feature volume on ``grid``.
+        boxes: ``[B, N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
+        grid: the grid of ``volume``.
+        size: output size, an int or ``(sz, sy, sx)`` in output-dimension (z, y, x) order.
+
+    Returns:
+        ``[B, N, C, sz, sy, sx]`` crops (dtype of ``volume``), zero where a sample falls outside the grid
+        (trilinear with zero padding, so samples within half a voxel of the border blend towards zero).
+        Differentiable w.r.t. ``volume``.
+
+    Convention:
+        Axis-aligned boxes in R; cell-centred voxels, ``align_corners=False``. Boxes are not validated:
+        an inverted box (min > max) gives a mirrored crop.
+    """
+    if not isinstance(grid, VoxelGridSpec):
+        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
+    if volume.ndim != 5 or tuple(volume.shape[2:]) != grid.volume_shape:
+        raise ValueError(
+            f"volume must have shape [B, C, Z, Y, X] with (Z, Y, X) = {grid.volume_shape}, got {tuple(volume.shape)}"
+        )
+    _check_boxes(boxes)
+    if boxes.shape[0] != volume.shape[0]:
+        raise ValueError(f"boxes must have shape [B, N, 6] with B={volume.shape[0]}, got {tuple(boxes.shape)}")
+    sz, sy, sx = _as_size(size)
+    batch, channels = volume.shape[:2]
+    n_boxes = boxes.shape[1]
+    points = _box_sample_points(boxes.to(volume.dtype), (sz, sy, sx))  # [B, N, sz, sy, sx, 3]
+    coords = grid.world_to_normalized(points).reshape(batch, n_boxes * sz, sy, sx, 3)
+    crops = F.grid_sample(volume, coords, mode="bilinear", padding_mode="zeros", align_corners=False)
+    return crops.view(batch, channels, n_boxes, sz, sy, sx).transpose(1, 2).contiguous()
+
+
+def box_mask(boxes: Tensor, grid: VoxelGridSpec) -> Tensor:
+    """Voxels whose centre lies inside each box.
+
+    Args:
+        boxes: ``[B, N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
+        grid: the voxel grid.
+
+    Returns:
+        ``[B, N, Z, Y, X]`` bool, true where ``min <= centre <= max`` on all three axes (closed box).
+
+    Convention:
+        Axis-aligned boxes in R; cell-centred voxels.
+    """
+    if not isinstance(grid, VoxelGridSpec):
+        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
+    _check_boxes(boxes)
+    dtype = boxes.dtype if boxes.is_floating_point() else torch.get_default_dtype()
+    boxes = boxes.to(dtype)
+    # Per axis masks are separable: [B, N, n_axis] each, then broadcast to [B, N, Z, Y, X].
+    masks = []
+    for axis, (lo, n, vs) in enumerate(zip(grid.bounds_min, grid.resolution, grid.voxel_size, strict=True)):
+        centres = lo + (torch.arange(n, device=boxes.device, dtype=dtype) + 0.5) * vs
+        masks.append((centres >= boxes[..., axis, None]) & (centres <= boxes[..., axis + 3, None]))
+    mx, my, mz = masks
+    return mz[:, :, :, None, None] & my[:, :, None, :, None] & mx[:, :, None, None, :]

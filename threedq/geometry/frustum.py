@@ -1,0 +1,182 @@
+"""Resampling of a voxel volume into a camera's frustum (the "perspective-transformed" tensor of GIGNs).
+
+Convention:
+    Grid in the reference frame R (metres, z up), volumes ``[B, C, Z, Y, X]``, cell-centred voxels, every
+    ``grid_sample`` with ``align_corners=False``. Cameras: OpenCV axes (x right, y down, z forward), ``K`` with
+    pixel centres at integer coordinates, poses ``R_T_cam`` (camera-to-R). Frustum tensors are ``[B, C, D, H, W]``
+    with ``D`` depth planes (near to far) and ``H x W`` pixels.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .grid import VoxelGridSpec
+
+__all__ = ["frustum_points", "resample_to_frustum", "scale_intrinsics"]
+
+
+def _check_camera(K: Tensor, R_T_cam: Tensor, batch: int) -> None:
+    if K.ndim != 3 or K.shape != (batch, 3, 3):
+        raise ValueError(f"K must have shape [B, 3, 3] with B={batch}, got {tuple(K.shape)}")
+    if R_T_cam.ndim != 3 or R_T_cam.shape != (batch, 4, 4):
+        raise ValueError(f"R_T_cam must have shape [B, 4, 4] with B={batch}, got {tuple(R_T_cam.shape)}")
+
+
+def _check_frustum_args(image_size: tuple[int, int], depth_range: tuple[float, float], num_planes: int) -> None:
+    if len(image_size) != 2 or any(isinstance(s, bool) or int(s) != s or s < 1 for s in image_size):
+        raise ValueError(f"image_size must be (H, W) with positive ints, got {image_size!r}")
+    if len(depth_range) != 2 or not 0.0 < float(depth_range[0]) < float(depth_range[1]):
+        raise ValueError(f"depth_range must be (near, far) with 0 < near < far, got {depth_range!r}")
+    if isinstance(num_planes, bool) or int(num_planes) != num_planes or num_planes < 1:
+        raise ValueError(f"num_planes must be a positive int, got {num_planes!r}")
+
+
+def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
+    """Intrinsics of a resized image.
+
+    Maps the intrinsics of an image of size ``(H, W)`` to those of the same view resampled to
+    ``(H * sy, W * sx)`` (e.g. ``sx = sy = 0.5`` for the half-resolution frustum).
+
+    Args:
+        K: ``[..., 3, 3]`` pinhole intrinsics.
+        sx: horizontal scale factor (new width / old width), > 0.
+        sy: vertical scale factor (new height / old height), > 0.
+
+    Returns:
+        ``[..., 3, 3]`` new intrinsics: ``fx' = fx * sx``, ``skew' = skew * sx``, ``cx' = (cx + 0.5) * sx - 0.5``,
+        ``fy' = fy * sy``, ``cy' = (cy + 0.5) * sy - 0.5``.
+
+    Convention:
+        Pixel centres at integer coordinates: pixel ``u`` covers ``[u - 0.5, u + 0.5)``, so the image edge is at
+        ``-0.5`` and a continuous coordinate ``c`` maps to ``(c + 0.5) * s - 0.5``; a 3D point keeps its relative
+        position ``(u + 0.5) / W`` in the image.
+
+    Example:
+        >>> K = torch.tensor([[100.0, 0.0, 63.5], [0.0, 100.0, 63.5], [0.0, 0.0, 1.0]])
+        >>> scale_intrinsics(K, 0.5, 0.5)
+        tensor([[50.0000,  0.0000, 31.5000],
+                [ 0.0000, 50.0000, 31.5000],
+                [ 0.0000,  0.0000,  1.0000]])
+    """
+    if K.ndim < 2 or K.shape[-2:] != (3, 3):
+        raise ValueError(f"K must have shape [..., 3, 3], got {tuple(K.shape)}")
+    if not (sx > 0 and sy > 0):
+        raise ValueError(f"scale factors must be positive, got sx={sx}, sy={sy}")
+    row_scale = torch.tensor([sx, sy, 1.0], dtype=K.dtype, device=K.device)
+    shift = torch.tensor([0.5 * sx - 0.5, 0.5 * sy - 0.5, 0.0], dtype=K.dtype, device=K.device)
+    # Row i of K (i = 0, 1) is scaled by s_i; the principal point gets the extra half-pixel shift. For the usual
+    # last row (0, 0, 1) this is exactly K' = S K with S = [[sx, 0, 0.5 sx - 0.5], [0, sy, 0.5 sy - 0.5], [0, 0, 1]].
+    out = K * row_scale[:, None]
+    return out + shift[:, None] * K[..., 2:3, :]
+
+
+def frustum_points(
+    K: Tensor,
+    R_T_cam: Tensor,
+    image_size: tuple[int, int],
+    depth_range: tuple[float, float],
+    num_planes: int,
+) -> Tensor:
+    """Points in R at the centre of every frustum sample.
+
+    Args:
+        K: ``[B, 3, 3]`` intrinsics for an image of size ``image_size``.
+        R_T_cam: ``[B, 4, 4]`` camera-to-R poses.
+        image_size: ``(H, W)`` of the frustum's pixel grid.
+        depth_range: ``(near, far)`` camera z range in metres, ``0 < near < far``.
+        num_planes: number ``D`` of depth planes.
+
+    Returns:
+        ``[B, D, H, W, 3]`` points ``(x, y, z)`` in R, in the dtype of ``K`` (at least float32).
+
+    Convention:
+        Sample ``(d, v, u)`` is the back-projection of pixel centre ``(u, v)`` at camera z-depth
+        ``z_d = near + (d + 0.5) * (far - near) / D`` (planes cell-centred like voxels), mapped to R by ``R_T_cam``.
+    """
+    _check_camera(K, R_T_cam, K.shape[0])
+    _check_frustum_args(image_size, depth_range, num_planes)
+    height, width = (int(s) for s in image_size)
+    depth_planes = int(num_planes)
+    near, far = (float(d) for d in depth_range)
+    dtype = torch.promote_types(K.dtype, torch.float32)
+    device = K.device
+    K = K.to(dtype)
+    R_T_cam = R_T_cam.to(dtype)
+    u = torch.arange(width, device=device, dtype=dtype)
+    v = torch.arange(height, device=device, dtype=dtype)
+    fx, fy, skew = K[:, 0, 0, None, None], K[:, 1, 1, None, None], K[:, 0, 1, None, None]
+    cx, cy = K[:, 0, 2, None, None], K[:, 1, 2, None, None]
+    y = (v[None, :, None] - cy) / fy  # [B, H, 1]
+    x = (u[None, None, :] - cx - skew * y) / fx  # [B, H, W]
+    y = y.expand_as(x)
+    rays = torch.stack((x, y, torch.ones_like(x)), dim=-1)  # [B, H, W, 3], camera frame, z = 1
+    rays_R = rays @ R_T_cam[:, None, :3, :3].transpose(-1, -2)  # rotated into R, [B, H, W, 3]
+    z = near + (torch.arange(depth_planes, device=device, dtype=dtype) + 0.5) * ((far - near) / depth_planes)
+    origin = R_T_cam[:, None, None, None, :3, 3]  # [B, 1, 1, 1, 3]
+    return z[None, :, None, None, None] * rays_R[:, None] + origin
+
+
+def resample_to_frustum(
+    volume: Tensor,
+    grid: VoxelGridSpec,
+    K: Tensor,
+    R_T_cam: Tensor,
+    image_size: tuple[int, int],
+    depth_range: tuple[float, float],
+    num_planes: int,
+) -> Tensor:
+    """Trilinearly resample a volume in R into a camera's frustum.
+
+    Args:
+        volume: ``[B, C, Z, Y, X]`` volume on ``grid`` (e.g. the encoder's features on ``grid.half()``).
+        grid: the grid ``volume`` lives on; its ``volume_shape`` must equal ``volume.shape[2:]``.
+        K: ``[B, 3, 3]`` intrinsics **for the output resolution** ``image_size`` (see :func:`scale_intrinsics`).
+        R_T_cam: ``[B, 4, 4]`` camera-to-R poses of the target views.
+        image_size: ``(H, W)`` of the output frustum grid.
+        depth_range: ``(near, far)`` camera z range in metres, ``0 < near < far``.
+        num_planes: number ``D`` of depth planes.
+
+    Returns:
+        ``[B, C, D, H, W]`` samples in the dtype of ``volume`` (fp16/bf16 volumes are sampled in float32); zero
+        where the sample point is outside the grid (trilinear with zero padding, so values fade out over the last
+        half voxel). Differentiable w.r.t. ``volume``.
+
+    Raises:
+        ValueError: on inconsistent shapes, a grid that does not match ``volume`` or invalid frustum arguments.
+
+    Convention:
+        Sample ``(d, v, u)`` is at pixel centre ``(u, v)`` (integer pixel coordinates, OpenCV axes) and camera
+        z-depth ``z_d = near + (d + 0.5) * (far - near) / D``; one ``grid_sample`` with ``align_corners=False``.
+
+    Example:
+        >>> grid = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (8, 8, 8))
+        >>> K = torch.tensor([[[8.0, 0.0, 3.5], [0.0, 8.0, 3.5], [0.0, 0.0, 1.0]]])
+        >>> R_T_cam = torch.eye(4)[None].clone()
+        >>> R_T_cam[0, 2, 3] = -2.0  # camera 2 m behind the grid centre, looking along +z
+        >>> resample_to_frustum(torch.rand(1, 5, 8, 8, 8), grid, K, R_T_cam, (8, 8), (1.0, 3.0), 16).shape
+        torch.Size([1, 5, 16, 8, 8])
+    """
+    if not isinstance(grid, VoxelGridSpec):
+        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
+    if volume.ndim != 5:
+        raise ValueError(f"volume must have shape [B, C, Z, Y, X], got {tuple(volume.shape)}")
+    if tuple(volume.shape[2:]) != grid.volume_shape:
+        raise ValueError(
+            f"volume spatial shape {tuple(volume.shape[2:])} does not match grid.volume_shape {grid.volume_shape}"
+            " (features of the encoder live on grid.half())"
+        )
+    _check_camera(K, R_T_cam, volume.shape[0])
+    points = frustum_points(K, R_T_cam, image_size, depth_range, num_planes)  # [B, D, H, W, 3]
+    coords = grid.world_to_normalized(points)
+    if not volume.is_floating_point():
+        raise ValueError(f"volume must be a floating tensor, got {volume.dtype}")
+    # Sampling positions need more precision than fp16/bf16 offer (bf16 resolves ~1/128 of the grid), so low
+    # precision volumes are sampled in float32 and the result is cast back.
+    sample_dtype = torch.promote_types(volume.dtype, torch.float32)
+    out = F.grid_sample(
+        volume.to(sample_dtype), coords.to(sample_dtype), mode="bilinear", padding_mode="zeros", align_corners=False
+    )
+    return out.to(volume.dtype)
