@@ -37,6 +37,9 @@ import torch
 from torch import Tensor, nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import cpu_name  # noqa: E402
 
 from threedq.nets import UNet3D  # noqa: E402
 
@@ -215,17 +218,6 @@ def format_row(r: Result, show_peak: bool) -> str:
     if show_peak:
         cells.append(f"{r.peak_mib:.0f}" if r.peak_mib is not None else "-")
     return "| " + " | ".join(cells) + " |"
-
-
-def cpu_name() -> str:
-    """CPU model name (Linux), else the platform's processor string."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def load_average() -> str:

@@ -19,18 +19,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import cpu_name  # noqa: E402
 
 from threedq.data.generate import GeneratorConfig, generate_dataset
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         seconds = time.perf_counter() - t0
         written = sum(f.stat().st_size for f in Path(tmp).rglob("*") if f.is_file())
     n = len(index.scenes)
-    print(f"machine: {_cpu_model()}, {__import__('os').cpu_count()} logical CPUs; python {platform.python_version()}")
+    print(f"machine: {cpu_name()}, {__import__('os').cpu_count()} logical CPUs; python {platform.python_version()}")
     print()
     print("| scenes | views | resolution | workers | seconds | scenes/s | views/s | MB written |")
     print("|---:|---:|---|---:|---:|---:|---:|---:|")

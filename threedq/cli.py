@@ -14,7 +14,6 @@ from __future__ import annotations
 import sys
 import warnings
 from collections.abc import Sequence
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +32,11 @@ LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
 def packaged_configs_dir() -> Path:
     """The folder of configs shipped with threedq (source checkout or installed package)."""
-    source_tree = Path(__file__).resolve().parent.parent / "configs"
-    if source_tree.is_dir():
+    package = Path(__file__).resolve().parent
+    source_tree = package.parent / "configs"  # a source checkout or an editable install
+    if source_tree.is_dir() and (package.parent / "pyproject.toml").is_file():
         return source_tree
-    return Path(str(resources.files("threedq.configs")))
+    return package / "configs"  # an installed wheel: configs/ is shipped as threedq/configs/
 
 
 def resolve_config(path: str | Path) -> Path:
@@ -98,7 +98,7 @@ class ThreeDQCLI(LightningCLI):
 
         Unless the config names its own, the loggers are TensorBoard + CSV writing straight into that
         folder (beside the saved ``config.yaml``), and a ModelCheckpoint keeps ``checkpoints/last.ckpt``
-        there so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
+        there, refreshed every 100 training steps, so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
         """
         cfg = self._get(self.config_init, "trainer", default={})
         root = Path(cfg.get("default_root_dir") or "runs/default")
@@ -109,7 +109,8 @@ class ThreeDQCLI(LightningCLI):
             ]
         callbacks = list(cfg.get("callbacks") or [])
         if cfg.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in callbacks):
-            kwargs["callbacks"] = [*callbacks, ModelCheckpoint(dirpath=root / "checkpoints", save_last=True)]
+            ckpt = ModelCheckpoint(dirpath=root / "checkpoints", save_last=True, every_n_train_steps=100)
+            kwargs["callbacks"] = [*callbacks, ckpt]
         return super().instantiate_trainer(**kwargs)
 
 

@@ -1,0 +1,112 @@
+"""Time one view-prediction training step (forward, backward, Adam) and its parts.
+
+Prints a markdown table: for fp32 and bf16 autocast, with and without channels_last_3d, the median time
+of a whole step and of its parts (unprojection + occupancy input, encoder forward, occupancy/free-space
+labels, frustum resampling + decoder, backward + Adam) on synthetic scenes rendered by the embedded
+generator at the default config (batch 2, 1 input + 1 target view, 128x128, 64x64x32 grid).
+
+    python benchmarks/bench_viewpred_step.py [--repeats 5] [--grid 64 64 32] [--device cpu]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import cpu_name  # noqa: E402
+from datamodules.scene_folder import SceneFolderDataModule
+from stages.viewpred import ViewPrediction  # noqa: E402
+from threedq.data.generate import GeneratorConfig, generate_dataset  # noqa: E402
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def time_step(model: ViewPrediction, batch: dict, opt: torch.optim.Optimizer, bf16: bool, device: str) -> dict[str, float]:
+    ctx = torch.autocast(device_type=device.split(":")[0], dtype=torch.bfloat16) if bf16 else nullcontext()
+    t: dict[str, float] = {}
+
+    def mark(name: str, t0: float) -> float:
+        _sync(device)
+        now = time.perf_counter()
+        t[name] = now - t0
+        return now
+
+    _sync(device)
+    t_start = t0 = time.perf_counter()
+    with ctx:
+        n_in = batch["rgb"].shape[1] - 1
+        rgb, depth, K, pose = (batch[k][:, :n_in].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
+        x, _ = model.encoder_input(rgb, depth, K, pose)
+        if model.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last_3d)
+        t0 = mark("unproject", t0)
+        feats = model.encoder(x)
+        logits = model.occ_head(feats)
+        t0 = mark("encoder", t0)
+        occ, free = model.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
+        t0 = mark("occ/free labels", t0)
+        H, W = batch["rgb"].shape[-2:]
+        pred = model.predict_view(feats, batch["K"][:, -1], batch["R_T_cam"][:, -1], (H, W))
+        t0 = mark("frustum+decoder", t0)
+        from threedq.nets import balanced_occupancy_loss, masked_l1
+
+        target = torch.nn.functional.avg_pool2d(batch["rgb"][:, -1], 2) - 0.5
+        loss = masked_l1(pred.float(), target, torch.ones_like(target[:, :1])) + balanced_occupancy_loss(
+            logits.float(), occ, free
+        )
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    mark("backward+adam", t0)
+    _sync(device)
+    t["step"] = time.perf_counter() - t_start
+    return t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--grid", type=int, nargs=3, default=(64, 64, 32), help="nx ny nz of the input grid")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        generate_dataset(tmp, num_scenes=2, seed=0, config=GeneratorConfig(), splits=("train",), workers=1, progress=False)
+        dm = SceneFolderDataModule(tmp, batch_size=2)
+        dm.setup()
+        batch = next(iter(dm.train_dataloader()))
+    batch = {k: v.to(args.device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+    print(f"# view-prediction step, batch 2, 128x128, grid {tuple(args.grid)}, {args.threads} threads, {args.device} "
+          f"({cpu_name() if args.device == 'cpu' else torch.cuda.get_device_name()}), "
+          f"torch {torch.__version__}, median of {args.repeats} after 2 warm-ups\n")
+    cols = ["unproject", "encoder", "occ/free labels", "frustum+decoder", "backward+adam", "step"]
+    print("| precision | layout | " + " | ".join(f"{c} ms" for c in cols) + " |")
+    print("|---|---|" + "---|" * len(cols))
+    for bf16 in (False, True):
+        for cl in (False, True):
+            torch.manual_seed(0)
+            model = ViewPrediction(grid_resolution=tuple(args.grid), channels_last=cl, image_every_n_steps=0).to(args.device)
+            opt = torch.optim.Adam(model.parameters(), 1e-3)
+            runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats + 2)][2:]
+            med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
+            print(f"| {'bf16 autocast' if bf16 else 'fp32'} | {'channels_last_3d' if cl else 'contiguous'} | "
+                  + " | ".join(f"{med[c]:.0f}" for c in cols) + " |")
+
+
+if __name__ == "__main__":
+    main()
