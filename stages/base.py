@@ -18,10 +18,27 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from threedq.geometry import VoxelGridSpec, occupancy_from_depth, unproject_rgb
+from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 
-__all__ = ["EncoderStage", "load_encoder_state", "encoder_state_from_checkpoint"]
+__all__ = ["EncoderStage", "checkpoint_state", "encoder_state_from_checkpoint", "load_encoder_state"]
+
+
+def _load_safely(path: Path) -> object:
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint: no such file: {path}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt files
+        raise ValueError(f"{path}: field '<file>': cannot be loaded safely ({type(e).__name__}: {e})") from e
+
+
+def checkpoint_state(path: str | Path) -> dict[str, Tensor]:
+    """The ``state_dict`` of a Lightning checkpoint, loaded with ``weights_only=True``."""
+    obj = _load_safely(Path(path))
+    if not (isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict)):
+        raise ValueError(f"{path}: field 'state_dict': not a Lightning checkpoint")
+    return obj["state_dict"]
 
 
 def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
@@ -34,10 +51,7 @@ def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"encoder_ckpt: no such file: {path}")
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt files
-        raise ValueError(f"{path}: field 'encoder_ckpt': cannot be loaded safely ({type(e).__name__}: {e})") from e
+    obj = _load_safely(path)
     is_checkpoint = isinstance(obj, dict) and "state_dict" in obj
     state = obj["state_dict"] if is_checkpoint else obj
     if not isinstance(state, dict):
@@ -155,3 +169,35 @@ class EncoderStage(L.LightningModule):
         none = w.sum(1) == 0
         agg = torch.where(none, feats.mean(1), agg)  # voxels no view sees: plain mean
         return torch.nn.functional.normalize(agg, dim=1, eps=1e-6)
+
+    def object_crops(self, batch: dict[str, Tensor], num_input_views: int = 1, size: int = 16) -> dict[str, Tensor]:
+        """Encode the first ``num_input_views`` views of each scene and crop every (valid) object box.
+
+        Args:
+            batch: a SceneDataset batch (``rgb`` [B,S,3,H,W], ``depth``, ``K``, ``R_T_cam``, ``aabb`` [B,M,6],
+                ``box_mask`` [B,M], ``categories``, ``boxes``, ``scene_index``).
+            num_input_views: views aggregated per scene.
+            size: crops are ``size^3``.
+
+        Returns:
+            ``features`` ``[N, C, s, s, s]`` crops of the feature grid, ``raw`` ``[N, 4, s, s, s]`` crops of the
+            unprojected input ``cat[occ, occ * rgb]`` (union over the views), ``labels`` ``[N]``, ``boxes``
+            ``[N, 7]`` (oriented GT), ``aabb`` ``[N, 6]``, ``scene`` ``[N]`` — N = valid boxes of the batch.
+
+        Convention: boxes axis-aligned in R, cropped as their hull and resized to a cube (aspect not kept).
+        """
+        v = num_input_views
+        rgb, depth, K, pose = (batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam"))
+        B = rgb.shape[0]
+        feats = self.encode_views(rgb, depth, K, pose)
+        x, _ = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
+        raw = x.view(B, v, *x.shape[1:]).amax(1)
+        mask = batch["box_mask"]
+        return {
+            "features": crop_boxes(feats, batch["aabb"], self.feature_grid, size)[mask],
+            "raw": crop_boxes(raw, batch["aabb"], self.grid, size)[mask],
+            "labels": batch["categories"][mask],
+            "boxes": batch["boxes"][mask],
+            "aabb": batch["aabb"][mask],
+            "scene": batch["scene_index"][:, None].expand_as(mask)[mask],
+        }

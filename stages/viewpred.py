@@ -5,6 +5,8 @@ is resampled into a held-out target camera's frustum and decoded to the target's
 pixels), and an occupancy head predicts, per voxel, occupied vs free space with a class-balanced
 logistic loss. Occupancy labels come from the depth of every view of the sample (input and target):
 occupied where depth points fall, free along each camera ray in front of the observed surface.
+RGB is scored on the target pixels whose surface lies inside the grid (nothing else can be predicted
+from it), for the model and for the mean-colour baseline alike.
 """
 
 from __future__ import annotations
@@ -19,7 +21,13 @@ from torch import Tensor
 
 from stages.base import EncoderStage
 from threedq.atomic_io import atomic_write_bytes
-from threedq.geometry import free_space_from_depth, occupancy_from_depth, resample_to_frustum, scale_intrinsics
+from threedq.geometry import (
+    depth_to_points,
+    free_space_from_depth,
+    occupancy_from_depth,
+    resample_to_frustum,
+    scale_intrinsics,
+)
 from threedq.nets import OccupancyHead, ViewDecoder, balanced_occupancy_loss, masked_l1, occupancy_balanced_accuracy
 
 __all__ = ["ViewPrediction"]
@@ -37,7 +45,10 @@ class ViewPrediction(EncoderStage):
         free_samples_per_ray: points sampled along each camera ray for free-space labels.
         free_pixel_stride: cast free-space rays through every n-th pixel in x and y (the feature voxels
             are several pixels wide, so 2 loses nothing and is 4x cheaper).
-        rgb_weight: weight of the RGB L1 loss.
+        rgb_weight: weight of the RGB L1 loss. With equal weights the occupancy loss dominates the shared
+            encoder and the RGB branch barely learns: after 200 steps on the embedded data (32x32x16 grid)
+            the held-out in-grid L1 was 0.101 at weight 1, 0.069 at 10, 0.058 at 30 and 0.052 with no
+            occupancy loss at all (mean-colour baseline 0.046), while occupancy accuracy stays > 0.98.
         occ_weight: weight of the occupancy loss.
         lr: Adam learning rate (paper: 1e-3).
         image_every_n_steps: write a PNG of (input, predicted, true target, occupancy slices) this often;
@@ -61,7 +72,7 @@ class ViewPrediction(EncoderStage):
         pool: int = 8,
         free_samples_per_ray: int = 32,
         free_pixel_stride: int = 2,
-        rgb_weight: float = 1.0,
+        rgb_weight: float = 30.0,
         occ_weight: float = 1.0,
         lr: float = 1e-3,
         image_every_n_steps: int = 200,
@@ -94,6 +105,17 @@ class ViewPrediction(EncoderStage):
         occ = occ.amax(1)
         return occ, free.amax(1) * (1 - occ)
 
+    def target_valid(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
+        """Target pixels whose observed surface lies inside the grid, at half resolution ``[B, 1, H/2, W/2]``.
+
+        Only those can be predicted from the grid: a ray that leaves the grid before it hits anything (far
+        ground, sky) carries no information, so it is left out of the loss and of every RGB metric.
+        """
+        B, H, W = depth.shape
+        points, ok = depth_to_points(depth, K, R_T_cam)
+        inside = (ok & self.grid.contains(points)).view(B, 1, H, W).to(depth.dtype)
+        return (F.avg_pool2d(inside, 2) > 0.5).to(depth.dtype)
+
     def predict_view(self, feats: Tensor, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int]) -> Tensor:
         """Decode the feature grid ``[B, C, Z', Y', X']`` to the RGB of a camera ``[B, 3, H/2, W/2]`` in [-0.5, 0.5]."""
         H, W = image_size
@@ -124,7 +146,7 @@ class ViewPrediction(EncoderStage):
         H, W = rgb_t.shape[-2:]
         pred = self.predict_view(out["features"], batch["K"][:, -1], batch["R_T_cam"][:, -1], (H, W))
         target = F.avg_pool2d(rgb_t, 2) - 0.5
-        valid = (F.avg_pool2d((depth_t > 0).to(rgb_t.dtype)[:, None], 2) > 0.5).to(rgb_t.dtype)
+        valid = self.target_valid(depth_t, batch["K"][:, -1], batch["R_T_cam"][:, -1])
         occ, free = self.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
         l1 = masked_l1(pred, target, valid)
         occ_loss = balanced_occupancy_loss(out["occ_logits"], occ, free)

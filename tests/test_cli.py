@@ -68,3 +68,19 @@ class TestDataCommands:
     def test_bad_dataset_folder(self, tmp_path: Path, capsys) -> None:
         assert main(["data", "check", str(tmp_path)]) == 2
         assert "index.json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "config", sorted(str(p.relative_to(packaged_configs_dir())) for p in packaged_configs_dir().glob("*/*.yaml"))
+)
+def test_every_packaged_config_parses(config: str, capsys) -> None:
+    """Each shipped YAML composes with the stage config and resolves (unknown keys would be an error)."""
+    args = ["fit", "--config", "stages/viewpred.yaml"]
+    if not config.startswith("stages/"):
+        args += ["--config", config]
+    if config.startswith("paper/"):
+        args = ["fit", "--config", config]
+    with pytest.raises(SystemExit) as e:
+        main([*args, "--print_config"])
+    assert e.value.code == 0
+    assert "class_path" in capsys.readouterr().out

@@ -112,7 +112,6 @@ def _em_config(tmp_path: Path, data_dir: Path) -> str:
 model:
   init_args:
     grid_resolution: [32, 32, 16]
-    image_every_n_steps: 1
 data:
   init_args:
     data_dir: {data_dir}
@@ -139,9 +138,16 @@ class TestEm:
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
         summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg])
-        p = summary["eval_features"]["retrieval"]["precision_at_k"]
-        assert set(p) == {"learned", "raw_rgb_occupancy", "random_encoder"}
-        assert (work / "report.md").is_file() and json.loads((work / "metrics.json").read_text())["rounds"] == 1
+        final = summary["round_results"][-1]
+        assert set(final["retrieval"]["precision_at_k"]) == {"learned", "raw_rgb_occupancy", "random_encoder"}
+        assert set(final["quantization"]) == {"threedq", "no_rot", "pointcloud"}
+        assert 0 <= final["quantization"]["threedq"]["hungarian_acc"] <= 1
+        assert summary["viewpred_eval"]["view_prediction"]["num_scenes"] == 2
+        report = (work / "report.md").read_text()
+        assert "Hungarian" in report and "precision@" in report
+        assert json.loads((work / "metrics.json").read_text())["rounds"] == 1
+        for png in ("prototype_alignment.png", "retrieval.png"):
+            assert (work / "r01_eval" / png).is_file()
         run = work / "00_viewpred"
         assert (run / "config.yaml").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
         assert list((run / "images").glob("*.png")) and (run / "metrics.csv").is_file()
@@ -159,7 +165,7 @@ class TestEm:
         run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=1)
         run = work / "00_viewpred"
         (run / "stage.json").unlink()  # as if killed after its last checkpoint
-        (work / "01_eval_features" / "metrics.json").unlink()
+        (work / "01_viewpred_eval" / "metrics.json").unlink()
         with pytest.raises(RuntimeError, match="--resume"):
             run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=3)
         capsys.readouterr()

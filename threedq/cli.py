@@ -160,6 +160,11 @@ def build_parser() -> ArgumentParser:
     em = ArgumentParser(description=(run_em.__doc__ or "").split("\n")[0])
     em.add_function_arguments(run_em)
     sub.add_subcommand("em", em, help="run the stages in order (view prediction, EM rounds, evaluation)")
+    from threedq.report import run_eval
+
+    ev = ArgumentParser(description=(run_eval.__doc__ or "").split("\n")[0])
+    ev.add_function_arguments(run_eval)
+    sub.add_subcommand("eval", ev, help="the paper's tables and figures for a quantizer checkpoint")
     data_sub = data.add_subcommands(dest="action")
     for name, p, help_text in _data_parsers():
         data_sub.add_subcommand(name, p, help=help_text)
@@ -235,6 +240,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from threedq.em import run_em
 
             run_em(**{k: v for k, v in cfg.em.items() if k != "config" or v is not None})
+            return 0
+        if cfg.command == "eval":
+            from threedq.report import run_eval
+
+            run_eval(**dict(cfg.eval.items()))
             return 0
         build_parser().print_help()
         return 2

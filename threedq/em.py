@@ -5,8 +5,11 @@ Layout of ``work_dir``::
     work_dir/
       00_viewpred/            # LightningCLI run: config.yaml, checkpoints/last.ckpt, metrics.csv,
         stage.json            #   TensorBoard events, images/*.png; stage.json once it has finished
-      01_eval_features/
-        metrics.json          # held-out evaluation of the learned features
+      01_viewpred_eval/
+        metrics.json          # held-out view-prediction metrics
+      r01_quantizer/          # round 1: prototypes on the frozen encoder (LightningCLI run)
+      r01_eval/               # round 1: results.json/.md (retrieval, Hungarian, few-shot, yaw) + figures
+      r02_quantizer/ ...      # round r starts from round r-1's prototype bank
       metrics.json            # everything measured, per stage and round
       report.md               # the same as tables
 
@@ -14,10 +17,10 @@ A finished stage (its ``stage.json`` exists) is never re-run; ``--resume`` conti
 one from its ``checkpoints/last.ckpt``. Every stage saves its resolved ``config.yaml``, so each can be
 re-run or inspected on its own with ``threedq fit --config <run>/config.yaml``.
 
-Stages implemented so far: view-prediction pre-training, then the evaluation of the learned features
-(rotation-max retrieval precision@10 on GT boxes against two references). The per-round stages of the
-paper (detection, correspondence mining, quantization, self-labelling) are not implemented yet, so
-``rounds`` has no stage to run and is recorded in the report as such.
+Stages implemented so far: view-prediction pre-training and its evaluation, then per round the
+quantizer (GT boxes, frozen encoder) and the evaluation of the round (the last round also fits and
+scores the baselines and the accuracy-vs-K curve). The paper's other per-round stages (detection,
+correspondence mining, self-labelling) are not implemented yet; the report says so.
 """
 
 from __future__ import annotations
@@ -31,11 +34,12 @@ from typing import Any
 import torch
 
 from threedq.atomic_io import atomic_write_json, atomic_write_text
+from stages.base import checkpoint_state
 from threedq.cli import ThreeDQCLI, resolve_config
 
 __all__ = ["run_em"]
 
-ROUND_STAGES: tuple[str, ...] = ()  # detection, mining, quantization, self-labelling: not implemented yet
+ROUND_STAGES: tuple[str, ...] = ("quantizer",)  # detection, mining, self-labelling: not implemented yet
 
 
 def _stage_done(run_dir: Path) -> dict[str, Any] | None:
@@ -77,71 +81,112 @@ def _fit_stage(
     return info
 
 
-def _evaluate(configs: list[Path], ckpt: Path, run_dir: Path, overrides: list[str], eval_views: int) -> dict[str, Any]:
-    from threedq.evaluation import evaluate_features, evaluate_view_prediction
+def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[str, Any]:
+    from threedq.evaluation import evaluate_view_prediction
 
     cached = run_dir / "metrics.json"
     if cached.is_file():
-        print(f"[em] eval_features: finished earlier ({cached}), not re-run")
+        print(f"[em] viewpred_eval: finished earlier ({cached}), not re-run")
         return json.loads(cached.read_text())
-    cli = ThreeDQCLI(args=[*_cli_args(configs, run_dir, overrides), "--trainer.logger=false"], run=False)
+    cli = ThreeDQCLI(args=[*_cli_args(configs, run_dir, []), "--trainer.logger=false"], run=False)
     model, dm = cli.model, cli.datamodule
-    state = torch.load(ckpt, map_location="cpu", weights_only=True)["state_dict"]
-    model.load_state_dict(state)
+    model.load_state_dict(checkpoint_state(ckpt))
     dm.prepare_data()
     dm.setup("test")
     t0 = time.time()
-    metrics = {
-        "retrieval": evaluate_features(model, dm.test_dataloader(), num_input_views=eval_views),
-        "view_prediction": evaluate_view_prediction(model, dm.test_dataloader()),
-        "split": "test",
-    }
+    metrics = {"view_prediction": evaluate_view_prediction(model, dm.test_dataloader()), "split": "test"}
     metrics["seconds"] = round(time.time() - t0, 1)
     atomic_write_json(cached, metrics)
     return metrics
 
 
+def _evaluate_round(configs: list[Path], ckpt: Path, run_dir: Path, final: bool) -> dict[str, Any]:
+    from threedq.report import evaluate_quantizer
+
+    cached = run_dir / "results.json"
+    if cached.is_file():
+        print(f"[em] {run_dir.name}: finished earlier ({cached}), not re-run")
+        return json.loads(cached.read_text())
+    cli = ThreeDQCLI(
+        args=[*_cli_args(configs, run_dir, []), "--model.init_args.encoder_ckpt=null", "--trainer.logger=false"],
+        run=False,
+    )
+    model, dm = cli.model, cli.datamodule
+    model.load_state_dict(checkpoint_state(ckpt))
+    dm.prepare_data()
+    dm.setup("test")
+    return evaluate_quantizer(model, dm, run_dir, baselines=final, curve_k=[10, 20, 41, 50, 80] if final else [])
+
+
 def _report(summary: dict[str, Any]) -> str:
-    ev = summary["eval_features"]
-    r, vp = ev["retrieval"], ev["view_prediction"]
-    p = r["precision_at_k"]
+    from threedq.report import METHOD_LABELS
+
+    vp = summary["viewpred_eval"]["view_prediction"]
     lines = [
         "# threedq em report",
         "",
-        f"- work dir: `{summary['work_dir']}`; rounds asked: {summary['rounds']}",
+        f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}",
         f"- machine: {summary['machine']}; torch {summary['torch']}",
-        f"- view prediction: {summary['viewpred']['checkpoint']}",
+        f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` ({summary['viewpred'].get('seconds', '?')} s)",
         "",
-        f"## Retrieval on held-out scenes (GT boxes, {r['num_objects']} objects, {r['num_categories']} categories)",
-        "",
-        f"Rotation-max precision@{r['k']} over {r['num_angles']} yaw steps, macro-averaged over categories, "
-        f"{r['num_input_views']} input view(s) per scene.",
-        "",
-        "| features | precision@%d |" % r["k"],
-        "|---|---|",
-    ]
-    names = {
-        "learned": "threedq view prediction (learned)",
-        "raw_rgb_occupancy": "(a) raw RGB + occupancy crops, no learning",
-        "random_encoder": "(b) randomly initialised encoder",
-    }
-    for key, label in names.items():
-        if key in p:
-            lines.append(f"| {label} | {p[key]:.3f} |")
-    lines += [
-        "",
-        "## View prediction on held-out scenes",
+        f"## View prediction on held-out scenes ({vp['num_scenes']} scenes)",
         "",
         "| metric | value |",
         "|---|---|",
-        f"| RGB L1 (valid pixels, half resolution) | {vp['l1']:.4f} |",
+        f"| RGB L1 (target pixels inside the grid, half resolution) | {vp['l1']:.4f} |",
         f"| RGB L1 of the mean-colour baseline | {vp['l1_mean_colour']:.4f} |",
         f"| occupancy balanced accuracy | {vp['occ_bacc']:.3f} |",
         "",
-        "## EM rounds",
+    ]
+    rounds = summary.get("round_results", [])
+    if rounds:
+        lines += [
+            "## Per EM round (threedq, GT boxes, held-out objects)",
+            "",
+            "| round | precision@10 | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
+            "|---|---|---|---|---|---|",
+        ]
+        for i, r in enumerate(rounds, 1):
+            q = r["quantization"]["threedq"]
+            p = r["retrieval"]["precision_at_k"]["learned"]
+            lines.append(f"| {i} | {p:.3f} | {q['hungarian_acc']:.3f} | {q['fewshot_acc']:.3f} | "
+                         f"{q['yaw_median_deg']:.1f} | {q['yaw_acc_10']:.3f} |")
+        last = rounds[-1]
+        r = last["retrieval"]
+        lines += [
+            "",
+            f"## Final round in detail ({last['num_test_objects']} test objects, {last['num_test_categories']} categories, "
+            f"K = {last['num_prototypes']})",
+            "",
+            f"Retrieval, rotation-max precision@{r['k']} over {r['num_angles']} yaw steps (paper Table 2):",
+            "",
+            "| features | precision@%d |" % r["k"],
+            "|---|---|",
+        ]
+        names = {
+            "learned": "threedq view prediction (learned)",
+            "raw_rgb_occupancy": "(a) raw RGB + occupancy crops, no learning",
+            "random_encoder": "(b) randomly initialised encoder",
+        }
+        for key, label in names.items():
+            if key in r["precision_at_k"]:
+                lines.append(f"| {label} | {r['precision_at_k'][key]:.3f} |")
+        lines += ["", "Clustering and pose (paper Tables 1 and 4; yaw error beyond the paper):", "",
+                  "| method | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 | @20 |",
+                  "|---|---|---|---|---|---|"]
+        for m, v in last["quantization"].items():
+            lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {v['fewshot_acc']:.3f} | "
+                         f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
+        if last.get("curve"):
+            lines += ["", f"Accuracy against K: `{summary['final_eval_dir']}/fig3a_accuracy_vs_k.png`; prototype "
+                      f"alignment: `prototype_alignment.png`; retrieval: `retrieval.png` (same folder)."]
+    lines += [
         "",
-        "The per-round stages (3D detection, cross-scene correspondence mining, prototype quantization, "
-        "detector self-labelling) are not implemented yet, so no round stage ran.",
+        "## Not yet in the rounds",
+        "",
+        "3D detection (boxes are GT), cross-scene correspondence mining (the encoder stays as view prediction "
+        "left it) and detector self-labelling are not implemented yet, so later rounds only continue the "
+        "prototype EM from the previous round's bank.",
         "",
     ]
     return "\n".join(lines)
@@ -152,9 +197,9 @@ def run_em(
     work_dir: str = "runs/em",
     resume: bool = False,
     config: str = "stages/viewpred.yaml",
+    quantizer_config: str = "stages/quantizer.yaml",
     extra_configs: list[str] | None = None,
     max_steps: int | None = None,
-    eval_views: int = 1,
 ) -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
@@ -163,30 +208,48 @@ def run_em(
         work_dir: folder of all runs of this experiment.
         resume: continue an interrupted stage from its last checkpoint (finished stages are never re-run).
         config: the view-prediction stage config (a path, or one inside the packaged configs/).
-        extra_configs: more configs composed after it (e.g. ``trainer/gpu.yaml``, a data config).
+        quantizer_config: the quantizer stage config.
+        extra_configs: more configs composed after each stage's (e.g. ``trainer/gpu.yaml``, a data config).
         max_steps: override the training steps of the view-prediction stage.
-        eval_views: input views per held-out scene for the evaluation (the paper tests with 1).
     """
     if rounds < 0:
         raise ValueError(f"rounds: expected >= 0, got {rounds}")
     work = Path(work_dir)
-    configs = [resolve_config(config), *(resolve_config(c) for c in (extra_configs or []))]
+    extra = [resolve_config(c) for c in (extra_configs or [])]
+    vp_configs = [resolve_config(config), *extra]
+    q_configs = [resolve_config(quantizer_config), *extra]
     overrides = [f"--trainer.max_steps={max_steps}"] if max_steps is not None else []
-    vp = _fit_stage("viewpred", configs, work / "00_viewpred", overrides, resume)
-    ev = _evaluate(configs, Path(vp["checkpoint"]), work / "01_eval_features", [], eval_views)
+    vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
+    vp_ckpt = Path(vp["checkpoint"])
+    vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, work / "01_viewpred_eval")
+    round_results: list[dict[str, Any]] = []
+    prev_bank: Path | None = None
+    for r in range(1, rounds + 1):
+        q_over = [f"--model.init_args.encoder_ckpt={vp_ckpt}", "--trainer.max_steps=-1", "--trainer.max_epochs=1"]
+        if prev_bank is not None:
+            q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
+        q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume)
+        prev_bank = Path(q["checkpoint"])
+        round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds))
+        q_res = round_results[-1]["quantization"]["threedq"]
+        print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {q_res['fewshot_acc']:.3f}, "
+              f"precision@10 {round_results[-1]['retrieval']['precision_at_k']['learned']:.3f}")
     summary = {
         "work_dir": str(work),
         "rounds": rounds,
-        "round_stages_run": list(ROUND_STAGES),
+        "round_stages_run": list(ROUND_STAGES) if rounds else [],
         "viewpred": vp,
-        "eval_features": ev,
+        "viewpred_eval": vp_eval,
+        "round_results": round_results,
+        "final_eval_dir": str(work / f"r{rounds:02d}_eval") if rounds else None,
         "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),
         "torch": torch.__version__,
     }
     atomic_write_json(work / "metrics.json", summary)
     atomic_write_text(work / "report.md", _report(summary))
-    p = ev["retrieval"]["precision_at_k"]
-    k = ev["retrieval"]["k"]
-    print(f"[em] precision@{k}: " + ", ".join(f"{name} {v:.3f}" for name, v in p.items()))
+    if round_results:
+        p = round_results[-1]["retrieval"]["precision_at_k"]
+        k = round_results[-1]["retrieval"]["k"]
+        print(f"[em] precision@{k}: " + ", ".join(f"{name} {v:.3f}" for name, v in p.items()))
     print(f"[em] wrote {work / 'report.md'} and {work / 'metrics.json'}")
     return summary

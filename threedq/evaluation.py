@@ -59,24 +59,19 @@ def collect_object_crops(
     out: dict[str, list[Tensor]] = {k: [] for k in ("learned", "raw", "random", "labels", "boxes", "scene")}
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
-        v = num_input_views
-        rgb, depth, K, pose = batch["rgb"][:, :v], batch["depth"][:, :v], batch["K"][:, :v], batch["R_T_cam"][:, :v]
-        B = rgb.shape[0]
-        feats = stage.encode_views(rgb, depth, K, pose)
-        x, seen = stage.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
-        x = x.view(B, v, *x.shape[1:])
-        raw = x.amax(1)  # union of the views' occupancy and colour
-        aabb = batch["aabb"]
-        mask = batch["box_mask"]
-        learned = crop_boxes(feats, aabb, stage.feature_grid, crop_size)[mask]
-        out["learned"].append(learned.cpu())
-        out["raw"].append(crop_boxes(raw, aabb, stage.grid, crop_size)[mask].cpu())
+        crops = stage.object_crops(batch, num_input_views, crop_size)
+        out["learned"].append(crops["features"].cpu())
+        out["raw"].append(crops["raw"].cpu())
+        for k in ("labels", "boxes", "scene"):
+            out[k].append(crops[k].cpu())
         if random_enc is not None:
-            rf = random_enc(x.flatten(0, 1)).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
-            out["random"].append(crop_boxes(F.normalize(rf, dim=1), aabb, stage.feature_grid, crop_size)[mask].cpu())
-        out["labels"].append(batch["categories"][mask].cpu())
-        out["boxes"].append(batch["boxes"][mask].cpu())
-        out["scene"].append(batch["scene_index"][:, None].expand_as(mask)[mask].cpu())
+            v = num_input_views
+            rgb, depth, K, pose = (batch[k][:, :v].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
+            x, _ = stage.encoder_input(rgb, depth, K, pose)
+            B = batch["rgb"].shape[0]
+            rf = random_enc(x).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
+            rand = crop_boxes(F.normalize(rf, dim=1), batch["aabb"], stage.feature_grid, crop_size)[batch["box_mask"]]
+            out["random"].append(rand.cpu())
     stage.train(was_training)
     return {k: torch.cat(v) for k, v in out.items() if v}
 

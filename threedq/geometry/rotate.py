@@ -47,6 +47,8 @@ def rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
         shape = tuple(yaw.shape) if isinstance(yaw, Tensor) else type(yaw).__name__
         raise ValueError(f"yaw must have shape [N] or [N, A] with N={n}, got {shape}")
     single = yaw.ndim == 1
+    if n == 0:
+        return volume.clone() if single else volume.new_zeros(0, yaw.shape[1], *volume.shape[1:])
     angles = yaw.to(volume.dtype).reshape(n, -1)  # [N, A]
     n_angles = angles.shape[1]
 

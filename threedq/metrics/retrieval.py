@@ -20,18 +20,23 @@ __all__ = ["rotation_max_similarity", "retrieval_precision_at_k", "RetrievalPrec
 
 
 def rotation_max_similarity(
-    query: Tensor, gallery: Tensor, num_angles: int = 36, chunk: int = 64
+    query: Tensor, gallery: Tensor, num_angles: int = 36, chunk: int = 64, method: str = "exact"
 ) -> tuple[Tensor, Tensor]:
     """Cosine similarity of every query to every gallery crop at the best yaw of the query.
 
-    Each query is rotated by every candidate yaw (trilinear, about its vertical centre line), flattened
-    and L2-normalised, then compared with every flattened, L2-normalised gallery crop.
+    ``method="exact"`` (the reference): each query is rotated by every candidate yaw (trilinear, about its
+    vertical centre line), flattened and L2-normalised, then compared with every flattened, L2-normalised
+    gallery crop. ``method="fast"``: ``threedq.rotation_search.all_pairs_rotation_max`` (cylindrical
+    resampling + rFFT correlation over the angle; the cosine is taken over the inscribed cylinder of the
+    crops, so it differs slightly from the exact one when content lies in the corners; ~30x faster on CPU).
 
     Args:
         query: ``[N, C, S, S, S]`` crops.
         gallery: ``[M, C, S, S, S]`` crops.
         num_angles: yaw candidates ``2 pi a / num_angles``.
-        chunk: queries rotated at once (bounds memory: ``chunk * num_angles`` crops).
+        chunk: queries rotated at once (bounds memory: ``chunk * num_angles`` crops); ``"exact"`` only, the
+            fast path sizes its own chunks.
+        method: ``"exact"`` or ``"fast"``.
 
     Returns:
         ``sim`` ``[N, M]`` the maximum cosine over yaw, and ``angle`` ``[N, M]`` long, the index ``a``
@@ -44,6 +49,12 @@ def rotation_max_similarity(
             f"query and gallery must be [N, C, Z, Y, X] crops of one shape, got {tuple(query.shape)} and "
             f"{tuple(gallery.shape)}"
         )
+    if method == "fast":
+        from threedq.rotation_search import all_pairs_rotation_max
+
+        return all_pairs_rotation_max(query, gallery, num_angles, method="fast")
+    if method != "exact":
+        raise ValueError(f"method must be 'exact' or 'fast', got {method!r}")
     g = F.normalize(gallery.flatten(1), dim=1)  # [M, D]
     angles = yaw_angles(num_angles, device=query.device, dtype=query.dtype)
     sims, idxs = [], []
@@ -95,17 +106,22 @@ def retrieval_precision_at_k(
 class RetrievalPrecisionAtK(Metric):
     """Leave-one-out rotation-max retrieval precision@K over all crops seen (DDP: crops are gathered).
 
-    ``update(crops [N, C, S, S, S], labels [N])``; ``compute()`` compares every crop with every other.
+    ``update(crops [N, C, S, S, S], labels [N])``; ``compute()`` compares every crop with every other, with
+    ``rotation_max_similarity(..., method=method)`` (default ``"fast"``: cylindrical resampling + rFFT over the
+    angle; ``"exact"`` rotates every crop by every yaw).
     """
 
     is_differentiable = False
     higher_is_better = True
     full_state_update = False
 
-    def __init__(self, k: int = 10, num_angles: int = 36, **kwargs) -> None:  # noqa: ANN003
+    def __init__(self, k: int = 10, num_angles: int = 36, method: str = "fast", **kwargs) -> None:  # noqa: ANN003
         super().__init__(**kwargs)
+        if method not in ("exact", "fast"):
+            raise ValueError(f"method must be 'exact' or 'fast', got {method!r}")
         self.k = k
         self.num_angles = num_angles
+        self.method = method
         self.add_state("crops", default=[], dist_reduce_fx="cat")
         self.add_state("labels", default=[], dist_reduce_fx="cat")
 
@@ -117,5 +133,5 @@ class RetrievalPrecisionAtK(Metric):
 
     def compute(self) -> Tensor:
         crops, labels = dim_zero_cat(self.crops), dim_zero_cat(self.labels)
-        sim, _ = rotation_max_similarity(crops, crops, self.num_angles)
+        sim, _ = rotation_max_similarity(crops, crops, self.num_angles, method=self.method)
         return retrieval_precision_at_k(sim, labels, labels, min(self.k, crops.shape[0] - 1), exclude_diagonal=True)

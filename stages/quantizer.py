@@ -1,0 +1,218 @@
+"""Rotation-aware quantization into 3D prototypes (paper Sec. 3.2) as a Lightning stage.
+
+With the encoder frozen (loaded from the view-prediction checkpoint), one pass over the training scenes
+collects the object crops (GT boxes for now; detected boxes once the detector stage exists); at the
+last batch of that epoch the prototype bank is initialised incrementally and refined by ``em_iterations``
+rounds of E-step (best prototype and yaw per object) and closed-form M-step, in memory. Under DDP the
+crops of every process are gathered first, so every process runs the same EM on the same objects.
+Validation and test assign held-out objects to the prototypes and measure Hungarian-matched accuracy,
+few-shot labelling accuracy and relative yaw error.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from stages.base import EncoderStage, checkpoint_state
+from threedq.geometry import yaw_angles
+from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
+from threedq.prototypes import PrototypeBank, fill_free_slots, quantization_loss
+
+__all__ = ["Quantizer", "load_bank_state"]
+
+
+def load_bank_state(bank: PrototypeBank, path: str) -> None:
+    """Load the ``bank.*`` buffers of a quantizer checkpoint into ``bank`` (shapes must match)."""
+    state = {k[len("bank."):]: v for k, v in checkpoint_state(path).items() if k.startswith("bank.")}
+    if not state:
+        raise ValueError(f"{path}: field 'state_dict': no 'bank.*' buffers (not a quantizer checkpoint?)")
+    own = bank.state_dict()
+    for k, v in state.items():
+        if k not in own or own[k].shape != v.shape:
+            raise ValueError(f"{path}: field 'bank.{k}': shape {tuple(v.shape)} does not fit this bank")
+    bank.load_state_dict(state)
+
+
+class Quantizer(EncoderStage):
+    """The quantizer stage.
+
+    Args:
+        grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
+            :class:`~stages.base.EncoderStage` (the encoder should come from view prediction, frozen).
+        num_prototypes: K (paper: 50).
+        crop_size: object crops are ``crop_size^3`` (paper: 16).
+        num_angles: yaw steps of the rotation search (paper: 36); 1 gives the no-rot-3DQ baseline.
+        init_threshold: incremental initialisation threshold on rotation-max cosine (paper: 0.8).
+        fill_free_slots: after the incremental pass, open the remaining slots from the objects farthest
+            from the bank.
+        em_iterations: E/M rounds at the end of each training epoch.
+        search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
+        num_input_views: views encoded per scene.
+        num_classes: categories of the dataset (metrics only; labels are never used for training).
+        symmetry_order: per category, its yaw symmetry order (``index.json``); for the yaw-error metric.
+        shots: labelled examples per category of the few-shot metric (paper: 2).
+        seed: seed of the incremental-initialisation order and of the few-shot draw.
+        init_bank_ckpt: start from the prototype bank of an earlier quantizer checkpoint (the previous EM
+            round) instead of an empty one.
+
+    Convention: crops in frame R, z up; yaw counter-clockwise seen from above.
+    """
+
+    def __init__(
+        self,
+        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
+        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
+        grid_resolution: tuple[int, int, int] = (64, 64, 32),
+        feature_dim: int = 32,
+        encoder_ckpt: str | None = None,
+        freeze_encoder: bool = True,
+        channels_last: bool = True,
+        num_prototypes: int = 50,
+        crop_size: int = 16,
+        num_angles: int = 36,
+        init_threshold: float = 0.8,
+        fill_free_slots: bool = True,
+        em_iterations: int = 10,
+        search_method: str = "fast",
+        num_input_views: int = 1,
+        num_classes: int = 41,
+        symmetry_order: list[int] | None = None,
+        shots: int = 2,
+        seed: int = 0,
+        init_bank_ckpt: str | None = None,
+    ) -> None:
+        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        self.bank = PrototypeBank(num_prototypes, feature_dim, crop_size, num_angles, init_threshold, search_method)
+        if init_bank_ckpt:
+            load_bank_state(self.bank, init_bank_ckpt)
+        self._train_crops: list[Tensor] = []
+        sym = symmetry_order if symmetry_order is not None else [1] * num_classes
+        self.metrics = torch.nn.ModuleDict(
+            {
+                split: torch.nn.ModuleDict(
+                    {
+                        "hungarian": HungarianAccuracy(num_prototypes, num_classes),
+                        "fewshot": FewShotAccuracy(num_prototypes, num_classes, shots=shots, seed=seed),
+                        "yaw": RelativeYawError(sym),
+                    }
+                )
+                for split in ("val", "test")
+            }
+        )
+
+    def setup(self, stage: str) -> None:
+        """Take the category count and symmetry orders from the dataset's ``index.json`` when there is one."""
+        index = getattr(getattr(self.trainer, "datamodule", None), "index", None)
+        if index is None:
+            return
+        if len(index.categories) != self.hparams.num_classes:
+            raise ValueError(
+                f"num_classes: the quantizer was configured for {self.hparams.num_classes} categories but the "
+                f"dataset's index.json lists {len(index.categories)}"
+            )
+        for split in self.metrics:
+            self.metrics[split]["yaw"] = RelativeYawError(list(index.symmetry_order)).to(self.device)
+
+    # ------------------------------------------------------------------ training: collect, then EM
+    def on_train_epoch_start(self) -> None:
+        self._train_crops = []
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        with torch.no_grad():
+            crops = self.object_crops(batch, self.hparams.num_input_views, self.hparams.crop_size)["features"]
+        self._train_crops.append(crops.detach())
+        self.log("train/objects", float(crops.shape[0]), reduce_fx="sum", on_step=False, on_epoch=True, batch_size=1)
+        if batch_idx == self.trainer.num_training_batches - 1:
+            # EM on the last batch of the epoch, so that this epoch's validation sees the updated bank
+            self._run_em()
+
+    def _gathered_crops(self) -> Tensor:
+        crops = torch.cat(self._train_crops) if self._train_crops else self.bank.prototypes[:0]
+        if self.trainer is None or self.trainer.world_size == 1:
+            return crops
+        # pad to the largest count so all_gather sees equal shapes on every process
+        n = torch.tensor([crops.shape[0]], device=crops.device)
+        counts = self.all_gather(n).flatten()
+        pad = int(counts.max()) - crops.shape[0]
+        padded = torch.cat([crops, crops.new_zeros(pad, *crops.shape[1:])])
+        gathered = self.all_gather(padded)  # [W, Nmax, ...]
+        return torch.cat([gathered[r, : int(c)] for r, c in enumerate(counts)])
+
+    def on_train_epoch_end(self) -> None:
+        if self._train_crops:  # the epoch stopped before its last batch (max_steps, limit_train_batches)
+            self._run_em()
+
+    def _run_em(self) -> None:
+        crops = self._gathered_crops()
+        self._train_crops = []
+        if crops.shape[0] == 0:
+            raise RuntimeError("quantizer: no object crops in the training split")
+        bank = self.bank
+        if bank.num_active == 0:
+            g = torch.Generator().manual_seed(self.hparams.seed)
+            order = torch.randperm(crops.shape[0], generator=g).to(crops.device)
+            for start in range(0, crops.shape[0], 256):
+                bank.add(crops[order[start : start + 256]])
+            if self.hparams.fill_free_slots:
+                fill_free_slots(bank, crops)
+        for _ in range(self.hparams.em_iterations):
+            for start in range(0, crops.shape[0], 256):
+                part = crops[start : start + 256]
+                bank.accumulate(part, bank.assign(part))
+            bank.update()
+        res = bank.assign(crops)
+        self.log_dict(
+            {
+                "train/prototypes_active": float(bank.num_active),
+                "train/mean_score": res.score.mean(),
+                "train/quantization_loss": quantization_loss(bank, crops, res),
+            },
+            prog_bar=True,
+        )
+
+    def configure_optimizers(self) -> None:
+        return None  # closed-form EM; no gradient step
+
+    # ------------------------------------------------------------------ evaluation
+    def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:
+        if self.bank.num_active == 0:
+            return  # sanity check before any training
+        crops = self.object_crops(batch, self.hparams.num_input_views, self.hparams.crop_size)
+        res = self.bank.assign(crops["features"])
+        m = self.metrics[split]
+        m["hungarian"].update(res.prototype, crops["labels"])
+        m["fewshot"].update(res.prototype, crops["labels"])
+        est_yaw = yaw_angles(self.hparams.num_angles, device=self.device)[res.angle]
+        m["yaw"].update(est_yaw, crops["boxes"][:, 6], crops["labels"], res.prototype)
+
+    def _eval_epoch_end(self, split: str) -> None:
+        if self.bank.num_active == 0:
+            return
+        m = self.metrics[split]
+        yaw = m["yaw"].compute()
+        self.log_dict(
+            {
+                f"{split}/hungarian_acc": m["hungarian"].compute(),
+                f"{split}/fewshot_acc": m["fewshot"].compute(),
+                f"{split}/yaw_median_deg": yaw["median_deg"],
+                f"{split}/yaw_acc10": yaw["acc_10"],
+            },
+            prog_bar=True,
+        )
+        for metric in m.values():
+            metric.reset()
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "val")
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_epoch_end("val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "test")
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_epoch_end("test")

@@ -1,0 +1,168 @@
+"""Prototype bank: incremental init, E-step, closed-form M-step, state in buffers; the quantizer stage."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+
+from threedq.geometry import rotate_yaw
+from threedq.metrics import cluster_confusion, hungarian_accuracy
+from threedq.prototypes import PrototypeBank, fit_prototype_bank, quantization_loss
+
+S = 12
+
+
+def base_shapes(n: int = 3, channels: int = 4, seed: int = 0) -> torch.Tensor:
+    """Distinct smooth asymmetric volumes, zero outside the inscribed cylinder (rotation loses nothing)."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, channels, S, S, S, generator=g)
+    x = torch.nn.functional.avg_pool3d(x, 3, 1, 1) - 0.45
+    x = x.clamp_min(0) * 4
+    c = (torch.arange(S) - (S - 1) / 2).abs()
+    r = (c[None, :] ** 2 + c[:, None] ** 2).sqrt()
+    return x * (r < S / 2 - 1.5)[None, None, None]
+
+
+def rotated_copies(shapes: torch.Tensor, per: int, seed: int = 1, noise: float = 0.02):
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.arange(shapes.shape[0]).repeat_interleave(per)
+    steps = torch.randint(0, 36, (idx.numel(),), generator=g)
+    objs = rotate_yaw(shapes[idx], steps * (2 * math.pi / 36))
+    return objs + noise * torch.randn(objs.shape, generator=g), idx, steps
+
+
+class TestPrototypeBank:
+    def test_incremental_init_one_prototype_per_shape(self) -> None:
+        objs, labels, _ = rotated_copies(base_shapes(), per=6)
+        bank = PrototypeBank(num_prototypes=10, channels=4, size=S, num_angles=36, init_threshold=0.8)
+        opened = bank.add(objs)
+        assert bank.num_active == 3 and int(opened.sum()) == 3
+        # the first copy of each shape opened its prototype
+        assert sorted(labels[opened].tolist()) == [0, 1, 2]
+
+    def test_em_clusters_and_aligns(self) -> None:
+        shapes = base_shapes()
+        objs, labels, steps = rotated_copies(shapes, per=8)
+        bank = fit_prototype_bank(objs, num_prototypes=3, iterations=3, num_angles=36, seed=0)
+        res = bank.assign(objs)
+        conf = cluster_confusion(res.prototype, labels, 3, 3)
+        assert float(hungarian_accuracy(conf)) == 1.0
+        # relative yaw within a cluster: rotating by angle aligns, so angle + step is constant per cluster
+        for k in range(3):
+            members = res.prototype == k
+            rel = (res.angle[members] + steps[members]) % 36
+            assert rel.unique().numel() == 1
+
+    def test_update_is_mean_of_aligned_members(self) -> None:
+        shapes = base_shapes(1)
+        bank = PrototypeBank(num_prototypes=2, channels=4, size=S, num_angles=36)
+        bank.add(shapes)
+        objs = rotate_yaw(shapes.expand(2, -1, -1, -1, -1), torch.tensor([0.0, math.pi / 2]))
+        objs[1] *= 3.0  # same shape, other pose, other scale
+        res = bank.assign(objs)
+        assert res.angle.tolist() == [0, 27]  # rotating by 270 deg undoes the 90 deg turn
+        bank.accumulate(objs, res)
+        counts = bank.update()
+        assert counts.tolist() == [2.0, 0.0]
+        expected = (objs[0] + rotate_yaw(objs[1:], torch.tensor([1.5 * math.pi]))[0]) / 2
+        torch.testing.assert_close(bank.prototypes[0], expected, atol=1e-5, rtol=1e-5)
+        assert bank.member_count.sum() == 0 and bank.member_sum.abs().sum() == 0
+
+    def test_closed_form_beats_gradient_descent(self) -> None:
+        """The mean is the minimiser of the quantization loss at a fixed assignment (the M-step's justification)."""
+        objs, _, _ = rotated_copies(base_shapes(), per=6, noise=0.1)
+        bank = fit_prototype_bank(objs, num_prototypes=3, iterations=1, num_angles=36)
+        res = bank.assign(objs)
+        protos = bank.prototypes.clone().requires_grad_(True)
+        opt = torch.optim.Adam([protos], lr=1e-2)
+        aligned = bank.canonical_rotation(objs, res)
+        for _ in range(50):
+            loss = (protos[res.prototype] - aligned).pow(2).flatten(1).sum(1).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        bank.accumulate(objs, res)
+        bank.update()
+        assert quantization_loss(bank, objs, res) <= loss.item() + 1e-6
+
+    def test_state_lives_in_buffers(self) -> None:
+        bank = PrototypeBank(num_prototypes=4, channels=4, size=S)
+        bank.add(base_shapes())
+        state = bank.state_dict()
+        assert set(state) == {"prototypes", "active", "member_sum", "member_count"}
+        other = PrototypeBank(num_prototypes=4, channels=4, size=S)
+        other.load_state_dict(state)
+        assert other.num_active == 3 and torch.equal(other.prototypes, bank.prototypes)
+
+    def test_exceptions(self) -> None:
+        bank = PrototypeBank(num_prototypes=2, channels=4, size=S)
+        with pytest.raises(RuntimeError, match="empty"):
+            bank.assign(base_shapes())
+        with pytest.raises(ValueError, match="objects: expected shape"):
+            bank.add(torch.zeros(1, 3, S, S, S))
+        with pytest.raises(ValueError, match="method"):
+            PrototypeBank(method="slow")
+
+    def test_no_rotation_search(self) -> None:
+        objs, labels, _ = rotated_copies(base_shapes(), per=4)
+        bank = fit_prototype_bank(objs, num_prototypes=3, iterations=2, num_angles=1)
+        assert bank.assign(objs).angle.eq(0).all()
+
+
+def _quantizer_config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path) -> Path:
+    cfg = tmp_path / "q.yaml"
+    cfg.write_text(
+        f"""
+model:
+  init_args:
+    grid_resolution: [32, 32, 16]
+    encoder_ckpt: {encoder_ckpt}
+    num_prototypes: 4
+    crop_size: 8
+    em_iterations: 2
+data:
+  init_args:
+    data_dir: {data_dir}
+    num_scenes: 12
+    image_size: [32, 32]
+    num_views: 4
+    generator_workers: 1
+trainer:
+  enable_progress_bar: false
+  enable_model_summary: false
+  log_every_n_steps: 1
+"""
+    )
+    return cfg
+
+
+class TestQuantizerStage:
+    def test_fit_validate_and_warm_start(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        from stages.base import EncoderStage
+        from stages.quantizer import Quantizer
+        from threedq.cli import ThreeDQCLI, resolve_config
+
+        torch.manual_seed(0)
+        enc = tmp_path / "enc.pt"
+        torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
+        cfg = _quantizer_config(tmp_path, tiny_dataset, enc)
+        run = tmp_path / "q"
+        cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
+                               f"--trainer.default_root_dir={run}"])
+        model = cli.model
+        assert isinstance(model, Quantizer) and model.bank.num_active == 4
+        logged = cli.trainer.logged_metrics
+        for key in ("val/hungarian_acc", "val/fewshot_acc", "train/prototypes_active"):
+            assert key in logged
+        assert 0.0 <= float(logged["val/hungarian_acc"]) <= 1.0
+        ckpt = run / "checkpoints" / "last.ckpt"
+        state = torch.load(ckpt, weights_only=True, map_location="cpu")["state_dict"]
+        assert state["bank.active"].sum() == 4
+        warm = Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, init_bank_ckpt=str(ckpt))
+        assert torch.equal(warm.bank.prototypes, state["bank.prototypes"])
+        with pytest.raises(ValueError, match="bank"):
+            Quantizer(grid_resolution=(32, 32, 16), num_prototypes=5, crop_size=8, init_bank_ckpt=str(ckpt))

@@ -1,0 +1,232 @@
+"""The prototype bank: K pose-canonical 3D prototypes and the EM steps that learn them (paper Sec. 3.2).
+
+E-step: every object crop ``M_o`` is assigned its best (prototype, yaw) by rotation-aware matching
+(:func:`threedq.rotation_search.best_prototype_and_yaw`). M-step: every prototype becomes the mean of its
+members rotated into its canonical pose — the closed-form minimiser of the paper's quantization loss
+``sum_o ||e_k(o) - Rotate(M_o, R_o)||^2`` over ``e_k`` (``benchmarks/bench_prototype_update.py`` compares
+it with gradient descent on the same loss). The bank starts empty and is filled incrementally: an
+exemplar becomes a prototype only if its rotation-max cosine to every existing prototype is below
+``init_threshold`` (paper: 0.8); objects far from every prototype may open a new one while slots are free.
+
+All state is in registered buffers (``prototypes``, ``active``, ``member_sum``, ``member_count``), so a
+checkpoint carries the whole algorithm and ``.to(device)`` moves it.
+
+Convention: crops ``[N, C, S, S, S]`` in frame R order ``(C, Z, Y, X)``, z up; a yaw index ``a`` means
+``2 pi a / num_angles`` counter-clockwise seen from above; "object o has yaw a" means rotating the object
+by ``a`` aligns it with its prototype's canonical pose.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from threedq.geometry import rotate_yaw, yaw_angles
+from threedq.rotation_search import RotationSearchResult, best_prototype_and_yaw
+
+__all__ = ["PrototypeBank", "fit_prototype_bank"]
+
+
+class PrototypeBank(nn.Module):
+    """K prototypes of shape ``[C, S, S, S]`` with incremental initialisation and closed-form EM updates.
+
+    Args:
+        num_prototypes: K, the number of slots.
+        channels: C, feature channels of the crops.
+        size: S, crops are ``S^3``.
+        num_angles: yaw steps of the rotation search (36 = 10 deg); 1 = no rotation search (the
+            paper's no-rot-3DQ baseline).
+        init_threshold: an exemplar opens a new prototype only if its best cosine to every prototype is
+            below this (paper: 0.8).
+        method: rotation search implementation, ``"fast"`` or ``"exact"``.
+    """
+
+    def __init__(
+        self,
+        num_prototypes: int = 50,
+        channels: int = 32,
+        size: int = 16,
+        num_angles: int = 36,
+        init_threshold: float = 0.8,
+        method: str = "fast",
+    ) -> None:
+        super().__init__()
+        if num_prototypes < 1 or channels < 1 or size < 1 or num_angles < 1:
+            raise ValueError(
+                f"num_prototypes, channels, size, num_angles must be >= 1, got {num_prototypes}, {channels}, {size}, "
+                f"{num_angles}"
+            )
+        if method not in ("fast", "exact"):
+            raise ValueError(f"method: expected 'fast' or 'exact', got {method!r}")
+        self.num_angles = num_angles
+        self.init_threshold = init_threshold
+        self.method = method
+        shape = (num_prototypes, channels, size, size, size)
+        self.register_buffer("prototypes", torch.zeros(shape))
+        self.register_buffer("active", torch.zeros(num_prototypes, dtype=torch.bool))
+        self.register_buffer("member_sum", torch.zeros(shape))
+        self.register_buffer("member_count", torch.zeros(num_prototypes))
+
+    @property
+    def num_active(self) -> int:
+        return int(self.active.sum())
+
+    def _check(self, objects: Tensor) -> None:
+        if objects.ndim != 5 or tuple(objects.shape[1:]) != tuple(self.prototypes.shape[1:]):
+            raise ValueError(
+                f"objects: expected shape [N, {', '.join(map(str, self.prototypes.shape[1:]))}], got {tuple(objects.shape)}"
+            )
+
+    @torch.no_grad()
+    def assign(self, objects: Tensor) -> RotationSearchResult:
+        """E-step: best (prototype, yaw) of each object among the active prototypes.
+
+        Returns:
+            :class:`~threedq.rotation_search.RotationSearchResult` with prototype ids in bank numbering
+            ``[N]``, yaw indices ``[N]``, cosine scores ``[N]`` and all scores ``[N, K_active, A]``.
+        """
+        self._check(objects)
+        idx = self.active.nonzero().flatten()
+        if idx.numel() == 0:
+            raise RuntimeError("the prototype bank is empty: initialise it first (init_from / add)")
+        res = best_prototype_and_yaw(objects, self.prototypes[idx], num_angles=self.num_angles, method=self.method)
+        return RotationSearchResult(prototype=idx[res.prototype], angle=res.angle, score=res.score, scores=res.scores)
+
+    @torch.no_grad()
+    def add(self, objects: Tensor, threshold: float | None = None) -> Tensor:
+        """Incremental initialisation: in order, each object opens a new prototype (in canonical pose = its
+        own) if the bank has a free slot and its best cosine to every active prototype is below ``threshold``.
+
+        Returns:
+            ``[N]`` bool, which objects became prototypes.
+        """
+        self._check(objects)
+        thr = self.init_threshold if threshold is None else threshold
+        opened = torch.zeros(objects.shape[0], dtype=torch.bool, device=objects.device)
+        if self.num_active == self.active.numel():
+            return opened
+        # score every candidate against the current bank once, then against the ones opened in this call
+        best = torch.full((objects.shape[0],), -1.0, device=objects.device)
+        if self.num_active:
+            best = self.assign(objects).score
+        for i in range(objects.shape[0]):
+            if self.num_active == self.active.numel():
+                break
+            if best[i] >= thr:
+                continue
+            slot = int((~self.active).nonzero()[0])
+            self.prototypes[slot] = objects[i]
+            self.active[slot] = True
+            opened[i] = True
+            rest = objects[i + 1 :]
+            if rest.shape[0]:
+                s = best_prototype_and_yaw(rest, objects[i : i + 1], num_angles=self.num_angles, method=self.method)
+                best[i + 1 :] = torch.maximum(best[i + 1 :], s.score)
+        return opened
+
+    @torch.no_grad()
+    def accumulate(self, objects: Tensor, result: RotationSearchResult) -> None:
+        """Add each object, rotated into its prototype's canonical pose, to that prototype's running sum."""
+        self._check(objects)
+        angles = yaw_angles(self.num_angles, device=objects.device, dtype=objects.dtype)[result.angle]
+        aligned = rotate_yaw(objects, angles)
+        self.member_sum.index_add_(0, result.prototype, aligned.to(self.member_sum.dtype))
+        self.member_count.index_add_(0, result.prototype, torch.ones_like(result.prototype, dtype=self.member_count.dtype))
+
+    @torch.no_grad()
+    def update(self) -> Tensor:
+        """M-step: every prototype with members becomes the mean of its aligned members; the sums reset.
+
+        Returns:
+            ``[K]`` member counts of this update.
+        """
+        counts = self.member_count.clone()
+        has = counts > 0
+        self.prototypes[has] = self.member_sum[has] / counts[has].view(-1, 1, 1, 1, 1)
+        self.member_sum.zero_()
+        self.member_count.zero_()
+        return counts
+
+    @torch.no_grad()
+    def canonical_rotation(self, objects: Tensor, result: RotationSearchResult) -> Tensor:
+        """Objects rotated into their prototypes' canonical pose ``[N, C, S, S, S]`` (for pictures)."""
+        angles = yaw_angles(self.num_angles, device=objects.device, dtype=objects.dtype)[result.angle]
+        return rotate_yaw(objects, angles)
+
+
+def quantization_loss(bank: PrototypeBank, objects: Tensor, result: RotationSearchResult) -> Tensor:
+    """The paper's quantization objective ``mean_o ||e_k(o) - Rotate(M_o, R_o)||^2`` at a given assignment."""
+    aligned = bank.canonical_rotation(objects, result)
+    return (bank.prototypes[result.prototype] - aligned).pow(2).flatten(1).sum(1).mean()
+
+
+@torch.no_grad()
+def fit_prototype_bank(
+    crops: Tensor,
+    num_prototypes: int = 50,
+    iterations: int = 10,
+    num_angles: int = 36,
+    init_threshold: float = 0.8,
+    method: str = "fast",
+    seed: int = 0,
+    chunk: int = 256,
+) -> PrototypeBank:
+    """In-memory EM on a set of crops (the same steps the quantizer stage runs over a DataLoader).
+
+    Objects are visited in a seeded random order for the incremental initialisation; remaining free
+    slots are then filled with the objects farthest from the bank; then ``iterations`` rounds of E- and
+    M-steps.
+    """
+    if crops.ndim != 5:
+        raise ValueError(f"crops: expected [N, C, S, S, S], got {tuple(crops.shape)}")
+    N, C, S = crops.shape[0], crops.shape[1], crops.shape[2]
+    bank = PrototypeBank(num_prototypes, C, S, num_angles, init_threshold, method).to(crops.device)
+    g = torch.Generator().manual_seed(seed)
+    order = torch.randperm(N, generator=g).to(crops.device)
+    for start in range(0, N, chunk):
+        bank.add(crops[order[start : start + chunk]])
+    fill_free_slots(bank, crops, chunk)
+    for _ in range(iterations):
+        for start in range(0, N, chunk):
+            part = crops[start : start + chunk]
+            bank.accumulate(part, bank.assign(part))
+        bank.update()
+    return bank
+
+
+@torch.no_grad()
+def fill_free_slots(bank: PrototypeBank, crops: Tensor, chunk: int = 256) -> int:
+    """Open prototypes from the objects farthest from the bank (lowest best score) while slots are free.
+
+    Returns:
+        The number of prototypes opened.
+    """
+    free = bank.active.numel() - bank.num_active
+    if free == 0 or crops.shape[0] == 0:
+        return 0
+    opened = 0
+    if bank.num_active == 0:
+        bank.add(crops[:1], threshold=float("inf"))
+        free, opened = free - 1, 1
+
+    def best_against(protos: Tensor) -> Tensor:
+        return torch.cat([
+            best_prototype_and_yaw(crops[s : s + chunk], protos, num_angles=bank.num_angles, method=bank.method).score
+            for s in range(0, crops.shape[0], chunk)
+        ])
+
+    scores = best_against(bank.prototypes[bank.active])
+    while free > 0:
+        far = int(scores.argmin())
+        if scores[far] >= 1.0 - 1e-6:
+            break  # every object already matches a prototype exactly
+        bank.add(crops[far : far + 1], threshold=float("inf"))
+        scores = torch.maximum(scores, best_against(crops[far : far + 1]))
+        free, opened = free - 1, opened + 1
+    return opened
+
+
+def normalized(crops: Tensor) -> Tensor:
+    """Crops scaled to unit norm over their whole tensor (what cosine scores compare)."""
+    return F.normalize(crops.flatten(1), dim=1).view_as(crops)

@@ -1,0 +1,330 @@
+"""``threedq eval``: the paper's evaluation tables for threedq and its baselines, with figures.
+
+On held-out scenes with GT boxes (paper Sec. 4.1-4.2):
+
+* Table 2 — rotation-max retrieval precision@10 of object crops: learned features vs (a) raw
+  ``cat[occ, occ * rgb]`` crops and (b) a randomly initialised encoder.
+* Table 4 / Fig. 3a — Hungarian-matched unsupervised classification accuracy of the prototypes at K = 50,
+  for threedq (rotation-aware quantization), no-rot-3DQ (same, without rotation search) and point-cloud
+  registration; and accuracy against K.
+* Table 1 — few-shot labelling accuracy (2 labelled crops per category propagated through the prototypes).
+* Beyond the paper — relative yaw error between objects of one category assigned to one prototype.
+
+Prototype banks are fitted on the training split's objects and evaluated on the test split's objects.
+Outputs in ``out``: ``results.json``, ``results.md``, ``fig3a_accuracy_vs_k.png``,
+``prototype_alignment.png``, ``retrieval.png``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from torch import Tensor  # noqa: E402
+from torch.utils.data import DataLoader  # noqa: E402
+
+from datamodules.scene_folder import SceneDataset  # noqa: E402
+from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
+from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
+from threedq.evaluation import collect_object_crops  # noqa: E402
+from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
+from threedq.metrics import (  # noqa: E402
+    cluster_confusion,
+    few_shot_accuracy,
+    hungarian_accuracy,
+    relative_yaw_error,
+    retrieval_precision_at_k,
+)
+from threedq.prototypes import fit_prototype_bank  # noqa: E402
+from threedq.rotation_search import all_pairs_rotation_max  # noqa: E402
+
+__all__ = ["run_eval", "quantization_metrics", "split_loader"]
+
+METHOD_LABELS = {
+    "threedq": "threedq (rotation-aware 3D prototypes)",
+    "no_rot": "no-rot-3DQ (no rotation search)",
+    "pointcloud": "point-cloud registration",
+}
+
+
+def split_loader(dm: Any, split: str, batch_size: int = 4) -> DataLoader:
+    """A deterministic loader over one split of a scene DataModule (fixed views, no shuffling)."""
+    ds = SceneDataset(
+        dm.data_dir, dm.index, split, num_input_views=dm.num_input_views, num_target_views=0,
+        max_objects=dm.max_objects, random_views=False, seed=dm.seed,
+    )
+    return DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=0)
+
+
+def quantization_metrics(
+    clusters: Tensor, angles: Tensor, num_angles: int, num_clusters: int, labels: Tensor, gt_yaw: Tensor,
+    num_classes: int, symmetry_order: list[int], shots: int = 2, seed: int = 0,
+) -> dict[str, float]:
+    """Hungarian accuracy, few-shot accuracy and relative yaw error of one assignment."""
+    conf = cluster_confusion(clusters, labels, num_clusters, num_classes)
+    fs = few_shot_accuracy(clusters, labels, shots=shots, seed=seed, num_clusters=num_clusters)
+    est = yaw_angles(num_angles, dtype=torch.float64)[angles]
+    yaw = relative_yaw_error(est, gt_yaw.double(), labels, clusters, symmetry_order)
+    return {
+        "hungarian_acc": float(hungarian_accuracy(conf)),
+        "fewshot_acc": float(fs["accuracy"]),
+        "yaw_median_deg": float(yaw["median_deg"]),
+        "yaw_acc_10": float(yaw["acc_10"]),
+        "yaw_acc_20": float(yaw["acc_20"]),
+        "yaw_pairs": int(yaw["num_pairs"]),
+    }
+
+
+def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int,
+            em_iterations: int, seed: int) -> tuple[Tensor, Tensor, int]:
+    """Fit a bank of ``method`` on train crops, assign test crops -> (clusters, angle indices, angles used)."""
+    if method == "pointcloud":
+        pc = PointCloudPrototypes(num_angles=num_angles)
+        pc.fit(train["raw"][:, :1], K=min(K, train["raw"].shape[0]), iterations=em_iterations, seed=seed)
+        proto, angle, _ = pc.assign(test["raw"][:, :1])
+        return proto, angle, num_angles
+    a = 1 if method == "no_rot" else num_angles
+    bank = fit_prototype_bank(train["learned"], K, iterations=em_iterations, num_angles=a, seed=seed)
+    res = bank.assign(test["learned"])
+    return res.prototype, res.angle, a
+
+
+def _bev(volume: Tensor) -> np.ndarray:
+    """Bird's-eye view of a raw ``[4, Z, Y, X]`` crop: colour of the highest occupied voxel, y up."""
+    occ, rgb = volume[0], volume[1:]
+    z_top = (occ > 0.5).float() * torch.arange(1, occ.shape[0] + 1, dtype=torch.float32)[:, None, None]
+    top = z_top.argmax(0)  # [Y, X]
+    any_occ = occ.amax(0) > 0.5
+    col = torch.gather(rgb, 1, top[None, None].expand(3, 1, *top.shape))[:, 0]
+    img = torch.where(any_occ[None], col, torch.full_like(col, 0.15))
+    return img.flip(1).permute(1, 2, 0).clamp(0, 1).numpy()
+
+
+def _alignment_figure(test: dict[str, Tensor], clusters: Tensor, angles: Tensor, num_angles: int, path: Path,
+                      categories: list[str], rows: int = 4, cols: int = 6) -> None:
+    """Members of the largest prototypes before (top) and after (bottom) rotation to the canonical yaw."""
+    counts = torch.bincount(clusters)
+    top = counts.argsort(descending=True)[:rows]
+    top = top[counts[top] > 0]
+    rows = max(1, len(top))
+    fig, axes = plt.subplots(2 * rows, cols, figsize=(1.3 * cols, 1.3 * 2 * rows), squeeze=False)
+    yaw = yaw_angles(num_angles)
+    for r, k in enumerate(top.tolist()):
+        members = (clusters == k).nonzero().flatten()[:cols]
+        raw = test["raw"][members]
+        aligned = rotate_yaw(raw, yaw[angles[members]])
+        for c in range(cols):
+            for row, vols, tag in ((2 * r, raw, "as seen"), (2 * r + 1, aligned, "aligned")):
+                ax = axes[row, c]
+                ax.axis("off")
+                if c < len(members):
+                    ax.imshow(_bev(vols[c]))
+                    if c == 0:
+                        ax.set_title(f"prototype {k} ({tag})", fontsize=6, loc="left")
+                    else:
+                        ax.set_title(categories[int(test["labels"][members[c]])], fontsize=5)
+    fig.suptitle("Rotational alignment: members of a prototype (bird's-eye view), before and after rotation", fontsize=8)
+    _save(fig, path)
+
+
+def _retrieval_figure(test: dict[str, Tensor], sim: Tensor, path: Path, categories: list[str], queries: int = 6,
+                      k: int = 5) -> None:
+    """Query objects (left) and their top-k rotation-max neighbours (bird's-eye views of raw crops)."""
+    sim = sim.clone()
+    sim.fill_diagonal_(-math.inf)
+    n = sim.shape[0]
+    picks = torch.linspace(0, n - 1, steps=min(queries, n)).long()
+    fig, axes = plt.subplots(len(picks), k + 1, figsize=(1.3 * (k + 1), 1.4 * len(picks)))
+    axes = np.atleast_2d(axes)
+    for r, q in enumerate(picks.tolist()):
+        nn_idx = sim[q].topk(k).indices.tolist()
+        for c, i in enumerate([q, *nn_idx]):
+            ax = axes[r, c]
+            ax.axis("off")
+            ax.imshow(_bev(test["raw"][i]))
+            same = c == 0 or int(test["labels"][i]) == int(test["labels"][q])
+            ax.set_title(("query: " if c == 0 else "") + categories[int(test["labels"][i])], fontsize=5,
+                         color="black" if same else "red")
+    fig.suptitle("Retrieval with learned features: query and top-5 (red = other category)", fontsize=8)
+    _save(fig, path)
+
+
+def _save(fig: Any, path: Path) -> None:
+    import io
+
+    buf = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buf, format="png", dpi=150)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _markdown(res: dict[str, Any]) -> str:
+    r = res["retrieval"]
+    lines = [
+        "# threedq evaluation",
+        "",
+        f"Held-out split `{res['split']}`: {res['num_test_objects']} objects in {res['num_test_categories']} categories "
+        f"(GT boxes, {res['num_input_views']} input view(s) per scene); prototype banks fitted on "
+        f"{res['num_train_objects']} training objects; K = {res['num_prototypes']}.",
+        "",
+        f"## Retrieval (paper Table 2): rotation-max precision@{r['k']}, {r['num_angles']} yaw steps, macro over categories",
+        "",
+        "| features | precision@%d |" % r["k"],
+        "|---|---|",
+    ]
+    for name, label in (("learned", "threedq view-prediction features"),
+                        ("raw_rgb_occupancy", "raw RGB + occupancy crops (no learning)"),
+                        ("random_encoder", "randomly initialised encoder")):
+        if name in r["precision_at_k"]:
+            lines.append(f"| {label} | {r['precision_at_k'][name]:.3f} |")
+    lines += [
+        "",
+        f"## Clustering into K = {res['num_prototypes']} prototypes (paper Tables 1 and 4), and pose",
+        "",
+        "| method | Hungarian acc. | few-shot acc. (2 shots) | yaw median err. (deg) | yaw acc. @10 deg | @20 deg |",
+        "|---|---|---|---|---|---|",
+    ]
+    for m, v in res["quantization"].items():
+        lines.append(
+            f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {v['fewshot_acc']:.3f} | "
+            f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |"
+        )
+    if res.get("curve"):
+        ks = sorted({int(k) for v in res["curve"].values() for k in v})
+        lines += ["", "## Hungarian accuracy vs K (paper Fig. 3a)", "",
+                  "| method | " + " | ".join(f"K={k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
+        for m, v in res["curve"].items():
+            lines.append(f"| {METHOD_LABELS.get(m, m)} | " + " | ".join(f"{v[str(k)]:.3f}" for k in ks) + " |")
+    lines += ["", "Yaw error: pairs of objects of one asymmetric category assigned to one prototype; the estimated "
+              "relative yaw (from the rotation search) against the true one.", ""]
+    return "\n".join(lines)
+
+
+@torch.no_grad()
+def evaluate_quantizer(
+    model: Any,
+    dm: Any,
+    out: str | Path,
+    baselines: bool = True,
+    curve_k: list[int] | None = None,
+    em_iterations: int = 10,
+    seed: int = 0,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the evaluation for a trained :class:`~stages.quantizer.Quantizer` and its DataModule; write the outputs."""
+    out = Path(out)
+    t0 = time.time()
+    model.eval()
+    index = dm.index
+    cats, sym = list(index.categories), list(index.symmetry_order)
+    nv = model.hparams.num_input_views
+    train = collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
+    test = collect_object_crops(model, split_loader(dm, "test"), nv, random_encoder_seed=seed, progress=progress)
+    K, A = model.bank.active.numel(), model.hparams.num_angles
+    labels, gt_yaw = test["labels"], test["boxes"][:, 6]
+    kk = min(10, labels.shape[0] - 1)
+    retrieval: dict[str, Any] = {"k": kk, "num_angles": A, "precision_at_k": {}}
+    sims = {}
+    for name, key in (("learned", "learned"), ("raw_rgb_occupancy", "raw"), ("random_encoder", "random")):
+        sim, _ = all_pairs_rotation_max(test[key], test[key], num_angles=A, method="fast")
+        sims[name] = sim
+        retrieval["precision_at_k"][name] = float(retrieval_precision_at_k(sim, labels, labels, kk, exclude_diagonal=True))
+    res_bank = model.bank.assign(test["learned"].to(model.device))
+    quant = {"threedq": quantization_metrics(res_bank.prototype.cpu(), res_bank.angle.cpu(), A, K, labels, gt_yaw,
+                                             len(cats), sym, seed=seed)}
+    assignments = {"threedq": (res_bank.prototype.cpu(), res_bank.angle.cpu(), A)}
+    if baselines:
+        for m in ("no_rot", "pointcloud"):
+            proto, angle, a = _assign(m, train, test, K, A, em_iterations, seed)
+            assignments[m] = (proto, angle, a)
+            quant[m] = quantization_metrics(proto, angle, a, K, labels, gt_yaw, len(cats), sym, seed=seed)
+    curve: dict[str, dict[str, float]] = {}
+    n_train = int(train["labels"].shape[0])
+    for k in [k for k in (curve_k or []) if k <= n_train]:  # more prototypes than objects is meaningless
+        for m in ("threedq", "no_rot", "pointcloud") if baselines else ("threedq",):
+            proto, _, _ = _assign(m, train, test, k, A, em_iterations, seed)
+            conf = cluster_confusion(proto, labels, k, len(cats))
+            curve.setdefault(m, {})[str(k)] = float(hungarian_accuracy(conf))
+    res = {
+        "split": "test",
+        "num_train_objects": int(train["labels"].shape[0]),
+        "num_test_objects": int(labels.shape[0]),
+        "num_test_categories": int(labels.unique().numel()),
+        "num_input_views": nv,
+        "num_prototypes": K,
+        "retrieval": retrieval,
+        "quantization": quant,
+        "curve": curve,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    if curve:
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+        for m, v in curve.items():
+            ks = sorted(int(k) for k in v)
+            ax.plot(ks, [v[str(k)] for k in ks], marker="o", label=METHOD_LABELS.get(m, m))
+        ax.axvline(len(cats), color="grey", lw=0.8, ls="--")
+        ax.set_xlabel("number of prototypes K (dashed: number of categories)")
+        ax.set_ylabel("Hungarian accuracy (test)")
+        ax.set_ylim(0, 1)
+        ax.legend(fontsize=7)
+        ax.set_title("Unsupervised classification accuracy vs K", fontsize=9)
+        _save(fig, out / "fig3a_accuracy_vs_k.png")
+    p, a, na = assignments["threedq"]
+    _alignment_figure(test, p, a, na, out / "prototype_alignment.png", cats)
+    _retrieval_figure(test, sims["learned"], out / "retrieval.png", cats)
+    res["seconds"] = round(time.time() - t0, 1)
+    atomic_write_json(out / "results.json", res)
+    atomic_write_text(out / "results.md", _markdown(res))
+    return res
+
+
+def run_eval(
+    ckpt: str,
+    config: str = "stages/quantizer.yaml",
+    extra_configs: list[str] | None = None,
+    out: str = "runs/eval",
+    baselines: bool = True,
+    curve_k: list[int] | None = None,
+    em_iterations: int = 10,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Evaluate a quantizer checkpoint on the held-out split; print and write the tables and figures.
+
+    Args:
+        ckpt: a quantizer checkpoint (encoder weights + prototype bank), e.g. ``runs/quantizer/checkpoints/last.ckpt``.
+        config: the quantizer config that names the data (a path or one inside the packaged configs/).
+        extra_configs: more configs composed after it.
+        out: output folder.
+        baselines: also fit and evaluate no-rot-3DQ and point-cloud registration.
+        curve_k: prototype counts of the accuracy-vs-K figure (default 10, 20, 41, 50, 80; [] skips it).
+        em_iterations: E/M rounds of the banks fitted here (baselines and the curve).
+        seed: seed of the banks' initialisation order and of the few-shot draw.
+    """
+    from threedq.cli import ThreeDQCLI, resolve_config
+    from stages.base import checkpoint_state
+
+    configs = [resolve_config(config), *(resolve_config(c) for c in (extra_configs or []))]
+    args = []
+    for c in configs:
+        args += ["--config", str(c)]
+    cli = ThreeDQCLI(args=[*args, "--model.init_args.encoder_ckpt=null", "--trainer.logger=false",
+                           f"--trainer.default_root_dir={out}"], run=False)
+    model, dm = cli.model, cli.datamodule
+    model.load_state_dict(checkpoint_state(ckpt))
+    dm.prepare_data()
+    dm.setup("test")
+    res = evaluate_quantizer(model, dm, out, baselines=baselines,
+                             curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
+                             em_iterations=em_iterations, seed=seed)
+    print(_markdown(res))
+    print(f"wrote {Path(out) / 'results.md'}, results.json and figures in {out}")
+    return res

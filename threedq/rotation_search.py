@@ -1,0 +1,673 @@
+"""Fast search over yaw rotations: cylindrical resampling + correlation along the angle (rFFT).
+
+Matching a crop against prototypes (or against other crops) at its best yaw is the inner loop of 3DQ-Nets'
+quantisation and of the rotation-max retrieval evaluation. The exact way rotates every crop by every candidate
+yaw (``threedq.geometry.rotate_yaw``, one interpolation of the whole crop per angle) and compares; it costs
+``A`` interpolations and a GEMM of ``A * N`` crops. Here each crop is instead resampled ONCE onto a polar grid
+per z-slice (rings ``r`` x angles ``a``) where a yaw by one angle step is a circular shift along ``a``; the
+inner products at all ``A`` shifts are then one correlation along ``a``, computed in the Fourier domain
+(correlation theorem): per angular frequency one (real-ified complex) GEMM over the other dimensions.
+
+Pipeline of the ``"fast"`` methods:
+
+1. ``polar_interpolation_matrix``: the bilinear weights of the ``R x A`` polar sample points from the
+   ``Y x X`` slice pixels (the same for every crop, so built once and cached per shape/device/dtype), scaled
+   by ``sqrt(area)`` of each polar cell.
+2. That matrix is composed with an orthonormal real DFT along the angle, so one dense matmul over all
+   ``N * C * Z`` slices maps Cartesian slices straight to polar Fourier coefficients ("polar spectrum").
+   Optionally (``bandlimit=True``) ring ``i`` keeps only angular frequencies ``<= ceil(pi * r_i)`` (``r_i``
+   in voxels): a ring of circumference ``2 pi r_i`` voxels carries no more than that from the voxel grid
+   (the rest is interpolation artefact); this drops ~1/3 of the coefficients and of the GEMM work and is
+   the same as correlating low-passed rings.
+3. Per frequency ``f`` one GEMM of the query and gallery coefficient blocks gives ``conj(Q_f) G_f`` (real and
+   imaginary parts), and a tiny ``[A, 2F]`` matmul (an inverse real DFT) gives the inner products at all
+   ``A`` yaw shifts.
+
+Area weighting: polar samples are denser near the axis. Sample ``(i, a)`` stands for the polar cell of area
+``(2 pi / A) * (rho / R) * r_i`` voxels^2 (``rho`` the inscribed radius, ``r_i = (i + 0.5) rho / R``); the
+resampled value is multiplied by ``sqrt(area)`` so that a PLAIN inner product of two cylinders approximates the
+inner product of the two crops over the inscribed disc of each slice (the areas sum to ``pi rho^2``, the disc
+area in voxels). Norms and cosines of cylinders are therefore disc-region quantities: the ``"fast"`` cosine
+ignores the corners of the crop outside the inscribed cylinder, whereas the ``"exact"`` cosine normalises over
+the full cube (and a rotated crop loses its corners, which rotate out of the cube).
+
+Convention:
+    Crops are ``[N, C, Z, Y, X]`` in frame R, z up (the yaw axis). Yaw index ``a`` means ``2 pi a / A``
+    radians counter-clockwise seen from above (``threedq.geometry.rotate_yaw``); a returned angle ``a`` for
+    (object ``o``, prototype/gallery item ``k``) means: rotating ``o`` by ``a`` steps aligns it with ``k``.
+    Polar sample ``(i, a)`` of a slice sits at ``x = (X - 1)/2 + r_i cos(2 pi a / A)``,
+    ``y = (Y - 1)/2 + r_i sin(2 pi a / A)`` (voxel indices, cell-centred), so rotating a crop by ``s`` steps
+    is ``torch.roll(cylinder, s, dims=-1)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from threedq.geometry.rotate import rotate_yaw, yaw_angles
+
+__all__ = [
+    "RotationSearchResult",
+    "all_pairs_rotation_max",
+    "best_prototype_and_yaw",
+    "cylindrical_resample",
+    "default_num_radii",
+    "polar_interpolation_matrix",
+    "polar_spectrum",
+    "yaw_correlation",
+]
+
+_METHODS = ("fast", "exact")
+_LOW_PRECISION = (torch.bfloat16, torch.float16)
+#: Bytes of scratch a correlation chunk may use (sizes the automatic query chunk).
+_CHUNK_BYTES = 1 << 26
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Polar sampling
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def default_num_radii(ny: int, nx: int) -> int:
+    """Rings of the polar grid when not given: one per voxel of inscribed radius, ``ceil(min(Y, X) / 2)``."""
+    return max(1, math.ceil(min(ny, nx) / 2))
+
+
+def _check_grid(ny: int, nx: int, num_angles: int, num_radii: int | None) -> int:
+    for name, v in (("ny", ny), ("nx", nx), ("num_angles", num_angles)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name} must be a positive int, got {v!r}")
+    if num_radii is None:
+        return default_num_radii(ny, nx)
+    if isinstance(num_radii, bool) or not isinstance(num_radii, int) or num_radii < 1:
+        raise ValueError(f"num_radii must be a positive int or None, got {num_radii!r}")
+    return num_radii
+
+
+def _ring_radii(ny: int, nx: int, num_radii: int) -> Tensor:
+    """``[R]`` ring radii in voxels (float64): ``(i + 0.5) / R`` of the inscribed radius ``min(Y, X) / 2``."""
+    rho = min(ny, nx) / 2.0
+    return (torch.arange(num_radii, dtype=torch.float64) + 0.5) * (rho / num_radii)
+
+
+def _polar_matrix_f64(ny: int, nx: int, num_angles: int, num_radii: int, area_weighted: bool) -> Tensor:
+    """Dense float64 ``[R, A, Y * X]`` bilinear weights (zero padding), optionally times ``sqrt(cell area)``."""
+    radii = _ring_radii(ny, nx, num_radii)  # [R]
+    phi = torch.arange(num_angles, dtype=torch.float64) * (2.0 * math.pi / num_angles)  # [A]
+    px = (nx - 1) / 2.0 + radii[:, None] * torch.cos(phi)[None]  # [R, A] voxel index coordinates
+    py = (ny - 1) / 2.0 + radii[:, None] * torch.sin(phi)[None]
+    x0, y0 = torch.floor(px), torch.floor(py)
+    fx, fy = px - x0, py - y0
+    weights = torch.zeros(num_radii * num_angles, ny * nx, dtype=torch.float64)
+    rows = torch.arange(num_radii * num_angles)
+    for dy, dx, w in ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx)):
+        xi, yi = (x0 + dx).long().flatten(), (y0 + dy).long().flatten()
+        ok = (xi >= 0) & (xi < nx) & (yi >= 0) & (yi < ny)  # zero padding outside the slice
+        weights.index_put_((rows[ok], (yi * nx + xi)[ok]), w.flatten()[ok], accumulate=True)
+    weights = weights.view(num_radii, num_angles, ny * nx)
+    if area_weighted:
+        rho = min(ny, nx) / 2.0
+        area = (2.0 * math.pi / num_angles) * (rho / num_radii) * radii  # [R] voxel^2 per polar cell
+        weights = weights * area.sqrt()[:, None, None]
+    return weights
+
+
+@functools.lru_cache(maxsize=32)
+def _polar_matrix_cached(
+    ny: int, nx: int, num_angles: int, num_radii: int, area_weighted: bool, device: torch.device, dtype: torch.dtype
+) -> Tensor:
+    return _polar_matrix_f64(ny, nx, num_angles, num_radii, area_weighted).reshape(num_radii * num_angles, -1).to(
+        device=device, dtype=dtype
+    )
+
+
+def polar_interpolation_matrix(
+    ny: int,
+    nx: int,
+    num_angles: int = 36,
+    num_radii: int | None = None,
+    *,
+    area_weighted: bool = True,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> Tensor:
+    """Bilinear interpolation matrix from a ``Y x X`` slice to its ``R x A`` polar samples (cached).
+
+    Row ``i * A + a`` holds the (at most 4) bilinear weights of polar sample ``(i, a)`` on the flattened
+    slice pixels; neighbours outside the slice get no weight (zero padding, like ``grid_sample`` with
+    ``align_corners=False, padding_mode="zeros"`` at the same points). With ``area_weighted`` the row is
+    multiplied by ``sqrt(area_i)``, ``area_i = (2 pi / A) (rho / R) r_i`` voxels^2, so that plain inner
+    products of resampled slices approximate inner products over the inscribed disc.
+
+    Args:
+        ny: slice height ``Y``.
+        nx: slice width ``X``.
+        num_angles: angles ``A`` per ring.
+        num_radii: rings ``R`` (default ``ceil(min(Y, X) / 2)``, one per voxel of radius).
+        area_weighted: scale rows by ``sqrt`` of the polar cell area.
+        device: device of the result.
+        dtype: floating dtype of the result (default: torch's default dtype).
+
+    Returns:
+        ``[R * A, Y * X]`` dense matrix (a cached tensor: do not modify it in place).
+
+    Convention:
+        Sample ``(i, a)`` at ``x = (X - 1)/2 + r_i cos(2 pi a / A)``, ``y = (Y - 1)/2 + r_i sin(2 pi a / A)``
+        (voxel indices), ``r_i = (i + 0.5) / R * min(Y, X) / 2``; angles counter-clockwise seen from above.
+    """
+    num_radii = _check_grid(ny, nx, num_angles, num_radii)
+    dtype = dtype or torch.get_default_dtype()
+    return _polar_matrix_cached(ny, nx, num_angles, num_radii, bool(area_weighted), torch.device(device or "cpu"), dtype)
+
+
+def _check_crops(x: Tensor, name: str) -> None:
+    if not isinstance(x, Tensor) or x.ndim != 5:
+        shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise ValueError(f"{name} must have shape [N, C, Z, Y, X], got {shape}")
+    if not x.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got {x.dtype}")
+
+
+def cylindrical_resample(
+    crops: Tensor, num_angles: int = 36, num_radii: int | None = None, *, area_weighted: bool = True
+) -> Tensor:
+    """Resample every z-slice of every crop onto a polar grid, so that a yaw step is a roll along the angle.
+
+    One dense matmul of all ``N * C * Z`` slices with the cached ``[R * A, Y * X]`` interpolation matrix
+    (``polar_interpolation_matrix``) instead of a ``grid_sample`` per crop. Linear, hence differentiable.
+
+    Args:
+        crops: ``[N, C, Z, Y, X]`` crops.
+        num_angles: angles ``A`` per ring.
+        num_radii: rings ``R`` (default ``ceil(min(Y, X) / 2)``).
+        area_weighted: multiply each sample by ``sqrt`` of its polar cell area (voxels^2) so that plain inner
+            products of cylinders approximate inner products over the inscribed disc of each slice.
+
+    Returns:
+        ``[N, C, Z, R, A]`` cylinders in the dtype of ``crops``.
+
+    Convention:
+        ``rotate_yaw(crops, 2 pi s / A)`` resampled equals (up to interpolation) ``roll(cylinder, s, dims=-1)``;
+        angle ``a`` is ``2 pi a / A`` counter-clockwise seen from above, ring ``i`` at ``(i + 0.5) / R`` of the
+        inscribed radius ``min(Y, X) / 2``.
+    """
+    _check_crops(crops, "crops")
+    n, c, nz, ny, nx = crops.shape
+    num_radii = _check_grid(ny, nx, num_angles, num_radii)
+    w = polar_interpolation_matrix(
+        ny, nx, num_angles, num_radii, area_weighted=area_weighted, device=crops.device, dtype=crops.dtype
+    )
+    out = F.linear(crops.reshape(n * c * nz, ny * nx), w)  # [N*C*Z, R*A]
+    return out.view(n, c, nz, num_radii, num_angles)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Polar spectrum: resampling fused with an orthonormal real DFT along the angle
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One angular frequency ``f``: ``rings`` coefficient rings; ``complex`` -> (re, im) per ring."""
+
+    freq: int
+    rings: tuple[int, ...]
+    complex: bool
+
+    @property
+    def width(self) -> int:
+        return len(self.rings) * (2 if self.complex else 1)
+
+
+def _frequency_blocks(num_angles: int, caps: list[int]) -> tuple[_Block, ...]:
+    """Blocks per frequency ``0 .. A // 2`` holding the rings whose cap is ``>= f``."""
+    blocks = []
+    for f in range(num_angles // 2 + 1):
+        rings = tuple(i for i, cap in enumerate(caps) if cap >= f)
+        if rings:
+            is_complex = f != 0 and 2 * f != num_angles
+            blocks.append(_Block(f, rings, is_complex))
+    return tuple(blocks)
+
+
+def _ring_caps(ny: int, nx: int, num_angles: int, num_radii: int, bandlimit: bool) -> list[int]:
+    top = num_angles // 2
+    if not bandlimit:
+        return [top] * num_radii
+    return [min(top, math.ceil(math.pi * r)) for r in _ring_radii(ny, nx, num_radii).tolist()]
+
+
+def _lag_basis_f64(blocks: tuple[_Block, ...], num_angles: int) -> Tensor:
+    """``[A, K]``: inner product at shift ``s`` = ``sum_k L[s, k] P_k`` over the per-frequency GEMM outputs.
+
+    ``P`` rows are, per block, ``Re(conj(Q_f) G_f)`` then (complex blocks) ``Im(conj(Q_f) G_f)`` of
+    orthonormally scaled coefficients: the inverse real DFT ``c[s] = P_0 + sum_f (Re_f cos - Im_f sin)(2 pi f s
+    / A) + P_nyq (-1)^s``.
+    """
+    s = torch.arange(num_angles, dtype=torch.float64)
+    cols = []
+    for b in blocks:
+        theta = 2.0 * math.pi * b.freq * s / num_angles
+        cols.append(torch.cos(theta))
+        if b.complex:
+            cols.append(-torch.sin(theta))
+    return torch.stack(cols, dim=1)
+
+
+def _fourier_matrix_f64(
+    ny: int, nx: int, num_angles: int, num_radii: int, blocks: tuple[_Block, ...]
+) -> Tensor:
+    """``[K_total, Y * X]``: area-weighted polar sampling composed with the orthonormal real DFT along angle.
+
+    Rows per block ``f``: for each ring in the block, ``Re`` (and ``Im`` for complex blocks) of
+    ``sqrt(w_f / A) sum_a exp(-2 pi i f a / A) W[i, a, :]`` with ``w_f = 2`` for complex, ``1`` for real
+    frequencies (so that the coefficients are an orthonormal transform of each ring).
+    """
+    w = _polar_matrix_f64(ny, nx, num_angles, num_radii, area_weighted=True)  # [R, A, P]
+    a = torch.arange(num_angles, dtype=torch.float64)
+    rows = []
+    for b in blocks:
+        theta = 2.0 * math.pi * b.freq * a / num_angles
+        scale = math.sqrt((2.0 if b.complex else 1.0) / num_angles)
+        re = torch.einsum("a,rap->rp", torch.cos(theta) * scale, w[list(b.rings)])  # [R_f, P]
+        if b.complex:
+            im = torch.einsum("a,rap->rp", -torch.sin(theta) * scale, w[list(b.rings)])
+            rows.append(torch.stack((re, im), dim=1).reshape(-1, w.shape[-1]))  # ring-major, (re, im)
+        else:
+            rows.append(re)
+    return torch.cat(rows, dim=0)
+
+
+@dataclass(frozen=True)
+class _SpectrumPlan:
+    blocks: tuple[_Block, ...]
+    matrix: Tensor  # [K_total, Y * X]
+    lag_basis: Tensor  # [A, K]
+    num_angles: int
+
+
+@functools.lru_cache(maxsize=32)
+def _spectrum_plan(
+    ny: int, nx: int, num_angles: int, num_radii: int, bandlimit: bool, device: torch.device, dtype: torch.dtype
+) -> _SpectrumPlan:
+    blocks = _frequency_blocks(num_angles, _ring_caps(ny, nx, num_angles, num_radii, bandlimit))
+    matrix = _fourier_matrix_f64(ny, nx, num_angles, num_radii, blocks).to(device=device, dtype=dtype)
+    lag = _lag_basis_f64(blocks, num_angles).to(device=device, dtype=_acc_dtype(dtype))
+    return _SpectrumPlan(blocks, matrix, lag, num_angles)
+
+
+def _acc_dtype(dtype: torch.dtype) -> torch.dtype:
+    """Accumulation/result dtype: float32 for low-precision inputs, else the dtype itself."""
+    return torch.float32 if dtype in _LOW_PRECISION else dtype
+
+
+@dataclass(frozen=True)
+class PolarSpectrum:
+    """Polar Fourier coefficients of ``N`` crops, one block per angular frequency.
+
+    Attributes:
+        blocks: per frequency, ``[N, C*Z*R_f]`` (real frequencies) or ``[N, C*Z*R_f*2]`` (complex, (re, im)
+            interleaved per ring) coefficients; the DC block in the accumulation dtype, the others in the
+            compute dtype.
+        plan: frequencies, rings and the ``[A, K]`` inverse-DFT lag basis.
+        norm: ``[N]`` norms of the area-weighted (band-limited) cylinders before any normalisation.
+    """
+
+    blocks: tuple[Tensor, ...]
+    plan: _SpectrumPlan
+    norm: Tensor
+
+    def __len__(self) -> int:
+        return self.norm.shape[0]
+
+
+def _resolve_compute_dtype(dtype: torch.dtype, compute_dtype: torch.dtype | None) -> torch.dtype:
+    compute_dtype = compute_dtype or dtype
+    if not compute_dtype.is_floating_point or compute_dtype.is_complex:
+        raise ValueError(f"compute_dtype must be a real floating dtype, got {compute_dtype}")
+    return compute_dtype
+
+
+def polar_spectrum(
+    crops: Tensor,
+    num_angles: int = 36,
+    num_radii: int | None = None,
+    *,
+    bandlimit: bool = True,
+    normalize: bool = True,
+    compute_dtype: torch.dtype | None = None,
+    chunk: int = 64,
+) -> PolarSpectrum:
+    """Area-weighted cylindrical resampling fused with an orthonormal real DFT along the angle.
+
+    Equals ``torch.fft.rfft(cylindrical_resample(crops), norm="ortho")`` (times ``sqrt(2)`` on the complex
+    frequencies, real-ified) in one dense matmul per chunk of crops; with ``bandlimit`` ring ``i`` keeps only
+    frequencies ``f <= ceil(pi r_i)`` (``r_i`` in voxels). Computed without gradient (a search primitive).
+
+    Args:
+        crops: ``[N, C, Z, Y, X]`` crops.
+        num_angles: angles ``A``.
+        num_radii: rings ``R`` (default ``ceil(min(Y, X) / 2)``).
+        bandlimit: drop angular frequencies a ring cannot carry (see module docstring).
+        normalize: divide each crop's coefficients by its norm (then inner products are cosines over the
+            inscribed cylinder).
+        compute_dtype: dtype of the stored coefficients (e.g. ``torch.bfloat16``; default: the crops' dtype).
+            The resampling matmul runs in this dtype; the DC block is kept in float32 (or the crops' dtype if
+            wider) so that the rotation-independent part of the score is not rounded.
+        chunk: crops resampled per matmul (bounds scratch memory).
+
+    Returns:
+        A ``PolarSpectrum`` of ``N`` crops.
+
+    Convention:
+        As ``cylindrical_resample``: a yaw of ``s`` steps multiplies frequency ``f`` by ``exp(-2 pi i f s / A)``.
+    """
+    _check_crops(crops, "crops")
+    n, c, nz, ny, nx = crops.shape
+    num_radii = _check_grid(ny, nx, num_angles, num_radii)
+    compute_dtype = _resolve_compute_dtype(crops.dtype, compute_dtype)
+    acc = _acc_dtype(crops.dtype if crops.dtype.itemsize > compute_dtype.itemsize else compute_dtype)
+    plan = _spectrum_plan(ny, nx, num_angles, num_radii, bool(bandlimit), crops.device, compute_dtype)
+    cz = c * nz
+    with torch.no_grad():
+        blocks = [
+            torch.empty(n, cz * b.width, device=crops.device, dtype=acc if b.freq == 0 else compute_dtype)
+            for b in plan.blocks
+        ]
+        norm = torch.empty(n, device=crops.device, dtype=acc)
+        for start in range(0, n, max(1, chunk)):
+            x = crops[start : start + chunk]
+            m = x.shape[0]
+            out = F.linear(x.reshape(m * cz, ny * nx).to(compute_dtype), plan.matrix).view(m, cz, -1)
+            nrm = out.float().square().sum(dim=(1, 2)).sqrt() if compute_dtype in _LOW_PRECISION else (
+                out.square().sum(dim=(1, 2)).sqrt()
+            )
+            norm[start : start + m] = nrm
+            if normalize:
+                out.mul_((1.0 / nrm.clamp_min(1e-12)).to(out.dtype)[:, None, None])
+            k = 0
+            for b, dst in zip(plan.blocks, blocks):
+                dst[start : start + m].view(m, cz, b.width).copy_(out[:, :, k : k + b.width])
+                k += b.width
+    return PolarSpectrum(tuple(blocks), plan, norm)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Correlation along the angle
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _swap_re_im(q: Tensor) -> Tensor:
+    """``[n, D * 2]`` (re, im) interleaved -> ``(-im, re)`` interleaved: ``q'' . g = Im(conj(q) g)``."""
+    v = q.view(q.shape[0], -1, 2)
+    return torch.stack((-v[..., 1], v[..., 0]), dim=-1).reshape(q.shape[0], -1)
+
+
+def _auto_chunk(n: int, m: int, num_angles: int) -> int:
+    return max(1, min(n, _CHUNK_BYTES // max(1, 8 * m * num_angles)))
+
+
+def _correlate(
+    q_blocks: tuple[Tensor, ...],
+    g_blocks: tuple[Tensor, ...],
+    blocks: tuple[_Block, ...],
+    lag_basis: Tensor,
+    chunk: int,
+) -> Iterator[tuple[int, Tensor]]:
+    """Yield ``(start, c)`` with ``c`` ``[A, n, M]``: inner products at every yaw shift, per query chunk."""
+    n_total, m = q_blocks[0].shape[0], g_blocks[0].shape[0]
+    out_dtype = lag_basis.dtype
+    for start in range(0, n_total, chunk):
+        parts = []
+        for b, qb, gb in zip(blocks, q_blocks, g_blocks):
+            q = qb[start : start + chunk]
+            if b.complex:
+                q = torch.cat((q, _swap_re_im(q)), dim=0)  # [2n, 2D]: rows give Re then Im of conj(Q) G
+            p = q @ gb.T  # [n or 2n, M]
+            parts.append(p.to(out_dtype).view(-1, q.shape[0] // (2 if b.complex else 1), m))
+        k = torch.cat(parts, dim=0)  # [K, n, M]
+        c = (lag_basis @ k.view(k.shape[0], -1)).view(lag_basis.shape[0], k.shape[1], m)
+        yield start, c
+
+
+def yaw_correlation(
+    a_cyl: Tensor, b_cyl: Tensor, *, chunk: int | None = None, compute_dtype: torch.dtype | None = None
+) -> Tensor:
+    """Inner products of every ``a`` rotated by every angle step with every ``b``, via rFFT along the angle.
+
+    ``out[n, m, s] = sum_{d, t} a[n, d, t - s] * b[m, d, t]`` (indices mod ``A``), i.e. ``<roll(a_n, s), b_m>``,
+    contracting all middle dims ``d``. Correlation theorem: the rFFTs ``Q, G`` along the angle give
+    ``out = irfft(sum_d conj(Q_f) G_f)``; the sum over ``d`` is one real GEMM per frequency (complex parts
+    real-ified), so the cost is ``~2 A`` real GEMMs over ``D`` instead of ``A`` GEMMs over ``D * A``.
+
+    Precision: float64/float32 inputs are computed in their dtype. With ``compute_dtype`` bfloat16/float16
+    (or such inputs), the FFT runs in float32, the coefficients are rounded to the low precision and each
+    per-frequency GEMM accumulates in float32 but ROUNDS ITS OUTPUT to the low precision (CPU matmul has no
+    float32 output for bf16 inputs), relative error ~2^-9 of each frequency's term; the DC term is computed
+    in float32 and the result is float32. Expect ~1e-3 relative error on the correlation values.
+
+    Args:
+        a_cyl: ``[N, ..., A]`` (e.g. ``[N, C, Z, R, A]`` from ``cylindrical_resample``).
+        b_cyl: ``[M, ..., A]`` with the same middle dims and ``A``.
+        chunk: rows of ``a`` per GEMM (default: bounded scratch of ~64 MiB).
+        compute_dtype: GEMM dtype (default: the dtype of ``a_cyl``).
+
+    Returns:
+        ``[N, M, A]`` inner products (float32 for low-precision compute, else the input dtype).
+        Differentiable w.r.t. both inputs (linear).
+
+    Convention:
+        Shift ``s`` = rotating ``a`` by ``s`` angle steps (``2 pi s / A`` counter-clockwise seen from above)
+        before the inner product with ``b``.
+    """
+    if not isinstance(a_cyl, Tensor) or not isinstance(b_cyl, Tensor) or a_cyl.ndim < 2 or b_cyl.ndim < 2:
+        raise ValueError("a_cyl and b_cyl must be tensors of shape [N, ..., A] and [M, ..., A]")
+    if a_cyl.shape[1:] != b_cyl.shape[1:]:
+        raise ValueError(
+            f"a_cyl and b_cyl must agree in all but the first dim, got {tuple(a_cyl.shape)} and {tuple(b_cyl.shape)}"
+        )
+    if not a_cyl.is_floating_point() or not b_cyl.is_floating_point():
+        raise ValueError("a_cyl and b_cyl must be floating-point tensors")
+    num_angles = a_cyl.shape[-1]
+    compute_dtype = _resolve_compute_dtype(a_cyl.dtype, compute_dtype)
+    acc = _acc_dtype(torch.promote_types(compute_dtype, torch.promote_types(a_cyl.dtype, b_cyl.dtype)))
+    fft_dtype = _acc_dtype(acc)
+    blocks = _frequency_blocks(num_angles, [num_angles // 2])  # one "ring": d runs over all middle dims
+    lag = _lag_basis_f64(blocks, num_angles).to(device=a_cyl.device, dtype=acc)
+
+    def spectrum(x: Tensor) -> tuple[Tensor, ...]:
+        z = torch.fft.rfft(x.reshape(x.shape[0], -1, num_angles).to(fft_dtype), dim=-1, norm="ortho")  # [N, D, F]
+        out = []
+        for b in blocks:
+            if b.complex:
+                out.append((torch.view_as_real(z[:, :, b.freq]) * math.sqrt(2.0)).reshape(x.shape[0], -1))
+            else:
+                out.append(z[:, :, b.freq].real)
+            if b.freq != 0:
+                out[-1] = out[-1].to(compute_dtype)
+        return tuple(out)
+
+    qa, gb = spectrum(a_cyl), spectrum(b_cyl)
+    n, m = a_cyl.shape[0], b_cyl.shape[0]
+    chunk = chunk or _auto_chunk(n, m, num_angles)
+    parts = [c for _, c in _correlate(qa, gb, blocks, lag, chunk)]
+    return torch.cat(parts, dim=1).permute(1, 2, 0)  # [N, M, A]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Search
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RotationSearchResult:
+    """Best (prototype, yaw) per object.
+
+    Attributes:
+        prototype: ``[N]`` long, index of the best prototype.
+        angle: ``[N]`` long, yaw index ``a``: rotating the object by ``2 pi a / A`` aligns it with the prototype.
+        score: ``[N]`` cosine similarity at the best (prototype, yaw).
+        scores: ``[N, K, A]`` cosine similarity for every prototype and yaw.
+    """
+
+    prototype: Tensor
+    angle: Tensor
+    score: Tensor
+    scores: Tensor
+
+
+def _check_method(method: str) -> None:
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+
+
+def _check_pair(a: Tensor, b: Tensor, names: tuple[str, str]) -> None:
+    _check_crops(a, names[0])
+    _check_crops(b, names[1])
+    if a.shape[1:] != b.shape[1:]:
+        raise ValueError(
+            f"{names[0]} and {names[1]} must be crops of one shape [*, C, Z, Y, X], got {tuple(a.shape)} and "
+            f"{tuple(b.shape)}"
+        )
+
+
+def _exact_scores(objects: Tensor, prototypes: Tensor, num_angles: int, chunk: int) -> Iterator[tuple[int, Tensor]]:
+    """Yield ``(start, s)``, ``s`` ``[n, K, A]``: cosine of each object rotated by each yaw (``rotate_yaw``)."""
+    p = F.normalize(prototypes.flatten(1), dim=1)  # [K, D]
+    angles = yaw_angles(num_angles, device=objects.device, dtype=objects.dtype)
+    for start in range(0, objects.shape[0], chunk):
+        o = objects[start : start + chunk]
+        rotated = F.normalize(rotate_yaw(o, angles.expand(o.shape[0], num_angles)).flatten(2), dim=2)  # [n, A, D]
+        s = (rotated.reshape(-1, p.shape[1]) @ p.T).view(o.shape[0], num_angles, -1)  # [n, A, K]
+        yield start, s.transpose(1, 2)
+
+
+def best_prototype_and_yaw(
+    objects: Tensor,
+    prototypes: Tensor,
+    num_angles: int = 36,
+    method: str = "fast",
+    *,
+    num_radii: int | None = None,
+    bandlimit: bool = True,
+    compute_dtype: torch.dtype | None = None,
+    chunk: int | None = None,
+) -> RotationSearchResult:
+    """Best prototype and yaw for every object crop (the paper's quantisation step, Eq. 1).
+
+    ``scores[n, k, a] = cos(rotate(objects[n], 2 pi a / A), prototypes[k])``; the best (prototype, yaw) is the
+    argmax over ``K * A``. For L2-normalised crops ``||x - y||^2 = 2 - 2 cos(x, y)``, so this is the argmin of
+    the squared distance over rotations and prototypes used by the paper. Computed without gradient (re-rotate
+    the object with ``rotate_yaw`` by the returned angle to train through it).
+
+    ``"fast"``: polar spectrum of objects and prototypes (``polar_spectrum``), one GEMM per angular frequency,
+    cosine over the inscribed cylinder (area-weighted, see module docstring). ``"exact"``: each object rotated
+    by every yaw with ``rotate_yaw`` (bilinear, zeros outside), flattened, L2-normalised over the full crop and
+    compared with the flattened L2-normalised prototypes in one GEMM per chunk of objects.
+
+    Args:
+        objects: ``[N, C, S, S, S]`` crops (any ``[N, C, Z, Y, X]``).
+        prototypes: ``[K, C, S, S, S]`` crops of the same shape.
+        num_angles: yaw candidates ``A`` (``2 pi a / A``).
+        method: ``"fast"`` or ``"exact"``.
+        num_radii: ``"fast"`` only: polar rings (default ``ceil(min(Y, X) / 2)``).
+        bandlimit: ``"fast"`` only: drop angular frequencies above ``ceil(pi r)`` per ring.
+        compute_dtype: ``"fast"`` only: e.g. ``torch.bfloat16`` (~2x faster on CPUs with bf16 matmul, see
+            ``yaw_correlation`` for the precision); default the objects' dtype.
+        chunk: objects per GEMM (default: ~64 MiB of scratch for ``"fast"``, 16 for ``"exact"``).
+
+    Returns:
+        ``RotationSearchResult`` (``scores`` ``[N, K, A]`` float32 for low-precision compute, else the input
+        dtype).
+
+    Convention:
+        Returned angle ``a``: rotating the object by ``2 pi a / A`` counter-clockwise (seen from above) aligns it
+        with the returned prototype.
+    """
+    _check_pair(objects, prototypes, ("objects", "prototypes"))
+    _check_method(method)
+    if isinstance(num_angles, bool) or not isinstance(num_angles, int) or num_angles < 1:
+        raise ValueError(f"num_angles must be a positive int, got {num_angles!r}")
+    n, k = objects.shape[0], prototypes.shape[0]
+    if k == 0:
+        raise ValueError("prototypes must not be empty")
+    with torch.no_grad():
+        if method == "exact":
+            scores = objects.new_empty(n, k, num_angles)
+            for start, s in _exact_scores(objects, prototypes, num_angles, chunk or 16):
+                scores[start : start + s.shape[0]] = s
+        else:
+            q = polar_spectrum(objects, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
+            g = polar_spectrum(prototypes, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
+            lag = q.plan.lag_basis
+            scores = torch.empty(n, k, num_angles, device=objects.device, dtype=lag.dtype)
+            for start, c in _correlate(q.blocks, g.blocks, q.plan.blocks, lag, chunk or _auto_chunk(n, k, num_angles)):
+                scores[start : start + c.shape[1]] = c.permute(1, 2, 0)
+        best, flat = scores.reshape(n, -1).max(dim=1)
+    return RotationSearchResult(
+        prototype=torch.div(flat, num_angles, rounding_mode="floor"), angle=flat % num_angles, score=best, scores=scores
+    )
+
+
+def all_pairs_rotation_max(
+    query: Tensor,
+    gallery: Tensor,
+    num_angles: int = 36,
+    method: str = "fast",
+    chunk: int | None = None,
+    *,
+    num_radii: int | None = None,
+    bandlimit: bool = True,
+    compute_dtype: torch.dtype | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Cosine similarity of every query to every gallery crop at the query's best yaw (rotation-max retrieval).
+
+    Same semantics as ``threedq.metrics.retrieval.rotation_max_similarity`` (``method="exact"`` calls it): the
+    maximum over ``A`` yaws of ``cos(rotate(query_n, a), gallery_m)``. ``"fast"`` computes the cosine over the
+    inscribed cylinder from polar spectra (one GEMM per angular frequency, see ``yaw_correlation``); with
+    ``query is gallery`` the spectrum is computed once.
+
+    Args:
+        query: ``[N, C, Z, Y, X]`` crops.
+        gallery: ``[M, C, Z, Y, X]`` crops.
+        num_angles: yaw candidates ``A``.
+        method: ``"fast"`` or ``"exact"``.
+        chunk: queries per step (default: 64 for ``"exact"``, ~64 MiB of scratch for ``"fast"``).
+        num_radii: ``"fast"`` only: polar rings.
+        bandlimit: ``"fast"`` only: per-ring angular band limit.
+        compute_dtype: ``"fast"`` only: e.g. ``torch.bfloat16``.
+
+    Returns:
+        ``sim`` ``[N, M]`` maximum cosine over yaw and ``angle`` ``[N, M]`` long, the best yaw index.
+
+    Convention:
+        Rotating query ``n`` by ``2 pi angle[n, m] / A`` counter-clockwise seen from above aligns it with gallery
+        crop ``m``.
+    """
+    _check_pair(query, gallery, ("query", "gallery"))
+    _check_method(method)
+    if method == "exact":
+        from threedq.metrics.retrieval import rotation_max_similarity
+
+        return rotation_max_similarity(query, gallery, num_angles, chunk or 64)
+    n, m = query.shape[0], gallery.shape[0]
+    with torch.no_grad():
+        q = polar_spectrum(query, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
+        g = q if gallery is query else polar_spectrum(
+            gallery, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype
+        )
+        lag = q.plan.lag_basis
+        sim = torch.empty(n, m, device=query.device, dtype=lag.dtype)
+        angle = torch.empty(n, m, device=query.device, dtype=torch.long)
+        for start, c in _correlate(q.blocks, g.blocks, q.plan.blocks, lag, chunk or _auto_chunk(n, m, num_angles)):
+            best, arg = c.max(dim=0)
+            sim[start : start + best.shape[0]] = best
+            angle[start : start + best.shape[0]] = arg
+    return sim, angle
