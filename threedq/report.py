@@ -227,7 +227,9 @@ def evaluate_quantizer(
     index = dm.index
     cats, sym = list(index.categories), list(index.symmetry_order)
     nv = model.hparams.num_input_views
-    train = collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
+    need_train = baselines or bool(curve_k)  # only the banks fitted here need the training objects
+    train = (collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
+             if need_train else {"labels": torch.zeros(0, dtype=torch.long)})
     test = collect_object_crops(model, split_loader(dm, "test"), nv, random_encoder_seed=seed, progress=progress)
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels, gt_yaw = test["labels"], test["boxes"][:, 6]
