@@ -233,6 +233,17 @@ def retrieval_table(device: torch.device, args: argparse.Namespace) -> list[str]
     return rows
 
 
+def matmul_gflops(device: torch.device) -> str:
+    """Achieved fp32 / bf16 GEMM GFLOP/s right now (2048^3): how loaded the machine is (idle roofs on the
+    reference 2-vCPU Zen 5: ~210 fp32, ~900 bf16)."""
+    out = []
+    for dtype in (torch.float32, torch.bfloat16):
+        a = torch.randn(2048, 2048, device=device).to(dtype)
+        t, _ = timed(lambda a=a: a @ a, device, 3)
+        out.append(f"{str(dtype).removeprefix('torch.')} {2 * 2048**3 / t / 1e9:.0f}")
+    return ", ".join(out)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="cpu")
@@ -255,6 +266,7 @@ def main() -> None:
     print(f"- crops {C} x {S}^3 fp32, {A} yaw steps; times are medians of {args.repeats} run(s) after one warm-up "
           "(the cached interpolation matrix is built in the warm-up); naive/exact measured once on a subset and "
           "scaled linearly (their cost is linear in the number of objects/queries)\n")
+    print(f"- GEMM GFLOP/s at start (load probe; idle roofs here ~210 fp32, ~900 bf16): {matmul_gflops(device)}\n")
     print(f"## (a) {args.objects} objects x {args.prototypes} prototypes x {A} yaw\n")
     print("\n".join(prototype_table(device, args)))
     print("\nAgreement: same prototype and same angle as naive on the naive-measured objects (in brackets: angle "
@@ -262,6 +274,7 @@ def main() -> None:
           "objects (naive: its measured subset).\n")
     print(f"## (b) retrieval {args.gallery} x {args.gallery} x {A}\n")
     print("\n".join(retrieval_table(device, args)))
+    print(f"\n- GEMM GFLOP/s at end: {matmul_gflops(device)}")
     print("\nTop-1 agreement on the exact-measured queries; structured queries are rotated noisy copies of distinct "
           "gallery crops (truth = their source).")
 

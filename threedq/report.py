@@ -87,9 +87,11 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
             em_iterations: int, seed: int) -> tuple[Tensor, Tensor, int]:
     """Fit a bank of ``method`` on train crops, assign test crops -> (clusters, angle indices, angles used)."""
     if method == "pointcloud":
-        pc = PointCloudPrototypes(num_angles=num_angles)
+        # threshold 0.25: trilinear crops of one-voxel-thick surfaces have low occupancy values (median ~0.34);
+        # on the embedded data it clustered better than 0.5 (0.30 vs 0.26 Hungarian accuracy at K = 50)
+        pc = PointCloudPrototypes(num_angles=num_angles, threshold=0.25)
         pc.fit(train["raw"][:, :1], K=min(K, train["raw"].shape[0]), iterations=em_iterations, seed=seed)
-        proto, angle, _ = pc.assign(test["raw"][:, :1])
+        proto, angle, _ = pc.assign(test["raw"][:, :1])  # same threshold as the fit
         return proto, angle, num_angles
     a = 1 if method == "no_rot" else num_angles
     bank = fit_prototype_bank(train["learned"], K, iterations=em_iterations, num_angles=a, seed=seed)
@@ -173,8 +175,8 @@ def _markdown(res: dict[str, Any]) -> str:
         "# threedq evaluation",
         "",
         f"Held-out split `{res['split']}`: {res['num_test_objects']} objects in {res['num_test_categories']} categories "
-        f"(GT boxes, {res['num_input_views']} input view(s) per scene); prototype banks fitted on "
-        f"{res['num_train_objects']} training objects; K = {res['num_prototypes']}.",
+        f"(GT boxes, {res['num_input_views']} input view(s) per scene); K = {res['num_prototypes']}"
+        + (f"; baseline banks fitted on {res['num_train_objects']} training objects." if res["num_train_objects"] else "."),
         "",
         f"## Retrieval (paper Table 2): rotation-max precision@{r['k']}, {r['num_angles']} yaw steps, macro over categories",
         "",

@@ -13,15 +13,25 @@ Pipeline of the ``"fast"`` methods:
 1. ``polar_interpolation_matrix``: the bilinear weights of the ``R x A`` polar sample points from the
    ``Y x X`` slice pixels (the same for every crop, so built once and cached per shape/device/dtype), scaled
    by ``sqrt(area)`` of each polar cell.
-2. That matrix is composed with an orthonormal real DFT along the angle, so one dense matmul over all
-   ``N * C * Z`` slices maps Cartesian slices straight to polar Fourier coefficients ("polar spectrum").
+2. That matrix is composed with an orthonormal real DFT along the angle, so one dense (batched) matmul over
+   all ``N * C * Z`` slices maps Cartesian slices straight to polar Fourier coefficients ("polar spectrum",
+   ``polar_spectrum``), laid out ``[N, K, C * Z]`` so that every frequency block is a strided matrix view.
    Optionally (``bandlimit=True``) ring ``i`` keeps only angular frequencies ``<= ceil(pi * r_i)`` (``r_i``
    in voxels): a ring of circumference ``2 pi r_i`` voxels carries no more than that from the voxel grid
    (the rest is interpolation artefact); this drops ~1/3 of the coefficients and of the GEMM work and is
    the same as correlating low-passed rings.
-3. Per frequency ``f`` one GEMM of the query and gallery coefficient blocks gives ``conj(Q_f) G_f`` (real and
-   imaginary parts), and a tiny ``[A, 2F]`` matmul (an inverse real DFT) gives the inner products at all
-   ``A`` yaw shifts.
+3. Per frequency ``f``, GEMMs of the query and gallery coefficient blocks give ``Re(conj(Q_f) G_f)`` (one GEMM
+   over the block) and ``Im(conj(Q_f) G_f)`` (two GEMMs over its halves), and a tiny ``[A, A]`` matmul (an
+   inverse real DFT) gives the inner products at all ``A`` yaw shifts. Cost per pair: ``~2 A`` dot products
+   of length ``C * Z * R`` (``~1.3 A`` with the band limit) instead of ``A`` of length ``C * Z * Y * X`` plus
+   ``A`` interpolations of the crop.
+
+Precision: fp32 (or fp64) inputs are computed in their dtype. ``compute_dtype=torch.bfloat16`` runs the
+resampling and the per-frequency GEMMs in bf16 (about 2-4x faster on CPUs with native bf16 matmul): inputs
+are rounded to bf16 (random errors that average out over the long contractions) and each GEMM output is
+rounded to bf16 (CPU matmul has no fp32 output for bf16 operands); the frequency-0 term (which carries most of
+every cosine and does not depend on the angle) is computed from fp32 copies with an fp32 output, and the
+inverse DFT, norms and scores are fp32. Cosines are then typically within ~1e-3 of the fp32 ones.
 
 Area weighting: polar samples are denser near the axis. Sample ``(i, a)`` stands for the polar cell of area
 ``(2 pi / A) * (rho / R) * r_i`` voxels^2 (``rho`` the inscribed radius, ``r_i = (i + 0.5) rho / R``); the
@@ -54,6 +64,7 @@ from torch import Tensor
 from threedq.geometry.rotate import rotate_yaw, yaw_angles
 
 __all__ = [
+    "PolarSpectrum",
     "RotationSearchResult",
     "all_pairs_rotation_max",
     "best_prototype_and_yaw",
@@ -215,7 +226,8 @@ def cylindrical_resample(
 
 @dataclass(frozen=True)
 class _Block:
-    """One angular frequency ``f``: ``rings`` coefficient rings; ``complex`` -> (re, im) per ring."""
+    """One angular frequency ``f`` of ``rings``; complex blocks hold the real parts of all rings, then the
+    imaginary parts (``f = 0`` and the Nyquist frequency are real)."""
 
     freq: int
     rings: tuple[int, ...]
@@ -266,7 +278,7 @@ def _fourier_matrix_f64(
 ) -> Tensor:
     """``[K_total, Y * X]``: area-weighted polar sampling composed with the orthonormal real DFT along angle.
 
-    Rows per block ``f``: for each ring in the block, ``Re`` (and ``Im`` for complex blocks) of
+    Rows per block ``f``: ``Re`` for each ring in the block, then (complex blocks) ``Im`` for each ring, of
     ``sqrt(w_f / A) sum_a exp(-2 pi i f a / A) W[i, a, :]`` with ``w_f = 2`` for complex, ``1`` for real
     frequencies (so that the coefficients are an orthonormal transform of each ring).
     """
@@ -279,7 +291,7 @@ def _fourier_matrix_f64(
         re = torch.einsum("a,rap->rp", torch.cos(theta) * scale, w[list(b.rings)])  # [R_f, P]
         if b.complex:
             im = torch.einsum("a,rap->rp", -torch.sin(theta) * scale, w[list(b.rings)])
-            rows.append(torch.stack((re, im), dim=1).reshape(-1, w.shape[-1]))  # ring-major, (re, im)
+            rows.extend((re, im))  # all real parts, then all imaginary parts
         else:
             rows.append(re)
     return torch.cat(rows, dim=0)
@@ -288,9 +300,18 @@ def _fourier_matrix_f64(
 @dataclass(frozen=True)
 class _SpectrumPlan:
     blocks: tuple[_Block, ...]
-    matrix: Tensor  # [K_total, Y * X]
+    matrix: Tensor | None  # [K_total, Y * X] (None for plain cylinders)
     lag_basis: Tensor  # [A, K]
     num_angles: int
+
+    @property
+    def offsets(self) -> tuple[int, ...]:
+        """First coefficient row of each block."""
+        out, k = [], 0
+        for b in self.blocks:
+            out.append(k)
+            k += b.width
+        return tuple(out)
 
 
 @functools.lru_cache(maxsize=32)
@@ -310,22 +331,35 @@ def _acc_dtype(dtype: torch.dtype) -> torch.dtype:
 
 @dataclass(frozen=True)
 class PolarSpectrum:
-    """Polar Fourier coefficients of ``N`` crops, one block per angular frequency.
+    """Real-ified angular Fourier coefficients of ``N`` items (crops or cylinders), grouped by frequency.
 
     Attributes:
-        blocks: per frequency, ``[N, C*Z*R_f]`` (real frequencies) or ``[N, C*Z*R_f*2]`` (complex, (re, im)
-            interleaved per ring) coefficients; the DC block in the accumulation dtype, the others in the
-            compute dtype.
-        plan: frequencies, rings and the ``[A, K]`` inverse-DFT lag basis.
+        coef: ``[N, K, D]`` coefficients in the compute dtype: per frequency block ``f`` (``plan.blocks``), the
+            real parts of its ``R_f`` rings, then (complex frequencies) their imaginary parts; ``D = C * Z``
+            for crops. Scaled so that the coefficients are an orthonormal transform of each (band-limited) ring.
+        dc: ``[N, K_0, D]`` the frequency-0 rows again in the accumulation dtype (float32 for bf16 compute), so
+            that the rotation-independent part of every score is not rounded to low precision.
+        plan: frequency blocks, the cached sampling matrix and the ``[A, K]`` inverse-DFT lag basis.
         norm: ``[N]`` norms of the area-weighted (band-limited) cylinders before any normalisation.
     """
 
-    blocks: tuple[Tensor, ...]
+    coef: Tensor
+    dc: Tensor
     plan: _SpectrumPlan
     norm: Tensor
 
     def __len__(self) -> int:
-        return self.norm.shape[0]
+        return self.coef.shape[0]
+
+    def block(self, index: int, start: int = 0, stop: int | None = None) -> Tensor:
+        """``[n, width * D]`` view of block ``index`` for items ``start:stop`` (no copy)."""
+        b = self.plan.blocks[index]
+        if b.freq == 0:
+            part = self.dc[start:stop]
+        else:
+            k0 = self.plan.offsets[index]
+            part = self.coef[start:stop, k0 : k0 + b.width]
+        return part.reshape(part.shape[0], -1)
 
 
 def _resolve_compute_dtype(dtype: torch.dtype, compute_dtype: torch.dtype | None) -> torch.dtype:
@@ -341,26 +375,24 @@ def polar_spectrum(
     num_radii: int | None = None,
     *,
     bandlimit: bool = True,
-    normalize: bool = True,
     compute_dtype: torch.dtype | None = None,
     chunk: int = 64,
 ) -> PolarSpectrum:
     """Area-weighted cylindrical resampling fused with an orthonormal real DFT along the angle.
 
     Equals ``torch.fft.rfft(cylindrical_resample(crops), norm="ortho")`` (times ``sqrt(2)`` on the complex
-    frequencies, real-ified) in one dense matmul per chunk of crops; with ``bandlimit`` ring ``i`` keeps only
-    frequencies ``f <= ceil(pi r_i)`` (``r_i`` in voxels). Computed without gradient (a search primitive).
+    frequencies, real-ified) computed as ONE batched matmul per chunk of crops with the cached
+    ``[K, Y * X]`` matrix, written straight into the ``[N, K, C * Z]`` layout the correlation GEMMs read; with
+    ``bandlimit`` ring ``i`` keeps only frequencies ``f <= ceil(pi r_i)`` (``r_i`` in voxels). Computed without
+    gradient (a search primitive).
 
     Args:
         crops: ``[N, C, Z, Y, X]`` crops.
         num_angles: angles ``A``.
         num_radii: rings ``R`` (default ``ceil(min(Y, X) / 2)``).
         bandlimit: drop angular frequencies a ring cannot carry (see module docstring).
-        normalize: divide each crop's coefficients by its norm (then inner products are cosines over the
-            inscribed cylinder).
-        compute_dtype: dtype of the stored coefficients (e.g. ``torch.bfloat16``; default: the crops' dtype).
-            The resampling matmul runs in this dtype; the DC block is kept in float32 (or the crops' dtype if
-            wider) so that the rotation-independent part of the score is not rounded.
+        compute_dtype: dtype of the resampling matmul and of the stored coefficients (e.g. ``torch.bfloat16``;
+            default: the crops' dtype). The DC rows are also kept in float32 (see ``PolarSpectrum.dc``).
         chunk: crops resampled per matmul (bounds scratch memory).
 
     Returns:
@@ -375,28 +407,22 @@ def polar_spectrum(
     compute_dtype = _resolve_compute_dtype(crops.dtype, compute_dtype)
     acc = _acc_dtype(crops.dtype if crops.dtype.itemsize > compute_dtype.itemsize else compute_dtype)
     plan = _spectrum_plan(ny, nx, num_angles, num_radii, bool(bandlimit), crops.device, compute_dtype)
-    cz = c * nz
+    cz, k_total, k_dc = c * nz, plan.matrix.shape[0], plan.blocks[0].width
     with torch.no_grad():
-        blocks = [
-            torch.empty(n, cz * b.width, device=crops.device, dtype=acc if b.freq == 0 else compute_dtype)
-            for b in plan.blocks
-        ]
+        coef = torch.empty(n, k_total, cz, device=crops.device, dtype=compute_dtype)
+        dc = torch.empty(n, k_dc, cz, device=crops.device, dtype=acc)
         norm = torch.empty(n, device=crops.device, dtype=acc)
         for start in range(0, n, max(1, chunk)):
             x = crops[start : start + chunk]
             m = x.shape[0]
-            out = F.linear(x.reshape(m * cz, ny * nx).to(compute_dtype), plan.matrix).view(m, cz, -1)
-            nrm = out.float().square().sum(dim=(1, 2)).sqrt() if compute_dtype in _LOW_PRECISION else (
-                out.square().sum(dim=(1, 2)).sqrt()
-            )
-            norm[start : start + m] = nrm
-            if normalize:
-                out.mul_((1.0 / nrm.clamp_min(1e-12)).to(out.dtype)[:, None, None])
-            k = 0
-            for b, dst in zip(plan.blocks, blocks):
-                dst[start : start + m].view(m, cz, b.width).copy_(out[:, :, k : k + b.width])
-                k += b.width
-    return PolarSpectrum(tuple(blocks), plan, norm)
+            out = coef[start : start + m]
+            slices = x.reshape(m, cz, ny * nx).to(compute_dtype).transpose(1, 2)  # [m, Y*X, C*Z]
+            torch.bmm(plan.matrix.expand(m, -1, -1), slices, out=out)  # [m, K, C*Z]
+            # partial norms over the contiguous C*Z runs (in the compute dtype: no converted copy; for bf16 each is
+            # rounded, relative 2^-9, but the K partial squares are summed in float32 so the errors average out)
+            norm[start : start + m] = torch.linalg.vector_norm(out, dim=2).to(acc).square().sum(dim=1).sqrt()
+            dc[start : start + m] = out[:, :k_dc]
+    return PolarSpectrum(coef, dc, plan, norm)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -404,36 +430,68 @@ def polar_spectrum(
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _swap_re_im(q: Tensor) -> Tensor:
-    """``[n, D * 2]`` (re, im) interleaved -> ``(-im, re)`` interleaved: ``q'' . g = Im(conj(q) g)``."""
-    v = q.view(q.shape[0], -1, 2)
-    return torch.stack((-v[..., 1], v[..., 0]), dim=-1).reshape(q.shape[0], -1)
+def _inverse_norms(x: PolarSpectrum) -> Tensor:
+    """``[N]`` ``1 / norm`` in the accumulation dtype (``1e-12`` floor, like ``F.normalize``)."""
+    return 1.0 / x.norm.to(x.plan.lag_basis.dtype).clamp_min(1e-12)
 
 
 def _auto_chunk(n: int, m: int, num_angles: int) -> int:
     return max(1, min(n, _CHUNK_BYTES // max(1, 8 * m * num_angles)))
 
 
-def _correlate(
-    q_blocks: tuple[Tensor, ...],
-    g_blocks: tuple[Tensor, ...],
-    blocks: tuple[_Block, ...],
-    lag_basis: Tensor,
-    chunk: int,
-) -> Iterator[tuple[int, Tensor]]:
-    """Yield ``(start, c)`` with ``c`` ``[A, n, M]``: inner products at every yaw shift, per query chunk."""
-    n_total, m = q_blocks[0].shape[0], g_blocks[0].shape[0]
-    out_dtype = lag_basis.dtype
+def _halves(x: Tensor) -> tuple[Tensor, Tensor]:
+    """``[n, 2W]`` complex block (real parts | imaginary parts) -> two ``[n, W]`` views."""
+    v = x.view(x.shape[0], 2, -1)
+    return v[:, 0], v[:, 1]
+
+
+def _correlate(q: PolarSpectrum, g: PolarSpectrum, chunk: int) -> Iterator[tuple[int, Tensor]]:
+    """Yield ``(start, c)`` with ``c`` ``[A, n, M]``: inner products at every yaw shift, per query chunk.
+
+    Per frequency block ``conj(Q) G`` (``Q = Qr + i Qi``, ``G = Gr + i Gi``, contracted over the block):
+    ``Re = [Qr Qi] . [Gr Gi]`` (one GEMM over the whole block), ``Im = Qr . Gi - Qi . Gr`` (two half-width
+    GEMMs), all operands strided views of the coefficient tensors (no copies). Without autograd the GEMMs write
+    into buffers reused across chunks (``c`` is overwritten by the next chunk: consume it before resuming);
+    with autograd, functional ops. (Gauss's 3-multiplication form was tried: ~10% faster in fp32, slower in
+    bf16 on CPU, so not used.)
+    """
+    lag = q.plan.lag_basis
+    num_out, n_total, m = lag.shape[1], len(q), len(g)
+    acc = lag.dtype
+    low = q.coef.dtype != acc
+    track = torch.is_grad_enabled() and (q.coef.requires_grad or g.coef.requires_grad)
+    gallery = [g.block(i) for i in range(len(q.plan.blocks))]
+    halves = [_halves(gb) if b.complex else None for b, gb in zip(q.plan.blocks, gallery)]
+    buf = buf32 = cbuf = None
     for start in range(0, n_total, chunk):
-        parts = []
-        for b, qb, gb in zip(blocks, q_blocks, g_blocks):
-            q = qb[start : start + chunk]
+        n = min(chunk, n_total - start)
+        if not track and (buf32 is None or buf32.shape[1] != n):
+            buf32 = torch.empty(num_out, n, m, device=lag.device, dtype=acc)
+            buf = torch.empty(num_out, n, m, device=lag.device, dtype=q.coef.dtype) if low else buf32
+            cbuf = torch.empty(lag.shape[0], n, m, device=lag.device, dtype=acc)
+        rows: list[Tensor] = []
+        k = 0
+        for i, (b, gb) in enumerate(zip(q.plan.blocks, gallery)):
+            qb = q.block(i, start, start + n)  # [n, W] view
+            if track:
+                rows.append(qb @ gb.T)
+                if b.complex:
+                    (qr, qi), (gr, gi) = _halves(qb), halves[i]
+                    rows.append(qr @ gi.T - qi @ gr.T)
+                continue
+            target = buf32 if qb.dtype == acc else buf
+            torch.mm(qb, gb.T, out=target[k])  # Re = [Qr Qi] . [Gr Gi] (the whole block)
             if b.complex:
-                q = torch.cat((q, _swap_re_im(q)), dim=0)  # [2n, 2D]: rows give Re then Im of conj(Q) G
-            p = q @ gb.T  # [n or 2n, M]
-            parts.append(p.to(out_dtype).view(-1, q.shape[0] // (2 if b.complex else 1), m))
-        k = torch.cat(parts, dim=0)  # [K, n, M]
-        c = (lag_basis @ k.view(k.shape[0], -1)).view(lag_basis.shape[0], k.shape[1], m)
+                (qr, qi), (gr, gi) = _halves(qb), halves[i]
+                torch.mm(qr, gi.T, out=target[k + 1])
+                target[k + 1].addmm_(qi, gr.T, alpha=-1)  # Im = Qr . Gi - Qi . Gr
+            k += 1 + b.complex
+        if low and not track:
+            buf32[1:].copy_(buf[1:])  # one conversion; row 0 (the DC term) was computed in float32
+        if track:
+            c = (lag @ torch.stack([r.to(acc) for r in rows]).view(num_out, -1)).view(-1, n, m)
+        else:
+            c = torch.mm(lag, buf32.view(num_out, -1), out=cbuf.view(lag.shape[0], -1)).view(-1, n, m)
         yield start, c
 
 
@@ -480,25 +538,25 @@ def yaw_correlation(
     acc = _acc_dtype(torch.promote_types(compute_dtype, torch.promote_types(a_cyl.dtype, b_cyl.dtype)))
     fft_dtype = _acc_dtype(acc)
     blocks = _frequency_blocks(num_angles, [num_angles // 2])  # one "ring": d runs over all middle dims
-    lag = _lag_basis_f64(blocks, num_angles).to(device=a_cyl.device, dtype=acc)
+    plan = _SpectrumPlan(blocks, None, _lag_basis_f64(blocks, num_angles).to(device=a_cyl.device, dtype=acc), num_angles)
 
-    def spectrum(x: Tensor) -> tuple[Tensor, ...]:
+    def spectrum(x: Tensor) -> PolarSpectrum:
         z = torch.fft.rfft(x.reshape(x.shape[0], -1, num_angles).to(fft_dtype), dim=-1, norm="ortho")  # [N, D, F]
-        out = []
+        rows = []
         for b in blocks:
             if b.complex:
-                out.append((torch.view_as_real(z[:, :, b.freq]) * math.sqrt(2.0)).reshape(x.shape[0], -1))
+                zf = z[:, :, b.freq] * math.sqrt(2.0)
+                rows.extend((zf.real, zf.imag))
             else:
-                out.append(z[:, :, b.freq].real)
-            if b.freq != 0:
-                out[-1] = out[-1].to(compute_dtype)
-        return tuple(out)
+                rows.append(z[:, :, b.freq].real)
+        coef = torch.stack(rows, dim=1)  # [N, K, D]
+        return PolarSpectrum(coef.to(compute_dtype), coef[:, : blocks[0].width], plan, coef.new_empty(0))
 
     qa, gb = spectrum(a_cyl), spectrum(b_cyl)
     n, m = a_cyl.shape[0], b_cyl.shape[0]
     chunk = chunk or _auto_chunk(n, m, num_angles)
-    parts = [c for _, c in _correlate(qa, gb, blocks, lag, chunk)]
-    return torch.cat(parts, dim=1).permute(1, 2, 0)  # [N, M, A]
+    parts = [c.permute(1, 2, 0).clone() for _, c in _correlate(qa, gb, chunk)]  # clone: buffers are reused
+    return torch.cat(parts, dim=0)  # [N, M, A]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -608,8 +666,10 @@ def best_prototype_and_yaw(
             g = polar_spectrum(prototypes, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
             lag = q.plan.lag_basis
             scores = torch.empty(n, k, num_angles, device=objects.device, dtype=lag.dtype)
-            for start, c in _correlate(q.blocks, g.blocks, q.plan.blocks, lag, chunk or _auto_chunk(n, k, num_angles)):
-                scores[start : start + c.shape[1]] = c.permute(1, 2, 0)
+            inv_q, inv_g = _inverse_norms(q), _inverse_norms(g)
+            for start, c in _correlate(q, g, chunk or _auto_chunk(n, k, num_angles)):
+                rows = slice(start, start + c.shape[1])
+                torch.mul(c.permute(1, 2, 0), (inv_q[rows, None] * inv_g[None])[..., None], out=scores[rows])
         best, flat = scores.reshape(n, -1).max(dim=1)
     return RotationSearchResult(
         prototype=torch.div(flat, num_angles, rounding_mode="floor"), angle=flat % num_angles, score=best, scores=scores
@@ -666,8 +726,10 @@ def all_pairs_rotation_max(
         lag = q.plan.lag_basis
         sim = torch.empty(n, m, device=query.device, dtype=lag.dtype)
         angle = torch.empty(n, m, device=query.device, dtype=torch.long)
-        for start, c in _correlate(q.blocks, g.blocks, q.plan.blocks, lag, chunk or _auto_chunk(n, m, num_angles)):
-            best, arg = c.max(dim=0)
-            sim[start : start + best.shape[0]] = best
+        inv_q, inv_g = _inverse_norms(q), _inverse_norms(g)
+        for start, c in _correlate(q, g, chunk or _auto_chunk(n, m, num_angles)):
+            best, arg = c.max(dim=0)  # a positive scale per pair does not move the argmax over yaw
+            rows = slice(start, start + best.shape[0])
+            torch.mul(best, inv_q[rows, None] * inv_g[None], out=sim[rows])
             angle[start : start + best.shape[0]] = arg
     return sim, angle

@@ -361,6 +361,10 @@ class PointCloudPrototypes:
         n_iter_: M-steps run; converged_: whether the assignments stopped changing before ``iterations``.
         mean_scores_: mean best score after each E-step.
 
+    Real crops: ``crop_boxes`` resamples the 0/1 surface occupancy of ``occupancy_from_depth`` trilinearly,
+    so a one-voxel-thick surface gives values well below 1 (on the 4 cm grid, single view, median ~0.34);
+    ``threshold=0.25`` keeps about 1.8x the voxels of ``0.5`` and clustered better in our check.
+
     Convention:
         Occupancy crops ``[N, 1, S, S, S]`` in R, z up; angle index ``a`` = ``2 pi a / A`` counter-clockwise seen
         from above; rotating object ``i`` by ``angles_[i]`` aligns it with ``prototypes_[labels_[i]]``.
