@@ -80,6 +80,28 @@ def timed(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: int
     return statistics.median(times), out
 
 
+def interleaved(
+    methods: dict[str, Callable[[], Any]], device: torch.device, repeats: int, warmups: dict[str, Callable[[], Any]]
+) -> dict[str, tuple[float, float, Any]]:
+    """Round-robin timing: after one warm-up each, ``repeats`` rounds that run every method once.
+
+    Returns ``label -> (min s, median s, last result)``. On a shared machine the load changes over minutes;
+    interleaving exposes every method to the same phases and the minimum is the least-contended run.
+    """
+    for label, fn in methods.items():
+        warmups.get(label, fn)()
+    sync(device)
+    times: dict[str, list[float]] = {label: [] for label in methods}
+    results: dict[str, Any] = {}
+    for _ in range(repeats):
+        for label, fn in methods.items():
+            t0 = time.perf_counter()
+            results[label] = fn()
+            sync(device)
+            times[label].append(time.perf_counter() - t0)
+    return {label: (min(t), statistics.median(t), results[label]) for label, t in times.items()}
+
+
 def random_crops(n: int, device: torch.device, seed: int) -> Tensor:
     """i.i.d. Gaussian features, L2-normalised per voxel (like the encoder's output)."""
     gen = torch.Generator(device="cpu").manual_seed(seed)
@@ -146,49 +168,62 @@ def fmt_s(t: float) -> str:
     return f"{t * 1000:.0f} ms" if t < 1 else f"{t:.2f} s"
 
 
+def fmt_t(t_min: float, t_med: float) -> str:
+    return f"{fmt_s(t_min)} ({fmt_s(t_med)})"
+
+
 def prototype_table(device: torch.device, args: argparse.Namespace) -> list[str]:
     n, k, sub = args.objects, args.prototypes, args.naive_objects
+    scale = n / sub
     rows = [
-        ("| method | random: time | x naive | agrees w/ naive (+-1 step) | structured: agrees w/ naive | "
-         "structured: = truth |"),
+        ("| method | random: time min (median) | x naive (min) | agrees w/ naive (+-1 step) | structured: agrees w/ "
+         "naive | structured: = truth |"),
         "|---|---|---|---|---|---|",
     ]
-    data = {}
     rnd_p, rnd_o = random_crops(k, device, 1), random_crops(n, device, 2)
     st_p = blob_crops(k, device, 3)
     idx = torch.randint(k, (n,), generator=torch.Generator().manual_seed(4)).to(device)
     st_o, st_a = rotated_copies(st_p, idx, seed=5)
-    data["random"], data["structured"] = (rnd_o, rnd_p), (st_o, st_p)
 
-    # naive on a subset, scaled linearly to n objects
-    t_naive, res = timed(lambda: best_prototype_and_yaw(rnd_o[:sub], rnd_p, A, "exact"), device, 1, warmup=0)
-    t_naive *= n / sub
-    ref = {"random": (res.prototype, res.angle)}
-    res_st = best_prototype_and_yaw(st_o[:sub], st_p, A, "exact")
-    ref["structured"] = (res_st.prototype, res_st.angle)
-    truth = (idx, st_a)
-    naive_truth = agreement(res_st.prototype, res_st.angle, idx[:sub], st_a[:sub])
-    rows.append(f"| naive: rotate every object x36 + GEMM (measured on {sub} objects, x{n // sub} scaled) | "
-                f"{fmt_s(t_naive)} | 1.0x | 1.000 (1.000) | 1.000 (1.000) | {naive_truth} |")
+    def fast(o: Tensor, p: Tensor, dtype: torch.dtype | None, band: bool) -> tuple[Tensor, Tensor]:
+        r = best_prototype_and_yaw(o, p, A, "fast", compute_dtype=dtype, bandlimit=band)
+        return r.prototype, r.angle
 
-    methods: list[tuple[str, Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]]] = [
-        ("prototypes prerotated x36 (1800 copies) + one GEMM", prerotated_search),
-    ]
+    def naive(o: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
+        r = best_prototype_and_yaw(o, p, A, "exact")
+        return r.prototype, r.angle
+
+    naive_label = f"naive: rotate every object x36 + GEMM (measured on {sub} objects, x{scale:g} scaled)"
+    fns: dict[str, Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]] = {
+        naive_label: lambda o, p: naive(o[:sub], p),
+        "prototypes prerotated x36 (1800 copies) + one GEMM": prerotated_search,
+    }
     for dtype, name in ((None, "fp32"), (torch.bfloat16, "bf16")):
         for band in (True, False):
             label = f"fast: cylindrical + rFFT, {name}" + ("" if band else ", no band limit")
-
-            def run(o: Tensor, p: Tensor, dtype: torch.dtype | None = dtype, band: bool = band) -> tuple[Tensor, Tensor]:
-                r = best_prototype_and_yaw(o, p, A, "fast", compute_dtype=dtype, bandlimit=band)
-                return r.prototype, r.angle
-
-            methods.append((label, run))
-    for label, fn in methods:
-        t, (p_r, a_r) = timed(lambda fn=fn: fn(rnd_o, rnd_p), device, args.repeats)
-        p_s, a_s = fn(st_o, st_p)
+            fns[label] = lambda o, p, dtype=dtype, band=band: fast(o, p, dtype, band)
+    timing = interleaved(
+        {label: (lambda fn=fn: fn(rnd_o, rnd_p)) for label, fn in fns.items()},
+        device,
+        args.repeats,
+        warmups={naive_label: lambda: naive(rnd_o[:2], rnd_p)},
+    )
+    t_naive = timing[naive_label][0] * scale
+    ref_r = timing[naive_label][2]
+    ref_s = naive(st_o[:sub], st_p)
+    truth = (idx, st_a)
+    for label, fn in fns.items():
+        t_min, t_med, (p_r, a_r) = timing[label]
+        if label == naive_label:
+            t_min, t_med = t_min * scale, t_med * scale
+            p_s, a_s = ref_s
+            truth_cell = agreement(p_s, a_s, idx[:sub], st_a[:sub])
+        else:
+            p_s, a_s = fn(st_o, st_p)
+            truth_cell = agreement(p_s, a_s, *truth)
         rows.append(
-            f"| {label} | {fmt_s(t)} | {t_naive / t:.0f}x | {agreement(p_r[:sub], a_r[:sub], *ref['random'])} | "
-            f"{agreement(p_s[:sub], a_s[:sub], *ref['structured'])} | {agreement(p_s, a_s, *truth)} |"
+            f"| {label} | {fmt_t(t_min, t_med)} | {t_naive / t_min:.0f}x | "
+            f"{agreement(p_r[:sub], a_r[:sub], *ref_r)} | {agreement(p_s[:sub], a_s[:sub], *ref_s)} | {truth_cell} |"
         )
     return rows
 
@@ -196,9 +231,10 @@ def prototype_table(device: torch.device, args: argparse.Namespace) -> list[str]
 def retrieval_table(device: torch.device, args: argparse.Namespace) -> list[str]:
     n = m = args.gallery
     sub = args.exact_queries
+    scale = n / sub
     rows = [
-        ("| method | random: time | x exact | top-1 = exact | structured: top-1 = exact | structured: top-1 = truth "
-         "| structured: angle at top-1 = exact |"),
+        ("| method | random: time min (median) | x exact (min) | top-1 = exact | structured: top-1 = exact | "
+         "structured: top-1 = truth | structured: angle at top-1 = exact |"),
         "|---|---|---|---|---|---|---|",
     ]
     rnd_q, rnd_g = random_crops(n, device, 6), random_crops(m, device, 7)
@@ -206,30 +242,43 @@ def retrieval_table(device: torch.device, args: argparse.Namespace) -> list[str]
     perm = torch.randperm(m, generator=torch.Generator().manual_seed(9)).to(device)
     st_q, _ = rotated_copies(st_g, perm, seed=10)
 
-    t_exact, (sim_r, _) = timed(lambda: rotation_max_similarity(rnd_q[:sub], rnd_g, A, chunk=16), device, 1, warmup=0)
-    t_exact *= n / sub
-    top_r = sim_r.argmax(dim=1)
-    sim_s, ang_s = rotation_max_similarity(st_q[:sub], st_g, A, chunk=16)
-    top_s = sim_s.argmax(dim=1)
-    rows_sub = torch.arange(sub, device=device)
-    rows.append(f"| exact: rotation_max_similarity fp32, chunk 16 (measured on {sub} queries, x{n // sub} scaled) | "
-                f"{fmt_s(t_exact)} | 1.0x | 1.000 | 1.000 | {(top_s == perm[:sub]).float().mean().item():.3f} | 1.000 |")
+    exact_label = f"exact: rotation_max_similarity fp32, chunk 16 (measured on {sub} queries, x{scale:g} scaled)"
+    fns: dict[str, Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]] = {
+        exact_label: lambda q, g: rotation_max_similarity(q[:sub], g, A, chunk=16),
+    }
     for dtype, name in ((None, "fp32"), (torch.bfloat16, "bf16")):
         for band in (True, False):
             label = f"fast: all_pairs_rotation_max, {name}" + ("" if band else ", no band limit")
-
-            def run(q: Tensor, g: Tensor, dtype: torch.dtype | None = dtype, band: bool = band) -> tuple[Tensor, Tensor]:
-                return all_pairs_rotation_max(q, g, A, "fast", compute_dtype=dtype, bandlimit=band)
-
-            t, (fs_r, _) = timed(lambda run=run: run(rnd_q, rnd_g), device, args.repeats)
-            fs_s, fa_s = run(st_q, st_g)
-            ft_r, ft_s = fs_r.argmax(dim=1), fs_s.argmax(dim=1)
-            angle_ok = (fa_s[rows_sub, ft_s[:sub]] == ang_s[rows_sub, top_s]) & (ft_s[:sub] == top_s)
-            rows.append(
-                f"| {label} | {fmt_s(t)} | {t_exact / t:.0f}x | {(ft_r[:sub] == top_r).float().mean().item():.3f} | "
-                f"{(ft_s[:sub] == top_s).float().mean().item():.3f} | {(ft_s == perm).float().mean().item():.3f} | "
-                f"{angle_ok.float().mean().item():.3f} |"
+            fns[label] = lambda q, g, dtype=dtype, band=band: all_pairs_rotation_max(
+                q, g, A, "fast", compute_dtype=dtype, bandlimit=band
             )
+    timing = interleaved(
+        {label: (lambda fn=fn: fn(rnd_q, rnd_g)) for label, fn in fns.items()},
+        device,
+        args.repeats,
+        warmups={exact_label: lambda: rotation_max_similarity(rnd_q[:2], rnd_g, A, chunk=16)},
+    )
+    t_exact = timing[exact_label][0] * scale
+    top_r = timing[exact_label][2][0].argmax(dim=1)
+    sim_s, ang_s = rotation_max_similarity(st_q[:sub], st_g, A, chunk=16)
+    top_s = sim_s.argmax(dim=1)
+    rows_sub = torch.arange(sub, device=device)
+    for label, fn in fns.items():
+        t_min, t_med, (fs_r, _) = timing[label]
+        if label == exact_label:
+            t_min, t_med = t_min * scale, t_med * scale
+            fs_s, fa_s, ft_all = sim_s, ang_s, None
+        else:
+            fs_s, fa_s = fn(st_q, st_g)
+            ft_all = fs_s.argmax(dim=1)
+        ft_r, ft_s = fs_r.argmax(dim=1), fs_s[:sub].argmax(dim=1)
+        angle_ok = (fa_s[rows_sub, ft_s] == ang_s[rows_sub, top_s]) & (ft_s == top_s)
+        truth = (ft_s == perm[:sub]) if ft_all is None else (ft_all == perm)
+        rows.append(
+            f"| {label} | {fmt_t(t_min, t_med)} | {t_exact / t_min:.0f}x | "
+            f"{(ft_r[:sub] == top_r).float().mean().item():.3f} | {(ft_s == top_s).float().mean().item():.3f} | "
+            f"{truth.float().mean().item():.3f} | {angle_ok.float().mean().item():.3f} |"
+        )
     return rows
 
 
@@ -253,7 +302,7 @@ def main() -> None:
     parser.add_argument("--gallery", type=int, default=1000, help="queries = gallery crops in (b)")
     args = parser.parse_args()
     device = torch.device(args.device)
-    args.repeats = 1 if args.quick else 3
+    args.repeats = 1 if args.quick else 5
     args.naive_objects = min(args.objects, 20 if args.quick else 50)
     args.exact_queries = min(args.gallery, 20 if args.quick else 50)
     torch.manual_seed(0)
@@ -263,9 +312,10 @@ def main() -> None:
     print(f"- machine: {dev}; torch threads: {torch.get_num_threads()}; torch {torch.__version__}; "
           f"device {device}")
     print(f"- date: {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}")
-    print(f"- crops {C} x {S}^3 fp32, {A} yaw steps; times are medians of {args.repeats} run(s) after one warm-up "
-          "(the cached interpolation matrix is built in the warm-up); naive/exact measured once on a subset and "
-          "scaled linearly (their cost is linear in the number of objects/queries)\n")
+    print(f"- crops {C} x {S}^3 fp32, {A} yaw steps; every method warmed up once (the cached interpolation matrix is "
+          f"built then), then {args.repeats} interleaved rounds (each method once per round): min and median; "
+          "naive/exact are run on a subset of objects/queries each round and scaled linearly (their cost is linear "
+          "in the number of objects/queries)\n")
     print(f"- GEMM GFLOP/s at start (load probe; idle roofs here ~210 fp32, ~900 bf16): {matmul_gflops(device)}\n")
     print(f"## (a) {args.objects} objects x {args.prototypes} prototypes x {A} yaw\n")
     print("\n".join(prototype_table(device, args)))

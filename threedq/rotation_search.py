@@ -31,7 +31,9 @@ resampling and the per-frequency GEMMs in bf16 (about 2-4x faster on CPUs with n
 are rounded to bf16 (random errors that average out over the long contractions) and each GEMM output is
 rounded to bf16 (CPU matmul has no fp32 output for bf16 operands); the frequency-0 term (which carries most of
 every cosine and does not depend on the angle) is computed from fp32 copies with an fp32 output, and the
-inverse DFT, norms and scores are fp32. Cosines are then typically within ~1e-3 of the fp32 ones.
+inverse DFT, norms and scores are fp32. Measured on 32 x 16^3 crops: cosines within 2e-3 (mean 1e-4) of
+fp64, the best yaw unchanged for >99% of all pairs (the rest are near-ties of unrelated crops), retrieval top-1
+unchanged. fp32 is within 5e-7 of fp64.
 
 Area weighting: polar samples are denser near the axis. Sample ``(i, a)`` stands for the polar cell of area
 ``(2 pi / A) * (rho / R) * r_i`` voxels^2 (``rho`` the inscribed radius, ``r_i = (i + 0.5) rho / R``); the
@@ -509,7 +511,7 @@ def yaw_correlation(
     (or such inputs), the FFT runs in float32, the coefficients are rounded to the low precision and each
     per-frequency GEMM accumulates in float32 but ROUNDS ITS OUTPUT to the low precision (CPU matmul has no
     float32 output for bf16 inputs), relative error ~2^-9 of each frequency's term; the DC term is computed
-    in float32 and the result is float32. Expect ~1e-3 relative error on the correlation values.
+    in float32 and the result is float32. Expect ~1e-3 relative error on the non-constant part.
 
     Args:
         a_cyl: ``[N, ..., A]`` (e.g. ``[N, C, Z, R, A]`` from ``cylindrical_resample``).
