@@ -37,7 +37,7 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         num_views: cameras per scene.
         max_objects: objects per scene (also the padding size of samples).
         generator_workers: processes used for generation.
-        batch_size, num_workers, num_input_views, num_target_views, seed: as in
+        batch_size, num_workers, num_input_views, num_target_views, seed, boxes, match_iou, max_boxes: as in
             :class:`~datamodules.scene_folder.SceneFolderDataModule`.
     """
 
@@ -56,6 +56,9 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         num_input_views: int = 1,
         num_target_views: int = 1,
         seed: int = 0,
+        boxes: str = "gt",
+        match_iou: float = 0.5,
+        max_boxes: int = 8,
     ) -> None:
         super().__init__(
             data_dir=data_dir,
@@ -65,6 +68,9 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
             num_target_views=num_target_views,
             max_objects=max_objects,
             seed=seed,
+            boxes=boxes,
+            match_iou=match_iou,
+            max_boxes=max_boxes,
         )
         self.num_scenes = num_scenes
         self.split_fractions = tuple(split_fractions)

@@ -24,10 +24,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from threedq.boxes import boxes_to_aabb
+from threedq.boxes import aabb_iou_3d, boxes_to_aabb
 from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_scene
 
-__all__ = ["SceneDataset", "SceneFolderDataModule"]
+__all__ = ["SceneDataset", "SceneFolderDataModule", "detections_as_objects"]
 
 SPLITS = ("train", "val", "test")
 
@@ -44,6 +44,12 @@ class SceneDataset(Dataset):
         max_objects: objects are padded to this many; a scene with more is an error.
         random_views: draw views at random per call (training) instead of a fixed per-scene choice.
         seed: seed of the fixed per-scene view choice.
+        box_sets: ``{scene file -> (aabb [P,6], scores [P])}`` boxes to use instead of the ground truth
+            (proposals or detections; see :func:`detections_as_objects`), or ``None`` for GT boxes.
+        match_iou: a box takes the category and oriented GT box of the GT object it matches at this IoU.
+        keep_unmatched: keep boxes that match no GT object (category -1; training needs no labels);
+            ``False`` keeps only matched ones (metrics).
+        max_boxes: boxes per scene are padded to this many when ``box_sets`` is given (highest scores kept).
     """
 
     def __init__(
@@ -56,6 +62,10 @@ class SceneDataset(Dataset):
         max_objects: int = 3,
         random_views: bool = False,
         seed: int = 0,
+        box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+        match_iou: float = 0.5,
+        keep_unmatched: bool = True,
+        max_boxes: int = 8,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
@@ -72,6 +82,16 @@ class SceneDataset(Dataset):
         self.max_objects = max_objects
         self.random_views = random_views
         self.seed = seed
+        if box_sets is not None:
+            missing = [f for f in self.files if f not in box_sets]
+            if missing:
+                raise ValueError(f"box_sets: no boxes for {len(missing)} scene(s) of split {split!r}, e.g. {missing[0]}")
+            if max_boxes < 1:
+                raise ValueError(f"max_boxes: expected >= 1, got {max_boxes}")
+        self.box_sets = box_sets
+        self.match_iou = match_iou
+        self.keep_unmatched = keep_unmatched
+        self.max_boxes = max_boxes
 
     def __len__(self) -> int:
         return len(self.files)
@@ -96,7 +116,11 @@ class SceneDataset(Dataset):
             ``R_T_cam`` [S,4,4]; ``instance`` [S,H,W] long (only if the record has masks); ``view_ids`` [S];
             ``boxes`` [M,7] oriented boxes, ``aabb`` [M,6] axis-aligned hulls ``(xmin..zmax)``,
             ``categories`` [M] long (-1 pad), ``box_mask`` [M] bool, with M = ``max_objects``;
-            ``scene_index`` long. The first ``num_input_views`` of the S views are inputs, the rest targets.
+            ``scene_index`` long; ``gt_aabb`` [G,6] and ``gt_mask`` [G] (G = ``max_objects``) always hold the
+            ground truth. With ``box_sets``, ``boxes``/``aabb``/``categories``/``box_mask`` describe the given
+            boxes instead (M = ``max_boxes``; ``boxes`` and ``categories`` from the matched GT object, zeros and
+            -1 when unmatched) and ``box_scores`` [M] their scores. The first ``num_input_views`` of the S
+            views are inputs, the rest targets.
 
         Convention: frame R = the record's world frame (metres, z up); OpenCV camera axes.
         """
@@ -126,9 +150,76 @@ class SceneDataset(Dataset):
             "box_mask": torch.arange(M) < rec.num_objects,
             "scene_index": torch.tensor(i, dtype=torch.long),
         }
+        out["gt_aabb"], out["gt_mask"] = out["aabb"], out["box_mask"]
+        if self.box_sets is not None:
+            out.update(
+                detections_as_objects(
+                    *self.box_sets[self.files[i]], rec.boxes, rec.categories, self.match_iou,
+                    self.keep_unmatched, self.max_boxes,
+                )
+            )
         if rec.instance is not None:
             out["instance"] = torch.from_numpy(rec.instance[views].astype(np.int64))
         return out
+
+
+def detections_as_objects(
+    aabb: np.ndarray,
+    scores: np.ndarray,
+    gt_boxes: np.ndarray,
+    gt_categories: np.ndarray,
+    match_iou: float = 0.5,
+    keep_unmatched: bool = True,
+    max_boxes: int = 8,
+) -> dict[str, torch.Tensor]:
+    """Turn a scene's detected (or proposed) boxes into the object fields of a sample.
+
+    Boxes are taken in descending score order (at most ``max_boxes``); each is matched greedily to the
+    not yet matched GT object of highest IoU (axis-aligned hulls) if that IoU is ``>= match_iou``, and then
+    carries that object's category and oriented box (for the metrics only).
+
+    Args:
+        aabb ``[P, 6]``, scores ``[P]``: the boxes; gt_boxes ``[G, 7]``, gt_categories ``[G]``: the scene's GT.
+
+    Returns:
+        ``aabb`` [M,6], ``boxes`` [M,7], ``categories`` [M] (-1 unmatched or pad), ``box_mask`` [M] bool,
+        ``box_scores`` [M], ``box_matched`` [M] bool, M = ``max_boxes``.
+    """
+    M = max_boxes
+    order = np.argsort(-np.asarray(scores, np.float64), kind="stable")[:M]
+    aabb = np.asarray(aabb, np.float32).reshape(-1, 6)[order]
+    scores = np.asarray(scores, np.float32).reshape(-1)[order]
+    gt_aabb = boxes_to_aabb(np.asarray(gt_boxes, np.float64).reshape(-1, 7)).astype(np.float32)
+    iou = aabb_iou_3d(torch.from_numpy(aabb), torch.from_numpy(gt_aabb)).numpy() if len(aabb) and len(gt_aabb) else np.zeros((len(aabb), len(gt_aabb)))
+    taken = np.zeros(len(gt_aabb), bool)
+    match = np.full(len(aabb), -1)
+    for d in range(len(aabb)):
+        cand = np.where(~taken, iou[d], -1.0)
+        if cand.size and cand.max() >= match_iou:
+            g = int(cand.argmax())
+            taken[g], match[d] = True, g
+    keep = np.ones(len(aabb), bool) if keep_unmatched else match >= 0
+    idx = np.nonzero(keep)[0]
+    out_aabb = np.zeros((M, 6), np.float32)
+    out_boxes = np.zeros((M, 7), np.float32)
+    out_cats = np.full((M,), -1, np.int64)
+    out_scores = np.zeros((M,), np.float32)
+    out_matched = np.zeros((M,), bool)
+    n = len(idx)
+    out_aabb[:n], out_scores[:n] = aabb[idx], scores[idx]
+    for j, d in enumerate(idx):
+        if match[d] >= 0:
+            out_boxes[j] = gt_boxes[match[d]]
+            out_cats[j] = gt_categories[match[d]]
+            out_matched[j] = True
+    return {
+        "aabb": torch.from_numpy(out_aabb),
+        "boxes": torch.from_numpy(out_boxes),
+        "categories": torch.from_numpy(out_cats),
+        "box_mask": torch.arange(M) < n,
+        "box_scores": torch.from_numpy(out_scores),
+        "box_matched": torch.from_numpy(out_matched),
+    }
 
 
 class SceneFolderDataModule(L.LightningDataModule):
@@ -142,6 +233,16 @@ class SceneFolderDataModule(L.LightningDataModule):
         num_target_views: held-out target views per sample (view prediction).
         max_objects: objects per scene are padded to this many.
         seed: seed of the fixed view choice of val/test samples.
+        boxes: which object boxes the samples carry: ``"gt"`` (ground truth), ``"proposals"`` (the
+            label-free pseudo-boxes of :mod:`threedq.proposals`, computed once per split and cached in
+            ``<data_dir>/proposals/<split>.npz``) or a path to a box file with ``{split}`` in it (e.g. a
+            detector's ``detections_{split}.npz``). GT stays available as ``gt_aabb``/``gt_mask``.
+        match_iou: IoU at which a proposed/detected box is matched to a GT object (metrics only).
+        max_boxes: proposed/detected boxes per scene (highest scores kept).
+
+    With boxes other than GT, the train split keeps every box; val and test keep only the boxes matched
+    to a GT object, so that the label-based metrics are defined (the unmatched ones are counted by the
+    detection metrics instead).
     """
 
     def __init__(
@@ -153,8 +254,18 @@ class SceneFolderDataModule(L.LightningDataModule):
         num_target_views: int = 1,
         max_objects: int = 3,
         seed: int = 0,
+        boxes: str = "gt",
+        match_iou: float = 0.5,
+        max_boxes: int = 8,
     ) -> None:
         super().__init__()
+        if boxes not in ("gt", "proposals") and "{split}" not in boxes:
+            raise ValueError(f"boxes: expected 'gt', 'proposals' or a path containing '{{split}}', got {boxes!r}")
+        if not 0.0 < match_iou <= 1.0:
+            raise ValueError(f"match_iou: expected in (0, 1], got {match_iou}")
+        self.boxes = boxes
+        self.match_iou = match_iou
+        self.max_boxes = max_boxes
         if batch_size < 1:
             raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
         if num_workers < 0:
@@ -191,7 +302,24 @@ class SceneFolderDataModule(L.LightningDataModule):
                     max_objects=self.max_objects,
                     random_views=split == "train",
                     seed=self.seed,
+                    box_sets=self.box_sets(split),
+                    match_iou=self.match_iou,
+                    keep_unmatched=split == "train",
+                    max_boxes=self.max_boxes,
                 )
+
+    def box_sets(self, split: str) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+        """The proposed/detected boxes of a split per scene file (``None`` for GT boxes)."""
+        if self.boxes == "gt":
+            return None
+        if self.boxes == "proposals":
+            from threedq.proposals import ProposalParams, propose_dataset
+
+            cache = self.data_dir / "proposals" / f"{split}.npz"
+            return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2))
+        from threedq.proposals import load_boxes_file
+
+        return load_boxes_file(self.boxes.format(split=split))
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         if split not in self.datasets:

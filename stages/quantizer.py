@@ -181,6 +181,8 @@ class Quantizer(EncoderStage):
         if self.bank.num_active == 0:
             return  # sanity check before any training
         crops = self.object_crops(batch, self.hparams.num_input_views, self.hparams.crop_size)
+        if crops["features"].shape[0] == 0:
+            return  # no (matched) boxes in this batch, e.g. detections that hit no GT object
         res = self.bank.assign(crops["features"])
         m = self.metrics[split]
         m["hungarian"].update(res.prototype, crops["labels"])

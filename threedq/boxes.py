@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["box_corners", "boxes_to_aabb", "aabb_to_corners"]
+__all__ = ["aabb_iou_3d", "aabb_to_corners", "box_corners", "boxes_to_aabb", "nms_3d"]
 
 _SIGNS = np.array([[(i & 1), (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=np.float64) - 0.5
 
@@ -68,3 +68,105 @@ def aabb_to_corners(aabb: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tenso
     boxes = torch.cat([centre, size, torch.zeros_like(size[..., :1])], dim=-1)
     out = box_corners(boxes)
     return out.numpy() if was_numpy else out
+
+
+def _check_aabb_rows(t: torch.Tensor, name: str) -> None:
+    if not isinstance(t, torch.Tensor) or t.ndim != 2 or t.shape[-1] != 6:
+        shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+        raise ValueError(f"{name}: expected a tensor of shape [N, 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {shape}")
+    if t.dtype == torch.bool or t.is_complex():
+        raise ValueError(f"{name}: expected a real-valued tensor, got {t.dtype}")
+    if t.numel() == 0:
+        return
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name}: boxes must be finite")
+    bad = (t[:, 3:] < t[:, :3]).any(dim=1)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"{name}: max < min in box {i}: {t[i].tolist()}")
+
+
+def aabb_iou_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Pairwise intersection-over-union of axis-aligned 3D boxes.
+
+    Args:
+        a: ``[N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+        b: ``[M, 6]`` boxes, same layout.
+
+    Returns:
+        ``[N, M]`` IoU in ``[0, 1]``, floating dtype promoted from the inputs (default float dtype for integer
+        inputs). A degenerate (zero-volume) box has IoU 0 with every box, itself included, never ``nan``.
+
+    Raises:
+        ValueError: if an input is not an ``[*, 6]`` real tensor, holds non-finite values, or has a box with
+            ``max < min`` on some axis.
+
+    Convention: boxes are closed intervals per axis in any consistent length unit (world frame, z up for
+    this package); touching boxes (shared face) have IoU 0.
+
+    Example:
+        >>> aabb_iou_3d(torch.tensor([[0.0, 0, 0, 2, 1, 1]]), torch.tensor([[1.0, 0, 0, 3, 1, 1]]))
+        tensor([[0.3333]])
+    """
+    _check_aabb_rows(a, "a")
+    _check_aabb_rows(b, "b")
+    dtype = torch.promote_types(a.dtype, b.dtype)
+    if not dtype.is_floating_point:
+        dtype = torch.get_default_dtype()
+    a, b = a.to(dtype), b.to(dtype)
+    lo = torch.maximum(a[:, None, :3], b[None, :, :3])
+    hi = torch.minimum(a[:, None, 3:], b[None, :, 3:])
+    inter = (hi - lo).clamp(min=0).prod(dim=-1)  # [N, M]
+    vol_a = (a[:, 3:] - a[:, :3]).prod(dim=-1)
+    vol_b = (b[:, 3:] - b[:, :3]).prod(dim=-1)
+    union = vol_a[:, None] + vol_b[None, :] - inter
+    return torch.where(union > 0, inter / union.clamp(min=torch.finfo(dtype).tiny), torch.zeros_like(inter))
+
+
+def nms_3d(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torch.Tensor:
+    """Greedy non-maximum suppression of axis-aligned 3D boxes.
+
+    Boxes are visited by descending score; a box is kept unless its IoU (:func:`aabb_iou_3d`) with an
+    already kept box is strictly greater than ``iou_threshold``.
+
+    Args:
+        boxes: ``[N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``; ``N = 0`` allowed.
+        scores: ``[N]`` real scores, higher is better.
+        iou_threshold: in ``[0, 1]``; ``0`` suppresses every box that overlaps a kept one with positive volume.
+
+    Returns:
+        ``[K]`` int64 indices into ``boxes`` of the kept boxes, sorted by descending score.
+
+    Raises:
+        ValueError: on bad shapes (see :func:`aabb_iou_3d`), non-finite scores, or a threshold outside
+            ``[0, 1]``.
+
+    Convention: as torchvision's ``nms`` (suppress when IoU ``>`` threshold); equal scores are visited in
+    index order. Builds the ``[N, N]`` IoU matrix, so meant for up to a few thousand boxes.
+
+    Example:
+        >>> boxes = torch.tensor([[0.0, 0, 0, 1, 1, 1], [0.1, 0, 0, 1.1, 1, 1], [5.0, 5, 5, 6, 6, 6]])
+        >>> nms_3d(boxes, torch.tensor([0.5, 0.9, 0.1]), 0.5)
+        tensor([1, 2])
+    """
+    _check_aabb_rows(boxes, "boxes")
+    if not isinstance(scores, torch.Tensor) or scores.ndim != 1 or scores.shape[0] != boxes.shape[0]:
+        shape = tuple(scores.shape) if isinstance(scores, torch.Tensor) else type(scores).__name__
+        raise ValueError(f"scores: expected shape [{boxes.shape[0]}] (one per box), got {shape}")
+    if scores.dtype == torch.bool or scores.is_complex() or not bool(torch.isfinite(scores).all()):
+        raise ValueError("scores: expected finite real values")
+    if isinstance(iou_threshold, bool) or not isinstance(iou_threshold, (int, float)) or not 0 <= iou_threshold <= 1:
+        raise ValueError(f"iou_threshold must be a number in [0, 1], got {iou_threshold!r}")
+    n = boxes.shape[0]
+    if n == 0:
+        return torch.zeros(0, dtype=torch.long, device=boxes.device)
+    order = torch.sort(scores, descending=True, stable=True).indices
+    over = (aabb_iou_3d(boxes[order], boxes[order]) > iou_threshold).cpu().numpy()
+    suppressed = np.zeros(n, dtype=bool)
+    keep: list[int] = []
+    for i in range(n):
+        if suppressed[i]:
+            continue
+        keep.append(i)
+        suppressed |= over[i]
+    return order[torch.as_tensor(keep, dtype=torch.long, device=order.device)]

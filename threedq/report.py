@@ -60,6 +60,8 @@ def split_loader(dm: Any, split: str, batch_size: int = 4) -> DataLoader:
     ds = SceneDataset(
         dm.data_dir, dm.index, split, num_input_views=dm.num_input_views, num_target_views=0,
         max_objects=dm.max_objects, random_views=False, seed=dm.seed,
+        box_sets=dm.box_sets(split) if hasattr(dm, "box_sets") else None,
+        match_iou=getattr(dm, "match_iou", 0.5), keep_unmatched=split == "train", max_boxes=getattr(dm, "max_boxes", 8),
     )
     return DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=0)
 

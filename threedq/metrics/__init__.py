@@ -8,19 +8,23 @@ from threedq.metrics.clustering import (
     matching,
     purity,
 )
+from threedq.metrics.detection import DetectionMAP, average_precision, match_detections
 from threedq.metrics.fewshot import FewShotAccuracy, few_shot_accuracy, select_labelled
 from threedq.metrics.pose import RelativeYawError, relative_yaw_error, relative_yaw_errors
 from threedq.metrics.retrieval import RetrievalPrecisionAtK, retrieval_precision_at_k, rotation_max_similarity
 
 __all__ = [
     "ClusterPurity",
+    "DetectionMAP",
     "FewShotAccuracy",
     "HungarianAccuracy",
     "RelativeYawError",
     "RetrievalPrecisionAtK",
+    "average_precision",
     "cluster_confusion",
     "few_shot_accuracy",
     "hungarian_accuracy",
+    "match_detections",
     "matching",
     "purity",
     "relative_yaw_error",

@@ -1,0 +1,344 @@
+"""The 3D object detector stage (paper Sec. 3.1 "3D object detection", supplement: detector architecture).
+
+On the (frozen) encoder's feature grid: one down-sampling Conv3d (stride 2) and three 3D residual blocks
+with 32 channels, then a 1x1x1 head with one anchor per cell: an objectness logit and a box regression
+``(dx, dy, dz, log sx, log sy, log sz)`` relative to the cell centre and a fixed anchor size (config, per
+dataset). Training targets: a cell is **positive** when its centre lies in the inner part of a box (the
+box shrunk by ``inner_fraction`` about its centre; the cell holding the box centre is always positive),
+**negative** when its centre is farther than ``negative_margin`` outside every box, ignored otherwise.
+Objectness: class-balanced logistic loss; regression: smooth L1 over positives. Inference keeps cells
+above a score threshold, decodes their boxes and runs greedy 3D NMS.
+
+Training boxes come from the DataModule's ``boxes`` option: ``gt`` ("3D pretrain", GT boxes of the
+training split) or ``proposals`` ("2D-triangulated pretrain": the label-free pseudo-boxes of
+:mod:`threedq.proposals`). Validation and test always score against the GT boxes (``gt_aabb``) with the
+dataset-level :class:`~threedq.metrics.DetectionMAP` at IoU 0.25 and 0.5.
+
+Convention: frame R metres, z up; boxes axis-aligned ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (yaw comes
+from the prototypes, as in the paper); volumes ``[B, C, Z, Y, X]``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from stages.base import EncoderStage
+from threedq.atomic_io import atomic_write_bytes
+from threedq.boxes import nms_3d
+from threedq.metrics import DetectionMAP
+
+__all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes", "detection_figure"]
+
+
+class _ResBlock3d(nn.Module):
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.Conv3d(channels, channels, 3, padding=1, bias=False),
+            nn.BatchNorm3d(channels),
+            nn.LeakyReLU(0.2),
+            nn.Conv3d(channels, channels, 3, padding=1, bias=False),
+            nn.BatchNorm3d(channels),
+        )
+        self.act = nn.LeakyReLU(0.2)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.act(x + self.body(x))
+
+
+class DetectorHead(nn.Module):
+    """Down-sampling Conv3d (k4 s2) + three residual blocks + a 1x1x1 objectness/box head.
+
+    Args:
+        in_channels: feature-grid channels.
+        channels: width of the residual blocks (paper: 32).
+        num_blocks: residual blocks (paper: 3).
+
+    Shapes: ``[B, C, Z, Y, X]`` -> objectness ``[B, Z/2, Y/2, X/2]`` logits and box ``[B, 6, Z/2, Y/2, X/2]``.
+    """
+
+    def __init__(self, in_channels: int = 32, channels: int = 32, num_blocks: int = 3) -> None:
+        super().__init__()
+        self.down = nn.Sequential(
+            nn.Conv3d(in_channels, channels, 4, stride=2, padding=1, bias=False),
+            nn.BatchNorm3d(channels),
+            nn.LeakyReLU(0.2),
+        )
+        self.blocks = nn.Sequential(*[_ResBlock3d(channels) for _ in range(num_blocks)])
+        self.out = nn.Conv3d(channels, 7, 1)
+        nn.init.constant_(self.out.bias[:1], -2.0)  # start with low objectness everywhere
+
+    def forward(self, feats: Tensor) -> tuple[Tensor, Tensor]:
+        y = self.out(self.blocks(self.down(feats)))
+        return y[:, 0], y[:, 1:]
+
+
+def cell_centres(origin: Tensor, cell: Tensor, shape: tuple[int, int, int]) -> Tensor:
+    """World coordinates ``[Z, Y, X, 3]`` (x, y, z order) of the centres of a grid of cells.
+
+    Args:
+        origin: ``[3]`` (xmin, ymin, zmin) of the grid; cell ``[3]`` cell size (x, y, z); shape ``(Z, Y, X)``.
+    """
+    Z, Y, X = shape
+    zs, ys, xs = (torch.arange(n, dtype=origin.dtype, device=origin.device) + 0.5 for n in (Z, Y, X))
+    gz, gy, gx = torch.meshgrid(zs, ys, xs, indexing="ij")
+    return torch.stack([gx, gy, gz], dim=-1) * cell + origin
+
+
+def detection_targets(
+    centres: Tensor, aabb: Tensor, mask: Tensor, anchor: Tensor, inner_fraction: float = 0.5, negative_margin: float = 0.1
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Objectness labels and box-regression targets of every cell.
+
+    Args:
+        centres: ``[Z, Y, X, 3]`` cell centres (x, y, z), metres.
+        aabb: ``[B, M, 6]`` boxes; mask ``[B, M]`` valid boxes.
+        anchor: ``[3]`` anchor size (sx, sy, sz).
+        inner_fraction: a cell is positive when its centre is within this fraction of the box's half-extent
+            of the box centre (per axis); the cell nearest to the centre is positive too.
+        negative_margin: a cell is negative when its centre is more than this (metres) outside every box.
+
+    Returns:
+        ``label`` ``[B, Z, Y, X]`` (1 positive, 0 negative, -1 ignored) and ``target`` ``[B, 6, Z, Y, X]``
+        ``((c - p) / anchor, log(size / anchor))`` of the box a positive cell belongs to (the smallest-volume
+        one if several), ``assigned`` ``[B, Z, Y, X]`` index of that box (-1 none).
+
+    Convention: frame R, metres; x, y, z order inside the last dimensions.
+    """
+    B, M = mask.shape
+    Z, Y, X = centres.shape[:3]
+    p = centres.view(1, 1, -1, 3)  # [1, 1, N, 3]
+    lo, hi = aabb[..., None, :3], aabb[..., None, 3:]  # [B, M, 1, 3]
+    ctr, half = (lo + hi) / 2, (hi - lo) / 2
+    inner = ((p - ctr).abs() <= half * inner_fraction).all(-1)  # [B, M, N]
+    # The cell holding the box centre (nearest cell centre) is always positive.
+    nearest = ((p - ctr) ** 2).sum(-1).argmin(-1)  # [B, M]
+    inner = inner.scatter(2, nearest[..., None], True)
+    inner &= mask[..., None]
+    near = ((p >= lo - negative_margin) & (p <= hi + negative_margin)).all(-1) & mask[..., None]  # [B, M, N]
+    vol = (hi - lo).prod(-1).squeeze(-1)  # [B, M]
+    big = torch.finfo(vol.dtype).max
+    cost = torch.where(inner, vol[..., None].expand_as(inner), torch.full_like(inner, big, dtype=vol.dtype))
+    best_cost, best = cost.min(1)  # [B, N]
+    pos = best_cost < big
+    label = torch.where(near.any(1), -1.0, 0.0)
+    label = torch.where(pos, 1.0, label)
+    idx = best[..., None].expand(-1, -1, 3)
+    c = torch.gather(ctr.squeeze(2), 1, idx)  # [B, N, 3]
+    s = torch.gather((hi - lo).squeeze(2), 1, idx).clamp_min(1e-4)
+    target = torch.cat([(c - p.view(1, -1, 3)) / anchor, torch.log(s / anchor)], dim=-1)  # [B, N, 6]
+    target = target.permute(0, 2, 1).reshape(B, 6, Z, Y, X)
+    assigned = torch.where(pos, best, torch.full_like(best, -1)).view(B, Z, Y, X)
+    return label.view(B, Z, Y, X), target, assigned
+
+
+def decode_boxes(centres: Tensor, box: Tensor, anchor: Tensor) -> Tensor:
+    """Boxes ``[B, Z, Y, X, 6]`` (xmin..zmax) from regressions ``[B, 6, Z, Y, X]`` at cell centres ``[Z, Y, X, 3]``."""
+    r = box.permute(0, 2, 3, 4, 1)
+    c = centres + r[..., :3] * anchor
+    s = anchor * torch.exp(r[..., 3:].clamp(max=4.0))
+    return torch.cat([c - s / 2, c + s / 2], dim=-1)
+
+
+class Detector(EncoderStage):
+    """3D detector on the shared encoder's feature grid.
+
+    Args:
+        grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
+            :class:`~stages.base.EncoderStage` (the detector expects a trained, frozen encoder).
+        anchor_size: ``(sx, sy, sz)`` metres, the one anchor of every cell (per dataset).
+        channels: residual-block width (paper: 32).
+        num_blocks: residual blocks (paper: 3).
+        inner_fraction, negative_margin: target assignment (see :func:`detection_targets`).
+        box_weight: weight of the box-regression loss.
+        score_threshold: objectness kept as detections handed on (paper: 0.9).
+        eval_score_threshold: objectness kept for the mAP (ranked detections; low so recall is not cut).
+        nms_iou: 3D NMS IoU threshold.
+        max_detections: per scene, after NMS.
+        num_input_views: views encoded per scene.
+        lr: Adam learning rate.
+        image_every_n_steps: write a detections PNG at validation when this many steps have passed (0: never).
+
+    Convention: frame R metres, z up; boxes axis-aligned ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+    """
+
+    def __init__(
+        self,
+        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
+        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
+        grid_resolution: tuple[int, int, int] = (64, 64, 32),
+        feature_dim: int = 32,
+        encoder_ckpt: str | None = None,
+        freeze_encoder: bool = True,
+        channels_last: bool = True,
+        anchor_size: tuple[float, float, float] = (0.5, 0.5, 0.5),
+        channels: int = 32,
+        num_blocks: int = 3,
+        inner_fraction: float = 0.5,
+        negative_margin: float = 0.1,
+        box_weight: float = 1.0,
+        score_threshold: float = 0.9,
+        eval_score_threshold: float = 0.05,
+        nms_iou: float = 0.1,
+        max_detections: int = 16,
+        num_input_views: int = 1,
+        lr: float = 1e-3,
+        image_every_n_steps: int = 200,
+    ) -> None:
+        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
+        if len(anchor_size) != 3 or min(anchor_size) <= 0:
+            raise ValueError(f"anchor_size: expected 3 positive sizes (metres), got {anchor_size}")
+        for name, v in (("score_threshold", score_threshold), ("eval_score_threshold", eval_score_threshold), ("nms_iou", nms_iou)):
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{name}: expected in [0, 1], got {v}")
+        if not 0.0 < inner_fraction <= 1.0:
+            raise ValueError(f"inner_fraction: expected in (0, 1], got {inner_fraction}")
+        self.save_hyperparameters()
+        self.head = DetectorHead(feature_dim, channels, num_blocks)
+        self.register_buffer("anchor", torch.tensor(anchor_size, dtype=torch.float32), persistent=False)
+        fg = self.feature_grid
+        cell = torch.tensor(fg.voxel_size, dtype=torch.float32) * 2
+        shape = tuple(n // 2 for n in fg.volume_shape)  # (Z, Y, X) after the stride-2 layer
+        self.register_buffer(
+            "centres", cell_centres(torch.tensor(fg.bounds_min, dtype=torch.float32), cell, shape), persistent=False
+        )
+        self.val_map = DetectionMAP(iou_thresholds=(0.25, 0.5))
+        self.test_map = DetectionMAP(iou_thresholds=(0.25, 0.5))
+        self._last_image_step = -1
+
+    # ------------------------------------------------------------------ pieces
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """Objectness logits ``[B, Z, Y, X]`` and box regressions ``[B, 6, Z, Y, X]`` of a batch."""
+        v = self.hparams.num_input_views
+        rgb, depth, K, pose = (batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam"))
+        if self.freeze_encoder:
+            with torch.no_grad():
+                feats = self.encode_views(rgb, depth, K, pose)
+        else:
+            feats = self.encode_views(rgb, depth, K, pose)
+        return self.head(feats)
+
+    def loss(self, logits: Tensor, box: Tensor, aabb: Tensor, mask: Tensor) -> dict[str, Tensor]:
+        label, target, _ = detection_targets(
+            self.centres, aabb, mask, self.anchor, self.hparams.inner_fraction, self.hparams.negative_margin
+        )
+        pos, neg = label == 1, label == 0
+        bce = F.binary_cross_entropy_with_logits(logits, (label == 1).to(logits.dtype), reduction="none")
+        obj = bce[neg].mean() if neg.any() else logits.sum() * 0
+        if pos.any():
+            obj = obj + bce[pos].mean()
+            reg = F.smooth_l1_loss(box.permute(0, 2, 3, 4, 1)[pos], target.permute(0, 2, 3, 4, 1)[pos], beta=0.1)
+        else:
+            reg = box.sum() * 0
+        return {"loss": obj + self.hparams.box_weight * reg, "obj_loss": obj, "box_loss": reg, "num_pos": pos.sum()}
+
+    @torch.no_grad()
+    def detect(self, logits: Tensor, box: Tensor, score_threshold: float | None = None) -> list[dict[str, Tensor]]:
+        """Per scene ``{"boxes": [P, 6], "scores": [P]}`` after thresholding and 3D NMS."""
+        thr = self.hparams.score_threshold if score_threshold is None else score_threshold
+        scores = torch.sigmoid(logits.float()).flatten(1)
+        boxes = decode_boxes(self.centres, box.float(), self.anchor).flatten(1, 3)
+        out = []
+        for s, b in zip(scores, boxes):
+            keep = s >= thr
+            s, b = s[keep], b[keep]
+            k = nms_3d(b, s, self.hparams.nms_iou)[: self.hparams.max_detections]
+            out.append({"boxes": b[k], "scores": s[k]})
+        return out
+
+    # ------------------------------------------------------------------ Lightning hooks
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        logits, box = self(batch)
+        r = self.loss(logits, box, batch["aabb"], batch["box_mask"])
+        self.log_dict(
+            {"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"]},
+            prog_bar=True, batch_size=logits.shape[0],
+        )
+        return r["loss"]
+
+    def _eval_step(self, batch: dict[str, Tensor], metric: DetectionMAP, split: str, batch_idx: int) -> None:
+        logits, box = self(batch)
+        r = self.loss(logits, box, batch["gt_aabb"], batch["gt_mask"])
+        self.log(f"{split}/loss", r["loss"], batch_size=logits.shape[0], sync_dist=True)
+        dets = self.detect(logits, box, self.hparams.eval_score_threshold)
+        targets = [{"boxes": a[m]} for a, m in zip(batch["gt_aabb"], batch["gt_mask"])]
+        metric.update(dets, targets)
+        every = self.hparams.image_every_n_steps
+        if batch_idx == 0 and every and split == "val" and self.global_step - self._last_image_step >= every:
+            self._last_image_step = self.global_step
+            self._write_image(batch, self.detect(logits, box), "val")
+
+    def _eval_end(self, metric: DetectionMAP, split: str) -> None:
+        res = metric.compute()
+        self.log_dict({f"{split}/map_25": res["map_25"], f"{split}/map_50": res["map_50"]}, prog_bar=True)
+        metric.reset()
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, self.val_map, "val", batch_idx)
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_end(self.val_map, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, self.test_map, "test", batch_idx)
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_end(self.test_map, "test")
+
+    def predict_step(self, batch: dict[str, Tensor], batch_idx: int) -> list[dict[str, Tensor]]:
+        logits, box = self(batch)
+        return self.detect(logits, box)
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        params = [p for p in self.parameters() if p.requires_grad]
+        return torch.optim.Adam(params, lr=self.hparams.lr)
+
+    def _write_image(self, batch: dict[str, Tensor], dets: list[dict[str, Tensor]], tag: str) -> None:
+        if self.trainer is None or not self.trainer.is_global_zero or self.trainer.sanity_checking:
+            return
+        img = detection_figure(batch, dets, max_scenes=2)
+        log_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+        ok, png = cv2.imencode(".png", img[:, :, ::-1])
+        if ok:
+            atomic_write_bytes(log_dir / "images" / f"{tag}_detections_step{self.global_step:06d}.png", png.tobytes())
+
+
+def _aabb_to_boxes7(aabb: np.ndarray) -> np.ndarray:
+    c, s = (aabb[:, :3] + aabb[:, 3:]) / 2, aabb[:, 3:] - aabb[:, :3]
+    return np.concatenate([c, s, np.zeros((len(aabb), 1))], axis=1)
+
+
+def detection_figure(batch: dict[str, Any], dets: list[dict[str, Tensor]], max_scenes: int = 4, upscale: int = 3) -> np.ndarray:
+    """Rows of (detections with scores | GT boxes) projected onto each scene's first input view.
+
+    Args:
+        batch: a SceneDataset batch (``rgb``, ``K``, ``R_T_cam``, ``gt_aabb``, ``gt_mask``).
+        dets: per scene ``{"boxes": [P, 6], "scores": [P]}``.
+
+    Returns:
+        ``[H', W', 3]`` uint8 RGB.
+    """
+    from threedq.data.show import draw_boxes
+
+    rows = []
+    for i in range(min(max_scenes, len(dets))):
+        rgb = (batch["rgb"][i, 0].permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
+        K, pose = batch["K"][i, 0].cpu().numpy(), batch["R_T_cam"][i, 0].cpu().numpy()
+        db = dets[i]["boxes"].cpu().numpy().astype(np.float64)
+        ds = dets[i]["scores"].cpu().numpy().tolist()
+        gt = batch["gt_aabb"][i][batch["gt_mask"][i]].cpu().numpy().astype(np.float64)
+        left = draw_boxes(rgb, _aabb_to_boxes7(db), ["det"] * len(db), K, pose, scores=ds, colour=(255, 80, 40),
+                          upscale=upscale, heading=False)  # fmt: skip
+        right = draw_boxes(rgb, _aabb_to_boxes7(gt), ["GT"] * len(gt), K, pose, colour=(40, 220, 80),
+                           upscale=upscale, heading=False)  # fmt: skip
+        sep = np.full((left.shape[0], 4, 3), 255, np.uint8)
+        rows.append(np.concatenate([left, sep, right], axis=1))
+    gap = np.full((4, rows[0].shape[1], 3), 255, np.uint8)
+    return np.concatenate([r for row in rows for r in (row, gap)][:-1], axis=0)

@@ -1,0 +1,197 @@
+"""Detector stage: target assignment, box coding round trip, head shapes, a one-batch overfit, figures, and
+the DataModule's proposed/detected boxes (matching to GT)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from datamodules.scene_folder import SceneFolderDataModule, detections_as_objects
+from stages.detector import Detector, DetectorHead, cell_centres, decode_boxes, detection_figure, detection_targets
+from threedq.boxes import aabb_iou_3d
+from threedq.proposals import load_boxes_file, save_boxes_file
+
+SMALL = dict(grid_resolution=(32, 32, 16), image_every_n_steps=0)
+
+
+def _grid() -> tuple[torch.Tensor, torch.Tensor]:
+    # 8 x 8 x 4 cells of 0.25 m from (-1, -1, 0).
+    centres = cell_centres(torch.tensor([-1.0, -1.0, 0.0]), torch.tensor([0.25, 0.25, 0.25]), (4, 8, 8))
+    return centres, torch.tensor([0.5, 0.5, 0.5])
+
+
+class TestCellCentres:
+    def test_hand_computed(self) -> None:
+        c, _ = _grid()
+        assert c.shape == (4, 8, 8, 3)
+        assert torch.allclose(c[0, 0, 0], torch.tensor([-0.875, -0.875, 0.125]))
+        assert torch.allclose(c[3, 7, 1], torch.tensor([-0.625, 0.875, 0.875]))  # x index 1, y 7, z 3
+
+
+class TestDetectionTargets:
+    def test_hand_built_box(self) -> None:
+        centres, anchor = _grid()
+        box = torch.tensor([[[-0.5, -0.5, 0.0, 0.5, 0.5, 0.5]]])  # 1 m x 1 m x 0.5 m at the origin
+        label, target, assigned = detection_targets(centres, box, torch.tensor([[True]]), anchor, 0.5, 0.1)
+        assert label.shape == (1, 4, 8, 8) and target.shape == (1, 6, 4, 8, 8)
+        # Naive reference, cell by cell.
+        for z in range(4):
+            for y in range(8):
+                for x in range(8):
+                    p = centres[z, y, x]
+                    inner = bool(((p - torch.tensor([0.0, 0.0, 0.25])).abs() <= torch.tensor([0.25, 0.25, 0.125])).all())
+                    near = bool(((p >= torch.tensor([-0.6, -0.6, -0.1])) & (p <= torch.tensor([0.6, 0.6, 0.6]))).all())
+                    if inner:
+                        assert label[0, z, y, x] == 1
+                    elif z == 0 and y == 3 and x == 3:
+                        assert label[0, z, y, x] == 1  # nearest cell to the centre (ties: first index)
+                    elif near:
+                        assert label[0, z, y, x] == -1
+                    else:
+                        assert label[0, z, y, x] == 0
+        assert int((label == 1).sum()) == 8  # x, y centres +-0.125 and z centres 0.125, 0.375 (inclusive)
+        assert int(assigned.max()) == 0 and int(assigned.min()) == -1
+
+    def test_round_trip_decodes_the_box(self) -> None:
+        centres, anchor = _grid()
+        boxes = torch.tensor([[[-0.9, -0.8, 0.0, -0.3, -0.1, 0.7], [0.2, 0.1, 0.0, 0.8, 0.5, 0.4]]])
+        label, target, assigned = detection_targets(centres, boxes, torch.tensor([[True, True]]), anchor)
+        decoded = decode_boxes(centres, target, anchor)  # [1, Z, Y, X, 6]
+        pos = label[0] == 1
+        assert pos.any()
+        expect = boxes[0][assigned[0][pos]]
+        assert torch.allclose(decoded[0][pos], expect, atol=1e-5)
+        # Both boxes own some positive cell.
+        assert set(assigned[0][pos].tolist()) == {0, 1}
+
+    def test_masked_box_is_ignored(self) -> None:
+        centres, anchor = _grid()
+        box = torch.tensor([[[-0.5, -0.5, 0.0, 0.5, 0.5, 0.5]]])
+        label, _, _ = detection_targets(centres, box, torch.tensor([[False]]), anchor)
+        assert (label == 0).all()
+
+
+class TestDetectorHead:
+    def test_shapes(self) -> None:
+        head = DetectorHead(32, 32, 3)
+        obj, box = head(torch.randn(2, 32, 8, 16, 16))
+        assert obj.shape == (2, 4, 8, 8) and box.shape == (2, 6, 4, 8, 8)
+
+    def test_bad_config(self) -> None:
+        with pytest.raises(ValueError, match="anchor_size"):
+            Detector(anchor_size=(0.5, 0.0, 0.5), **SMALL)
+        with pytest.raises(ValueError, match="score_threshold"):
+            Detector(score_threshold=1.5, **SMALL)
+
+
+@pytest.fixture(scope="module")
+def train_batch(tiny_dataset: Path) -> dict[str, torch.Tensor]:
+    from datamodules.scene_folder import SceneDataset
+
+    dm = SceneFolderDataModule(str(tiny_dataset))
+    ds = SceneDataset(tiny_dataset, dm.index, "train", num_target_views=0, random_views=False)
+    return torch.utils.data.default_collate([ds[i] for i in range(4)])
+
+
+class TestDetectorStage:
+    def test_overfit_one_batch(self, train_batch: dict[str, torch.Tensor]) -> None:
+        torch.manual_seed(0)
+        m = Detector(anchor_size=(0.5, 0.5, 0.5), score_threshold=0.5, **SMALL)
+        opt = torch.optim.Adam(m.head.parameters(), lr=3e-3)
+        m.train()
+        losses = []
+        for _ in range(150):
+            logits, box = m(train_batch)
+            r = m.loss(logits, box, train_batch["aabb"], train_batch["box_mask"])
+            opt.zero_grad()
+            r["loss"].backward()
+            opt.step()
+            losses.append(float(r["loss"].detach()))
+        assert losses[-1] < losses[0] / 4
+        with torch.no_grad():  # settle the BatchNorm running statistics on the final weights
+            for _ in range(10):
+                m(train_batch)
+        m.eval()
+        logits, box = m(train_batch)
+        dets = m.detect(logits, box)
+        hits = 0
+        for d, a, k in zip(dets, train_batch["aabb"], train_batch["box_mask"]):
+            if len(d["boxes"]) and k.any():
+                hits += int((aabb_iou_3d(d["boxes"], a[k]).amax(0) >= 0.25).sum())
+        assert hits >= int(train_batch["box_mask"].sum()) // 2
+        img = detection_figure({**train_batch, "gt_aabb": train_batch["aabb"], "gt_mask": train_batch["box_mask"]}, dets, 2)
+        assert img.dtype == np.uint8 and img.ndim == 3
+
+    def test_frozen_encoder_gets_no_gradient(self, train_batch: dict[str, torch.Tensor]) -> None:
+        m = Detector(**SMALL)
+        logits, box = m(train_batch)
+        m.loss(logits, box, train_batch["aabb"], train_batch["box_mask"])["loss"].backward()
+        assert all(p.grad is None for p in m.encoder.parameters())
+        assert any(p.grad is not None for p in m.head.parameters())
+
+
+class TestDetectionsAsObjects:
+    def test_greedy_matching(self) -> None:
+        gt = np.array([[0, 0, 0.25, 0.5, 0.5, 0.5, 0], [2, 2, 0.25, 0.5, 0.5, 0.5, 0]], np.float32)
+        cats = np.array([7, 3])
+        aabb = np.array(
+            [[-0.25, -0.25, 0, 0.25, 0.25, 0.5],      # exact match of GT 0
+             [-0.2, -0.25, 0, 0.3, 0.25, 0.5],        # duplicate of GT 0 (lower score)
+             [5, 5, 0, 6, 6, 1]], np.float32)          # matches nothing  # fmt: skip
+        scores = np.array([0.9, 0.8, 0.95], np.float32)
+        out = detections_as_objects(aabb, scores, gt, cats, 0.5, keep_unmatched=True, max_boxes=4)
+        # Ordered by score: unmatched (0.95), GT0 (0.9), duplicate (0.8, GT0 taken -> unmatched).
+        assert out["categories"].tolist() == [-1, 7, -1, -1]
+        assert out["box_mask"].tolist() == [True, True, True, False]
+        assert out["box_matched"].tolist() == [False, True, False, False]
+        assert torch.allclose(out["boxes"][1], torch.from_numpy(gt[0]))
+        only = detections_as_objects(aabb, scores, gt, cats, 0.5, keep_unmatched=False, max_boxes=4)
+        assert only["box_mask"].tolist() == [True, False, False, False]
+        assert only["categories"][0] == 7
+
+    def test_max_boxes_keeps_best(self) -> None:
+        aabb = np.array([[0, 0, 0, 1, 1, 1], [2, 2, 0, 3, 3, 1]], np.float32)
+        out = detections_as_objects(aabb, np.array([0.1, 0.7]), np.zeros((0, 7)), np.zeros(0, int), max_boxes=1)
+        assert torch.allclose(out["aabb"][0], torch.from_numpy(aabb[1]))
+
+
+class TestBoxesOption:
+    def test_box_file_round_trip_and_datamodule(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=2, num_target_views=0)
+        files = dm.index.files("val")
+        # "Detections" = the GT hulls themselves, shifted slightly: every one matches its GT object.
+        from threedq.boxes import boxes_to_aabb
+        from threedq.scene import load_scene
+
+        boxes = {}
+        for f in files:
+            rec = load_scene(tiny_dataset / f, validate=False)
+            a = boxes_to_aabb(rec.boxes.astype(np.float64)).astype(np.float32) + 0.01
+            boxes[f] = (a, np.linspace(0.9, 0.5, len(a)).astype(np.float32))
+        path = tmp_path / "det_val.npz"
+        save_boxes_file(path, boxes)
+        back = load_boxes_file(path)
+        for f in files:
+            np.testing.assert_array_equal(back[f][0], boxes[f][0])
+        dm2 = SceneFolderDataModule(str(tiny_dataset), batch_size=2, num_target_views=0,
+                                    boxes=str(tmp_path / "det_{split}.npz"))  # fmt: skip
+        from datamodules.scene_folder import SceneDataset
+
+        ds = SceneDataset(tiny_dataset, dm2.index, "val", num_target_views=0, box_sets=dm2.box_sets("val"),
+                          keep_unmatched=False, max_boxes=5)  # fmt: skip
+        item = ds[0]
+        n = int(item["gt_mask"].sum())
+        assert int(item["box_mask"].sum()) == n
+        gt_cats = load_scene(tiny_dataset / files[0], validate=False).categories
+        assert sorted(item["categories"][:n].tolist()) == sorted(gt_cats.tolist())
+        assert torch.allclose(item["aabb"][:n].sort(0).values, item["gt_aabb"][:n].sort(0).values + 0.01, atol=1e-5)
+
+    def test_bad_boxes_option(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        with pytest.raises(ValueError, match="boxes"):
+            SceneFolderDataModule(str(tiny_dataset), boxes="detections.npz")
+        dm = SceneFolderDataModule(str(tiny_dataset), boxes=str(tmp_path / "missing_{split}.npz"))
+        with pytest.raises(FileNotFoundError, match="missing_train.npz"):
+            dm.setup()

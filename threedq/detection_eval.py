@@ -1,0 +1,141 @@
+"""Detection evaluation: dataset-level 3D mAP of pseudo-boxes and of a trained detector, and detection files.
+
+:func:`evaluate_detection` is the ``detector_eval`` step of ``threedq em``: on the held-out split it scores
+(a) the label-free pseudo-boxes of :mod:`threedq.proposals` and (b) the detector, at IoU 0.25 and 0.5
+(:class:`~threedq.metrics.DetectionMAP`, accumulated over the whole split); it draws detections beside GT
+on held-out scenes and writes the detector's boxes of every split as ``detections_<split>.npz`` (the
+layout of :func:`threedq.proposals.save_boxes_file`), which later stages read through the DataModule's
+``boxes`` option.
+
+Convention: frame R (the record's world frame), metres, z up; boxes axis-aligned
+``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from threedq.atomic_io import atomic_write_bytes, atomic_write_json
+from threedq.boxes import boxes_to_aabb
+from threedq.metrics import DetectionMAP
+from threedq.proposals import save_boxes_file
+from threedq.scene import load_scene
+
+__all__ = ["box_sets_map", "detect_split", "evaluate_detection"]
+
+
+def box_sets_map(
+    data_dir: str | Path, files: list[str], box_sets: dict[str, tuple[np.ndarray, np.ndarray]],
+    iou_thresholds: tuple[float, ...] = (0.25, 0.5), progress: bool = True,
+) -> dict[str, float]:
+    """Dataset-level mAP of per-scene boxes against the GT boxes' axis-aligned hulls.
+
+    Args:
+        data_dir: dataset folder; files: scene files (as in ``index.json``) to score;
+        box_sets: ``{file -> (aabb [P,6], scores [P])}``.
+
+    Returns:
+        ``{"map_25", "map_50", "num_gt", "num_det"}`` (keys follow ``iou_thresholds``).
+    """
+    metric = DetectionMAP(iou_thresholds=iou_thresholds)
+    for f in tqdm(files, desc="box mAP", disable=not progress, leave=False):
+        if f not in box_sets:
+            raise ValueError(f"box_sets: no boxes for scene {f}")
+        rec = load_scene(Path(data_dir) / f, validate=False)
+        gt = torch.from_numpy(boxes_to_aabb(rec.boxes.astype(np.float64)).astype(np.float32)).reshape(-1, 6)
+        aabb, scores = box_sets[f]
+        metric.update([{"boxes": torch.as_tensor(aabb).reshape(-1, 6), "scores": torch.as_tensor(scores).reshape(-1)}],
+                      [{"boxes": gt}])  # fmt: skip
+    return {k: (float(v) if v.is_floating_point() else int(v)) for k, v in metric.compute().items()}
+
+
+@torch.no_grad()
+def detect_split(
+    stage: torch.nn.Module, loader: torch.utils.data.DataLoader, score_threshold: float | None = None,
+    progress: bool = True, metric: DetectionMAP | None = None, eval_score_threshold: float | None = None,
+) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[tuple[dict[str, Tensor], list[dict[str, Tensor]]]]]:
+    """Run a :class:`~stages.detector.Detector` over a deterministic loader.
+
+    Returns:
+        ``{scene file -> (aabb [P,6], scores [P])}`` at ``score_threshold`` (default: the stage's) and the
+        first batch with its detections (for pictures). With ``metric``, it is updated with the detections
+        at ``eval_score_threshold`` against the GT boxes.
+    """
+    was_training = stage.training
+    stage.eval()
+    files = loader.dataset.files
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    first: list = []
+    for batch in tqdm(loader, desc="detect", disable=not progress, leave=False):
+        batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
+        logits, box = stage(batch)
+        dets = stage.detect(logits, box, score_threshold)
+        for i, d in zip(batch["scene_index"].tolist(), dets):
+            out[files[i]] = (d["boxes"].cpu().numpy(), d["scores"].cpu().numpy())
+        if metric is not None:
+            ranked = stage.detect(logits, box, eval_score_threshold)
+            metric.update(ranked, [{"boxes": a[m]} for a, m in zip(batch["gt_aabb"], batch["gt_mask"])])
+        if not first:
+            first.append((batch, dets))
+    stage.train(was_training)
+    return out, first
+
+
+def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, splits: tuple[str, ...] = ("train", "val", "test"),
+                       progress: bool = True) -> dict[str, Any]:  # fmt: skip
+    """mAP of pseudo-boxes and detector on the test split, a detections picture, and detection files.
+
+    Args:
+        stage: a trained :class:`~stages.detector.Detector`; dm: its scene DataModule (set up).
+        out_dir: receives ``results.json``, ``detections.png`` and ``detections_<split>.npz``.
+
+    Returns:
+        ``{"pseudo_boxes": {...}, "detector": {...}, "detections": {split: path}, "seconds"}``.
+    """
+    from datamodules.scene_folder import SceneDataset
+    from stages.detector import detection_figure
+    from threedq.proposals import ProposalParams, propose_dataset
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    test_files = dm.index.files("test")
+    pseudo = propose_dataset(dm.data_dir, "test", dm.data_dir / "proposals" / "test.npz",
+                             params=ProposalParams(view_stride=2), progress=progress)  # fmt: skip
+    result: dict[str, Any] = {"split": "test", "pseudo_boxes": box_sets_map(dm.data_dir, test_files, pseudo, progress=progress)}
+    files: dict[str, str] = {}
+    for split in splits:
+        if not dm.index.files(split):
+            continue
+        ds = SceneDataset(dm.data_dir, dm.index, split, num_input_views=stage.hparams.num_input_views,
+                          num_target_views=0, max_objects=dm.max_objects, random_views=False, seed=dm.seed)  # fmt: skip
+        loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=False, num_workers=0)
+        metric = DetectionMAP(iou_thresholds=(0.25, 0.5)) if split == "test" else None
+        dets, first = detect_split(stage, loader, progress=progress, metric=metric,
+                                   eval_score_threshold=stage.hparams.eval_score_threshold)  # fmt: skip
+        path = out / f"detections_{split}.npz"
+        save_boxes_file(path, dets, json.dumps({"score_threshold": stage.hparams.score_threshold}))
+        files[split] = str(path)
+        if metric is not None:
+            res = metric.compute()
+            result["detector"] = {k: (float(v) if v.is_floating_point() else int(v)) for k, v in res.items()}
+            kept = sum(len(s) for _, s in dets.values())
+            result["detector"]["boxes_kept_at_score_threshold"] = kept
+            batch, d = first[0]
+            img = detection_figure(batch, d, max_scenes=4)
+            ok, png = cv2.imencode(".png", img[:, :, ::-1])
+            if ok:
+                atomic_write_bytes(out / "detections.png", png.tobytes())
+    result["detections"] = files
+    result["seconds"] = round(time.time() - t0, 1)
+    atomic_write_json(out / "results.json", result)
+    return result
