@@ -116,7 +116,7 @@ class SceneDataset(Dataset):
             ``R_T_cam`` [S,4,4]; ``instance`` [S,H,W] long (only if the record has masks); ``view_ids`` [S];
             ``boxes`` [M,7] oriented boxes, ``aabb`` [M,6] axis-aligned hulls ``(xmin..zmax)``,
             ``categories`` [M] long (-1 pad), ``box_mask`` [M] bool, with M = ``max_objects``;
-            ``scene_index`` long; ``gt_aabb`` [G,6] and ``gt_mask`` [G] (G = ``max_objects``) always hold the
+            ``scene_index`` long; ``num_input_views`` long (the first that many views are inputs); ``gt_aabb`` [G,6] and ``gt_mask`` [G] (G = ``max_objects``) always hold the
             ground truth. With ``box_sets``, ``boxes``/``aabb``/``categories``/``box_mask`` describe the given
             boxes instead (M = ``max_boxes``; ``boxes`` and ``categories`` from the matched GT object, zeros and
             -1 when unmatched) and ``box_scores`` [M] their scores. The first ``num_input_views`` of the S
@@ -149,6 +149,7 @@ class SceneDataset(Dataset):
             "categories": torch.from_numpy(cats),
             "box_mask": torch.arange(M) < rec.num_objects,
             "scene_index": torch.tensor(i, dtype=torch.long),
+            "num_input_views": torch.tensor(self.num_input_views, dtype=torch.long),
         }
         out["gt_aabb"], out["gt_mask"] = out["aabb"], out["box_mask"]
         if self.box_sets is not None:

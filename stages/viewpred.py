@@ -127,36 +127,47 @@ class ViewPrediction(EncoderStage):
         return self.decoder(frustum)
 
     def forward(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        n_in = batch["rgb"].shape[1] - self._num_targets(batch)
+        n_in = self._num_inputs(batch)
         feats = self.encode_views(
             batch["rgb"][:, :n_in], batch["depth"][:, :n_in], batch["K"][:, :n_in], batch["R_T_cam"][:, :n_in]
         )
         return {"features": feats, "occ_logits": self.occ_head(feats)}
 
     @staticmethod
-    def _num_targets(batch: dict[str, Tensor]) -> int:
+    def _num_inputs(batch: dict[str, Tensor]) -> int:
+        """Input views of a batch: ``batch["num_input_views"]`` (set by SceneDataset), else all views but the last."""
         S = batch["rgb"].shape[1]
-        if S < 2:
-            raise ValueError(f"rgb: view prediction needs >= 2 views per sample (inputs + target), got {S}")
-        return 1
+        n_in = int(batch["num_input_views"].reshape(-1)[0]) if "num_input_views" in batch else S - 1
+        if n_in < 1 or S - n_in < 1:
+            raise ValueError(
+                f"rgb: view prediction needs >= 1 input and >= 1 target view per sample, got {S} views with "
+                f"num_input_views={n_in}"
+            )
+        return n_in
 
     def _step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         out = self(batch)
-        rgb_t, depth_t = batch["rgb"][:, -1], batch["depth"][:, -1]
+        n_in = self._num_inputs(batch)
+        B, S = batch["rgb"].shape[:2]
+        T = S - n_in
+        rgb_t, depth_t = batch["rgb"][:, n_in:].flatten(0, 1), batch["depth"][:, n_in:].flatten(0, 1)
+        K_t, pose_t = batch["K"][:, n_in:].flatten(0, 1), batch["R_T_cam"][:, n_in:].flatten(0, 1)
         H, W = rgb_t.shape[-2:]
-        pred = self.predict_view(out["features"], batch["K"][:, -1], batch["R_T_cam"][:, -1], (H, W))
+        feats_t = out["features"].repeat_interleave(T, dim=0) if T > 1 else out["features"]
+        pred = self.predict_view(feats_t, K_t, pose_t, (H, W))  # [B*T, 3, H/2, W/2]
         target = F.avg_pool2d(rgb_t, 2) - 0.5
-        valid = self.target_valid(depth_t, batch["K"][:, -1], batch["R_T_cam"][:, -1])
+        valid = self.target_valid(depth_t, K_t, pose_t)
         occ, free = self.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
         l1 = masked_l1(pred, target, valid)
         occ_loss = balanced_occupancy_loss(out["occ_logits"], occ, free)
+        loss = self.hparams.rgb_weight * l1 + self.hparams.occ_weight * occ_loss
         # Baseline: every valid target pixel predicted as the mean colour of the input views' valid pixels.
-        n_in = batch["rgb"].shape[1] - 1
         in_valid = (batch["depth"][:, :n_in] > 0).to(rgb_t.dtype)[:, :, None]
         mean_col = (batch["rgb"][:, :n_in] * in_valid).sum((1, 3, 4)) / in_valid.sum((1, 3, 4)).clamp_min(1)
+        mean_col = mean_col.repeat_interleave(T, dim=0) if T > 1 else mean_col
         base = masked_l1(mean_col[:, :, None, None].expand_as(pred) - 0.5, target, valid)
         return {
-            "loss": self.hparams.rgb_weight * l1 + self.hparams.occ_weight * occ_loss,
+            "loss": loss,
             "l1": l1,
             "l1_mean_colour": base,
             "occ_loss": occ_loss,

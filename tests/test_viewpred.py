@@ -40,7 +40,7 @@ class TestViewPrediction:
 
     def test_needs_a_target_view(self, batch: dict[str, torch.Tensor]) -> None:
         one = {k: (v[:, :1] if k in ("rgb", "depth", "K", "R_T_cam") else v) for k, v in batch.items()}
-        with pytest.raises(ValueError, match=">= 2 views"):
+        with pytest.raises(ValueError, match=">= 1 target view"):
             ViewPrediction(**SMALL)._step(one)
 
     def test_overfit_one_scene(self, batch: dict[str, torch.Tensor]) -> None:
@@ -64,6 +64,28 @@ class TestViewPrediction:
         img = view_prediction_figure(batch["rgb"][0, 0], r["pred"][0] + 0.5, r["target"][0] + 0.5,
                                      torch.sigmoid(r["occ_logits"][0, 0]), r["occ"][0, 0])
         assert img.dtype.name == "uint8" and img.shape == (32, 5 * 32 + 4 * 2, 3)
+
+
+class TestTargetViews:
+    """Several target views per sample."""
+
+    def test_num_input_views_is_read_from_the_batch(self, tiny_dataset: Path) -> None:
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=1, num_input_views=1, num_target_views=2)
+        dm.setup()
+        b = next(iter(dm.val_dataloader()))
+        assert b["rgb"].shape[1] == 3 and int(b["num_input_views"][0]) == 1
+        r = ViewPrediction(**SMALL)._step(b)
+        assert r["pred"].shape == (2, 3, 16, 16)  # one prediction per target view
+
+    def test_duplicated_target_gives_the_same_loss(self, batch: dict[str, torch.Tensor]) -> None:
+        torch.manual_seed(3)
+        m = ViewPrediction(**SMALL).eval()
+        dup = {k: (torch.cat([v, v[:, -1:]], 1) if k in ("rgb", "depth", "K", "R_T_cam") else v) for k, v in batch.items()}
+        with torch.no_grad():
+            one, two = m._step(batch), m._step(dup)
+        assert torch.allclose(one["l1"], two["l1"], atol=1e-6)
+        assert torch.allclose(one["l1_mean_colour"], two["l1_mean_colour"], atol=1e-6)
+        assert torch.equal(two["pred"][0], two["pred"][1])
 
 
 class TestEncoderContract:
