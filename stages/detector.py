@@ -161,6 +161,9 @@ class Detector(EncoderStage):
         score_threshold: objectness kept as detections handed on (paper: 0.9).
         eval_score_threshold: objectness kept for the mAP (ranked detections; low so recall is not cut).
         nms_iou: 3D NMS IoU threshold.
+        nms_iomin: 3D NMS threshold on intersection over the smaller box (1 = off): also drops the smaller
+            boxes regressed from cells off an object's centre, which sit inside the object's box with an IoU
+            below ``nms_iou``.
         max_detections: per scene, after NMS.
         num_input_views: views encoded per scene.
         lr: Adam learning rate.
@@ -187,6 +190,7 @@ class Detector(EncoderStage):
         score_threshold: float = 0.9,
         eval_score_threshold: float = 0.05,
         nms_iou: float = 0.1,
+        nms_iomin: float = 1.0,
         max_detections: int = 16,
         num_input_views: int = 1,
         lr: float = 1e-3,
@@ -195,7 +199,8 @@ class Detector(EncoderStage):
         super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
         if len(anchor_size) != 3 or min(anchor_size) <= 0:
             raise ValueError(f"anchor_size: expected 3 positive sizes (metres), got {anchor_size}")
-        for name, v in (("score_threshold", score_threshold), ("eval_score_threshold", eval_score_threshold), ("nms_iou", nms_iou)):
+        for name, v in (("score_threshold", score_threshold), ("eval_score_threshold", eval_score_threshold), ("nms_iou", nms_iou),
+                        ("nms_iomin", nms_iomin)):
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name}: expected in [0, 1], got {v}")
         if not 0.0 < inner_fraction <= 1.0:
@@ -249,7 +254,7 @@ class Detector(EncoderStage):
         for s, b in zip(scores, boxes):
             keep = s >= thr
             s, b = s[keep], b[keep]
-            k = nms_3d(b, s, self.hparams.nms_iou)[: self.hparams.max_detections]
+            k = nms_3d(b, s, self.hparams.nms_iou, self.hparams.nms_iomin)[: self.hparams.max_detections]
             out.append({"boxes": b[k], "scores": s[k]})
         return out
 

@@ -85,6 +85,8 @@ class TestDetectorHead:
             Detector(anchor_size=(0.5, 0.0, 0.5), **SMALL)
         with pytest.raises(ValueError, match="score_threshold"):
             Detector(score_threshold=1.5, **SMALL)
+        with pytest.raises(ValueError, match="nms_iomin"):
+            Detector(nms_iomin=-0.5, **SMALL)
 
 
 @pytest.fixture(scope="module")

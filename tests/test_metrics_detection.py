@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from threedq.boxes import aabb_iou_3d, nms_3d
+from threedq.boxes import aabb_iomin_3d, aabb_iou_3d, nms_3d
 from threedq.metrics import DetectionMAP, average_precision, match_detections
 
 
@@ -30,13 +30,26 @@ def _py_iou(a: list[float], b: list[float]) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def _naive_nms(boxes: list[list[float]], scores: list[float], thr: float) -> list[int]:
+def _py_iomin(a: list[float], b: list[float]) -> float:
+    """Plain-Python intersection over the smaller volume (reference for the NMS loop)."""
+    inter = 1.0
+    for k in range(3):
+        inter *= max(0.0, min(a[k + 3], b[k + 3]) - max(a[k], b[k]))
+    va = (a[3] - a[0]) * (a[4] - a[1]) * (a[5] - a[2])
+    vb = (b[3] - b[0]) * (b[4] - b[1]) * (b[5] - b[2])
+    return inter / min(va, vb) if min(va, vb) > 0 else 0.0
+
+
+def _naive_nms(boxes: list[list[float]], scores: list[float], thr: float, iomin: float = 1.0) -> list[int]:
     remaining = sorted(range(len(scores)), key=lambda i: -scores[i])
     keep = []
     while remaining:
         best = remaining.pop(0)
         keep.append(best)
-        remaining = [i for i in remaining if _py_iou(boxes[best], boxes[i]) <= thr]
+        remaining = [
+            i for i in remaining
+            if _py_iou(boxes[best], boxes[i]) <= thr and _py_iomin(boxes[best], boxes[i]) <= iomin
+        ]
     return keep
 
 
@@ -125,6 +138,42 @@ class TestAabbIou3d:
             aabb_iou_3d([UNIT], torch.zeros(1, 6))  # type: ignore[arg-type]
 
 
+class TestAabbIomin3d:
+    def test_feature_hand(self) -> None:
+        big = torch.tensor([[0.0, 0, 0, 4, 4, 4]])
+        boxes = torch.tensor([
+            [1.0, 1, 1, 2, 2, 2],  # inside: 1 (IoU only 1/64)
+            [3.0, 0, 0, 5, 4, 4],  # half inside: 16 / 32
+            [5.0, 5, 5, 6, 6, 6],  # apart: 0
+        ])
+        assert aabb_iomin_3d(big, boxes).tolist() == [[1.0, 0.5, 0.0]]
+        assert aabb_iou_3d(big, boxes)[0, 0].item() == pytest.approx(1 / 64)
+        assert torch.equal(aabb_iomin_3d(boxes, big), aabb_iomin_3d(big, boxes).T)
+
+    def test_degenerate_is_zero_not_nan(self) -> None:
+        flat = torch.tensor([[0.5, 0.5, 0.5, 0.5, 1.0, 1.0]])
+        assert aabb_iomin_3d(flat, torch.tensor([UNIT])).tolist() == [[0.0]]
+
+    def test_matches_monte_carlo(self) -> None:
+        """Intersection over the smaller volume vs. 200k uniform points in each pair's joint bounding box."""
+        g = torch.Generator().manual_seed(4)
+        a, b = _random_boxes(3, g), _random_boxes(2, g)
+        iomin = aabb_iomin_3d(a, b)
+        n = 200_000
+        for i in range(3):
+            for j in range(2):
+                lo, hi = torch.minimum(a[i, :3], b[j, :3]), torch.maximum(a[i, 3:], b[j, 3:])
+                pts = lo + (hi - lo) * torch.rand(n, 3, generator=g, dtype=torch.float64)
+                in_a = ((pts >= a[i, :3]) & (pts <= a[i, 3:])).all(dim=1)
+                in_b = ((pts >= b[j, :3]) & (pts <= b[j, 3:])).all(dim=1)
+                estimate = (in_a & in_b).sum().item() / min(in_a.sum().item(), in_b.sum().item())
+                assert iomin[i, j].item() == pytest.approx(estimate, abs=1e-2), (i, j)
+
+    def test_exception(self) -> None:
+        with pytest.raises(ValueError, match=r"b: expected a tensor of shape \[N, 6\]"):
+            aabb_iomin_3d(torch.zeros(1, 6), torch.zeros(1, 7))
+
+
 class TestNms3d:
     def test_feature_hand(self) -> None:
         boxes = torch.tensor([
@@ -150,6 +199,21 @@ class TestNms3d:
                 assert keep.tolist() == _naive_nms(boxes.tolist(), scores.tolist(), thr), (n, thr)
                 assert bool((scores[keep].diff() <= 0).all())
 
+    def test_nested_boxes_need_iomin(self) -> None:
+        boxes = torch.tensor([[0.0, 0, 0, 1, 1, 1], [0.1, 0.1, 0.1, 0.5, 0.5, 0.6], [0.9, 0, 0, 1.9, 1, 1]])
+        scores = torch.tensor([0.9, 0.8, 0.7])
+        assert nms_3d(boxes, scores, 0.1).tolist() == [0, 1, 2]  # nested box: IoU 0.08, kept
+        assert nms_3d(boxes, scores, 0.1, iomin_threshold=0.5).tolist() == [0, 2]  # side neighbour: 0.1, kept
+
+    def test_iomin_matches_naive_loop(self) -> None:
+        g = torch.Generator().manual_seed(5)
+        for n in (5, 30):
+            boxes = _random_boxes(n, g, hi=2.0)
+            scores = torch.rand(n, generator=g, dtype=torch.float64)
+            for thr, iomin in ((0.25, 0.5), (1.0, 0.3), (0.1, 0.8)):
+                keep = nms_3d(boxes, scores, thr, iomin_threshold=iomin)
+                assert keep.tolist() == _naive_nms(boxes.tolist(), scores.tolist(), thr, iomin), (n, thr, iomin)
+
     def test_empty(self) -> None:
         keep = nms_3d(torch.zeros(0, 6), torch.zeros(0), 0.5)
         assert keep.shape == (0,) and keep.dtype == torch.long
@@ -159,6 +223,8 @@ class TestNms3d:
             nms_3d(torch.tensor([UNIT, UNIT]), torch.zeros(3), 0.5)
         with pytest.raises(ValueError, match="iou_threshold"):
             nms_3d(torch.tensor([UNIT]), torch.zeros(1), 1.5)
+        with pytest.raises(ValueError, match="iomin_threshold"):
+            nms_3d(torch.tensor([UNIT]), torch.zeros(1), 0.5, iomin_threshold=-0.1)
         with pytest.raises(ValueError, match="boxes: max < min"):
             nms_3d(torch.tensor([[1.0, 0, 0, 0, 1, 1]]), torch.zeros(1), 0.5)
         with pytest.raises(ValueError, match="finite"):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["aabb_iou_3d", "aabb_to_corners", "box_corners", "boxes_to_aabb", "nms_3d"]
+__all__ = ["aabb_iomin_3d", "aabb_iou_3d", "aabb_to_corners", "box_corners", "boxes_to_aabb", "nms_3d"]
 
 _SIGNS = np.array([[(i & 1), (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=np.float64) - 0.5
 
@@ -86,6 +86,20 @@ def _check_aabb_rows(t: torch.Tensor, name: str) -> None:
         raise ValueError(f"{name}: max < min in box {i}: {t[i].tolist()}")
 
 
+def _aabb_intersection(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Checked pairwise intersection volumes ``[N, M]`` and the volumes ``[N]``, ``[M]`` of two box sets."""
+    _check_aabb_rows(a, "a")
+    _check_aabb_rows(b, "b")
+    dtype = torch.promote_types(a.dtype, b.dtype)
+    if not dtype.is_floating_point:
+        dtype = torch.get_default_dtype()
+    a, b = a.to(dtype), b.to(dtype)
+    lo = torch.maximum(a[:, None, :3], b[None, :, :3])
+    hi = torch.minimum(a[:, None, 3:], b[None, :, 3:])
+    inter = (hi - lo).clamp(min=0).prod(dim=-1)  # [N, M]
+    return inter, (a[:, 3:] - a[:, :3]).prod(dim=-1), (b[:, 3:] - b[:, :3]).prod(dim=-1)
+
+
 def aabb_iou_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Pairwise intersection-over-union of axis-aligned 3D boxes.
 
@@ -108,31 +122,54 @@ def aabb_iou_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         >>> aabb_iou_3d(torch.tensor([[0.0, 0, 0, 2, 1, 1]]), torch.tensor([[1.0, 0, 0, 3, 1, 1]]))
         tensor([[0.3333]])
     """
-    _check_aabb_rows(a, "a")
-    _check_aabb_rows(b, "b")
-    dtype = torch.promote_types(a.dtype, b.dtype)
-    if not dtype.is_floating_point:
-        dtype = torch.get_default_dtype()
-    a, b = a.to(dtype), b.to(dtype)
-    lo = torch.maximum(a[:, None, :3], b[None, :, :3])
-    hi = torch.minimum(a[:, None, 3:], b[None, :, 3:])
-    inter = (hi - lo).clamp(min=0).prod(dim=-1)  # [N, M]
-    vol_a = (a[:, 3:] - a[:, :3]).prod(dim=-1)
-    vol_b = (b[:, 3:] - b[:, :3]).prod(dim=-1)
+    inter, vol_a, vol_b = _aabb_intersection(a, b)
     union = vol_a[:, None] + vol_b[None, :] - inter
-    return torch.where(union > 0, inter / union.clamp(min=torch.finfo(dtype).tiny), torch.zeros_like(inter))
+    return torch.where(union > 0, inter / union.clamp(min=torch.finfo(inter.dtype).tiny), torch.zeros_like(inter))
 
 
-def nms_3d(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torch.Tensor:
+def aabb_iomin_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Pairwise intersection over the smaller volume of axis-aligned 3D boxes.
+
+    1 when one box lies inside the other, whatever their sizes; this is what catches a small box nested
+    in a big one, whose IoU is only ``small / big``.
+
+    Args:
+        a: ``[N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+        b: ``[M, 6]`` boxes, same layout.
+
+    Returns:
+        ``[N, M]`` in ``[0, 1]``, dtype as :func:`aabb_iou_3d`; 0 (never ``nan``) when either box is degenerate.
+
+    Raises:
+        ValueError: as :func:`aabb_iou_3d`.
+
+    Convention: as :func:`aabb_iou_3d`.
+
+    Example:
+        >>> aabb_iomin_3d(torch.tensor([[0.0, 0, 0, 4, 4, 4]]), torch.tensor([[1.0, 1, 1, 2, 2, 2]]))
+        tensor([[1.]])
+    """
+    inter, vol_a, vol_b = _aabb_intersection(a, b)
+    smaller = torch.minimum(vol_a[:, None], vol_b[None, :])
+    return torch.where(smaller > 0, inter / smaller.clamp(min=torch.finfo(inter.dtype).tiny), torch.zeros_like(inter))
+
+
+def nms_3d(
+    boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, iomin_threshold: float = 1.0
+) -> torch.Tensor:
     """Greedy non-maximum suppression of axis-aligned 3D boxes.
 
-    Boxes are visited by descending score; a box is kept unless its IoU (:func:`aabb_iou_3d`) with an
-    already kept box is strictly greater than ``iou_threshold``.
+    Boxes are visited by descending score; a box is kept unless, with an already kept box, its IoU
+    (:func:`aabb_iou_3d`) is strictly greater than ``iou_threshold`` or its intersection over the smaller
+    volume (:func:`aabb_iomin_3d`) is strictly greater than ``iomin_threshold``.
 
     Args:
         boxes: ``[N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``; ``N = 0`` allowed.
         scores: ``[N]`` real scores, higher is better.
         iou_threshold: in ``[0, 1]``; ``0`` suppresses every box that overlaps a kept one with positive volume.
+        iomin_threshold: in ``[0, 1]``; the default 1 never suppresses by it (plain IoU NMS). Lower values also
+            drop boxes mostly inside (or mostly containing) a kept box, such as the smaller boxes a detector
+            regresses from cells off an object's centre.
 
     Returns:
         ``[K]`` int64 indices into ``boxes`` of the kept boxes, sorted by descending score.
@@ -155,13 +192,18 @@ def nms_3d(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> t
         raise ValueError(f"scores: expected shape [{boxes.shape[0]}] (one per box), got {shape}")
     if scores.dtype == torch.bool or scores.is_complex() or not bool(torch.isfinite(scores).all()):
         raise ValueError("scores: expected finite real values")
-    if isinstance(iou_threshold, bool) or not isinstance(iou_threshold, (int, float)) or not 0 <= iou_threshold <= 1:
-        raise ValueError(f"iou_threshold must be a number in [0, 1], got {iou_threshold!r}")
+    for name, thr in (("iou_threshold", iou_threshold), ("iomin_threshold", iomin_threshold)):
+        if isinstance(thr, bool) or not isinstance(thr, (int, float)) or not 0 <= thr <= 1:
+            raise ValueError(f"{name} must be a number in [0, 1], got {thr!r}")
     n = boxes.shape[0]
     if n == 0:
         return torch.zeros(0, dtype=torch.long, device=boxes.device)
     order = torch.sort(scores, descending=True, stable=True).indices
-    over = (aabb_iou_3d(boxes[order], boxes[order]) > iou_threshold).cpu().numpy()
+    sorted_boxes = boxes[order]
+    over = aabb_iou_3d(sorted_boxes, sorted_boxes) > iou_threshold
+    if iomin_threshold < 1:
+        over |= aabb_iomin_3d(sorted_boxes, sorted_boxes) > iomin_threshold
+    over = over.cpu().numpy()
     suppressed = np.zeros(n, dtype=bool)
     keep: list[int] = []
     for i in range(n):
