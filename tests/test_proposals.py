@@ -12,68 +12,13 @@ import pytest
 from threedq import proposals
 from threedq.boxes import boxes_to_aabb
 from threedq.proposals import ProposalParams, fit_ground_plane, propose_boxes, propose_dataset
-from threedq.scene import SceneRecord, load_index, load_scene
+from threedq.scene import load_index, load_scene
 
-SIZE = 96
-FOCAL = 110.0
+from analytic_scenes import render  # noqa: E402  (tests/ is on sys.path under pytest)
+
 VOXEL = ProposalParams.voxel_size
 BOUNDS = ((-1.0, -1.0, -0.5), (1.0, 1.0, 1.0))
 BOXES = np.array([[-0.55, -0.35, 0.0, -0.15, 0.05, 0.3], [0.2, 0.1, 0.0, 0.5, 0.6, 0.2]])  # aabb, on z = 0
-
-
-def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """camera-to-world pose with OpenCV axes (x right, y down, z forward)."""
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye
-    return T
-
-
-def _ray_aabb(o: np.ndarray, d: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """Entry parameter ``t`` of rays ``o + t d`` ``[N,3]`` into an axis-aligned box (inf where missed)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (box[:3] - o) / d, (box[3:] - o) / d
-    tmin = np.nanmax(np.minimum(t1, t2), axis=1)
-    tmax = np.nanmin(np.maximum(t1, t2), axis=1)
-    return np.where((tmax >= tmin) & (tmin > 0), tmin, np.inf)
-
-
-def _render(boxes: np.ndarray, normal=(0.0, 0.0, 1.0), offset: float = 0.0, num_views: int = 8) -> SceneRecord:
-    """Exact z-depth of a ground plane ``n . p = offset`` plus axis-aligned boxes, from cameras around the scene."""
-    n = np.asarray(normal, dtype=np.float64)
-    n /= np.linalg.norm(n)
-    K = np.array([[FOCAL, 0, (SIZE - 1) / 2], [0, FOCAL, (SIZE - 1) / 2], [0, 0, 1]])
-    v, u = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
-    rays_cam = np.stack([(u - K[0, 2]) / FOCAL, (v - K[1, 2]) / FOCAL, np.ones_like(u)], -1).reshape(-1, 3)
-    depths, poses = [], []
-    for i in range(num_views):
-        az = 2 * math.pi * i / num_views + 0.3
-        el = math.radians(35 if i % 2 else 60)
-        eye = 2.2 * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        T = _look_at(eye, np.array([0.0, 0.0, 0.1]))
-        d = rays_cam @ T[:3, :3].T  # world directions with camera z = 1, so t is z-depth
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t_ground = (offset - eye @ n) / (d @ n)
-        t = np.where(t_ground > 0, t_ground, np.inf)
-        for b in boxes:
-            t = np.minimum(t, _ray_aabb(eye[None], d, b))
-        t[~np.isfinite(t) | (t > 20)] = 0.0
-        depths.append(t.reshape(SIZE, SIZE))
-        poses.append(T)
-    V = num_views
-    return SceneRecord(
-        rgb=np.zeros((V, SIZE, SIZE, 3), np.uint8),
-        depth=np.stack(depths).astype(np.float32),
-        K=np.repeat(K[None], V, 0).astype(np.float32),
-        world_T_cam=np.stack(poses).astype(np.float32),
-        boxes=None,  # type: ignore[arg-type]  # labels must never be read
-        categories=None,  # type: ignore[arg-type]
-    )
 
 
 def _match(pred: np.ndarray, true: np.ndarray, tol: float) -> None:
@@ -84,7 +29,7 @@ def _match(pred: np.ndarray, true: np.ndarray, tol: float) -> None:
 
 
 def test_two_boxes_on_flat_ground() -> None:
-    aabb, scores = propose_boxes(_render(BOXES), bounds=BOUNDS)
+    aabb, scores = propose_boxes(render(BOXES), bounds=BOUNDS)
     assert aabb.dtype == np.float32 and scores.dtype == np.float32
     assert aabb.shape == (2, 6) and scores.shape == (2,)
     _match(aabb.astype(np.float64), BOXES, tol=VOXEL)
@@ -96,7 +41,7 @@ def test_tilted_offset_ground_plane() -> None:
     offset = 0.15
     # boxes sink into the tilted ground; their visible top and xy extents are what counts
     boxes = BOXES + np.array([0, 0, -0.2, 0, 0, 0.2])
-    rec = _render(boxes, normal=normal, offset=offset)
+    rec = render(boxes, normal=normal, offset=offset)
     pts_plane = fit_ground_plane(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]]))
     assert pts_plane is not None and np.allclose(pts_plane[0], [0, 0, 1])
     aabb, _ = propose_boxes(rec, bounds=BOUNDS)
@@ -119,7 +64,7 @@ def test_tilted_offset_ground_plane() -> None:
 
 
 def test_empty_scene_and_no_depth_give_no_proposals() -> None:
-    rec = _render(np.zeros((0, 6)), num_views=4)
+    rec = render(np.zeros((0, 6)), num_views=4)
     aabb, scores = propose_boxes(rec, bounds=BOUNDS)
     assert aabb.shape == (0, 6) and scores.shape == (0,) and aabb.dtype == np.float32
     rec.depth[:] = 0
@@ -128,15 +73,15 @@ def test_empty_scene_and_no_depth_give_no_proposals() -> None:
 
 
 def test_bad_input_names_the_field() -> None:
-    rec = _render(BOXES[:1], num_views=2)
+    rec = render(BOXES[:1], num_views=2)
     rec.depth[0, 3, 3] = np.nan
     with pytest.raises(ValueError, match="depth"):
         propose_boxes(rec)
-    rec = _render(BOXES[:1], num_views=2)
+    rec = render(BOXES[:1], num_views=2)
     rec.K = rec.K[:1]
     with pytest.raises(ValueError, match="K"):
         propose_boxes(rec)
-    rec = _render(BOXES[:1], num_views=2)
+    rec = render(BOXES[:1], num_views=2)
     with pytest.raises(ValueError, match="voxel_size"):
         propose_boxes(rec, voxel_size=0)
     with pytest.raises(ValueError, match="footprint"):

@@ -13,6 +13,7 @@ from threedq.nets import (
     OccupancyHead,
     UNet3D,
     ViewDecoder,
+    balanced_l1,
     balanced_occupancy_loss,
     masked_l1,
     occupancy_balanced_accuracy,
@@ -125,6 +126,40 @@ class TestMaskedL1:
             masked_l1(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 5), torch.ones(1, 1, 4, 4))
         with pytest.raises(ValueError, match=r"valid must have shape \(1, 1, 4, 4\)"):
             masked_l1(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4), torch.ones(1, 3, 4, 4))
+
+
+class TestBalancedL1:
+    def test_feature(self) -> None:
+        # 4 valid pixels: one foreground with error 6, three background with errors 1, 2, 3 (channel means)
+        pred = torch.zeros(1, 1, 2, 3)
+        target = torch.tensor([[6.0, 1.0, 2.0], [3.0, 50.0, 70.0]]).view(1, 1, 2, 3)
+        valid = torch.tensor([[1.0, 1.0, 1.0], [1.0, 0.0, 0.0]]).view(1, 1, 2, 3)
+        fg = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]).view(1, 1, 2, 3)  # (1, 1) is fg but not valid
+        torch.testing.assert_close(balanced_l1(pred, target, valid, fg), torch.tensor(6.0 + 2.0))
+        torch.testing.assert_close(masked_l1(pred, target, valid), torch.tensor(3.0))  # the plain mean differs
+
+    def test_one_set_empty_is_the_plain_loss(self) -> None:
+        pred, target = torch.randn(2, 3, 5, 5), torch.randn(2, 3, 5, 5)
+        valid = (torch.rand(2, 1, 5, 5) > 0.3).float()
+        plain = masked_l1(pred, target, valid)
+        torch.testing.assert_close(balanced_l1(pred, target, valid, torch.zeros_like(valid)), plain)
+        torch.testing.assert_close(balanced_l1(pred, target, valid, torch.ones_like(valid)), plain)
+
+    def test_gradient_is_balanced(self) -> None:
+        # L1 gradients are +-1/(E*N) per element: each set receives a total gradient mass of 1, however small
+        pred = torch.randn(1, 3, 8, 8, requires_grad=True)
+        fg = torch.zeros(1, 1, 8, 8)
+        fg[..., :2, :2] = 1.0  # 4 foreground pixels vs 60 background ones
+        balanced_l1(pred, torch.randn(1, 3, 8, 8) + 10.0, torch.ones(1, 1, 8, 8), fg).backward()
+        g = pred.grad.abs()
+        torch.testing.assert_close((g * fg).sum(), torch.tensor(1.0))
+        torch.testing.assert_close((g * (1 - fg)).sum(), torch.tensor(1.0))
+
+    def test_exception(self) -> None:
+        with pytest.raises(ValueError, match=r"foreground must have shape \(1, 1, 4, 4\)"):
+            balanced_l1(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4), torch.ones(1, 1, 4, 4), torch.ones(1, 1, 4, 5))
+        with pytest.raises(ValueError, match=r"valid must have shape"):
+            balanced_l1(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4), torch.ones(1, 3, 4, 4), torch.ones(1, 1, 4, 4))
 
 
 def occ_masks() -> tuple[torch.Tensor, torch.Tensor]:

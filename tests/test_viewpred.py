@@ -9,6 +9,7 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
+import torch.nn.functional as F
 import yaml
 
 from datamodules.scene_folder import SceneFolderDataModule
@@ -64,6 +65,48 @@ class TestViewPrediction:
         img = view_prediction_figure(batch["rgb"][0, 0], r["pred"][0] + 0.5, r["target"][0] + 0.5,
                                      torch.sigmoid(r["occ_logits"][0, 0]), r["occ"][0, 0])
         assert img.dtype.name == "uint8" and img.shape == (32, 5 * 32 + 4 * 2, 3)
+
+
+class TestBalancedRgbLoss:
+    """The default RGB loss balances the pixels above the ground (the objects) against the rest."""
+
+    @pytest.fixture(scope="class")
+    def many(self, tiny_dataset: Path) -> dict[str, torch.Tensor]:
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=4, num_input_views=1, num_target_views=3)
+        dm.setup()
+        return next(iter(dm.train_dataloader()))
+
+    def test_foreground_matches_the_instance_masks(self, many: dict[str, torch.Tensor]) -> None:
+        b = many
+        m = ViewPrediction(**SMALL)
+        fg = m.target_foreground(b, 1)  # label-free: depth and poses only
+        T = b["rgb"].shape[1] - 1
+        objects = (F.avg_pool2d((b["instance"][:, 1:].flatten(0, 1)[:, None] > 0).float(), 2) > 0.5).float()
+        valid = m.target_valid(*(b[k][:, 1:].flatten(0, 1) for k in ("depth", "K", "R_T_cam")))
+        assert fg.shape == objects.shape == (4 * T, 1, 16, 16)
+        agree = ((fg == objects).float() * valid).sum() / valid.sum()
+        assert objects.sum() > 20 and agree > 0.97
+
+    def test_plain_is_the_papers_loss_and_balanced_differs(self, many: dict[str, torch.Tensor]) -> None:
+        batch = many
+        torch.manual_seed(0)
+        plain = ViewPrediction(**SMALL, rgb_loss="plain")
+        balanced = ViewPrediction(**SMALL)
+        balanced.load_state_dict(plain.state_dict())
+        rp, rb = plain._step(batch), balanced._step(batch)  # training mode
+        torch.testing.assert_close(rp["loss"], 30.0 * rp["l1"] + rp["occ_loss"])
+        torch.testing.assert_close(rp["l1"], rb["l1"])
+        assert "l1_fg" not in rp  # plain training skips the ground fit
+        balanced.eval()
+        re = balanced._step(batch)
+        assert re["l1_fg"] > 0 and re["l1_fg_mean_colour"] > 0
+        assert not torch.allclose(rb["loss"], rp["loss"])
+
+    def test_bad_settings(self) -> None:
+        with pytest.raises(ValueError, match="rgb_loss"):
+            ViewPrediction(**SMALL, rgb_loss="l2")
+        with pytest.raises(ValueError, match="ground_margin"):
+            ViewPrediction(**SMALL, ground_margin=float("nan"))
 
 
 class TestTargetViews:

@@ -159,6 +159,14 @@ def _report(summary: dict[str, Any]) -> str:
         "|---|---|",
         f"| RGB L1 (target pixels inside the grid, half resolution) | {vp['l1']:.4f} |",
         f"| RGB L1 of the mean-colour baseline | {vp['l1_mean_colour']:.4f} |",
+        *(
+            [
+                f"| RGB L1 on the objects (target pixels above the ground plane) | {vp['l1_fg']:.4f} |",
+                f"| the same for the mean-colour baseline | {vp['l1_fg_mean_colour']:.4f} |",
+            ]
+            if "l1_fg" in vp
+            else []
+        ),
         f"| occupancy balanced accuracy | {vp['occ_bacc']:.3f} |",
         "",
     ]

@@ -118,12 +118,13 @@ def evaluate_view_prediction(stage: torch.nn.Module, loader: torch.utils.data.Da
     """Mean view-prediction metrics of a :class:`~stages.viewpred.ViewPrediction` stage over ``loader``.
 
     Returns:
-        ``{"l1", "l1_mean_colour", "occ_bacc", "num_scenes"}``: RGB L1 over valid target pixels, the same for
-        the mean-colour baseline, and occupancy balanced accuracy, averaged over batches weighted by size.
+        ``{"l1", "l1_mean_colour", "l1_fg", "l1_fg_mean_colour", "occ_bacc", "num_scenes"}``: RGB L1 over valid
+        target pixels and the same for the mean-colour baseline, both again over the target pixels above the
+        ground (``_fg``: the objects), and occupancy balanced accuracy, averaged over batches weighted by size.
     """
     was_training = stage.training
     stage.eval()
-    sums = {"l1": 0.0, "l1_mean_colour": 0.0, "occ_bacc": 0.0}
+    sums = {"l1": 0.0, "l1_mean_colour": 0.0, "l1_fg": 0.0, "l1_fg_mean_colour": 0.0, "occ_bacc": 0.0}
     n = 0
     for batch in tqdm(loader, desc="view prediction", disable=not progress, leave=False):
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}

@@ -70,6 +70,7 @@ import numpy as np
 from scipy import ndimage
 
 from threedq.atomic_io import atomic_write_bytes, npz_bytes
+from threedq.geometry.ground import fit_ground_plane
 from threedq.scene import SceneRecord, load_index, load_scene
 
 __all__ = [
@@ -225,81 +226,6 @@ def _world_points(
     T = world_T_cam.astype(np.float64)
     world = np.einsum("nij,nj->ni", T[view, :3, :3], cam) + T[view, :3, 3]
     return world, view, z / np.sqrt(fx * fy)
-
-
-def fit_ground_plane(
-    points: np.ndarray,
-    *,
-    camera_centres: np.ndarray | None = None,
-    iters: int = 200,
-    threshold: float = 0.01,
-    max_tilt_deg: float = 30.0,
-    sample: int = 20000,
-    seed: int = 0,
-) -> tuple[np.ndarray, float, int] | None:
-    """RANSAC fit of the dominant near-horizontal plane ``n . p + d = 0``.
-
-    Args:
-        points: ``[N,3]`` world points.
-        camera_centres: ``[C,3]``; when given, the normal is flipped so most cameras lie on its positive side
-            (above the plane); otherwise it points towards +z.
-        iters: hypotheses (3-point samples).
-        threshold: inlier distance, metres.
-        max_tilt_deg: hypotheses whose normal is further than this from +z are rejected.
-        sample: the hypotheses are scored on at most this many random points.
-        seed: RNG seed (the fit is deterministic for equal inputs).
-
-    Returns:
-        ``(n [3] unit normal, d, inliers)`` (``inliers`` counted on the scored sample), or ``None`` when no
-        valid hypothesis exists (fewer than 3 points, or all candidate planes too tilted).
-
-    Convention: world frame, z up; signed height of ``p`` above the plane is ``n . p + d``.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points: expected shape [N,3], got {list(pts.shape)}")
-    if pts.shape[0] < 3:
-        return None
-    rng = np.random.default_rng(seed)
-    eval_pts = pts if pts.shape[0] <= sample else pts[rng.choice(pts.shape[0], sample, replace=False)]
-    idx = rng.integers(0, eval_pts.shape[0], size=(iters, 3))
-    a, b, c = eval_pts[idx[:, 0]], eval_pts[idx[:, 1]], eval_pts[idx[:, 2]]
-    n = np.cross(b - a, c - a)
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-12
-    n[ok] /= norm[ok, None]
-    n[n[:, 2] < 0] *= -1
-    ok &= n[:, 2] >= math.cos(math.radians(max_tilt_deg)) - 1e-12
-    if not np.any(ok):
-        return None
-    n, a = n[ok], a[ok]
-    d = -np.einsum("ij,ij->i", n, a)
-    # inlier counts of all hypotheses, in chunks to bound memory
-    counts = np.zeros(n.shape[0], dtype=np.int64)
-    chunk = max(1, 4_000_000 // max(eval_pts.shape[0], 1))
-    for s in range(0, n.shape[0], chunk):
-        dist = np.abs(eval_pts @ n[s : s + chunk].T + d[s : s + chunk])
-        counts[s : s + chunk] = np.count_nonzero(dist <= threshold, axis=0)
-    best = int(np.argmax(counts))  # first maximum: deterministic
-    nb, db = n[best], float(d[best])
-    # least-squares refinement on the inliers of all points (two rounds)
-    for _ in range(2):
-        inl = pts[np.abs(pts @ nb + db) <= threshold]
-        if inl.shape[0] < 3:
-            break
-        centroid = inl.mean(axis=0)
-        _, _, vt = np.linalg.svd(inl - centroid, full_matrices=False)
-        cand = vt[-1]
-        if cand[2] < 0:
-            cand = -cand
-        if cand[2] < math.cos(math.radians(max_tilt_deg)) - 1e-12:
-            break
-        nb, db = cand, float(-cand @ centroid)
-    if camera_centres is not None and camera_centres.size:
-        side = camera_centres @ nb + db
-        if np.count_nonzero(side < 0) > np.count_nonzero(side > 0):
-            nb, db = -nb, -db
-    return nb, db, int(counts[best])
 
 
 def _plane_z(n: np.ndarray, d: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Geometry core: voxel grids, cameras, unprojection, box crops and yaw rotation.
+"""Geometry core: voxel grids, cameras, unprojection, box crops, yaw rotation and the ground plane.
 
 Convention:
     Metres; reference frame R right-handed with z up; yaw counter-clockwise about +z seen from above,
@@ -13,10 +13,12 @@ from .crop import __all__ as _crop_all
 from .frustum import *  # noqa: F403
 from .frustum import __all__ as _frustum_all
 from .grid import *  # noqa: F403
+from .ground import *  # noqa: F403
+from .ground import __all__ as _ground_all
 from .grid import __all__ as _grid_all
 from .rotate import *  # noqa: F403
 from .rotate import __all__ as _rotate_all
 from .unproject import *  # noqa: F403
 from .unproject import __all__ as _unproject_all
 
-__all__ = [*_grid_all, *_camera_all, *_unproject_all, *_crop_all, *_rotate_all, *_frustum_all]
+__all__ = [*_grid_all, *_camera_all, *_unproject_all, *_crop_all, *_rotate_all, *_frustum_all, *_ground_all]

@@ -1,0 +1,86 @@
+"""View-prediction training variants vs. retrieval precision@10 of the learned crops (docs/results.md).
+
+Each variant trains ``configs/stages/viewpred.yaml`` from scratch (seed 0) for ``--steps`` steps with extra
+LightningCLI overrides, then scores it on the test split with :func:`threedq.evaluation.evaluate_features`
+(exact rotation-max search, 36 yaw steps) and :func:`threedq.evaluation.evaluate_view_prediction`.
+Run it from a folder holding the embedded data (``data/clevr_veggie``, made by ``threedq em`` or
+``threedq fit``); one row per variant, appended to ``--out`` as JSON lines as soon as it is done, so a
+killed run keeps the finished rows.
+
+    python benchmarks/ablate_viewpred.py --steps 600 \\
+        --variant default= --variant rgb100=--model.init_args.rgb_weight=100
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import cpu_name  # noqa: E402
+
+DEFAULT_VARIANTS = [
+    "default=",
+    "plain L1=--model.init_args.rgb_loss=plain",
+    "bf16=--trainer.precision=bf16-mixed",
+    "3 targets=--data.init_args.num_target_views=3",
+    "rgb100=--model.init_args.rgb_weight=100",
+]
+
+
+def run_variant(name: str, overrides: list[str], steps: int, root: Path) -> dict:
+    from threedq.cli import ThreeDQCLI
+    from threedq.evaluation import evaluate_features, evaluate_view_prediction
+    from threedq.report import split_loader
+
+    config = Path(__file__).resolve().parents[1] / "configs" / "stages" / "viewpred.yaml"
+    t0 = time.perf_counter()
+    cli = ThreeDQCLI(
+        args=[
+            "--config", str(config), f"--trainer.max_steps={steps}", f"--trainer.default_root_dir={root / name}",
+            "--model.init_args.image_every_n_steps=0", "--trainer.check_val_every_n_epoch=1000", *overrides,
+        ],
+        run=False,
+    )
+    cli.trainer.fit(cli.model, cli.datamodule)
+    train_s = time.perf_counter() - t0
+    cli.datamodule.setup("test")
+    vp = evaluate_view_prediction(cli.model, cli.datamodule.test_dataloader())
+    ret = evaluate_features(cli.model, split_loader(cli.datamodule, "test"))
+    return {"variant": name, "overrides": overrides, "steps": steps, "train_s": round(train_s, 1),
+            "view_pred_l1": vp["l1"], "l1_mean_colour": vp["l1_mean_colour"], "l1_fg": vp["l1_fg"],
+            "l1_fg_mean_colour": vp["l1_fg_mean_colour"], **ret["precision_at_k"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--variant", action="append", help="NAME=OVERRIDE[ OVERRIDE...] (repeatable)")
+    ap.add_argument("--root", type=Path, default=Path("runs/ablate_viewpred"))
+    ap.add_argument("--out", type=Path, default=Path("runs/ablate_viewpred/results.jsonl"))
+    args = ap.parse_args()
+    rows = []
+    for spec in args.variant or DEFAULT_VARIANTS:
+        name, _, rest = spec.partition("=")
+        row = run_variant(name, rest.split(), args.steps, args.root)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with args.out.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+        rows.append(row)
+    print(f"\nmachine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  steps: {args.steps}\n")
+    print("| variant | train s | view-pred L1 (mean colour) | object L1 (mean colour) | learned p@10 | raw p@10 | "
+          "random p@10 |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['variant']} | {r['train_s']:.0f} | {r['view_pred_l1']:.4f} ({r['l1_mean_colour']:.4f}) | "
+              f"{r['l1_fg']:.4f} ({r['l1_fg_mean_colour']:.4f}) | "
+              f"{r['learned']:.3f} | {r['raw_rgb_occupancy']:.3f} | {r.get('random_encoder', float('nan')):.3f} |")
+
+
+if __name__ == "__main__":
+    main()
