@@ -18,6 +18,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from threedq.crop_cache import CropCache, sample_key
 from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 
@@ -98,6 +99,10 @@ class EncoderStage(L.LightningModule):
         channels_last: run the encoder in ``channels_last_3d`` memory format (faster oneDNN / cuDNN
             convolutions; numerically the same).
 
+    Attributes:
+        crop_cache: an optional :class:`~threedq.crop_cache.CropCache` that :meth:`object_crops` reads and
+            fills while the encoder is frozen (``threedq em`` shares one across rounds); None by default.
+
     Convention: frame R metres, z up; volumes ``[B, C, Z, Y, X]``.
     """
 
@@ -122,7 +127,11 @@ class EncoderStage(L.LightningModule):
         if encoder_ckpt:
             load_encoder_state(self.encoder, encoder_ckpt)
         if freeze_encoder:
-            self.encoder.requires_grad_(False)
+            # eval mode now: Lightning (>= 2.2) keeps the modes modules are in and never calls train() at fit
+            # start, so without this a frozen encoder would normalise by batch statistics and drift its
+            # running statistics
+            self.encoder.requires_grad_(False).eval()
+        self.crop_cache: CropCache | None = None  # set by the caller (``threedq em``); not a hyperparameter
 
     def train(self, mode: bool = True) -> EncoderStage:
         super().train(mode)
@@ -146,6 +155,16 @@ class EncoderStage(L.LightningModule):
         rgb_vol, seen = sampled[:, :3], (sampled[:, 3:] > 0.5).to(rgb.dtype)
         return torch.cat([occ, occ * rgb_vol], dim=1), seen
 
+    def crops_cacheable(self) -> bool:
+        """Whether crops of this stage's encoder may come from :attr:`crop_cache` (no gradient, encoder in eval mode)."""
+        return self.crop_cache is not None and not torch.is_grad_enabled() and not self.encoder.training
+
+    def crop_cache_prefix(self) -> str:
+        """What besides weights and inputs decides a crop: grid, memory format, device type and autocast state."""
+        dev = self.device.type
+        amp = str(torch.get_autocast_dtype(dev)) if torch.is_autocast_enabled(dev) else "fp32"
+        return f"{self.grid}|{self.channels_last}|{dev}|{amp}"
+
     def encode_views(self, rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
         """Encode each of S views of B scenes and aggregate them in R (mean over the views that see a voxel).
 
@@ -157,6 +176,20 @@ class EncoderStage(L.LightningModule):
         """
         B, S = rgb.shape[:2]
         x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
+        return self.encode_input(x, seen, S)
+
+    def encode_input(self, x: Tensor, seen: Tensor, num_views: int) -> Tensor:
+        """Encode unprojected views and aggregate each scene's ``num_views`` of them (see :meth:`encode_views`).
+
+        Args:
+            x: ``[B*S, 4, Z, Y, X]`` and seen ``[B*S, 1, Z, Y, X]`` from :meth:`encoder_input`, scene-major.
+            num_views: S.
+
+        Returns:
+            ``[B, C, Z/2, Y/2, X/2]`` features, L2-normalised per voxel.
+        """
+        S = num_views
+        B = x.shape[0] // S
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last_3d)
         feats = self.encoder(x).contiguous()  # [B*S, C, z, y, x]
@@ -172,6 +205,9 @@ class EncoderStage(L.LightningModule):
 
     def object_crops(self, batch: dict[str, Tensor], num_input_views: int = 1, size: int = 16) -> dict[str, Tensor]:
         """Encode the first ``num_input_views`` views of each scene and crop every (valid) object box.
+
+        With a :attr:`crop_cache` and :meth:`crops_cacheable`, samples whose crops were computed before by
+        the same encoder weights are not encoded again.
 
         Args:
             batch: a SceneDataset batch (``rgb`` [B,S,3,H,W], ``depth``, ``K``, ``R_T_cam``, ``aabb`` [B,M,6],
@@ -189,15 +225,27 @@ class EncoderStage(L.LightningModule):
         v = num_input_views
         rgb, depth, K, pose = (batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam"))
         B = rgb.shape[0]
-        feats = self.encode_views(rgb, depth, K, pose)
-        x, _ = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
-        raw = x.view(B, v, *x.shape[1:]).amax(1)
         mask = batch["box_mask"]
-        return {
-            "features": crop_boxes(feats, batch["aabb"], self.feature_grid, size)[mask],
-            "raw": crop_boxes(raw, batch["aabb"], self.grid, size)[mask],
+        out = {
             "labels": batch["categories"][mask],
             "boxes": batch["boxes"][mask],
             "aabb": batch["aabb"][mask],
             "scene": batch["scene_index"][:, None].expand_as(mask)[mask],
         }
+        cache = self.crop_cache if self.crops_cacheable() else None
+        if cache is not None:
+            prefix = self.crop_cache_prefix()
+            keys = [sample_key(batch, b, v, size) for b in range(B)]
+            f_keys = [("features", prefix, cache.fingerprint(self.encoder), k) for k in keys]
+            r_keys = [("raw", prefix, k) for k in keys]
+            feats, raw = cache.get_many(f_keys), cache.get_many(r_keys)
+            if feats is not None and raw is not None:
+                return {"features": torch.cat(feats).to(self.device), "raw": torch.cat(raw).to(self.device), **out}
+        x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
+        feats = crop_boxes(self.encode_input(x, seen, v), batch["aabb"], self.feature_grid, size)  # [B, M, ...]
+        raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"], self.grid, size)
+        if cache is not None:
+            for b in range(B):
+                cache.put(f_keys[b], feats[b][mask[b]])
+                cache.put(r_keys[b], raw[b][mask[b]])
+        return {"features": feats[mask], "raw": raw[mask], **out}

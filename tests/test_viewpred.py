@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pickle
+import re
 from pathlib import Path
 
 import lightning as L
@@ -153,6 +154,34 @@ class TestEncoderContract:
         tuned = EncoderStage(grid_resolution=(32, 32, 16), encoder_ckpt=str(path), freeze_encoder=False)
         assert all(p.requires_grad for p in tuned.encoder.parameters())
 
+    @pytest.mark.parametrize("stage", ["detector", "quantizer"])
+    def test_frozen_encoder_is_unchanged_by_fit(self, stage: str, tmp_path: Path, tiny_dataset: Path) -> None:
+        """Lightning never calls train() at fit start: a frozen encoder must already be in eval mode."""
+        from stages.detector import Detector
+        from stages.quantizer import Quantizer
+
+        torch.manual_seed(3)
+        src = EncoderStage(grid_resolution=(32, 32, 16))
+        with torch.no_grad():  # non-trivial running statistics, so that drifting them would show
+            src.train()
+            src.encode_views(*(torch.rand(2, 1, *s) for s in ((3, 32, 32), (32, 32))),
+                             torch.tensor([[[[40.0, 0, 16], [0, 40, 16], [0, 0, 1]]]]).expand(2, 1, 3, 3),
+                             torch.eye(4).expand(2, 1, 4, 4))
+        path = tmp_path / "encoder.pt"
+        torch.save(src.encoder.state_dict(), path)
+        kind = Detector if stage == "detector" else Quantizer
+        extra = {"num_prototypes": 2, "crop_size": 8, "em_iterations": 1} if stage == "quantizer" else {}
+        m = kind(grid_resolution=(32, 32, 16), encoder_ckpt=str(path), freeze_encoder=True, **extra)
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=2, num_input_views=1, num_target_views=0)
+        seen_modes = []
+        m.on_train_batch_start = lambda *a: seen_modes.append(m.encoder.training)
+        L.Trainer(max_steps=2, max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                  enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0,
+                  default_root_dir=tmp_path).fit(m, dm)
+        assert seen_modes and not any(seen_modes)
+        for (k, a), b in zip(src.encoder.state_dict().items(), m.encoder.state_dict().values()):
+            assert torch.equal(a, b), k
+
     def test_errors(self, tmp_path: Path) -> None:
         with pytest.raises(FileNotFoundError, match="encoder_ckpt"):
             EncoderStage(encoder_ckpt=str(tmp_path / "missing.ckpt"))
@@ -203,7 +232,10 @@ class TestEm:
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
-        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg])
+        summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg])
+        reused = re.search(r"crop cache: (\d+) reused, (\d+) computed", capsys.readouterr().out)
+        # round 2 and its evaluation encode nothing new: the same encoder, views and boxes as round 1
+        assert reused is not None and int(reused[1]) > 0 and int(reused[1]) >= int(reused[2]) // 2
         final = summary["round_results"][-1]
         assert set(final["retrieval"]["precision_at_k"]) == {"learned", "raw_rgb_occupancy", "random_encoder"}
         assert set(final["quantization"]) == {"threedq", "no_rot", "pointcloud"}
@@ -211,9 +243,9 @@ class TestEm:
         assert summary["viewpred_eval"]["view_prediction"]["num_scenes"] == 2
         report = (work / "report.md").read_text()
         assert "Hungarian" in report and "precision@" in report
-        assert json.loads((work / "metrics.json").read_text())["rounds"] == 1
+        assert json.loads((work / "metrics.json").read_text())["rounds"] == 2
         for png in ("prototype_alignment.png", "retrieval.png"):
-            assert (work / "r01_eval" / png).is_file()
+            assert (work / "r02_eval" / png).is_file()
         det = summary["detector_eval"]
         assert 0 <= det["pseudo_boxes"]["map_50"] <= det["pseudo_boxes"]["map_25"] <= 1
         assert 0 <= det["detector"]["map_50"] <= 1 and det["detector"]["num_gt"] > 0
@@ -224,7 +256,7 @@ class TestEm:
         assert list((run / "images").glob("*.png")) and (run / "metrics.csv").is_file()
         stamp = (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns
         capsys.readouterr()
-        run_em(rounds=1, work_dir=str(work), extra_configs=[cfg])
+        run_em(rounds=2, work_dir=str(work), extra_configs=[cfg])
         assert "finished earlier" in capsys.readouterr().out
         assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
 
@@ -240,6 +272,8 @@ class TestEm:
         work = tmp_path / "em"
         run_em(rounds=0, work_dir=str(work), extra_configs=[cfg])
         det_dir = work / "03_detector_eval"
+        assert sorted(p.name for p in det_dir.glob("detections_*.npz")) == ["detections_test.npz"]  # GT rounds
+        run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], boxes="detections")  # fills in the others
         index = load_index(tiny_dataset)
         for split in ("train", "val", "test"):
             dets = load_boxes_file(det_dir / f"detections_{split}.npz")

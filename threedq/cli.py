@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +74,18 @@ class ThreeDQCLI(LightningCLI):
     same directory, so that a resumed run can be restarted from it).
     """
 
-    def __init__(self, args: Sequence[str] | None = None, run: bool = True) -> None:
+    def __init__(
+        self,
+        args: Sequence[str] | None = None,
+        run: bool = True,
+        model_setup: Callable[[L.LightningModule], None] | None = None,
+    ) -> None:
+        """Parse ``args`` (default: the command line), instantiate, and with ``run`` run the subcommand.
+
+        ``model_setup`` is called with the instantiated model before anything runs (``threedq em`` uses it
+        to hand every stage the same :class:`~threedq.crop_cache.CropCache`).
+        """
+        self._model_setup = model_setup
         with warnings.catch_warnings():
             # threedq passes its own (config-resolved) command line as args= on purpose.
             warnings.filterwarnings("ignore", message=".*args parameter is intended to run from within Python.*")
@@ -92,6 +103,11 @@ class ThreeDQCLI(LightningCLI):
             args=list(args) if args is not None else None,
             run=run,
         )
+
+    def instantiate_classes(self) -> None:
+        super().instantiate_classes()
+        if self._model_setup is not None:
+            self._model_setup(self.model)
 
     def instantiate_trainer(self, **kwargs: Any) -> L.Trainer:
         """Give every run a self-contained folder ``trainer.default_root_dir``.

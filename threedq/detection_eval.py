@@ -3,7 +3,8 @@
 :func:`evaluate_detection` is the ``detector_eval`` step of ``threedq em``: on the held-out split it scores
 (a) the label-free pseudo-boxes of :mod:`threedq.proposals` and (b) the detector, at IoU 0.25 and 0.5
 (:class:`~threedq.metrics.DetectionMAP`, accumulated over the whole split); it draws detections beside GT
-on held-out scenes and writes the detector's boxes of every split as ``detections_<split>.npz`` (the
+on held-out scenes and writes the detector's boxes of the requested splits as ``detections_<split>.npz``
+(``threedq em``: the test split, or every split with ``--boxes detections``; the
 layout of :func:`threedq.proposals.save_boxes_file`), which later stages read through the DataModule's
 ``boxes`` option.
 

@@ -9,7 +9,7 @@ Layout of ``work_dir``::
         metrics.json          # held-out view-prediction metrics
       02_detector/            # 3D detector on the frozen encoder, trained from label-free pseudo-boxes
       03_detector_eval/       # mAP@0.25/0.5 of pseudo-boxes and detector, detections.png,
-                              #   detections_<split>.npz (boxes for the rounds with --boxes detections)
+                              #   detections_test.npz (every split's with --boxes detections)
       r01_quantizer/          # round 1: prototypes on the frozen encoder (LightningCLI run)
       r01_eval/               # round 1: results.json/.md (retrieval, Hungarian, few-shot, yaw) + figures
       r02_quantizer/ ...      # round r starts from round r-1's prototype bank
@@ -38,6 +38,7 @@ from typing import Any
 import torch
 
 from threedq.atomic_io import atomic_write_json, atomic_write_text
+from threedq.crop_cache import CropCache
 from stages.base import checkpoint_state
 from threedq.cli import ThreeDQCLI, resolve_config
 
@@ -59,7 +60,8 @@ def _cli_args(configs: list[Path], run_dir: Path, overrides: list[str]) -> list[
 
 
 def _fit_stage(
-    name: str, configs: list[Path], run_dir: Path, overrides: list[str], resume: bool
+    name: str, configs: list[Path], run_dir: Path, overrides: list[str], resume: bool,
+    crop_cache: CropCache | None = None,
 ) -> dict[str, Any]:
     done = _stage_done(run_dir)
     if done is not None:
@@ -77,7 +79,8 @@ def _fit_stage(
             print(f"[em] {name}: resuming from {last}")
     print(f"[em] {name}: training in {run_dir}")
     t0 = time.time()
-    ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides), *ckpt_args])
+    setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
+    ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides), *ckpt_args], model_setup=setup)
     if not last.is_file():
         raise RuntimeError(f"{name}: training finished without writing {last}")
     info = {"stage": name, "checkpoint": str(last), "seconds": round(time.time() - t0, 1)}
@@ -104,13 +107,16 @@ def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
     return metrics
 
 
-def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[str, Any]:
+def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...]) -> dict[str, Any]:
     from threedq.detection_eval import evaluate_detection
 
     cached = run_dir / "results.json"
     if cached.is_file():
-        print(f"[em] detector_eval: finished earlier ({cached}), not re-run")
-        return json.loads(cached.read_text())
+        done = json.loads(cached.read_text())
+        if all(s in done.get("detections", {}) for s in splits):
+            print(f"[em] detector_eval: finished earlier ({cached}), not re-run")
+            return done
+        print(f"[em] detector_eval: {cached} lacks detections of {', '.join(splits)}: evaluating again")
     cli = ThreeDQCLI(
         args=[*_cli_args(configs, run_dir, []), "--model.init_args.encoder_ckpt=null", "--trainer.logger=false"],
         run=False,
@@ -118,11 +124,12 @@ def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
     model, dm = cli.model, cli.datamodule
     model.load_state_dict(checkpoint_state(ckpt))
     dm.prepare_data()
-    return evaluate_detection(model, dm, run_dir)
+    return evaluate_detection(model, dm, run_dir, splits=splits)
 
 
 def _evaluate_round(
-    configs: list[Path], ckpt: Path, run_dir: Path, final: bool, overrides: list[str] | None = None
+    configs: list[Path], ckpt: Path, run_dir: Path, final: bool, overrides: list[str] | None = None,
+    crop_cache: CropCache | None = None,
 ) -> dict[str, Any]:
     from threedq.report import evaluate_quantizer
 
@@ -137,6 +144,7 @@ def _evaluate_round(
     )
     model, dm = cli.model, cli.datamodule
     model.load_state_dict(checkpoint_state(ckpt))
+    model.crop_cache = crop_cache
     dm.prepare_data()
     dm.setup("test")
     return evaluate_quantizer(model, dm, run_dir, baselines=final, curve_k=[])  # Fig. 3a: threedq eval (keeps the main job short)
@@ -284,25 +292,32 @@ def run_em(
     if detection:
         d_configs = [resolve_config(detector_config), *extra]
         det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}"], resume)
-        det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval")
+        # detections of every split only when the rounds take their boxes from the detector
+        det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
+        det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits)
         print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
               f"detector {det_eval['detector']['map_50']:.3f}")
         if boxes == "detections":
             box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
     round_results: list[dict[str, Any]] = []
     prev_bank: Path | None = None
+    # the rounds share one encoder until mining fine-tunes it: encode each scene once, not once per round
+    crop_cache = CropCache()
     for r in range(1, rounds + 1):
         q_over = [f"--model.init_args.encoder_ckpt={vp_ckpt}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
                   *box_over]
         if prev_bank is not None:
             q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
-        q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume)
+        q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume, crop_cache)
         prev_bank = Path(q["checkpoint"])
         round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds,
-                                            overrides=box_over))
+                                            overrides=box_over, crop_cache=crop_cache))
         q_res = round_results[-1]["quantization"]["threedq"]
         print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {q_res['fewshot_acc']:.3f}, "
               f"precision@10 {round_results[-1]['retrieval']['precision_at_k']['learned']:.3f}")
+    if rounds:
+        print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
+              f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")
     summary = {
         "work_dir": str(work),
         "rounds": rounds,

@@ -18,11 +18,34 @@ from torch import Tensor
 from tqdm import tqdm
 
 from stages.base import EncoderStage
+from threedq.crop_cache import CropCache, sample_key
 from threedq.geometry import crop_boxes
 from threedq.metrics.retrieval import retrieval_precision_at_k, rotation_max_similarity
 from threedq.nets import UNet3D
 
 __all__ = ["collect_object_crops", "evaluate_features"]
+
+
+def _random_encoder_crops(
+    stage: EncoderStage, random_enc: UNet3D, batch: dict[str, Tensor], v: int, crop_size: int, cache: CropCache | None
+) -> Tensor:
+    """Crops of ``batch``'s valid boxes from ``random_enc``'s features (view mean, L2-normalised), on the CPU."""
+    mask = batch["box_mask"]
+    B = mask.shape[0]
+    if cache is not None:
+        prefix, fp = stage.crop_cache_prefix(), cache.fingerprint(random_enc)
+        keys = [("random", prefix, fp, sample_key(batch, b, v, crop_size)) for b in range(B)]
+        hit = cache.get_many(keys)
+        if hit is not None:
+            return torch.cat(hit)
+    rgb, depth, K, pose = (batch[k][:, :v].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
+    x, _ = stage.encoder_input(rgb, depth, K, pose)
+    rf = random_enc(x).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
+    rand = crop_boxes(F.normalize(rf, dim=1), batch["aabb"], stage.feature_grid, crop_size)
+    if cache is not None:
+        for b in range(B):
+            cache.put(keys[b], rand[b][mask[b]])
+    return rand[mask].cpu()
 
 
 @torch.no_grad()
@@ -57,6 +80,7 @@ def collect_object_crops(
             torch.manual_seed(random_encoder_seed)
             random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels).to(stage.device).eval()
     out: dict[str, list[Tensor]] = {k: [] for k in ("learned", "raw", "random", "labels", "boxes", "scene")}
+    cache = stage.crop_cache if random_enc is not None and stage.crops_cacheable() else None
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
         crops = stage.object_crops(batch, num_input_views, crop_size)
@@ -65,13 +89,7 @@ def collect_object_crops(
         for k in ("labels", "boxes", "scene"):
             out[k].append(crops[k].cpu())
         if random_enc is not None:
-            v = num_input_views
-            rgb, depth, K, pose = (batch[k][:, :v].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
-            x, _ = stage.encoder_input(rgb, depth, K, pose)
-            B = batch["rgb"].shape[0]
-            rf = random_enc(x).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
-            rand = crop_boxes(F.normalize(rf, dim=1), batch["aabb"], stage.feature_grid, crop_size)[batch["box_mask"]]
-            out["random"].append(rand.cpu())
+            out["random"].append(_random_encoder_crops(stage, random_enc, batch, num_input_views, crop_size, cache))
     stage.train(was_training)
     return {k: torch.cat(v) for k, v in out.items() if v}
 

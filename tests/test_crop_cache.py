@@ -1,0 +1,150 @@
+"""The content-keyed crop cache: fingerprints, lookups, eviction, and crops identical to uncached ones."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from datamodules.scene_folder import SceneFolderDataModule
+from stages.base import EncoderStage
+from threedq.crop_cache import CropCache, module_fingerprint, sample_key
+from threedq.evaluation import collect_object_crops
+from threedq.nets import UNet3D
+from threedq.report import split_loader
+
+
+@pytest.fixture(scope="module")
+def dm(tiny_dataset: Path) -> SceneFolderDataModule:
+    d = SceneFolderDataModule(str(tiny_dataset), batch_size=2, num_input_views=1, num_target_views=0)
+    d.setup()
+    return d
+
+
+@pytest.fixture(scope="module")
+def batch(dm: SceneFolderDataModule) -> dict[str, torch.Tensor]:
+    return next(iter(split_loader(dm, "train", batch_size=2)))
+
+
+def _stage(seed: int = 0) -> EncoderStage:
+    torch.manual_seed(seed)
+    return EncoderStage(grid_resolution=(32, 32, 16), feature_dim=8).eval()
+
+
+class TestModuleFingerprint:
+    def test_same_weights_same_print(self) -> None:
+        a, b = UNet3D(4, 8), UNet3D(4, 8)
+        assert module_fingerprint(a) != module_fingerprint(b)  # different random init
+        b.load_state_dict(a.state_dict())
+        assert module_fingerprint(a) == module_fingerprint(b)
+
+    def test_one_changed_value_changes_it(self) -> None:
+        a = UNet3D(4, 8)
+        before = module_fingerprint(a)
+        with torch.no_grad():
+            next(a.parameters()).view(-1)[0] += 1e-6
+        assert module_fingerprint(a) != before
+
+    def test_memo_follows_in_place_writes(self) -> None:
+        a, b = UNet3D(4, 8), UNet3D(4, 8)
+        cache = CropCache()
+        first = cache.fingerprint(a)
+        assert cache.fingerprint(a) == first
+        a.load_state_dict(b.state_dict())  # copy_ into the same tensors bumps their version counters
+        assert cache.fingerprint(a) == module_fingerprint(b) != first
+
+
+class TestSampleKey:
+    def test_depends_on_views_boxes_and_size(self, batch: dict[str, torch.Tensor]) -> None:
+        k = sample_key(batch, 0, 1, 8)
+        assert k == sample_key({key: v.clone() for key, v in batch.items() if torch.is_tensor(v)}, 0, 1, 8)
+        assert k != sample_key(batch, 1, 1, 8)
+        assert k != sample_key(batch, 0, 1, 16)
+        moved = dict(batch, aabb=batch["aabb"] + 0.01)
+        assert k != sample_key(moved, 0, 1, 8)
+        darker = dict(batch, rgb=batch["rgb"] * 0.5)
+        assert k != sample_key(darker, 0, 1, 8)
+
+
+class TestCropCache:
+    def test_all_or_nothing_and_counts(self) -> None:
+        cache = CropCache()
+        cache.put(("a",), torch.ones(2, 3))
+        assert cache.get_many([("a",), ("b",)]) is None
+        assert (cache.misses, cache.hits) == (2, 0)
+        got = cache.get_many([("a",)])
+        assert got is not None and torch.equal(got[0], torch.ones(2, 3))
+        assert cache.hits == 1 and len(cache) == 1 and cache.nbytes == 6 * 4
+
+    def test_stores_a_copy(self) -> None:
+        cache, t = CropCache(), torch.zeros(3)
+        cache.put(("t",), t)
+        t += 1
+        assert torch.equal(cache.get_many([("t",)])[0], torch.zeros(3))
+
+    def test_evicts_oldest_beyond_max_bytes(self) -> None:
+        cache = CropCache(max_bytes=100)
+        for i in range(5):
+            cache.put((str(i),), torch.zeros(10))  # 40 bytes each
+        assert cache.nbytes <= 100 and len(cache) == 2
+        assert cache.get_many([("0",)]) is None and cache.get_many([("3",), ("4",)]) is not None
+        cache.put(("4",), torch.zeros(5))  # replacing an entry accounts for the old one
+        assert cache.nbytes == 40 + 20
+
+    def test_entries_made_in_inference_mode_are_plain(self) -> None:
+        cache = CropCache()
+        with torch.inference_mode():
+            cache.put(("i",), torch.ones(3))
+        got = cache.get_many([("i",)])[0]
+        assert not got.is_inference()
+        got.add_(1)  # in-place use outside inference mode is allowed
+
+    def test_bad_size(self) -> None:
+        with pytest.raises(ValueError, match="max_bytes"):
+            CropCache(max_bytes=0)
+
+
+class TestObjectCropsWithCache:
+    def test_hit_equals_uncached(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage()
+        with torch.no_grad():
+            ref = stage.object_crops(batch, 1, 8)
+            stage.crop_cache = CropCache()
+            first = stage.object_crops(batch, 1, 8)
+            assert stage.crop_cache.misses > 0 and stage.crop_cache.hits == 0
+            second = stage.object_crops(batch, 1, 8)
+        assert stage.crop_cache.hits == 2 * batch["rgb"].shape[0]  # features + raw per sample
+        for k in ref:
+            assert torch.equal(first[k], ref[k]) and torch.equal(second[k], ref[k]), k
+
+    def test_new_weights_are_a_miss(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage(0)
+        stage.crop_cache = CropCache()
+        with torch.no_grad():
+            stage.object_crops(batch, 1, 8)
+            stage.encoder.load_state_dict(_stage(1).encoder.state_dict())
+            fresh = stage.object_crops(batch, 1, 8)
+            stage.crop_cache = None
+            ref = stage.object_crops(batch, 1, 8)
+        assert torch.equal(fresh["features"], ref["features"])
+
+    def test_not_used_with_gradient_or_training_encoder(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage()
+        stage.crop_cache = CropCache()
+        stage.object_crops(batch, 1, 8)  # grad enabled
+        assert len(stage.crop_cache) == 0
+        stage.train()
+        with torch.no_grad():
+            stage.object_crops(batch, 1, 8)  # BatchNorm in training mode
+        assert len(stage.crop_cache) == 0
+
+    def test_collect_with_cache_equals_without(self, dm: SceneFolderDataModule) -> None:
+        stage = _stage()
+        ref = collect_object_crops(stage, split_loader(dm, "test", batch_size=1), crop_size=8, progress=False)
+        stage.crop_cache = CropCache()
+        for _ in range(2):  # fill, then hit
+            got = collect_object_crops(stage, split_loader(dm, "test", batch_size=1), crop_size=8, progress=False)
+            for k in ref:
+                assert torch.equal(got[k], ref[k]), k
+        assert stage.crop_cache.hits > 0

@@ -1,0 +1,116 @@
+"""An in-memory cache of object crops computed by a fixed encoder, keyed by content.
+
+While the encoder does not change, every EM round and every round's evaluation crop the same objects out
+of the same views with the same weights; ``threedq em`` hands one :class:`CropCache` to all of them, so
+each scene is encoded once per encoder. A key is the hash of everything a crop depends on: the encoder's
+weights (:func:`module_fingerprint`; none for the raw input crops), the input views' pixels, depth and
+cameras, the boxes and the crop size (:func:`sample_key`). A changed encoder, other views (the training
+split draws them at random) or other boxes are therefore misses, never stale hits. Entries live on the
+CPU; the oldest are dropped once ``max_bytes`` is exceeded.
+
+The cache is only consulted where the crops cannot depend on the batch: no gradient and the encoder in
+eval mode (BatchNorm running statistics).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import weakref
+from collections import OrderedDict
+from collections.abc import Iterable
+
+import torch
+from torch import Tensor
+
+__all__ = ["CropCache", "module_fingerprint", "sample_key"]
+
+
+def _update(h: "hashlib._Hash", t: Tensor) -> None:
+    t = t.detach()
+    h.update(f"{t.dtype}{tuple(t.shape)}".encode())
+    if t.dtype == torch.bool:
+        t = t.to(torch.uint8)
+    h.update(t.contiguous().cpu().view(-1).view(torch.uint8).numpy().tobytes())
+
+
+def module_fingerprint(module: torch.nn.Module) -> str:
+    """Hex digest of a module's ``state_dict`` (names, dtypes, shapes and values of every tensor)."""
+    h = hashlib.blake2b(digest_size=16)
+    for name, t in module.state_dict().items():
+        h.update(name.encode())
+        _update(h, t)
+    return h.hexdigest()
+
+
+def sample_key(batch: dict[str, Tensor], b: int, num_input_views: int, crop_size: int) -> str:
+    """Hex digest of what sample ``b``'s object crops depend on besides the encoder.
+
+    Hashes the first ``num_input_views`` views (``rgb``, ``depth``, ``K``, ``R_T_cam``), the boxes
+    (``aabb``, ``box_mask``) and ``crop_size``.
+    """
+    h = hashlib.blake2b(digest_size=16)
+    h.update(f"v{num_input_views}s{crop_size}".encode())
+    for k in ("rgb", "depth", "K", "R_T_cam"):
+        _update(h, batch[k][b, :num_input_views])
+    for k in ("aabb", "box_mask"):
+        _update(h, batch[k][b])
+    return h.hexdigest()
+
+
+class CropCache:
+    """Content-keyed store of per-sample crop tensors (see the module docstring).
+
+    Args:
+        max_bytes: drop the oldest entries beyond this many bytes (default 8 GiB).
+
+    Attributes:
+        hits, misses: lookups answered / not answered since creation.
+    """
+
+    def __init__(self, max_bytes: int = 8 << 30) -> None:
+        if max_bytes <= 0:
+            raise ValueError(f"max_bytes: expected > 0, got {max_bytes}")
+        self.max_bytes = max_bytes
+        self.nbytes = 0
+        self.hits = 0
+        self.misses = 0
+        self._store: OrderedDict[tuple[str, ...], Tensor] = OrderedDict()
+        self._fingerprints: weakref.WeakKeyDictionary[torch.nn.Module, tuple[tuple[int, ...], str]] = (
+            weakref.WeakKeyDictionary()
+        )
+
+    def __len__(self) -> int:
+        return len(self._store)
+
+    def fingerprint(self, module: torch.nn.Module) -> str:
+        """:func:`module_fingerprint`, recomputed only when a tensor of ``module`` was replaced or written."""
+        state = list(module.state_dict(keep_vars=True).values())
+        sig = tuple(x for t in state for x in (t.data_ptr(), t._version))
+        known = self._fingerprints.get(module)
+        if known is None or known[0] != sig:
+            known = (sig, module_fingerprint(module))
+            self._fingerprints[module] = known
+        return known[1]
+
+    def get_many(self, keys: Iterable[tuple[str, ...]]) -> list[Tensor] | None:
+        """The entries of all ``keys``, or None (counting misses) unless every one is present."""
+        keys = list(keys)
+        found = [self._store.get(k) for k in keys]
+        if any(f is None for f in found):
+            self.misses += len(keys)
+            return None
+        self.hits += len(keys)
+        return found  # type: ignore[return-value]
+
+    def put(self, key: tuple[str, ...], value: Tensor) -> None:
+        """Store a CPU copy of ``value`` under ``key``, then drop the oldest entries over ``max_bytes``."""
+        with torch.inference_mode(False):  # a plain tensor even when filled under Lightning's inference mode
+            value = value.detach().to("cpu", copy=True)
+        old = self._store.pop(key, None)
+        if old is not None:
+            self.nbytes -= old.numel() * old.element_size()
+        self._store[key] = value
+        self.nbytes += value.numel() * value.element_size()
+        while self.nbytes > self.max_bytes and len(self._store) > 1:
+            _, dropped = self._store.popitem(last=False)
+            self.nbytes -= dropped.numel() * dropped.element_size()
