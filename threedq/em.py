@@ -16,6 +16,9 @@ Layout of ``work_dir``::
       metrics.json            # everything measured, per stage and round
       report.md               # the same as tables
 
+The rounds and their evaluations share one :class:`~threedq.crop_cache.CropCache`: while the encoder does
+not change, each scene's object crops are computed once per process, not once per round.
+
 A finished stage (its ``stage.json`` exists) is never re-run; ``--resume`` continues an interrupted
 one from its ``checkpoints/last.ckpt``. Every stage saves its resolved ``config.yaml``, so each can be
 re-run or inspected on its own with ``threedq fit --config <run>/config.yaml``.
