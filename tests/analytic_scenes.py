@@ -15,15 +15,16 @@ SIZE = 96
 FOCAL = 110.0
 
 
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """camera-to-world pose with OpenCV axes (x right, y down, z forward)."""
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world pose with OpenCV axes (x right, y down, z forward) looking from eye at target."""
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    fwd = target - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
     T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, :3] = np.stack([right, down, fwd], axis=1)
     T[:3, 3] = eye
     return T
 

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from analytic_scenes import look_at
 from threedq.boxes import box_corners
 from threedq.data.show import (
     CAPTION_HEIGHT,
@@ -34,20 +35,6 @@ CATEGORIES = ["chair", "table", "mug"]
 
 def make_K(f: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]], dtype=np.float64)
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world pose with OpenCV axes (x right, y down, z forward) looking from eye at target."""
-    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
-    fwd = target - eye
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([right, down, fwd], axis=1)
-    T[:3, 3] = eye
-    return T
 
 
 def render(boxes: np.ndarray, categories: np.ndarray, K: np.ndarray, pose: np.ndarray, H: int, W: int):
