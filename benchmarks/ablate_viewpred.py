@@ -1,8 +1,8 @@
 """View-prediction training variants vs. retrieval precision@10 of the learned crops (docs/results.md).
 
 Each variant trains ``configs/stages/viewpred.yaml`` from scratch (seed 0) for ``--steps`` steps with extra
-LightningCLI overrides, then scores it on the test split with :func:`threedq.evaluation.evaluate_features`
-(exact rotation-max search, 36 yaw steps) and :func:`threedq.evaluation.evaluate_view_prediction`.
+LightningCLI overrides, then scores it on the test split with :func:`threedq.pipeline.evaluation.evaluate_features`
+(exact rotation-max search, 36 yaw steps) and :func:`threedq.pipeline.evaluation.evaluate_view_prediction`.
 Run it from a folder holding the embedded data (``data/clevr_veggie``, made by ``threedq em`` or
 ``threedq fit``); one row per variant, appended to ``--out`` as JSON lines as soon as it is done, so a
 killed run keeps the finished rows.
@@ -34,9 +34,9 @@ DEFAULT_VARIANTS = [
 
 
 def run_variant(name: str, overrides: list[str], steps: int, root: Path) -> dict:
-    from threedq.cli import ThreeDQCLI
-    from threedq.evaluation import evaluate_features, evaluate_view_prediction
-    from threedq.report import split_loader
+    from threedq.pipeline.lightning_cli import ThreeDQCLI
+    from threedq.pipeline.evaluation import evaluate_features, evaluate_view_prediction
+    from threedq.pipeline.report import split_loader
 
     config = Path(__file__).resolve().parents[1] / "configs" / "stages" / "viewpred.yaml"
     t0 = time.perf_counter()

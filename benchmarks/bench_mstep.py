@@ -4,7 +4,7 @@ At a fixed assignment (prototype + yaw per object, from one E-step), the quantiz
 ``mean_o ||M_k(o) - Rotate(e_o, -R_o)||^2`` is minimised by the mean of each prototype's aligned members.
 This script measures it: loss and time of the closed form vs Adam (the paper's gradient update) after
 several numbers of steps, on random crops or on saved object crops (``torch.save`` of a dict with a
-``learned`` ``[N, C, 16, 16, 16]`` tensor, e.g. from :func:`threedq.evaluation.collect_object_crops`).
+``learned`` ``[N, C, 16, 16, 16]`` tensor, e.g. from :func:`threedq.pipeline.evaluation.collect_object_crops`).
 
     python benchmarks/bench_mstep.py                      # 1000 random 32 x 16^3 crops, K = 50
     python benchmarks/bench_mstep.py --crops crops.pt     # real crops
@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import cpu_name  # noqa: E402
-from threedq.prototypes import fit_prototype_bank, normalized, quantization_loss  # noqa: E402
+from threedq.quantization.prototypes import fit_prototype_bank, normalized, quantization_loss  # noqa: E402
 
 
 def main() -> None:

@@ -1,4 +1,4 @@
-"""Rotation search: naive vs prototypes-prerotated vs cylindrical + rFFT (``threedq.rotation_search``).
+"""Rotation search: naive vs prototypes-prerotated vs cylindrical + rFFT (``threedq.quantization.rotation_search``).
 
 Prints markdown tables, all measured in ONE process side by side (compare ratios, not absolute times, on a
 shared machine):
@@ -52,8 +52,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import cpu_name  # noqa: E402
 
 from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
-from threedq.metrics import rotation_max_similarity  # noqa: E402
-from threedq.rotation_search import all_pairs_rotation_max, best_prototype_and_yaw  # noqa: E402
+from threedq.quantization.rotation_search import rotation_max_similarity  # noqa: E402
+from threedq.quantization.rotation_search import all_pairs_rotation_max, best_prototype_and_yaw  # noqa: E402
 
 A = 36
 C = 32

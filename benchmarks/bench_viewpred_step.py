@@ -25,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import cpu_name  # noqa: E402
-from datamodules.scene_folder import SceneFolderDataModule
-from stages.viewpred import ViewPrediction  # noqa: E402
+from threedq.datamodules.scene_folder import SceneFolderDataModule
+from threedq.stages.viewpred import ViewPrediction  # noqa: E402
 from threedq.data.generate import GeneratorConfig, generate_dataset  # noqa: E402
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 
-from datamodules.scene_folder import SceneFolderDataModule
+from threedq.datamodules.scene_folder import SceneFolderDataModule
 from threedq.data.generate import GeneratorConfig, generate_dataset
 from threedq.scene import INDEX_NAME, SceneValidationError, load_index
 
@@ -38,7 +38,7 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         max_objects: objects per scene (also the padding size of samples).
         generator_workers: processes used for generation.
         batch_size, num_workers, num_input_views, num_target_views, seed, boxes, match_iou, max_boxes: as in
-            :class:`~datamodules.scene_folder.SceneFolderDataModule`.
+            :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
 
     def __init__(

@@ -24,7 +24,9 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from threedq.boxes import aabb_iou_3d, boxes_to_aabb
+from threedq.boxes import boxes_to_aabb
+from threedq.metrics.detection import assign_detections
+from threedq.proposals import ProposalParams, load_boxes_file, propose_dataset
 from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_scene
 
 __all__ = ["SceneDataset", "SceneFolderDataModule", "detections_as_objects"]
@@ -175,9 +177,10 @@ def detections_as_objects(
 ) -> dict[str, torch.Tensor]:
     """Turn a scene's detected (or proposed) boxes into the object fields of a sample.
 
-    Boxes are taken in descending score order (at most ``max_boxes``); each is matched greedily to the
-    not yet matched GT object of highest IoU (axis-aligned hulls) if that IoU is ``>= match_iou``, and then
-    carries that object's category and oriented box (for the metrics only).
+    The ``max_boxes`` boxes of highest score are matched to the GT objects by the matching rule of the mAP
+    (:func:`threedq.metrics.detection.assign_detections`: by descending score, each takes the not yet matched
+    GT object of highest IoU of axis-aligned hulls if that IoU is ``>= match_iou``); a matched box carries
+    that object's category and oriented box (for the metrics only).
 
     Args:
         aabb ``[P, 6]``, scores ``[P]``: the boxes; gt_boxes ``[G, 7]``, gt_categories ``[G]``: the scene's GT.
@@ -191,14 +194,7 @@ def detections_as_objects(
     aabb = np.asarray(aabb, np.float32).reshape(-1, 6)[order]
     scores = np.asarray(scores, np.float32).reshape(-1)[order]
     gt_aabb = boxes_to_aabb(np.asarray(gt_boxes, np.float64).reshape(-1, 7)).astype(np.float32)
-    iou = aabb_iou_3d(torch.from_numpy(aabb), torch.from_numpy(gt_aabb)).numpy() if len(aabb) and len(gt_aabb) else np.zeros((len(aabb), len(gt_aabb)))
-    taken = np.zeros(len(gt_aabb), bool)
-    match = np.full(len(aabb), -1)
-    for d in range(len(aabb)):
-        cand = np.where(~taken, iou[d], -1.0)
-        if cand.size and cand.max() >= match_iou:
-            g = int(cand.argmax())
-            taken[g], match[d] = True, g
+    match = assign_detections(torch.from_numpy(aabb), torch.from_numpy(scores), torch.from_numpy(gt_aabb), match_iou).numpy()
     keep = np.ones(len(aabb), bool) if keep_unmatched else match >= 0
     idx = np.nonzero(keep)[0]
     out_aabb = np.zeros((M, 6), np.float32)
@@ -314,12 +310,8 @@ class SceneFolderDataModule(L.LightningDataModule):
         if self.boxes == "gt":
             return None
         if self.boxes == "proposals":
-            from threedq.proposals import ProposalParams, propose_dataset
-
             cache = self.data_dir / "proposals" / f"{split}.npz"
             return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2))
-        from threedq.proposals import load_boxes_file
-
         return load_boxes_file(self.boxes.format(split=split))
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:

@@ -13,12 +13,12 @@ View prediction trains it; later stages load it:
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import torch
 from torch import Tensor
 
-from threedq.crop_cache import CropCache, sample_key
 from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 
@@ -100,8 +100,9 @@ class EncoderStage(L.LightningModule):
             convolutions; numerically the same).
 
     Attributes:
-        crop_cache: an optional :class:`~threedq.crop_cache.CropCache` that :meth:`object_crops` reads and
-            fills while the encoder is frozen (``threedq em`` shares one across rounds); None by default.
+        crop_cache: an optional :class:`~threedq.pipeline.crop_cache.CropCache` (or any object with its
+            ``fingerprint``/``sample_key``/``get_many``/``put`` interface) that :meth:`object_crops` reads and
+            fills while the encoder is frozen (``threedq em`` hands one to every round); None by default.
 
     Convention: frame R metres, z up; volumes ``[B, C, Z, Y, X]``.
     """
@@ -131,7 +132,7 @@ class EncoderStage(L.LightningModule):
             # start, so without this a frozen encoder would normalise by batch statistics and drift its
             # running statistics
             self.encoder.requires_grad_(False).eval()
-        self.crop_cache: CropCache | None = None  # set by the caller (``threedq em``); not a hyperparameter
+        self.crop_cache: Any = None  # set by the caller (``threedq em``); not a hyperparameter
 
     def train(self, mode: bool = True) -> EncoderStage:
         super().train(mode)
@@ -235,7 +236,7 @@ class EncoderStage(L.LightningModule):
         cache = self.crop_cache if self.crops_cacheable() else None
         if cache is not None:
             prefix = self.crop_cache_prefix()
-            keys = [sample_key(batch, b, v, size) for b in range(B)]
+            keys = [cache.sample_key(batch, b, v, size) for b in range(B)]
             f_keys = [("features", prefix, cache.fingerprint(self.encoder), k) for k in keys]
             r_keys = [("raw", prefix, k) for k in keys]
             feats, raw = cache.get_many(f_keys), cache.get_many(r_keys)

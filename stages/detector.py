@@ -29,9 +29,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from stages.base import EncoderStage
+from threedq.stages.base import EncoderStage
 from threedq.atomic_io import atomic_write_bytes
 from threedq.boxes import nms_3d
+from threedq.data.show import draw_boxes
 from threedq.metrics import DetectionMAP
 
 __all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes", "detection_figure"]
@@ -152,7 +153,7 @@ class Detector(EncoderStage):
 
     Args:
         grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
-            :class:`~stages.base.EncoderStage` (the detector expects a trained, frozen encoder).
+            :class:`~threedq.stages.base.EncoderStage` (the detector expects a trained, frozen encoder).
         anchor_size: ``(sx, sy, sz)`` metres, the one anchor of every cell (per dataset).
         channels: residual-block width (paper: 32).
         num_blocks: residual blocks (paper: 3).
@@ -330,8 +331,6 @@ def detection_figure(batch: dict[str, Any], dets: list[dict[str, Tensor]], max_s
     Returns:
         ``[H', W', 3]`` uint8 RGB.
     """
-    from threedq.data.show import draw_boxes
-
     rows = []
     for i in range(min(max_scenes, len(dets))):
         rgb = (batch["rgb"][i, 0].permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)

@@ -14,10 +14,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from stages.base import EncoderStage, checkpoint_state
+from threedq.stages.base import EncoderStage, checkpoint_state
 from threedq.geometry import yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
-from threedq.prototypes import PrototypeBank, fill_free_slots, quantization_loss
+from threedq.quantization.prototypes import PrototypeBank, quantization_loss, run_prototype_em
 
 __all__ = ["Quantizer", "load_bank_state"]
 
@@ -39,7 +39,7 @@ class Quantizer(EncoderStage):
 
     Args:
         grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
-            :class:`~stages.base.EncoderStage` (the encoder should come from view prediction, frozen).
+            :class:`~threedq.stages.base.EncoderStage` (the encoder should come from view prediction, frozen).
         num_prototypes: K (paper: 50).
         crop_size: object crops are ``crop_size^3`` (paper: 16).
         num_angles: yaw steps of the rotation search (paper: 36); 1 gives the no-rot-3DQ baseline.
@@ -150,19 +150,8 @@ class Quantizer(EncoderStage):
         self._train_crops = []
         if crops.shape[0] == 0:
             raise RuntimeError("quantizer: no object crops in the training split")
-        bank = self.bank
-        if bank.num_active == 0:
-            g = torch.Generator().manual_seed(self.hparams.seed)
-            order = torch.randperm(crops.shape[0], generator=g).to(crops.device)
-            for start in range(0, crops.shape[0], 256):
-                bank.add(crops[order[start : start + 256]])
-            if self.hparams.fill_free_slots:
-                fill_free_slots(bank, crops)
-        for _ in range(self.hparams.em_iterations):
-            for start in range(0, crops.shape[0], 256):
-                part = crops[start : start + 256]
-                bank.accumulate(part, bank.assign(part))
-            bank.update()
+        bank = run_prototype_em(self.bank, crops, self.hparams.em_iterations, seed=self.hparams.seed,
+                                fill_free=self.hparams.fill_free_slots)
         res = bank.assign(crops)
         self.log_dict(
             {

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from stages.base import EncoderStage
+from threedq.stages.base import EncoderStage
 from threedq.atomic_io import atomic_write_bytes
 from threedq.geometry import (
     above_ground_mask,
@@ -50,7 +50,7 @@ class ViewPrediction(EncoderStage):
 
     Args:
         grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
-            :class:`~stages.base.EncoderStage`.
+            :class:`~threedq.stages.base.EncoderStage`.
         num_planes: depth planes of the target frustum.
         depth_range: ``(near, far)`` camera depth of the frustum, metres.
         pool: max-pool of the frustum along depth in the decoder.

@@ -9,7 +9,8 @@ from pathlib import Path
 import cv2
 import pytest
 
-from threedq.cli import main, packaged_configs_dir, resolve_config
+from threedq.cli import main
+from threedq.pipeline.lightning_cli import packaged_configs_dir, resolve_config
 
 
 def test_help_lists_subcommands() -> None:
@@ -40,7 +41,7 @@ class TestResolveConfig:
             main(["fit", "--config", "stages/viewpred.yaml", "--print_config"])
         assert e.value.code == 0
         out = capsys.readouterr().out
-        assert "stages.viewpred.ViewPrediction" in out and "ClevrVeggieDataModule" in out
+        assert "threedq.stages.viewpred.ViewPrediction" in out and "ClevrVeggieDataModule" in out
 
 
 class TestDataCommands:
@@ -84,3 +85,39 @@ def test_every_packaged_config_parses(config: str, capsys) -> None:
         main([*args, "--print_config"])
     assert e.value.code == 0
     assert "class_path" in capsys.readouterr().out
+
+
+class TestOldClassPaths:
+    """Configs and command lines naming the pre-0.2 top-level packages get one line naming the new path."""
+
+    def test_config_file(self, tmp_path: Path, capsys) -> None:
+        cfg = tmp_path / "old.yaml"
+        cfg.write_text("model:\n  class_path: stages.viewpred.ViewPrediction  # saved by threedq 0.1\n")
+        assert main(["fit", "--config", str(cfg)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1
+        assert str(cfg) in err and "'stages.viewpred.ViewPrediction'" in err
+        assert "threedq.stages.viewpred.ViewPrediction" in err
+
+    @pytest.mark.parametrize(
+        "args",
+        [
+            ["--model=datamodules.clevr_veggie.ClevrVeggieDataModule"],
+            ["--data.class_path", "datamodules.scene_folder.SceneFolderDataModule"],
+        ],
+    )
+    def test_command_line(self, args: list[str], capsys) -> None:
+        assert main(["fit", "--config", "stages/viewpred.yaml", *args]) == 2
+        err = capsys.readouterr().err
+        assert "field 'class_path'" in err and "use 'threedq.datamodules." in err
+
+    def test_new_paths_and_other_values_pass(self) -> None:
+        from threedq.pipeline.lightning_cli import check_class_paths, resolve_config_args
+
+        check_class_paths("model:\n  class_path: threedq.stages.viewpred.ViewPrediction\n", "x.yaml")
+        out = resolve_config_args(["--data.init_args.data_dir=stages.d", "--trainer.default_root_dir", "stages.x"])
+        assert out[0] == "--data.init_args.data_dir=stages.d"
+
+    def test_packaged_configs_use_new_paths(self) -> None:
+        for f in packaged_configs_dir().rglob("*.yaml"):
+            assert "class_path: stages." not in f.read_text() and "class_path: datamodules." not in f.read_text(), f

@@ -7,12 +7,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from datamodules.scene_folder import SceneFolderDataModule
-from stages.base import EncoderStage
-from threedq.crop_cache import CropCache, module_fingerprint, sample_key
-from threedq.evaluation import collect_object_crops
+from threedq.datamodules.scene_folder import SceneFolderDataModule
+from threedq.stages.base import EncoderStage
+from threedq.pipeline.crop_cache import CropCache, module_fingerprint, sample_key
+from threedq.pipeline.evaluation import collect_object_crops
 from threedq.nets import UNet3D
-from threedq.report import split_loader
+from threedq.pipeline.report import split_loader
 
 
 @pytest.fixture(scope="module")

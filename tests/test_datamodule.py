@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from datamodules.clevr_veggie import ClevrVeggieDataModule
-from datamodules.scene_folder import SceneDataset, SceneFolderDataModule
+from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
+from threedq.datamodules.scene_folder import SceneDataset, SceneFolderDataModule
 from threedq.boxes import boxes_to_aabb
 from threedq.scene import SceneValidationError, load_index, load_scene
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from datamodules.scene_folder import SceneFolderDataModule, detections_as_objects
-from stages.detector import Detector, DetectorHead, cell_centres, decode_boxes, detection_figure, detection_targets
+from threedq.datamodules.scene_folder import SceneFolderDataModule, detections_as_objects
+from threedq.stages.detector import Detector, DetectorHead, cell_centres, decode_boxes, detection_figure, detection_targets
 from threedq.boxes import aabb_iou_3d
 from threedq.proposals import load_boxes_file, save_boxes_file
 
@@ -91,7 +91,7 @@ class TestDetectorHead:
 
 @pytest.fixture(scope="module")
 def train_batch(tiny_dataset: Path) -> dict[str, torch.Tensor]:
-    from datamodules.scene_folder import SceneDataset
+    from threedq.datamodules.scene_folder import SceneDataset
 
     dm = SceneFolderDataModule(str(tiny_dataset))
     ds = SceneDataset(tiny_dataset, dm.index, "train", num_target_views=0, random_views=False)
@@ -180,7 +180,7 @@ class TestBoxesOption:
             np.testing.assert_array_equal(back[f][0], boxes[f][0])
         dm2 = SceneFolderDataModule(str(tiny_dataset), batch_size=2, num_target_views=0,
                                     boxes=str(tmp_path / "det_{split}.npz"))  # fmt: skip
-        from datamodules.scene_folder import SceneDataset
+        from threedq.datamodules.scene_folder import SceneDataset
 
         ds = SceneDataset(tiny_dataset, dm2.index, "val", num_target_views=0, box_sets=dm2.box_sets("val"),
                           keep_unmatched=False, max_boxes=5)  # fmt: skip

@@ -9,7 +9,7 @@ import torch
 
 from threedq.geometry import rotate_yaw
 from threedq.metrics.pose import RelativeYawError, relative_yaw_error, relative_yaw_errors
-from threedq.metrics.retrieval import rotation_max_similarity
+from threedq.quantization.rotation_search import rotation_max_similarity
 
 
 def _rad(deg: list[float] | torch.Tensor) -> torch.Tensor:

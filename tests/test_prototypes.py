@@ -11,7 +11,7 @@ import torch
 
 from threedq.geometry import rotate_yaw
 from threedq.metrics import cluster_confusion, hungarian_accuracy
-from threedq.prototypes import PrototypeBank, fit_prototype_bank, quantization_loss
+from threedq.quantization.prototypes import PrototypeBank, fit_prototype_bank, quantization_loss
 
 S = 12
 
@@ -142,9 +142,9 @@ trainer:
 
 class TestQuantizerStage:
     def test_fit_validate_and_warm_start(self, tmp_path: Path, tiny_dataset: Path) -> None:
-        from stages.base import EncoderStage
-        from stages.quantizer import Quantizer
-        from threedq.cli import ThreeDQCLI, resolve_config
+        from threedq.stages.base import EncoderStage
+        from threedq.stages.quantizer import Quantizer
+        from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
 
         torch.manual_seed(0)
         enc = tmp_path / "enc.pt"

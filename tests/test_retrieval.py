@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from threedq.geometry import rotate_yaw
-from threedq.metrics import RetrievalPrecisionAtK, retrieval_precision_at_k, rotation_max_similarity
+from threedq.metrics import RetrievalPrecisionAtK, retrieval_precision_at_k
+from threedq.quantization.rotation_search import rotation_max_similarity
 
 
 def _blobs(n: int, size: int = 8, seed: int = 0) -> torch.Tensor:

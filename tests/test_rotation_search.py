@@ -1,4 +1,4 @@
-"""Tests for threedq.rotation_search: polar resampling, rFFT yaw correlation and the fast rotation search."""
+"""Tests for threedq.quantization.rotation_search: polar resampling, rFFT yaw correlation and the fast rotation search."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from threedq.geometry import rotate_yaw, yaw_angles
-from threedq.metrics import rotation_max_similarity
-from threedq.rotation_search import (
+from threedq.quantization.rotation_search import rotation_max_similarity
+from threedq.quantization.rotation_search import (
     RotationSearchResult,
     all_pairs_rotation_max,
     best_prototype_and_yaw,

@@ -13,9 +13,9 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from datamodules.scene_folder import SceneFolderDataModule
-from stages.base import EncoderStage, load_encoder_state
-from stages.viewpred import ViewPrediction, view_prediction_figure
+from threedq.datamodules.scene_folder import SceneFolderDataModule
+from threedq.stages.base import EncoderStage, load_encoder_state
+from threedq.stages.viewpred import ViewPrediction, view_prediction_figure
 
 SMALL = dict(grid_resolution=(32, 32, 16), image_every_n_steps=0)
 
@@ -157,8 +157,8 @@ class TestEncoderContract:
     @pytest.mark.parametrize("stage", ["detector", "quantizer"])
     def test_frozen_encoder_is_unchanged_by_fit(self, stage: str, tmp_path: Path, tiny_dataset: Path) -> None:
         """Lightning never calls train() at fit start: a frozen encoder must already be in eval mode."""
-        from stages.detector import Detector
-        from stages.quantizer import Quantizer
+        from threedq.stages.detector import Detector
+        from threedq.stages.quantizer import Quantizer
 
         torch.manual_seed(3)
         src = EncoderStage(grid_resolution=(32, 32, 16))
@@ -228,7 +228,7 @@ trainer:
 
 class TestEm:
     def test_runs_then_skips_finished_stages(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
-        from threedq.em import run_em
+        from threedq.pipeline.em import run_em
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
@@ -264,7 +264,7 @@ class TestEm:
         import numpy as np
 
         from threedq.boxes import boxes_to_aabb
-        from threedq.em import run_em
+        from threedq.pipeline.em import run_em
         from threedq.proposals import load_boxes_file, save_boxes_file
         from threedq.scene import load_index, load_scene
 
@@ -296,7 +296,7 @@ class TestEm:
             run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], boxes="detections", detection=False)
 
     def test_resume_an_interrupted_stage(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
-        from threedq.em import run_em
+        from threedq.pipeline.em import run_em
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"

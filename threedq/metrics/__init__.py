@@ -8,10 +8,10 @@ from threedq.metrics.clustering import (
     matching,
     purity,
 )
-from threedq.metrics.detection import DetectionMAP, average_precision, match_detections
+from threedq.metrics.detection import DetectionMAP, assign_detections, average_precision, match_detections
 from threedq.metrics.fewshot import FewShotAccuracy, few_shot_accuracy, select_labelled
 from threedq.metrics.pose import RelativeYawError, relative_yaw_error, relative_yaw_errors
-from threedq.metrics.retrieval import RetrievalPrecisionAtK, retrieval_precision_at_k, rotation_max_similarity
+from threedq.metrics.retrieval import RetrievalPrecisionAtK, retrieval_precision_at_k
 
 __all__ = [
     "ClusterPurity",
@@ -20,6 +20,7 @@ __all__ = [
     "HungarianAccuracy",
     "RelativeYawError",
     "RetrievalPrecisionAtK",
+    "assign_detections",
     "average_precision",
     "cluster_confusion",
     "few_shot_accuracy",
@@ -30,6 +31,5 @@ __all__ = [
     "relative_yaw_error",
     "relative_yaw_errors",
     "retrieval_precision_at_k",
-    "rotation_max_similarity",
     "select_labelled",
 ]

@@ -27,7 +27,7 @@ from torchmetrics.utilities import dim_zero_cat
 
 from threedq.boxes import _check_aabb_rows, aabb_iou_3d
 
-__all__ = ["DetectionMAP", "average_precision", "match_detections"]
+__all__ = ["DetectionMAP", "assign_detections", "average_precision", "match_detections"]
 
 
 def _check_scores(scores: Tensor, name: str, length: int | None = None) -> None:
@@ -106,7 +106,27 @@ def average_precision(scores: Tensor, is_true_positive: Tensor, num_gt: int) -> 
 
 
 def match_detections(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tensor, iou_threshold: float) -> Tensor:
-    """Greedy one-to-one matching of one frame's detections to its GT boxes.
+    """True-positive flags of one frame's detections: ``assign_detections(...) >= 0``.
+
+    See :func:`assign_detections` for the matching rule and the arguments.
+
+    Returns:
+        ``[P]`` bool true-positive flags, in the input order of the detections.
+
+    Example:
+        >>> gt = torch.tensor([[0.0, 0, 0, 1, 1, 1]])
+        >>> pred = torch.tensor([[0.0, 0, 0, 1, 1, 1], [0.05, 0, 0, 1.05, 1, 1]])
+        >>> match_detections(pred, torch.tensor([0.6, 0.9]), gt, 0.5)
+        tensor([False,  True])
+    """
+    return assign_detections(pred_boxes, pred_scores, gt_boxes, iou_threshold) >= 0
+
+
+def assign_detections(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tensor, iou_threshold: float) -> Tensor:
+    """Greedy one-to-one matching of one frame's detections to its GT boxes (the one matching rule of threedq).
+
+    Used by the mAP (:func:`match_detections`) and by the DataModules that turn detections into objects
+    (``threedq.datamodules.scene_folder.detections_as_objects``).
 
     Detections are visited by descending score; each takes, among the GT boxes not yet taken, the one with
     the highest IoU (:func:`threedq.boxes.aabb_iou_3d`), if that IoU is ``>= iou_threshold``, and is then a
@@ -120,7 +140,8 @@ def match_detections(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tensor, 
         iou_threshold: in ``(0, 1]``.
 
     Returns:
-        ``[P]`` bool true-positive flags, in the input order of the detections.
+        ``[P]`` long: the index of the GT box each detection took, or -1 (a false positive), in the input
+        order of the detections.
 
     Raises:
         ValueError: on bad shapes or boxes (see :func:`threedq.boxes.aabb_iou_3d`), non-finite scores, or a
@@ -133,15 +154,15 @@ def match_detections(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tensor, 
     Example:
         >>> gt = torch.tensor([[0.0, 0, 0, 1, 1, 1]])
         >>> pred = torch.tensor([[0.0, 0, 0, 1, 1, 1], [0.05, 0, 0, 1.05, 1, 1]])
-        >>> match_detections(pred, torch.tensor([0.6, 0.9]), gt, 0.5)
-        tensor([False,  True])
+        >>> assign_detections(pred, torch.tensor([0.6, 0.9]), gt, 0.5)
+        tensor([-1,  0])
     """
     _check_aabb_rows(pred_boxes, "pred_boxes")
     _check_scores(pred_scores, "pred_scores", pred_boxes.shape[0])
     _check_aabb_rows(gt_boxes, "gt_boxes")
     iou_threshold = _check_threshold(iou_threshold)
     num_pred, num_gt = pred_boxes.shape[0], gt_boxes.shape[0]
-    is_tp = np.zeros(num_pred, dtype=bool)
+    match = np.full(num_pred, -1, dtype=np.int64)
     if num_pred and num_gt:
         iou = aabb_iou_3d(pred_boxes.detach(), gt_boxes.detach()).cpu().to(torch.float64).numpy()
         order = torch.sort(pred_scores.detach(), descending=True, stable=True).indices.cpu().numpy()
@@ -150,11 +171,11 @@ def match_detections(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tensor, 
             cand = np.where(free, iou[i], -1.0)
             j = int(np.argmax(cand))  # first index among equal maxima
             if cand[j] >= iou_threshold:
-                is_tp[i] = True
+                match[i] = j
                 free[j] = False
                 if not free.any():
                     break
-    return torch.as_tensor(is_tp, device=pred_boxes.device)
+    return torch.as_tensor(match, device=pred_boxes.device)
 
 
 def _threshold_key(t: float) -> str:

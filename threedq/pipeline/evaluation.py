@@ -2,7 +2,10 @@
 
 For every object of the evaluated split, its axis-aligned GT box is cropped out of the scene's feature
 grid and resized to 16^3; crops are compared at their best relative yaw over 36 steps of 10 deg and
-rotation-max retrieval precision@10 is macro-averaged over categories. Two references are computed
+rotation-max retrieval precision@10 is macro-averaged over categories. :func:`retrieval_table` is the one
+implementation of that measurement (``threedq em``, ``threedq eval`` and the benchmarks all call it); it
+uses one declared search (:data:`RETRIEVAL_SEARCH`, ``"fast"`` unless asked otherwise) and records it, so
+every table can name it. Two references are computed
 side by side: (a) raw ``cat[occ, occ * rgb]`` crops of the input grid (no learning) and (b) the same
 encoder with random weights. The view-prediction losses of the stage (RGB L1 against a mean-colour
 baseline, occupancy balanced accuracy) are averaged over the same scenes.
@@ -17,13 +20,24 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm import tqdm
 
-from stages.base import EncoderStage
-from threedq.crop_cache import CropCache, sample_key
+from threedq.stages.base import EncoderStage
+from threedq.pipeline.crop_cache import CropCache, sample_key
 from threedq.geometry import crop_boxes
-from threedq.metrics.retrieval import retrieval_precision_at_k, rotation_max_similarity
+from threedq.metrics.retrieval import retrieval_precision_at_k
+from threedq.quantization.rotation_search import SEARCH_METHODS, all_pairs_rotation_max
 from threedq.nets import UNet3D
 
-__all__ = ["collect_object_crops", "evaluate_features"]
+__all__ = ["RETRIEVAL_SEARCH", "SEARCH_LABELS", "collect_object_crops", "evaluate_features", "retrieval_table"]
+
+#: The rotation search every retrieval table of threedq uses unless told otherwise.
+RETRIEVAL_SEARCH = "fast"
+#: How a table header names each search.
+SEARCH_LABELS = {
+    "fast": "fast search (cylindrical resampling + FFT over yaw; cosine over the inscribed cylinder)",
+    "exact": "exact search (every crop rotated by every yaw; cosine over the full cube)",
+}
+#: Crop sets of :func:`collect_object_crops` and their names in result tables.
+FEATURE_SETS = (("learned", "learned"), ("raw_rgb_occupancy", "raw"), ("random_encoder", "random"))
 
 
 def _random_encoder_crops(
@@ -94,46 +108,60 @@ def collect_object_crops(
     return {k: torch.cat(v) for k, v in out.items() if v}
 
 
+def retrieval_table(
+    crops: dict[str, Tensor], k: int = 10, num_angles: int = 36, search: str = RETRIEVAL_SEARCH
+) -> tuple[dict[str, Any], dict[str, Tensor]]:
+    """Leave-one-out rotation-max retrieval precision@k of every crop set in ``crops`` (paper Table 2).
+
+    Args:
+        crops: :func:`collect_object_crops` output (``labels`` and any of ``learned``, ``raw``, ``random``).
+        k: neighbours per query (at most N - 1 are used).
+        num_angles: yaw steps of the search.
+        search: ``"fast"`` or ``"exact"`` (:func:`~threedq.quantization.rotation_search.all_pairs_rotation_max`).
+
+    Returns:
+        ``{"k", "num_angles", "search", "num_objects", "num_categories", "precision_at_k": {name: p}}`` and the
+        ``[N, N]`` similarity matrix of each crop set (for pictures). Categories with a single object still
+        count as queries (they can only score 0), as in the paper's per-class average.
+    """
+    if search not in SEARCH_METHODS:
+        raise ValueError(f"search: expected one of {SEARCH_METHODS}, got {search!r}")
+    labels = crops["labels"]
+    n = labels.shape[0]
+    if n < 2:
+        raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
+    kk = min(k, n - 1)
+    table: dict[str, Any] = {
+        "k": kk, "num_angles": num_angles, "search": search, "num_objects": n,
+        "num_categories": int(labels.unique().numel()), "precision_at_k": {},
+    }
+    sims: dict[str, Tensor] = {}
+    for name, key in FEATURE_SETS:
+        if key in crops:
+            sim, _ = all_pairs_rotation_max(crops[key], crops[key], num_angles, method=search)
+            sims[name] = sim
+            table["precision_at_k"][name] = float(retrieval_precision_at_k(sim, labels, labels, kk, exclude_diagonal=True))
+    return table, sims
+
+
 def evaluate_features(
     stage: EncoderStage,
     loader: torch.utils.data.DataLoader,
     num_input_views: int = 1,
     k: int = 10,
     num_angles: int = 36,
+    search: str = RETRIEVAL_SEARCH,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Rotation-max retrieval precision@k of learned, raw and random-encoder crops (leave-one-out).
-
-    Returns:
-        ``{"num_objects", "num_categories", "precision_at_k": {"learned", "raw_rgb_occupancy",
-        "random_encoder"}, "k", "num_angles"}``; categories with a single object still count as queries
-        (they can only score 0), as in the paper's per-class average.
-    """
+    """Crop every object of ``loader`` and score learned, raw and random-encoder crops with :func:`retrieval_table`."""
     crops = collect_object_crops(stage, loader, num_input_views=num_input_views, progress=progress)
-    labels = crops["labels"]
-    n = labels.shape[0]
-    if n < 2:
-        raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
-    kk = min(k, n - 1)
-    result: dict[str, Any] = {
-        "num_objects": n,
-        "num_categories": int(labels.unique().numel()),
-        "k": kk,
-        "num_angles": num_angles,
-        "num_input_views": num_input_views,
-        "precision_at_k": {},
-    }
-    for name, key in (("learned", "learned"), ("raw_rgb_occupancy", "raw"), ("random_encoder", "random")):
-        if key in crops:
-            sim, _ = rotation_max_similarity(crops[key], crops[key], num_angles)
-            p = retrieval_precision_at_k(sim, labels, labels, kk, exclude_diagonal=True)
-            result["precision_at_k"][name] = float(p)
-    return result
+    table, _ = retrieval_table(crops, k, num_angles, search)
+    return {**table, "num_input_views": num_input_views}
 
 
 @torch.no_grad()
 def evaluate_view_prediction(stage: torch.nn.Module, loader: torch.utils.data.DataLoader, progress: bool = True) -> dict[str, float]:
-    """Mean view-prediction metrics of a :class:`~stages.viewpred.ViewPrediction` stage over ``loader``.
+    """Mean view-prediction metrics of a :class:`~threedq.stages.viewpred.ViewPrediction` stage over ``loader``.
 
     Returns:
         ``{"l1", "l1_mean_colour", "l1_fg", "l1_fg_mean_colour", "occ_bacc", "num_scenes"}``: RGB L1 over valid

@@ -1,7 +1,7 @@
 """The prototype bank: K pose-canonical 3D prototypes and the EM steps that learn them (paper Sec. 3.2).
 
 E-step: every object crop ``M_o`` is assigned its best (prototype, yaw) by rotation-aware matching
-(:func:`threedq.rotation_search.best_prototype_and_yaw`). M-step: every prototype becomes the mean of its
+(:func:`threedq.quantization.rotation_search.best_prototype_and_yaw`). M-step: every prototype becomes the mean of its
 members rotated into its canonical pose — the closed-form minimiser of the paper's quantization loss
 ``sum_o ||e_k(o) - Rotate(M_o, R_o)||^2`` over ``e_k`` (``benchmarks/bench_prototype_update.py`` compares
 it with gradient descent on the same loss). The bank starts empty and is filled incrementally: an
@@ -23,9 +23,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from threedq.geometry import rotate_yaw, yaw_angles
-from threedq.rotation_search import RotationSearchResult, best_prototype_and_yaw
+from threedq.quantization.rotation_search import RotationSearchResult, best_prototype_and_yaw
 
-__all__ = ["PrototypeBank", "fit_prototype_bank"]
+__all__ = ["PrototypeBank", "fill_free_slots", "fit_prototype_bank", "quantization_loss", "run_prototype_em"]
 
 
 class PrototypeBank(nn.Module):
@@ -83,7 +83,7 @@ class PrototypeBank(nn.Module):
         """E-step: best (prototype, yaw) of each object among the active prototypes.
 
         Returns:
-            :class:`~threedq.rotation_search.RotationSearchResult` with prototype ids in bank numbering
+            :class:`~threedq.quantization.rotation_search.RotationSearchResult` with prototype ids in bank numbering
             ``[N]``, yaw indices ``[N]``, cosine scores ``[N]`` and all scores ``[N, K_active, A]``.
         """
         self._check(objects)
@@ -172,21 +172,36 @@ def fit_prototype_bank(
     seed: int = 0,
     chunk: int = 256,
 ) -> PrototypeBank:
-    """In-memory EM on a set of crops (the same steps the quantizer stage runs over a DataLoader).
-
-    Objects are visited in a seeded random order for the incremental initialisation; remaining free
-    slots are then filled with the objects farthest from the bank; then ``iterations`` rounds of E- and
-    M-steps.
-    """
+    """A new bank fitted to ``crops`` by :func:`run_prototype_em` (what the quantizer stage runs, in memory)."""
     if crops.ndim != 5:
         raise ValueError(f"crops: expected [N, C, S, S, S], got {tuple(crops.shape)}")
-    N, C, S = crops.shape[0], crops.shape[1], crops.shape[2]
+    C, S = crops.shape[1], crops.shape[2]
     bank = PrototypeBank(num_prototypes, C, S, num_angles, init_threshold, method).to(crops.device)
-    g = torch.Generator().manual_seed(seed)
-    order = torch.randperm(N, generator=g).to(crops.device)
-    for start in range(0, N, chunk):
-        bank.add(crops[order[start : start + chunk]])
-    fill_free_slots(bank, crops, chunk)
+    return run_prototype_em(bank, crops, iterations, seed=seed, fill_free=True, chunk=chunk)
+
+
+@torch.no_grad()
+def run_prototype_em(
+    bank: PrototypeBank, crops: Tensor, iterations: int = 10, seed: int = 0, fill_free: bool = True, chunk: int = 256
+) -> PrototypeBank:
+    """The prototype EM of the paper (Sec. 3.2) on ``crops`` ``[N, C, S, S, S]``, in place; returns ``bank``.
+
+    An empty bank is first initialised incrementally, visiting the objects in a seeded random order (an
+    object opens a prototype unless it matches one above the bank's threshold); with ``fill_free`` the
+    remaining free slots are then filled with the objects farthest from the bank. A bank that already holds
+    prototypes (an earlier round's) skips the initialisation. Then ``iterations`` rounds of E-step (best
+    prototype and yaw per object, in chunks of ``chunk``) and closed-form M-step.
+    """
+    N = crops.shape[0]
+    if N == 0:
+        raise ValueError("crops: no objects to fit prototypes to")
+    if bank.num_active == 0:
+        g = torch.Generator().manual_seed(seed)
+        order = torch.randperm(N, generator=g).to(crops.device)
+        for start in range(0, N, chunk):
+            bank.add(crops[order[start : start + chunk]])
+        if fill_free:
+            fill_free_slots(bank, crops, chunk)
     for _ in range(iterations):
         for start in range(0, N, chunk):
             part = crops[start : start + chunk]

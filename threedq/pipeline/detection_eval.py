@@ -27,9 +27,11 @@ from tqdm import tqdm
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json
 from threedq.boxes import boxes_to_aabb
+from threedq.datamodules.scene_folder import SceneDataset
 from threedq.metrics import DetectionMAP
-from threedq.proposals import save_boxes_file
+from threedq.proposals import ProposalParams, propose_dataset, save_boxes_file
 from threedq.scene import load_scene
+from threedq.stages.detector import detection_figure
 
 __all__ = ["box_sets_map", "detect_split", "evaluate_detection"]
 
@@ -64,7 +66,7 @@ def detect_split(
     stage: torch.nn.Module, loader: torch.utils.data.DataLoader, score_threshold: float | None = None,
     progress: bool = True, metric: DetectionMAP | None = None, eval_score_threshold: float | None = None,
 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[tuple[dict[str, Tensor], list[dict[str, Tensor]]]]]:
-    """Run a :class:`~stages.detector.Detector` over a deterministic loader.
+    """Run a :class:`~threedq.stages.detector.Detector` over a deterministic loader.
 
     Returns:
         ``{scene file -> (aabb [P,6], scores [P])}`` at ``score_threshold`` (default: the stage's) and the
@@ -96,16 +98,12 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, splits: tuple[s
     """mAP of pseudo-boxes and detector on the test split, a detections picture, and detection files.
 
     Args:
-        stage: a trained :class:`~stages.detector.Detector`; dm: its scene DataModule (set up).
+        stage: a trained :class:`~threedq.stages.detector.Detector`; dm: its scene DataModule (set up).
         out_dir: receives ``results.json``, ``detections.png`` and ``detections_<split>.npz``.
 
     Returns:
         ``{"pseudo_boxes": {...}, "detector": {...}, "detections": {split: path}, "seconds"}``.
     """
-    from datamodules.scene_folder import SceneDataset
-    from stages.detector import detection_figure
-    from threedq.proposals import ProposalParams, propose_dataset
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()

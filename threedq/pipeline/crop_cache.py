@@ -82,6 +82,10 @@ class CropCache:
     def __len__(self) -> int:
         return len(self._store)
 
+    #: :func:`sample_key`, reachable from the cache object (stages use the cache they are handed and import
+    #: nothing from the pipeline layer).
+    sample_key = staticmethod(sample_key)
+
     def fingerprint(self, module: torch.nn.Module) -> str:
         """:func:`module_fingerprint`, recomputed only when a tensor of ``module`` was replaced or written."""
         state = list(module.state_dict(keep_vars=True).values())

@@ -16,7 +16,7 @@ Layout of ``work_dir``::
       metrics.json            # everything measured, per stage and round
       report.md               # the same as tables
 
-The rounds and their evaluations share one :class:`~threedq.crop_cache.CropCache`: while the encoder does
+The rounds and their evaluations share one :class:`~threedq.pipeline.crop_cache.CropCache`: while the encoder does
 not change, each scene's object crops are computed once per process, not once per round.
 
 A finished stage (its ``stage.json`` exists) is never re-run; ``--resume`` continues an interrupted
@@ -41,9 +41,12 @@ from typing import Any
 import torch
 
 from threedq.atomic_io import atomic_write_json, atomic_write_text
-from threedq.crop_cache import CropCache
-from stages.base import checkpoint_state
-from threedq.cli import ThreeDQCLI, resolve_config
+from threedq.pipeline.crop_cache import CropCache
+from threedq.pipeline.detection_eval import evaluate_detection
+from threedq.pipeline.evaluation import evaluate_view_prediction
+from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer
+from threedq.stages.base import checkpoint_state
 
 __all__ = ["run_em"]
 
@@ -92,8 +95,6 @@ def _fit_stage(
 
 
 def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[str, Any]:
-    from threedq.evaluation import evaluate_view_prediction
-
     cached = run_dir / "metrics.json"
     if cached.is_file():
         print(f"[em] viewpred_eval: finished earlier ({cached}), not re-run")
@@ -111,8 +112,6 @@ def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
 
 
 def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...]) -> dict[str, Any]:
-    from threedq.detection_eval import evaluate_detection
-
     cached = run_dir / "results.json"
     if cached.is_file():
         done = json.loads(cached.read_text())
@@ -134,8 +133,6 @@ def _evaluate_round(
     configs: list[Path], ckpt: Path, run_dir: Path, final: bool, overrides: list[str] | None = None,
     crop_cache: CropCache | None = None,
 ) -> dict[str, Any]:
-    from threedq.report import evaluate_quantizer
-
     cached = run_dir / "results.json"
     if cached.is_file():
         print(f"[em] {run_dir.name}: finished earlier ({cached}), not re-run")
@@ -154,8 +151,6 @@ def _evaluate_round(
 
 
 def _report(summary: dict[str, Any]) -> str:
-    from threedq.report import METHOD_LABELS
-
     vp = summary["viewpred_eval"]["view_prediction"]
     lines = [
         "# threedq em report",

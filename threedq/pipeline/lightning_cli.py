@@ -1,0 +1,166 @@
+"""LightningCLI for every threedq stage, and where configs are found.
+
+A ``--config`` path that does not exist relative to the working directory is looked up in the packaged
+``configs/`` folder, so ``threedq fit --config stages/viewpred.yaml`` works anywhere. A config (or a command
+line) that names a class by its path before threedq 0.2 (``stages.viewpred.ViewPrediction``) is refused with
+one line naming the new path (``threedq.stages.viewpred.ViewPrediction``).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+
+__all__ = ["ThreeDQCLI", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args"]
+
+LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
+
+
+def packaged_configs_dir() -> Path:
+    """The folder of configs shipped with threedq (source checkout or installed package)."""
+    package = Path(__file__).resolve().parents[1]  # threedq/
+    source_tree = package.parent / "configs"  # a source checkout or an editable install
+    if source_tree.is_dir() and (package.parent / "pyproject.toml").is_file():
+        return source_tree
+    return package / "configs"  # an installed wheel: configs/ is shipped as threedq/configs/
+
+
+def resolve_config(path: str | Path) -> Path:
+    """``path`` if it exists, else the same relative path inside the packaged configs folder.
+
+    Raises:
+        FileNotFoundError: naming both places that were tried.
+    """
+    p = Path(path).expanduser()
+    if p.is_file():
+        return p
+    packaged = packaged_configs_dir() / p
+    if not p.is_absolute() and packaged.is_file():
+        return packaged
+    raise FileNotFoundError(f"config {str(path)!r} not found (tried {p.resolve()} and {packaged})")
+
+
+class OldClassPathError(ValueError):
+    """A config or command line names a stage or DataModule by its pre-0.2 top-level path."""
+
+
+_OLD_CLASS_PATH = re.compile(r"((?:stages|datamodules)\.[A-Za-z_][\w.]*)$")
+
+
+def _refuse_old(value: str, where: str) -> None:
+    m = _OLD_CLASS_PATH.match(value.strip().strip("'\""))
+    if m:
+        old = m.group(1)
+        raise OldClassPathError(f"{where}: field 'class_path': '{old}' is the path before threedq 0.2; use 'threedq.{old}'")
+
+
+def check_class_paths(yaml_text: str, where: str) -> None:
+    """Refuse ``stages.X`` / ``datamodules.X`` in the ``class_path`` entries of a YAML config.
+
+    Raises:
+        OldClassPathError: one line naming ``where``, the old path and the new one.
+    """
+    for line in yaml_text.splitlines():
+        key, sep, value = line.split("#", 1)[0].partition(":")
+        if sep and key.strip().lstrip("- ") == "class_path":
+            _refuse_old(value, where)
+
+
+def _is_class_key(key: str) -> bool:
+    return key in ("--model", "--data") or key.endswith(".class_path")
+
+
+def resolve_config_args(argv: Sequence[str]) -> list[str]:
+    """``argv`` with every ``--config`` resolved (:func:`resolve_config`) and every class path checked."""
+    out: list[str] = []
+    prev = ""
+    for a in argv:
+        if prev == "--config":
+            path = resolve_config(a)
+            check_class_paths(path.read_text(errors="replace"), str(path))
+            a = str(path)
+        elif a.startswith("--config="):
+            path = resolve_config(a.split("=", 1)[1])
+            check_class_paths(path.read_text(errors="replace"), str(path))
+            a = "--config=" + str(path)
+        elif _is_class_key(prev):
+            _refuse_old(a, f"command line {prev}")
+        elif a.startswith("--") and "=" in a and _is_class_key(a.split("=", 1)[0]):
+            _refuse_old(a.split("=", 1)[1], f"command line {a.split('=', 1)[0]}")
+        out.append(a)
+        prev = a if a.startswith("--") else ""
+    if prev == "--config":
+        raise FileNotFoundError("--config: expected a path after it")
+    return out
+
+
+class ThreeDQCLI(LightningCLI):
+    """LightningCLI for every threedq stage: any LightningModule / LightningDataModule via ``class_path``.
+
+    Each run saves its resolved ``config.yaml`` in the log directory (overwriting a previous one of the
+    same directory, so that a resumed run can be restarted from it).
+    """
+
+    def __init__(
+        self,
+        args: Sequence[str] | None = None,
+        run: bool = True,
+        model_setup: Callable[[L.LightningModule], None] | None = None,
+    ) -> None:
+        """Parse ``args`` (default: the command line), instantiate, and with ``run`` run the subcommand.
+
+        ``--config`` files are looked up in the packaged configs too (:func:`resolve_config_args`).
+        ``model_setup`` is called with the instantiated model before anything runs (``threedq em`` uses it
+        to hand every stage the same :class:`~threedq.pipeline.crop_cache.CropCache`).
+        """
+        self._model_setup = model_setup
+        with warnings.catch_warnings():
+            # threedq passes its own (config-resolved) command line as args= on purpose.
+            warnings.filterwarnings("ignore", message=".*args parameter is intended to run from within Python.*")
+            self._init(None if args is None else resolve_config_args(args), run)
+
+    def _init(self, args: Sequence[str] | None, run: bool) -> None:
+        super().__init__(
+            model_class=L.LightningModule,
+            datamodule_class=L.LightningDataModule,
+            subclass_mode_model=True,
+            subclass_mode_data=True,
+            save_config_kwargs={"overwrite": True},
+            seed_everything_default=0,
+            parser_kwargs={"default_env": True},
+            args=list(args) if args is not None else None,
+            run=run,
+        )
+
+    def instantiate_classes(self) -> None:
+        super().instantiate_classes()
+        if self._model_setup is not None:
+            self._model_setup(self.model)
+
+    def instantiate_trainer(self, **kwargs: Any) -> L.Trainer:
+        """Give every run a self-contained folder ``trainer.default_root_dir``.
+
+        Unless the config names its own, the loggers are TensorBoard + CSV writing straight into that
+        folder (beside the saved ``config.yaml``), and a ModelCheckpoint keeps ``checkpoints/last.ckpt``
+        there, refreshed every 100 training steps, so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
+        """
+        cfg = self._get(self.config_init, "trainer", default={})
+        root = Path(cfg.get("default_root_dir") or "runs/default")
+        if cfg.get("logger") in (None, True) and not cfg.get("fast_dev_run"):
+            kwargs["logger"] = [
+                TensorBoardLogger(save_dir=str(root), name="", version=""),
+                CSVLogger(save_dir=str(root), name="", version=""),
+            ]
+        callbacks = list(cfg.get("callbacks") or [])
+        if cfg.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in callbacks):
+            ckpt = ModelCheckpoint(dirpath=root / "checkpoints", save_last=True, every_n_train_steps=100)
+            kwargs["callbacks"] = [*callbacks, ckpt]
+        return super().instantiate_trainer(**kwargs)

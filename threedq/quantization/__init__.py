@@ -1,0 +1,21 @@
+"""Rotation-aware quantization (paper Sec. 3.2): the yaw search (exact and fast kernels) and the prototype bank."""
+
+from threedq.quantization.prototypes import PrototypeBank, fill_free_slots, fit_prototype_bank, quantization_loss, run_prototype_em
+from threedq.quantization.rotation_search import (
+    RotationSearchResult,
+    all_pairs_rotation_max,
+    best_prototype_and_yaw,
+    rotation_max_similarity,
+)
+
+__all__ = [
+    "PrototypeBank",
+    "RotationSearchResult",
+    "all_pairs_rotation_max",
+    "best_prototype_and_yaw",
+    "fill_free_slots",
+    "fit_prototype_bank",
+    "quantization_loss",
+    "rotation_max_similarity",
+    "run_prototype_em",
+]
