@@ -2,7 +2,8 @@
 
 Each variant trains ``configs/stages/viewpred.yaml`` from scratch (seed 0) for ``--steps`` steps with extra
 LightningCLI overrides, then scores it on the test split with :func:`threedq.pipeline.evaluation.evaluate_features`
-(exact rotation-max search, 36 yaw steps) and :func:`threedq.pipeline.evaluation.evaluate_view_prediction`.
+(``--search``: the fast rotation-max search by default, as every threedq table; 36 yaw steps) and the stage's own
+``test_step`` (``trainer.test``).
 Run it from a folder holding the embedded data (``data/clevr_veggie``, made by ``threedq em`` or
 ``threedq fit``); one row per variant, appended to ``--out`` as JSON lines as soon as it is done, so a
 killed run keeps the finished rows.
@@ -33,9 +34,9 @@ DEFAULT_VARIANTS = [
 ]
 
 
-def run_variant(name: str, overrides: list[str], steps: int, root: Path) -> dict:
+def run_variant(name: str, overrides: list[str], steps: int, root: Path, search: str) -> dict:
     from threedq.pipeline.lightning_cli import ThreeDQCLI
-    from threedq.pipeline.evaluation import evaluate_features, evaluate_view_prediction
+    from threedq.pipeline.evaluation import evaluate_features
     from threedq.pipeline.report import split_loader
 
     config = Path(__file__).resolve().parents[1] / "configs" / "stages" / "viewpred.yaml"
@@ -49,10 +50,9 @@ def run_variant(name: str, overrides: list[str], steps: int, root: Path) -> dict
     )
     cli.trainer.fit(cli.model, cli.datamodule)
     train_s = time.perf_counter() - t0
-    cli.datamodule.setup("test")
-    vp = evaluate_view_prediction(cli.model, cli.datamodule.test_dataloader())
-    ret = evaluate_features(cli.model, split_loader(cli.datamodule, "test"))
-    return {"variant": name, "overrides": overrides, "steps": steps, "train_s": round(train_s, 1),
+    vp = {k.removeprefix("test/"): v for k, v in cli.trainer.test(cli.model, datamodule=cli.datamodule, verbose=False)[0].items()}
+    ret = evaluate_features(cli.model, split_loader(cli.datamodule, "test"), search=search)
+    return {"variant": name, "overrides": overrides, "steps": steps, "train_s": round(train_s, 1), "search": search,
             "view_pred_l1": vp["l1"], "l1_mean_colour": vp["l1_mean_colour"], "l1_fg": vp["l1_fg"],
             "l1_fg_mean_colour": vp["l1_fg_mean_colour"], **ret["precision_at_k"]}
 
@@ -63,16 +63,17 @@ def main() -> None:
     ap.add_argument("--variant", action="append", help="NAME=OVERRIDE[ OVERRIDE...] (repeatable)")
     ap.add_argument("--root", type=Path, default=Path("runs/ablate_viewpred"))
     ap.add_argument("--out", type=Path, default=Path("runs/ablate_viewpred/results.jsonl"))
+    ap.add_argument("--search", choices=("fast", "exact"), default="fast", help="rotation search of precision@10")
     args = ap.parse_args()
     rows = []
     for spec in args.variant or DEFAULT_VARIANTS:
         name, _, rest = spec.partition("=")
-        row = run_variant(name, rest.split(), args.steps, args.root)
+        row = run_variant(name, rest.split(), args.steps, args.root, args.search)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         with args.out.open("a") as f:
             f.write(json.dumps(row) + "\n")
         rows.append(row)
-    print(f"\nmachine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  steps: {args.steps}\n")
+    print(f"\nmachine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  steps: {args.steps}  precision@10: {args.search} search\n")
     print("| variant | train s | view-pred L1 (mean colour) | object L1 (mean colour) | learned p@10 | raw p@10 | "
           "random p@10 |")
     print("|---|---|---|---|---|---|---|")

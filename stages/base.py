@@ -8,10 +8,17 @@ View prediction trains it; later stages load it:
   ``state_dict`` of the encoder saved with ``torch.save``. Loaded with ``weights_only=True``. Shapes
   must match the stage's encoder; a mismatch is an error naming the file and the parameter.
 * ``freeze_encoder``: keep those weights fixed (no gradient, BatchNorm in eval mode) or fine-tune them.
+
+The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``,
+``grid_resolution`` and ``feature_dim`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
+them from there unless it names them itself; a stage that names a different grid than its encoder was
+trained on is refused with one line naming the checkpoint and the field. Only view prediction (which
+trains the encoder from scratch) needs them in its config.
 """
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +29,23 @@ from torch import Tensor
 from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 
-__all__ = ["EncoderStage", "checkpoint_state", "encoder_state_from_checkpoint", "load_encoder_state"]
+__all__ = [
+    "DEFAULT_GRID",
+    "EncoderStage",
+    "checkpoint_state",
+    "encoder_grid_from_checkpoint",
+    "encoder_state_from_checkpoint",
+    "load_encoder_state",
+    "resolve_grid",
+]
+
+#: The grid of a stage that is given none and whose encoder checkpoint carries none (the embedded data's).
+DEFAULT_GRID: dict[str, Any] = {
+    "grid_min": (-1.28, -1.28, -0.32),
+    "grid_max": (1.28, 1.28, 0.96),
+    "grid_resolution": (64, 64, 32),
+    "feature_dim": 32,
+}
 
 
 def _load_safely(path: Path) -> object:
@@ -65,6 +88,48 @@ def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
     return enc
 
 
+def encoder_grid_from_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The grid fields (:data:`DEFAULT_GRID` keys) stored in a stage checkpoint's hyperparameters ({} if none)."""
+    obj = _load_safely(Path(path))
+    hp = obj.get("hyper_parameters") if isinstance(obj, dict) else None
+    if not isinstance(hp, dict):
+        return {}
+    return {k: hp[k] for k in DEFAULT_GRID if hp.get(k) is not None}
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return float(a) == float(b)
+
+
+def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict[str, Any]:
+    """The grid of a stage: what it names, else what its encoder checkpoint carries, else :data:`DEFAULT_GRID`.
+
+    Raises:
+        ValueError: the stage names a value that differs from its encoder checkpoint's (one line naming the
+            checkpoint and the field).
+    """
+    if encoder_ckpt and not Path(encoder_ckpt).is_file():
+        raise FileNotFoundError(f"encoder_ckpt: no such file: {encoder_ckpt}")
+    stored = encoder_grid_from_checkpoint(encoder_ckpt) if encoder_ckpt else {}
+    out: dict[str, Any] = {}
+    for k, default in DEFAULT_GRID.items():
+        mine, theirs = given.get(k), stored.get(k)
+        if mine is not None and theirs is not None and not _same(mine, theirs):
+            raise ValueError(
+                f"{encoder_ckpt}: field '{k}': the encoder was trained with {k}={_plain(theirs)}, this stage asks "
+                f"for {_plain(mine)} (drop {k} from the stage config to use the encoder's)"
+            )
+        value = mine if mine is not None else theirs if theirs is not None else default
+        out[k] = int(value) if k == "feature_dim" else tuple(value)
+    return out
+
+
+def _plain(v: Any) -> Any:
+    return list(v) if isinstance(v, (list, tuple)) else v
+
+
 def load_encoder_state(encoder: torch.nn.Module, path: str | Path) -> None:
     """Load the encoder weights of ``path`` into ``encoder`` (strict: every key and shape must match)."""
     state = encoder_state_from_checkpoint(path)
@@ -89,11 +154,12 @@ class EncoderStage(L.LightningModule):
     """Base of every stage: the voxel grid, the shared encoder and multi-view encoding.
 
     Args:
-        grid_min: ``(xmin, ymin, zmin)`` of the input grid in R, metres.
-        grid_max: ``(xmax, ymax, zmax)``.
+        grid_min: ``(xmin, ymin, zmin)`` of the input grid in R, metres (None: the encoder checkpoint's, see
+            :func:`resolve_grid`).
+        grid_max: ``(xmax, ymax, zmax)`` (None: the encoder checkpoint's).
         grid_resolution: ``(nx, ny, nz)`` voxels of the input grid (each divisible by 8); features come
-            out at half this resolution.
-        feature_dim: channels of the feature grid.
+            out at half this resolution (None: the encoder checkpoint's).
+        feature_dim: channels of the feature grid (None: the encoder checkpoint's).
         encoder_ckpt: optional checkpoint to load the encoder from (see the module docstring).
         freeze_encoder: keep the encoder fixed.
         channels_last: run the encoder in ``channels_last_3d`` memory format (faster oneDNN / cuDNN
@@ -109,18 +175,23 @@ class EncoderStage(L.LightningModule):
 
     def __init__(
         self,
-        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
-        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
-        grid_resolution: tuple[int, int, int] = (64, 64, 32),
-        feature_dim: int = 32,
+        grid_min: tuple[float, float, float] | None = None,
+        grid_max: tuple[float, float, float] | None = None,
+        grid_resolution: tuple[int, int, int] | None = None,
+        feature_dim: int | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = False,
         channels_last: bool = True,
     ) -> None:
         super().__init__()
-        self.grid = VoxelGridSpec(tuple(grid_min), tuple(grid_max), tuple(grid_resolution))
+        given = {"grid_min": grid_min, "grid_max": grid_max, "grid_resolution": grid_resolution, "feature_dim": feature_dim}
+        #: the resolved grid fields, written into every checkpoint's hyperparameters (see the module docstring)
+        self.grid_fields = resolve_grid(given, encoder_ckpt)
+        g = self.grid_fields
+        self.grid = VoxelGridSpec(g["grid_min"], g["grid_max"], g["grid_resolution"])
         self.feature_grid = self.grid.half()
-        self.encoder = UNet3D(in_channels=4, out_channels=feature_dim)
+        self.feature_dim = g["feature_dim"]
+        self.encoder = UNet3D(in_channels=4, out_channels=self.feature_dim)
         self.freeze_encoder = freeze_encoder
         self.channels_last = channels_last
         if channels_last:
@@ -133,6 +204,12 @@ class EncoderStage(L.LightningModule):
             # running statistics
             self.encoder.requires_grad_(False).eval()
         self.crop_cache: Any = None  # set by the caller (``threedq em``); not a hyperparameter
+
+    def save_hyperparameters(self, *args: Any, **kwargs: Any) -> None:
+        """Lightning's, with the resolved grid in place of the None a stage was given (checkpoints carry the grid)."""
+        kwargs.setdefault("frame", inspect.currentframe().f_back)
+        super().save_hyperparameters(*args, **kwargs)
+        self.hparams.update({k: list(v) if isinstance(v, tuple) else v for k, v in self.grid_fields.items()})
 
     def train(self, mode: bool = True) -> EncoderStage:
         super().train(mode)
@@ -155,6 +232,14 @@ class EncoderStage(L.LightningModule):
         sampled = unproject_rgb(torch.cat([rgb, ones], dim=1), K, R_T_cam, self.grid)
         rgb_vol, seen = sampled[:, :3], (sampled[:, 3:] > 0.5).to(rgb.dtype)
         return torch.cat([occ, occ * rgb_vol], dim=1), seen
+
+    @staticmethod
+    def input_views(batch: dict[str, Tensor]) -> int:
+        """How many of a batch's views are inputs: ``batch["num_input_views"]`` (set by the DataModule), else 1.
+
+        The DataModule's ``num_input_views`` is the one place this is configured.
+        """
+        return int(batch["num_input_views"].reshape(-1)[0]) if "num_input_views" in batch else 1
 
     def crops_cacheable(self) -> bool:
         """Whether crops of this stage's encoder may come from :attr:`crop_cache` (no gradient, encoder in eval mode)."""

@@ -166,7 +166,6 @@ class Detector(EncoderStage):
             boxes regressed from cells off an object's centre, which sit inside the object's box with an IoU
             below ``nms_iou``.
         max_detections: per scene, after NMS.
-        num_input_views: views encoded per scene.
         lr: Adam learning rate.
         image_every_n_steps: write a detections PNG at validation when this many steps have passed (0: never).
 
@@ -175,10 +174,10 @@ class Detector(EncoderStage):
 
     def __init__(
         self,
-        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
-        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
-        grid_resolution: tuple[int, int, int] = (64, 64, 32),
-        feature_dim: int = 32,
+        grid_min: tuple[float, float, float] | None = None,
+        grid_max: tuple[float, float, float] | None = None,
+        grid_resolution: tuple[int, int, int] | None = None,
+        feature_dim: int | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = True,
         channels_last: bool = True,
@@ -193,7 +192,6 @@ class Detector(EncoderStage):
         nms_iou: float = 0.1,
         nms_iomin: float = 1.0,
         max_detections: int = 16,
-        num_input_views: int = 1,
         lr: float = 1e-3,
         image_every_n_steps: int = 200,
     ) -> None:
@@ -207,7 +205,7 @@ class Detector(EncoderStage):
         if not 0.0 < inner_fraction <= 1.0:
             raise ValueError(f"inner_fraction: expected in (0, 1], got {inner_fraction}")
         self.save_hyperparameters()
-        self.head = DetectorHead(feature_dim, channels, num_blocks)
+        self.head = DetectorHead(self.feature_dim, channels, num_blocks)
         self.register_buffer("anchor", torch.tensor(anchor_size, dtype=torch.float32), persistent=False)
         fg = self.feature_grid
         cell = torch.tensor(fg.voxel_size, dtype=torch.float32) * 2
@@ -222,7 +220,7 @@ class Detector(EncoderStage):
     # ------------------------------------------------------------------ pieces
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         """Objectness logits ``[B, Z, Y, X]`` and box regressions ``[B, 6, Z, Y, X]`` of a batch."""
-        v = self.hparams.num_input_views
+        v = self.input_views(batch)
         rgb, depth, K, pose = (batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam"))
         if self.freeze_encoder:
             with torch.no_grad():
@@ -284,6 +282,7 @@ class Detector(EncoderStage):
     def _eval_end(self, metric: DetectionMAP, split: str) -> None:
         res = metric.compute()
         self.log_dict({f"{split}/map_25": res["map_25"], f"{split}/map_50": res["map_50"]}, prog_bar=True)
+        self.log_dict({f"{split}/num_gt": float(res["num_gt"]), f"{split}/num_det": float(res["num_det"])})
         metric.reset()
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:

@@ -48,7 +48,6 @@ class Quantizer(EncoderStage):
             from the bank.
         em_iterations: E/M rounds at the end of each training epoch.
         search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
-        num_input_views: views encoded per scene.
         num_classes: categories of the dataset (metrics only; labels are never used for training).
         symmetry_order: per category, its yaw symmetry order (``index.json``); for the yaw-error metric.
         shots: labelled examples per category of the few-shot metric (paper: 2).
@@ -61,10 +60,10 @@ class Quantizer(EncoderStage):
 
     def __init__(
         self,
-        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
-        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
-        grid_resolution: tuple[int, int, int] = (64, 64, 32),
-        feature_dim: int = 32,
+        grid_min: tuple[float, float, float] | None = None,
+        grid_max: tuple[float, float, float] | None = None,
+        grid_resolution: tuple[int, int, int] | None = None,
+        feature_dim: int | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = True,
         channels_last: bool = True,
@@ -75,7 +74,6 @@ class Quantizer(EncoderStage):
         fill_free_slots: bool = True,
         em_iterations: int = 10,
         search_method: str = "fast",
-        num_input_views: int = 1,
         num_classes: int = 41,
         symmetry_order: list[int] | None = None,
         shots: int = 2,
@@ -85,7 +83,7 @@ class Quantizer(EncoderStage):
         super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
         self.save_hyperparameters()
         self.automatic_optimization = False
-        self.bank = PrototypeBank(num_prototypes, feature_dim, crop_size, num_angles, init_threshold, search_method)
+        self.bank = PrototypeBank(num_prototypes, self.feature_dim, crop_size, num_angles, init_threshold, search_method)
         if init_bank_ckpt:
             load_bank_state(self.bank, init_bank_ckpt)
         self._train_crops: list[Tensor] = []
@@ -122,7 +120,7 @@ class Quantizer(EncoderStage):
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         with torch.no_grad():
-            crops = self.object_crops(batch, self.hparams.num_input_views, self.hparams.crop_size)["features"]
+            crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)["features"]
         self._train_crops.append(crops.detach())
         self.log("train/objects", float(crops.shape[0]), reduce_fx="sum", on_step=False, on_epoch=True, batch_size=1)
         if batch_idx == self.trainer.num_training_batches - 1:
@@ -169,7 +167,7 @@ class Quantizer(EncoderStage):
     def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:
         if self.bank.num_active == 0:
             return  # sanity check before any training
-        crops = self.object_crops(batch, self.hparams.num_input_views, self.hparams.crop_size)
+        crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
         if crops["features"].shape[0] == 0:
             return  # no (matched) boxes in this batch, e.g. detections that hit no GT object
         res = self.bank.assign(crops["features"])
@@ -190,6 +188,9 @@ class Quantizer(EncoderStage):
                 f"{split}/fewshot_acc": m["fewshot"].compute(),
                 f"{split}/yaw_median_deg": yaw["median_deg"],
                 f"{split}/yaw_acc10": yaw["acc_10"],
+                f"{split}/yaw_acc20": yaw["acc_20"],
+                f"{split}/yaw_pairs": float(yaw["num_pairs"]),
+                f"{split}/objects": float(m["hungarian"].confusion.sum()),
             },
             prog_bar=True,
         )

@@ -81,10 +81,10 @@ class ViewPrediction(EncoderStage):
 
     def __init__(
         self,
-        grid_min: tuple[float, float, float] = (-1.28, -1.28, -0.32),
-        grid_max: tuple[float, float, float] = (1.28, 1.28, 0.96),
-        grid_resolution: tuple[int, int, int] = (64, 64, 32),
-        feature_dim: int = 32,
+        grid_min: tuple[float, float, float] | None = None,
+        grid_max: tuple[float, float, float] | None = None,
+        grid_resolution: tuple[int, int, int] | None = None,
+        feature_dim: int | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = False,
         channels_last: bool = True,
@@ -106,8 +106,8 @@ class ViewPrediction(EncoderStage):
             raise ValueError(f"ground_margin: expected >= 0 metres, got {ground_margin!r}")
         super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
         self.save_hyperparameters()
-        self.decoder = ViewDecoder(in_channels=feature_dim, num_planes=num_planes, pool=pool)
-        self.occ_head = OccupancyHead(in_channels=feature_dim)
+        self.decoder = ViewDecoder(in_channels=self.feature_dim, num_planes=num_planes, pool=pool)
+        self.occ_head = OccupancyHead(in_channels=self.feature_dim)
 
     # ------------------------------------------------------------------ pieces
     def occupancy_labels(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> tuple[Tensor, Tensor]:

@@ -311,3 +311,47 @@ class TestEm:
         assert "resuming from" in capsys.readouterr().out
         state = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
         assert state["global_step"] == 3
+
+
+class TestGridTravelsWithEncoder:
+    """Later stages read the grid from the encoder checkpoint; a stage naming another grid is refused."""
+
+    def _viewpred_ckpt(self, tmp_path: Path, **grid) -> Path:
+        torch.manual_seed(4)
+        src = ViewPrediction(image_every_n_steps=0, **grid)
+        ckpt = tmp_path / "vp.ckpt"
+        torch.save({"state_dict": src.state_dict(), "hyper_parameters": dict(src.hparams)}, ckpt)
+        return ckpt
+
+    def test_the_grid_comes_from_the_checkpoint(self, tmp_path: Path) -> None:
+        from threedq.stages.detector import Detector
+        from threedq.stages.quantizer import Quantizer
+
+        grid = {"grid_min": (-1.0, -1.0, -0.5), "grid_max": (1.0, 1.0, 0.5), "grid_resolution": (32, 32, 16),
+                "feature_dim": 16}
+        ckpt = self._viewpred_ckpt(tmp_path, **grid)
+        for stage in (Detector(encoder_ckpt=str(ckpt)), Quantizer(encoder_ckpt=str(ckpt), num_prototypes=2, crop_size=8)):
+            assert stage.grid.resolution == (32, 32, 16) and stage.feature_dim == 16
+            assert stage.grid.bounds_min == (-1.0, -1.0, -0.5) and stage.grid.bounds_max == (1.0, 1.0, 0.5)
+            # and the stage's own checkpoint carries it on
+            assert stage.hparams["grid_resolution"] == [32, 32, 16] and stage.hparams["feature_dim"] == 16
+            assert stage.hparams["grid_min"] == [-1.0, -1.0, -0.5]
+
+    def test_same_values_named_again_are_fine(self, tmp_path: Path) -> None:
+        ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16))
+        assert EncoderStage(grid_resolution=[32, 32, 16], encoder_ckpt=str(ckpt)).grid.resolution == (32, 32, 16)
+
+    @pytest.mark.parametrize(
+        "field, value", [("grid_resolution", (64, 64, 32)), ("feature_dim", 8), ("grid_max", (1.28, 1.28, 1.0))]
+    )
+    def test_another_grid_is_refused(self, tmp_path: Path, field: str, value) -> None:
+        ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16))
+        with pytest.raises(ValueError, match=rf"vp\.ckpt: field '{field}': the encoder was trained with") as e:
+            EncoderStage(encoder_ckpt=str(ckpt), **{field: value})
+        assert "\n" not in str(e.value)
+
+    def test_no_checkpoint_no_grid_gives_the_default(self) -> None:
+        from threedq.stages.base import DEFAULT_GRID
+
+        s = EncoderStage()
+        assert s.grid.resolution == DEFAULT_GRID["grid_resolution"] and s.feature_dim == DEFAULT_GRID["feature_dim"]

@@ -64,14 +64,13 @@ def box_sets_map(
 @torch.no_grad()
 def detect_split(
     stage: torch.nn.Module, loader: torch.utils.data.DataLoader, score_threshold: float | None = None,
-    progress: bool = True, metric: DetectionMAP | None = None, eval_score_threshold: float | None = None,
+    progress: bool = True,
 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[tuple[dict[str, Tensor], list[dict[str, Tensor]]]]]:
     """Run a :class:`~threedq.stages.detector.Detector` over a deterministic loader.
 
     Returns:
         ``{scene file -> (aabb [P,6], scores [P])}`` at ``score_threshold`` (default: the stage's) and the
-        first batch with its detections (for pictures). With ``metric``, it is updated with the detections
-        at ``eval_score_threshold`` against the GT boxes.
+        first batch with its detections (for pictures). The mAP is the stage's own (``trainer.test``).
     """
     was_training = stage.training
     stage.eval()
@@ -84,22 +83,22 @@ def detect_split(
         dets = stage.detect(logits, box, score_threshold)
         for i, d in zip(batch["scene_index"].tolist(), dets):
             out[files[i]] = (d["boxes"].cpu().numpy(), d["scores"].cpu().numpy())
-        if metric is not None:
-            ranked = stage.detect(logits, box, eval_score_threshold)
-            metric.update(ranked, [{"boxes": a[m]} for a, m in zip(batch["gt_aabb"], batch["gt_mask"])])
         if not first:
             first.append((batch, dets))
     stage.train(was_training)
     return out, first
 
 
-def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, splits: tuple[str, ...] = ("train", "val", "test"),
-                       progress: bool = True) -> dict[str, Any]:  # fmt: skip
-    """mAP of pseudo-boxes and detector on the test split, a detections picture, and detection files.
+def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[str, float],
+                       splits: tuple[str, ...] = ("train", "val", "test"), progress: bool = True) -> dict[str, Any]:  # fmt: skip
+    """mAP of the pseudo-boxes on the test split beside the detector's, a detections picture, and detection files.
 
     Args:
         stage: a trained :class:`~threedq.stages.detector.Detector`; dm: its scene DataModule (set up).
         out_dir: receives ``results.json``, ``detections.png`` and ``detections_<split>.npz``.
+        test_map: the detector's test metrics as its own ``test_step`` measured them (``trainer.test``:
+            ``map_25``, ``map_50``, ``num_gt``, ``num_det``); the pseudo-boxes are scored here by the same
+            :class:`~threedq.metrics.DetectionMAP`.
 
     Returns:
         ``{"pseudo_boxes": {...}, "detector": {...}, "detections": {split: path}, "seconds"}``.
@@ -110,23 +109,23 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, splits: tuple[s
     test_files = dm.index.files("test")
     pseudo = propose_dataset(dm.data_dir, "test", dm.data_dir / "proposals" / "test.npz",
                              params=ProposalParams(view_stride=2), progress=progress)  # fmt: skip
-    result: dict[str, Any] = {"split": "test", "pseudo_boxes": box_sets_map(dm.data_dir, test_files, pseudo, progress=progress)}
+    result: dict[str, Any] = {
+        "split": "test",
+        "pseudo_boxes": box_sets_map(dm.data_dir, test_files, pseudo, progress=progress),
+        "detector": dict(test_map),
+    }
     files: dict[str, str] = {}
     for split in splits:
         if not dm.index.files(split):
             continue
-        ds = SceneDataset(dm.data_dir, dm.index, split, num_input_views=stage.hparams.num_input_views,
+        ds = SceneDataset(dm.data_dir, dm.index, split, num_input_views=dm.num_input_views,
                           num_target_views=0, max_objects=dm.max_objects, random_views=False, seed=dm.seed)  # fmt: skip
         loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=False, num_workers=0)
-        metric = DetectionMAP(iou_thresholds=(0.25, 0.5)) if split == "test" else None
-        dets, first = detect_split(stage, loader, progress=progress, metric=metric,
-                                   eval_score_threshold=stage.hparams.eval_score_threshold)  # fmt: skip
+        dets, first = detect_split(stage, loader, progress=progress)
         path = out / f"detections_{split}.npz"
         save_boxes_file(path, dets, json.dumps({"score_threshold": stage.hparams.score_threshold}))
         files[split] = str(path)
-        if metric is not None:
-            res = metric.compute()
-            result["detector"] = {k: (float(v) if v.is_floating_point() else int(v)) for k, v in res.items()}
+        if split == "test":
             kept = sum(len(s) for _, s in dets.values())
             result["detector"]["boxes_kept_at_score_threshold"] = kept
             batch, d = first[0]

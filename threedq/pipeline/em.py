@@ -43,10 +43,9 @@ import torch
 from threedq.atomic_io import atomic_write_json, atomic_write_text
 from threedq.pipeline.crop_cache import CropCache
 from threedq.pipeline.detection_eval import evaluate_detection
-from threedq.pipeline.evaluation import evaluate_view_prediction
-from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+from threedq.pipeline.evaluation import SEARCH_LABELS
+from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config, test_checkpoint
 from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer
-from threedq.stages.base import checkpoint_state
 
 __all__ = ["run_em"]
 
@@ -99,14 +98,11 @@ def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
     if cached.is_file():
         print(f"[em] viewpred_eval: finished earlier ({cached}), not re-run")
         return json.loads(cached.read_text())
-    cli = ThreeDQCLI(args=[*_cli_args(configs, run_dir, []), "--trainer.logger=false"], run=False)
-    model, dm = cli.model, cli.datamodule
-    model.load_state_dict(checkpoint_state(ckpt))
-    dm.prepare_data()
-    dm.setup("test")
     t0 = time.time()
-    metrics = {"view_prediction": evaluate_view_prediction(model, dm.test_dataloader()), "split": "test"}
-    metrics["seconds"] = round(time.time() - t0, 1)
+    cli, res = test_checkpoint(configs, ckpt, run_dir)
+    vp = {k.removeprefix("test/"): v for k, v in res.items()}
+    vp["num_scenes"] = len(cli.datamodule.index.files("test"))
+    metrics = {"view_prediction": vp, "split": "test", "seconds": round(time.time() - t0, 1)}
     atomic_write_json(cached, metrics)
     return metrics
 
@@ -119,14 +115,9 @@ def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path, splits: t
             print(f"[em] detector_eval: finished earlier ({cached}), not re-run")
             return done
         print(f"[em] detector_eval: {cached} lacks detections of {', '.join(splits)}: evaluating again")
-    cli = ThreeDQCLI(
-        args=[*_cli_args(configs, run_dir, []), "--model.init_args.encoder_ckpt=null", "--trainer.logger=false"],
-        run=False,
-    )
-    model, dm = cli.model, cli.datamodule
-    model.load_state_dict(checkpoint_state(ckpt))
-    dm.prepare_data()
-    return evaluate_detection(model, dm, run_dir, splits=splits)
+    cli, res = test_checkpoint(configs, ckpt, run_dir)
+    test_map = {k.removeprefix("test/"): (int(v) if k.startswith("test/num_") else v) for k, v in res.items()}
+    return evaluate_detection(cli.model, cli.datamodule, run_dir, test_map, splits=splits)
 
 
 def _evaluate_round(
@@ -137,17 +128,10 @@ def _evaluate_round(
     if cached.is_file():
         print(f"[em] {run_dir.name}: finished earlier ({cached}), not re-run")
         return json.loads(cached.read_text())
-    cli = ThreeDQCLI(
-        args=[*_cli_args(configs, run_dir, overrides or []), "--model.init_args.encoder_ckpt=null",
-              "--trainer.logger=false"],
-        run=False,
-    )
-    model, dm = cli.model, cli.datamodule
-    model.load_state_dict(checkpoint_state(ckpt))
-    model.crop_cache = crop_cache
-    dm.prepare_data()
-    dm.setup("test")
-    return evaluate_quantizer(model, dm, run_dir, baselines=final, curve_k=[])  # Fig. 3a: threedq eval (keeps the main job short)
+    setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
+    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
+    # Fig. 3a (accuracy against K) is left to threedq eval, which keeps the main job short
+    return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[])
 
 
 def _report(summary: dict[str, Any]) -> str:
@@ -196,6 +180,8 @@ def _report(summary: dict[str, Any]) -> str:
         lines += [
             f"## Per EM round (threedq, {summary.get('boxes', 'gt')} boxes, held-out objects)",
             "",
+            f"precision@10: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}.",
+            "",
             "| round | precision@10 | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
             "|---|---|---|---|---|---|",
         ]
@@ -211,7 +197,8 @@ def _report(summary: dict[str, Any]) -> str:
             f"## Final round in detail ({last['num_test_objects']} test objects, {last['num_test_categories']} categories, "
             f"K = {last['num_prototypes']})",
             "",
-            f"Retrieval, rotation-max precision@{r['k']} over {r['num_angles']} yaw steps (paper Table 2):",
+            f"Retrieval, rotation-max precision@{r['k']} over {r['num_angles']} yaw steps (paper Table 2); "
+            f"{SEARCH_LABELS[r['search']]}:",
             "",
             "| features | precision@%d |" % r["k"],
             "|---|---|",

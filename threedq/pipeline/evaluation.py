@@ -7,8 +7,7 @@ implementation of that measurement (``threedq em``, ``threedq eval`` and the ben
 uses one declared search (:data:`RETRIEVAL_SEARCH`, ``"fast"`` unless asked otherwise) and records it, so
 every table can name it. Two references are computed
 side by side: (a) raw ``cat[occ, occ * rgb]`` crops of the input grid (no learning) and (b) the same
-encoder with random weights. The view-prediction losses of the stage (RGB L1 against a mean-colour
-baseline, occupancy balanced accuracy) are averaged over the same scenes.
+encoder with random weights.
 """
 
 from __future__ import annotations
@@ -157,27 +156,3 @@ def evaluate_features(
     crops = collect_object_crops(stage, loader, num_input_views=num_input_views, progress=progress)
     table, _ = retrieval_table(crops, k, num_angles, search)
     return {**table, "num_input_views": num_input_views}
-
-
-@torch.no_grad()
-def evaluate_view_prediction(stage: torch.nn.Module, loader: torch.utils.data.DataLoader, progress: bool = True) -> dict[str, float]:
-    """Mean view-prediction metrics of a :class:`~threedq.stages.viewpred.ViewPrediction` stage over ``loader``.
-
-    Returns:
-        ``{"l1", "l1_mean_colour", "l1_fg", "l1_fg_mean_colour", "occ_bacc", "num_scenes"}``: RGB L1 over valid
-        target pixels and the same for the mean-colour baseline, both again over the target pixels above the
-        ground (``_fg``: the objects), and occupancy balanced accuracy, averaged over batches weighted by size.
-    """
-    was_training = stage.training
-    stage.eval()
-    sums = {"l1": 0.0, "l1_mean_colour": 0.0, "l1_fg": 0.0, "l1_fg_mean_colour": 0.0, "occ_bacc": 0.0}
-    n = 0
-    for batch in tqdm(loader, desc="view prediction", disable=not progress, leave=False):
-        batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
-        r = stage._step(batch)
-        b = batch["rgb"].shape[0]
-        for k in sums:
-            sums[k] += float(r[k]) * b
-        n += b
-    stage.train(was_training)
-    return {**{k: v / max(n, 1) for k, v in sums.items()}, "num_scenes": n}

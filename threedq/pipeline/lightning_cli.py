@@ -19,7 +19,9 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
-__all__ = ["ThreeDQCLI", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args"]
+__all__ = [
+    "ThreeDQCLI", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args", "test_checkpoint",
+]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -164,3 +166,32 @@ class ThreeDQCLI(LightningCLI):
             ckpt = ModelCheckpoint(dirpath=root / "checkpoints", save_last=True, every_n_train_steps=100)
             kwargs["callbacks"] = [*callbacks, ckpt]
         return super().instantiate_trainer(**kwargs)
+
+
+def test_checkpoint(
+    configs: Sequence[str | Path],
+    ckpt: str | Path,
+    out_dir: str | Path,
+    overrides: Sequence[str] = (),
+    model_setup: Callable[[L.LightningModule], None] | None = None,
+) -> tuple[ThreeDQCLI, dict[str, float]]:
+    """Score a stage checkpoint through the stage's own ``test_step``: ``trainer.test(model, datamodule, ckpt_path)``.
+
+    The stage is built from ``configs`` with ``encoder_ckpt`` pointing at ``ckpt`` itself, so the grid comes
+    from the checkpoint (and a config naming another grid is refused); Lightning then loads every weight and
+    buffer of ``ckpt``. Runs without a logger, in ``out_dir``.
+
+    Returns:
+        The CLI (its ``model`` and ``datamodule`` are set up and loaded, for further evaluation) and the test
+        metrics the stage logged, ``{"test/<name>": value}``.
+    """
+    args: list[str] = []
+    for c in configs:
+        args += ["--config", str(c)]
+    args += [
+        *overrides, f"--model.init_args.encoder_ckpt={ckpt}", "--trainer.logger=false", "--trainer.enable_checkpointing=false",
+        f"--trainer.default_root_dir={out_dir}",
+    ]
+    cli = ThreeDQCLI(args=args, run=False, model_setup=model_setup)
+    results = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=str(ckpt), verbose=False, weights_only=True)
+    return cli, {k: float(v) for k, v in (results[0] if results else {}).items()}

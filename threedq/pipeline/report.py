@@ -35,8 +35,8 @@ from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
 from threedq.pipeline.evaluation import RETRIEVAL_SEARCH, SEARCH_LABELS, collect_object_crops, retrieval_table  # noqa: E402
-from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config  # noqa: E402
-from threedq.stages.base import checkpoint_state  # noqa: E402
+from threedq.pipeline.crop_cache import CropCache  # noqa: E402
+from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
 from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
 from threedq.metrics import (  # noqa: E402
     cluster_confusion,
@@ -219,6 +219,7 @@ def evaluate_quantizer(
     model: Any,
     dm: Any,
     out: str | Path,
+    test_metrics: dict[str, float],
     baselines: bool = True,
     curve_k: list[int] | None = None,
     em_iterations: int = 10,
@@ -226,13 +227,20 @@ def evaluate_quantizer(
     progress: bool = True,
     search: str = RETRIEVAL_SEARCH,
 ) -> dict[str, Any]:
-    """Run the evaluation for a trained :class:`~threedq.stages.quantizer.Quantizer` and its DataModule; write the outputs."""
+    """The evaluation of a trained :class:`~threedq.stages.quantizer.Quantizer`; writes the outputs.
+
+    Args:
+        model, dm: the stage (checkpoint loaded) and its DataModule, as :func:`test_checkpoint` leaves them.
+        out: output folder.
+        test_metrics: what ``trainer.test`` returned for the stage (its ``test_step`` scores the threedq row:
+            Hungarian, few-shot and yaw); retrieval, the baselines, the curve and the pictures are computed here.
+    """
     out = Path(out)
     t0 = time.time()
     model.eval()
     index = dm.index
     cats, sym = list(index.categories), list(index.symmetry_order)
-    nv = model.hparams.num_input_views
+    nv = dm.num_input_views
     need_train = baselines or bool(curve_k)  # only the banks fitted here need the training objects
     train = (collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
              if need_train else {"labels": torch.zeros(0, dtype=torch.long)})
@@ -240,9 +248,16 @@ def evaluate_quantizer(
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels, gt_yaw = test["labels"], test["boxes"][:, 6]
     retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search)
-    res_bank = model.bank.assign(test["learned"].to(model.device))
-    quant = {"threedq": quantization_metrics(res_bank.prototype.cpu(), res_bank.angle.cpu(), A, K, labels, gt_yaw,
-                                             len(cats), sym, seed=seed)}
+    # the threedq row is what the stage's own test_step measured (trainer.test); the baselines below are fitted here
+    n_scored = int(test_metrics.get("test/objects", -1))
+    if n_scored != labels.shape[0]:
+        raise RuntimeError(f"quantizer test: the stage scored {n_scored} objects, the evaluation cropped {labels.shape[0]}")
+    quant = {"threedq": {
+        "hungarian_acc": test_metrics["test/hungarian_acc"], "fewshot_acc": test_metrics["test/fewshot_acc"],
+        "yaw_median_deg": test_metrics["test/yaw_median_deg"], "yaw_acc_10": test_metrics["test/yaw_acc10"],
+        "yaw_acc_20": test_metrics["test/yaw_acc20"], "yaw_pairs": int(test_metrics["test/yaw_pairs"]),
+    }}
+    res_bank = model.bank.assign(test["learned"].to(model.device))  # for the alignment picture
     assignments = {"threedq": (res_bank.prototype.cpu(), res_bank.angle.cpu(), A)}
     if baselines:
         for m in ("no_rot", "pointcloud"):
@@ -316,16 +331,9 @@ def run_eval(
     """
 
     configs = [resolve_config(config), *(resolve_config(c) for c in (extra_configs or []))]
-    args = []
-    for c in configs:
-        args += ["--config", str(c)]
-    cli = ThreeDQCLI(args=[*args, "--model.init_args.encoder_ckpt=null", "--trainer.logger=false",
-                           f"--trainer.default_root_dir={out}"], run=False)
-    model, dm = cli.model, cli.datamodule
-    model.load_state_dict(checkpoint_state(ckpt))
-    dm.prepare_data()
-    dm.setup("test")
-    res = evaluate_quantizer(model, dm, out, baselines=baselines,
+    cache = CropCache()  # the test pass and the crops below encode each test scene once
+    cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: setattr(m, "crop_cache", cache))
+    res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
                              curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
                              em_iterations=em_iterations, seed=seed, search=search)
     print(_markdown(res))
