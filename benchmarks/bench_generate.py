@@ -23,7 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import cpu_name  # noqa: E402
 
-from threedq.data.generate import GeneratorConfig, generate_dataset
+from threedq.data.generate import generate_dataset
+from threedq.data.generator_config import GeneratorConfig
 
 
 def main(argv: list[str] | None = None) -> int:

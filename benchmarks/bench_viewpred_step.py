@@ -27,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import cpu_name  # noqa: E402
 from threedq.datamodules.scene_folder import SceneFolderDataModule
 from threedq.stages.viewpred import ViewPrediction  # noqa: E402
-from threedq.data.generate import GeneratorConfig, generate_dataset  # noqa: E402
+from threedq.data.generate import generate_dataset  # noqa: E402
+from threedq.data.generator_config import GeneratorConfig  # noqa: E402
 
 
 def _sync(device: str) -> None:

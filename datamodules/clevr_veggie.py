@@ -9,15 +9,16 @@ Expected tree (written by ``threedq data generate`` or by :meth:`ClevrVeggieData
       test/scene_000000.npz ...
 
 41 categories (CLEVR's 3 shapes x 8 colours + 17 scanned YCB meshes), up to 3 objects per scene,
-28 posed RGB-D views per scene by default. See ``threedq.data.generate`` for the scene model.
+28 posed RGB-D views per scene by default. See ``threedq.data.layout`` for the scene model.
 """
 
 from __future__ import annotations
 
 import logging
 
+from threedq.data.generate import generate_dataset
+from threedq.data.generator_config import GeneratorConfig
 from threedq.datamodules.scene_folder import SceneFolderDataModule
-from threedq.data.generate import GeneratorConfig, generate_dataset
 from threedq.scene import INDEX_NAME, SceneValidationError, load_index
 
 __all__ = ["ClevrVeggieDataModule"]

@@ -25,8 +25,10 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from threedq.boxes import boxes_to_aabb
+from threedq.data.box_files import load_boxes_file
+from threedq.data.proposal_cache import propose_dataset
 from threedq.metrics.detection import assign_detections
-from threedq.proposals import ProposalParams, load_boxes_file, propose_dataset
+from threedq.proposals import ProposalParams
 from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_scene
 
 __all__ = ["SceneDataset", "SceneFolderDataModule", "detections_as_objects"]

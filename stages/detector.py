@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from threedq.stages.base import EncoderStage
 from threedq.atomic_io import atomic_write_bytes
 from threedq.boxes import nms_3d
-from threedq.data.show import draw_boxes
+from threedq.data.draw import draw_boxes
 from threedq.metrics import DetectionMAP
 
 __all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes", "detection_figure"]

@@ -15,7 +15,8 @@ TINY = {"image_size": (32, 32), "num_views": 4, "max_objects": 3}
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """12 scenes (train 8 / val 2 / test 2) of 4 views at 32x32, generated in-process."""
-    from threedq.data.generate import GeneratorConfig, generate_dataset
+    from threedq.data.generate import generate_dataset
+    from threedq.data.generator_config import GeneratorConfig
 
     out = tmp_path_factory.mktemp("tiny_dataset")
     generate_dataset(out, num_scenes=12, seed=5, config=GeneratorConfig(**TINY), split_fractions=(0.7, 0.15, 0.15),

@@ -12,7 +12,7 @@ import torch
 from threedq.datamodules.scene_folder import SceneFolderDataModule, detections_as_objects
 from threedq.stages.detector import Detector, DetectorHead, cell_centres, decode_boxes, detection_figure, detection_targets
 from threedq.boxes import aabb_iou_3d
-from threedq.proposals import load_boxes_file, save_boxes_file
+from threedq.data.box_files import load_boxes_file, save_boxes_file
 
 SMALL = dict(grid_resolution=(32, 32, 16), image_every_n_steps=0)
 

@@ -19,14 +19,9 @@ import pytest
 from threedq.boxes import box_corners
 from threedq.data import CATEGORIES, GeneratorConfig, generate_dataset
 from threedq.data.catalog import CATEGORY_NAMES, CLEVR_COLORS, category_by_name
-from threedq.data.generate import (
-    GENERATOR_VERSION,
-    derive_test_seed,
-    intrinsics,
-    sample_scene,
-    scene_seed_sequence,
-    split_sizes,
-)
+from threedq.data.generator_config import GENERATOR_VERSION
+from threedq.data.layout import intrinsics, sample_scene
+from threedq.data.splits import derive_test_seed, scene_seed_sequence, split_sizes
 from threedq.scene import load_index, load_scene
 
 TINY = GeneratorConfig(image_size=(64, 64), num_views=4)

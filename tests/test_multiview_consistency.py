@@ -13,7 +13,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from threedq.data.generate import GeneratorConfig, generate_dataset
+from threedq.data.generate import generate_dataset
+from threedq.data.generator_config import GeneratorConfig
 from threedq.geometry import depth_to_points, invert_rigid, project, transform_points
 from threedq.scene import load_index, load_scene
 

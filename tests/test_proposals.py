@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import warnings
 from pathlib import Path
@@ -9,9 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from threedq import proposals
 from threedq.boxes import boxes_to_aabb
-from threedq.proposals import ProposalParams, fit_ground_plane, propose_boxes, propose_dataset
+from threedq.data import proposal_cache
+from threedq.data.box_files import load_boxes_file_with_params
+from threedq.data.proposal_cache import propose_dataset
+from threedq.proposals import PROPOSALS_VERSION, ProposalParams, fit_ground_plane, propose_boxes
 from threedq.scene import load_index, load_scene
 
 from analytic_scenes import render  # noqa: E402  (tests/ is on sys.path under pytest)
@@ -109,10 +112,13 @@ def test_tiny_dataset_end_to_end_and_cache(tiny_dataset: Path, tmp_path: Path, m
             hits += int(np.any(inter > 0))
     assert hits > 0
 
+    params, stored = load_boxes_file_with_params(cache)  # a box file whose params name the algorithm version
+    assert json.loads(params)["version"] == PROPOSALS_VERSION and list(stored) == files
+
     # reuse: nothing is recomputed, identical results
     calls = []
-    real = proposals.propose_boxes
-    monkeypatch.setattr(proposals, "propose_boxes", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = proposal_cache.propose_boxes
+    monkeypatch.setattr(proposal_cache, "propose_boxes", lambda *a, **k: calls.append(1) or real(*a, **k))
     again = propose_dataset(tiny_dataset, "train", cache, progress=False)
     assert not calls
     for f in files:

@@ -1,4 +1,4 @@
-"""Tests of threedq.data.show: projection, box wireframes, colourisation and the dataset contact sheet.
+"""Tests of threedq.data.draw and threedq.data.contact_sheet: projection, wireframes, colourisation, contact sheet.
 
 Scenes are built by hand (a tiny numpy ray caster of boxes on a ground plane); no rendering engine.
 """
@@ -13,18 +13,8 @@ import pytest
 
 from analytic_scenes import look_at
 from threedq.boxes import box_corners
-from threedq.data.show import (
-    CAPTION_HEIGHT,
-    PAD,
-    TILES_PER_VIEW,
-    TITLE_HEIGHT,
-    colorize_depth,
-    colorize_instances,
-    contact_sheet,
-    distinct_colour,
-    draw_boxes,
-    project_points,
-)
+from threedq.data.contact_sheet import CAPTION_HEIGHT, PAD, TILES_PER_VIEW, TITLE_HEIGHT, contact_sheet
+from threedq.data.draw import colorize_depth, colorize_instances, distinct_colour, draw_boxes, project_points
 from threedq.scene import DatasetIndex, SceneRecord, save_index, save_scene
 
 CATEGORIES = ["chair", "table", "mug"]

@@ -265,7 +265,7 @@ class TestEm:
 
         from threedq.boxes import boxes_to_aabb
         from threedq.pipeline.em import run_em
-        from threedq.proposals import load_boxes_file, save_boxes_file
+        from threedq.data.box_files import load_boxes_file, save_boxes_file
         from threedq.scene import load_index, load_scene
 
         cfg = _em_config(tmp_path, tiny_dataset)

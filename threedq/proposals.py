@@ -49,8 +49,8 @@ best IoU 0.853, 1.95 proposals per scene, AP@0.25 1.000, AP@0.5 0.994, AP@0.7 0.
 ``footprint="min_area_rect"`` or ``round_inflate`` reach only recall@0.5 0.94 and AP@0.5 0.90 (test
 scenes 0-99): round objects and toy airplanes (split into parts) are the failures they fix.
 
-:func:`propose_dataset` runs this over a split of a dataset folder with a progress bar and caches the
-result in one ``.npz`` (written atomically, resumable, tied to the parameters).
+:func:`threedq.data.proposal_cache.propose_dataset` runs this over a split of a dataset folder and caches
+the result in a box file (:mod:`threedq.data.box_files`).
 
 Convention: world frame in metres, z up (see :mod:`threedq.scene`); boxes are axis-aligned
 ``(xmin, ymin, zmin, xmax, ymax, zmax)`` float32, as :func:`threedq.boxes.boxes_to_aabb` returns them.
@@ -58,34 +58,20 @@ Convention: world frame in metres, z up (see :mod:`threedq.scene`); boxes are ax
 
 from __future__ import annotations
 
-import json
 import math
-import warnings
-import zipfile
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
-from threedq.atomic_io import atomic_write_bytes, npz_bytes
 from threedq.geometry.ground import fit_ground_plane
-from threedq.scene import SceneRecord, load_index, load_scene
+from threedq.scene import SceneRecord
 
-__all__ = [
-    "PROPOSALS_VERSION",
-    "ProposalParams",
-    "fit_ground_plane",
-    "propose_boxes",
-    "propose_dataset",
-    "load_boxes_file",
-    "save_boxes_file",
-]
+__all__ = ["PROPOSALS_VERSION", "ProposalParams", "fit_ground_plane", "propose_boxes"]
 
 #: Bump when equal parameters would give different proposals (caches of older versions are recomputed).
 PROPOSALS_VERSION = 1
-_CACHE_FORMAT = "threedq-proposals"
 _MAX_GRID_CELLS = 64_000_000
 _ROUND_FILL = 0.85  # convex-hull area / min-area-rectangle area below which a footprint counts as round
 
@@ -433,179 +419,3 @@ def propose_boxes(
     sc = np.asarray(scores, dtype=np.float32)
     order = np.argsort(-sc, kind="stable")
     return aabb[order], sc[order]
-
-
-# --------------------------------------------------------------------------------------------------
-# dataset cache
-# --------------------------------------------------------------------------------------------------
-def _params_json(params: ProposalParams, bounds: Bounds | None) -> str:
-    d: dict[str, Any] = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in asdict(params).items()}
-    d["bounds"] = None if bounds is None else [list(map(float, bounds[0])), list(map(float, bounds[1]))]
-    d["version"] = PROPOSALS_VERSION
-    return json.dumps(d, sort_keys=True)
-
-
-def _read_cache(path: Path) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """``(params json, {scene -> (aabb, scores)})``; raises ``ValueError`` naming the file when unreadable."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            fmt = str(z["format"])
-            if fmt != _CACHE_FORMAT:
-                raise ValueError(f"{path}: field 'format': expected {_CACHE_FORMAT!r}, got {fmt!r}")
-            params = str(z["params"])
-            names = [str(s) for s in z["scenes"]]
-            counts, aabb, scores = z["counts"], z["aabb"], z["scores"]
-    except ValueError as e:
-        if str(e).startswith(str(path)):
-            raise
-        raise ValueError(f"{path}: not a readable proposal cache (truncated or corrupt: {e})") from e
-    except (KeyError, zipfile.BadZipFile, OSError, EOFError) as e:
-        raise ValueError(f"{path}: not a readable proposal cache (missing key or corrupt: {e})") from e
-    if (
-        counts.shape != (len(names),)
-        or aabb.ndim != 2
-        or aabb.shape[1] != 6
-        or scores.shape != (aabb.shape[0],)
-        or int(counts.sum()) != aabb.shape[0]
-        or np.any(counts < 0)
-    ):
-        raise ValueError(f"{path}: field 'counts': inconsistent proposal cache (array shapes do not agree)")
-    ends = np.cumsum(counts)
-    out = {
-        name: (aabb[e - c : e].astype(np.float32), scores[e - c : e].astype(np.float32))
-        for name, c, e in zip(names, counts.tolist(), ends.tolist())
-    }
-    return params, out
-
-
-def _write_cache(path: Path, params: str, results: dict[str, tuple[np.ndarray, np.ndarray]], order: list[str]) -> None:
-    names = [s for s in order if s in results]
-    aabb = [results[s][0] for s in names]
-    scores = [results[s][1] for s in names]
-    arrays = {
-        "format": np.array(_CACHE_FORMAT),
-        "params": np.array(params),
-        "scenes": np.array(names, dtype=np.str_) if names else np.zeros((0,), dtype="<U1"),
-        "counts": np.array([a.shape[0] for a in aabb], dtype=np.int64),
-        "aabb": np.concatenate(aabb).astype(np.float32) if aabb else np.zeros((0, 6), np.float32),
-        "scores": np.concatenate(scores).astype(np.float32) if scores else np.zeros((0,), np.float32),
-    }
-    atomic_write_bytes(path, npz_bytes(arrays))
-
-
-def propose_dataset(
-    data_dir: str | Path,
-    split: str,
-    cache_path: str | Path,
-    *,
-    params: ProposalParams | None = None,
-    use_bounds: bool = True,
-    max_scenes: int | None = None,
-    save_every: int = 50,
-    recompute_corrupt: bool = False,
-    progress: bool = True,
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Proposals for every scene of a split, cached in one ``.npz``.
-
-    Args:
-        data_dir: dataset folder with ``index.json``.
-        split: ``"train"``, ``"val"`` or ``"test"`` (any split name the index uses).
-        cache_path: the cache file. An existing cache made with the same parameters (and bounds and
-            :data:`PROPOSALS_VERSION`) is reused: its scenes are not recomputed, missing ones are added
-            (so an interrupted run resumes). A cache made with other parameters is recomputed from
-            scratch and overwritten (with a warning).
-        params: :class:`ProposalParams` (``None`` = defaults).
-        use_bounds: crop to the ``scene_bounds`` of ``index.json``.
-        max_scenes: only the first ``max_scenes`` scenes of the split (``None`` = all).
-        save_every: the cache is rewritten (atomically) after every this many newly computed scenes.
-        recompute_corrupt: a corrupt cache raises ``ValueError`` naming the file (default), or with
-            ``True`` is recomputed with a warning.
-        progress: show a tqdm progress bar.
-
-    Returns:
-        ``{scene file as listed in index.json (e.g. "test/scene_000000.npz") -> (aabb [P,6] float32,
-        scores [P] float32)}`` in index order.
-
-    Cache layout: ``format``, ``params`` (JSON string of the parameters), ``scenes`` ``[S]`` str,
-    ``counts`` ``[S]`` i64, ``aabb`` ``[sum P, 6]`` f32, ``scores`` ``[sum P]`` f32 (scene ``i``'s rows follow
-    those of scenes ``< i``).
-
-    Convention: world frame, metres, z up; boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
-    """
-    from tqdm import tqdm
-
-    params = ProposalParams() if params is None else params
-    if not isinstance(params, ProposalParams):
-        raise ValueError(f"params: expected a ProposalParams or None, got {type(params).__name__}")  # noqa: TRY004 - ValueError naming the argument
-    if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 1:
-        raise ValueError(f"save_every: expected an int >= 1, got {save_every!r}")
-    data_dir, cache_path = Path(data_dir), Path(cache_path)
-    index = load_index(data_dir)
-    files = index.files(split)
-    if not files:
-        known = sorted({s["split"] for s in index.scenes})
-        raise ValueError(f"split: no scenes of split {split!r} in {data_dir / 'index.json'} (splits: {known})")
-    if max_scenes is not None:
-        if isinstance(max_scenes, bool) or not isinstance(max_scenes, int) or max_scenes < 0:
-            raise ValueError(f"max_scenes: expected an int >= 0 or None, got {max_scenes!r}")
-        files = files[:max_scenes]
-    bounds = index.scene_bounds if use_bounds else None
-    pjson = _params_json(params, bounds)
-
-    results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    if cache_path.exists():
-        try:
-            cached_params, cached = _read_cache(cache_path)
-        except ValueError as e:
-            if not recompute_corrupt:
-                raise
-            warnings.warn(f"{e}; recomputing it", stacklevel=2)
-        else:
-            if cached_params == pjson:
-                results = {k: v for k, v in cached.items()}
-            else:
-                warnings.warn(f"{cache_path}: made with other parameters; recomputing it", stacklevel=2)
-    all_names = list(dict.fromkeys([*results.keys(), *files]))
-    todo = [f for f in files if f not in results]
-    kwargs = asdict(params)
-    dirty = 0
-    with tqdm(total=len(files), initial=len(files) - len(todo), disable=not progress, desc="proposals",
-              unit="scene", dynamic_ncols=True) as bar:  # fmt: skip
-        for f in todo:
-            record = load_scene(data_dir / f, validate=False)
-            try:
-                results[f] = propose_boxes(record, bounds=bounds, **kwargs)
-            except ValueError as e:
-                raise ValueError(f"{data_dir / f}: {e}") from e
-            dirty += 1
-            bar.update(1)
-            if dirty >= save_every:
-                _write_cache(cache_path, pjson, results, all_names)
-                dirty = 0
-    if dirty or not cache_path.exists():
-        _write_cache(cache_path, pjson, results, all_names)
-    return {f: results[f] for f in files}
-
-
-def load_boxes_file(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Read a per-scene box file (a proposal cache, or detections written by :func:`save_boxes_file`).
-
-    Returns:
-        ``{scene file as listed in index.json -> (aabb [P,6] float32, scores [P] float32)}``.
-
-    Raises:
-        FileNotFoundError / ValueError naming the file when it is missing or unreadable.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: box file not found")
-    return _read_cache(path)[1]
-
-
-def save_boxes_file(path: str | Path, boxes: dict[str, tuple[np.ndarray, np.ndarray]], params: str = "{}") -> None:
-    """Write ``{scene -> (aabb [P,6], scores [P])}`` atomically in the proposal-cache layout."""
-    for name, (aabb, scores) in boxes.items():
-        if np.asarray(aabb).reshape(-1, 6).shape[0] != np.asarray(scores).reshape(-1).shape[0]:
-            raise ValueError(f"{path}: field 'scores': scene {name}: {len(scores)} scores for {len(aabb)} boxes")
-    norm = {k: (np.asarray(a, np.float32).reshape(-1, 6), np.asarray(s, np.float32).reshape(-1)) for k, (a, s) in boxes.items()}
-    _write_cache(Path(path), params, norm, list(norm))

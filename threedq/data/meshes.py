@@ -1,10 +1,11 @@
 """Triangle meshes of the categories as plain numpy arrays, normalised to a common frame.
 
-Scanned meshes (16384 faces) are decimated to at most ``max_faces`` faces (default 4096) by vertex
-clustering on a grid, with vertices of opposite-facing surfaces kept apart (the clusters are also
-split by the dominant axis and sign of the normal, so the thin walls of a mug do not collapse): at
-the generator's resolutions an object spans tens of pixels and the full scans cost ~4x the render
-time for no visible difference.
+The primitives come from ``trimesh.creation`` (box, 48-sided cylinder, 3-times subdivided icosphere),
+with their vertices split at sharp edges so that faces keep flat normals there. Scanned meshes
+(16384 faces) are decimated to at most ``max_faces`` faces (default 4096) by quadric edge collapse
+(``trimesh``'s ``simplify_quadric_decimation``, i.e. the ``fast_simplification`` package): at the
+generator's resolutions an object spans tens of pixels and the full scans cost ~4x the render time
+for no visible difference.
 
 Every category mesh is normalised so that its axis-aligned bounding box is centred at x = y = 0, its
 bottom is at z = 0 and its largest extent is 1. The generator then scales it uniformly, yaws it
@@ -19,10 +20,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from threedq.data.catalog import PRIMITIVE_SOURCES, category_by_name
+
+if TYPE_CHECKING:
+    import trimesh
 
 __all__ = [
     "DEFAULT_MAX_FACES",
@@ -90,31 +95,33 @@ def _make(vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> MeshD
     return out
 
 
+def _split_shaded(mesh: trimesh.Trimesh) -> MeshData:
+    """A ``trimesh.Trimesh`` as :class:`MeshData` with its vertices split at sharp edges (> 30 degrees).
+
+    Faces meeting at a smaller angle share vertices and so get smooth vertex normals (``trimesh``'s);
+    across a sharper edge (a box's edges, a cylinder's rims) each side keeps its own flat normals.
+    """
+    import trimesh
+
+    shaded = trimesh.graph.smooth_shade(mesh, angle=np.radians(30.0), facet_minarea=None)
+    return _make(shaded.vertices, shaded.vertex_normals, shaded.faces)
+
+
+def _resting(z: float) -> np.ndarray:
+    """``[4, 4]`` translation by ``z`` along +z (puts a centred ``trimesh`` primitive on the ground)."""
+    import trimesh
+
+    return trimesh.transformations.translation_matrix((0.0, 0.0, z))
+
+
 def box_mesh() -> MeshData:
-    """Unit cube ``[-0.5, 0.5]^2 x [0, 1]`` with flat normals (24 vertices, 12 faces).
+    """Unit cube ``[-0.5, 0.5]^2 x [0, 1]`` with flat normals (24 vertices, 12 faces; ``trimesh.creation.box``).
 
     Convention: object frame, z up, resting on z = 0; faces counter-clockwise seen from outside.
     """
-    verts, norms, faces = [], [], []
-    for axis in range(3):
-        for sign in (-1.0, 1.0):
-            normal = np.zeros(3)
-            normal[axis] = sign
-            # two in-plane axes ordered so that (a x b) points along the outward normal
-            a, b = (axis + 1) % 3, (axis + 2) % 3
-            if sign < 0:
-                a, b = b, a
-            base = len(verts)
-            for du, dv in ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)):
-                p = normal * 0.5
-                p[a] += du
-                p[b] += dv
-                verts.append(p)
-                norms.append(normal)
-            faces += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
-    v = np.array(verts)
-    v[:, 2] += 0.5
-    return _make(v, np.array(norms), np.array(faces))
+    import trimesh
+
+    return _split_shaded(trimesh.creation.box(extents=(1.0, 1.0, 1.0), transform=_resting(0.5)))
 
 
 def sphere_mesh(subdivisions: int = 3) -> MeshData:
@@ -134,25 +141,14 @@ def sphere_mesh(subdivisions: int = 3) -> MeshData:
 def cylinder_mesh(segments: int = 48) -> MeshData:
     """Cylinder of diameter 1 and height 1 about +z, bottom at z = 0; smooth sides, flat caps.
 
+    ``trimesh.creation.cylinder`` with ``segments`` sides: ``4 * segments`` faces, ``2 * segments`` side
+    vertices plus ``segments + 1`` per cap.
+
     Convention: object frame, z up, axis through x = y = 0; faces counter-clockwise seen from outside.
     """
-    ang = np.arange(segments) * (2 * np.pi / segments)
-    ring = np.stack([0.5 * np.cos(ang), 0.5 * np.sin(ang)], axis=1)
-    side_n = np.stack([np.cos(ang), np.sin(ang), np.zeros(segments)], axis=1)
-    verts = [np.c_[ring, np.zeros(segments)], np.c_[ring, np.ones(segments)]]  # side bottom, side top
-    norms = [side_n, side_n]
-    i = np.arange(segments)
-    j = (i + 1) % segments
-    faces = [np.stack([i, j, segments + j], 1), np.stack([i, segments + j, segments + i], 1)]
-    for z, nz in ((0.0, -1.0), (1.0, 1.0)):
-        base = sum(len(x) for x in verts)
-        verts.append(np.vstack([[0.0, 0.0, z], np.c_[ring, np.full(segments, z)]]))
-        norms.append(np.tile([0.0, 0.0, nz], (segments + 1, 1)))
-        centre, ri, rj = base, base + 1 + i, base + 1 + j
-        faces.append(
-            np.stack([np.full(segments, centre), ri, rj] if nz > 0 else [np.full(segments, centre), rj, ri], 1)
-        )
-    return _make(np.vstack(verts), np.vstack(norms), np.vstack(faces))
+    import trimesh
+
+    return _split_shaded(trimesh.creation.cylinder(radius=0.5, height=1.0, sections=segments, transform=_resting(0.5)))
 
 
 def ycb_mesh(name: str) -> MeshData:
@@ -182,54 +178,36 @@ def normalize_mesh(mesh: MeshData) -> MeshData:
     return _make((mesh.vertices.astype(np.float64) - shift) * scale, mesh.normals, mesh.faces)
 
 
-def _cluster(mesh: MeshData, grid: int) -> MeshData:
-    """Vertex clustering on a ``grid``-cells-per-largest-extent grid, clusters split by normal direction.
-
-    A cluster's vertex is the mean of its members and its normal the normalised sum of theirs; faces
-    that collapse are dropped, as are duplicates (the first one's winding is kept).
-    """
-    v = mesh.vertices.astype(np.float64)
-    n = mesh.normals.astype(np.float64)
-    lo = v.min(axis=0)
-    size = float((v.max(axis=0) - lo).max())
-    cell = np.minimum(np.floor((v - lo) / size * grid), grid - 1).astype(np.int64)
-    axis = np.abs(n).argmax(axis=1)
-    bucket = axis * 2 + (n[np.arange(len(n)), axis] > 0)
-    key = ((cell[:, 0] * grid + cell[:, 1]) * grid + cell[:, 2]) * 6 + bucket
-    _, inv = np.unique(key, return_inverse=True)
-    inv = inv.reshape(-1)
-    count = np.bincount(inv)
-    verts = np.stack([np.bincount(inv, v[:, k]) for k in range(3)], axis=1) / count[:, None]
-    norms = np.stack([np.bincount(inv, n[:, k]) for k in range(3)], axis=1)
-    f = inv[mesh.faces.astype(np.int64)]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-    _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
-    f = f[np.sort(first)]
-    used, f = np.unique(f, return_inverse=True)
-    # a normal sum can cancel only for a degenerate cluster; fall back to +z there
-    norms = norms[used]
-    norms[np.linalg.norm(norms, axis=1) < 1e-9] = (0.0, 0.0, 1.0)
-    return _make(verts[used], norms, f.reshape(-1, 3))
-
-
 def decimate(mesh: MeshData, max_faces: int) -> MeshData:
     """Simplify ``mesh`` to at most ``max_faces`` faces (unchanged if it already has no more).
 
-    Uses :func:`_cluster` with the finest grid (found by bisection over 4..512 cells) that meets the
-    budget. Deterministic. The bounding box shrinks by at most a grid cell; normalise afterwards.
+    Quadric edge-collapse decimation (``trimesh``'s ``simplify_quadric_decimation``, which runs the
+    ``fast_simplification`` package), asked for exactly ``max_faces`` faces (and again for fewer in the
+    unlikely case it stops above the budget). Vertex normals are recomputed from the decimated faces
+    (``trimesh``'s vertex normals, as :func:`ycb_mesh` computes them for the full scans; +z where they
+    cancel). Back-to-back duplicate faces the collapses leave are removed. Deterministic. The bounding
+    box may shift by a fraction of the removed detail; normalise afterwards.
     """
     if max_faces <= 0 or len(mesh.faces) <= max_faces:
         return mesh
-    lo, hi = 4, 512
-    best = _cluster(mesh, lo)
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        cand = _cluster(mesh, mid)
-        if len(cand.faces) <= max_faces:
-            best, lo = cand, mid
-        else:
-            hi = mid - 1
-    return best
+    import trimesh
+
+    full = trimesh.Trimesh(mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64), process=False)
+    target = int(max_faces)
+    while True:
+        simple = full.simplify_quadric_decimation(face_count=target)
+        if len(simple.faces) <= max_faces or target <= 1:
+            break
+        target = max(1, target - (len(simple.faces) - max_faces))
+    # edge collapses can leave zero-volume "fins": the same triangle twice, back to back; drop every copy
+    # (invisible, and their vertices' normals cancel), then the vertices no face uses
+    key = np.sort(simple.faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    simple.update_faces(counts[inverse.reshape(-1)] == 1)
+    simple.remove_unreferenced_vertices()
+    normals = np.array(simple.vertex_normals, np.float64)
+    normals[np.linalg.norm(normals, axis=1) < 1e-6] = (0.0, 0.0, 1.0)  # a normal sum can still cancel
+    return _make(simple.vertices, normals, simple.faces)
 
 
 def source_mesh(source: str) -> MeshData:

@@ -6,6 +6,9 @@ from pathlib import Path
 
 from jsonargparse import ArgumentParser
 
+from threedq.data.contact_sheet import contact_sheet
+from threedq.data.generate import generate_dataset
+from threedq.data.generator_config import GeneratorConfig
 from threedq.scene import SceneValidationError, load_index, load_scene
 
 __all__ = ["check_dataset", "data_parsers", "run_data"]
@@ -32,6 +35,8 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     show.add_argument("--out", required=True, help="PNG to write")
     show.add_argument("--scenes", type=int, default=4)
     show.add_argument("--split", type=str | None, default=None)
+    show.add_argument("--views", type=list[int] | None, default=None, help="view indices per scene (default: a few)")
+    show.add_argument("--upscale", type=int, default=3, help="pixel upscaling of each view")
 
     check = ArgumentParser(description="Validate every scene of a dataset folder; one line per bad file.")
     check.add_argument("dir", help="dataset folder")
@@ -47,8 +52,6 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
     action = cfg.action
     args = cfg[action]
     if action == "generate":
-        from threedq.data.generate import GeneratorConfig, generate_dataset
-
         config = GeneratorConfig(
             image_size=tuple(args.image_size),
             num_views=args.views,
@@ -71,9 +74,8 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
         print(f"wrote {sum(counts.values())} scenes to {args.out} ({', '.join(f'{k} {v}' for k, v in counts.items())})")
         return 0
     if action == "show":
-        from threedq.data.show import contact_sheet
-
-        out = contact_sheet(args.dir, args.out, num_scenes=args.scenes, split=args.split)
+        out = contact_sheet(args.dir, args.out, num_scenes=args.scenes, views=args.views, split=args.split,
+                            upscale=args.upscale)
         print(f"wrote {out}")
         return 0
     if action == "check":

@@ -5,7 +5,7 @@
 (:class:`~threedq.metrics.DetectionMAP`, accumulated over the whole split); it draws detections beside GT
 on held-out scenes and writes the detector's boxes of the requested splits as ``detections_<split>.npz``
 (``threedq em``: the test split, or every split with ``--boxes detections``; the
-layout of :func:`threedq.proposals.save_boxes_file`), which later stages read through the DataModule's
+layout of :func:`threedq.data.box_files.save_boxes_file`), which later stages read through the DataModule's
 ``boxes`` option.
 
 Convention: frame R (the record's world frame), metres, z up; boxes axis-aligned
@@ -27,9 +27,11 @@ from tqdm import tqdm
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json
 from threedq.boxes import boxes_to_aabb
+from threedq.data.box_files import save_boxes_file
+from threedq.data.proposal_cache import propose_dataset
 from threedq.datamodules.scene_folder import SceneDataset
 from threedq.metrics import DetectionMAP
-from threedq.proposals import ProposalParams, propose_dataset, save_boxes_file
+from threedq.proposals import ProposalParams
 from threedq.scene import load_scene
 from threedq.stages.detector import detection_figure
 

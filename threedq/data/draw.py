@@ -1,8 +1,7 @@
-"""Pictures of scene records: projected 3D boxes, colourised depth and instance masks, a dataset contact sheet.
+"""Drawing on scene images: projected 3D box wireframes with labels, colourised depth and instance maps.
 
-The drawing helpers work on RGB ``uint8`` images (channel order R, G, B; colours are given as RGB
-tuples) and return new arrays; nothing is drawn in place. Only the final PNG encode converts to the
-BGR order OpenCV writes.
+The helpers work on RGB ``uint8`` images (channel order R, G, B; colours are given as RGB tuples) and
+return new arrays; nothing is drawn in place.
 
 Convention:
     OpenCV camera axes (x right, y down, z forward); ``world_T_cam`` ``[4, 4]`` is camera-to-world;
@@ -14,32 +13,23 @@ Convention:
 
 from __future__ import annotations
 
-import argparse
 import colorsys
 import zlib
 from collections.abc import Sequence
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from threedq.atomic_io import atomic_write_bytes
 from threedq.boxes import box_corners
-from threedq.scene import SceneRecord, load_index, load_scene
 
 __all__ = [
-    "project_points",
-    "draw_boxes",
+    "BOX_EDGES",
     "colorize_depth",
     "colorize_instances",
     "distinct_colour",
-    "scene_row",
-    "contact_sheet",
-    "BOX_EDGES",
-    "PAD",
-    "TITLE_HEIGHT",
-    "CAPTION_HEIGHT",
-    "TILES_PER_VIEW",
+    "draw_boxes",
+    "project_points",
+    "upscale_nearest",
 ]
 
 #: The 12 edges of a box as corner-index pairs (corners differing in exactly one of the bits x, y, z).
@@ -48,17 +38,7 @@ BOX_EDGES: tuple[tuple[int, int], ...] = tuple(
 )
 _TOP_EDGES = tuple(e for e in BOX_EDGES if e[0] & 4 and e[1] & 4)  # edges of the top face (corners 4-7)
 
-#: Contact-sheet layout, in output pixels: outer margin and gap between tiles and rows.
-PAD = 4
-#: Height of the strip holding a row's title (the scene file name).
-TITLE_HEIGHT = 20
-#: Height of the strip holding the per-tile captions under a row's title.
-CAPTION_HEIGHT = 14
-#: Tiles drawn per view: RGB, depth, instance mask, RGB with GT boxes.
-TILES_PER_VIEW = 4
-
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
-_BACKGROUND = 32  # grey level of the contact-sheet background
 
 
 def _as_pose(K: np.ndarray, world_T_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -210,7 +190,8 @@ def _put_label(
     cv2.putText(img, text, (x, y), _FONT, scale, _text_colour(colour), 1, cv2.LINE_AA)
 
 
-def _upscale(img: np.ndarray, upscale: int) -> np.ndarray:
+def upscale_nearest(img: np.ndarray, upscale: int) -> np.ndarray:
+    """``img`` ``[H, W, ...]`` enlarged ``upscale`` times by nearest neighbour (a new array; a copy for 1)."""
     if int(upscale) != upscale or upscale < 1:
         raise ValueError(f"upscale must be a positive integer, got {upscale!r}")
     upscale = int(upscale)
@@ -285,7 +266,7 @@ def draw_boxes(
             raise ValueError(f"colour: expected one RGB triple or {M} of them, got {len(colour)}")
         colours = [tuple(int(c) for c in col) for col in colour]  # type: ignore[union-attr]
 
-    out = _upscale(rgb, upscale)
+    out = upscale_nearest(rgb, upscale)
     s = int(upscale)
     H, W = out.shape[:2]
     shift = 4  # cv2 fixed-point fractional bits: sub-pixel line placement
@@ -396,153 +377,3 @@ def colorize_instances(instance: np.ndarray) -> np.ndarray:
     ids, inverse = np.unique(inst.astype(np.int64), return_inverse=True)
     lut = np.array([distinct_colour(int(i)) if i > 0 else (0, 0, 0) for i in ids], dtype=np.uint8).reshape(-1, 3)
     return lut[inverse.reshape(inst.shape)]
-
-
-def _put_text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, colour=(235, 235, 235)) -> None:
-    cv2.putText(img, text, org, _FONT, scale, colour, 1, cv2.LINE_AA)
-
-
-def _default_views(num_views: int) -> list[int]:
-    """Two views spread across the rig (``0`` and ``V // 2``), or the only one."""
-    return [0] if num_views < 2 else [0, num_views // 2]
-
-
-def scene_row(
-    record: SceneRecord,
-    categories: Sequence[str],
-    views: Sequence[int] | None = None,
-    upscale: int = 3,
-    title: str = "",
-) -> np.ndarray:
-    """One contact-sheet row: a title strip, a caption strip and, per view, RGB | depth | instance | GT boxes.
-
-    GT boxes are coloured by category id (``distinct_colour(category)``) and labelled with its name.
-
-    Args:
-        record: the scene.
-        categories: category names, indexed by ``record.categories``.
-        views: view indices to show; default two views spread across the rig.
-        upscale: nearest-neighbour upscale of every tile.
-        title: text of the title strip.
-
-    Returns:
-        ``[TITLE_HEIGHT + CAPTION_HEIGHT + H * upscale, len(views) * 4 * (W * upscale + PAD) - PAD, 3]``
-        uint8 RGB image (no outer margin).
-
-    Convention: see the module docstring.
-    """
-    V = record.num_views
-    views = _default_views(V) if views is None else [int(v) for v in views]
-    if not views:
-        raise ValueError("views: need at least one view")
-    bad = [v for v in views if not -V <= v < V]
-    if bad:
-        raise ValueError(f"views {bad} out of range for a scene with {V} views")
-    H, W = record.image_size
-    th, tw = H * upscale, W * upscale
-    n_tiles = len(views) * TILES_PER_VIEW
-    row = np.full((TITLE_HEIGHT + CAPTION_HEIGHT + th, n_tiles * (tw + PAD) - PAD, 3), _BACKGROUND, np.uint8)
-    _put_text(row, title, (2, TITLE_HEIGHT - 6), 0.45)
-    names = [categories[c] if 0 <= c < len(categories) else f"cat{c}" for c in record.categories.tolist()]
-    box_colours = [distinct_colour(c) for c in record.categories.tolist()]  # one well-separated colour per category
-    for j, v in enumerate(views):
-        v = v % V
-        depth = record.depth[v]
-        valid = depth[np.isfinite(depth) & (depth > 0)]
-        drange = f"{valid.min():.2f}-{valid.max():.2f}m" if valid.size else "none valid"
-        if record.instance is not None:
-            inst = _upscale(colorize_instances(record.instance[v]), upscale)
-        else:
-            inst = np.full((th, tw, 3), 64, np.uint8)
-            _put_text(inst, "no instance mask", (4, th // 2), 0.4)
-        tiles = [
-            (f"view {v} rgb", _upscale(record.rgb[v], upscale)),
-            (f"depth {drange}", _upscale(colorize_depth(depth), upscale)),
-            ("instances", inst),
-            (f"GT boxes ({record.num_objects})", draw_boxes(
-                record.rgb[v], record.boxes, names, record.K[v], record.world_T_cam[v], colour=box_colours,
-                upscale=upscale,
-            )),
-        ]
-        for k, (caption, tile) in enumerate(tiles):
-            x = (j * TILES_PER_VIEW + k) * (tw + PAD)
-            row[TITLE_HEIGHT + CAPTION_HEIGHT:, x:x + tw] = tile
-            _put_text(row, caption, (x + 2, TITLE_HEIGHT + CAPTION_HEIGHT - 4), 0.35, (190, 190, 190))
-    return row
-
-
-def contact_sheet(
-    dataset_dir: str | Path,
-    out_png: str | Path,
-    num_scenes: int = 4,
-    views: Sequence[int] | None = None,
-    split: str | None = None,
-    upscale: int = 3,
-) -> Path:
-    """Write a PNG contact sheet of a dataset folder: one row per scene, a few views per row.
-
-    Reads ``index.json``, takes the first ``num_scenes`` scenes (of ``split`` if given) and draws, for
-    each, a row made by :func:`scene_row` titled with the scene file name and split. Rows are stacked
-    with a :data:`PAD`-pixel margin around and between them (narrower rows are padded on the right), so a
-    sheet of ``n`` scenes of ``H x W`` pixels showing ``k`` views each is
-    ``PAD + n * (TITLE_HEIGHT + CAPTION_HEIGHT + H * upscale + PAD)`` high and
-    ``PAD + 4 * k * (W * upscale + PAD)`` wide.
-
-    Args:
-        dataset_dir: folder holding ``index.json`` and the scene files.
-        out_png: destination PNG (written atomically; parent folders are created).
-        num_scenes: how many scenes (rows) to show at most.
-        views: view indices shown for every scene; default two views spread across each rig.
-        split: only scenes of this split (``"train"``, ``"val"``, ``"test"``).
-        upscale: nearest-neighbour upscale of every tile.
-
-    Returns:
-        The path of the written PNG.
-
-    Convention: the PNG holds true colours (converted from the RGB arrays to OpenCV's BGR on encode).
-    """
-    dataset_dir = Path(dataset_dir)
-    index = load_index(dataset_dir)
-    files = index.files(split)[: max(int(num_scenes), 0)]
-    if not files:
-        raise ValueError(
-            f"{dataset_dir / 'index.json'}: no scenes to show"
-            + (f" in split {split!r}" if split is not None else "")
-            + f" (num_scenes={num_scenes})"
-        )
-    split_of = {s["file"]: s["split"] for s in index.scenes}
-    rows = []
-    for f in files:
-        record = load_scene(dataset_dir / f, num_categories=len(index.categories))
-        title = f"{f}  [{split_of.get(f, '?')}]  {record.num_views} views, {record.num_objects} objects"
-        rows.append(scene_row(record, index.categories, views=views, upscale=upscale, title=title))
-    width = max(r.shape[1] for r in rows) + 2 * PAD
-    height = PAD + sum(r.shape[0] + PAD for r in rows)
-    sheet = np.full((height, width, 3), _BACKGROUND, np.uint8)
-    y = PAD
-    for r in rows:
-        sheet[y:y + r.shape[0], PAD:PAD + r.shape[1]] = r
-        y += r.shape[0] + PAD
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise RuntimeError(f"{out_png}: PNG encoding failed")
-    return atomic_write_bytes(Path(out_png), buf.tobytes())
-
-
-def main(argv: Sequence[str] | None = None) -> Path:
-    """``python -m threedq.data.show DATASET_DIR OUT.png [--num-scenes N] [--split S] [--views 0 4] [--upscale 3]``."""
-    p = argparse.ArgumentParser(prog="python -m threedq.data.show", description=contact_sheet.__doc__.split("\n")[0])
-    p.add_argument("dataset_dir")
-    p.add_argument("out_png")
-    p.add_argument("--num-scenes", type=int, default=4)
-    p.add_argument("--split", default=None)
-    p.add_argument("--views", type=int, nargs="+", default=None)
-    p.add_argument("--upscale", type=int, default=3)
-    a = p.parse_args(argv)
-    path = contact_sheet(a.dataset_dir, a.out_png, a.num_scenes, a.views, a.split, a.upscale)
-    print(path)
-    return path
-
-
-if __name__ == "__main__":
-    main()
