@@ -54,6 +54,25 @@ class TestTransformPoints:
         expected = torch.tensor([[[1.0, 3.0, 3.0], [0.0, 2.0, 3.0], [1.0, 2.0, 5.0]]])
         torch.testing.assert_close(transform_points(a_T_b, points), expected)
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_feature_matches_naive(self, dtype: torch.dtype) -> None:
+        # kornia-backed op against the per-point formula (x, y, z, w) = T (p, 1), divided by w unless |w| <= 1e-8
+        torch.manual_seed(7)
+        projective = random_rigid(2)
+        projective[:, 3] = torch.tensor([[0.1, -0.2, 0.05, 1.0], [0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)
+        projective[1, 3, 3] = 0.0  # w = 0 for every point: left undivided
+        transforms = torch.cat((random_rigid(2), projective)).to(dtype)
+        points = torch.randn(4, 6, 3, dtype=dtype)
+        out = transform_points(transforms, points)
+        assert out.dtype == dtype
+        expected = torch.zeros(4, 6, 3, dtype=torch.float64)
+        for b in range(4):
+            for n in range(6):
+                x, y, z, w = (transforms[b].double() @ torch.cat((points[b, n].double(), torch.ones(1)))).tolist()
+                scale = 1.0 / w if abs(w) > 1e-8 else 1.0
+                expected[b, n] = torch.tensor([x * scale, y * scale, z * scale])
+        torch.testing.assert_close(out, expected.to(dtype))
+
     def test_gradcheck(self) -> None:
         pose = random_rigid(2).requires_grad_()
         points = torch.rand(2, 4, 3, dtype=torch.float64, requires_grad=True)
@@ -80,8 +99,26 @@ class TestInvertRigid:
         torch.testing.assert_close(invert_rigid(pose), torch.linalg.inv(pose))
         torch.testing.assert_close(invert_rigid(pose) @ pose, torch.eye(4, dtype=dtype).expand(5, 4, 4))
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    @pytest.mark.parametrize("shape", [(), (0,), (5,), (2, 3)])
+    def test_feature_matches_local_formula(self, dtype: torch.dtype, shape: tuple[int, ...]) -> None:
+        # kornia's inverse_transformation against the previous local formula [[R^T, -R^T t], [0, 0, 0, 1]], per matrix
+        torch.manual_seed(9)
+        pose = random_rigid(max(math.prod(shape), 1), dtype)[: math.prod(shape)].reshape(*shape, 4, 4)
+        out = invert_rigid(pose)
+        assert out.shape == pose.shape and out.dtype == dtype and out.device == pose.device
+        flat, expected = pose.reshape(-1, 4, 4), torch.zeros(math.prod(shape), 4, 4, dtype=dtype)
+        for i, matrix in enumerate(flat):
+            rot_t = matrix[:3, :3].T
+            expected[i, :3, :3] = rot_t
+            expected[i, :3, 3] = -(rot_t @ matrix[:3, 3])
+            expected[i, 3, 3] = 1.0
+        torch.testing.assert_close(out, expected.reshape(*shape, 4, 4))
+
     def test_gradcheck(self) -> None:
         assert torch.autograd.gradcheck(invert_rigid, (random_rigid(2).requires_grad_(),))
+        pose = random_rigid(6).reshape(2, 3, 4, 4).requires_grad_()
+        assert torch.autograd.gradcheck(invert_rigid, (pose,))
 
 
 class TestProject:
@@ -234,5 +271,29 @@ class TestYawMatrix:
         torch.testing.assert_close(out, expected)
         assert torch.allclose(torch.linalg.det(yaw_matrix(t)), torch.ones(2, dtype=torch.float64))
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_feature_matches_local_formula(self, dtype: torch.dtype) -> None:
+        # kornia's axis_angle_to_rotation_matrix about +z against the previous local formula, values and gradients,
+        # on both of its branches (Rodrigues, and the Taylor series for |t| < 1e-3)
+        angles = [0.0, 1e-7, -2e-4, 9e-4, 1.1e-3, 0.3, -1.2, math.pi / 2, -math.pi, 3.0, 7.5, -40.0]
+        yaw = torch.tensor(angles, dtype=dtype).reshape(3, 4).requires_grad_()
+        out = yaw_matrix(yaw)
+
+        def local(t: torch.Tensor) -> torch.Tensor:
+            c, s, zero, one = torch.cos(t), torch.sin(t), torch.zeros_like(t), torch.ones_like(t)
+            rows = (torch.stack((c, -s, zero), -1), torch.stack((s, c, zero), -1), torch.stack((zero, zero, one), -1))
+            return torch.stack(rows, dim=-2)
+
+        expected = local(yaw)
+        assert out.dtype == dtype and out.shape == (3, 4, 3, 3)
+        torch.testing.assert_close(out, expected)
+        weights = torch.randn(3, 4, 3, 3, dtype=dtype)
+        (grad,) = torch.autograd.grad((out * weights).sum(), yaw)
+        (expected_grad,) = torch.autograd.grad((expected * weights).sum(), yaw)
+        torch.testing.assert_close(grad, expected_grad)
+        torch.testing.assert_close(yaw_matrix(torch.tensor([0, 2])), local(torch.tensor([0.0, 2.0])))  # int angles
+
     def test_gradcheck(self) -> None:
         assert torch.autograd.gradcheck(yaw_matrix, (torch.rand(3, dtype=torch.float64, requires_grad=True),))
+        small = torch.tensor([0.0, 3e-4, -5e-4], dtype=torch.float64, requires_grad=True)  # Taylor branch
+        assert torch.autograd.gradcheck(yaw_matrix, (small,))

@@ -3,7 +3,9 @@
 Convention:
     Metres; reference frame R right-handed with z up; yaw counter-clockwise about +z seen from above,
     radians. Cameras use OpenCV axes, ``a_T_b`` maps frame b to frame a. Volumes are ``[B, C, Z, Y, X]``
-    on a cell-centred grid; every ``grid_sample`` uses ``align_corners=False``.
+    on a cell-centred grid; every ``grid_sample`` uses ``align_corners=False``. Point transforms, rigid
+    inversion and yaw matrices are kornia's (``kornia.geometry.linalg``, ``kornia.geometry.conversions``); the
+    rest are local ops, each docstring says what kornia lacks (``benchmarks/bench_geometry_kornia.py``).
 """
 
 from .camera import *  # noqa: F403

@@ -3,8 +3,9 @@
 Convention:
     Grid in the reference frame R (metres, z up), volumes ``[B, C, Z, Y, X]``, cell-centred voxels, every
     ``grid_sample`` with ``align_corners=False``. Cameras: OpenCV axes (x right, y down, z forward), ``K`` with
-    pixel centres at integer coordinates, poses ``R_T_cam`` (camera-to-R). Frustum tensors are ``[B, C, D, H, W]``
-    with ``D`` depth planes (near to far) and ``H x W`` pixels.
+    pixel centres at integer coordinates (skew honoured), poses ``R_T_cam`` (camera-to-R). Frustum tensors are
+    ``[B, C, D, H, W]`` with ``D`` depth planes (near to far) and ``H x W`` pixels. Local ops: kornia has no
+    frustum resampler (see :func:`resample_to_frustum`).
 """
 
 from __future__ import annotations
@@ -129,6 +130,13 @@ def resample_to_frustum(
     num_planes: int,
 ) -> Tensor:
     """Trilinearly resample a volume in R into a camera's frustum.
+
+    A local op: kornia has no frustum resampler. With depth planes uniform in z the map from frustum sample
+    ``(d, v, u)`` to voxel index is not projective (``z_d K^-1 (u, v, 1)`` has ``u * z_d`` terms), so
+    ``kornia.geometry.transform.warp_perspective3d`` cannot express it, and kornia's pinhole unprojection
+    (``unproject_meshgrid``) drops the skew that :func:`frustum_points` honours; building the points with
+    kornia (``unproject_meshgrid`` + ``transform_points``) is also 1.08x slower at ``[2, 32, 16, 32, 32]`` to
+    ``32 x 64 x 64`` (``benchmarks/bench_geometry_kornia.py``).
 
     Args:
         volume: ``[B, C, Z, Y, X]`` volume on ``grid`` (e.g. the encoder's features on ``grid.half()``).

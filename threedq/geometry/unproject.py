@@ -2,8 +2,10 @@
 
 Convention:
     Grid in the reference frame R (metres, z up), volumes ``[B, C, Z, Y, X]``, cell-centred voxels.
-    Views: OpenCV camera axes, ``K`` with integer pixel centres, pose ``R_T_cam`` (camera-to-R), metric
-    z-depth with 0 = invalid.
+    Views: OpenCV camera axes, ``K`` with integer pixel centres (skew honoured), pose ``R_T_cam`` (camera-to-R),
+    metric z-depth with 0 = invalid. Local gather/scatter ops (kornia has no voxel unprojection) on the camera
+    ops of :mod:`threedq.geometry.camera`: kornia's ``inverse_transformation`` and ``transform_points``, local
+    (skew-aware) projection and back-projection.
 """
 
 from __future__ import annotations
