@@ -3,7 +3,8 @@
 Layers (``docs/architecture.md``), lowest first; a module may import from its own layer or below, never
 above, and no two modules may import each other through any chain (function-local imports included):
 
-    core      threedq.{atomic_io, boxes, scene, geometry, nets, quantization, metrics, baselines, proposals, data}
+    core      threedq.{atomic_io, boxes, scene, geometry, nets, quantization, contrastive, metrics, baselines,
+              proposals, data}
     stages    threedq.stages, threedq.datamodules
     pipeline  threedq.pipeline
     entry     threedq.cli, threedq.__main__
