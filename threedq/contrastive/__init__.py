@@ -1,7 +1,29 @@
-"""Momentum contrast (MoCo, He et al. 2020) for correspondence mining (paper Sec. 3.3): streamed InfoNCE and the
-key encoder / negative queue module."""
+"""Momentum contrast (MoCo, He et al. 2020) for correspondence mining (paper Sec. 3.3): streamed InfoNCE, the
+key encoder / negative queue module, and the 3D correspondence miner (retrieval, patch matching, verification)."""
 
 from threedq.contrastive.infonce import info_nce_plain, info_nce_streamed
+from threedq.contrastive.mining import (
+    context_offsets,
+    match_patch,
+    mine_correspondences,
+    patch_grid,
+    retrieve_targets,
+    rotate_patch_positions,
+    salient_positions,
+    verify_match,
+)
 from threedq.contrastive.moco import MomentumContrast
 
-__all__ = ["MomentumContrast", "info_nce_plain", "info_nce_streamed"]
+__all__ = [
+    "MomentumContrast",
+    "context_offsets",
+    "info_nce_plain",
+    "info_nce_streamed",
+    "match_patch",
+    "mine_correspondences",
+    "patch_grid",
+    "retrieve_targets",
+    "rotate_patch_positions",
+    "salient_positions",
+    "verify_match",
+]
