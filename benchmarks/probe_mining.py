@@ -1,0 +1,62 @@
+"""How well does the 3D patch miner pick same-category pairs on trained features? (issue #13 diagnostics)
+
+Crops every test object of the embedded data with the encoder of a quantizer checkpoint, mines
+correspondences from the first ``--queries`` objects against all of them (other scenes only), and prints,
+with the GT categories used for measuring only: the fraction of kept pairs whose two objects share a
+category, the same for the plain top-k object retrieval and its top-1, and the verification scores.
+Run it from the folder of a finished ``threedq em`` (it reads ``data/clevr_veggie``):
+
+    python benchmarks/probe_mining.py --ckpt runs/em/r04_quantizer/checkpoints/last.ckpt --min_cosine 0.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import torch  # noqa: E402
+
+from _machine import cpu_name  # noqa: E402
+from threedq.contrastive import mine_correspondences, retrieve_targets  # noqa: E402
+from threedq.pipeline.evaluation import collect_object_crops  # noqa: E402
+from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
+from threedq.pipeline.report import split_loader  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--ckpt", required=True, help="a quantizer (or any stage) checkpoint with the encoder")
+    ap.add_argument("--config", default="stages/quantizer.yaml")
+    ap.add_argument("--queries", type=int, default=200)
+    ap.add_argument("--top_k", type=int, default=30)
+    ap.add_argument("--keep", type=int, default=200)
+    ap.add_argument("--min_cosine", type=float, default=0.5)
+    args = ap.parse_args()
+    torch.manual_seed(0)
+    cli, _ = test_checkpoint([resolve_config(args.config)], args.ckpt, "runs/probe_mining")
+    crops = collect_object_crops(cli.model, split_loader(cli.datamodule, "test"), 1, random_encoder_seed=None,
+                                 progress=False)
+    f, lab, scene = crops["learned"], crops["labels"], crops["scene"]
+    n = min(args.queries, f.shape[0])
+    exclude = scene[:n, None] == scene[None, :]
+    t0 = time.time()
+    out = mine_correspondences(f[:n], f, top_k=args.top_k, keep=args.keep, exclude=exclude, min_cosine=args.min_cosine)
+    seconds = time.time() - t0
+    qi, ti = out["query_index"], out["target_index"]
+    idx, _, _ = retrieve_targets(f[:n], f, top_k=args.top_k, exclude=exclude)
+    print(f"machine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  checkpoint: {args.ckpt}")
+    print(f"| min_cosine | queries | pairs kept | mined pairs, same category | top-{args.top_k} retrieval, same "
+          "category | top-1 retrieval, same category | score p10 / p50 / p90 | seconds |")
+    print("|---|---|---|---|---|---|---|---|")
+    q = out["score"].quantile(torch.tensor([0.1, 0.5, 0.9])).tolist() if qi.numel() else [float("nan")] * 3
+    print(f"| {args.min_cosine} | {n} | {qi.numel()} | {(lab[qi] == lab[ti]).float().mean():.3f} | "
+          f"{(lab[idx] == lab[:n, None]).float().mean():.3f} | {(lab[idx[:, 0]] == lab[:n]).float().mean():.3f} | "
+          f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} | {seconds:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
