@@ -15,7 +15,7 @@ keys used as negatives by :func:`threedq.contrastive.infonce.info_nce_streamed`.
 Distributed training: the queue must receive the keys of every process, in the same order, so that all
 replicas keep identical queues. Gathering them is the caller's job: in a ``LightningModule``,
 ``self.all_gather(k)`` (``[world, N, D]``, or ``[N, D]`` on a single process) followed by
-``.reshape(-1, D)``. This module never needs a process group and never calls ``.cuda()``: the queue and its
+``.reshape(-1, D)``. This module never needs a process group and never picks a device itself: the queue and its
 pointer are registered buffers, so they move with ``.to(device)`` and are saved in (and restored from)
 checkpoints.
 
