@@ -264,12 +264,13 @@ class EncoderStage(L.LightningModule):
         x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
         return self.encode_input(x, seen, S)
 
-    def encode_input(self, x: Tensor, seen: Tensor, num_views: int) -> Tensor:
+    def encode_input(self, x: Tensor, seen: Tensor, num_views: int, encoder: torch.nn.Module | None = None) -> Tensor:
         """Encode unprojected views and aggregate each scene's ``num_views`` of them (see :meth:`encode_views`).
 
         Args:
             x: ``[B*S, 4, Z, Y, X]`` and seen ``[B*S, 1, Z, Y, X]`` from :meth:`encoder_input`, scene-major.
             num_views: S.
+            encoder: the network to run (default :attr:`encoder`; e.g. a momentum copy of it).
 
         Returns:
             ``[B, C, Z/2, Y/2, X/2]`` features, L2-normalised per voxel.
@@ -278,7 +279,7 @@ class EncoderStage(L.LightningModule):
         B = x.shape[0] // S
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last_3d)
-        feats = self.encoder(x).contiguous()  # [B*S, C, z, y, x]
+        feats = (encoder or self.encoder)(x).contiguous()  # [B*S, C, z, y, x]
         if S == 1:
             return feats
         w = torch.nn.functional.max_pool3d(seen, 2)  # seen at feature resolution

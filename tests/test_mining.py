@@ -245,6 +245,20 @@ class TestMatchPatch:
         unrotated = rotate_patch_positions(pos[2], -2 * math.pi * int(yaw[2]) / A, (S, S, S))
         assert (unrotated - expected_target_pos(qpos, degrees)).abs().max() <= 1
 
+    def test_allowed_yaws(self) -> None:
+        queries, targets, b = planted(90)
+        qpos = torch.tensor([5, 9, 5])
+        allowed = torch.zeros(4, A, dtype=torch.bool)
+        allowed[:, b] = True
+        yaw, _, cos = match_patch(queries[0], qpos, targets, allowed_yaws=allowed)
+        assert (yaw == b).all() and cos[2] > 0.99
+        allowed = torch.ones(4, A, dtype=torch.bool)
+        allowed[:, [(b + d) % A for d in (-1, 0, 1)]] = False  # the true yaw forbidden: the match gets worse
+        yaw, _, cos_off = match_patch(queries[0], qpos, targets, allowed_yaws=allowed)
+        assert all(yaw_dist(y, b) > 1 for y in yaw.tolist()) and cos_off[2] < cos[2]
+        with pytest.raises(ValueError, match="allowed_yaws"):
+            match_patch(queries[0], qpos, targets, allowed_yaws=torch.zeros(4, A, dtype=torch.bool))
+
     def test_errors(self) -> None:
         q, t = unit(1, 4, 8, 8, 8)[0], unit(2, 4, 8, 8, 8)
         with pytest.raises(ValueError, match="leaves the volume"):
@@ -348,6 +362,10 @@ class TestMineCorrespondences:
         qpos = out["query_pos"][0]
         assert set(qpos.tolist()) <= {5, 9}  # an inner grid position (default query patch)
         assert (out["target_pos"][0] - expected_target_pos(qpos, degrees)).abs().max() <= 1
+        # searching only near the object-level retrieval's yaw finds the same correspondence
+        near = mine_correspondences(queries, targets, top_k=4, yaw_window=1)
+        assert near["target_index"].tolist() == [2] and yaw_dist(near["yaw"][0], b) <= 1
+        assert (near["target_pos"][0] - expected_target_pos(near["query_pos"][0], degrees)).abs().max() <= 1
 
     def test_shapes_and_order(self) -> None:
         queries, targets, _ = planted(90)
@@ -359,6 +377,11 @@ class TestMineCorrespondences:
         assert all(out[k].dtype == torch.long for k in long_keys)
         assert (out["score"][:-1] >= out["score"][1:]).all()
         assert out["query_index"][0] == 0 and out["target_index"][0] == 2
+        by_sim = mine_correspondences(queries, targets, top_k=3, keep=5, min_score=0.0, rank_by="retrieval")
+        rs = by_sim["retrieval_sim"]
+        assert (rs[:-1] >= rs[1:]).all() and by_sim["query_index"].numel() == p
+        with pytest.raises(ValueError, match="rank_by"):
+            mine_correspondences(queries, targets, rank_by="cosine")
 
     def test_keep_and_explicit_positions(self) -> None:
         queries, targets, b = planted(90)

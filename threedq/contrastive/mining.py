@@ -53,6 +53,8 @@ __all__ = [
 
 #: Floats of scratch one vectorised chunk may use (~64 MiB in float32).
 _CHUNK_FLOATS = 1 << 24
+#: Pairs whose crops :func:`mine_correspondences` gathers at once for verification.
+_VERIFY_PAIRS = 256
 #: A position of a rotated target is usable when at least this fraction of every voxel of the patch comes from
 #: inside the unrotated crop (``rotate_yaw`` pads with zeros).
 _MIN_COVERAGE = 0.5
@@ -220,6 +222,15 @@ def _rotated_grid_patches(targets: Tensor, angles: Tensor, starts: Sequence[list
     only the voxel rows/columns/slices that some grid patch covers are interpolated. Flattening order per patch:
     channel-major ``[C, pz, py, px]``, like ``crop[:, z:z+p, y:y+p, x:x+p].reshape(-1)``.
     """
+    k, channels = targets.shape[:2]
+    n_angles = angles.shape[0]
+    out = _rotated_grid_samples(targets, angles, starts, patch)
+    out = out.permute(0, 4, 2, 5, 7, 1, 3, 6, 8)  # [K, A, Gz, Gy, Gx, C, pz, py, px]
+    return out.reshape(k, n_angles, out.shape[2] * out.shape[3] * out.shape[4], channels * patch**3)
+
+
+def _rotated_grid_samples(targets: Tensor, angles: Tensor, starts: Sequence[list[int]], patch: int) -> Tensor:
+    """The samples of :func:`_rotated_grid_patches` before reordering: ``[K, C, Gz, pz, A, Gy, py, Gx, px]`` (a view)."""
     k, channels, nz, ny, nx = targets.shape
     n_angles = angles.shape[0]
     dev = targets.device
@@ -232,9 +243,7 @@ def _rotated_grid_patches(targets: Tensor, angles: Tensor, starts: Sequence[list
     grid = coords.reshape(1, n_angles * ly, lx, 2).expand(k, -1, -1, -1)
     out = F.grid_sample(slices, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     gz, gy, gx = (len(s) for s in starts)
-    out = out.view(k, channels, gz, patch, n_angles, gy, patch, gx, patch)
-    out = out.permute(0, 4, 2, 5, 7, 1, 3, 6, 8)  # [K, A, Gz, Gy, Gx, C, pz, py, px]
-    return out.reshape(k, n_angles, gz * gy * gx, channels * patch**3)
+    return out.view(k, channels, gz, patch, n_angles, gy, patch, gx, patch)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -308,6 +317,7 @@ def match_patch(
     num_angles: int = 36,
     patch: int = 2,
     grid: int = 4,
+    allowed_yaws: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Best (yaw, grid position) of a query patch in each target crop.
 
@@ -323,6 +333,7 @@ def match_patch(
         num_angles: yaw candidates ``A``.
         patch: patch edge in voxels.
         grid: grid positions per axis.
+        allowed_yaws: optional ``[K, A]`` bool, the yaws searched per target (default: all); each row needs one.
 
     Returns:
         ``yaw`` ``[K]`` long yaw index; ``pos`` ``[K, 3]`` long ``(z, y, x)`` of the best patch in the ALIGNED
@@ -351,6 +362,11 @@ def match_patch(
     if k == 0:
         return (torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, 3, dtype=torch.long, device=dev),
                 torch.zeros(0, dtype=dtype, device=dev))
+    if allowed_yaws is not None:
+        if (not isinstance(allowed_yaws, Tensor) or allowed_yaws.dtype != torch.bool
+                or allowed_yaws.shape != (k, num_angles) or not bool(allowed_yaws.any(dim=1).all())):
+            got = tuple(allowed_yaws.shape) if isinstance(allowed_yaws, Tensor) else type(allowed_yaws).__name__
+            raise ValueError(f"allowed_yaws must be a bool tensor [{k}, {num_angles}] with a True in every row, got {got}")
     angles = yaw_angles(num_angles, device=dev, dtype=dtype)
     n_grid = math.prod(len(s) for s in starts)
     per_target = num_angles * n_grid * q.numel() * 2  # samples + normalised copy
@@ -358,7 +374,10 @@ def match_patch(
     best_cos, best_idx = [], []
     for i in range(0, k, chunk):
         feats = F.normalize(_rotated_grid_patches(target_crops[i : i + chunk], angles, starts, patch), dim=-1)
-        cos = (feats @ q).flatten(1)  # [k_i, A * G]
+        cos = feats @ q  # [k_i, A, G]
+        if allowed_yaws is not None:
+            cos = cos.masked_fill(~allowed_yaws[i : i + chunk, :, None].to(dev), float("-inf"))
+        cos = cos.flatten(1)  # [k_i, A * G]
         b, j = cos.max(dim=1)
         best_cos.append(b)
         best_idx.append(j)
@@ -559,6 +578,8 @@ def mine_correspondences(
     min_score: float = 0.5,
     min_context_fraction: float = 0.9,
     method: str = "fast",
+    yaw_window: int | None = None,
+    rank_by: str = "score",
 ) -> dict[str, Tensor]:
     """Mine verified patch correspondences between query crops and retrieved target crops.
 
@@ -589,6 +610,12 @@ def mine_correspondences(
         min_score: verification score a pair needs to be kept.
         min_context_fraction: part of the context ring a default query position must keep inside the crop.
         method: retrieval kernel, ``"fast"`` or ``"exact"``.
+        yaw_window: search the patch only at yaws within this many steps of the one the object-level retrieval
+            found (``b = -angle mod A``), so that a part match agrees with the pose of the whole object; ``None``
+            searches all ``A`` yaws.
+        rank_by: order of the verified pairs before the ``keep`` best are taken: ``"score"`` (verification
+            score, ties by match cosine; ArtMiner's) or ``"retrieval"`` (object-level rotation-max similarity,
+            ties by verification score).
 
     Returns:
         A dict of ``P <= keep`` rows, best first: ``query_index`` ``[P]`` long, ``target_index`` ``[P]`` long,
@@ -622,7 +649,11 @@ def mine_correspondences(
         query_positions = query_positions.to(device=dev, dtype=torch.long)
         if not _inside(query_positions, size, patch).all():
             raise ValueError(f"query_positions must be {patch}^3 patch positions inside crops of size {tuple(size)}")
-    idx, sim, _ = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method)
+    if yaw_window is not None:
+        _check_int("yaw_window", yaw_window, minimum=0)
+    if rank_by not in ("score", "retrieval"):
+        raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
+    idx, sim, ret_angle = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method)
     if query_positions is None:
         starts = [torch.tensor(patch_grid(s, grid, patch), device=dev) for s in size]
         cands = torch.stack(torch.meshgrid(*starts, indexing="ij"), dim=-1).reshape(-1, 3)
@@ -637,7 +668,13 @@ def mine_correspondences(
         t_idx = idx[q][valid]
         if t_idx.numel() == 0:
             continue
-        yaw, pos, cos = match_patch(query_crops[q], query_positions[q], target_crops[t_idx], num_angles, patch, grid)
+        allowed = None
+        if yaw_window is not None:
+            b0 = torch.remainder(-ret_angle[q][valid], num_angles)  # [K]: target yaw implied by the retrieval
+            d = torch.remainder(torch.arange(num_angles, device=dev)[None] - b0[:, None], num_angles)
+            allowed = torch.minimum(d, num_angles - d) <= yaw_window
+        yaw, pos, cos = match_patch(query_crops[q], query_positions[q], target_crops[t_idx], num_angles, patch, grid,
+                                    allowed)
         rows.append((torch.full_like(t_idx, q), t_idx, yaw, pos, cos, sim[q][valid]))
     if not rows:
         empty = torch.zeros(0, dtype=torch.long, device=dev)
@@ -647,10 +684,16 @@ def mine_correspondences(
                 "yaw": empty.clone(), "match_cosine": fz, "score": fz.clone(), "retrieval_sim": fz.clone()}
     qi, ti, yaw, pos, cos, rsim = (torch.cat(c) for c in zip(*rows))
     qpos = query_positions[qi]
-    score, _ = _verify_batch(query_crops[qi], qpos, target_crops[ti].to(query_crops.dtype), pos, yaw, num_angles,
-                             patch, context_distance, float(min_cosine), 1)
-    order = torch.argsort(cos, descending=True, stable=True)
-    order = order[torch.argsort(score[order], descending=True, stable=True)]
+    # verified in chunks of pairs: gathering the crops of all N * top_k pairs at once would hold them all
+    scores = []
+    for i in range(0, qi.numel(), _VERIFY_PAIRS):
+        sl = slice(i, i + _VERIFY_PAIRS)
+        scores.append(_verify_batch(query_crops[qi[sl]], qpos[sl], target_crops[ti[sl]].to(query_crops.dtype), pos[sl],
+                                    yaw[sl], num_angles, patch, context_distance, float(min_cosine), 1)[0])
+    score = torch.cat(scores)
+    first, second = (score, cos) if rank_by == "score" else (rsim, score)
+    order = torch.argsort(second, descending=True, stable=True)
+    order = order[torch.argsort(first[order], descending=True, stable=True)]
     order = order[score[order] >= min_score][:keep]
     yaw_rad = yaw[order].to(torch.float64) * (2.0 * math.pi / num_angles)
     target_pos = rotate_patch_positions(pos[order], -yaw_rad, target_crops.shape[2:], patch)

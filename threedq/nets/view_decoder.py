@@ -91,7 +91,10 @@ class ViewDecoder(nn.Module):
             raise ValueError(
                 f"frustum must have shape [B, {self.in_channels}, {self.num_planes}, h, w], got {tuple(frustum.shape)}"
             )
-        x = self.act(self.conv3d(self.depth_pool(frustum)))  # [B, hidden, D / pool, h, w]
+        # the first 3D conv in float32 even under autocast: its bf16 weight gradient comes out NaN on oneDNN CPU
+        # (torch 2.13; seen on the first backward of view prediction with trainer.precision=bf16-mixed)
+        with torch.autocast(frustum.device.type, enabled=False):
+            x = self.act(self.conv3d(self.depth_pool(frustum).float()))  # [B, hidden, D / pool, h, w]
         x = x.reshape(x.shape[0], -1, x.shape[-2], x.shape[-1])  # [B, hidden * D / pool, h, w], channel-major
         x = self.act(self.conv2d(x))
         return 0.5 * torch.tanh(self.to_rgb(x))

@@ -10,7 +10,8 @@ Layout of ``work_dir``::
       02_detector/            # 3D detector on the frozen encoder, trained from label-free pseudo-boxes
       03_detector_eval/       # mAP@0.25/0.5 of pseudo-boxes and detector, detections.png,
                               #   detections_test.npz (every split's with --boxes detections)
-      r01_quantizer/          # round 1: prototypes on the frozen encoder (LightningCLI run)
+      r01_mining/             # round 1: the encoder fine-tuned by correspondence mining; mining/refresh_*.json|png
+      r01_quantizer/          # round 1: prototypes on that encoder, frozen (LightningCLI run)
       r01_eval/               # round 1: results.json/.md (retrieval, Hungarian, few-shot, yaw) + figures
       r02_quantizer/ ...      # round r starts from round r-1's prototype bank
       metrics.json            # everything measured, per stage and round
@@ -26,8 +27,9 @@ re-run or inspected on its own with ``threedq fit --config <run>/config.yaml``.
 Stages implemented so far: view-prediction pre-training and its evaluation; the detector warm-started
 from label-free pseudo-boxes and its evaluation; then per round the quantizer (frozen encoder; GT boxes,
 or with ``--boxes detections`` the detector's boxes, matched to GT by IoU for the metrics only) and the
-evaluation of the round (the last round also fits and scores the baselines). The paper's other per-round
-stages (correspondence mining, detector self-labelling) are not implemented yet; the report says so.
+evaluation of the round (the last round also fits and scores the baselines). Each round starts with
+correspondence learning (``--mining_config``, cross-scene mining by default), which fine-tunes the encoder that
+the round's quantizer then uses. Detector self-labelling is not implemented yet; the report says so.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer
 
 __all__ = ["run_em"]
 
-ROUND_STAGES: tuple[str, ...] = ("quantizer",)  # detection, mining, self-labelling: not implemented yet
+ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer")  # detector self-labelling: not implemented yet
 
 
 def _stage_done(run_dir: Path) -> dict[str, Any] | None:
@@ -91,6 +93,11 @@ def _fit_stage(
     info = {"stage": name, "checkpoint": str(last), "seconds": round(time.time() - t0, 1)}
     atomic_write_json(run_dir / "stage.json", info)
     return info
+
+
+def _mining_diagnostics(run_dir: Path) -> list[dict[str, Any]]:
+    """The per-refresh diagnostics a mining run wrote (``mining/refresh_*.json``), in order."""
+    return [json.loads(p.read_text()) for p in sorted((run_dir / "mining").glob("refresh_*.json"))]
 
 
 def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[str, Any]:
@@ -219,13 +226,29 @@ def _report(summary: dict[str, Any]) -> str:
                          f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
         lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`. "
                   "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
+    mining = summary.get("mining_results") or []
+    if mining:
+        lines += [
+            "",
+            f"## Correspondence mining per round (`{summary.get('mining_config')}`; categories and yaws used for "
+            "measuring only)",
+            "",
+            "| round | refresh | pairs | same category | yaw median err., same-category asymmetric pairs (deg) | "
+            "context cosine threshold | seconds |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for i, m in enumerate(mining, 1):
+            for f in m["refreshes"]:
+                yaw = f"{f['yaw_median_err_deg']:.1f} ({f['yaw_pairs']} pairs)" if "yaw_median_err_deg" in f else "-"
+                lines.append(f"| {i} | {f['refresh']} | {f['pairs']} | {f['same_category']:.3f} | {yaw} | "
+                             f"{f['min_cosine']:.3f} | {f['seconds']} |")
+        lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
     lines += [
         "",
         "## Not yet in the rounds",
         "",
-        "Cross-scene correspondence mining (the encoder stays as view prediction left it) and detector "
-        "self-labelling are not implemented yet, so later rounds only continue the prototype EM from the "
-        "previous round's bank; the detector is trained once, before the rounds.",
+        ("The encoder is not fine-tuned between rounds (mining is off). " if not mining else "")
+        + "Detector self-labelling is not implemented yet: the detector is trained once, before the rounds.",
         "",
     ]
     return "\n".join(lines)
@@ -242,6 +265,7 @@ def run_em(
     boxes: str = "gt",
     extra_configs: list[str] | None = None,
     max_steps: int | None = None,
+    mining_config: str | None = "stages/mining.yaml",
 ) -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
@@ -257,6 +281,10 @@ def run_em(
             detector's boxes; needs ``detection``; metrics over the detections matched to GT at IoU 0.5).
         extra_configs: more configs composed after each stage's (e.g. ``trainer/gpu.yaml``, a data config).
         max_steps: override the training steps of the view-prediction stage.
+        mining_config: the correspondence-learning stage config run at the start of every round, fine-tuning
+            the encoder that the round's quantizer then uses (``stages/mining.yaml``: cross-scene mining;
+            ``stages/vc_moco.yaml`` or ``stages/vc.yaml``: the view-contrastive baselines); ``none``: no
+            fine-tuning, every round quantizes the view-prediction features.
     """
     if rounds < 0:
         raise ValueError(f"rounds: expected >= 0, got {rounds}")
@@ -268,6 +296,8 @@ def run_em(
     extra = [resolve_config(c) for c in (extra_configs or [])]
     vp_configs = [resolve_config(config), *extra]
     q_configs = [resolve_config(quantizer_config), *extra]
+    mine = mining_config not in (None, "", "none")
+    m_configs = [resolve_config(mining_config), *extra] if mine else []
     overrides = [f"--trainer.max_steps={max_steps}"] if max_steps is not None else []
     vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
     vp_ckpt = Path(vp["checkpoint"])
@@ -285,11 +315,19 @@ def run_em(
         if boxes == "detections":
             box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
     round_results: list[dict[str, Any]] = []
+    mining_results: list[dict[str, Any]] = []
     prev_bank: Path | None = None
-    # the rounds share one encoder until mining fine-tunes it: encode each scene once, not once per round
+    encoder = vp_ckpt
+    # Rounds share one crop cache, keyed by the encoder's weights: while the encoder does not change (no
+    # mining) each scene is encoded once, not once per round; after a mining stage the cache misses.
     crop_cache = CropCache()
     for r in range(1, rounds + 1):
-        q_over = [f"--model.init_args.encoder_ckpt={vp_ckpt}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
+        if mine:
+            m = _fit_stage(f"round {r} mining", m_configs, work / f"r{r:02d}_mining",
+                           [f"--model.init_args.encoder_ckpt={encoder}", *box_over], resume)
+            encoder = Path(m["checkpoint"])
+            mining_results.append({**m, "refreshes": _mining_diagnostics(work / f"r{r:02d}_mining")})
+        q_over = [f"--model.init_args.encoder_ckpt={encoder}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
                   *box_over]
         if prev_bank is not None:
             q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
@@ -306,7 +344,9 @@ def run_em(
     summary = {
         "work_dir": str(work),
         "rounds": rounds,
-        "round_stages_run": list(ROUND_STAGES) if rounds else [],
+        "round_stages_run": [st for st in ROUND_STAGES if st != "mining" or mine] if rounds else [],
+        "mining_config": str(m_configs[0]) if mine else None,
+        "mining_results": mining_results,
         "viewpred": vp,
         "viewpred_eval": vp_eval,
         "detector": det,

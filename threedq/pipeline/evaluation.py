@@ -21,12 +21,20 @@ from tqdm import tqdm
 
 from threedq.stages.base import EncoderStage
 from threedq.pipeline.crop_cache import CropCache, sample_key
-from threedq.geometry import crop_boxes
+from threedq.geometry import crop_boxes, yaw_angles
+from threedq.metrics import cluster_confusion, few_shot_accuracy, hungarian_accuracy, relative_yaw_error
 from threedq.metrics.retrieval import retrieval_precision_at_k
 from threedq.quantization.rotation_search import SEARCH_METHODS, all_pairs_rotation_max
 from threedq.nets import UNet3D
 
-__all__ = ["RETRIEVAL_SEARCH", "SEARCH_LABELS", "collect_object_crops", "evaluate_features", "retrieval_table"]
+__all__ = [
+    "RETRIEVAL_SEARCH",
+    "SEARCH_LABELS",
+    "collect_object_crops",
+    "evaluate_features",
+    "quantization_metrics",
+    "retrieval_table",
+]
 
 #: The rotation search every retrieval table of threedq uses unless told otherwise.
 RETRIEVAL_SEARCH = "fast"
@@ -156,3 +164,22 @@ def evaluate_features(
     crops = collect_object_crops(stage, loader, num_input_views=num_input_views, progress=progress)
     table, _ = retrieval_table(crops, k, num_angles, search)
     return {**table, "num_input_views": num_input_views}
+
+
+def quantization_metrics(
+    clusters: Tensor, angles: Tensor, num_angles: int, num_clusters: int, labels: Tensor, gt_yaw: Tensor,
+    num_classes: int, symmetry_order: list[int], shots: int = 2, seed: int = 0,
+) -> dict[str, float]:
+    """Hungarian accuracy, few-shot accuracy and relative yaw error of one assignment."""
+    conf = cluster_confusion(clusters, labels, num_clusters, num_classes)
+    fs = few_shot_accuracy(clusters, labels, shots=shots, seed=seed, num_clusters=num_clusters)
+    est = yaw_angles(num_angles, dtype=torch.float64)[angles]
+    yaw = relative_yaw_error(est, gt_yaw.double(), labels, clusters, symmetry_order)
+    return {
+        "hungarian_acc": float(hungarian_accuracy(conf)),
+        "fewshot_acc": float(fs["accuracy"]),
+        "yaw_median_deg": float(yaw["median_deg"]),
+        "yaw_acc_10": float(yaw["acc_10"]),
+        "yaw_acc_20": float(yaw["acc_20"]),
+        "yaw_pairs": int(yaw["num_pairs"]),
+    }

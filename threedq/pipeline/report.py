@@ -34,16 +34,18 @@ from torch.utils.data import DataLoader  # noqa: E402
 from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
-from threedq.pipeline.evaluation import RETRIEVAL_SEARCH, SEARCH_LABELS, collect_object_crops, retrieval_table  # noqa: E402
+from threedq.pipeline.evaluation import (  # noqa: E402
+    RETRIEVAL_SEARCH,
+    SEARCH_LABELS,
+    collect_object_crops,
+    quantization_metrics,
+    retrieval_table,
+)
 from threedq.pipeline.crop_cache import CropCache  # noqa: E402
+from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table  # noqa: E402
 from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
 from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
-from threedq.metrics import (  # noqa: E402
-    cluster_confusion,
-    few_shot_accuracy,
-    hungarian_accuracy,
-    relative_yaw_error,
-)
+from threedq.metrics import cluster_confusion, hungarian_accuracy  # noqa: E402
 from threedq.quantization.prototypes import fit_prototype_bank  # noqa: E402
 
 __all__ = ["run_eval", "quantization_metrics", "split_loader"]
@@ -64,25 +66,6 @@ def split_loader(dm: Any, split: str, batch_size: int = 4) -> DataLoader:
         match_iou=getattr(dm, "match_iou", 0.5), keep_unmatched=split == "train", max_boxes=getattr(dm, "max_boxes", 8),
     )
     return DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=0)
-
-
-def quantization_metrics(
-    clusters: Tensor, angles: Tensor, num_angles: int, num_clusters: int, labels: Tensor, gt_yaw: Tensor,
-    num_classes: int, symmetry_order: list[int], shots: int = 2, seed: int = 0,
-) -> dict[str, float]:
-    """Hungarian accuracy, few-shot accuracy and relative yaw error of one assignment."""
-    conf = cluster_confusion(clusters, labels, num_clusters, num_classes)
-    fs = few_shot_accuracy(clusters, labels, shots=shots, seed=seed, num_clusters=num_clusters)
-    est = yaw_angles(num_angles, dtype=torch.float64)[angles]
-    yaw = relative_yaw_error(est, gt_yaw.double(), labels, clusters, symmetry_order)
-    return {
-        "hungarian_acc": float(hungarian_accuracy(conf)),
-        "fewshot_acc": float(fs["accuracy"]),
-        "yaw_median_deg": float(yaw["median_deg"]),
-        "yaw_acc_10": float(yaw["acc_10"]),
-        "yaw_acc_20": float(yaw["acc_20"]),
-        "yaw_pairs": int(yaw["num_pairs"]),
-    }
 
 
 def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int,
@@ -314,6 +297,7 @@ def run_eval(
     em_iterations: int = 10,
     seed: int = 0,
     search: str = RETRIEVAL_SEARCH,
+    encoders: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """Evaluate a quantizer checkpoint on the held-out split; print and write the tables and figures.
 
@@ -328,6 +312,10 @@ def run_eval(
         seed: seed of the banks' initialisation order and of the few-shot draw.
         search: rotation search of the retrieval table: ``fast`` (default; what every threedq table uses) or
             ``exact``; the table names it.
+        encoders: ``{row name: checkpoint}`` of encoders to compare on the same test crops (paper Table 2 with
+            Hungarian, few-shot and yaw beside it; rows for raw crops and a random encoder are added), e.g.
+            ``{"rgbocc": "runs/viewpred/checkpoints/last.ckpt", "ours": "runs/mining/checkpoints/last.ckpt"}``.
+            Written to ``table2.json`` and ``table2.md``.
     """
 
     configs = [resolve_config(config), *(resolve_config(c) for c in (extra_configs or []))]
@@ -337,5 +325,15 @@ def run_eval(
                              curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
                              em_iterations=em_iterations, seed=seed, search=search)
     print(_markdown(res))
+    if encoders:
+        dm = cli.datamodule
+        table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test"), encoders,
+                                   len(dm.index.categories), list(dm.index.symmetry_order), dm.num_input_views,
+                                   K=cli.model.bank.active.numel(), num_angles=cli.model.hparams.num_angles,
+                                   em_iterations=em_iterations, seed=seed, search=search)
+        res["feature_sets"] = table
+        atomic_write_json(Path(out) / "table2.json", table)
+        atomic_write_text(Path(out) / "table2.md", feature_sets_markdown(table))
+        print(feature_sets_markdown(table))
     print(f"wrote {Path(out) / 'results.md'}, results.json and figures in {out}")
     return res

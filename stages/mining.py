@@ -1,0 +1,568 @@
+"""Correspondence learning (paper Sec. 3.3, Table 2): fine-tune the shared encoder by metric learning.
+
+One stage, three sources of positive pairs (``source``), all trained with InfoNCE at temperature 0.07:
+
+* ``vc`` (the paper's rgbocc+VC): the same world point inside an object box, seen through two disjoint view
+  sets of one scene (the sample's first ``num_input_views`` views and the next as many, both lifted into frame
+  R); ``voxels_per_object`` points per box; negatives are the other points of the batch (in-batch InfoNCE,
+  both sides trained).
+* ``vc_moco`` (rgbocc+VC*): the same pairs; the second view set goes through the momentum key encoder
+  (``moco.encoder_k``), negatives come from the queue (``moco.queue``, ``[Q, D]``).
+* ``mined`` (ours, supplement "3D correspondence mining"): every ``refresh_every`` steps a pool of
+  ``target_pool`` object crops (``crop_size^3``) is cut from random training scenes with the current encoder
+  (eval mode, no gradient), and the first ``query_pool`` of them are mined against the rest
+  (:func:`threedq.contrastive.mine_correspondences`: object-level rotation-max retrieval, the query patch
+  searched over each target's patch grid at ``num_angles`` yaws, verification by the context ring at
+  Manhattan distance ``context_distance``); the ``keep`` best verified pairs are kept. Each pair gives 8
+  positives: the corners of a ``2 * corner_offset``-voxel cube around the match in the query crop, each paired
+  with its best-matching voxel within ``+-corner_search`` voxels of the expected place in the target rotated
+  onto the query (keys computed at the refresh). A training step draws ``pairs_per_step`` pairs, re-encodes
+  their query scenes with the encoder being trained (the loader's batch is not used) and takes InfoNCE of
+  the query corners against their keys, with the queue as negatives. The queue is primed at the first refresh
+  with random voxels of the pool, so the first steps do not contrast against random vectors.
+
+Mining diagnostics (GT categories and yaws are used for measuring only): each refresh logs the number of
+pairs, the fraction whose two objects share a category, and the median error of the implied relative yaw on
+same-category pairs of asymmetric categories, and writes ``mining/refresh_<step>.json`` and a picture of the
+best pairs (``mining/refresh_<step>.png``) under the run's log folder.
+
+Whether view prediction stays on as a regulariser: it does not. The stage trains the encoder alone (the
+decoder is not loaded); ``docs/results.md`` gives the measurement this rests on.
+
+Convention: frame R metres, z up; crops ``[N, C, Z, Y, X]``; yaw counter-clockwise seen from above, index
+``b`` meaning ``2 pi b / num_angles``; the mined yaw rotates the TARGET crop onto the query.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch.utils.data import default_collate
+
+from threedq.atomic_io import atomic_write_bytes, atomic_write_text
+from threedq.contrastive import MomentumContrast, mine_correspondences
+from threedq.geometry import crop_boxes, rotate_yaw
+from threedq.metrics import RetrievalPrecisionAtK
+from threedq.stages.base import EncoderStage
+
+__all__ = ["Mining", "corner_offsets", "corner_keys", "implied_yaw_error_deg", "mined_pairs_figure"]
+
+SOURCES = ("vc", "vc_moco", "mined")
+
+
+def corner_offsets(corner_offset: int = 4, patch: int = 2, device: torch.device | str | None = None) -> Tensor:
+    """``[8, 3]`` long ``(dz, dy, dx)`` offsets from a patch start to the corners of a cube centred on the patch.
+
+    The cube's corners sit ``corner_offset - 0.5`` voxels (for ``patch=2``) from the patch centre along each
+    axis: offsets ``(patch // 2) - corner_offset`` and ``(patch // 2) + corner_offset - 1`` (``-3`` and ``4`` by
+    default, the corners of an 8^3 cube).
+    """
+    lo, hi = patch // 2 - corner_offset, patch // 2 + corner_offset - 1
+    vals = torch.tensor([lo, hi], device=device)
+    return torch.cartesian_prod(vals, vals, vals)
+
+
+def corner_keys(
+    query_crop: Tensor, query_pos: Tensor, target_aligned: Tensor, target_pos_aligned: Tensor,
+    offsets: Tensor, search: int = 1,
+) -> tuple[Tensor, Tensor]:
+    """Hard positives of one verified match: query corners and their best matches in the aligned target.
+
+    Args:
+        query_crop: ``[C, S, S, S]``; query_pos: ``[3]`` long patch start of the match in the query.
+        target_aligned: ``[C, S, S, S]`` the target rotated onto the query; target_pos_aligned ``[3]`` long.
+        offsets: ``[P, 3]`` long, from :func:`corner_offsets`.
+        search: the key is the voxel of highest cosine to the query corner within ``+-search`` voxels (per axis)
+            of the expected place ``target_pos_aligned + offset``.
+
+    Returns:
+        ``query_voxels`` ``[P, 3]`` long (clamped into the crop) and ``keys`` ``[P, C]`` L2-normalised.
+    """
+    size = torch.tensor(query_crop.shape[1:], device=query_crop.device)
+    qv = torch.minimum((query_pos + offsets).clamp_min(0), size - 1)
+    expected = target_pos_aligned + offsets  # [P, 3]
+    r = torch.arange(-search, search + 1, device=query_crop.device)
+    neigh = torch.cartesian_prod(r, r, r)  # [G, 3]
+    cand = torch.minimum((expected[:, None] + neigh[None]).clamp_min(0), size - 1)  # [P, G, 3]
+    qf = F.normalize(query_crop[:, qv[:, 0], qv[:, 1], qv[:, 2]].T, dim=1)  # [P, C]
+    tf = F.normalize(target_aligned[:, cand[..., 0], cand[..., 1], cand[..., 2]].permute(1, 2, 0), dim=2)  # [P, G, C]
+    best = torch.einsum("pc,pgc->pg", qf, tf).argmax(dim=1)
+    return qv, tf[torch.arange(tf.shape[0]), best]
+
+
+def implied_yaw_error_deg(yaw_index: Tensor, num_angles: int, query_yaw: Tensor, target_yaw: Tensor,
+                          symmetry: Tensor) -> Tensor:
+    """Error (degrees) of a mined yaw against GT: rotating the target by ``2 pi b / A`` should equal
+    ``query_yaw - target_yaw``, modulo the category's symmetry ``2 pi / symmetry``.
+
+    Args:
+        yaw_index: ``[P]`` long mined yaw steps; query_yaw, target_yaw: ``[P]`` GT yaws (radians);
+        symmetry: ``[P]`` long yaw symmetry order of the category (1 = asymmetric).
+
+    Returns:
+        ``[P]`` errors in ``[0, 180 / symmetry]`` degrees.
+    """
+    period = 2 * math.pi / symmetry.to(torch.float64)
+    d = yaw_index.to(torch.float64) * (2 * math.pi / num_angles) - (query_yaw - target_yaw).to(torch.float64)
+    d = torch.remainder(d, period)
+    return torch.rad2deg(torch.minimum(d, period - d))
+
+
+def _bev(raw: Tensor, scale: int) -> np.ndarray:
+    """Bird's-eye view of a raw ``[4, Z, Y, X]`` crop (occupancy, occupancy x RGB): the topmost occupied voxel's
+    colour, y up, as ``[Y*scale, X*scale, 3]`` uint8 RGB (grey where nothing is occupied)."""
+    occ, rgb = raw[0] > 0.5, raw[1:4]
+    z = torch.arange(occ.shape[0], device=raw.device)[:, None, None].expand_as(occ)
+    top = torch.where(occ, z, torch.full_like(z, -1)).amax(0)  # [Y, X]
+    col = rgb.gather(1, top.clamp_min(0)[None, None].expand(3, 1, *top.shape))[:, 0]  # [3, Y, X]
+    img = torch.where(top[None] >= 0, col, torch.full_like(col, 0.5)).flip(1)  # y up
+    a = (img.permute(1, 2, 0).float().clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
+    return cv2.resize(a, (a.shape[1] * scale, a.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+
+
+def mined_pairs_figure(query_raw: Tensor, target_raw_aligned: Tensor, query_pos: Tensor, target_pos_aligned: Tensor,
+                       captions: list[str], patch: int = 2, scale: int = 8) -> np.ndarray:
+    """Rows of mined pairs: query (bird's-eye view) | target rotated onto the query, matched patch boxed in red.
+
+    Args:
+        query_raw, target_raw_aligned: ``[P, 4, S, S, S]`` raw crops (target already rotated by the mined yaw).
+        query_pos, target_pos_aligned: ``[P, 3]`` long patch starts ``(z, y, x)``.
+        captions: one line of text per pair.
+
+    Returns:
+        ``[H, W, 3]`` uint8 RGB.
+    """
+    rows = []
+    for i in range(query_raw.shape[0]):
+        tiles = []
+        for raw, pos in ((query_raw[i], query_pos[i]), (target_raw_aligned[i], target_pos_aligned[i])):
+            img = np.ascontiguousarray(_bev(raw, scale))
+            S = raw.shape[-1]
+            y0 = (S - int(pos[1]) - patch) * scale  # flipped: y up
+            x0 = int(pos[2]) * scale
+            cv2.rectangle(img, (x0, y0), (x0 + patch * scale - 1, y0 + patch * scale - 1), (255, 0, 0), 2)
+            tiles.append(img)
+        h = tiles[0].shape[0]
+        row = np.concatenate([tiles[0], np.full((h, 4, 3), 255, np.uint8), tiles[1]], axis=1)
+        bar = np.full((18, row.shape[1], 3), 255, np.uint8)
+        cv2.putText(bar, captions[i][:40], (2, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        rows.append(np.concatenate([bar, row], axis=0))
+    if not rows:
+        return np.full((18, 18, 3), 255, np.uint8)
+    sep = np.full((4, rows[0].shape[1], 3), 255, np.uint8)
+    return np.concatenate([x for r in rows for x in (r, sep)][:-1], axis=0)
+
+
+class Mining(EncoderStage):
+    """The correspondence-learning stage (``vc``, ``vc_moco`` or ``mined``; see the module docstring).
+
+    Args:
+        grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
+            :class:`~threedq.stages.base.EncoderStage` (the encoder comes from view prediction or an earlier
+            round, and is fine-tuned).
+        source: ``"vc"``, ``"vc_moco"`` or ``"mined"``.
+        queue_size: MoCo negatives Q (paper: 100,000).
+        momentum: MoCo key-encoder momentum (paper: 0.999).
+        temperature: InfoNCE temperature (paper: 0.07).
+        lr: Adam learning rate of the fine-tuning.
+        crop_size: object crops are ``crop_size^3`` (paper: 16).
+        voxels_per_object: ``vc``/``vc_moco``: points sampled per object box (lineage: ~256).
+        query_pool: ``mined``: query crops per refresh (paper: 1000).
+        target_pool: ``mined``: crops cut per refresh; queries are the first ``query_pool`` of them, targets all
+            of them from other scenes (paper: 1000).
+        top_k: targets retrieved per query (paper: 30).
+        keep: verified pairs kept per refresh (paper: 200).
+        num_angles: yaw steps of retrieval and patch search (paper: 36).
+        patch: query patch edge in voxels (paper: 2).
+        search_grid: patch-grid positions per axis in each target (paper: 4).
+        context_distance: Manhattan distance of the context patches (paper: 6).
+        min_cosine: cosine at which a context patch counts as found; ``None`` calibrates it per refresh as the
+            ``context_quantile`` quantile, over random patch pairs of different pool crops, of the best cosine
+            within +-1 voxel (on view-prediction features any fixed threshold up to ~0.95 passes every context
+            patch).
+        context_quantile: the quantile of that calibration.
+        min_score: verification score (fraction of context found) a pair needs.
+        corner_offset: positives are the corners of a ``2 * corner_offset`` cube around the match (lineage: 8^3).
+        corner_search: each corner's key is its best match within ``+-corner_search`` voxels (lineage: 3^3).
+        yaw_window: search the query patch only within this many yaw steps of the object-level retrieval's yaw
+            (``None``: all yaws, as the paper; see :func:`~threedq.contrastive.mine_correspondences`).
+        rank_by: which verified pairs are kept: ``"score"`` (verification score, the paper's) or
+            ``"retrieval"`` (object-level similarity among the verified ones).
+        refresh_every: steps between pool refreshes (the first is at step 0).
+        pairs_per_step: mined pairs (query scenes encoded) per training step.
+        pool_batch_size: scenes encoded at once while cutting the pool.
+        seed: seed of the pool draws (offset by the refresh count and the process rank).
+        retrieval_k: K of the validation/test precision@K.
+
+    Convention: see the module docstring.
+    """
+
+    def __init__(
+        self,
+        grid_min: tuple[float, float, float] | None = None,
+        grid_max: tuple[float, float, float] | None = None,
+        grid_resolution: tuple[int, int, int] | None = None,
+        feature_dim: int | None = None,
+        encoder_ckpt: str | None = None,
+        freeze_encoder: bool = False,
+        channels_last: bool = True,
+        source: Literal["vc", "vc_moco", "mined"] = "mined",
+        queue_size: int = 100_000,
+        momentum: float = 0.999,
+        temperature: float = 0.07,
+        lr: float = 1e-4,
+        crop_size: int = 16,
+        voxels_per_object: int = 256,
+        query_pool: int = 1000,
+        target_pool: int = 1000,
+        top_k: int = 30,
+        keep: int = 200,
+        num_angles: int = 36,
+        patch: int = 2,
+        search_grid: int = 4,
+        context_distance: int = 6,
+        min_cosine: float | None = None,
+        context_quantile: float = 0.95,
+        min_score: float = 0.5,
+        corner_offset: int = 4,
+        corner_search: int = 1,
+        yaw_window: int | None = None,
+        rank_by: Literal["score", "retrieval"] = "score",
+        refresh_every: int = 200,
+        pairs_per_step: int = 4,
+        pool_batch_size: int = 4,
+        seed: int = 0,
+        retrieval_k: int = 10,
+    ) -> None:
+        if source not in SOURCES:
+            raise ValueError(f"source: expected one of {SOURCES}, got {source!r}")
+        if freeze_encoder:
+            raise ValueError("freeze_encoder: the mining stage fine-tunes the encoder; it cannot be frozen")
+        for name, v in (("voxels_per_object", voxels_per_object), ("query_pool", query_pool),
+                        ("target_pool", target_pool), ("keep", keep), ("refresh_every", refresh_every),
+                        ("pairs_per_step", pairs_per_step), ("pool_batch_size", pool_batch_size),
+                        ("top_k", top_k), ("crop_size", crop_size)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        if query_pool > target_pool:
+            raise ValueError(f"query_pool: the queries are the first query_pool of the target_pool crops, so "
+                             f"query_pool ({query_pool}) must be <= target_pool ({target_pool})")
+        if min_cosine is not None and not -1.0 <= min_cosine <= 1.0:
+            raise ValueError(f"min_cosine: expected None or a number in [-1, 1], got {min_cosine!r}")
+        if not 0.0 < context_quantile < 1.0:
+            raise ValueError(f"context_quantile: expected a number in (0, 1), got {context_quantile!r}")
+        if 2 * corner_offset > crop_size:
+            raise ValueError(f"corner_offset: a cube of 2 * {corner_offset} voxels does not fit a crop of {crop_size}")
+        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
+        self.save_hyperparameters()
+        self.moco = MomentumContrast(self.encoder, dim=self.feature_dim, queue_size=queue_size, momentum=momentum,
+                                     temperature=temperature)
+        self.register_buffer("queue_primed", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("refreshes", torch.zeros((), dtype=torch.long))
+        self.metrics = torch.nn.ModuleDict({
+            split: RetrievalPrecisionAtK(k=retrieval_k, num_angles=num_angles) for split in ("val", "test")
+        })
+        self._pairs: dict[str, Tensor] | None = None
+        self._refreshed_at = -1
+        #: per refresh, the diagnostics written to ``mining/refresh_<step>.json``
+        self.mining_history: list[dict[str, Any]] = []
+
+    # ------------------------------------------------------------------ view-contrastive sources
+    def _two_view_sets(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        n = self.input_views(batch)
+        S = batch["rgb"].shape[1]
+        if S < 2 * n:
+            raise ValueError(f"rgb: source {self.hparams.source!r} needs two disjoint sets of {n} views per sample, "
+                             f"got {S} views (set the data's num_target_views >= num_input_views)")
+        sets = []
+        for lo in (0, n):
+            sets.append(tuple(batch[k][:, lo:lo + n] for k in ("rgb", "depth", "K", "R_T_cam")))
+        return sets[0], sets[1]
+
+    def _object_points(self, feats: Tensor, aabb: Tensor, mask: Tensor, idx: Tensor) -> Tensor:
+        """Features ``[P, C]`` at the sampled cells ``idx`` ``[N, V]`` of every valid box's ``crop_size^3`` crop."""
+        s = self.hparams.crop_size
+        crops = crop_boxes(feats, aabb, self.feature_grid, s)[mask]  # [N, C, s, s, s]
+        flat = crops.flatten(2)  # [N, C, s^3]
+        pts = flat.gather(2, idx[:, None].expand(-1, flat.shape[1], -1))  # [N, C, V]
+        return F.normalize(pts.permute(0, 2, 1).reshape(-1, flat.shape[1]), dim=1)
+
+    def _vc_step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        a, b = self._two_view_sets(batch)
+        mask = batch["box_mask"]
+        n_obj = int(mask.sum())
+        if n_obj == 0:
+            return {"loss": None}
+        s, V = self.hparams.crop_size, self.hparams.voxels_per_object
+        idx = torch.randint(0, s ** 3, (n_obj, min(V, s ** 3)), device=self.device)
+        q = self._object_points(self.encode_views(*a), batch["aabb"], mask, idx)
+        if self.hparams.source == "vc":
+            k = self._object_points(self.encode_views(*b), batch["aabb"], mask, idx)
+            logits_neg = q @ k.T  # in-batch: the other points' keys are the negatives
+            pos = (q * k).sum(1, keepdim=True)
+            off = ~torch.eye(q.shape[0], dtype=torch.bool, device=q.device)
+            logits = torch.cat([pos, logits_neg[off].view(q.shape[0], -1)], dim=1) / self.hparams.temperature
+            loss = F.cross_entropy(logits, torch.zeros(q.shape[0], dtype=torch.long, device=q.device))
+            return {"loss": loss, "positives": q.shape[0], "pos_cos": pos.mean()}
+        with torch.no_grad():
+            self.moco._momentum_update_key_encoder()
+            k = self._encode_keys(*b, batch["aabb"], mask, idx)
+        loss = self.moco.loss(q, k)
+        self._enqueue(k)
+        return {"loss": loss, "positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
+
+    def _encode_keys(self, rgb: Tensor, depth: Tensor, K: Tensor, pose: Tensor, aabb: Tensor, mask: Tensor,
+                     idx: Tensor) -> Tensor:
+        """Keys: the second view set through the momentum encoder (eval mode), at the same points as the queries."""
+        x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
+        self.moco.encoder_k.eval()
+        feats = self.encode_input(x, seen, rgb.shape[1], encoder=self.moco.encoder_k)
+        return self._object_points(feats, aabb, mask, idx)
+
+    def _enqueue(self, k: Tensor) -> None:
+        keys = self.all_gather(k.detach())
+        self.moco._dequeue_and_enqueue(keys.reshape(-1, k.shape[-1]))
+
+    # ------------------------------------------------------------------ mined source
+    def _train_dataset(self) -> Any:
+        loader = self.trainer.train_dataloader
+        ds = getattr(loader, "dataset", None)
+        if ds is None:
+            raise RuntimeError("mining: the training dataloader has no .dataset to draw the pools from")
+        return ds
+
+    @torch.no_grad()
+    def _cut_pool(self, ds: Any, generator: torch.Generator) -> dict[str, Tensor]:
+        """Crops of at least ``target_pool`` objects (or all) from random training scenes, encoder in eval mode."""
+        was_training = self.encoder.training
+        self.encoder.eval()
+        want = self.hparams.target_pool
+        order = torch.randperm(len(ds), generator=generator).tolist()
+        parts: dict[str, list[Tensor]] = {k: [] for k in ("features", "raw", "labels", "yaw", "scene", "slot")}
+        got, i = 0, 0
+        try:
+            while got < want and i < len(order):
+                idx = order[i:i + self.hparams.pool_batch_size]
+                i += len(idx)
+                batch = self._to_device(default_collate([ds[j] for j in idx]))
+                c = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
+                mask = batch["box_mask"]
+                slot = torch.arange(mask.shape[1], device=self.device)[None].expand_as(mask)[mask]
+                for k, v in (("features", c["features"]), ("raw", c["raw"]), ("labels", c["labels"]),
+                             ("yaw", c["boxes"][:, 6]), ("scene", c["scene"]), ("slot", slot)):
+                    parts[k].append(v)
+                got += int(mask.sum())
+        finally:
+            self.encoder.train(was_training)
+        out = {k: torch.cat(v)[:want] for k, v in parts.items()}
+        return out
+
+    def _to_device(self, batch: dict[str, Any]) -> dict[str, Any]:
+        return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
+
+    def _calibrate(self, crops: Tensor, scene: Tensor, generator: torch.Generator) -> float:
+        """The context threshold: the ``context_quantile`` quantile, over random patch pairs of crops of different
+        scenes, of the best cosine within +-1 voxel (what verification takes for a context patch)."""
+        p, n, s = self.hparams.patch, crops.shape[0], crops.shape[-1]
+        m = 2048
+        a = torch.randint(0, n, (m,), generator=generator)
+        b = torch.randint(0, n, (m,), generator=generator)
+        keep = scene.cpu()[a] != scene.cpu()[b]
+        a, b = a[keep], b[keep]
+        if a.numel() == 0:
+            return 0.5
+        pa = torch.randint(0, s - p + 1, (a.numel(), 3), generator=generator)
+        pb = torch.randint(1, s - p, (a.numel(), 3), generator=generator)  # room for the +-1 neighbourhood
+        r = torch.arange(p)
+        off = torch.cartesian_prod(r, r, r)  # [p^3, 3]
+        one = torch.arange(-1, 2)
+        near = torch.cartesian_prod(one, one, one)  # [27, 3]
+
+        def vecs(idx: Tensor, pos: Tensor) -> Tensor:  # pos [m, ..., 3] -> [m, ..., C * p^3]
+            v = pos[..., None, :] + off  # [m, ..., p^3, 3]
+            i = idx.view(-1, *([1] * (v.ndim - 2))).expand(v.shape[:-1]).to(crops.device)
+            f = crops[i, :, v[..., 0], v[..., 1], v[..., 2]]  # [m, ..., p^3, C]
+            return F.normalize(f.flatten(-2).float(), dim=-1)
+
+        cos = torch.einsum("mf,mef->me", vecs(a, pa), vecs(b, pb[:, None] + near)).amax(dim=1)
+        return float(cos.quantile(self.hparams.context_quantile))
+
+    @torch.no_grad()
+    def refresh_pairs(self) -> dict[str, Any]:
+        """Cut a new pool, mine it, compute the corner keys; log and write the diagnostics. Returns them."""
+        hp = self.hparams
+        t0 = time.time()
+        rank = self.trainer.global_rank if self.trainer is not None else 0
+        g = torch.Generator().manual_seed(hp.seed + 1009 * int(self.refreshes) + 7919 * rank)
+        pool = self._cut_pool(self._train_dataset(), g)
+        feats = pool["features"]
+        n_t = feats.shape[0]
+        n_q = min(hp.query_pool, n_t)
+        if not bool(self.queue_primed):
+            flat = feats.permute(0, 2, 3, 4, 1).reshape(-1, feats.shape[1])
+            pick = torch.randint(0, flat.shape[0], (self.moco.queue.shape[0],), generator=g).to(flat.device)
+            self.moco.queue.copy_(F.normalize(flat[pick], dim=1))
+            self.queue_primed.fill_(True)
+        min_cos = hp.min_cosine if hp.min_cosine is not None else self._calibrate(feats, pool["scene"], g)
+        exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
+        mined = mine_correspondences(
+            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, num_angles=hp.num_angles, exclude=exclude,
+            patch=hp.patch, grid=hp.search_grid, context_distance=hp.context_distance, min_cosine=min_cos,
+            min_score=hp.min_score, yaw_window=hp.yaw_window, rank_by=hp.rank_by,
+        )
+        qi, ti, yaw = mined["query_index"], mined["target_index"], mined["yaw"]
+        P = qi.numel()
+        offsets = corner_offsets(hp.corner_offset, hp.patch, device=feats.device)
+        angle = yaw.to(feats.dtype) * (2 * math.pi / hp.num_angles)
+        q_vox, keys = [], []
+        if P:
+            aligned = rotate_yaw(feats[ti], angle)  # [P, C, S, S, S]
+            for j in range(P):
+                v, k = corner_keys(feats[qi[j]], mined["query_pos"][j], aligned[j], mined["target_pos_aligned"][j],
+                                   offsets, hp.corner_search)
+                q_vox.append(v)
+                keys.append(k)
+        C = feats.shape[1]
+        self._pairs = {
+            "scene": pool["scene"][qi], "slot": pool["slot"][qi],
+            "query_voxels": torch.stack(q_vox) if P else offsets.new_zeros(0, 8, 3),
+            "keys": torch.stack(keys) if P else feats.new_zeros(0, 8, C),
+        }
+        self._refreshed_at = self.global_step
+        self.refreshes += 1
+        info = self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0)
+        return info
+
+    def _diagnostics(self, pool: dict[str, Tensor], mined: dict[str, Tensor], min_cos: float, n_q: int,
+                     seconds: float) -> dict[str, Any]:
+        hp = self.hparams
+        qi, ti = mined["query_index"], mined["target_index"]
+        lq, lt = pool["labels"][qi], pool["labels"][ti]
+        labelled = (lq >= 0) & (lt >= 0)
+        same = (lq == lt) & labelled
+        info: dict[str, Any] = {
+            "step": int(self.global_step), "refresh": int(self.refreshes), "pool_objects": int(pool["features"].shape[0]),
+            "queries": n_q, "pairs": int(qi.numel()), "min_cosine": round(min_cos, 4),
+            "score_mean": float(mined["score"].mean()) if qi.numel() else float("nan"),
+            "same_category": float(same.sum() / labelled.sum()) if labelled.any() else float("nan"),
+            "seconds": round(seconds, 1),
+        }
+        sym = self._symmetry()
+        if sym is not None and same.any():
+            s = sym.to(qi.device)[lq.clamp_min(0)]
+            use = same & (s == 1)
+            if use.any():
+                err = implied_yaw_error_deg(mined["yaw"][use], hp.num_angles, pool["yaw"][qi][use],
+                                            pool["yaw"][ti][use], s[use])
+                info["yaw_median_err_deg"] = float(err.median())
+                info["yaw_pairs"] = int(use.sum())
+        self.mining_history.append(info)
+        if self.trainer is not None:
+            self.log_dict({f"mining/{k}": float(v) for k, v in info.items()
+                           if k in ("pairs", "same_category", "yaw_median_err_deg", "min_cosine", "seconds")},
+                          rank_zero_only=True)
+            if self.trainer.is_global_zero:
+                self._write_diagnostics(info, pool, mined)
+        return info
+
+    def _symmetry(self) -> Tensor | None:
+        index = getattr(getattr(self.trainer, "datamodule", None), "index", None) if self.trainer else None
+        if index is None:
+            return None
+        return torch.tensor(list(index.symmetry_order), dtype=torch.long)
+
+    def _write_diagnostics(self, info: dict[str, Any], pool: dict[str, Tensor], mined: dict[str, Tensor]) -> None:
+        out = Path(self.trainer.log_dir or self.trainer.default_root_dir) / "mining"
+        name = f"refresh_{info['step']:06d}"
+        atomic_write_text(out / f"{name}.json", json.dumps(info, indent=1) + "\n")
+        n = min(8, mined["query_index"].numel())
+        if n == 0:
+            return
+        qi, ti, yaw = mined["query_index"][:n], mined["target_index"][:n], mined["yaw"][:n]
+        angle = yaw.to(pool["raw"].dtype) * (2 * math.pi / self.hparams.num_angles)
+        aligned = rotate_yaw(pool["raw"][ti], angle)
+        lab = pool["labels"]
+        captions = [f"score {float(mined['score'][j]):.2f} yaw {int(yaw[j]) * 360 // self.hparams.num_angles} deg "
+                    f"{'same' if int(lab[qi[j]]) == int(lab[ti[j]]) else 'other'} category" for j in range(n)]
+        img = mined_pairs_figure(pool["raw"][qi], aligned, mined["query_pos"][:n], mined["target_pos_aligned"][:n],
+                                 captions, self.hparams.patch)
+        ok, png = cv2.imencode(".png", img[:, :, ::-1])
+        if ok:
+            atomic_write_bytes(out / f"{name}.png", png.tobytes())
+
+    def _mined_step(self) -> dict[str, Any]:
+        hp = self.hparams
+        if self._pairs is None or (self.global_step % hp.refresh_every == 0 and self.global_step != self._refreshed_at):
+            self.refresh_pairs()
+        pairs = self._pairs
+        P = pairs["scene"].numel()
+        if P == 0:
+            return {"loss": None}
+        pick = torch.randperm(P)[: hp.pairs_per_step].to(pairs["scene"].device)
+        scenes = pairs["scene"][pick]
+        uniq, inv = scenes.unique(return_inverse=True)
+        ds = self._train_dataset()
+        batch = self._to_device(default_collate([ds[int(s)] for s in uniq.tolist()]))
+        v = self.input_views(batch)
+        feats = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+        crops = crop_boxes(feats, batch["aabb"], self.feature_grid, hp.crop_size)  # [B, M, C, s, s, s]
+        qv = pairs["query_voxels"][pick]  # [n, 8, 3]
+        sel = crops[inv, pairs["slot"][pick]]  # [n, C, s, s, s]
+        n = sel.shape[0]
+        q = sel[torch.arange(n, device=sel.device)[:, None], :, qv[..., 0], qv[..., 1], qv[..., 2]]  # [n, 8, C]
+        q = F.normalize(q.reshape(-1, q.shape[-1]), dim=1)
+        k = pairs["keys"][pick].reshape(-1, q.shape[-1]).to(q.dtype)
+        with torch.no_grad():
+            self.moco._momentum_update_key_encoder()
+        loss = self.moco.loss(q, k)
+        self._enqueue(k)
+        return {"loss": loss, "positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
+
+    # ------------------------------------------------------------------ Lightning hooks
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor | None:
+        r = self._mined_step() if self.hparams.source == "mined" else self._vc_step(batch)
+        if r["loss"] is None:
+            return None  # no objects / no verified pairs: skip the step
+        self.log_dict({"train/loss": r["loss"], "train/pos_cos": r["pos_cos"],
+                       "train/positives": float(r["positives"])}, prog_bar=True, batch_size=1)
+        return r["loss"]
+
+    def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:
+        crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
+        if crops["features"].shape[0]:
+            keep = crops["labels"] >= 0
+            self.metrics[split].update(crops["features"][keep], crops["labels"][keep])
+
+    def _eval_epoch_end(self, split: str) -> None:
+        m = self.metrics[split]
+        if m.crops:
+            n = sum(c.shape[0] for c in m.crops) if isinstance(m.crops, list) else m.crops.shape[0]
+            if n > self.hparams.retrieval_k:
+                self.log(f"{split}/precision_at_{self.hparams.retrieval_k}", m.compute(), prog_bar=True)
+        m.reset()
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "val")
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_epoch_end("val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "test")
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_epoch_end("test")
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        params = [p for p in self.encoder.parameters() if p.requires_grad]
+        return torch.optim.Adam(params, lr=self.hparams.lr)
+

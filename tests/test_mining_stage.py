@@ -1,0 +1,183 @@
+"""The correspondence-learning stage (stages/mining.py): its pieces against hand-computed cases, and a short fit
+of each of the three sources (vc, vc_moco, mined) on the tiny fixture."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from threedq.stages.mining import Mining, corner_keys, corner_offsets, implied_yaw_error_deg, mined_pairs_figure
+
+
+class TestCornerOffsets:
+    def test_hand_computed(self) -> None:
+        off = corner_offsets(4, 2)
+        assert off.shape == (8, 3)
+        assert set(off.flatten().tolist()) == {-3, 4}
+        # centred on the patch centre (start + 0.5): corners at -3.5 and +3.5
+        assert torch.allclose(off.float().mean(0), torch.full((3,), 0.5))
+        assert len({tuple(r) for r in off.tolist()}) == 8
+
+    def test_patch_of_four(self) -> None:
+        assert set(corner_offsets(3, 4).flatten().tolist()) == {-1, 4}
+
+
+class TestCornerKeys:
+    def test_planted_shift_and_jitter(self) -> None:
+        torch.manual_seed(0)
+        q = F.normalize(torch.randn(8, 16, 16, 16), dim=0)
+        shift = torch.tensor([1, -2, 2])
+        t = torch.roll(q, shifts=tuple(shift.tolist()), dims=(1, 2, 3))  # target = query moved by +shift
+        qpos = torch.tensor([6, 7, 5])
+        off = corner_offsets(4, 2)
+        voxels, keys = corner_keys(q, qpos, t, qpos + shift, off, search=0)
+        assert torch.equal(voxels, qpos + off)
+        expect = F.normalize(q[:, voxels[:, 0], voxels[:, 1], voxels[:, 2]].T, dim=1)
+        assert torch.allclose(keys, expect, atol=1e-6)
+        # the match is off by one voxel: the 3^3 search finds the true corners again, no search does not
+        _, found = corner_keys(q, qpos, t, qpos + shift + torch.tensor([0, 1, 0]), off, search=1)
+        assert torch.allclose(found, expect, atol=1e-6)
+        _, missed = corner_keys(q, qpos, t, qpos + shift + torch.tensor([0, 1, 0]), off, search=0)
+        assert not torch.allclose(missed, expect, atol=1e-3)
+
+    def test_clamped_into_the_crop(self) -> None:
+        q = torch.randn(4, 8, 8, 8)
+        voxels, keys = corner_keys(q, torch.tensor([0, 0, 6]), q, torch.tensor([0, 0, 6]), corner_offsets(4, 2), 1)
+        assert voxels.min() >= 0 and voxels.max() <= 7 and keys.shape == (8, 4)
+
+
+class TestImpliedYawError:
+    def test_hand_computed(self) -> None:
+        A = 36
+        # query at 50 deg, target at 20 deg: rotating the target by 30 deg (b = 3) aligns it
+        err = implied_yaw_error_deg(torch.tensor([3, 4, 33]), A, torch.full((3,), math.radians(50)),
+                                    torch.full((3,), math.radians(20)), torch.ones(3, dtype=torch.long))
+        assert torch.allclose(err, torch.tensor([0.0, 10.0, 60.0], dtype=torch.float64), atol=1e-5)
+
+    def test_symmetry(self) -> None:
+        # a 2-fold symmetric object: 180 deg off is no error
+        err = implied_yaw_error_deg(torch.tensor([18]), 36, torch.zeros(1), torch.zeros(1), torch.tensor([2]))
+        assert float(err) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_mined_pairs_figure() -> None:
+    raw = torch.zeros(2, 4, 8, 8, 8)
+    raw[:, 0, :3] = 1.0
+    raw[:, 1:, :3] = 0.3
+    img = mined_pairs_figure(raw, raw, torch.tensor([[0, 1, 2], [2, 2, 2]]), torch.tensor([[0, 3, 3], [1, 1, 1]]),
+                             ["a", "b"], scale=4)
+    assert img.dtype.name == "uint8" and img.shape[2] == 3
+    assert img.shape[0] == 2 * (18 + 32) + 4 and img.shape[1] == 2 * 32 + 4
+    assert (img[..., 0] == 255).any() and ((img[..., 0] == 255) & (img[..., 1] == 0)).any()  # red patch boxes
+
+
+class TestMiningStageErrors:
+    def test_bad_arguments(self) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
+        with pytest.raises(ValueError, match="source"):
+            Mining(source="views", **kw)
+        with pytest.raises(ValueError, match="freeze_encoder"):
+            Mining(freeze_encoder=True, **kw)
+        with pytest.raises(ValueError, match="query_pool"):
+            Mining(query_pool=20, target_pool=10, **kw)
+        with pytest.raises(ValueError, match="corner_offset"):
+            Mining(crop_size=8, corner_offset=5, **kw)
+        with pytest.raises(ValueError, match="min_cosine"):
+            Mining(min_cosine=2.0, **kw)
+
+    def test_vc_needs_two_view_sets(self) -> None:
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, source="vc")
+        batch = {"rgb": torch.rand(1, 1, 3, 32, 32), "num_input_views": torch.tensor([1])}
+        with pytest.raises(ValueError, match="two disjoint sets"):
+            m._two_view_sets(batch)
+
+
+def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
+    cfg = tmp_path / f"tiny_{source}.yaml"
+    cfg.write_text(
+        f"""
+model:
+  init_args:
+    grid_resolution: [32, 32, 16]
+    encoder_ckpt: {encoder_ckpt}
+    crop_size: 8
+    queue_size: 256
+    voxels_per_object: 16
+    query_pool: 6
+    target_pool: 12
+    top_k: 3
+    keep: 5
+    num_angles: 8
+    search_grid: 2
+    context_distance: 2
+    min_score: 0.0
+    corner_offset: 2
+    refresh_every: 2
+    pairs_per_step: 2
+    pool_batch_size: 2
+    retrieval_k: 1
+data:
+  init_args:
+    data_dir: {data_dir}
+    num_scenes: 12
+    image_size: [32, 32]
+    num_views: 4
+    generator_workers: 1
+    batch_size: 2
+trainer:
+  max_steps: 3
+  precision: 32-true
+  limit_val_batches: 1
+  val_check_interval: 3
+  enable_progress_bar: false
+  enable_model_summary: false
+  log_every_n_steps: 1
+"""
+    )
+    return cfg
+
+
+@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined"])
+def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path) -> None:
+    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+    from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
+
+    torch.manual_seed(0)
+    enc = tmp_path / "enc.pt"
+    start = EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict()
+    torch.save(start, enc)
+    run = tmp_path / source
+    name = "mining" if source == "mined" else source
+    cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),
+                           "--config", str(_config(tmp_path, tiny_dataset, enc, source)),
+                           f"--trainer.default_root_dir={run}"])
+    model = cli.model
+    assert isinstance(model, Mining) and model.hparams.source == source
+    assert model.trainer.global_step == 3
+    logged = cli.trainer.logged_metrics
+    assert "train/loss" in logged and torch.isfinite(logged["train/loss"])
+    assert "val/precision_at_1" in logged
+    ckpt = run / "checkpoints" / "last.ckpt"
+    state = torch.load(ckpt, weights_only=True, map_location="cpu")["state_dict"]
+    assert state["moco.queue"].shape == (256, 32) and "moco.queue_ptr" in state
+    tuned = encoder_state_from_checkpoint(ckpt)
+    assert any(not torch.equal(tuned[k], start[k]) for k in start if start[k].is_floating_point())
+    if source == "vc":
+        assert int(state["moco.queue_ptr"]) == 0  # in-batch negatives: the queue is not used
+    else:
+        assert int(state["moco.queue_ptr"]) > 0
+        # the key encoder moved towards the query encoder but lags it (momentum 0.999)
+        k0 = next(k for k in start if k.endswith("weight"))
+        assert not torch.equal(state[f"moco.encoder_k.{k0}"], tuned[k0])
+    if source == "mined":
+        assert bool(state["queue_primed"]) and int(state["refreshes"]) == 2  # steps 0 and 2
+        logs = sorted((run / "mining").glob("refresh_*.json"))
+        assert [p.name for p in logs] == ["refresh_000000.json", "refresh_000002.json"]
+        info = json.loads(logs[0].read_text())
+        assert info["pairs"] >= 1 and 0.0 <= info["same_category"] <= 1.0 and info["queries"] == 6
+        assert (run / "mining" / "refresh_000000.png").is_file()
