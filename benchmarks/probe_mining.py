@@ -7,6 +7,7 @@ category, the same for the plain top-k object retrieval and its top-1, and the v
 Run it from the folder of a finished ``threedq em`` (it reads ``data/clevr_veggie``):
 
     python benchmarks/probe_mining.py --ckpt runs/em/r04_quantizer/checkpoints/last.ckpt --min_cosine 0.5
+    python benchmarks/probe_mining.py --ckpt ... --min_cosine 0.95 --yaw_window 1 --rank_by retrieval
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from threedq.contrastive import mine_correspondences, retrieve_targets  # noqa: 
 from threedq.pipeline.evaluation import collect_object_crops  # noqa: E402
 from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
 from threedq.pipeline.report import split_loader  # noqa: E402
+from threedq.stages.mining import implied_yaw_error_deg  # noqa: E402
 
 
 def main() -> None:
@@ -35,6 +37,8 @@ def main() -> None:
     ap.add_argument("--top_k", type=int, default=30)
     ap.add_argument("--keep", type=int, default=200)
     ap.add_argument("--min_cosine", type=float, default=0.5)
+    ap.add_argument("--yaw_window", type=int, default=None, help="patch yaw within this many steps of the retrieval's")
+    ap.add_argument("--rank_by", default="score", choices=["score", "retrieval"])
     args = ap.parse_args()
     torch.manual_seed(0)
     cli, _ = test_checkpoint([resolve_config(args.config)], args.ckpt, "runs/probe_mining")
@@ -44,11 +48,19 @@ def main() -> None:
     n = min(args.queries, f.shape[0])
     exclude = scene[:n, None] == scene[None, :]
     t0 = time.time()
-    out = mine_correspondences(f[:n], f, top_k=args.top_k, keep=args.keep, exclude=exclude, min_cosine=args.min_cosine)
+    out = mine_correspondences(f[:n], f, top_k=args.top_k, keep=args.keep, exclude=exclude, min_cosine=args.min_cosine,
+                               yaw_window=args.yaw_window, rank_by=args.rank_by)
     seconds = time.time() - t0
     qi, ti = out["query_index"], out["target_index"]
     idx, _, _ = retrieve_targets(f[:n], f, top_k=args.top_k, exclude=exclude)
     print(f"machine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  checkpoint: {args.ckpt}")
+    sym = torch.tensor(list(cli.datamodule.index.symmetry_order))
+    same = lab[qi] == lab[ti]
+    use = same & (sym[lab[qi]] == 1)
+    yaw_err = (implied_yaw_error_deg(out["yaw"][use], 36, crops["boxes"][qi[use], 6], crops["boxes"][ti[use], 6],
+                                     sym[lab[qi[use]]]).median() if use.any() else float("nan"))
+    print(f"options: min_cosine {args.min_cosine}, yaw_window {args.yaw_window}, rank_by {args.rank_by}; yaw median "
+          f"error of same-category asymmetric pairs: {float(yaw_err):.1f} deg ({int(use.sum())} pairs)")
     print(f"| min_cosine | queries | pairs kept | mined pairs, same category | top-{args.top_k} retrieval, same "
           "category | top-1 retrieval, same category | score p10 / p50 / p90 | seconds |")
     print("|---|---|---|---|---|---|---|---|")

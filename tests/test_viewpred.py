@@ -232,7 +232,7 @@ class TestEm:
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
-        summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg])
+        summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none")
         reused = re.search(r"crop cache: (\d+) reused, (\d+) computed", capsys.readouterr().out)
         # round 2 and its evaluation encode nothing new: the same encoder, views and boxes as round 1
         assert reused is not None and int(reused[1]) > 0 and int(reused[1]) >= int(reused[2]) // 2
@@ -256,9 +256,31 @@ class TestEm:
         assert list((run / "images").glob("*.png")) and (run / "metrics.csv").is_file()
         stamp = (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns
         capsys.readouterr()
-        run_em(rounds=2, work_dir=str(work), extra_configs=[cfg])
+        run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none")
         assert "finished earlier" in capsys.readouterr().out
         assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
+
+    def test_round_with_mining(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
+        """A round fine-tunes the encoder by mining first; its quantizer runs on that encoder, not view prediction's."""
+        from threedq.pipeline.em import run_em
+        from threedq.stages.base import encoder_state_from_checkpoint
+
+        cfg = _em_config(tmp_path, tiny_dataset)
+        work = tmp_path / "em"
+        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], detection=False)
+        assert summary["round_stages_run"] == ["mining", "quantizer"]
+        mined = work / "r01_mining" / "checkpoints" / "last.ckpt"
+        assert summary["mining_results"][0]["checkpoint"] == str(mined)
+        refreshes = summary["mining_results"][0]["refreshes"]
+        assert refreshes and refreshes[0]["pairs"] >= 1 and 0 <= refreshes[0]["same_category"] <= 1
+        vp = encoder_state_from_checkpoint(work / "00_viewpred" / "checkpoints" / "last.ckpt")
+        tuned = encoder_state_from_checkpoint(mined)
+        used = encoder_state_from_checkpoint(work / "r01_quantizer" / "checkpoints" / "last.ckpt")
+        assert all(torch.equal(used[k], tuned[k]) for k in tuned)
+        assert any(not torch.equal(vp[k], tuned[k]) for k in tuned if tuned[k].is_floating_point())
+        report = (work / "report.md").read_text()
+        assert "Correspondence mining per round" in report and "same category" in report
+        assert (work / "r01_mining" / "mining" / "refresh_000000.png").is_file()
 
     def test_rounds_on_detected_boxes(self, tmp_path: Path, tiny_dataset: Path) -> None:
         import numpy as np
