@@ -32,6 +32,7 @@ from threedq.nets import UNet3D
 __all__ = [
     "DEFAULT_GRID",
     "EncoderStage",
+    "SplitEvaluation",
     "checkpoint_state",
     "encoder_grid_from_checkpoint",
     "encoder_state_from_checkpoint",
@@ -336,3 +337,20 @@ class EncoderStage(L.LightningModule):
                 cache.put(f_keys[b], feats[b][mask[b]])
                 cache.put(r_keys[b], raw[b][mask[b]])
         return {"features": feats[mask], "raw": raw[mask], **out}
+
+
+class SplitEvaluation:
+    """Mixin for a stage whose validation and test measure the same thing: Lightning's four hooks call the
+    stage's ``_eval_step(batch, split)`` and ``_eval_epoch_end(split)`` with ``split`` ``"val"`` or ``"test"``."""
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "val")
+
+    def on_validation_epoch_end(self) -> None:
+        self._eval_epoch_end("val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "test")
+
+    def on_test_epoch_end(self) -> None:
+        self._eval_epoch_end("test")

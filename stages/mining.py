@@ -52,7 +52,7 @@ from threedq.atomic_io import atomic_write_bytes, atomic_write_text
 from threedq.contrastive import MomentumContrast, mine_correspondences
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
-from threedq.stages.base import EncoderStage
+from threedq.stages.base import EncoderStage, SplitEvaluation
 
 __all__ = ["Mining", "corner_offsets", "corner_keys", "implied_yaw_error_deg", "mined_pairs_figure"]
 
@@ -162,7 +162,7 @@ def mined_pairs_figure(query_raw: Tensor, target_raw_aligned: Tensor, query_pos:
     return np.concatenate([x for r in rows for x in (r, sep)][:-1], axis=0)
 
 
-class Mining(EncoderStage):
+class Mining(SplitEvaluation, EncoderStage):
     """The correspondence-learning stage (``vc``, ``vc_moco`` or ``mined``; see the module docstring).
 
     Args:
@@ -549,18 +549,6 @@ class Mining(EncoderStage):
             if n > self.hparams.retrieval_k:
                 self.log(f"{split}/precision_at_{self.hparams.retrieval_k}", m.compute(), prog_bar=True)
         m.reset()
-
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, "val")
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_epoch_end("val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, "test")
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_epoch_end("test")
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         params = [p for p in self.encoder.parameters() if p.requires_grad]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from threedq.stages.base import EncoderStage, checkpoint_state
+from threedq.stages.base import EncoderStage, SplitEvaluation, checkpoint_state
 from threedq.geometry import yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
 from threedq.quantization.prototypes import PrototypeBank, quantization_loss, run_prototype_em
@@ -34,7 +34,7 @@ def load_bank_state(bank: PrototypeBank, path: str) -> None:
     bank.load_state_dict(state)
 
 
-class Quantizer(EncoderStage):
+class Quantizer(SplitEvaluation, EncoderStage):
     """The quantizer stage.
 
     Args:
@@ -197,14 +197,3 @@ class Quantizer(EncoderStage):
         for metric in m.values():
             metric.reset()
 
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, "val")
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_epoch_end("val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, "test")
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_epoch_end("test")

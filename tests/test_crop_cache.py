@@ -92,6 +92,15 @@ class TestCropCache:
         cache.put(("4",), torch.zeros(5))  # replacing an entry accounts for the old one
         assert cache.nbytes == 40 + 20
 
+    def test_drop_one_kind(self) -> None:
+        cache = CropCache()
+        cache.put(("features", "enc1", "s0"), torch.zeros(4))
+        cache.put(("features", "enc1", "s1"), torch.zeros(2))
+        cache.put(("raw", "s0"), torch.zeros(3))
+        assert cache.drop("features") == 2
+        assert len(cache) == 1 and cache.nbytes == 3 * 4 and cache.get_many([("raw", "s0")]) is not None
+        assert cache.drop("random") == 0
+
     def test_entries_made_in_inference_mode_are_plain(self) -> None:
         cache = CropCache()
         with torch.inference_mode():

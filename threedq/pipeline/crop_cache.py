@@ -118,3 +118,12 @@ class CropCache:
         while self.nbytes > self.max_bytes and len(self._store) > 1:
             _, dropped = self._store.popitem(last=False)
             self.nbytes -= dropped.numel() * dropped.element_size()
+
+    def drop(self, kind: str) -> int:
+        """Remove every entry whose key starts with ``kind`` (e.g. ``"features"`` once the encoder has changed for
+        good); returns how many were removed. Hit and miss counts are kept."""
+        gone = [k for k in self._store if k[0] == kind]
+        for k in gone:
+            v = self._store.pop(k)
+            self.nbytes -= v.numel() * v.element_size()
+        return len(gone)

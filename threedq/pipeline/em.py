@@ -335,6 +335,8 @@ def run_em(
         prev_bank = Path(q["checkpoint"])
         round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds,
                                             overrides=box_over, crop_cache=crop_cache))
+        if mine:  # the next round fine-tunes the encoder again: this round's learned crops will not be asked for
+            crop_cache.drop("features")
         q_res = round_results[-1]["quantization"]["threedq"]
         print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {q_res['fewshot_acc']:.3f}, "
               f"precision@10 {round_results[-1]['retrieval']['precision_at_k']['learned']:.3f}")
