@@ -50,7 +50,8 @@ from torch import Tensor
 from torch.utils.data import default_collate
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_text
-from threedq.contrastive import MomentumContrast, mine_correspondences
+from threedq.contrastive import MomentumContrast, calibrate_context_cosine, mine_correspondences
+from threedq.data.draw import crop_birds_eye
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
 from threedq.stages.base import EncoderStage, SplitEvaluation
@@ -119,14 +120,8 @@ def implied_yaw_error_deg(yaw_index: Tensor, num_angles: int, query_yaw: Tensor,
 
 
 def _bev(raw: Tensor, scale: int) -> np.ndarray:
-    """Bird's-eye view of a raw ``[4, Z, Y, X]`` crop (occupancy, occupancy x RGB): the topmost occupied voxel's
-    colour, y up, as ``[Y*scale, X*scale, 3]`` uint8 RGB (grey where nothing is occupied)."""
-    occ, rgb = raw[0] > 0.5, raw[1:4]
-    z = torch.arange(occ.shape[0], device=raw.device)[:, None, None].expand_as(occ)
-    top = torch.where(occ, z, torch.full_like(z, -1)).amax(0)  # [Y, X]
-    col = rgb.gather(1, top.clamp_min(0)[None, None].expand(3, 1, *top.shape))[:, 0]  # [3, Y, X]
-    img = torch.where(top[None] >= 0, col, torch.full_like(col, 0.5)).flip(1)  # y up
-    a = (img.permute(1, 2, 0).float().clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
+    """:func:`~threedq.data.draw.crop_birds_eye` of a raw crop as uint8, upscaled ``scale`` times (grey background)."""
+    a = (crop_birds_eye(raw, background=0.5) * 255).round().astype(np.uint8)
     return cv2.resize(a, (a.shape[1] * scale, a.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
 
 
@@ -370,33 +365,6 @@ class Mining(SplitEvaluation, EncoderStage):
     def _to_device(self, batch: dict[str, Any]) -> dict[str, Any]:
         return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
 
-    def _calibrate(self, crops: Tensor, scene: Tensor, generator: torch.Generator) -> float:
-        """The context threshold: the ``context_quantile`` quantile, over random patch pairs of crops of different
-        scenes, of the best cosine within +-1 voxel (what verification takes for a context patch)."""
-        p, n, s = self.hparams.patch, crops.shape[0], crops.shape[-1]
-        m = 2048
-        a = torch.randint(0, n, (m,), generator=generator)
-        b = torch.randint(0, n, (m,), generator=generator)
-        keep = scene.cpu()[a] != scene.cpu()[b]
-        a, b = a[keep], b[keep]
-        if a.numel() == 0:
-            return 0.5
-        pa = torch.randint(0, s - p + 1, (a.numel(), 3), generator=generator)
-        pb = torch.randint(1, s - p, (a.numel(), 3), generator=generator)  # room for the +-1 neighbourhood
-        r = torch.arange(p)
-        off = torch.cartesian_prod(r, r, r)  # [p^3, 3]
-        one = torch.arange(-1, 2)
-        near = torch.cartesian_prod(one, one, one)  # [27, 3]
-
-        def vecs(idx: Tensor, pos: Tensor) -> Tensor:  # pos [m, ..., 3] -> [m, ..., C * p^3]
-            v = pos[..., None, :] + off  # [m, ..., p^3, 3]
-            i = idx.view(-1, *([1] * (v.ndim - 2))).expand(v.shape[:-1]).to(crops.device)
-            f = crops[i, :, v[..., 0], v[..., 1], v[..., 2]]  # [m, ..., p^3, C]
-            return F.normalize(f.flatten(-2).float(), dim=-1)
-
-        cos = torch.einsum("mf,mef->me", vecs(a, pa), vecs(b, pb[:, None] + near)).amax(dim=1)
-        return float(cos.quantile(self.hparams.context_quantile))
-
     @torch.no_grad()
     def refresh_pairs(self) -> dict[str, Any]:
         """Cut a new pool, mine it, compute the corner keys; log and write the diagnostics. Returns them."""
@@ -413,7 +381,8 @@ class Mining(SplitEvaluation, EncoderStage):
             pick = torch.randint(0, flat.shape[0], (self.moco.queue.shape[0],), generator=g).to(flat.device)
             self.moco.queue.copy_(F.normalize(flat[pick], dim=1))
             self.queue_primed.fill_(True)
-        min_cos = hp.min_cosine if hp.min_cosine is not None else self._calibrate(feats, pool["scene"], g)
+        min_cos = hp.min_cosine if hp.min_cosine is not None else calibrate_context_cosine(
+            feats, pool["scene"], hp.context_quantile, hp.patch, generator=g)
         exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
         mined = mine_correspondences(
             feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, num_angles=hp.num_angles, exclude=exclude,

@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from threedq.contrastive import (
+    calibrate_context_cosine,
     context_offsets,
     match_patch,
     mine_correspondences,
@@ -408,3 +409,25 @@ class TestMineCorrespondences:
             mine_correspondences(queries, targets, keep=0)
         with pytest.raises(ValueError, match="min_score"):
             mine_correspondences(queries, targets, min_score=2.0)
+
+
+class TestCalibrateContextCosine:
+    def test_identical_features_give_one(self) -> None:
+        crops = torch.zeros(4, 8, 8, 8, 8)
+        crops[:, 0] = 1.0
+        assert calibrate_context_cosine(crops, torch.arange(4), generator=torch.Generator().manual_seed(0)) == (
+            pytest.approx(1.0))
+
+    def test_random_features_low_and_best_of_neighbourhood(self) -> None:
+        g = torch.Generator().manual_seed(0)
+        crops = unit(6, 64, 8, 8, 8)
+        lo = calibrate_context_cosine(crops, torch.arange(6), quantile=0.5, generator=g)
+        hi = calibrate_context_cosine(crops, torch.arange(6), quantile=0.99, generator=torch.Generator().manual_seed(0))
+        # the max of 27 cosines of independent random 512-d unit vectors: positive, well below 1
+        assert 0.0 < lo < hi < 0.5
+
+    def test_one_scene_and_errors(self) -> None:
+        crops = unit(3, 4, 8, 8, 8)
+        assert calibrate_context_cosine(crops, torch.zeros(3, dtype=torch.long)) == 0.5
+        with pytest.raises(ValueError, match="quantile"):
+            calibrate_context_cosine(crops, torch.arange(3), quantile=1.0)

@@ -337,3 +337,18 @@ def test_contact_sheet_split_views_and_errors(tmp_path):
     with pytest.raises(ValueError, match="out of range"):
         contact_sheet(tmp_path, tmp_path / "x.png", views=[7])
     assert not (tmp_path / "x.png").exists()
+
+
+def test_crop_birds_eye_hand_computed() -> None:
+    import torch
+
+    from threedq.data.draw import crop_birds_eye
+
+    raw = torch.zeros(4, 3, 2, 2)  # [occ, r, g, b] x Z x Y x X
+    raw[0, 0, 0, 0], raw[1:, 0, 0, 0] = 1.0, torch.tensor([1.0, 0.0, 0.0])  # red at z 0, (y 0, x 0)
+    raw[0, 2, 0, 0], raw[1:, 2, 0, 0] = 1.0, torch.tensor([0.0, 1.0, 0.0])  # green above it: the top wins
+    raw[0, 1, 1, 1], raw[1:, 1, 1, 1] = 0.4, torch.tensor([0.0, 0.0, 1.0])  # occupancy <= 0.5: not drawn
+    img = crop_birds_eye(raw, background=0.25)
+    assert img.shape == (2, 2, 3)
+    assert img[1, 0].tolist() == [0.0, 1.0, 0.0]  # y 0 is the bottom row (y up)
+    assert img[0, 1].tolist() == [0.25, 0.25, 0.25] and img[1, 1].tolist() == [0.25, 0.25, 0.25]

@@ -3,6 +3,7 @@ key encoder / negative queue module, and the 3D correspondence miner (retrieval,
 
 from threedq.contrastive.infonce import info_nce_plain, info_nce_streamed
 from threedq.contrastive.mining import (
+    calibrate_context_cosine,
     context_offsets,
     match_patch,
     mine_correspondences,
@@ -16,6 +17,7 @@ from threedq.contrastive.moco import MomentumContrast
 
 __all__ = [
     "MomentumContrast",
+    "calibrate_context_cosine",
     "context_offsets",
     "info_nce_plain",
     "info_nce_streamed",

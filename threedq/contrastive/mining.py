@@ -41,6 +41,7 @@ from threedq.geometry.rotate import rotate_yaw, yaw_angles
 from threedq.quantization.rotation_search import all_pairs_rotation_max
 
 __all__ = [
+    "calibrate_context_cosine",
     "context_offsets",
     "match_patch",
     "mine_correspondences",
@@ -559,6 +560,48 @@ def salient_positions(
         raise ValueError("candidates must be patch positions inside the crops")
     vals = pooled[:, candidates[:, 0], candidates[:, 1], candidates[:, 2]]  # [N, G]
     return candidates[vals.argmin(dim=1)]
+
+
+@torch.no_grad()
+def calibrate_context_cosine(
+    crops: Tensor, scene: Tensor, quantile: float = 0.95, patch: int = 2, pairs: int = 2048,
+    generator: torch.Generator | None = None,
+) -> float:
+    """A ``min_cosine`` for :func:`verify_match` that does not saturate: the ``quantile`` quantile, over ``pairs``
+    random patch pairs from crops of different scenes, of the best cosine within +-1 voxel of the second patch
+    (what verification takes for a context patch). 0.5 if no two crops come from different scenes.
+
+    Args:
+        crops: ``[N, C, S, S, S]``; scene: ``[N]`` scene id of each crop.
+        quantile: in (0, 1).
+        patch: patch edge in voxels.
+        pairs: random pairs drawn (those within one scene are dropped).
+        generator: torch generator of the draw (CPU).
+    """
+    crops = _check_volume(crops, "crops", 5)
+    _check_int("patch", patch)
+    if not 0.0 < quantile < 1.0:
+        raise ValueError(f"quantile must be in (0, 1), got {quantile!r}")
+    n, s = crops.shape[0], crops.shape[-1]
+    a = torch.randint(0, n, (pairs,), generator=generator)
+    b = torch.randint(0, n, (pairs,), generator=generator)
+    keep = scene.cpu()[a] != scene.cpu()[b]
+    a, b = a[keep], b[keep]
+    if a.numel() == 0:
+        return 0.5
+    pa = torch.randint(0, s - patch + 1, (a.numel(), 3), generator=generator)
+    pb = torch.randint(1, s - patch, (a.numel(), 3), generator=generator)  # room for the +-1 neighbourhood
+    off = _patch_voxels(patch, torch.device("cpu"))  # [p^3, 3]
+    near = torch.stack(torch.meshgrid(*[torch.arange(-1, 2)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
+
+    def vecs(idx: Tensor, pos: Tensor) -> Tensor:  # pos [m, ..., 3] -> [m, ..., p^3 * C], indexed without copies
+        v = (pos[..., None, :] + off).to(crops.device)  # [m, ..., p^3, 3]
+        i = idx.view(-1, *([1] * (v.ndim - 2))).expand(v.shape[:-1]).to(crops.device)
+        f = crops[i, :, v[..., 0], v[..., 1], v[..., 2]]  # [m, ..., p^3, C]
+        return F.normalize(f.flatten(-2).float(), dim=-1)
+
+    cos = torch.einsum("mf,mef->me", vecs(a, pa), vecs(b, pb[:, None] + near)).amax(dim=1)
+    return float(cos.quantile(quantile))
 
 
 @torch.no_grad()

@@ -25,6 +25,7 @@ from threedq.boxes import box_corners
 __all__ = [
     "BOX_EDGES",
     "colorize_depth",
+    "crop_birds_eye",
     "colorize_instances",
     "distinct_colour",
     "draw_boxes",
@@ -377,3 +378,23 @@ def colorize_instances(instance: np.ndarray) -> np.ndarray:
     ids, inverse = np.unique(inst.astype(np.int64), return_inverse=True)
     lut = np.array([distinct_colour(int(i)) if i > 0 else (0, 0, 0) for i in ids], dtype=np.uint8).reshape(-1, 3)
     return lut[inverse.reshape(inst.shape)]
+
+
+def crop_birds_eye(raw: "torch.Tensor", background: float = 0.15) -> np.ndarray:
+    """Bird's-eye view of a raw ``[4, Z, Y, X]`` crop (``cat[occ, occ * rgb]``): the colour of the highest voxel with
+    occupancy > 0.5 in each column, ``background`` where none is.
+
+    Returns:
+        ``[Y, X, 3]`` float RGB in [0, 1], y up (row 0 is the largest y).
+
+    Convention: z up; crops of the frame-R grid, so x to the right and y up in the picture.
+    """
+    import torch
+
+    raw = raw.detach().float().cpu()
+    occ, rgb = raw[0] > 0.5, raw[1:4]
+    z_top = occ.float() * torch.arange(1, occ.shape[0] + 1, dtype=torch.float32)[:, None, None]
+    top = z_top.argmax(0)  # [Y, X]: the highest occupied voxel (0 where none)
+    col = torch.gather(rgb, 1, top[None, None].expand(3, 1, *top.shape))[:, 0]
+    img = torch.where(occ.any(0)[None], col, torch.full_like(col, background))
+    return img.flip(1).permute(1, 2, 0).clamp(0, 1).numpy()

@@ -34,6 +34,7 @@ from torch.utils.data import DataLoader  # noqa: E402
 from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
+from threedq.data.draw import crop_birds_eye  # noqa: E402
 from threedq.pipeline.evaluation import (  # noqa: E402
     RETRIEVAL_SEARCH,
     SEARCH_LABELS,
@@ -84,17 +85,6 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
     return res.prototype, res.angle, a
 
 
-def _bev(volume: Tensor) -> np.ndarray:
-    """Bird's-eye view of a raw ``[4, Z, Y, X]`` crop: colour of the highest occupied voxel, y up."""
-    occ, rgb = volume[0], volume[1:]
-    z_top = (occ > 0.5).float() * torch.arange(1, occ.shape[0] + 1, dtype=torch.float32)[:, None, None]
-    top = z_top.argmax(0)  # [Y, X]
-    any_occ = occ.amax(0) > 0.5
-    col = torch.gather(rgb, 1, top[None, None].expand(3, 1, *top.shape))[:, 0]
-    img = torch.where(any_occ[None], col, torch.full_like(col, 0.15))
-    return img.flip(1).permute(1, 2, 0).clamp(0, 1).numpy()
-
-
 def _alignment_figure(test: dict[str, Tensor], clusters: Tensor, angles: Tensor, num_angles: int, path: Path,
                       categories: list[str], rows: int = 4, cols: int = 6) -> None:
     """Members of the largest prototypes before (top) and after (bottom) rotation to the canonical yaw."""
@@ -113,7 +103,7 @@ def _alignment_figure(test: dict[str, Tensor], clusters: Tensor, angles: Tensor,
                 ax = axes[row, c]
                 ax.axis("off")
                 if c < len(members):
-                    ax.imshow(_bev(vols[c]))
+                    ax.imshow(crop_birds_eye(vols[c]))
                     if c == 0:
                         ax.set_title(f"prototype {k} ({tag})", fontsize=6, loc="left")
                     else:
@@ -136,7 +126,7 @@ def _retrieval_figure(test: dict[str, Tensor], sim: Tensor, path: Path, categori
         for c, i in enumerate([q, *nn_idx]):
             ax = axes[r, c]
             ax.axis("off")
-            ax.imshow(_bev(test["raw"][i]))
+            ax.imshow(crop_birds_eye(test["raw"][i]))
             same = c == 0 or int(test["labels"][i]) == int(test["labels"][q])
             ax.set_title(("query: " if c == 0 else "") + categories[int(test["labels"][i])], fontsize=5,
                          color="black" if same else "red")
