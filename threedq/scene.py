@@ -190,8 +190,9 @@ def validate_scene(
     if boxes.ndim != 2 or boxes.shape[1] != 7:
         raise SceneValidationError(source, "boxes", f"expected shape [M,7], got {list(boxes.shape)}")
     M = boxes.shape[0]
-    if M == 0:
-        raise SceneValidationError(source, "boxes", "empty scene: no objects")
+    if M == 0 and not record.meta.get("unannotated", False):
+        raise SceneValidationError(source, "boxes", "empty scene: no objects (only an imported capture marked "
+                                   "'unannotated' in its meta may have none)")
     _check_finite(source, "boxes", boxes)
     if np.any(boxes[:, 3:6] <= 0):
         raise SceneValidationError(source, "boxes", "box extents (sx, sy, sz) must be positive")

@@ -1,0 +1,133 @@
+"""BigBIRD raw captures: one object on a turntable seen by 5 RGB-D cameras at 120 angles.
+
+Expected tree::
+
+    <object>/
+      NP1_0.jpg NP1_3.jpg ... NP5_357.jpg    # colour of camera c at turntable angle deg (1280x1024)
+      NP1_0.h5 ...                           # dataset "depth": uint16 in 100 um units (/ 10000 = metres),
+                                             # in the camera's IR (depth) frame
+      calibration.h5                         # NP{c}_rgb_K, NP{c}_depth_K (3x3), H_NP{c}_from_NP5,
+                                             # H_NP{c}_ir_from_NP5 (4x4)
+      poses/NP5_0_pose.h5 ...                # dataset "H_table_from_reference_camera" (4x4) per angle
+      threedq_objects.json                   # optional: annotated boxes in the table frame
+
+As the paper does, the object is static and the (up to) 600 images are cameras around it:
+``table_T_rgb(c, deg) = H_table_from_reference_camera(deg) @ inv(H_NP{c}_from_NP5)``. Views are on the
+colour camera's grid resized to the depth image's size (``resize_to``: the documented intrinsics scaling);
+depth is moved from the IR camera into it (:func:`register_depth`, ``rgb_T_ir = H_NP{c}_from_NP5 @
+inv(H_NP{c}_ir_from_NP5)``, nearest pixel, nearest surface wins). A missing or corrupt image, depth or pose
+file skips that view and is counted. The layout comes from user code (voxlets, a Fragkiadaki-lab script),
+not from BigBIRD's readme: it is not verified against a real download. ``.h5`` files are read with h5py.
+
+Convention: table frame, metres; OpenCV camera axes.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, read_objects, read_rgb, resize_to, stack_views
+from threedq.scene import SceneValidationError
+
+__all__ = ["MARKER", "parse_bigbird", "register_depth"]
+
+MARKER = "calibration.h5"
+DEPTH_UNITS_PER_METRE = 10000.0
+
+
+def register_depth(
+    depth: np.ndarray, K_src: np.ndarray, dst_T_src: np.ndarray, K_dst: np.ndarray, size_hw: tuple[int, int]
+) -> np.ndarray:
+    """Re-render a depth map from another camera: forward splatting with a z-buffer.
+
+    Args:
+        depth: ``[h,w]`` metric z-depth of the source camera (0 = invalid).
+        K_src, K_dst: ``[3,3]`` intrinsics; dst_T_src: ``[4,4]`` source-to-destination camera transform.
+        size_hw: ``(H, W)`` of the destination image.
+
+    Returns:
+        ``[H,W]`` float32 z-depth in the destination camera; each source point lands on its nearest pixel and
+        the nearest point wins; pixels no point lands on are 0.
+
+    Convention: OpenCV camera axes, integer pixel centres, z-depth.
+    """
+    h, w = depth.shape
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u].astype(np.float64)
+    rays = np.linalg.inv(K_src) @ np.stack([u, v, np.ones_like(u)]).astype(np.float64)
+    p = dst_T_src[:3, :3] @ (rays * z) + dst_T_src[:3, 3:4]
+    ok = p[2] > 1e-6
+    uv = K_dst @ (p[:, ok] / p[2, ok])
+    zd = p[2, ok]
+    ui, vi = np.rint(uv[0]).astype(np.int64), np.rint(uv[1]).astype(np.int64)
+    H, W = size_hw
+    inside = (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
+    out = np.full(H * W, np.inf)
+    np.minimum.at(out, vi[inside] * W + ui[inside], zd[inside])
+    out[~np.isfinite(out)] = 0
+    return out.reshape(H, W).astype(np.float32)
+
+
+def _h5(path: Path, key: str, field_name: str) -> np.ndarray:
+    if not path.is_file():
+        raise SceneValidationError(str(path), field_name, "no such file")
+    try:
+        with h5py.File(path, "r") as f:
+            if key not in f:
+                raise SceneValidationError(str(path), field_name, f"no dataset {key!r}")
+            return np.asarray(f[key][()])
+    except OSError as e:
+        raise SceneValidationError(str(path), field_name, f"not a readable HDF5 file (truncated or corrupt: {e})") from e
+
+
+def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+    """Read one BigBIRD object folder (tree in the module docstring).
+
+    Args:
+        folder: the object folder.
+        depth_units_per_metre: depth units per metre (``None`` = 10000, 100 um units).
+
+    Returns:
+        A :class:`Capture`, views ordered by camera then angle; frame ids ``"NP{c}_{deg}"``.
+
+    Convention: see the module docstring.
+    """
+    folder = Path(folder)
+    scale = DEPTH_UNITS_PER_METRE if depth_units_per_metre is None else float(depth_units_per_metre)
+    calib = folder / "calibration.h5"
+    names = sorted(
+        ((int(m.group(1)), int(m.group(2))) for p in folder.glob("NP*_*.jpg") if (m := re.fullmatch(r"NP(\d)_(\d+)", p.stem))),
+    )
+    skipped: list[FrameSkip] = []
+    cams: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+    views = []
+    for c, deg in names:
+        fid = f"NP{c}_{deg}"
+        try:
+            if c not in cams:
+                K_rgb = _h5(calib, f"NP{c}_rgb_K", f"NP{c}_rgb_K").astype(np.float64).reshape(3, 3)
+                K_ir = _h5(calib, f"NP{c}_depth_K", f"NP{c}_depth_K").astype(np.float64).reshape(3, 3)
+                c_T_5 = check_rigid(_h5(calib, f"H_NP{c}_from_NP5", f"H_NP{c}_from_NP5"), str(calib), f"H_NP{c}_from_NP5")
+                ir_T_5 = check_rigid(_h5(calib, f"H_NP{c}_ir_from_NP5", f"H_NP{c}_ir_from_NP5"), str(calib),
+                                     f"H_NP{c}_ir_from_NP5")
+                cams[c] = (K_rgb, K_ir, c_T_5, ir_T_5)
+            K_rgb, K_ir, c_T_5, ir_T_5 = cams[c]
+            pose_path = folder / "poses" / f"NP5_{deg}_pose.h5"
+            table_T_5 = check_rigid(_h5(pose_path, "H_table_from_reference_camera", "H_table_from_reference_camera"),
+                                    str(pose_path), "H_table_from_reference_camera")
+            depth_path = folder / f"{fid}.h5"
+            raw = _h5(depth_path, "depth", "depth")
+            if raw.ndim != 2:
+                raise SceneValidationError(str(depth_path), "depth", f"expected an [H,W] image, got {list(raw.shape)}")
+            rgb, K = resize_to(read_rgb(folder / f"{fid}.jpg"), K_rgb, raw.shape)
+            depth = register_depth(raw.astype(np.float64) / scale, K_ir, c_T_5 @ np.linalg.inv(ir_T_5), K, raw.shape)
+            pose = table_T_5 @ np.linalg.inv(c_T_5)
+        except SceneValidationError as e:
+            skipped.append(FrameSkip(e.source, e.field, e.reason))
+            continue
+        views.append((fid, rgb, depth, K, pose, str(depth_path)))
+    return stack_views(views, str(folder), "bigbird", skipped, read_objects(folder))

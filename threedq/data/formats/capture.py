@@ -1,0 +1,237 @@
+"""What every capture parser returns (:class:`Capture`) and the readers the parsers share.
+
+A parser reads one on-disk capture into a :class:`Capture`: the views in the capture's own world frame,
+metric depth, one ``K`` per view (colour and depth already on the same pixel grid) and the frames it
+skipped, each with the file and field at fault. :func:`threedq.data.formats.normalise.normalise_capture`
+then turns a capture into the canonical :class:`~threedq.scene.SceneRecord` (z up, centred).
+
+Convention: capture frame as the format defines it (any orientation), metres; ``world_T_cam`` camera-to-world
+with OpenCV camera axes (x right, y down, z forward); ``K`` with pixel centres at integer ``(u, v)``.
+Images are read with OpenCV (``cv2.IMREAD_UNCHANGED`` for depth, so 16-bit PNGs stay 16-bit).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from threedq.scene import SceneValidationError
+
+__all__ = [
+    "Capture",
+    "CaptureObjects",
+    "FrameSkip",
+    "OBJECTS_NAME",
+    "check_rigid",
+    "read_depth_png",
+    "read_matrix",
+    "read_objects",
+    "read_rgb",
+    "resize_to",
+    "stack_views",
+]
+
+#: optional threedq annotation beside a capture: boxes in the capture's own frame (see :func:`read_objects`)
+OBJECTS_NAME = "threedq_objects.json"
+_RIGID_TOL = 1e-4
+
+
+@dataclass
+class FrameSkip:
+    """One frame the parser left out: the file and field at fault and why (one line)."""
+
+    source: str
+    field: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.source}: field '{self.field}': {self.reason}"
+
+
+@dataclass
+class CaptureObjects:
+    """Annotated objects of a capture, in its own frame.
+
+    ``capture_T_box`` ``[M,4,4]`` box-to-capture poses (the box's local z is its up axis), ``size``
+    ``[M,3]`` full extents ``(sx, sy, sz)`` in metres, ``categories`` ``[M]`` names.
+    """
+
+    capture_T_box: np.ndarray
+    size: np.ndarray
+    categories: list[str]
+
+
+@dataclass
+class Capture:
+    """One parsed capture (``V`` views of ``H x W`` pixels), in the capture's own world frame.
+
+    ``rgb`` ``[V,H,W,3]`` uint8, ``depth`` ``[V,H,W]`` float32 metres (0 = invalid), ``K`` ``[V,3,3]``,
+    ``world_T_cam`` ``[V,4,4]`` camera-to-capture-world (OpenCV camera axes), ``frame_ids`` ``[V]`` the
+    format's frame names, ``skipped`` the frames left out, ``objects`` optional annotated boxes.
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    K: np.ndarray
+    world_T_cam: np.ndarray
+    frame_ids: list[str]
+    source: str
+    format: str
+    skipped: list[FrameSkip] = field(default_factory=list)
+    objects: CaptureObjects | None = None
+
+    @property
+    def num_views(self) -> int:
+        return int(self.rgb.shape[0])
+
+
+def _decode(path: Path, field_name: str, flags: int) -> np.ndarray:
+    """Decode an image file with OpenCV, refusing truncated JPEG/PNG files that the decoders would half-read.
+
+    libjpeg decodes a JPEG cut short with only a warning (the missing rows grey): a JPEG must end with its EOI
+    marker (``FF D9``) and a PNG with its ``IEND`` chunk.
+    """
+    if not path.is_file():
+        raise SceneValidationError(str(path), field_name, "no such file")
+    data = path.read_bytes()
+    suffix = path.suffix.lower()
+    if (suffix in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-16:]) or (suffix == ".png" and b"IEND" not in data[-16:]):
+        raise SceneValidationError(str(path), field_name, "truncated image (no end marker)")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    if img is None:
+        raise SceneValidationError(str(path), field_name, "not a readable image (corrupt)")
+    return img
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """``[H,W,3]`` uint8 RGB of an image file; a missing, truncated or unreadable file raises naming it."""
+    img = _decode(path, "rgb", cv2.IMREAD_COLOR)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth_png(path: Path, units_per_metre: float) -> np.ndarray:
+    """``[H,W]`` float32 metres from a 16-bit depth image holding ``units_per_metre`` units per metre (0 = invalid)."""
+    img = _decode(path, "depth", cv2.IMREAD_UNCHANGED)
+    if img.ndim != 2:
+        raise SceneValidationError(str(path), "depth", f"expected a single-channel image, got shape {list(img.shape)}")
+    return (img.astype(np.float64) / units_per_metre).astype(np.float32)
+
+
+def read_matrix(path: Path, field_name: str, shape: tuple[int, int] = (4, 4)) -> np.ndarray:
+    """A whitespace-separated matrix of a text file, checked for shape and finiteness (float64)."""
+    if not path.is_file():
+        raise SceneValidationError(str(path), field_name, "no such file")
+    try:
+        m = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as e:
+        raise SceneValidationError(str(path), field_name, f"not a matrix of numbers ({e})") from e
+    if m.shape != shape:
+        raise SceneValidationError(str(path), field_name, f"expected a {shape[0]}x{shape[1]} matrix, got {list(m.shape)}")
+    if not np.all(np.isfinite(m)):
+        raise SceneValidationError(str(path), field_name, "non-finite values (inf/NaN): invalid pose")
+    return m
+
+
+def check_rigid(pose: np.ndarray, source: str, field_name: str = "pose") -> np.ndarray:
+    """``pose`` ``[4,4]`` if finite and rigid (``R^T R = I``, ``det R = 1``, last row ``0 0 0 1``), else raise."""
+    pose = np.asarray(pose, np.float64)
+    if pose.shape != (4, 4):
+        raise SceneValidationError(source, field_name, f"expected a 4x4 matrix, got {list(pose.shape)}")
+    if not np.all(np.isfinite(pose)):
+        raise SceneValidationError(source, field_name, "non-finite values (inf/NaN): invalid pose")
+    R = pose[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if err > _RIGID_TOL or abs(det - 1) > _RIGID_TOL:
+        raise SceneValidationError(source, field_name, f"not rigid (max |R^T R - I| = {err:.3g}, det = {det:.4g})")
+    if np.abs(pose[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise SceneValidationError(source, field_name, "last row must be [0, 0, 0, 1]")
+    return pose
+
+
+def resize_to(rgb: np.ndarray, K: np.ndarray, size_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Resize a colour image to ``size_hw`` and scale its intrinsics to match (the documented resize).
+
+    With ``s_x = W'/W`` and ``s_y = H'/H`` and integer pixel centres: ``fx' = s_x fx``, ``fy' = s_y fy``,
+    ``skew' = s_x skew``, ``cx' = s_x (cx + 0.5) - 0.5``, ``cy' = s_y (cy + 0.5) - 0.5``. Downsizing uses
+    ``cv2.INTER_AREA``, upsizing ``cv2.INTER_LINEAR``.
+    """
+    H, W = rgb.shape[:2]
+    H2, W2 = size_hw
+    if (H, W) == (H2, W2):
+        return rgb, np.asarray(K, np.float64)
+    sx, sy = W2 / W, H2 / H
+    interp = cv2.INTER_AREA if W2 < W else cv2.INTER_LINEAR
+    out = cv2.resize(rgb, (W2, H2), interpolation=interp)
+    S = np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]])
+    return out, S @ np.asarray(K, np.float64)
+
+
+def read_objects(folder: Path) -> CaptureObjects | None:
+    """The optional ``threedq_objects.json`` of a capture folder, or ``None``.
+
+    Layout: ``{"objects": [{"category": name, "capture_T_box": 4x4 rows, "size": [sx, sy, sz]}, ...]}`` with
+    ``capture_T_box`` mapping box-local points (centre at the origin, local z up) to the capture frame.
+    """
+    path = folder / OBJECTS_NAME
+    if not path.is_file():
+        return None
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+        objs: list[dict[str, Any]] = d["objects"]
+        poses = np.array([o["capture_T_box"] for o in objs], np.float64).reshape(-1, 4, 4)
+        size = np.array([o["size"] for o in objs], np.float64).reshape(-1, 3)
+        cats = [str(o["category"]) for o in objs]
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise SceneValidationError(str(path), "objects", f"expected {{'objects': [{{category, capture_T_box, size}}]}}: {e}") from e
+    for m, p in enumerate(poses):
+        check_rigid(p, str(path), f"objects[{m}].capture_T_box")
+    if np.any(size <= 0):
+        raise SceneValidationError(str(path), "size", "box extents must be positive")
+    return CaptureObjects(poses, size, cats)
+
+
+def stack_views(
+    views: list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]],
+    source: str,
+    fmt: str,
+    skipped: list[FrameSkip],
+    objects: CaptureObjects | None,
+) -> Capture:
+    """Stack ``(frame_id, rgb, depth, K, world_T_cam, depth_file)`` views into a :class:`Capture`.
+
+    A view whose depth size differs from its colour size, or whose size differs from the first kept view's,
+    is skipped (counted, naming its depth file) rather than resampled.
+    """
+    kept = []
+    for v in views:
+        fid, rgb, depth, K, pose, depth_file = v
+        if depth.shape != rgb.shape[:2]:
+            skipped.append(FrameSkip(depth_file, "depth", f"depth is {list(depth.shape)} but colour is {list(rgb.shape[:2])}"))
+            continue
+        if kept and rgb.shape != kept[0][1].shape:
+            skipped.append(FrameSkip(depth_file, "rgb", f"frame {fid}: size {list(rgb.shape[:2])} differs from the "
+                                                        f"first view's {list(kept[0][1].shape[:2])}"))
+            continue
+        kept.append(v)
+    if not kept:
+        reasons = "; ".join(str(s) for s in skipped[:3]) or "no frames found"
+        raise SceneValidationError(source, "frames", f"no usable frame ({reasons})")
+    depth = np.stack([v[2] for v in kept]).astype(np.float32)
+    depth[~np.isfinite(depth) | (depth < 0)] = 0
+    return Capture(
+        rgb=np.stack([v[1] for v in kept]),
+        depth=depth,
+        K=np.stack([v[3] for v in kept]).astype(np.float64),
+        world_T_cam=np.stack([v[4] for v in kept]).astype(np.float64),
+        frame_ids=[v[0] for v in kept],
+        source=source,
+        format=fmt,
+        skipped=skipped,
+        objects=objects,
+    )

@@ -1,0 +1,112 @@
+"""Kinect captures in the layout of Open3D's reconstruction system (and the Redwood data): colour + depth + .log.
+
+Expected tree::
+
+    capture/
+      color/000000.jpg|png ...         # or image/; numbered frames (numeric order)
+      depth/000000.png ...             # uint16, registered to colour (same size), depth / depth_scale = metres
+      camera_intrinsic.json            # or intrinsic.json: {"width", "height", "intrinsic_matrix": 9 numbers,
+                                       #  column-major (Eigen order): [fx, 0, 0, 0, fy, 0, cx, cy, 1]}
+      trajectory.log                   # 5-line items: "i j k" (i = frame index from 0), then a 4x4
+                                       # camera-to-world (Redwood "log" format, Open3D's writer)
+      threedq_objects.json             # optional: annotated boxes in the trajectory's frame
+
+``depth_scale`` is 1000 (millimetres, Open3D's default) unless given. Depth must already be registered to the
+colour image (the Azure Kinect SDK's ``transformation_depth_image_to_color_camera``, as the paper did); a
+depth image of another size is skipped and counted, not resampled. A frame missing from the trajectory,
+or whose matrix is not rigid, is skipped and counted.
+
+Convention: the trajectory's world frame, metres; OpenCV camera axes.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, read_depth_png, read_objects, read_rgb, stack_views
+from threedq.scene import SceneValidationError
+
+__all__ = ["MARKER", "parse_open3d", "read_log"]
+
+MARKER = "trajectory.log"
+
+
+def read_log(path: Path, skipped: list[FrameSkip]) -> dict[int, np.ndarray]:
+    """Frame index -> camera-to-world ``[4,4]`` of a Redwood/Open3D ``.log``; malformed items are skipped and counted."""
+    if not path.is_file():
+        raise SceneValidationError(str(path), "trajectory", "no such file")
+    lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
+    out: dict[int, np.ndarray] = {}
+    for s in range(0, len(lines), 5):
+        where = f"{path}:{s + 1}"
+        try:
+            head = lines[s].split()
+            if len(head) != 3:
+                raise ValueError(f"expected 3 integers in the item's first line, got {len(head)} fields")
+            idx = int(head[0])
+            rows = [[float(x) for x in ln.split()] for ln in lines[s + 1 : s + 5]]
+            m = np.array(rows, np.float64)
+            if m.shape != (4, 4):
+                raise ValueError(f"expected a 4x4 matrix, got {len(rows)} rows")
+        except ValueError as e:
+            skipped.append(FrameSkip(where, "trajectory", f"malformed item ({e})"))
+            continue
+        out[idx] = m
+    return out
+
+
+def _intrinsics(folder: Path) -> np.ndarray:
+    for name in ("camera_intrinsic.json", "intrinsic.json"):
+        p = folder / name
+        if p.is_file():
+            try:
+                v = [float(x) for x in json.loads(p.read_text(encoding="utf-8"))["intrinsic_matrix"]]
+                assert len(v) == 9
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError, AssertionError) as e:
+                raise SceneValidationError(str(p), "intrinsic_matrix", "expected 9 numbers (column-major)") from e
+            return np.array(v).reshape(3, 3).T  # column-major -> row-major
+    raise SceneValidationError(str(folder / "camera_intrinsic.json"), "intrinsic_matrix", "no such file")
+
+
+def parse_open3d(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+    """Read an Open3D/Kinect capture folder (tree in the module docstring).
+
+    Args:
+        folder: the capture folder.
+        depth_units_per_metre: Open3D's ``depth_scale`` (``None`` = 1000).
+
+    Returns:
+        A :class:`Capture`; frame ids are the colour file stems.
+
+    Convention: see the module docstring.
+    """
+    folder = Path(folder)
+    scale = 1000.0 if depth_units_per_metre is None else float(depth_units_per_metre)
+    K = _intrinsics(folder)
+    skipped: list[FrameSkip] = []
+    traj_path = folder / "trajectory.log"
+    poses = read_log(traj_path, skipped)
+    cdir = folder / "color" if (folder / "color").is_dir() else folder / "image"
+    colour = sorted((p for p in cdir.glob("*") if p.suffix.lower() in (".jpg", ".png") and re.search(r"\d", p.stem)),
+                    key=lambda p: int(re.findall(r"\d+", p.stem)[-1]))
+    depths = {int(re.findall(r"\d+", p.stem)[-1]): p for p in (folder / "depth").glob("*.png") if re.search(r"\d", p.stem)}
+    views = []
+    for i, f in enumerate(colour):
+        n = int(re.findall(r"\d+", f.stem)[-1])
+        try:
+            if i not in poses:
+                raise SceneValidationError(str(traj_path), "trajectory", f"no item for frame {i} ({f.name})")
+            pose = check_rigid(poses[i], str(traj_path), f"trajectory[{i}]")
+            if n not in depths:
+                raise SceneValidationError(str(folder / "depth"), "depth", f"no depth image numbered {n}")
+            rgb = read_rgb(f)
+            depth = read_depth_png(depths[n], scale)
+        except SceneValidationError as e:
+            skipped.append(FrameSkip(e.source, e.field, e.reason))
+            continue
+        views.append((f.stem, rgb, depth, K, pose, str(depths[n])))
+    return stack_views(views, str(folder), "open3d", skipped, read_objects(folder))

@@ -1,0 +1,90 @@
+"""Replica scenes as rendered and exported for NICE-SLAM (``cvg/nice-slam``'s ``Replica`` loader).
+
+Expected tree::
+
+    Replica/
+      cam_params.json                  # optional, here or in the scene folder:
+                                       # {"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}
+      room0/
+        results/frame000000.jpg ...    # colour, 1200x680
+        results/depth000000.png ...    # uint16, depth / 6553.5 = metres ("scale")
+        traj.txt                       # line i: row-major 4x4 camera-to-world of frame i (16 numbers)
+        threedq_objects.json           # optional: annotated boxes in the scene's frame
+
+Without ``cam_params.json`` the NICE-SLAM constants apply: 1200x680, fx = fy = 600, cx = 599.5, cy = 339.5,
+scale 6553.5. A frame whose ``traj.txt`` line is missing, malformed or not rigid is skipped and counted.
+
+Convention: the scene's frame, metres; OpenCV camera axes (as written by the export).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, read_depth_png, read_objects, read_rgb, stack_views
+from threedq.scene import SceneValidationError
+
+__all__ = ["MARKER", "REPLICA_CAMERA", "parse_replica"]
+
+MARKER = "traj.txt"
+REPLICA_CAMERA = {"w": 1200, "h": 680, "fx": 600.0, "fy": 600.0, "cx": 599.5, "cy": 339.5, "scale": 6553.5}
+
+
+def _camera(folder: Path) -> dict[str, float]:
+    for p in (folder / "cam_params.json", folder.parent / "cam_params.json"):
+        if p.is_file():
+            try:
+                cam = json.loads(p.read_text(encoding="utf-8"))["camera"]
+                return {k: float(cam[k]) for k in ("fx", "fy", "cx", "cy", "scale")}
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+                raise SceneValidationError(str(p), "camera", f"expected {{'camera': {{fx, fy, cx, cy, scale}}}} ({e})") from e
+    return {k: float(v) for k, v in REPLICA_CAMERA.items()}
+
+
+def parse_replica(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+    """Read one NICE-SLAM Replica scene (tree in the module docstring).
+
+    Args:
+        folder: the scene folder (holding ``results/`` and ``traj.txt``).
+        depth_units_per_metre: overrides the camera's ``scale``.
+
+    Returns:
+        A :class:`Capture`; frame ids are the 6-digit frame numbers.
+
+    Convention: see the module docstring.
+    """
+    folder = Path(folder)
+    cam = _camera(folder)
+    scale = cam["scale"] if depth_units_per_metre is None else float(depth_units_per_metre)
+    K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+    traj_path = folder / "traj.txt"
+    if not traj_path.is_file():
+        raise SceneValidationError(str(traj_path), "pose", "no such file")
+    lines = traj_path.read_text(encoding="utf-8").splitlines()
+    frames = sorted((folder / "results").glob("frame*.jpg"))
+    skipped: list[FrameSkip] = []
+    views = []
+    for f in frames:
+        fid = f.stem[len("frame"):]
+        if not fid.isdigit():
+            continue
+        i = int(fid)
+        where = f"{traj_path}:{i + 1}"
+        try:
+            if i >= len(lines) or not lines[i].strip():
+                raise SceneValidationError(where, "pose", f"no pose line for frame {fid}")
+            try:
+                pose = np.array([float(x) for x in lines[i].split()]).reshape(4, 4)
+            except ValueError as e:
+                raise SceneValidationError(where, "pose", f"expected 16 numbers ({e})") from e
+            check_rigid(pose, where)
+            rgb = read_rgb(f)
+            depth = read_depth_png(folder / "results" / f"depth{fid}.png", scale)
+        except SceneValidationError as e:
+            skipped.append(FrameSkip(e.source, e.field, e.reason))
+            continue
+        views.append((fid, rgb, depth, K, pose, str(folder / "results" / f"depth{fid}.png")))
+    return stack_views(views, str(folder), "replica", skipped, read_objects(folder))

@@ -1,0 +1,96 @@
+"""ScanNet scenes as exported by ScanNet's SensReader (``reader.py --export_color_images --export_depth_images ...``).
+
+Expected tree::
+
+    scene0000_00/
+      color/0.jpg 1.jpg ...            # colour, 1296x968 typically (no zero padding: numeric order)
+      depth/0.png 1.png ...            # uint16 millimetres, 640x480 (a different size from colour)
+      pose/0.txt 1.txt ...             # 4x4 camera-to-world; some frames hold -inf (skipped and counted)
+      intrinsic/intrinsic_color.txt    # 4x4 (top-left 3x3 is K of the colour image)
+      intrinsic/intrinsic_depth.txt    # 4x4 (top-left 3x3 is K of the depth image)
+      threedq_objects.json             # optional: annotated boxes in the scan's frame
+
+Views are on the **depth** camera's pixel grid with its intrinsics (``K = intrinsic_depth``, exact): the
+colour image is first resized towards the depth size (:func:`~threedq.data.formats.capture.resize_to`, area
+interpolation) and then resampled onto the depth pixels with the homography ``K_color' K_depth^-1`` (the two
+cameras share their centre and axes in the export: ScanNet's ``extrinsic_*`` are identities).
+
+Convention: the scan's frame (z up in ScanNet), metres; OpenCV camera axes; frames in numeric order.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from threedq.data.formats.capture import (
+    Capture,
+    FrameSkip,
+    check_rigid,
+    read_depth_png,
+    read_matrix,
+    read_objects,
+    read_rgb,
+    resize_to,
+    stack_views,
+)
+from threedq.scene import SceneValidationError
+
+__all__ = ["MARKER", "parse_scannet", "register_colour"]
+
+MARKER = "intrinsic/intrinsic_depth.txt"
+
+
+def register_colour(rgb: np.ndarray, K_color: np.ndarray, K_depth: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    """Colour resampled onto the depth camera's ``size_hw`` pixel grid (same centre and axes).
+
+    Args:
+        rgb: ``[Hc,Wc,3]`` colour; K_color, K_depth: ``[3,3]``; size_hw: ``(H, W)`` of the depth image.
+
+    Returns:
+        ``[H,W,3]`` uint8: depth pixel ``x_d`` takes the colour at ``K_color K_depth^-1 x_d``.
+
+    Convention: integer pixel centres; bilinear sampling, border replicated.
+    """
+    small, Kc = resize_to(rgb, K_color, size_hw)
+    H = Kc @ np.linalg.inv(K_depth)
+    return cv2.warpPerspective(small, H, (size_hw[1], size_hw[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REPLICATE)
+
+
+def _frame_ids(folder: Path) -> list[str]:
+    ids = [p.stem for p in (folder / "color").glob("*.jpg") if p.stem.isdigit()]
+    return sorted(ids, key=int)
+
+
+def parse_scannet(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+    """Read a SensReader export (tree in the module docstring).
+
+    Args:
+        folder: the scene folder.
+        depth_units_per_metre: depth PNG units per metre (``None`` = 1000, millimetres).
+
+    Returns:
+        A :class:`Capture` on the depth grid; frame ids are the file numbers.
+
+    Convention: see the module docstring.
+    """
+    folder = Path(folder)
+    scale = 1000.0 if depth_units_per_metre is None else float(depth_units_per_metre)
+    K_color = read_matrix(folder / "intrinsic" / "intrinsic_color.txt", "intrinsic_color")[:3, :3]
+    K_depth = read_matrix(folder / "intrinsic" / "intrinsic_depth.txt", "intrinsic_depth")[:3, :3]
+    skipped: list[FrameSkip] = []
+    views = []
+    for fid in _frame_ids(folder):
+        try:
+            pose = read_matrix(folder / "pose" / f"{fid}.txt", "pose")
+            check_rigid(pose, str(folder / "pose" / f"{fid}.txt"))
+            depth = read_depth_png(folder / "depth" / f"{fid}.png", scale)
+            rgb = register_colour(read_rgb(folder / "color" / f"{fid}.jpg"), K_color, K_depth, depth.shape)
+        except SceneValidationError as e:
+            skipped.append(FrameSkip(e.source, e.field, e.reason))
+            continue
+        views.append((fid, rgb, depth, K_depth, pose, str(folder / "depth" / f"{fid}.png")))
+    return stack_views(views, str(folder), "scannet", skipped, read_objects(folder))
