@@ -2,7 +2,7 @@
 
 * ``threedq fit|validate|test|predict --config stages/<stage>.yaml`` — :class:`~threedq.pipeline.lightning_cli.ThreeDQCLI`
   (LightningCLI, subclass mode for model and data, YAML under ``configs/``).
-* ``threedq data generate|show|check`` — :mod:`threedq.pipeline.data_commands`.
+* ``threedq data generate|show|check|import|index`` — :mod:`threedq.pipeline.data_commands`.
 * ``threedq em`` — :func:`threedq.pipeline.em.run_em`; ``threedq eval`` — :func:`threedq.pipeline.report.run_eval`.
 """
 
@@ -31,8 +31,8 @@ def build_parser() -> ArgumentParser:
     for name in LIGHTNING_SUBCOMMANDS:
         p = ArgumentParser(description=f"Lightning '{name}' of a stage; see 'threedq {name} --help'.")
         sub.add_subcommand(name, p, help=f"LightningCLI {name} (threedq {name} --config stages/<stage>.yaml)")
-    data = ArgumentParser(description="Dataset tools: generate, show, check.")
-    sub.add_subcommand("data", data, help="generate, show or check a dataset")
+    data = ArgumentParser(description="Dataset tools: generate, show, check, import, index.")
+    sub.add_subcommand("data", data, help="generate, show, check, import or index a dataset")
     em = ArgumentParser(description=(run_em.__doc__ or "").split("\n")[0])
     em.add_function_arguments(run_em)
     sub.add_subcommand("em", em, help="run the stages in order (view prediction, EM rounds, evaluation)")

@@ -1,17 +1,25 @@
-"""``threedq data generate|show|check``: the embedded dataset generator, its contact sheet and a validator."""
+"""``threedq data generate|show|check|import|index``: the embedded dataset generator, its contact sheet, a
+validator, the importer of on-disk capture formats and the index writer of a folder of canonical scenes."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
+from typing import Literal
 
 from jsonargparse import ArgumentParser
 
 from threedq.data.contact_sheet import contact_sheet
+from threedq.data.folder_index import index_folder
+from threedq.data.formats.importer import import_captures
+from threedq.data.formats.registry import FORMATS
 from threedq.data.generate import generate_dataset
 from threedq.data.generator_config import GeneratorConfig
 from threedq.scene import SceneValidationError, load_index, load_scene
 
 __all__ = ["check_dataset", "data_parsers", "run_data"]
+
+FormatName = Literal[tuple(FORMATS)]  # type: ignore[valid-type]
 
 
 def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
@@ -41,10 +49,33 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     check = ArgumentParser(description="Validate every scene of a dataset folder; one line per bad file.")
     check.add_argument("dir", help="dataset folder")
 
+    imp = ArgumentParser(description="Import RGB-D captures of an on-disk format (README 'Real captures') as canonical "
+                         "scenes: z up, centred, subsampled views; writes <out>/<split>/*.npz and index.json.")
+    imp.add_argument("src", help="one capture folder, or a folder of them")
+    imp.add_argument("--format", type=FormatName, required=True, help="capture format")
+    imp.add_argument("--out", required=True, help="output dataset folder (an existing index is extended)")
+    imp.add_argument("--split", type=Literal["train", "val", "test"], default="train")
+    imp.add_argument("--max_views", type=int, default=28, help="views kept per scene (farthest camera positions)")
+    imp.add_argument("--max_depth", type=float, default=10.0, help="depth beyond this many metres becomes 0")
+    imp.add_argument("--intrinsics", type=tuple[float, float, float, float] | None, default=None,
+                     help="fx fy cx cy (tum: overrides the sensor's constants)")
+    imp.add_argument("--depth_units_per_metre", type=float | None, default=None, help="overrides the format's depth scale")
+    imp.add_argument("--max_dt", type=float | None, default=None, help="tum: timestamp association tolerance, seconds")
+    imp.add_argument("--progress", type=bool, default=True)
+
+    idx = ArgumentParser(description="Write index.json for a folder of canonical scene .npz files.")
+    idx.add_argument("dir", help="dataset folder (split = first sub-folder: train/, val/, test/)")
+    idx.add_argument("--categories", type=list[str] | None, default=None, help="names by id (default category_<id>)")
+    idx.add_argument("--symmetry_order", type=list[int] | None, default=None, help="per category (default 1: none)")
+    idx.add_argument("--default_split", type=Literal["train", "val", "test"], default="train")
+    idx.add_argument("--margin", type=float, default=0.05, help="metres around the bounds taken from the data")
+
     return [
         ("generate", gen, "generate the embedded dataset"),
         ("show", show, "draw a contact sheet PNG"),
         ("check", check, "validate a dataset folder"),
+        ("import", imp, "import captures of an on-disk RGB-D format"),
+        ("index", idx, "write index.json for a folder of canonical scenes"),
     ]
 
 
@@ -80,6 +111,28 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
         return 0
     if action == "check":
         return check_dataset(args.dir)
+    if action == "import":
+        options = {"intrinsics": args.intrinsics, "depth_units_per_metre": args.depth_units_per_metre,
+                   "max_dt": args.max_dt}
+        try:
+            summary = import_captures(args.format, args.src, args.out, split=args.split, max_views=args.max_views,
+                                      max_depth=args.max_depth, parser_options=options, progress=args.progress)
+        except ValueError as e:  # an option that does not apply to the format
+            print(f"threedq: error: {e}", file=sys.stderr)
+            return 2
+        for line in summary.lines():
+            print(line)
+        return 0 if summary.scenes else 1
+    if action == "index":
+        index, problems = index_folder(args.dir, categories=args.categories, symmetry_order=args.symmetry_order,
+                                       default_split=args.default_split, margin=args.margin)
+        for line in problems:
+            print(line)
+        counts = {s: len(index.files(s)) for s in ("train", "val", "test")}
+        print(f"wrote {Path(args.dir) / 'index.json'}: {len(index.scenes)} scenes "
+              f"({', '.join(f'{k} {v}' for k, v in counts.items())}), {len(index.categories)} categories, "
+              f"bounds {list(index.scene_bounds[0])} .. {list(index.scene_bounds[1])}")
+        return 0
     raise AssertionError(action)
 
 

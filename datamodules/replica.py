@@ -1,0 +1,17 @@
+"""Replica scenes as exported for NICE-SLAM: imported into canonical records on first use, then read as a scene folder.
+
+Expected tree of each capture: the module docstring of ``threedq/data/formats/replica.py``; see
+:class:`~threedq.datamodules.capture_folder.CaptureDataModule` for the arguments.
+"""
+
+from __future__ import annotations
+
+from threedq.datamodules.capture_folder import CaptureDataModule
+
+__all__ = ["ReplicaDataModule"]
+
+
+class ReplicaDataModule(CaptureDataModule):
+    """Replica scenes as exported for NICE-SLAM; arguments as :class:`~threedq.datamodules.capture_folder.CaptureDataModule`."""
+
+    FORMAT = "replica"
