@@ -208,6 +208,21 @@ class TestOpen3d:
         write_open3d(tmp_path, turntable)
         assert_round_trip(parse_open3d(tmp_path), turntable, list(range(6)), 1e-3)
 
+    def test_only_the_kept_views_are_read(self, turntable, tmp_path) -> None:
+        # max_views=2 keeps view 0 and the camera farthest from it; the other images are never decoded
+        write_open3d(tmp_path, turntable)
+        centres = turntable.world_T_cam[:, :3, 3].astype(np.float64)
+        far = int(np.argmax(np.linalg.norm(centres - centres[0], axis=1)))
+        for v in set(range(6)) - {0, far}:
+            (tmp_path / "color" / f"{v:06d}.png").write_bytes(b"not an image")
+        cap = parse_open3d(tmp_path, max_views=2)
+        assert cap.frame_ids == [f"{v:06d}" for v in sorted({0, far})] and not cap.skipped and cap.num_frames == 6
+        # a corrupt chosen image is skipped and counted, and the next farthest readable view is read instead
+        write_open3d(tmp_path / "b", turntable)
+        (tmp_path / "b" / "color" / f"{far:06d}.png").write_bytes(b"not an image")
+        cap = parse_open3d(tmp_path / "b", max_views=2)
+        assert cap.num_views == 2 and f"{far:06d}" not in cap.frame_ids and len(cap.skipped) == 1
+
 
 class TestRig:
     def test_smoke(self, turntable, tmp_path) -> None:

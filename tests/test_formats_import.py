@@ -135,7 +135,7 @@ class TestImport:
         text = capsys.readouterr().out
         assert re.search(r"skipped: .*room1/traj.txt:6: field 'pose'", text)
         assert "imported 2 scene(s), 8 views; 1 frame(s) skipped (pose 1)" in text
-        assert "train/room1.npz: 4 views kept of 6 frames read" in text
+        assert "train/room1.npz: 4 views kept of 5 posed frames" in text
         assert main(["data", "check", str(out)]) == 0
         dm = SceneFolderDataModule(str(out), batch_size=2, num_input_views=2, num_target_views=1)
         batch = next(iter(dm.train_dataloader()))

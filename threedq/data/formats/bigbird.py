@@ -30,7 +30,16 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, read_objects, read_rgb, resize_to, stack_views
+from threedq.data.formats.capture import (
+    Capture,
+    Frame,
+    FrameSkip,
+    check_rigid,
+    load_frames,
+    read_objects,
+    read_rgb,
+    resize_to,
+)
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "parse_bigbird", "register_depth"]
@@ -84,12 +93,27 @@ def _h5(path: Path, key: str, field_name: str) -> np.ndarray:
         raise SceneValidationError(str(path), field_name, f"not a readable HDF5 file (truncated or corrupt: {e})") from e
 
 
-def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+def _load_view(
+    folder: Path, fid: str, cam: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """One view: colour resized to the depth size (and its K), depth registered into it."""
+    K_rgb, K_ir, c_T_5, ir_T_5 = cam
+    depth_path = folder / f"{fid}.h5"
+    raw = _h5(depth_path, "depth", "depth")
+    if raw.ndim != 2:
+        raise SceneValidationError(str(depth_path), "depth", f"expected an [H,W] image, got {list(raw.shape)}")
+    rgb, K = resize_to(read_rgb(folder / f"{fid}.jpg"), K_rgb, raw.shape)
+    depth = register_depth(raw.astype(np.float64) / scale, K_ir, c_T_5 @ np.linalg.inv(ir_T_5), K, raw.shape)
+    return rgb, depth, K, str(depth_path)
+
+
+def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
     """Read one BigBIRD object folder (tree in the module docstring).
 
     Args:
         folder: the object folder.
         depth_units_per_metre: depth units per metre (``None`` = 10000, 100 um units).
+        max_views: read at most this many views (farthest camera positions; ``None`` = all).
 
     Returns:
         A :class:`Capture`, views ordered by camera then angle; frame ids ``"NP{c}_{deg}"``.
@@ -104,7 +128,7 @@ def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None
     )
     skipped: list[FrameSkip] = []
     cams: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
-    views = []
+    frames = []
     for c, deg in names:
         fid = f"NP{c}_{deg}"
         try:
@@ -119,15 +143,9 @@ def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None
             pose_path = folder / "poses" / f"NP5_{deg}_pose.h5"
             table_T_5 = check_rigid(_h5(pose_path, "H_table_from_reference_camera", "H_table_from_reference_camera"),
                                     str(pose_path), "H_table_from_reference_camera")
-            depth_path = folder / f"{fid}.h5"
-            raw = _h5(depth_path, "depth", "depth")
-            if raw.ndim != 2:
-                raise SceneValidationError(str(depth_path), "depth", f"expected an [H,W] image, got {list(raw.shape)}")
-            rgb, K = resize_to(read_rgb(folder / f"{fid}.jpg"), K_rgb, raw.shape)
-            depth = register_depth(raw.astype(np.float64) / scale, K_ir, c_T_5 @ np.linalg.inv(ir_T_5), K, raw.shape)
             pose = table_T_5 @ np.linalg.inv(c_T_5)
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
-        views.append((fid, rgb, depth, K, pose, str(depth_path)))
-    return stack_views(views, str(folder), "bigbird", skipped, read_objects(folder))
+        frames.append(Frame(fid, pose, lambda fid=fid, c=c: _load_view(folder, fid, cams[c], scale)))
+    return load_frames(frames, str(folder), "bigbird", skipped, read_objects(folder), max_views)

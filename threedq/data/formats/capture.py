@@ -13,6 +13,7 @@ Images are read with OpenCV (``cv2.IMREAD_UNCHANGED`` for depth, so 16-bit PNGs 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,8 +33,10 @@ __all__ = [
     "read_matrix",
     "read_objects",
     "read_rgb",
+    "Frame",
+    "farthest_order",
+    "load_frames",
     "resize_to",
-    "stack_views",
 ]
 
 #: optional threedq annotation beside a capture: boxes in the capture's own frame (see :func:`read_objects`)
@@ -72,7 +75,8 @@ class Capture:
 
     ``rgb`` ``[V,H,W,3]`` uint8, ``depth`` ``[V,H,W]`` float32 metres (0 = invalid), ``K`` ``[V,3,3]``,
     ``world_T_cam`` ``[V,4,4]`` camera-to-capture-world (OpenCV camera axes), ``frame_ids`` ``[V]`` the
-    format's frame names, ``skipped`` the frames left out, ``objects`` optional annotated boxes.
+    format's frame names, ``skipped`` the frames left out (and malformed lines), ``objects`` optional
+    annotated boxes, ``num_frames`` the frames with a valid pose before subsampling.
     """
 
     rgb: np.ndarray
@@ -84,6 +88,7 @@ class Capture:
     format: str
     skipped: list[FrameSkip] = field(default_factory=list)
     objects: CaptureObjects | None = None
+    num_frames: int = 0
 
     @property
     def num_views(self) -> int:
@@ -196,42 +201,84 @@ def read_objects(folder: Path) -> CaptureObjects | None:
     return CaptureObjects(poses, size, cats)
 
 
-def stack_views(
-    views: list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]],
+@dataclass
+class Frame:
+    """One frame of a capture before its pixels are read: ``world_T_cam`` ``[4,4]`` (checked) and ``load()``
+    returning ``(rgb [H,W,3] u8, depth [H,W] f32 metres, K [3,3], depth file)`` or raising
+    :class:`~threedq.scene.SceneValidationError` naming the file and field."""
+
+    frame_id: str
+    world_T_cam: np.ndarray
+    load: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray, str]]
+
+
+def farthest_order(centres: np.ndarray) -> np.ndarray:
+    """All indices of ``centres`` ``[V,3]`` in farthest-point order from index 0 (ties: the lowest index)."""
+    V = centres.shape[0]
+    order = [0]
+    dist = np.linalg.norm(centres - centres[0], axis=1)
+    dist[0] = -1
+    for _ in range(V - 1):
+        i = int(np.argmax(dist))
+        order.append(i)
+        dist = np.minimum(dist, np.linalg.norm(centres - centres[i], axis=1))
+        dist[order] = -1
+    return np.array(order, np.int64)
+
+
+def load_frames(
+    frames: list[Frame],
     source: str,
     fmt: str,
     skipped: list[FrameSkip],
     objects: CaptureObjects | None,
+    max_views: int | None = None,
 ) -> Capture:
-    """Stack ``(frame_id, rgb, depth, K, world_T_cam, depth_file)`` views into a :class:`Capture`.
+    """Read the pixels of at most ``max_views`` frames into a :class:`Capture` (in capture order).
 
-    A view whose depth size differs from its colour size, or whose size differs from the first kept view's,
-    is skipped (counted, naming its depth file) rather than resampled.
+    Frames are read in farthest-camera-position order (so a long sequence is subsampled before any image is
+    decoded) until ``max_views`` are read; ``None`` reads all. A frame that fails to load, whose depth size
+    differs from its colour size, or whose size differs from the first read frame's is skipped and counted
+    (naming its file) rather than resampled, and the next farthest frame is read instead.
     """
-    kept = []
-    for v in views:
-        fid, rgb, depth, K, pose, depth_file = v
+    if max_views is not None and max_views < 1:
+        raise ValueError(f"max_views: expected >= 1 or None, got {max_views}")
+    order = farthest_order(np.array([f.world_T_cam[:3, 3] for f in frames])) if frames else np.zeros(0, np.int64)
+    kept: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    shape: tuple[int, ...] | None = None
+    for i in order:
+        if max_views is not None and len(kept) >= max_views:
+            break
+        f = frames[int(i)]
+        try:
+            rgb, depth, K, depth_file = f.load()
+        except SceneValidationError as e:
+            skipped.append(FrameSkip(e.source, e.field, e.reason))
+            continue
         if depth.shape != rgb.shape[:2]:
             skipped.append(FrameSkip(depth_file, "depth", f"depth is {list(depth.shape)} but colour is {list(rgb.shape[:2])}"))
             continue
-        if kept and rgb.shape != kept[0][1].shape:
-            skipped.append(FrameSkip(depth_file, "rgb", f"frame {fid}: size {list(rgb.shape[:2])} differs from the "
-                                                        f"first view's {list(kept[0][1].shape[:2])}"))
+        if shape is not None and rgb.shape != shape:
+            skipped.append(FrameSkip(depth_file, "rgb", f"frame {f.frame_id}: size {list(rgb.shape[:2])} differs from "
+                                                        f"the first read frame's {list(shape[:2])}"))
             continue
-        kept.append(v)
+        shape = rgb.shape
+        kept[int(i)] = (rgb, depth, np.asarray(K, np.float64))
     if not kept:
         reasons = "; ".join(str(s) for s in skipped[:3]) or "no frames found"
         raise SceneValidationError(source, "frames", f"no usable frame ({reasons})")
-    depth = np.stack([v[2] for v in kept]).astype(np.float32)
+    idx = sorted(kept)
+    depth = np.stack([kept[i][1] for i in idx]).astype(np.float32)
     depth[~np.isfinite(depth) | (depth < 0)] = 0
     return Capture(
-        rgb=np.stack([v[1] for v in kept]),
+        rgb=np.stack([kept[i][0] for i in idx]),
         depth=depth,
-        K=np.stack([v[3] for v in kept]).astype(np.float64),
-        world_T_cam=np.stack([v[4] for v in kept]).astype(np.float64),
-        frame_ids=[v[0] for v in kept],
+        K=np.stack([kept[i][2] for i in idx]),
+        world_T_cam=np.stack([frames[i].world_T_cam for i in idx]).astype(np.float64),
+        frame_ids=[frames[i].frame_id for i in idx],
         source=source,
         format=fmt,
         skipped=skipped,
         objects=objects,
+        num_frames=len(frames),
     )

@@ -29,7 +29,8 @@ IMPORT_VERSION = 1
 
 @dataclass
 class ImportSummary:
-    """What an import did: ``scenes`` (file, views kept, frames read), ``skipped`` frames, ``failed`` captures."""
+    """What an import did: ``scenes`` (file, views kept, frames with a valid pose), ``skipped`` frames (and
+    malformed lines), ``failed`` captures."""
 
     scenes: list[tuple[str, int, int]] = field(default_factory=list)
     skipped: list[FrameSkip] = field(default_factory=list)
@@ -43,7 +44,7 @@ class ImportSummary:
             reasons[s.field] = reasons.get(s.field, 0) + 1
         why = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
         for f, kept, read in self.scenes:
-            out.append(f"{f}: {kept} views kept of {read} frames read")
+            out.append(f"{f}: {kept} views kept of {read} posed frames")
         out.append(
             f"imported {len(self.scenes)} scene(s), {sum(k for _, k, _ in self.scenes)} views; "
             f"{len(self.skipped)} frame(s) skipped" + (f" ({why})" if why else "") + f"; {len(self.failed)} capture(s) failed"
@@ -68,9 +69,10 @@ def find_captures(fmt: str, src: str | Path) -> list[Path]:
 def _parser_kwargs(fmt: str, options: dict[str, Any]) -> dict[str, Any]:
     params = inspect.signature(FORMATS[fmt][0]).parameters
     given = {k: v for k, v in options.items() if v is not None}
-    bad = [k for k in given if k not in params]
+    allowed = [p for p in params if p not in ("folder", "max_views")]
+    bad = [k for k in given if k not in allowed]
     if bad:
-        raise ValueError(f"option {bad[0]!r} does not apply to format {fmt!r} (it takes {[p for p in params][1:]})")
+        raise ValueError(f"option {bad[0]!r} does not apply to format {fmt!r} (it takes {allowed})")
     return given
 
 
@@ -118,7 +120,7 @@ def import_captures(
 
     for folder in tqdm(captures, disable=not progress, desc=f"threedq import {fmt}", unit="capture", dynamic_ncols=True):
         try:
-            capture = FORMATS[fmt][0](folder, **kwargs)
+            capture = FORMATS[fmt][0](folder, max_views=max_views, **kwargs)  # reads only the views it keeps
             record = normalise_capture(capture, categories, max_views=max_views, max_depth=max_depth)
         except SceneValidationError as e:
             summary.failed.append(str(e))
@@ -130,7 +132,7 @@ def import_captures(
         lo, hi = (np.array(record.meta["scene_bounds"][k]) for k in ("min", "max"))
         bounds = [lo, hi] if bounds is None else [np.minimum(bounds[0], lo), np.maximum(bounds[1], hi)]
         scenes = [s for s in scenes if s["file"] != rel] + [{"file": rel, "split": split}]
-        summary.scenes.append((rel, record.num_views, capture.num_views + len(capture.skipped)))
+        summary.scenes.append((rel, record.num_views, capture.num_frames))
     if bounds is not None:
         sym = list(old.symmetry_order) if old else []
         formats = sorted(set((old.generator.get("formats", []) if old else [])) | {fmt})

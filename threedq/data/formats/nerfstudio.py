@@ -32,8 +32,9 @@ from threedq.data.formats.capture import (
     check_rigid,
     read_depth_png,
     read_objects,
+    Frame,
+    load_frames,
     read_rgb,
-    stack_views,
 )
 from threedq.scene import SceneValidationError
 
@@ -59,13 +60,14 @@ def _camera(frame: dict[str, Any], top: dict[str, Any], source: str) -> np.ndarr
     return np.array([[vals["fl_x"], 0, vals["cx"] - 0.5], [0, vals["fl_y"], vals["cy"] - 0.5], [0, 0, 1]])
 
 
-def parse_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+def parse_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
     """Read a ``transforms.json`` capture with depth (tree in the module docstring).
 
     Args:
         folder: the folder holding ``transforms.json``.
         depth_units_per_metre: depth PNG units per metre; ``None`` = ``1 / depth_unit_scale_factor`` from the
             JSON if present, else 1000 (millimetres, nerfstudio's default).
+        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
 
     Returns:
         A :class:`Capture`; frame ids are the ``file_path`` entries.
@@ -86,7 +88,8 @@ def parse_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = N
     if depth_units_per_metre is None:
         depth_units_per_metre = 1.0 / float(top.get("depth_unit_scale_factor", 1e-3))
     skipped: list[FrameSkip] = []
-    views = []
+    scale = float(depth_units_per_metre)
+    todo = []
     for i, fr in enumerate(frames):
         where = f"{source}: frames[{i}]"
         try:
@@ -99,13 +102,12 @@ def parse_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = N
             if gl.shape == (3, 4):
                 gl = np.vstack([gl, [0, 0, 0, 1]])
             pose = check_rigid(gl, where, "transform_matrix") @ OPENGL_T_OPENCV
-            rgb = read_rgb(folder / fr["file_path"])
-            depth = read_depth_png(folder / fr["depth_file_path"], depth_units_per_metre)
         except (SceneValidationError, ValueError, TypeError) as e:
             if isinstance(e, SceneValidationError):
                 skipped.append(FrameSkip(e.source, e.field, e.reason))
             else:
                 skipped.append(FrameSkip(where, "transform_matrix", f"not a 4x4 matrix of numbers ({e})"))
             continue
-        views.append((str(fr["file_path"]), rgb, depth, K, pose, str(folder / fr["depth_file_path"])))
-    return stack_views(views, source, "nerfstudio", skipped, read_objects(folder))
+        r, d = folder / fr["file_path"], folder / fr["depth_file_path"]
+        todo.append(Frame(str(fr["file_path"]), pose, lambda r=r, d=d, K=K: (read_rgb(r), read_depth_png(d, scale), K, str(d))))
+    return load_frames(todo, source, "nerfstudio", skipped, read_objects(folder), max_views)

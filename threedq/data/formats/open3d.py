@@ -27,7 +27,16 @@ from pathlib import Path
 
 import numpy as np
 
-from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, read_depth_png, read_objects, read_rgb, stack_views
+from threedq.data.formats.capture import (
+    Capture,
+    Frame,
+    FrameSkip,
+    check_rigid,
+    load_frames,
+    read_depth_png,
+    read_objects,
+    read_rgb,
+)
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "parse_open3d", "read_log"]
@@ -72,12 +81,13 @@ def _intrinsics(folder: Path) -> np.ndarray:
     raise SceneValidationError(str(folder / "camera_intrinsic.json"), "intrinsic_matrix", "no such file")
 
 
-def parse_open3d(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+def parse_open3d(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
     """Read an Open3D/Kinect capture folder (tree in the module docstring).
 
     Args:
         folder: the capture folder.
         depth_units_per_metre: Open3D's ``depth_scale`` (``None`` = 1000).
+        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
 
     Returns:
         A :class:`Capture`; frame ids are the colour file stems.
@@ -94,7 +104,7 @@ def parse_open3d(folder: str | Path, depth_units_per_metre: float | None = None)
     colour = sorted((p for p in cdir.glob("*") if p.suffix.lower() in (".jpg", ".png") and re.search(r"\d", p.stem)),
                     key=lambda p: int(re.findall(r"\d+", p.stem)[-1]))
     depths = {int(re.findall(r"\d+", p.stem)[-1]): p for p in (folder / "depth").glob("*.png") if re.search(r"\d", p.stem)}
-    views = []
+    frames = []
     for i, f in enumerate(colour):
         n = int(re.findall(r"\d+", f.stem)[-1])
         try:
@@ -103,10 +113,8 @@ def parse_open3d(folder: str | Path, depth_units_per_metre: float | None = None)
             pose = check_rigid(poses[i], str(traj_path), f"trajectory[{i}]")
             if n not in depths:
                 raise SceneValidationError(str(folder / "depth"), "depth", f"no depth image numbered {n}")
-            rgb = read_rgb(f)
-            depth = read_depth_png(depths[n], scale)
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
-        views.append((f.stem, rgb, depth, K, pose, str(depths[n])))
-    return stack_views(views, str(folder), "open3d", skipped, read_objects(folder))
+        frames.append(Frame(f.stem, pose, lambda f=f, d=depths[n]: (read_rgb(f), read_depth_png(d, scale), K, str(d))))
+    return load_frames(frames, str(folder), "open3d", skipped, read_objects(folder), max_views)

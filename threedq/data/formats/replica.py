@@ -24,7 +24,16 @@ from pathlib import Path
 
 import numpy as np
 
-from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, read_depth_png, read_objects, read_rgb, stack_views
+from threedq.data.formats.capture import (
+    Capture,
+    Frame,
+    FrameSkip,
+    check_rigid,
+    load_frames,
+    read_depth_png,
+    read_objects,
+    read_rgb,
+)
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "REPLICA_CAMERA", "parse_replica"]
@@ -44,12 +53,13 @@ def _camera(folder: Path) -> dict[str, float]:
     return {k: float(v) for k, v in REPLICA_CAMERA.items()}
 
 
-def parse_replica(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+def parse_replica(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
     """Read one NICE-SLAM Replica scene (tree in the module docstring).
 
     Args:
         folder: the scene folder (holding ``results/`` and ``traj.txt``).
         depth_units_per_metre: overrides the camera's ``scale``.
+        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
 
     Returns:
         A :class:`Capture`; frame ids are the 6-digit frame numbers.
@@ -64,10 +74,9 @@ def parse_replica(folder: str | Path, depth_units_per_metre: float | None = None
     if not traj_path.is_file():
         raise SceneValidationError(str(traj_path), "pose", "no such file")
     lines = traj_path.read_text(encoding="utf-8").splitlines()
-    frames = sorted((folder / "results").glob("frame*.jpg"))
     skipped: list[FrameSkip] = []
-    views = []
-    for f in frames:
+    frames = []
+    for f in sorted((folder / "results").glob("frame*.jpg")):
         fid = f.stem[len("frame"):]
         if not fid.isdigit():
             continue
@@ -81,10 +90,9 @@ def parse_replica(folder: str | Path, depth_units_per_metre: float | None = None
             except ValueError as e:
                 raise SceneValidationError(where, "pose", f"expected 16 numbers ({e})") from e
             check_rigid(pose, where)
-            rgb = read_rgb(f)
-            depth = read_depth_png(folder / "results" / f"depth{fid}.png", scale)
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
-        views.append((fid, rgb, depth, K, pose, str(folder / "results" / f"depth{fid}.png")))
-    return stack_views(views, str(folder), "replica", skipped, read_objects(folder))
+        d = folder / "results" / f"depth{fid}.png"
+        frames.append(Frame(fid, pose, lambda f=f, d=d: (read_rgb(f), read_depth_png(d, scale), K, str(d))))
+    return load_frames(frames, str(folder), "replica", skipped, read_objects(folder), max_views)

@@ -38,7 +38,16 @@ from typing import Any
 import numpy as np
 import yaml
 
-from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, read_depth_png, read_objects, read_rgb, stack_views
+from threedq.data.formats.capture import (
+    Capture,
+    Frame,
+    FrameSkip,
+    check_rigid,
+    load_frames,
+    read_depth_png,
+    read_objects,
+    read_rgb,
+)
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "decode_carla_depth", "parse_rig"]
@@ -96,8 +105,12 @@ def _read_depth(path_stem: Path, enc: str, units: float) -> tuple[np.ndarray, Pa
     return read_depth_png(p, units), p
 
 
-def parse_rig(folder: str | Path) -> Capture:
+def parse_rig(folder: str | Path, max_views: int | None = None) -> Capture:
     """Read a recorded rig capture (tree and ``rig.yaml`` in the module docstring).
+
+    Args:
+        folder: the capture folder.
+        max_views: read at most this many views (farthest camera positions; ``None`` = all).
 
     Returns:
         A :class:`Capture` with one view per (camera, capture number), cameras in ``rig.yaml`` order;
@@ -113,7 +126,7 @@ def parse_rig(folder: str | Path) -> Capture:
     units = float((spec.get("depth") or {}).get("units_per_metre", 1000.0))
     captures = {int(k): v for k, v in (spec.get("captures") or {}).items()}
     skipped: list[FrameSkip] = []
-    views = []
+    frames = []
     for cam, cs in spec["cameras"].items():
         K = _matrix((cs or {}).get("K"), (3, 3), src, f"cameras.{cam}.K")
         rig_T_cam = check_rigid(_matrix((cs or {}).get("rig_T_cam"), (4, 4), src, f"cameras.{cam}.rig_T_cam"), src,
@@ -130,10 +143,14 @@ def parse_rig(folder: str | Path) -> Capture:
                     raise SceneValidationError(src, f"captures.{t}", f"no rig pose for capture {t}")
                 world_T_rig = np.eye(4) if not captures else check_rigid(
                     _matrix(captures[t], (4, 4), src, f"captures.{t}"), src, f"captures.{t}")
-                rgb = read_rgb(rgb_path)
-                depth, dpath = _read_depth(cam_dir / f"depth_{stem}", enc, units)
             except SceneValidationError as e:
                 skipped.append(FrameSkip(e.source, e.field, e.reason))
                 continue
-            views.append((f"{cam}/{stem}", rgb, depth, K, world_T_rig @ rig_T_cam, str(dpath)))
-    return stack_views(views, str(folder), "rig", skipped, read_objects(folder))
+
+            def load(r: Path = rgb_path, d: Path = cam_dir / f"depth_{stem}", K: np.ndarray = K
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+                depth, dpath = _read_depth(d, enc, units)
+                return read_rgb(r), depth, K, str(dpath)
+
+            frames.append(Frame(f"{cam}/{stem}", world_T_rig @ rig_T_cam, load))
+    return load_frames(frames, str(folder), "rig", skipped, read_objects(folder), max_views)

@@ -32,9 +32,10 @@ from threedq.data.formats.capture import (
     read_depth_png,
     read_matrix,
     read_objects,
+    Frame,
+    load_frames,
     read_rgb,
     resize_to,
-    stack_views,
 )
 from threedq.scene import SceneValidationError
 
@@ -65,12 +66,13 @@ def _frame_ids(folder: Path) -> list[str]:
     return sorted(ids, key=int)
 
 
-def parse_scannet(folder: str | Path, depth_units_per_metre: float | None = None) -> Capture:
+def parse_scannet(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
     """Read a SensReader export (tree in the module docstring).
 
     Args:
         folder: the scene folder.
         depth_units_per_metre: depth PNG units per metre (``None`` = 1000, millimetres).
+        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
 
     Returns:
         A :class:`Capture` on the depth grid; frame ids are the file numbers.
@@ -82,15 +84,20 @@ def parse_scannet(folder: str | Path, depth_units_per_metre: float | None = None
     K_color = read_matrix(folder / "intrinsic" / "intrinsic_color.txt", "intrinsic_color")[:3, :3]
     K_depth = read_matrix(folder / "intrinsic" / "intrinsic_depth.txt", "intrinsic_depth")[:3, :3]
     skipped: list[FrameSkip] = []
-    views = []
+
+    def load(fid: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+        depth_path = folder / "depth" / f"{fid}.png"
+        depth = read_depth_png(depth_path, scale)
+        rgb = register_colour(read_rgb(folder / "color" / f"{fid}.jpg"), K_color, K_depth, depth.shape)
+        return rgb, depth, K_depth, str(depth_path)
+
+    frames = []
     for fid in _frame_ids(folder):
         try:
             pose = read_matrix(folder / "pose" / f"{fid}.txt", "pose")
             check_rigid(pose, str(folder / "pose" / f"{fid}.txt"))
-            depth = read_depth_png(folder / "depth" / f"{fid}.png", scale)
-            rgb = register_colour(read_rgb(folder / "color" / f"{fid}.jpg"), K_color, K_depth, depth.shape)
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
-        views.append((fid, rgb, depth, K_depth, pose, str(folder / "depth" / f"{fid}.png")))
-    return stack_views(views, str(folder), "scannet", skipped, read_objects(folder))
+        frames.append(Frame(fid, pose, lambda fid=fid: load(fid)))
+    return load_frames(frames, str(folder), "scannet", skipped, read_objects(folder), max_views)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from threedq.data.formats.capture import Capture, FrameSkip, read_depth_png, read_objects, read_rgb, stack_views
+from threedq.data.formats.capture import Capture, Frame, FrameSkip, load_frames, read_depth_png, read_objects, read_rgb
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "TUM_INTRINSICS", "parse_tum"]
@@ -88,6 +88,7 @@ def parse_tum(
     intrinsics: tuple[float, float, float, float] | None = None,
     max_dt: float = 0.02,
     depth_units_per_metre: float | None = None,
+    max_views: int | None = None,
 ) -> Capture:
     """Read a TUM RGB-D sequence (tree in the module docstring).
 
@@ -96,6 +97,7 @@ def parse_tum(
         intrinsics: ``(fx, fy, cx, cy)``; ``None`` = TUM's constants of the sensor named in the folder name.
         max_dt: association tolerance in seconds (colour-depth and colour-pose).
         depth_units_per_metre: depth PNG units per metre (``None`` = 5000).
+        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
 
     Returns:
         A :class:`Capture` of the associated frames, frame ids = colour timestamps as written.
@@ -111,7 +113,7 @@ def parse_tum(
     gt = _read_list(folder / "groundtruth.txt", 8, "pose", skipped)
     d_times = np.array([t for t, _ in depths])
     p_times = np.array([t for t, _ in gt])
-    views = []
+    frames = []
     for t, (rgb_name,) in rgbs:
         stamp = f"{t:.6f}"
         jd, dt_d = _nearest(d_times, t)
@@ -133,10 +135,9 @@ def parse_tum(
             pose[:3, 3] = [float(x) for x in gt[jp][1][:3]]
             if not np.all(np.isfinite(pose)):
                 raise SceneValidationError(str(folder / "groundtruth.txt"), "pose", f"pose at {p_times[jp]:.6f} is not finite")
-            rgb = read_rgb(folder / rgb_name)
-            depth = read_depth_png(folder / depths[jd][1][0], scale)
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
-        views.append((stamp, rgb, depth, K, pose, str(folder / depths[jd][1][0])))
-    return stack_views(views, str(folder), "tum", skipped, read_objects(folder))
+        rgb_path, depth_path = folder / rgb_name, folder / depths[jd][1][0]
+        frames.append(Frame(stamp, pose, lambda r=rgb_path, d=depth_path: (read_rgb(r), read_depth_png(d, scale), K, str(d))))
+    return load_frames(frames, str(folder), "tum", skipped, read_objects(folder), max_views)
