@@ -202,6 +202,10 @@ class TestOpen3d:
         cap = parse_open3d(tmp_path)
         assert cap.num_views == 5 and len(cap.skipped) == 1
         assert "depth/000003.png" in str(cap.skipped[0]) and "'depth'" in str(cap.skipped[0])
+        png = tmp_path / "depth" / "000001.png"
+        png.write_bytes(png.read_bytes()[: png.stat().st_size // 2])  # a truncated 16-bit PNG
+        cap = parse_open3d(tmp_path)
+        assert cap.num_views == 4 and any("depth/000001.png: field 'depth': truncated" in str(s) for s in cap.skipped)
 
     def test_feature_round_trip(self, turntable, tmp_path) -> None:
         # the intrinsic matrix is stored column-major; depth in millimetres

@@ -13,7 +13,8 @@ Expected tree::
 Each colour frame takes the nearest depth frame and the nearest pose, each within ``max_dt`` seconds; a colour
 frame with no depth or no pose that close is skipped and counted. Poses are taken as written (no
 interpolation). Intrinsics are not in the files: they are TUM's published per-sensor constants (``fr1``,
-``fr2``, ``fr3``, chosen from the folder name) unless given.
+``fr2``, ``fr3``, chosen from the folder name) unless given. TUM also publishes lens distortion for fr1/fr2;
+it is not applied (the pinhole model is used as is).
 
 Convention: mocap world frame, metres; the pose is the colour camera's optical centre, OpenCV camera axes.
 """
