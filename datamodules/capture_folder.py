@@ -15,8 +15,9 @@ from __future__ import annotations
 import logging
 from typing import Any, ClassVar
 
-from threedq.data.formats.importer import import_captures
 from threedq.datamodules.scene_folder import SceneFolderDataModule
+
+from threedq.data.formats.importer import import_captures
 from threedq.scene import INDEX_NAME
 
 __all__ = ["CaptureDataModule"]
@@ -56,9 +57,18 @@ class CaptureDataModule(SceneFolderDataModule):
         match_iou: float = 0.5,
         max_boxes: int = 8,
     ) -> None:
-        super().__init__(data_dir=data_dir, batch_size=batch_size, num_workers=num_workers,
-                         num_input_views=num_input_views, num_target_views=num_target_views, max_objects=max_objects,
-                         seed=seed, boxes=boxes, match_iou=match_iou, max_boxes=max_boxes)
+        super().__init__(
+            data_dir=data_dir,
+            batch_size=batch_size,
+            num_workers=num_workers,
+            num_input_views=num_input_views,
+            num_target_views=num_target_views,
+            max_objects=max_objects,
+            seed=seed,
+            boxes=boxes,
+            match_iou=match_iou,
+            max_boxes=max_boxes,
+        )
         bad = [s for s in capture_dirs if s not in ("train", "val", "test")]
         if bad:
             raise ValueError(f"capture_dirs: expected keys among train, val, test, got {bad[0]!r}")
@@ -71,8 +81,16 @@ class CaptureDataModule(SceneFolderDataModule):
         if (self.data_dir / INDEX_NAME).is_file():
             return
         for split, src in self.capture_dirs.items():
-            summary = import_captures(self.FORMAT, src, self.data_dir, split=split, max_views=self.max_views,
-                                      max_depth=self.max_depth, parser_options=self.parser_options, progress=False)
+            summary = import_captures(
+                self.FORMAT,
+                src,
+                self.data_dir,
+                split=split,
+                max_views=self.max_views,
+                max_depth=self.max_depth,
+                parser_options=self.parser_options,
+                progress=False,
+            )
             for line in summary.lines():
                 log.info(line)
 

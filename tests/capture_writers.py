@@ -17,7 +17,6 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
-import pytest
 from scipy.spatial.transform import Rotation
 
 from threedq.scene import SceneRecord
@@ -67,20 +66,15 @@ def turntable_scene(image_size: tuple[int, int] = (24, 32), seed: int = 7) -> Sc
         renderer.release()
 
 
-@pytest.fixture(scope="session")
-def turntable() -> SceneRecord:
-    """The turntable scene at 36x48 (6 views: 2 cameras x 3 yaws)."""
-    return turntable_scene((36, 48))
-
-
 def write_objects(folder: Path, rec: SceneRecord, capture_T_world: np.ndarray) -> None:
     """``threedq_objects.json`` with the record's boxes in the capture frame."""
     objs = []
     for b, c in zip(rec.boxes.astype(np.float64), rec.categories):
         w_T_box = rz(math.degrees(b[6]))
         w_T_box[:3, 3] = b[:3]
-        objs.append({"category": f"cat{int(c)}", "capture_T_box": (capture_T_world @ w_T_box).tolist(),
-                     "size": b[3:6].tolist()})
+        objs.append(
+            {"category": f"cat{int(c)}", "capture_T_box": (capture_T_world @ w_T_box).tolist(), "size": b[3:6].tolist()}
+        )
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "threedq_objects.json").write_text(json.dumps({"objects": objs}))
 
@@ -107,8 +101,11 @@ def upsample2(rgb: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return big, S @ K.astype(np.float64)
 
 
-def write_tum(folder: Path, rec: SceneRecord, capture_T_world: np.ndarray = np.eye(4), drop_pose: int | None = None) -> None:
+def write_tum(
+    folder: Path, rec: SceneRecord, capture_T_world: np.ndarray | None = None, drop_pose: int | None = None
+) -> None:
     """TUM layout with timestamp jitter: depth 10 ms after colour, mocap 5 ms before, extra mocap lines between."""
+    capture_T_world = np.eye(4) if capture_T_world is None else capture_T_world
     rgb_lines, depth_lines, gt_lines = ["# color images"], ["# depth maps"], ["# timestamp tx ty tz qx qy qz qw"]
     for v in range(rec.num_views):
         t = 1305031102.175304 + 0.5 * v
@@ -154,14 +151,30 @@ def write_nerfstudio(folder: Path, rec: SceneRecord, scale: float = 2e-4, non_ri
     depth in units of ``scale`` metres (``depth_unit_scale_factor``)."""
     K = rec.K[0].astype(np.float64)
     H, W = rec.image_size
-    top = {"camera_model": "OPENCV", "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2] + 0.5, "cy": K[1, 2] + 0.5,
-           "w": W, "h": H, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "depth_unit_scale_factor": scale, "frames": []}
+    top = {
+        "camera_model": "OPENCV",
+        "fl_x": K[0, 0],
+        "fl_y": K[1, 1],
+        "cx": K[0, 2] + 0.5,
+        "cy": K[1, 2] + 0.5,
+        "w": W,
+        "h": H,
+        "k1": 0.0,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "depth_unit_scale_factor": scale,
+        "frames": [],
+    }
     for v in range(rec.num_views):
         pose = rec.world_T_cam[v].astype(np.float64) @ OPENGL_FLIP
         if v == non_rigid:
             pose[:3, :3] *= 1.1
-        fr = {"file_path": f"images/frame_{v + 1:05d}.png", "depth_file_path": f"depth/frame_{v + 1:05d}.png",
-              "transform_matrix": pose.tolist()}
+        fr = {
+            "file_path": f"images/frame_{v + 1:05d}.png",
+            "depth_file_path": f"depth/frame_{v + 1:05d}.png",
+            "transform_matrix": pose.tolist(),
+        }
         if v % 2:
             Kv = rec.K[v].astype(np.float64)
             fr.update({"fl_x": Kv[0, 0], "fl_y": Kv[1, 1], "cx": Kv[0, 2] + 0.5, "cy": Kv[1, 2] + 0.5})
@@ -176,8 +189,11 @@ def write_replica(folder: Path, rec: SceneRecord, drop_last_line: bool = False) 
     K = rec.K[0].astype(np.float64)
     H, W = rec.image_size
     folder.mkdir(parents=True, exist_ok=True)
-    (folder.parent / "cam_params.json").write_text(json.dumps({"camera": {
-        "w": W, "h": H, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "scale": 6553.5}}))
+    (folder.parent / "cam_params.json").write_text(
+        json.dumps(
+            {"camera": {"w": W, "h": H, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "scale": 6553.5}}
+        )
+    )
     lines = []
     for v in range(rec.num_views):
         _img(folder / "results" / f"frame{v:06d}.jpg", rec.rgb[v])
@@ -188,14 +204,17 @@ def write_replica(folder: Path, rec: SceneRecord, drop_last_line: bool = False) 
     (folder / "traj.txt").write_text("\n".join(lines) + "\n")
 
 
-def write_open3d(folder: Path, rec: SceneRecord, capture_T_world: np.ndarray = np.eye(4),
-                 bad_depth_size: int | None = None) -> None:
+def write_open3d(
+    folder: Path, rec: SceneRecord, capture_T_world: np.ndarray | None = None, bad_depth_size: int | None = None
+) -> None:
     """Open3D reconstruction folder: color/*.png, depth/*.png (mm), camera_intrinsic.json (column-major), .log."""
+    capture_T_world = np.eye(4) if capture_T_world is None else capture_T_world
     K = rec.K[0].astype(np.float64)
     H, W = rec.image_size
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "camera_intrinsic.json").write_text(json.dumps(
-        {"width": W, "height": H, "intrinsic_matrix": K.T.reshape(-1).tolist()}))
+    (folder / "camera_intrinsic.json").write_text(
+        json.dumps({"width": W, "height": H, "intrinsic_matrix": K.T.reshape(-1).tolist()})
+    )
     log = []
     for v in range(rec.num_views):
         _img(folder / "color" / f"{v:06d}.png", rec.rgb[v])

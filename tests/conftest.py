@@ -22,3 +22,11 @@ def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     generate_dataset(out, num_scenes=12, seed=5, config=GeneratorConfig(**TINY), split_fractions=(0.7, 0.15, 0.15),
                      workers=1, progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def turntable():
+    """A generated scene seen from a turntable (2 cameras x 3 yaws, 36x48): every capture format's test scene."""
+    from capture_writers import turntable_scene
+
+    return turntable_scene((36, 48))

@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from capture_writers import (  # noqa: F401 - turntable is a fixture
-    turntable,
+from capture_writers import (
     upsample2,
     write_bigbird,
     write_nerfstudio,
@@ -33,8 +32,15 @@ from threedq.data.formats.tum import parse_tum
 from threedq.scene import SceneRecord, SceneValidationError
 
 
-def assert_round_trip(cap: Capture, rec: SceneRecord, views: list[int], depth_step: float, rgb_tol: float = 0.0,
-                      K: np.ndarray | None = None, depth_range: float = np.inf) -> None:
+def assert_round_trip(
+    cap: Capture,
+    rec: SceneRecord,
+    views: list[int],
+    depth_step: float,
+    rgb_tol: float = 0.0,
+    K: np.ndarray | None = None,
+    depth_range: float = np.inf,
+) -> None:
     """The capture's views ``views`` of the record: depth within half a unit (where the format can hold it:
     below ``depth_range``), poses 1e-5, K exact, mean colour error at most ``rgb_tol`` (JPEG)."""
     assert cap.num_views == len(views)
@@ -42,7 +48,9 @@ def assert_round_trip(cap: Capture, rec: SceneRecord, views: list[int], depth_st
     assert inside.mean() > 0.9
     np.testing.assert_allclose(cap.depth[inside], rec.depth[views][inside], atol=depth_step / 2 + 1e-6, rtol=0)
     np.testing.assert_allclose(cap.world_T_cam, rec.world_T_cam[views].astype(np.float64), atol=1e-5, rtol=0)
-    np.testing.assert_array_equal(cap.K, (rec.K[views] if K is None else np.broadcast_to(K, cap.K.shape)).astype(np.float64))
+    np.testing.assert_array_equal(
+        cap.K, (rec.K[views] if K is None else np.broadcast_to(K, cap.K.shape)).astype(np.float64)
+    )
     diff = np.abs(cap.rgb.astype(np.int16) - rec.rgb[views].astype(np.int16))
     assert diff.mean() <= rgb_tol, diff.mean()
 
@@ -157,7 +165,9 @@ class TestReplica:
     def test_nice_slam_constants_without_cam_params(self, turntable, tmp_path) -> None:
         write_replica(tmp_path / "room0", turntable)
         (tmp_path / "cam_params.json").unlink()
-        np.testing.assert_array_equal(parse_replica(tmp_path / "room0").K[0], [[600, 0, 599.5], [0, 600, 339.5], [0, 0, 1]])
+        np.testing.assert_array_equal(
+            parse_replica(tmp_path / "room0").K[0], [[600, 0, 599.5], [0, 600, 339.5], [0, 0, 1]]
+        )
 
 
 class TestBigBird:
@@ -247,5 +257,6 @@ class TestRig:
 
     def test_carla_depth_hand_computed(self) -> None:
         px = np.array([[[255, 255, 255], [0, 0, 0], [1, 0, 0], [0, 1, 0]]], np.uint8)
-        np.testing.assert_allclose(decode_carla_depth(px)[0], [1000.0, 0.0, 1000 / (2**24 - 1), 256000 / (2**24 - 1)],
-                                   rtol=1e-6)
+        np.testing.assert_allclose(
+            decode_carla_depth(px)[0], [1000.0, 0.0, 1000 / (2**24 - 1), 256000 / (2**24 - 1)], rtol=1e-6
+        )

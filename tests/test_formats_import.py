@@ -9,13 +9,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from capture_writers import (  # noqa: F401 - turntable is a fixture
-    turntable,
+from capture_writers import (
     write_objects,
     write_open3d,
     write_replica,
 )
 from scipy.spatial.transform import Rotation
+from threedq.datamodules.bigbird import BigBirdDataModule
+from threedq.datamodules.camera_rig import CameraRigDataModule
+from threedq.datamodules.capture_folder import CaptureDataModule
+from threedq.datamodules.kinect_open3d import KinectOpen3dDataModule
+from threedq.datamodules.nerfstudio import NerfstudioDataModule
+from threedq.datamodules.replica import ReplicaDataModule
+from threedq.datamodules.scannet import ScanNetDataModule
+from threedq.datamodules.scene_folder import SceneFolderDataModule
+from threedq.datamodules.tum_rgbd import TumRGBDDataModule
 
 from threedq.cli import main
 from threedq.data.folder_index import index_folder
@@ -26,15 +34,6 @@ from threedq.data.formats.normalise import (
     normalise_capture,
     rotation_between,
 )
-from threedq.datamodules.bigbird import BigBirdDataModule
-from threedq.datamodules.camera_rig import CameraRigDataModule
-from threedq.datamodules.capture_folder import CaptureDataModule
-from threedq.datamodules.kinect_open3d import KinectOpen3dDataModule
-from threedq.datamodules.nerfstudio import NerfstudioDataModule
-from threedq.datamodules.replica import ReplicaDataModule
-from threedq.datamodules.scannet import ScanNetDataModule
-from threedq.datamodules.scene_folder import SceneFolderDataModule
-from threedq.datamodules.tum_rgbd import TumRGBDDataModule
 from threedq.scene import SceneValidationError, load_index, load_scene, save_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,15 +49,29 @@ def tilt() -> np.ndarray:
 
 class TestNormalise:
     def test_smoke(self, turntable) -> None:
-        cap = Capture(turntable.rgb, turntable.depth, turntable.K.astype(np.float64),
-                      turntable.world_T_cam.astype(np.float64), [str(i) for i in range(6)], "mem", "test")
+        cap = Capture(
+            turntable.rgb,
+            turntable.depth,
+            turntable.K.astype(np.float64),
+            turntable.world_T_cam.astype(np.float64),
+            [str(i) for i in range(6)],
+            "mem",
+            "test",
+        )
         rec = normalise_capture(cap, max_views=4)
         assert rec.num_views == 4 and rec.num_objects == 0 and rec.meta["unannotated"]
         assert np.asarray(rec.meta["canonical_T_capture"]).shape == (4, 4)
 
     def test_exception(self, turntable) -> None:
-        cap = Capture(turntable.rgb, np.zeros_like(turntable.depth), turntable.K.astype(np.float64),
-                      turntable.world_T_cam.astype(np.float64), [str(i) for i in range(6)], "somewhere", "test")
+        cap = Capture(
+            turntable.rgb,
+            np.zeros_like(turntable.depth),
+            turntable.K.astype(np.float64),
+            turntable.world_T_cam.astype(np.float64),
+            [str(i) for i in range(6)],
+            "somewhere",
+            "test",
+        )
         with pytest.raises(SceneValidationError, match="somewhere: field 'depth': no support plane"):
             normalise_capture(cap)
 
@@ -76,8 +89,15 @@ class TestNormalise:
             assert np.linalg.det(R) == pytest.approx(1.0)
 
     def test_depth_beyond_max_range_becomes_zero(self, turntable) -> None:
-        cap = Capture(turntable.rgb, turntable.depth, turntable.K.astype(np.float64),
-                      turntable.world_T_cam.astype(np.float64), [str(i) for i in range(6)], "mem", "test")
+        cap = Capture(
+            turntable.rgb,
+            turntable.depth,
+            turntable.K.astype(np.float64),
+            turntable.world_T_cam.astype(np.float64),
+            [str(i) for i in range(6)],
+            "mem",
+            "test",
+        )
         rec = normalise_capture(cap, max_depth=5.0)
         far = turntable.depth > 5.0
         assert far.any() and np.all(rec.depth[far] == 0)
@@ -107,12 +127,17 @@ class TestNormalise:
         assert np.abs((lo + hi) / 2).max() < 0.2  # centred on what stands on the plane
         # the boxes sit on the objects in every image: projected centres agree with the original views
         for v in range(rec.num_views):
+
             def proj(pose, K, p):
                 q = np.linalg.inv(pose.astype(np.float64)) @ np.append(p, 1.0)
                 return (K.astype(np.float64) @ q[:3])[:2] / q[2]
+
             for m in range(rec.num_objects):
-                np.testing.assert_allclose(proj(rec.world_T_cam[v], rec.K[v], rec.boxes[m, :3].astype(np.float64)),
-                                           proj(turntable.world_T_cam[v], turntable.K[v], orig[m, :3]), atol=0.05)
+                np.testing.assert_allclose(
+                    proj(rec.world_T_cam[v], rec.K[v], rec.boxes[m, :3].astype(np.float64)),
+                    proj(turntable.world_T_cam[v], turntable.K[v], orig[m, :3]),
+                    atol=0.05,
+                )
         # and they map back to the capture's own frame
         capture_T_box, size = boxes_to_capture_frame(rec.boxes, n_T_c)
         np.testing.assert_allclose(capture_T_box[:, :3, 3], (c_T_w[:3, :3] @ orig[:, :3].T).T + c_T_w[:3, 3], atol=1e-4)
@@ -130,8 +155,24 @@ class TestImport:
             write_replica(src / name, turntable, drop_last_line=name == "room1")
             write_objects(src / name, turntable, np.eye(4))
         out = tmp_path / "out"
-        assert main(["data", "import", "--format", "replica", str(src), "--out", str(out), "--max_views", "4",
-                     "--progress", "false"]) == 0
+        assert (
+            main(
+                [
+                    "data",
+                    "import",
+                    "--format",
+                    "replica",
+                    str(src),
+                    "--out",
+                    str(out),
+                    "--max_views",
+                    "4",
+                    "--progress",
+                    "false",
+                ]
+            )
+            == 0
+        )
         text = capsys.readouterr().out
         assert re.search(r"skipped: .*room1/traj.txt:6: field 'pose'", text)
         assert "imported 2 scene(s), 8 views; 1 frame(s) skipped (pose 1)" in text
@@ -147,8 +188,24 @@ class TestImport:
         with pytest.raises(ValueError, match="'max_dt' does not apply to format 'replica'"):
             write_replica(tmp_path / "room0", turntable)
             import_captures("replica", tmp_path / "room0", tmp_path / "out", parser_options={"max_dt": 0.1})
-        assert main(["data", "import", "--format", "replica", str(tmp_path / "room0"), "--out", str(tmp_path / "o"),
-                     "--max_dt", "0.1", "--progress", "false"]) == 2
+        assert (
+            main(
+                [
+                    "data",
+                    "import",
+                    "--format",
+                    "replica",
+                    str(tmp_path / "room0"),
+                    "--out",
+                    str(tmp_path / "o"),
+                    "--max_dt",
+                    "0.1",
+                    "--progress",
+                    "false",
+                ]
+            )
+            == 2
+        )
         # a capture with no usable frame fails alone; the others are imported
         write_replica(tmp_path / "all" / "good", turntable)
         write_replica(tmp_path / "all" / "bad", turntable)
@@ -160,16 +217,32 @@ class TestImport:
     def test_feature_unannotated_capture_trains(self, turntable, tmp_path) -> None:
         # no threedq_objects.json: a scene without boxes, usable for view prediction
         write_replica(tmp_path / "room0", turntable)
-        dm = ReplicaDataModule(capture_dirs={"train": str(tmp_path / "room0")}, data_dir=str(tmp_path / "out"),
-                               max_views=5, num_input_views=2, num_target_views=2, batch_size=1)
+        dm = ReplicaDataModule(
+            capture_dirs={"train": str(tmp_path / "room0")},
+            data_dir=str(tmp_path / "out"),
+            max_views=5,
+            num_input_views=2,
+            num_target_views=2,
+            batch_size=1,
+        )
         dm.setup("fit")
         batch = next(iter(dm.train_dataloader()))
         assert batch["rgb"].shape == (1, 4, 3, 36, 48) and not batch["box_mask"].any()
         rec = load_scene(tmp_path / "out" / "train" / "room0.npz")
         assert rec.num_views == 5 and rec.meta["unannotated"] and rec.meta["source_format"] == "replica"
 
-    @pytest.mark.parametrize("cls", [TumRGBDDataModule, ScanNetDataModule, NerfstudioDataModule, ReplicaDataModule,
-                                     BigBirdDataModule, KinectOpen3dDataModule, CameraRigDataModule])
+    @pytest.mark.parametrize(
+        "cls",
+        [
+            TumRGBDDataModule,
+            ScanNetDataModule,
+            NerfstudioDataModule,
+            ReplicaDataModule,
+            BigBirdDataModule,
+            KinectOpen3dDataModule,
+            CameraRigDataModule,
+        ],
+    )
     def test_one_datamodule_per_format(self, cls) -> None:
         assert issubclass(cls, CaptureDataModule) and cls.FORMAT in FORMATS
 
@@ -200,9 +273,9 @@ class TestFolderIndex:
         # the index.json example of the README's "Real captures" section is a valid hand-written index
         readme = (ROOT / "README.md").read_text(encoding="utf-8")
         section = readme.split("## Real captures", 1)[1].split("\n## ", 1)[0]
-        example = json.loads(re.search(r"```json\n(.*?)```", section, re.S).group(1))
+        example = json.loads(re.search(r"```json\n(.*?)```", section, re.DOTALL).group(1))
         (tmp_path / "index.json").write_text(json.dumps(example))
         index = load_index(tmp_path)
         assert index.files() and len(index.symmetry_order) == len(index.categories)
-        documented = set(re.findall(r"^\| `(\w+)` \|", section, re.M))
+        documented = set(re.findall(r"^\| `(\w+)` \|", section, re.MULTILINE))
         assert set(example) <= documented and {"format", "version", "scene_bounds", "symmetry_order"} <= documented

@@ -77,15 +77,25 @@ def index_folder(
     if categories is None:
         categories = [f"category_{i}" for i in range(max_cat + 1)]
     elif max_cat >= len(categories):
-        raise SceneValidationError(source, "categories", f"{len(categories)} names but a scene uses category id {max_cat}")
+        raise SceneValidationError(
+            source, "categories", f"{len(categories)} names but a scene uses category id {max_cat}"
+        )
     symmetry_order = [1] * len(categories) if symmetry_order is None else list(symmetry_order)
     if len(symmetry_order) != len(categories):
         raise SceneValidationError(source, "symmetry_order", f"expected {len(categories)} integers, one per category")
     if bounds is None:
         if not np.all(np.isfinite(lo)):
-            raise SceneValidationError(source, "scene_bounds", "no boxes or meta scene_bounds in the data: give the bounds")
+            raise SceneValidationError(
+                source, "scene_bounds", "no boxes or meta scene_bounds in the data: give the bounds"
+            )
         bounds = (tuple(float(x) for x in lo - margin), tuple(float(x) for x in hi + margin))  # type: ignore[assignment]
-    index = DatasetIndex(categories=list(categories), symmetry_order=symmetry_order, scenes=scenes,
-                         scene_bounds=bounds, generator={"name": "threedq data index"}, seed=None)
+    index = DatasetIndex(
+        categories=list(categories),
+        symmetry_order=symmetry_order,
+        scenes=scenes,
+        scene_bounds=bounds,
+        generator={"name": "threedq data index"},
+        seed=None,
+    )
     save_index(folder, index)
     return index, problems

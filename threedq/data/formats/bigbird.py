@@ -64,7 +64,6 @@ def register_depth(
 
     Convention: OpenCV camera axes, integer pixel centres, z-depth.
     """
-    h, w = depth.shape
     v, u = np.nonzero(depth > 0)
     z = depth[v, u].astype(np.float64)
     rays = np.linalg.inv(K_src) @ np.stack([u, v, np.ones_like(u)]).astype(np.float64)
@@ -90,7 +89,9 @@ def _h5(path: Path, key: str, field_name: str) -> np.ndarray:
                 raise SceneValidationError(str(path), field_name, f"no dataset {key!r}")
             return np.asarray(f[key][()])
     except OSError as e:
-        raise SceneValidationError(str(path), field_name, f"not a readable HDF5 file (truncated or corrupt: {e})") from e
+        raise SceneValidationError(
+            str(path), field_name, f"not a readable HDF5 file (truncated or corrupt: {e})"
+        ) from e
 
 
 def _load_view(
@@ -107,7 +108,9 @@ def _load_view(
     return rgb, depth, K, str(depth_path)
 
 
-def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
+def parse_bigbird(
+    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
+) -> Capture:
     """Read one BigBIRD object folder (tree in the module docstring).
 
     Args:
@@ -124,7 +127,11 @@ def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None
     scale = DEPTH_UNITS_PER_METRE if depth_units_per_metre is None else float(depth_units_per_metre)
     calib = folder / "calibration.h5"
     names = sorted(
-        ((int(m.group(1)), int(m.group(2))) for p in folder.glob("NP*_*.jpg") if (m := re.fullmatch(r"NP(\d)_(\d+)", p.stem))),
+        (
+            (int(m.group(1)), int(m.group(2)))
+            for p in folder.glob("NP*_*.jpg")
+            if (m := re.fullmatch(r"NP(\d)_(\d+)", p.stem))
+        ),
     )
     skipped: list[FrameSkip] = []
     cams: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -135,14 +142,20 @@ def parse_bigbird(folder: str | Path, depth_units_per_metre: float | None = None
             if c not in cams:
                 K_rgb = _h5(calib, f"NP{c}_rgb_K", f"NP{c}_rgb_K").astype(np.float64).reshape(3, 3)
                 K_ir = _h5(calib, f"NP{c}_depth_K", f"NP{c}_depth_K").astype(np.float64).reshape(3, 3)
-                c_T_5 = check_rigid(_h5(calib, f"H_NP{c}_from_NP5", f"H_NP{c}_from_NP5"), str(calib), f"H_NP{c}_from_NP5")
-                ir_T_5 = check_rigid(_h5(calib, f"H_NP{c}_ir_from_NP5", f"H_NP{c}_ir_from_NP5"), str(calib),
-                                     f"H_NP{c}_ir_from_NP5")
+                c_T_5 = check_rigid(
+                    _h5(calib, f"H_NP{c}_from_NP5", f"H_NP{c}_from_NP5"), str(calib), f"H_NP{c}_from_NP5"
+                )
+                ir_T_5 = check_rigid(
+                    _h5(calib, f"H_NP{c}_ir_from_NP5", f"H_NP{c}_ir_from_NP5"), str(calib), f"H_NP{c}_ir_from_NP5"
+                )
                 cams[c] = (K_rgb, K_ir, c_T_5, ir_T_5)
             K_rgb, K_ir, c_T_5, ir_T_5 = cams[c]
             pose_path = folder / "poses" / f"NP5_{deg}_pose.h5"
-            table_T_5 = check_rigid(_h5(pose_path, "H_table_from_reference_camera", "H_table_from_reference_camera"),
-                                    str(pose_path), "H_table_from_reference_camera")
+            table_T_5 = check_rigid(
+                _h5(pose_path, "H_table_from_reference_camera", "H_table_from_reference_camera"),
+                str(pose_path),
+                "H_table_from_reference_camera",
+            )
             pose = table_T_5 @ np.linalg.inv(c_T_5)
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))

@@ -24,18 +24,18 @@ import numpy as np
 from threedq.scene import SceneValidationError
 
 __all__ = [
+    "OBJECTS_NAME",
     "Capture",
     "CaptureObjects",
+    "Frame",
     "FrameSkip",
-    "OBJECTS_NAME",
     "check_rigid",
+    "farthest_order",
+    "load_frames",
     "read_depth_png",
     "read_matrix",
     "read_objects",
     "read_rgb",
-    "Frame",
-    "farthest_order",
-    "load_frames",
     "resize_to",
 ]
 
@@ -105,7 +105,9 @@ def _decode(path: Path, field_name: str, flags: int) -> np.ndarray:
         raise SceneValidationError(str(path), field_name, "no such file")
     data = path.read_bytes()
     suffix = path.suffix.lower()
-    if (suffix in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-16:]) or (suffix == ".png" and b"IEND" not in data[-16:]):
+    if (suffix in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-16:]) or (
+        suffix == ".png" and b"IEND" not in data[-16:]
+    ):
         raise SceneValidationError(str(path), field_name, "truncated image (no end marker)")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None:
@@ -136,7 +138,9 @@ def read_matrix(path: Path, field_name: str, shape: tuple[int, int] = (4, 4)) ->
     except ValueError as e:
         raise SceneValidationError(str(path), field_name, f"not a matrix of numbers ({e})") from e
     if m.shape != shape:
-        raise SceneValidationError(str(path), field_name, f"expected a {shape[0]}x{shape[1]} matrix, got {list(m.shape)}")
+        raise SceneValidationError(
+            str(path), field_name, f"expected a {shape[0]}x{shape[1]} matrix, got {list(m.shape)}"
+        )
     if not np.all(np.isfinite(m)):
         raise SceneValidationError(str(path), field_name, "non-finite values (inf/NaN): invalid pose")
     return m
@@ -193,7 +197,9 @@ def read_objects(folder: Path) -> CaptureObjects | None:
         size = np.array([o["size"] for o in objs], np.float64).reshape(-1, 3)
         cats = [str(o["category"]) for o in objs]
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise SceneValidationError(str(path), "objects", f"expected {{'objects': [{{category, capture_T_box, size}}]}}: {e}") from e
+        raise SceneValidationError(
+            str(path), "objects", f"expected {{'objects': [{{category, capture_T_box, size}}]}}: {e}"
+        ) from e
     for m, p in enumerate(poses):
         check_rigid(p, str(path), f"objects[{m}].capture_T_box")
     if np.any(size <= 0):
@@ -256,11 +262,19 @@ def load_frames(
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
         if depth.shape != rgb.shape[:2]:
-            skipped.append(FrameSkip(depth_file, "depth", f"depth is {list(depth.shape)} but colour is {list(rgb.shape[:2])}"))
+            skipped.append(
+                FrameSkip(depth_file, "depth", f"depth is {list(depth.shape)} but colour is {list(rgb.shape[:2])}")
+            )
             continue
         if shape is not None and rgb.shape != shape:
-            skipped.append(FrameSkip(depth_file, "rgb", f"frame {f.frame_id}: size {list(rgb.shape[:2])} differs from "
-                                                        f"the first read frame's {list(shape[:2])}"))
+            skipped.append(
+                FrameSkip(
+                    depth_file,
+                    "rgb",
+                    f"frame {f.frame_id}: size {list(rgb.shape[:2])} differs from "
+                    f"the first read frame's {list(shape[:2])}",
+                )
+            )
             continue
         shape = rgb.shape
         kept[int(i)] = (rgb, depth, np.asarray(K, np.float64))

@@ -47,7 +47,9 @@ class ImportSummary:
             out.append(f"{f}: {kept} views kept of {read} posed frames")
         out.append(
             f"imported {len(self.scenes)} scene(s), {sum(k for _, k, _ in self.scenes)} views; "
-            f"{len(self.skipped)} frame(s) skipped" + (f" ({why})" if why else "") + f"; {len(self.failed)} capture(s) failed"
+            f"{len(self.skipped)} frame(s) skipped"
+            + (f" ({why})" if why else "")
+            + f"; {len(self.failed)} capture(s) failed"
         )
         return out
 
@@ -118,7 +120,9 @@ def import_captures(
 
     from tqdm import tqdm
 
-    for folder in tqdm(captures, disable=not progress, desc=f"threedq import {fmt}", unit="capture", dynamic_ncols=True):
+    for folder in tqdm(
+        captures, disable=not progress, desc=f"threedq import {fmt}", unit="capture", dynamic_ncols=True
+    ):
         try:
             capture = FORMATS[fmt][0](folder, max_views=max_views, **kwargs)  # reads only the views it keeps
             record = normalise_capture(capture, categories, max_views=max_views, max_depth=max_depth)
@@ -135,13 +139,16 @@ def import_captures(
         summary.scenes.append((rel, record.num_views, capture.num_frames))
     if bounds is not None:
         sym = list(old.symmetry_order) if old else []
-        formats = sorted(set((old.generator.get("formats", []) if old else [])) | {fmt})
-        save_index(out, DatasetIndex(
-            categories=categories,
-            symmetry_order=sym + [1] * (len(categories) - len(sym)),
-            scenes=scenes,
-            scene_bounds=(tuple(float(x) for x in bounds[0]), tuple(float(x) for x in bounds[1])),  # type: ignore[arg-type]
-            generator={"name": "threedq.data.formats", "version": IMPORT_VERSION, "formats": formats},
-            seed=None,
-        ))
+        formats = sorted(set(old.generator.get("formats", []) if old else []) | {fmt})
+        save_index(
+            out,
+            DatasetIndex(
+                categories=categories,
+                symmetry_order=sym + [1] * (len(categories) - len(sym)),
+                scenes=scenes,
+                scene_bounds=(tuple(float(x) for x in bounds[0]), tuple(float(x) for x in bounds[1])),  # type: ignore[arg-type]
+                generator={"name": "threedq.data.formats", "version": IMPORT_VERSION, "formats": formats},
+                seed=None,
+            ),
+        )
     return summary

@@ -28,12 +28,12 @@ import numpy as np
 
 from threedq.data.formats.capture import (
     Capture,
+    Frame,
     FrameSkip,
     check_rigid,
+    load_frames,
     read_depth_png,
     read_objects,
-    Frame,
-    load_frames,
     read_rgb,
 )
 from threedq.scene import SceneValidationError
@@ -60,7 +60,9 @@ def _camera(frame: dict[str, Any], top: dict[str, Any], source: str) -> np.ndarr
     return np.array([[vals["fl_x"], 0, vals["cx"] - 0.5], [0, vals["fl_y"], vals["cy"] - 0.5], [0, 0, 1]])
 
 
-def parse_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
+def parse_nerfstudio(
+    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
+) -> Capture:
     """Read a ``transforms.json`` capture with depth (tree in the module docstring).
 
     Args:
@@ -94,7 +96,9 @@ def parse_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = N
         where = f"{source}: frames[{i}]"
         try:
             if "file_path" not in fr or "transform_matrix" not in fr:
-                raise SceneValidationError(where, "file_path" if "file_path" not in fr else "transform_matrix", "missing")
+                raise SceneValidationError(
+                    where, "file_path" if "file_path" not in fr else "transform_matrix", "missing"
+                )
             if not fr.get("depth_file_path"):
                 raise SceneValidationError(where, "depth_file_path", "missing (a frame without depth)")
             K = _camera(fr, top, where)
@@ -109,5 +113,7 @@ def parse_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = N
                 skipped.append(FrameSkip(where, "transform_matrix", f"not a 4x4 matrix of numbers ({e})"))
             continue
         r, d = folder / fr["file_path"], folder / fr["depth_file_path"]
-        todo.append(Frame(str(fr["file_path"]), pose, lambda r=r, d=d, K=K: (read_rgb(r), read_depth_png(d, scale), K, str(d))))
+        todo.append(
+            Frame(str(fr["file_path"]), pose, lambda r=r, d=d, K=K: (read_rgb(r), read_depth_png(d, scale), K, str(d)))
+        )
     return load_frames(todo, source, "nerfstudio", skipped, read_objects(folder), max_views)

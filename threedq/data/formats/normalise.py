@@ -68,7 +68,8 @@ def _points(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int) -> 
     Ks = K * np.array([1.0 / s, 1.0 / s, 1.0])[:, None]  # pixel (s*i, s*j) of the full image is (i, j): u' = u/s
     pts, ok = depth_to_points(
         torch.from_numpy(np.ascontiguousarray(depth[:, ::s, ::s], np.float64)),
-        torch.from_numpy(Ks), torch.from_numpy(pose),
+        torch.from_numpy(Ks),
+        torch.from_numpy(pose),
     )
     return pts[ok].numpy()
 
@@ -185,8 +186,9 @@ def _canonical_boxes(capture: Capture, c_T: np.ndarray, categories: list[str]) -
         q = c_T @ p
         tilt = math.degrees(math.acos(float(np.clip(q[2, 2], -1, 1))))
         if tilt > _BOX_TILT_DEG:
-            raise SceneValidationError(capture.source, f"objects[{m}]",
-                                       f"box is tilted {tilt:.1f} deg from the support plane's normal")
+            raise SceneValidationError(
+                capture.source, f"objects[{m}]", f"box is tilted {tilt:.1f} deg from the support plane's normal"
+            )
         yaw = math.atan2(q[1, 0], q[0, 0])
         boxes.append([*q[:3, 3], *size, yaw])
         if name not in categories:

@@ -81,7 +81,9 @@ def _intrinsics(folder: Path) -> np.ndarray:
     raise SceneValidationError(str(folder / "camera_intrinsic.json"), "intrinsic_matrix", "no such file")
 
 
-def parse_open3d(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
+def parse_open3d(
+    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
+) -> Capture:
     """Read an Open3D/Kinect capture folder (tree in the module docstring).
 
     Args:
@@ -101,9 +103,13 @@ def parse_open3d(folder: str | Path, depth_units_per_metre: float | None = None,
     traj_path = folder / "trajectory.log"
     poses = read_log(traj_path, skipped)
     cdir = folder / "color" if (folder / "color").is_dir() else folder / "image"
-    colour = sorted((p for p in cdir.glob("*") if p.suffix.lower() in (".jpg", ".png") and re.search(r"\d", p.stem)),
-                    key=lambda p: int(re.findall(r"\d+", p.stem)[-1]))
-    depths = {int(re.findall(r"\d+", p.stem)[-1]): p for p in (folder / "depth").glob("*.png") if re.search(r"\d", p.stem)}
+    colour = sorted(
+        (p for p in cdir.glob("*") if p.suffix.lower() in (".jpg", ".png") and re.search(r"\d", p.stem)),
+        key=lambda p: int(re.findall(r"\d+", p.stem)[-1]),
+    )
+    depths = {
+        int(re.findall(r"\d+", p.stem)[-1]): p for p in (folder / "depth").glob("*.png") if re.search(r"\d", p.stem)
+    }
     frames = []
     for i, f in enumerate(colour):
         n = int(re.findall(r"\d+", f.stem)[-1])

@@ -49,11 +49,15 @@ def _camera(folder: Path) -> dict[str, float]:
                 cam = json.loads(p.read_text(encoding="utf-8"))["camera"]
                 return {k: float(cam[k]) for k in ("fx", "fy", "cx", "cy", "scale")}
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-                raise SceneValidationError(str(p), "camera", f"expected {{'camera': {{fx, fy, cx, cy, scale}}}} ({e})") from e
+                raise SceneValidationError(
+                    str(p), "camera", f"expected {{'camera': {{fx, fy, cx, cy, scale}}}} ({e})"
+                ) from e
     return {k: float(v) for k, v in REPLICA_CAMERA.items()}
 
 
-def parse_replica(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
+def parse_replica(
+    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
+) -> Capture:
     """Read one NICE-SLAM Replica scene (tree in the module docstring).
 
     Args:
@@ -77,7 +81,7 @@ def parse_replica(folder: str | Path, depth_units_per_metre: float | None = None
     skipped: list[FrameSkip] = []
     frames = []
     for f in sorted((folder / "results").glob("frame*.jpg")):
-        fid = f.stem[len("frame"):]
+        fid = f.stem[len("frame") :]
         if not fid.isdigit():
             continue
         i = int(fid)

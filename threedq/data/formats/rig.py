@@ -129,10 +129,15 @@ def parse_rig(folder: str | Path, max_views: int | None = None) -> Capture:
     frames = []
     for cam, cs in spec["cameras"].items():
         K = _matrix((cs or {}).get("K"), (3, 3), src, f"cameras.{cam}.K")
-        rig_T_cam = check_rigid(_matrix((cs or {}).get("rig_T_cam"), (4, 4), src, f"cameras.{cam}.rig_T_cam"), src,
-                                f"cameras.{cam}.rig_T_cam")
+        rig_T_cam = check_rigid(
+            _matrix((cs or {}).get("rig_T_cam"), (4, 4), src, f"cameras.{cam}.rig_T_cam"),
+            src,
+            f"cameras.{cam}.rig_T_cam",
+        )
         cam_dir = folder / str(cam)
-        numbers = sorted(int(m.group(1)) for p in cam_dir.glob("rgb_*.png") if (m := re.fullmatch(r"rgb_(\d+)", p.stem)))
+        numbers = sorted(
+            int(m.group(1)) for p in cam_dir.glob("rgb_*.png") if (m := re.fullmatch(r"rgb_(\d+)", p.stem))
+        )
         if not numbers:
             skipped.append(FrameSkip(str(cam_dir), "rgb", "no rgb_<number>.png files"))
         for t in numbers:
@@ -141,14 +146,18 @@ def parse_rig(folder: str | Path, max_views: int | None = None) -> Capture:
             try:
                 if captures and t not in captures:
                     raise SceneValidationError(src, f"captures.{t}", f"no rig pose for capture {t}")
-                world_T_rig = np.eye(4) if not captures else check_rigid(
-                    _matrix(captures[t], (4, 4), src, f"captures.{t}"), src, f"captures.{t}")
+                world_T_rig = (
+                    np.eye(4)
+                    if not captures
+                    else check_rigid(_matrix(captures[t], (4, 4), src, f"captures.{t}"), src, f"captures.{t}")
+                )
             except SceneValidationError as e:
                 skipped.append(FrameSkip(e.source, e.field, e.reason))
                 continue
 
-            def load(r: Path = rgb_path, d: Path = cam_dir / f"depth_{stem}", K: np.ndarray = K
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+            def load(
+                r: Path = rgb_path, d: Path = cam_dir / f"depth_{stem}", K: np.ndarray = K
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
                 depth, dpath = _read_depth(d, enc, units)
                 return read_rgb(r), depth, K, str(dpath)
 

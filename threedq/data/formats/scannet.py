@@ -27,13 +27,13 @@ import numpy as np
 
 from threedq.data.formats.capture import (
     Capture,
+    Frame,
     FrameSkip,
     check_rigid,
+    load_frames,
     read_depth_png,
     read_matrix,
     read_objects,
-    Frame,
-    load_frames,
     read_rgb,
     resize_to,
 )
@@ -57,8 +57,13 @@ def register_colour(rgb: np.ndarray, K_color: np.ndarray, K_depth: np.ndarray, s
     """
     small, Kc = resize_to(rgb, K_color, size_hw)
     H = Kc @ np.linalg.inv(K_depth)
-    return cv2.warpPerspective(small, H, (size_hw[1], size_hw[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                               borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpPerspective(
+        small,
+        H,
+        (size_hw[1], size_hw[0]),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
 
 
 def _frame_ids(folder: Path) -> list[str]:
@@ -66,7 +71,9 @@ def _frame_ids(folder: Path) -> list[str]:
     return sorted(ids, key=int)
 
 
-def parse_scannet(folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
+def parse_scannet(
+    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
+) -> Capture:
     """Read a SensReader export (tree in the module docstring).
 
     Args:

@@ -77,8 +77,9 @@ def _intrinsics(folder: Path, intrinsics: tuple[float, float, float, float] | No
     if intrinsics is None:
         m = re.search(r"freiburg([123])", folder.resolve().name)
         if not m:
-            raise SceneValidationError(str(folder), "intrinsics",
-                                       "no 'freiburg1|2|3' in the folder name: give the intrinsics (fx, fy, cx, cy)")
+            raise SceneValidationError(
+                str(folder), "intrinsics", "no 'freiburg1|2|3' in the folder name: give the intrinsics (fx, fy, cx, cy)"
+            )
         intrinsics = TUM_INTRINSICS[f"fr{m.group(1)}"]
     fx, fy, cx, cy = (float(x) for x in intrinsics)
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
@@ -123,22 +124,30 @@ def parse_tum(
             continue
         jp, dt_p = _nearest(p_times, t)
         if dt_p > max_dt:
-            skipped.append(FrameSkip(str(folder / "groundtruth.txt"), "pose", f"no pose within {max_dt} s of rgb {stamp}"))
+            skipped.append(
+                FrameSkip(str(folder / "groundtruth.txt"), "pose", f"no pose within {max_dt} s of rgb {stamp}")
+            )
             continue
         try:
             q = np.array([float(x) for x in gt[jp][1][3:7]])
             if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1) > _QUAT_TOL:
-                raise SceneValidationError(str(folder / "groundtruth.txt"), "pose",
-                                           f"pose at {p_times[jp]:.6f}: quaternion norm {np.linalg.norm(q):.4g} is not 1 "
-                                           "(not a rotation)")
+                raise SceneValidationError(
+                    str(folder / "groundtruth.txt"),
+                    "pose",
+                    f"pose at {p_times[jp]:.6f}: quaternion norm {np.linalg.norm(q):.4g} is not 1 (not a rotation)",
+                )
             pose = np.eye(4)
             pose[:3, :3] = Rotation.from_quat(q).as_matrix()  # scipy: scalar-last, like TUM
             pose[:3, 3] = [float(x) for x in gt[jp][1][:3]]
             if not np.all(np.isfinite(pose)):
-                raise SceneValidationError(str(folder / "groundtruth.txt"), "pose", f"pose at {p_times[jp]:.6f} is not finite")
+                raise SceneValidationError(
+                    str(folder / "groundtruth.txt"), "pose", f"pose at {p_times[jp]:.6f} is not finite"
+                )
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
         rgb_path, depth_path = folder / rgb_name, folder / depths[jd][1][0]
-        frames.append(Frame(stamp, pose, lambda r=rgb_path, d=depth_path: (read_rgb(r), read_depth_png(d, scale), K, str(d))))
+        frames.append(
+            Frame(stamp, pose, lambda r=rgb_path, d=depth_path: (read_rgb(r), read_depth_png(d, scale), K, str(d)))
+        )
     return load_frames(frames, str(folder), "tum", skipped, read_objects(folder), max_views)
