@@ -13,6 +13,7 @@ from capture_writers import (
     write_objects,
     write_open3d,
     write_replica,
+    write_tum,
 )
 from scipy.spatial.transform import Rotation
 from threedq.datamodules.bigbird import BigBirdDataModule
@@ -103,12 +104,19 @@ class TestNormalise:
         assert far.any() and np.all(rec.depth[far] == 0)
         np.testing.assert_array_equal(rec.depth[~far], turntable.depth[~far])
 
-    def test_feature_tilted_off_centre_capture(self, turntable, tmp_path) -> None:
+    @pytest.mark.parametrize("fmt", ["open3d", "tum"])
+    def test_feature_tilted_off_centre_capture(self, turntable, tmp_path, fmt) -> None:
         c_T_w = tilt()
         src = tmp_path / "desk"
-        write_open3d(src, turntable, capture_T_world=c_T_w)
+        K = turntable.K[0]
+        if fmt == "open3d":
+            write_open3d(src, turntable, capture_T_world=c_T_w)
+            options = {}
+        else:
+            write_tum(src, turntable, capture_T_world=c_T_w)
+            options = {"intrinsics": (K[0, 0], K[1, 1], K[0, 2], K[1, 2])}
         write_objects(src, turntable, c_T_w)
-        summary = import_captures("open3d", src, tmp_path / "out", progress=False)
+        summary = import_captures(fmt, src, tmp_path / "out", parser_options=options, progress=False)
         assert summary.scenes == [("train/desk.npz", 6, 6)] and not summary.skipped
         rec = load_scene(tmp_path / "out" / "train" / "desk.npz")
         n_T_c = np.asarray(rec.meta["canonical_T_capture"])

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from threedq.boxes import box_corners
-from threedq.data.formats.capture import Capture
+from threedq.data.formats.capture import Capture, farthest_order
 from threedq.geometry.camera import depth_to_points
 from threedq.geometry.ground import fit_ground_plane
 from threedq.scene import SceneRecord, SceneValidationError
@@ -37,16 +37,7 @@ _BOX_TILT_DEG = 5.0
 
 def farthest_views(centres: np.ndarray, n: int) -> np.ndarray:
     """Indices (ascending) of ``n`` camera positions ``[V,3]`` chosen by farthest-point sampling from view 0."""
-    V = centres.shape[0]
-    if n >= V:
-        return np.arange(V)
-    chosen = [0]
-    dist = np.linalg.norm(centres - centres[0], axis=1)
-    for _ in range(n - 1):
-        i = int(np.argmax(dist))  # first maximum: deterministic
-        chosen.append(i)
-        dist = np.minimum(dist, np.linalg.norm(centres - centres[i], axis=1))
-    return np.sort(np.array(chosen))
+    return np.sort(farthest_order(np.asarray(centres, np.float64))[:n])
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
