@@ -113,6 +113,8 @@ def detection_targets(
 
     Convention: frame R, metres; x, y, z order inside the last dimensions.
     """
+    if mask.shape[1] == 0:  # no boxes at all: one masked-out box keeps the reductions defined
+        aabb, mask = aabb.new_zeros(aabb.shape[0], 1, 6), mask.new_zeros(mask.shape[0], 1)
     B, M = mask.shape
     Z, Y, X = centres.shape[:3]
     p = centres.view(1, 1, -1, 3)  # [1, 1, N, 3]
@@ -233,6 +235,11 @@ class Detector(EncoderStage):
         label, target, _ = detection_targets(
             self.centres, aabb, mask, self.anchor, self.hparams.inner_fraction, self.hparams.negative_margin
         )
+        return self.loss_from_targets(logits, box, label, target)
+
+    def loss_from_targets(self, logits: Tensor, box: Tensor, label: Tensor, target: Tensor) -> dict[str, Tensor]:
+        """Class-balanced objectness loss over the labelled cells (``label`` 1 / 0; -1 ignored) + smooth L1 of the
+        positives' boxes. Shapes: logits and label ``[B, Z, Y, X]``, box and target ``[B, 6, Z, Y, X]``."""
         pos, neg = label == 1, label == 0
         bce = F.binary_cross_entropy_with_logits(logits, (label == 1).to(logits.dtype), reduction="none")
         obj = bce[neg].mean() if neg.any() else logits.sum() * 0
@@ -241,7 +248,8 @@ class Detector(EncoderStage):
             reg = F.smooth_l1_loss(box.permute(0, 2, 3, 4, 1)[pos], target.permute(0, 2, 3, 4, 1)[pos], beta=0.1)
         else:
             reg = box.sum() * 0
-        return {"loss": obj + self.hparams.box_weight * reg, "obj_loss": obj, "box_loss": reg, "num_pos": pos.sum()}
+        return {"loss": obj + self.hparams.box_weight * reg, "obj_loss": obj, "box_loss": reg, "num_pos": pos.sum(),
+                "num_neg": neg.sum()}
 
     @torch.no_grad()
     def detect(self, logits: Tensor, box: Tensor, score_threshold: float | None = None) -> list[dict[str, Tensor]]:

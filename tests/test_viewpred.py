@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import pickle
 import re
+import shutil
 from pathlib import Path
 
 import lightning as L
@@ -14,6 +15,7 @@ import torch.nn.functional as F
 import yaml
 
 from threedq.datamodules.scene_folder import SceneFolderDataModule
+from threedq.scene import load_index
 from threedq.stages.base import EncoderStage, load_encoder_state
 from threedq.stages.viewpred import ViewPrediction, view_prediction_figure
 
@@ -232,7 +234,7 @@ class TestEm:
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
-        summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none")
+        summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt")
         reused = re.search(r"crop cache: (\d+) reused, (\d+) computed", capsys.readouterr().out)
         # round 2 and its evaluation encode nothing new: the same encoder, views and boxes as round 1
         assert reused is not None and int(reused[1]) > 0 and int(reused[1]) >= int(reused[2]) // 2
@@ -255,10 +257,37 @@ class TestEm:
         assert (run / "config.yaml").is_file() and (run / "checkpoints" / "last.ckpt").is_file()
         assert list((run / "images").glob("*.png")) and (run / "metrics.csv").is_file()
         stamp = (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns
+        # the detector is self-labelled every round; Table 3 has rounds 0..2
+        assert summary["round_stages_run"] == ["quantizer", "self_labelling"]
+        sl = summary["self_label_results"]
+        assert len(sl) == 2 and sl[1]["checkpoint"] == str(work / "r02_self_labelling" / "checkpoints" / "last.ckpt")
+        assert sl[0]["labels"]["scenes"] == len(load_index(tiny_dataset).files("train"))
+        assert [t["round"] for t in summary["table3"]] == [0, 1, 2] and summary["table3"][0]["hungarian_acc"] is None
+        assert summary["table3"][2]["map_50"] == sl[1]["detector_eval"]["detector"]["map_50"]
+        assert "handed_on" in sl[1]["detector_eval"] and (work / "table3.png").is_file()
+        assert "Table 3" in report and "self-labelling per round" in report
+        # round 2's detector is round 1's, fine-tuned again
+        r1 = torch.load(work / "r01_self_labelling" / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
+        cfg2 = yaml.safe_load((work / "r02_self_labelling" / "config.yaml").read_text())
+        assert cfg2["model"]["init_args"]["detector_ckpt"] == str(work / "r01_self_labelling" / "checkpoints" / "last.ckpt")
+        assert "head.out.weight" in r1["state_dict"]
         capsys.readouterr()
-        run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none")
+        run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt")
         assert "finished earlier" in capsys.readouterr().out
         assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
+        # killed during round 2's self-labelling, after its last checkpoint: a resumed run redoes only that stage
+        (work / "r02_self_labelling" / "stage.json").unlink()
+        shutil.rmtree(work / "r02_detector_eval")
+        q_stamp = (work / "r02_quantizer" / "checkpoints" / "last.ckpt").stat().st_mtime_ns
+        with pytest.raises(RuntimeError, match="--resume"):
+            run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt")
+        capsys.readouterr()
+        again = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt", resume=True)
+        out = capsys.readouterr().out
+        assert "round 2 self-labelling: resuming from" in out and "round 2 quantizer: finished earlier" in out
+        assert (work / "r02_quantizer" / "checkpoints" / "last.ckpt").stat().st_mtime_ns == q_stamp
+        assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
+        assert again["table3"][2]["map_50"] is not None
 
     def test_round_with_mining(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
         """A round fine-tunes the encoder by mining first; its quantizer runs on that encoder, not view prediction's."""
@@ -267,7 +296,7 @@ class TestEm:
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
-        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], detection=False)
+        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], detection=False, boxes="gt")
         assert summary["round_stages_run"] == ["mining", "quantizer"]
         mined = work / "r01_mining" / "checkpoints" / "last.ckpt"
         assert summary["mining_results"][0]["checkpoint"] == str(mined)
@@ -292,7 +321,7 @@ class TestEm:
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
-        run_em(rounds=0, work_dir=str(work), extra_configs=[cfg])
+        run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], boxes="gt")
         det_dir = work / "03_detector_eval"
         assert sorted(p.name for p in det_dir.glob("detections_*.npz")) == ["detections_test.npz"]  # GT rounds
         run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], boxes="detections")  # fills in the others

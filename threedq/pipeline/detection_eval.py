@@ -31,11 +31,12 @@ from threedq.data.box_files import save_boxes_file
 from threedq.data.proposal_cache import propose_dataset
 from threedq.datamodules.scene_folder import SceneDataset
 from threedq.metrics import DetectionMAP
+from threedq.metrics.detection import assign_detections
 from threedq.proposals import ProposalParams
 from threedq.scene import load_scene
 from threedq.stages.detector import detection_figure
 
-__all__ = ["box_sets_map", "detect_split", "evaluate_detection"]
+__all__ = ["box_sets_map", "detect_split", "evaluate_detection", "precision_recall"]
 
 
 def box_sets_map(
@@ -91,6 +92,30 @@ def detect_split(
     return out, first
 
 
+def precision_recall(
+    data_dir: str | Path, box_sets: dict[str, tuple[np.ndarray, np.ndarray]], iou_threshold: float = 0.5
+) -> dict[str, float | int]:
+    """Precision and recall of a set of kept boxes against the GT boxes' axis-aligned hulls.
+
+    Matching is :func:`~threedq.metrics.detection.assign_detections` (greedy by score, one GT per box): a second
+    box on an already matched object, e.g. a box nested in it, is a false positive.
+
+    Returns:
+        ``{"precision", "recall", "boxes", "matched", "gt"}`` (precision is NaN with no boxes).
+    """
+    boxes = matched = gt_total = 0
+    for f, (aabb, scores) in box_sets.items():
+        rec = load_scene(Path(data_dir) / f, validate=False)
+        gt = torch.from_numpy(boxes_to_aabb(rec.boxes.astype(np.float64)).astype(np.float32)).reshape(-1, 6)
+        a = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1, 6)
+        gt_total += gt.shape[0]
+        boxes += a.shape[0]
+        if a.shape[0] and gt.shape[0]:
+            matched += int((assign_detections(a, torch.as_tensor(scores).reshape(-1), gt, iou_threshold) >= 0).sum())
+    return {"precision": matched / boxes if boxes else float("nan"), "recall": matched / max(gt_total, 1),
+            "boxes": boxes, "matched": matched, "gt": gt_total}  # fmt: skip
+
+
 def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[str, float],
                        splits: tuple[str, ...] = ("train", "val", "test"), progress: bool = True) -> dict[str, Any]:  # fmt: skip
     """mAP of the pseudo-boxes on the test split beside the detector's, a detections picture, and detection files.
@@ -103,7 +128,8 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
             :class:`~threedq.metrics.DetectionMAP`.
 
     Returns:
-        ``{"pseudo_boxes": {...}, "detector": {...}, "detections": {split: path}, "seconds"}``.
+        ``{"pseudo_boxes": {...}, "detector": {...}, "detections": {split: path}, "handed_on": {split: precision,
+        recall and counts of the boxes above the stage's score threshold at IoU 0.5}, "seconds"}``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,6 +143,7 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
         "detector": dict(test_map),
     }
     files: dict[str, str] = {}
+    handed_on: dict[str, dict[str, Any]] = {}
     for split in splits:
         if not dm.index.files(split):
             continue
@@ -127,6 +154,8 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
         path = out / f"detections_{split}.npz"
         save_boxes_file(path, dets, json.dumps({"score_threshold": stage.hparams.score_threshold}))
         files[split] = str(path)
+        # the boxes handed on to mining and quantization (GT used for measuring only)
+        handed_on[split] = {"score_threshold": stage.hparams.score_threshold, **precision_recall(dm.data_dir, dets)}
         if split == "test":
             kept = sum(len(s) for _, s in dets.values())
             result["detector"]["boxes_kept_at_score_threshold"] = kept
@@ -136,6 +165,7 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
             if ok:
                 atomic_write_bytes(out / "detections.png", png.tobytes())
     result["detections"] = files
+    result["handed_on"] = handed_on
     result["seconds"] = round(time.time() - t0, 1)
     atomic_write_json(out / "results.json", result)
     return result

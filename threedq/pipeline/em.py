@@ -8,14 +8,19 @@ Layout of ``work_dir``::
       01_viewpred_eval/
         metrics.json          # held-out view-prediction metrics
       02_detector/            # 3D detector on the frozen encoder, trained from label-free pseudo-boxes
-      03_detector_eval/       # mAP@0.25/0.5 of pseudo-boxes and detector, detections.png,
-                              #   detections_test.npz (every split's with --boxes detections)
-      r01_mining/             # round 1: the encoder fine-tuned by correspondence mining; mining/refresh_*.json|png
+      03_detector_eval/       # mAP@0.25/0.5 of pseudo-boxes and detector, detections.png, detections_<split>.npz
+                              #   (the boxes above 0.9 handed on to round 1; only the test split's with --boxes gt)
+      r01_mining/             # round 1: the encoder fine-tuned by correspondence mining on those boxes;
+                              #   mining/refresh_*.json|png
       r01_quantizer/          # round 1: prototypes on that encoder, frozen (LightningCLI run)
       r01_eval/               # round 1: results.json/.md (retrieval, Hungarian, few-shot, yaw) + figures
-      r02_quantizer/ ...      # round r starts from round r-1's prototype bank
-      metrics.json            # everything measured, per stage and round
+      r01_self_labelling/     # round 1: the detector fine-tuned on labels from the prototypes and the
+                              #   center-surround score; self_labels/labels.json|png
+      r01_detector_eval/      # round 1: its mAP, detections.png, detections_<split>.npz for round 2
+      r02_mining/ ...         # round r starts from round r-1's encoder, prototype bank and detector
+      metrics.json            # everything measured, per stage and round (Table 3 under "table3")
       report.md               # the same as tables
+      table3.png              # features, quantization and detection per round
 
 The rounds and their evaluations share one :class:`~threedq.pipeline.crop_cache.CropCache`: while the encoder does
 not change, each scene's object crops are computed once per process, not once per round.
@@ -24,12 +29,13 @@ A finished stage (its ``stage.json`` exists) is never re-run; ``--resume`` conti
 one from its ``checkpoints/last.ckpt``. Every stage saves its resolved ``config.yaml``, so each can be
 re-run or inspected on its own with ``threedq fit --config <run>/config.yaml``.
 
-Stages implemented so far: view-prediction pre-training and its evaluation; the detector warm-started
-from label-free pseudo-boxes and its evaluation; then per round the quantizer (frozen encoder; GT boxes,
-or with ``--boxes detections`` the detector's boxes, matched to GT by IoU for the metrics only) and the
-evaluation of the round (the last round also fits and scores the baselines). Each round starts with
-correspondence learning (``--mining_config``, cross-scene mining by default), which fine-tunes the encoder that
-the round's quantizer then uses. Detector self-labelling is not implemented yet; the report says so.
+The paper's loop (Sec. 3.4): view-prediction pre-training and its evaluation; the detector warm-started from
+label-free pseudo-boxes and its evaluation; then each round r = detect (the boxes the current detector hands
+on) -> mine correspondences on them and fine-tune the encoder (``--mining_config``) -> quantize them into
+prototypes on that encoder -> evaluate the round (the last round also fits and scores the baselines) ->
+self-label the detector with the round's prototypes (``--self_labelling_config``), whose detections are the
+next round's boxes. ``--boxes gt`` runs the rounds on GT boxes instead (the oracle protocol); GT is otherwise
+used only to score, matched to the detections by IoU.
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ from typing import Any
 
 import torch
 
-from threedq.atomic_io import atomic_write_json, atomic_write_text
+from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from threedq.pipeline.crop_cache import CropCache
 from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.evaluation import SEARCH_LABELS
@@ -51,7 +57,7 @@ from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer
 
 __all__ = ["run_em"]
 
-ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer")  # detector self-labelling: not implemented yet
+ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer", "self_labelling")
 
 
 def _stage_done(run_dir: Path) -> dict[str, Any] | None:
@@ -114,7 +120,9 @@ def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
     return metrics
 
 
-def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...]) -> dict[str, Any]:
+def _evaluate_detector(
+    configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...], overrides: list[str] | None = None,
+) -> dict[str, Any]:
     cached = run_dir / "results.json"
     if cached.is_file():
         done = json.loads(cached.read_text())
@@ -122,7 +130,7 @@ def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path, splits: t
             print(f"[em] detector_eval: finished earlier ({cached}), not re-run")
             return done
         print(f"[em] detector_eval: {cached} lacks detections of {', '.join(splits)}: evaluating again")
-    cli, res = test_checkpoint(configs, ckpt, run_dir)
+    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [])
     test_map = {k.removeprefix("test/"): (int(v) if k.startswith("test/num_") else v) for k, v in res.items()}
     return evaluate_detection(cli.model, cli.datamodule, run_dir, test_map, splits=splits)
 
@@ -139,6 +147,57 @@ def _evaluate_round(
     cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
     # Fig. 3a (accuracy against K) is left to threedq eval, which keeps the main job short
     return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[])
+
+
+def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
+            self_labels: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Paper Table 3 rows: per round 0..R, feature precision@10, Hungarian accuracy and detection mAP@0.5 (test).
+
+    Round 0 is the state before the rounds: the warm-start detector (no prototypes, no fine-tuned encoder yet).
+    A round's detection is its self-labelled detector's (the warm start's when self-labelling is off).
+    """
+    def det_row(d: dict[str, Any] | None) -> dict[str, Any]:
+        if not d:
+            return {"map_50": None, "map_25": None, "handed_on_test": None}
+        return {"map_50": d["detector"]["map_50"], "map_25": d["detector"]["map_25"],
+                "handed_on_test": d.get("handed_on", {}).get("test")}
+    rows = [{"round": 0, "precision_at_10": None, "hungarian_acc": None, **det_row(det_eval)}]
+    for i, r in enumerate(rounds):
+        d = self_labels[i]["detector_eval"] if i < len(self_labels) else det_eval
+        rows.append({"round": i + 1, "precision_at_10": r["retrieval"]["precision_at_k"]["learned"],
+                     "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
+    return rows
+
+
+def _table3_figure(rows: list[dict[str, Any]], path: Path) -> None:
+    """PNG of the three Table 3 curves against the round."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
+    for key, label in (("precision_at_10", "features: precision@10"), ("hungarian_acc", "quantization: Hungarian acc."),
+                       ("map_50", "detection: mAP@0.5")):
+        pts = [(r["round"], r[key]) for r in rows if r[key] is not None]
+        if pts:
+            ax.plot(*zip(*pts), marker="o", label=label)
+    ax.set_xlabel("EM round")
+    ax.set_xticks([r["round"] for r in rows])
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def _fmt(v: float | None, digits: int = 3) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
 
 
 def _report(summary: dict[str, Any]) -> str:
@@ -243,14 +302,53 @@ def _report(summary: dict[str, Any]) -> str:
                 lines.append(f"| {i} | {f['refresh']} | {f['pairs']} | {f['same_category']:.3f} | {yaw} | "
                              f"{f['min_cosine']:.3f} | {f['seconds']} |")
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
-    lines += [
-        "",
-        "## Not yet in the rounds",
-        "",
-        ("The encoder is not fine-tuned between rounds (mining is off). " if not mining else "")
-        + "Detector self-labelling is not implemented yet: the detector is trained once, before the rounds.",
-        "",
-    ]
+    table3 = summary.get("table3") or []
+    if table3:
+        lines += [
+            "",
+            f"## Table 3: every module per round (held-out split; rounds on {summary.get('boxes', 'gt')} boxes)",
+            "",
+            "Round 0 is the state before the rounds (the warm-start detector). precision@10: "
+            f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; detection: the round's detector "
+            "(after its self-labelling), dataset-level mAP@0.5; precision / recall: its boxes above the 0.9 "
+            "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false positive).",
+            "",
+            "| round | features: precision@10 | quantization: Hungarian acc. | detection: mAP@0.5 | mAP@0.25 | "
+            "handed-on precision | recall |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for t in table3:
+            h = t["handed_on_test"] or {}
+            lines.append(f"| {t['round']} | {_fmt(t['precision_at_10'])} | {_fmt(t['hungarian_acc'])} | {_fmt(t['map_50'])} | "
+                         f"{_fmt(t['map_25'])} | {_fmt(h.get('precision'))} | {_fmt(h.get('recall'))} |")
+        lines += ["", f"Curves: `{summary['work_dir']}/table3.png`."]
+    sl = summary.get("self_label_results") or []
+    if sl:
+        lines += [
+            "",
+            f"## Detector self-labelling per round (`{summary.get('self_labelling_config')}`; GT used for measuring only)",
+            "",
+            "| round | pool scenes | candidates | positives | of them true (IoU 0.5) | negatives | of them background "
+            "(no object at IoU 0.25) | mAP@0.5 before | after |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        before = summary["detector_eval"]["detector"]["map_50"] if summary.get("detector_eval") else None
+        for i, r in enumerate(sl, 1):
+            lab = r["labels"] or {}
+            after = r["detector_eval"]["detector"]["map_50"]
+            lines.append(f"| {i} | {lab.get('scenes', '-')} | {lab.get('candidates', '-')} | {lab.get('positives', '-')} | "
+                         f"{_fmt(lab.get('positives_true_at_50'))} | {lab.get('negatives', '-')} | "
+                         f"{_fmt(lab.get('negatives_false_at_25'))} | {_fmt(before)} | {_fmt(after)} |")
+            before = after
+        lines += ["", "Pictures: the labels on training scenes `r<round>_self_labelling/self_labels/labels.png` (kept "
+                  "green, pruned red); the round's detections on test scenes `r<round>_detector_eval/detections.png`."]
+    if not mining or not sl:
+        lines += ["", "## Left out of these rounds", ""]
+        if not mining:
+            lines.append("The encoder is not fine-tuned between rounds (mining is off).")
+        if not sl:
+            lines.append("The detector is not self-labelled (self-labelling is off): it stays the warm start.")
+    lines.append("")
     return "\n".join(lines)
 
 
@@ -262,10 +360,11 @@ def run_em(
     quantizer_config: str = "stages/quantizer.yaml",
     detector_config: str = "stages/detector.yaml",
     detection: bool = True,
-    boxes: str = "gt",
+    boxes: str = "detections",
     extra_configs: list[str] | None = None,
     max_steps: int | None = None,
     mining_config: str | None = "stages/mining.yaml",
+    self_labelling_config: str | None = "stages/self_labelling.yaml",
 ) -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
@@ -277,14 +376,18 @@ def run_em(
         quantizer_config: the quantizer stage config.
         detector_config: the detector stage config (trained from label-free pseudo-boxes by default).
         detection: train and evaluate the detector before the rounds.
-        boxes: object boxes of the rounds: ``gt`` (paper's evaluation protocol) or ``detections`` (the
-            detector's boxes; needs ``detection``; metrics over the detections matched to GT at IoU 0.5).
+        boxes: object boxes of the rounds: ``detections`` (the paper's protocol: the boxes the current detector
+            hands on, above its score threshold; needs ``detection``; GT is used only to score, over the detections
+            matched to GT at IoU 0.5) or ``gt`` (the oracle boxes, for comparison).
         extra_configs: more configs composed after each stage's (e.g. ``trainer/gpu.yaml``, a data config).
         max_steps: override the training steps of the view-prediction stage.
         mining_config: the correspondence-learning stage config run at the start of every round, fine-tuning
             the encoder that the round's quantizer then uses (``stages/mining.yaml``: cross-scene mining;
             ``stages/vc_moco.yaml`` or ``stages/vc.yaml``: the view-contrastive baselines); ``none``: no
             fine-tuning, every round quantizes the view-prediction features.
+        self_labelling_config: the detector self-labelling stage config run at the end of every round (with the
+            round's encoder and prototypes; the next round takes its boxes from the self-labelled detector);
+            ``none``: the detector stays the warm start. Needs ``detection``.
     """
     if rounds < 0:
         raise ValueError(f"rounds: expected >= 0, got {rounds}")
@@ -298,6 +401,8 @@ def run_em(
     q_configs = [resolve_config(quantizer_config), *extra]
     mine = mining_config not in (None, "", "none")
     m_configs = [resolve_config(mining_config), *extra] if mine else []
+    relabel = detection and self_labelling_config not in (None, "", "none")
+    sl_configs = [resolve_config(self_labelling_config), *extra] if relabel else []
     overrides = [f"--trainer.max_steps={max_steps}"] if max_steps is not None else []
     vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
     vp_ckpt = Path(vp["checkpoint"])
@@ -316,6 +421,8 @@ def run_em(
             box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
     round_results: list[dict[str, Any]] = []
     mining_results: list[dict[str, Any]] = []
+    self_label_results: list[dict[str, Any]] = []
+    det_ckpt = Path(det["checkpoint"]) if det else None
     prev_bank: Path | None = None
     encoder = vp_ckpt
     # Rounds share one crop cache, keyed by the encoder's weights: while the encoder does not change (no
@@ -335,6 +442,24 @@ def run_em(
         prev_bank = Path(q["checkpoint"])
         round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds,
                                             overrides=box_over, crop_cache=crop_cache))
+        if relabel:
+            assert det_ckpt is not None
+            run = work / f"r{r:02d}_self_labelling"
+            sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}"]
+            sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
+                            [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume)
+            det_ckpt = Path(sl["checkpoint"])
+            # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
+            splits = det_splits if r < rounds else ("test",)
+            sl_eval = _evaluate_detector(sl_configs, det_ckpt, work / f"r{r:02d}_detector_eval", splits,
+                                         [*sl_over, "--model.init_args.detector_ckpt=null"])
+            labels = run / "self_labels" / "labels.json"
+            self_label_results.append({**sl, "labels": json.loads(labels.read_text()) if labels.is_file() else None,
+                                       "detector_eval": sl_eval})
+            print(f"[em] round {r} self-labelling: detection mAP@0.5 {sl_eval['detector']['map_50']:.3f} "
+                  f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
+            if boxes == "detections":
+                box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
         if mine:  # the next round fine-tunes the encoder again: this round's learned crops will not be asked for
             crop_cache.drop("features")
         q_res = round_results[-1]["quantization"]["threedq"]
@@ -346,7 +471,11 @@ def run_em(
     summary = {
         "work_dir": str(work),
         "rounds": rounds,
-        "round_stages_run": [st for st in ROUND_STAGES if st != "mining" or mine] if rounds else [],
+        "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
+        if rounds else [],
+        "self_labelling_config": str(sl_configs[0]) if relabel else None,
+        "self_label_results": self_label_results,
+        "table3": _table3(det_eval, round_results, self_label_results) if rounds else [],
         "mining_config": str(m_configs[0]) if mine else None,
         "mining_results": mining_results,
         "viewpred": vp,
@@ -360,6 +489,8 @@ def run_em(
         "torch": torch.__version__,
     }
     atomic_write_json(work / "metrics.json", summary)
+    if summary["table3"]:
+        _table3_figure(summary["table3"], work / "table3.png")
     atomic_write_text(work / "report.md", _report(summary))
     if round_results:
         p = round_results[-1]["retrieval"]["precision_at_k"]

@@ -1,0 +1,411 @@
+"""Detector self-labelling (paper Sec. 3.4; supplement "3D object detection supervised by prototypes distance and
+center-surround score").
+
+The detector of the previous round runs over a pool of ``pool_scenes`` training scenes on the round's (frozen)
+encoder; each of its boxes above ``candidate_threshold`` is cut to a ``crop_size^3`` crop of the feature grid
+and labelled without annotations:
+
+* **positive** when its best cosine over all prototypes x ``num_angles`` yaws (the round's prototype bank,
+  :meth:`~threedq.quantization.PrototypeBank.assign`) exceeds ``positive_threshold`` (paper: 0.8): it looks like
+  an object the quantizer knows;
+* **negative** when its center-surround similarity (:func:`center_surround_similarity`: the mean cosine of the
+  crop with its six face-adjacent, equal-size neighbour crops) exceeds ``negative_threshold`` (paper: 0.65): a
+  box that looks like its surroundings is not salient (floor, background);
+* neither otherwise (ignored). A box above both thresholds is negative (``positive_wins`` turns this round):
+  on 200 training scenes of the embedded data, 56% of the boxes above the prototype threshold did not match
+  an object at IoU 0.5; the veto leaves 21% (``docs/results.md``).
+
+The detector head (encoder frozen) is then fine-tuned on these labels with the loss confined to the union of
+the positive and negative regions (:func:`self_label_targets`): cells of a positive box are positives as in
+the warm start (:func:`~threedq.stages.detector.detection_targets`), cells inside a negative box are negatives,
+every other cell is ignored. The labels are registered buffers (``labels``, ``labelled``), so a resumed run
+trains on the same labels; the pool's feature grids are computed once (the encoder is frozen) and every step
+draws ``batch_size`` of them, so a step costs a head pass, not an encoding (the loader's batch is not used).
+
+Diagnostics (GT boxes used for measuring only): ``self_labels/labels.json`` (counts; the share of positives
+that match a GT object at IoU 0.5 and of negatives that match none at IoU 0.25) and
+``self_labels/labels.png`` (the labelled boxes on a few pool scenes: positives green, negatives red).
+
+Convention: frame R metres, z up; boxes axis-aligned ``(xmin, ymin, zmin, xmax, ymax, zmax)``; volumes
+``[B, C, Z, Y, X]``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch.utils.data import default_collate
+
+from threedq.atomic_io import atomic_write_bytes, atomic_write_text
+from threedq.data.draw import draw_boxes
+from threedq.geometry import VoxelGridSpec, crop_boxes
+from threedq.metrics.detection import assign_detections
+from threedq.quantization.prototypes import PrototypeBank
+from threedq.stages.base import checkpoint_state
+from threedq.stages.detector import Detector, _aabb_to_boxes7, detection_targets
+from threedq.stages.quantizer import load_bank_state
+
+__all__ = ["SelfLabelling", "center_surround_similarity", "self_label_targets", "load_head_state"]
+
+#: face-adjacent neighbour directions (x, y, z order), in units of the box's extent
+_FACES = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=torch.float32)
+
+
+def center_surround_similarity(grid: Tensor, aabb: Tensor, spec: VoxelGridSpec, size: int = 16) -> Tensor:
+    """Mean cosine between each box's crop and the crops of its six face-adjacent neighbours of equal size.
+
+    A neighbour is the box shifted by its own extent along +-x, +-y or +-z. Each crop (``size^3`` cells,
+    trilinear, :func:`~threedq.geometry.crop_boxes`) is flattened over channels and cells and L2-normalised;
+    the score is the mean of the cosines with the neighbours whose centre lies inside the grid (a neighbour
+    wholly outside carries no features). A box with no neighbour inside the grid scores NaN.
+
+    Args:
+        grid: ``[B, C, Z, Y, X]`` feature volume on ``spec``.
+        aabb: ``[B, N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+        spec: the grid of ``grid``.
+        size: crop size.
+
+    Returns:
+        ``[B, N]`` similarity in [-1, 1] (NaN where no neighbour is inside the grid).
+
+    Convention: frame R metres; boxes axis-aligned.
+    """
+    if aabb.ndim != 3 or aabb.shape[-1] != 6 or aabb.shape[0] != grid.shape[0]:
+        raise ValueError(f"aabb: expected [B, N, 6] with B = {grid.shape[0]}, got {tuple(aabb.shape)}")
+    B, N = aabb.shape[:2]
+    if N == 0:
+        return aabb.new_zeros(B, 0)
+    ext = aabb[..., 3:] - aabb[..., :3]  # [B, N, 3]
+    shift = _FACES.to(aabb)[None, :, None] * ext[:, None]  # [B, 6, N, 3]
+    moved = aabb[:, None] + shift.repeat(1, 1, 1, 2)  # [B, 6, N, 6]
+    boxes = torch.cat([aabb, moved.reshape(B, 6 * N, 6)], dim=1)  # [B, 7N, 6]
+    crops = crop_boxes(grid, boxes.to(grid.dtype), spec, size).flatten(2)
+    crops = F.normalize(crops.to(torch.promote_types(crops.dtype, torch.float32)), dim=-1, eps=1e-8)
+    centre, around = crops[:, :N], crops[:, N:].view(B, 6, N, -1)
+    cos = (around * centre[:, None]).sum(-1)  # [B, 6, N]
+    ctr = (moved[..., :3] + moved[..., 3:]) / 2
+    lo = torch.tensor(spec.bounds_min, dtype=ctr.dtype, device=ctr.device)
+    hi = torch.tensor(spec.bounds_max, dtype=ctr.dtype, device=ctr.device)
+    inside = ((ctr >= lo) & (ctr <= hi)).all(-1)  # [B, 6, N]
+    n = inside.sum(1)
+    mean = (cos * inside).sum(1) / n.clamp_min(1)
+    return torch.where(n > 0, mean, torch.full_like(mean, float("nan")))
+
+
+def self_label_targets(
+    centres: Tensor, pos_aabb: Tensor, pos_mask: Tensor, neg_aabb: Tensor, neg_mask: Tensor, anchor: Tensor,
+    inner_fraction: float = 0.5, negative_margin: float = 0.1,
+) -> tuple[Tensor, Tensor]:
+    """Objectness labels and box targets confined to the union of the positive and negative regions.
+
+    Positive boxes label cells exactly as :func:`~threedq.stages.detector.detection_targets` does (inner cells
+    positive with box targets, cells within ``negative_margin`` of a positive box ignored); a cell whose centre
+    lies inside a negative box and near no positive box is negative; every other cell is ignored (-1).
+
+    Args:
+        centres: ``[Z, Y, X, 3]`` cell centres (x, y, z), metres.
+        pos_aabb: ``[B, P, 6]`` positive boxes, pos_mask ``[B, P]``; neg_aabb ``[B, Q, 6]``, neg_mask ``[B, Q]``.
+        anchor, inner_fraction, negative_margin: as in :func:`~threedq.stages.detector.detection_targets`.
+
+    Returns:
+        ``label`` ``[B, Z, Y, X]`` (1 positive, 0 negative, -1 ignored) and ``target`` ``[B, 6, Z, Y, X]``.
+
+    Convention: frame R metres; x, y, z order inside the last dimensions.
+    """
+    label, target, _ = detection_targets(centres, pos_aabb, pos_mask, anchor, inner_fraction, negative_margin)
+    B = label.shape[0]
+    p = centres.reshape(1, 1, -1, 3)
+    in_neg = ((p >= neg_aabb[..., None, :3]) & (p <= neg_aabb[..., None, 3:])).all(-1) & neg_mask[..., None]
+    in_neg = in_neg.any(1).view(B, *label.shape[1:])  # [B, Z, Y, X]
+    label = torch.where((label == 0) & ~in_neg, torch.full_like(label, -1.0), label)
+    return label, target
+
+
+def load_head_state(head: torch.nn.Module, path: str | Path) -> None:
+    """Load the ``head.*`` weights of a detector (or self-labelling) checkpoint into ``head``."""
+    state = {k[len("head."):]: v for k, v in checkpoint_state(path).items() if k.startswith("head.")}
+    if not state:
+        raise ValueError(f"{path}: field 'state_dict': no 'head.*' weights (not a detector checkpoint?)")
+    try:
+        head.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValueError(f"{path}: field 'state_dict': the detector head does not fit this stage: {e}") from None
+
+
+class SelfLabelling(Detector):
+    """Fine-tune a detector on labels from the prototypes and the center-surround score (see module docstring).
+
+    Args:
+        grid_min ... image_every_n_steps: as :class:`~threedq.stages.detector.Detector` (encoder frozen).
+        detector_ckpt: the detector to start from (its head; the warm start or the previous round's).
+        bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (the round's).
+        positive_threshold: best prototype cosine (over all prototypes and yaws) above which a box is positive
+            (paper: 0.8).
+        negative_threshold: center-surround similarity above which a box is negative (paper: 0.65).
+        candidate_threshold: objectness of the detections that are labelled.
+        pool_scenes: training scenes labelled (paper: 1000; all of a smaller split).
+        crop_size: crops are ``crop_size^3`` (the bank's).
+        num_angles: yaw steps of the prototype search (paper: 36).
+        search_method: ``"fast"`` or ``"exact"`` rotation search.
+        batch_size: pool scenes per training step.
+        seed: seed of the pool draw and of the step's scene draws.
+        positive_wins: a box above both thresholds is positive (default: negative; the center-surround score
+            vetoes boxes of background that happen to resemble a prototype, see the module docstring).
+    """
+
+    def __init__(
+        self,
+        grid_min: tuple[float, float, float] | None = None,
+        grid_max: tuple[float, float, float] | None = None,
+        grid_resolution: tuple[int, int, int] | None = None,
+        feature_dim: int | None = None,
+        encoder_ckpt: str | None = None,
+        freeze_encoder: bool = True,
+        channels_last: bool = True,
+        anchor_size: tuple[float, float, float] = (0.5, 0.5, 0.5),
+        channels: int = 32,
+        num_blocks: int = 3,
+        inner_fraction: float = 0.5,
+        negative_margin: float = 0.1,
+        box_weight: float = 1.0,
+        score_threshold: float = 0.9,
+        eval_score_threshold: float = 0.05,
+        nms_iou: float = 0.1,
+        nms_iomin: float = 1.0,
+        max_detections: int = 16,
+        lr: float = 1e-4,
+        image_every_n_steps: int = 0,
+        detector_ckpt: str | None = None,
+        bank_ckpt: str | None = None,
+        positive_threshold: float = 0.8,
+        negative_threshold: float = 0.65,
+        candidate_threshold: float = 0.5,
+        pool_scenes: int = 1000,
+        crop_size: int = 16,
+        num_angles: int = 36,
+        search_method: str = "fast",
+        batch_size: int = 8,
+        seed: int = 0,
+        positive_wins: bool = False,
+    ) -> None:
+        if not freeze_encoder:
+            raise ValueError("freeze_encoder: self-labelling trains the detector head on a frozen encoder")
+        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last,
+                         anchor_size, channels, num_blocks, inner_fraction, negative_margin, box_weight, score_threshold,
+                         eval_score_threshold, nms_iou, nms_iomin, max_detections, lr, image_every_n_steps)  # fmt: skip
+        for name, v in (("positive_threshold", positive_threshold), ("negative_threshold", negative_threshold)):
+            if not -1.0 <= v <= 1.0:
+                raise ValueError(f"{name}: expected a cosine in [-1, 1], got {v}")
+        if not 0.0 <= candidate_threshold <= 1.0:
+            raise ValueError(f"candidate_threshold: expected in [0, 1], got {candidate_threshold}")
+        if pool_scenes < 1 or batch_size < 1:
+            raise ValueError(f"pool_scenes, batch_size: expected >= 1, got {pool_scenes}, {batch_size}")
+        self.save_hyperparameters()
+        if detector_ckpt:
+            load_head_state(self.head, detector_ckpt)
+        self.bank: PrototypeBank | None = None
+        if bank_ckpt:
+            num = checkpoint_state(bank_ckpt).get("bank.prototypes")
+            if num is None:
+                raise ValueError(f"{bank_ckpt}: field 'state_dict': no 'bank.prototypes' (not a quantizer checkpoint?)")
+            self.bank = PrototypeBank(num.shape[0], self.feature_dim, crop_size, num_angles, method=search_method)
+            load_bank_state(self.bank, bank_ckpt)
+        # the labels: rows (pool position, kind 1 positive / 0 negative, aabb[6]); resized on load
+        self.register_buffer("labels", torch.zeros(0, 8))
+        self.register_buffer("labelled", torch.zeros((), dtype=torch.bool))
+        self._pool_grids: Tensor | None = None
+        self._pool_files: list[str] = []
+
+    # ------------------------------------------------------------------ checkpoint
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        labels = checkpoint.get("state_dict", {}).get("labels")
+        if labels is not None:
+            self.labels = torch.zeros_like(labels)
+
+    # ------------------------------------------------------------------ the pool
+    def _pool_dataset(self) -> Any:
+        from threedq.datamodules.scene_folder import SceneDataset  # a stage reads its datamodule's own dataset
+
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is None or not hasattr(dm, "index"):
+            raise RuntimeError("self-labelling: needs a scene-folder DataModule (its train split is the pool)")
+        return SceneDataset(dm.data_dir, dm.index, "train", num_input_views=dm.num_input_views, num_target_views=0,
+                            max_objects=dm.max_objects, random_views=False, seed=dm.seed)  # fmt: skip
+
+    def _pool_order(self, n: int) -> list[int]:
+        g = torch.Generator().manual_seed(self.hparams.seed)
+        return torch.randperm(n, generator=g)[: self.hparams.pool_scenes].tolist()
+
+    @torch.no_grad()
+    def _encode_pool(self) -> None:
+        """Feature grids of the pool scenes (frozen encoder), and the labels if there are none yet."""
+        ds = self._pool_dataset()
+        order = self._pool_order(len(ds))
+        label_now = not bool(self.labelled)
+        t0 = time.time()
+        grids, rows, diag_rows = [], [], []
+        first: list[tuple[dict[str, Tensor], list[Tensor]]] = []
+        was = self.head.training
+        self.head.eval()
+        for start in range(0, len(order), 8):
+            idx = order[start:start + 8]
+            batch = {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in default_collate([ds[j] for j in idx]).items()}
+            v = self.input_views(batch)
+            g = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+            grids.append(g.to("cpu"))
+            if label_now:
+                for b, (r, d) in enumerate(self._label_batch(g, batch)):
+                    rows.append(torch.cat([torch.full((len(r), 1), float(start + b)), r], dim=1))
+                    diag_rows.append(d)
+                    if len(first) < 4 and len(r):
+                        first.append(({k: batch[k][b] for k in ("rgb", "K", "R_T_cam")}, r))
+        self.head.train(was)
+        self._pool_grids = torch.cat(grids)
+        self._pool_files = [ds.files[j] for j in order]
+        if label_now:
+            self.labels = torch.cat(rows).to(self.device) if rows else torch.zeros(0, 8, device=self.device)
+            self.labelled.fill_(True)
+            info = self._diagnostics(diag_rows, time.time() - t0)
+            self.log_dict({f"self_labels/{k}": float(v) for k, v in info.items() if isinstance(v, (int, float))},
+                          rank_zero_only=True)
+            if self.trainer.is_global_zero:
+                self._write_diagnostics(info, first)
+
+    @torch.no_grad()
+    def _label_batch(self, grid: Tensor, batch: dict[str, Tensor]) -> list[tuple[Tensor, dict[str, Tensor]]]:
+        """Per scene: label rows ``[L, 7]`` (kind, aabb) and the candidates' measurements (for the diagnostics)."""
+        if self.bank is None:
+            raise RuntimeError("bank_ckpt: self-labelling needs the round's prototype bank")
+        logits, box = self.head(grid)
+        dets = self.detect(logits, box, self.hparams.candidate_threshold)
+        counts = [d["boxes"].shape[0] for d in dets]
+        m = max(counts) if counts else 0
+        proto_all = cs_all = grid.new_zeros(len(dets), 0)
+        if m:
+            aabb_pad = grid.new_zeros(len(dets), m, 6)
+            valid = torch.zeros(len(dets), m, dtype=torch.bool, device=grid.device)
+            for b, d in enumerate(dets):
+                aabb_pad[b, : counts[b]] = d["boxes"]
+                valid[b, : counts[b]] = True
+            crops = crop_boxes(grid, aabb_pad.to(grid.dtype), self.feature_grid, self.hparams.crop_size)
+            proto_all = torch.zeros(len(dets), m, device=grid.device)
+            proto_all[valid] = self.bank.assign(crops[valid].float()).score.to(proto_all.dtype)
+            cs_all = center_surround_similarity(grid, aabb_pad, self.feature_grid, self.hparams.crop_size)
+        out = []
+        for b, d in enumerate(dets):
+            aabb, n = d["boxes"], counts[b]
+            proto, cs = proto_all[b, :n], cs_all[b, :n]
+            # a box both like a prototype and like its surroundings: the center-surround score decides (measured:
+            # docs/results.md), unless positive_wins
+            neg = cs > self.hparams.negative_threshold  # NaN compares False: never negative
+            pos = proto > self.hparams.positive_threshold
+            if self.hparams.positive_wins:
+                neg &= ~pos
+            else:
+                pos &= ~neg
+            keep = pos | neg
+            rows = torch.cat([pos[keep, None].to(aabb.dtype), aabb[keep]], dim=1).cpu()
+            gt = batch["aabb"][b][batch["box_mask"][b]]
+            m50 = assign_detections(aabb, d["scores"], gt, 0.5) >= 0 if n else torch.zeros(0, dtype=torch.bool)
+            m25 = assign_detections(aabb, d["scores"], gt, 0.25) >= 0 if n else torch.zeros(0, dtype=torch.bool)
+            out.append((rows, {"pos": pos.cpu(), "neg": neg.cpu(), "tp50": m50.cpu(), "tp25": m25.cpu(),
+                               "proto": proto.cpu(), "cs": cs.cpu(), "num_gt": torch.tensor(gt.shape[0])}))
+        return out
+
+    def _diagnostics(self, rows: list[dict[str, Tensor]], seconds: float) -> dict[str, Any]:
+        cat = {k: torch.cat([r[k] for r in rows]) if rows else torch.zeros(0) for k in ("pos", "neg", "tp50", "tp25")}
+        pos, neg = cat["pos"].bool(), cat["neg"].bool()
+        tp50, tp25 = cat["tp50"].bool(), cat["tp25"].bool()
+        n_gt = int(sum(int(r["num_gt"]) for r in rows))
+        info: dict[str, Any] = {
+            "scenes": len(rows),
+            "candidates": int(pos.numel()),
+            "candidate_threshold": self.hparams.candidate_threshold,
+            "positives": int(pos.sum()),
+            "negatives": int(neg.sum()),
+            "ignored": int((~pos & ~neg).sum()),
+            "gt_objects": n_gt,
+            # GT used for measuring only
+            "candidates_true_at_50": int(tp50.sum()),
+            "positives_true_at_50": float(tp50[pos].float().mean()) if pos.any() else float("nan"),
+            "negatives_false_at_25": float((~tp25[neg]).float().mean()) if neg.any() else float("nan"),
+            "gt_recall_of_positives_at_50": float(tp50[pos].sum()) / max(n_gt, 1),
+            "seconds": round(seconds, 1),
+        }
+        return info
+
+    def _write_diagnostics(self, info: dict[str, Any], first: list[tuple[dict[str, Tensor], Tensor]]) -> None:
+        out = Path(self.trainer.log_dir or self.trainer.default_root_dir) / "self_labels"
+        atomic_write_text(out / "labels.json", json.dumps(info, indent=1) + "\n")
+        if first:
+            atomic_write_bytes(out / "labels.png", self_labels_figure(first))
+
+    # ------------------------------------------------------------------ training
+    def on_train_start(self) -> None:
+        if self._pool_grids is None:
+            self._encode_pool()
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        if self._pool_grids is None:
+            self._encode_pool()
+        n = self._pool_grids.shape[0]
+        g = torch.Generator().manual_seed(self.hparams.seed * 1_000_003 + int(self.global_step))
+        pick = torch.randint(n, (self.hparams.batch_size,), generator=g)
+        grids = self._pool_grids[pick].to(self.device)
+        pos_aabb, pos_mask, neg_aabb, neg_mask = self._batch_labels(pick)
+        logits, box = self.head(grids)
+        label, target = self_label_targets(self.centres, pos_aabb, pos_mask, neg_aabb, neg_mask, self.anchor,
+                                           self.hparams.inner_fraction, self.hparams.negative_margin)  # fmt: skip
+        r = self.loss_from_targets(logits, box, label, target)
+        self.log_dict({"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"],
+                       "train/num_pos": r["num_pos"].float(), "train/num_neg": r["num_neg"].float()},
+                      prog_bar=True, batch_size=len(pick))  # fmt: skip
+        return r["loss"]
+
+    def _batch_labels(self, pick: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        lab = self.labels
+        out = []
+        for kind in (1.0, 0.0):
+            per = [lab[(lab[:, 0] == float(i)) & (lab[:, 1] == kind), 2:] for i in pick.tolist()]
+            m = max(1, max(len(p) for p in per))
+            aabb = lab.new_zeros(len(per), m, 6)
+            mask = torch.zeros(len(per), m, dtype=torch.bool, device=lab.device)
+            for j, p in enumerate(per):
+                aabb[j, : len(p)] = p
+                mask[j, : len(p)] = True
+            out += [aabb, mask]
+        return out[0], out[1], out[2], out[3]
+
+
+def self_labels_figure(scenes: list[tuple[dict[str, Tensor], Tensor]], upscale: int = 3) -> bytes:
+    """PNG of labelled candidates on each scene's first input view: positives green, negatives red.
+
+    Args:
+        scenes: per scene (``{"rgb": [S,3,H,W], "K": [S,3,3], "R_T_cam": [S,4,4]}``, rows ``[L, 7]`` = kind
+            (1 positive, 0 negative) + aabb).
+    """
+    tiles = []
+    for sample, rows in scenes:
+        rgb = (sample["rgb"][0].permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
+        K, pose = sample["K"][0].cpu().numpy(), sample["R_T_cam"][0].cpu().numpy()
+        rows = rows.cpu().numpy().astype(np.float64)
+        pos = rows[:, 0] > 0.5
+        colours = [(40, 220, 80) if p else (230, 40, 40) for p in pos]
+        names = ["kept" if p else "pruned" for p in pos]
+        tiles.append(draw_boxes(rgb, _aabb_to_boxes7(rows[:, 1:]), names, K, pose, colour=colours, upscale=upscale,
+                                heading=False))  # fmt: skip
+    h = max(t.shape[0] for t in tiles)
+    tiles = [np.pad(t, ((0, h - t.shape[0]), (0, 4), (0, 0)), constant_values=255) for t in tiles]
+    img = np.concatenate(tiles, axis=1)
+    ok, png = cv2.imencode(".png", img[:, :, ::-1])
+    if not ok:
+        raise RuntimeError("self_labels_figure: PNG encoding failed")
+    return png.tobytes()
