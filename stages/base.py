@@ -260,10 +260,24 @@ class EncoderStage(L.LightningModule):
 
         Returns:
             ``[B, C, Z/2, Y/2, X/2]`` features, L2-normalised per voxel.
+
+        With a :attr:`crop_cache` and :meth:`crops_cacheable`, a scene whose views were encoded before by the same
+        weights is not encoded again (its whole grid is kept, under the ``"grid"`` kind).
         """
         B, S = rgb.shape[:2]
+        cache = self.crop_cache if self.crops_cacheable() and hasattr(self.crop_cache, "views_key") else None
+        if cache is not None:
+            head = ("grid", self.crop_cache_prefix(), cache.fingerprint(self.encoder))
+            keys = [(*head, cache.views_key(rgb[b], depth[b], K[b], R_T_cam[b])) for b in range(B)]
+            found = cache.get_many(keys)
+            if found is not None:
+                return torch.stack(found).to(self.device)
         x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
-        return self.encode_input(x, seen, S)
+        feats = self.encode_input(x, seen, S)
+        if cache is not None:
+            for b in range(B):
+                cache.put(keys[b], feats[b])
+        return feats
 
     def encode_input(self, x: Tensor, seen: Tensor, num_views: int, encoder: torch.nn.Module | None = None) -> Tensor:
         """Encode unprojected views and aggregate each scene's ``num_views`` of them (see :meth:`encode_views`).

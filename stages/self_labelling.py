@@ -43,8 +43,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import default_collate
+from tqdm import tqdm
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_text
+from threedq.boxes import aabb_iou_3d
 from threedq.data.draw import draw_boxes
 from threedq.geometry import VoxelGridSpec, crop_boxes
 from threedq.metrics.detection import assign_detections
@@ -159,6 +161,10 @@ class SelfLabelling(Detector):
         seed: seed of the pool draw and of the step's scene draws.
         positive_wins: a box above both thresholds is positive (default: negative; the center-surround score
             vetoes boxes of background that happen to resemble a prototype, see the module docstring).
+        surround_crop_size: crop size of the center-surround score (coarser than ``crop_size``: 7 crops per box).
+        snap_to_proposals: when > 0, a positive takes the box of the label-free pseudo-box
+            (:mod:`threedq.proposals`, the warm start's labels) it overlaps most, if their IoU is at least this;
+            0 (the paper): positives keep the detector's own box.
     """
 
     def __init__(
@@ -195,6 +201,8 @@ class SelfLabelling(Detector):
         batch_size: int = 8,
         seed: int = 0,
         positive_wins: bool = False,
+        surround_crop_size: int = 8,
+        snap_to_proposals: float = 0.0,
     ) -> None:
         if not freeze_encoder:
             raise ValueError("freeze_encoder: self-labelling trains the detector head on a frozen encoder")
@@ -255,14 +263,24 @@ class SelfLabelling(Detector):
         first: list[tuple[dict[str, Tensor], list[Tensor]]] = []
         was = self.head.training
         self.head.eval()
-        for start in range(0, len(order), 8):
+        bar = self.trainer.progress_bar_callback is not None
+        proposals = None
+        if self.hparams.snap_to_proposals > 0:
+            from threedq.data.proposal_cache import propose_dataset
+            from threedq.proposals import ProposalParams
+
+            dm = self.trainer.datamodule
+            proposals = propose_dataset(dm.data_dir, "train", dm.data_dir / "proposals" / "train.npz",
+                                        params=ProposalParams(view_stride=2), progress=bar)  # fmt: skip
+        for start in tqdm(range(0, len(order), 8), desc="self-labelling pool", disable=not bar, leave=False):
             idx = order[start:start + 8]
             batch = {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in default_collate([ds[j] for j in idx]).items()}
             v = self.input_views(batch)
             g = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
             grids.append(g.to("cpu"))
             if label_now:
-                for b, (r, d) in enumerate(self._label_batch(g, batch)):
+                props = None if proposals is None else [proposals[ds.files[j]][0] for j in idx]
+                for b, (r, d) in enumerate(self._label_batch(g, batch, props)):
                     rows.append(torch.cat([torch.full((len(r), 1), float(start + b)), r], dim=1))
                     diag_rows.append(d)
                     if len(first) < 4 and len(r):
@@ -280,8 +298,12 @@ class SelfLabelling(Detector):
                 self._write_diagnostics(info, first)
 
     @torch.no_grad()
-    def _label_batch(self, grid: Tensor, batch: dict[str, Tensor]) -> list[tuple[Tensor, dict[str, Tensor]]]:
-        """Per scene: label rows ``[L, 7]`` (kind, aabb) and the candidates' measurements (for the diagnostics)."""
+    def _label_batch(self, grid: Tensor, batch: dict[str, Tensor], proposals: list[Any] | None = None,
+                     ) -> list[tuple[Tensor, dict[str, Tensor]]]:
+        """Per scene: label rows ``[L, 7]`` (kind, aabb) and the candidates' measurements (for the diagnostics).
+
+        ``proposals``: per scene the label-free pseudo-boxes ``[P, 6]`` that positives snap to (``snap_to_proposals``).
+        """
         if self.bank is None:
             raise RuntimeError("bank_ckpt: self-labelling needs the round's prototype bank")
         logits, box = self.head(grid)
@@ -298,7 +320,7 @@ class SelfLabelling(Detector):
             crops = crop_boxes(grid, aabb_pad.to(grid.dtype), self.feature_grid, self.hparams.crop_size)
             proto_all = torch.zeros(len(dets), m, device=grid.device)
             proto_all[valid] = self.bank.assign(crops[valid].float()).score.to(proto_all.dtype)
-            cs_all = center_surround_similarity(grid, aabb_pad, self.feature_grid, self.hparams.crop_size)
+            cs_all = center_surround_similarity(grid, aabb_pad, self.feature_grid, self.hparams.surround_crop_size)
         out = []
         for b, d in enumerate(dets):
             aabb, n = d["boxes"], counts[b]
@@ -311,6 +333,11 @@ class SelfLabelling(Detector):
                 neg &= ~pos
             else:
                 pos &= ~neg
+            if proposals is not None and pos.any() and len(proposals[b]):
+                pr = torch.as_tensor(proposals[b], dtype=aabb.dtype, device=aabb.device).reshape(-1, 6)
+                best, j = aabb_iou_3d(aabb, pr).max(1)
+                snap = pos & (best >= self.hparams.snap_to_proposals)
+                aabb = torch.where(snap[:, None], pr[j], aabb)
             keep = pos | neg
             rows = torch.cat([pos[keep, None].to(aabb.dtype), aabb[keep]], dim=1).cpu()
             gt = batch["aabb"][b][batch["box_mask"][b]]

@@ -22,7 +22,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
-__all__ = ["CropCache", "module_fingerprint", "sample_key"]
+__all__ = ["CropCache", "module_fingerprint", "sample_key", "views_key"]
 
 
 def _update(h: "hashlib._Hash", t: Tensor) -> None:
@@ -38,6 +38,16 @@ def module_fingerprint(module: torch.nn.Module) -> str:
     h = hashlib.blake2b(digest_size=16)
     for name, t in module.state_dict().items():
         h.update(name.encode())
+        _update(h, t)
+    return h.hexdigest()
+
+
+def views_key(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> str:
+    """Hex digest of one scene's input views (``rgb`` ``[S,3,H,W]``, ``depth`` ``[S,H,W]``, ``K``, ``R_T_cam``):
+    what its feature grid depends on besides the encoder."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(b"views")
+    for t in (rgb, depth, K, R_T_cam):
         _update(h, t)
     return h.hexdigest()
 
@@ -85,6 +95,8 @@ class CropCache:
     #: :func:`sample_key`, reachable from the cache object (stages use the cache they are handed and import
     #: nothing from the pipeline layer).
     sample_key = staticmethod(sample_key)
+    #: :func:`views_key` (the key of a whole feature grid), reachable from the cache object.
+    views_key = staticmethod(views_key)
 
     def fingerprint(self, module: torch.nn.Module) -> str:
         """:func:`module_fingerprint`, recomputed only when a tensor of ``module`` was replaced or written."""

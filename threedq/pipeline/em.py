@@ -122,6 +122,7 @@ def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
 
 def _evaluate_detector(
     configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...], overrides: list[str] | None = None,
+    crop_cache: CropCache | None = None,
 ) -> dict[str, Any]:
     cached = run_dir / "results.json"
     if cached.is_file():
@@ -130,7 +131,8 @@ def _evaluate_detector(
             print(f"[em] detector_eval: finished earlier ({cached}), not re-run")
             return done
         print(f"[em] detector_eval: {cached} lacks detections of {', '.join(splits)}: evaluating again")
-    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [])
+    setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
+    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
     test_map = {k.removeprefix("test/"): (int(v) if k.startswith("test/num_") else v) for k, v in res.items()}
     return evaluate_detection(cli.model, cli.datamodule, run_dir, test_map, splits=splits)
 
@@ -447,12 +449,12 @@ def run_em(
             run = work / f"r{r:02d}_self_labelling"
             sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}"]
             sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
-                            [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume)
+                            [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume, crop_cache)
             det_ckpt = Path(sl["checkpoint"])
             # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
             splits = det_splits if r < rounds else ("test",)
             sl_eval = _evaluate_detector(sl_configs, det_ckpt, work / f"r{r:02d}_detector_eval", splits,
-                                         [*sl_over, "--model.init_args.detector_ckpt=null"])
+                                         [*sl_over, "--model.init_args.detector_ckpt=null"], crop_cache)
             labels = run / "self_labels" / "labels.json"
             self_label_results.append({**sl, "labels": json.loads(labels.read_text()) if labels.is_file() else None,
                                        "detector_eval": sl_eval})
@@ -462,6 +464,7 @@ def run_em(
                 box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
         if mine:  # the next round fine-tunes the encoder again: this round's learned crops will not be asked for
             crop_cache.drop("features")
+            crop_cache.drop("grid")
         q_res = round_results[-1]["quantization"]["threedq"]
         print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {q_res['fewshot_acc']:.3f}, "
               f"precision@10 {round_results[-1]['retrieval']['precision_at_k']['learned']:.3f}")
