@@ -114,6 +114,46 @@ class TestCropCache:
             CropCache(max_bytes=0)
 
 
+class TestGridsWithCache:
+    """Whole feature grids (``encode_views``) kept under the ``grid`` kind, keyed by the views alone."""
+
+    def _views(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        return tuple(batch[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam"))
+
+    def test_hit_equals_uncached_and_ignores_boxes(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage()
+        with torch.no_grad():
+            ref = stage.encode_views(*self._views(batch))
+            stage.crop_cache = CropCache()
+            first = stage.encode_views(*self._views(batch))
+            other_boxes = {**batch, "aabb": batch["aabb"] + 0.1}
+            second = stage.encode_views(*self._views(other_boxes))
+        assert stage.crop_cache.misses == 2 and stage.crop_cache.hits == 2
+        assert torch.equal(first, ref) and torch.equal(second, ref)
+        assert {k[0] for k in stage.crop_cache._store} == {"grid"}
+        assert stage.crop_cache.drop("grid") == 2 and len(stage.crop_cache) == 0
+
+    def test_other_views_or_weights_miss(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage(0)
+        stage.crop_cache = CropCache()
+        with torch.no_grad():
+            stage.encode_views(*self._views(batch))
+            rgb, depth, K, pose = self._views(batch)
+            stage.encode_views(rgb.flip(-1), depth, K, pose)
+            assert stage.crop_cache.hits == 0
+            stage.encoder.load_state_dict(_stage(1).encoder.state_dict())
+            fresh = stage.encode_views(rgb, depth, K, pose)
+            assert stage.crop_cache.hits == 0
+            stage.crop_cache = None
+            assert torch.equal(fresh, stage.encode_views(rgb, depth, K, pose))
+
+    def test_not_used_with_gradient(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage()
+        stage.crop_cache = CropCache()
+        stage.encode_views(*self._views(batch))
+        assert len(stage.crop_cache) == 0
+
+
 class TestObjectCropsWithCache:
     def test_hit_equals_uncached(self, batch: dict[str, torch.Tensor]) -> None:
         stage = _stage()
