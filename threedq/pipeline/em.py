@@ -308,7 +308,8 @@ def _report(summary: dict[str, Any]) -> str:
     if table3:
         lines += [
             "",
-            f"## Table 3: every module per round (held-out split; rounds on {summary.get('boxes', 'gt')} boxes)",
+            f"## Table 3: every module per round (held-out split; rounds on "
+            f"{'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes)",
             "",
             "Round 0 is the state before the rounds (the warm-start detector). precision@10: "
             f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; detection: the round's detector "
