@@ -104,18 +104,21 @@ def center_surround_similarity(grid: Tensor, aabb: Tensor, spec: VoxelGridSpec, 
 
 def self_label_targets(
     centres: Tensor, pos_aabb: Tensor, pos_mask: Tensor, neg_aabb: Tensor, neg_mask: Tensor, anchor: Tensor,
-    inner_fraction: float = 0.5, negative_margin: float = 0.1,
+    inner_fraction: float = 0.5, negative_margin: float = 0.1, surround: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """Objectness labels and box targets confined to the union of the positive and negative regions.
 
     Positive boxes label cells exactly as :func:`~threedq.stages.detector.detection_targets` does (inner cells
     positive with box targets, cells within ``negative_margin`` of a positive box ignored); a cell whose centre
-    lies inside a negative box and near no positive box is negative; every other cell is ignored (-1).
+    lies inside a negative box and near no positive box is negative, and so is one in the shell around a positive
+    box (the box grown by ``surround`` times its extent on each side, minus the box and its ``negative_margin``);
+    every other cell is ignored (-1).
 
     Args:
         centres: ``[Z, Y, X, 3]`` cell centres (x, y, z), metres.
         pos_aabb: ``[B, P, 6]`` positive boxes, pos_mask ``[B, P]``; neg_aabb ``[B, Q, 6]``, neg_mask ``[B, Q]``.
         anchor, inner_fraction, negative_margin: as in :func:`~threedq.stages.detector.detection_targets`.
+        surround: width of the negative shell around each positive box, in units of its extent (0: none).
 
     Returns:
         ``label`` ``[B, Z, Y, X]`` (1 positive, 0 negative, -1 ignored) and ``target`` ``[B, 6, Z, Y, X]``.
@@ -127,6 +130,11 @@ def self_label_targets(
     p = centres.reshape(1, 1, -1, 3)
     in_neg = ((p >= neg_aabb[..., None, :3]) & (p <= neg_aabb[..., None, 3:])).all(-1) & neg_mask[..., None]
     in_neg = in_neg.any(1).view(B, *label.shape[1:])  # [B, Z, Y, X]
+    if surround > 0:  # the shell around each positive box: what the objects stand out from
+        ext = (pos_aabb[..., 3:] - pos_aabb[..., :3]) * surround
+        lo, hi = pos_aabb[..., None, :3] - ext[..., None, :], pos_aabb[..., None, 3:] + ext[..., None, :]
+        shell = ((p >= lo) & (p <= hi)).all(-1) & pos_mask[..., None]
+        in_neg = in_neg | shell.any(1).view(B, *label.shape[1:])
     label = torch.where((label == 0) & ~in_neg, torch.full_like(label, -1.0), label)
     return label, target
 
@@ -162,9 +170,11 @@ class SelfLabelling(Detector):
         positive_wins: a box above both thresholds is positive (default: negative; the center-surround score
             vetoes boxes of background that happen to resemble a prototype, see the module docstring).
         surround_crop_size: crop size of the center-surround score (coarser than ``crop_size``: 7 crops per box).
-        snap_to_proposals: when > 0, a positive takes the box of the label-free pseudo-box
-            (:mod:`threedq.proposals`, the warm start's labels) it overlaps most, if their IoU is at least this;
-            0 (the paper): positives keep the detector's own box.
+        snap_to_proposals: when > 0, a positive must overlap a label-free pseudo-box (:mod:`threedq.proposals`,
+            the warm start's labels: something standing on the ground plane) at IoU at least this, and takes that
+            box; one that overlaps none is left unlabelled. 0 (the paper): positives keep the detector's own box.
+        surround_negatives: cells in a shell this many box extents wide around each positive box are negatives
+            (see :func:`self_label_targets`; 0, the paper: only the negative boxes' cells).
     """
 
     def __init__(
@@ -203,6 +213,7 @@ class SelfLabelling(Detector):
         positive_wins: bool = False,
         surround_crop_size: int = 8,
         snap_to_proposals: float = 0.0,
+        surround_negatives: float = 0.0,
     ) -> None:
         if not freeze_encoder:
             raise ValueError("freeze_encoder: self-labelling trains the detector head on a frozen encoder")
@@ -333,11 +344,15 @@ class SelfLabelling(Detector):
                 neg &= ~pos
             else:
                 pos &= ~neg
-            if proposals is not None and pos.any() and len(proposals[b]):
+            if proposals is not None and pos.any():
                 pr = torch.as_tensor(proposals[b], dtype=aabb.dtype, device=aabb.device).reshape(-1, 6)
-                best, j = aabb_iou_3d(aabb, pr).max(1)
-                snap = pos & (best >= self.hparams.snap_to_proposals)
-                aabb = torch.where(snap[:, None], pr[j], aabb)
+                if len(pr):
+                    best, j = aabb_iou_3d(aabb, pr).max(1)
+                    snap = pos & (best >= self.hparams.snap_to_proposals)
+                    aabb = torch.where(snap[:, None], pr[j], aabb)
+                else:
+                    snap = torch.zeros_like(pos)
+                pos = snap  # a positive nothing geometric supports (a shadow, a patch of floor) is left unlabelled
             keep = pos | neg
             rows = torch.cat([pos[keep, None].to(aabb.dtype), aabb[keep]], dim=1).cpu()
             gt = batch["aabb"][b][batch["box_mask"][b]]
@@ -390,7 +405,8 @@ class SelfLabelling(Detector):
         pos_aabb, pos_mask, neg_aabb, neg_mask = self._batch_labels(pick)
         logits, box = self.head(grids)
         label, target = self_label_targets(self.centres, pos_aabb, pos_mask, neg_aabb, neg_mask, self.anchor,
-                                           self.hparams.inner_fraction, self.hparams.negative_margin)  # fmt: skip
+                                           self.hparams.inner_fraction, self.hparams.negative_margin,
+                                           self.hparams.surround_negatives)  # fmt: skip
         r = self.loss_from_targets(logits, box, label, target)
         self.log_dict({"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"],
                        "train/num_pos": r["num_pos"].float(), "train/num_neg": r["num_neg"].float()},

@@ -98,6 +98,23 @@ class TestSelfLabelTargets:
         # everything else ignored
         assert torch.equal(label[0] == -1, ~inside & ~(full[0] == 1))
 
+    def test_surround_shell_is_negative(self) -> None:
+        cell = torch.tensor(SPEC.voxel_size) * 2
+        centres = cell_centres(torch.tensor(SPEC.bounds_min), cell, tuple(n // 2 for n in SPEC.volume_shape))
+        anchor = torch.tensor([0.4, 0.4, 0.4])
+        pos = torch.tensor([[[-0.4, -0.4, 0.2, 0.0, 0.0, 0.6]]])
+        one = torch.ones(1, 1, dtype=torch.bool)
+        none = torch.zeros(1, 1, 6), torch.zeros(1, 1, dtype=torch.bool)
+        label, _ = self_label_targets(centres, pos, one, *none, anchor, negative_margin=0.1, surround=0.5)
+        plain, _ = self_label_targets(centres, pos, one, *none, anchor, negative_margin=0.1)
+        p = centres
+        grown = ((p >= pos[0, 0, :3] - 0.2) & (p <= pos[0, 0, 3:] + 0.2)).all(-1)
+        near = ((p >= pos[0, 0, :3] - 0.1) & (p <= pos[0, 0, 3:] + 0.1)).all(-1)
+        # negatives: the grown box minus the box and its margin; positives unchanged; the rest ignored
+        assert torch.equal(label[0] == 0, grown & ~near) and (grown & ~near).any()
+        assert torch.equal(label == 1, plain == 1)
+        assert torch.equal(label[0] == -1, ~(grown & ~near) & ~(plain[0] == 1))
+
     def test_no_labels_no_loss(self) -> None:
         det = Detector(grid_min=SPEC.bounds_min, grid_max=SPEC.bounds_max, grid_resolution=SPEC.resolution, feature_dim=8)
         z = torch.zeros(1, 0, 6)
