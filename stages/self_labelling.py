@@ -18,7 +18,9 @@ and labelled without annotations:
 The detector head (encoder frozen) is then fine-tuned on these labels with the loss confined to the union of
 the positive and negative regions (:func:`self_label_targets`): cells of a positive box are positives as in
 the warm start (:func:`~threedq.stages.detector.detection_targets`), cells inside a negative box are negatives,
-every other cell is ignored. The labels are registered buffers (``labels``, ``labelled``), so a resumed run
+every other cell is ignored. Two measured departures, each a switch (off = the paper): positives must overlap a
+label-free pseudo-box and take its box (``snap_to_proposals``), and the shell around each positive box is negative
+(``surround_negatives``). The labels are registered buffers (``labels``, ``labelled``), so a resumed run
 trains on the same labels; the pool's feature grids are computed once (the encoder is frozen) and every step
 draws ``batch_size`` of them, so a step costs a head pass, not an encoding (the loader's batch is not used).
 
