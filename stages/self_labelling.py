@@ -398,8 +398,7 @@ class SelfLabelling(Detector):
             self._encode_pool()
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        if self._pool_grids is None:
-            self._encode_pool()
+        assert self._pool_grids is not None, "on_train_start encodes the pool"
         n = self._pool_grids.shape[0]
         g = torch.Generator().manual_seed(self.hparams.seed * 1_000_003 + int(self.global_step))
         pick = torch.randint(n, (self.hparams.batch_size,), generator=g)
