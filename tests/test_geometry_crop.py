@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from threedq.geometry import VoxelGridSpec, box_mask, crop_boxes
+from threedq.geometry import VoxelGridSpec, box_mask, crop_boxes, paste_boxes
 
 GRID = VoxelGridSpec((-1.0, -0.5, 0.0), (1.0, 0.5, 0.75), (8, 4, 3))  # 0.25 m voxels, volume (3, 4, 8)
 
@@ -138,6 +138,72 @@ class TestCropBoxes:
         volume = torch.rand(1, 2, *GRID.volume_shape, dtype=torch.float64, requires_grad=True)
         boxes = random_boxes(1, 2)
         assert torch.autograd.gradcheck(lambda v: crop_boxes(v, boxes, GRID, size=3), (volume,))
+
+
+class TestPasteBoxes:
+    def test_smoke(self) -> None:
+        out = paste_boxes(torch.zeros(1, 2, *GRID.volume_shape), torch.ones(1, 1, 2, 3, 3, 3),
+                          torch.tensor([[[-0.5, -0.25, 0.0, 0.5, 0.25, 0.5]]]), GRID)
+        assert out.shape == (1, 2, *GRID.volume_shape)
+
+    def test_exception(self) -> None:
+        vol = torch.zeros(1, 2, *GRID.volume_shape)
+        box = torch.tensor([[[-0.5, -0.25, 0.0, 0.5, 0.25, 0.5]]])
+        with pytest.raises(ValueError, match=r"crops must have shape"):
+            paste_boxes(vol, torch.ones(1, 1, 3, 2, 2, 2), box, GRID)
+        with pytest.raises(ValueError, match=r"volume must have shape"):
+            paste_boxes(torch.zeros(1, 2, 3, 3, 3), torch.ones(1, 1, 2, 2, 2, 2), box, GRID)
+        with pytest.raises(ValueError, match=r"mask must have shape"):
+            paste_boxes(vol, torch.ones(1, 1, 2, 2, 2, 2), box, GRID, mask=torch.ones(2, 1, dtype=torch.bool))
+
+    def test_feature_aligned_round_trip(self) -> None:
+        # crop a voxel-aligned box at its own resolution, paste it into another volume: the slice comes back exactly
+        torch.manual_seed(5)
+        volume = torch.rand(1, 2, *GRID.volume_shape, dtype=torch.float64)
+        boxes = torch.tensor([[[-0.5, -0.25, 0.0, 0.5, 0.25, 0.5]]], dtype=torch.float64)
+        crop = crop_boxes(volume, boxes, GRID, size=(2, 2, 4))
+        base = torch.zeros_like(volume)
+        out = paste_boxes(base, crop, boxes, GRID)
+        torch.testing.assert_close(out[:, :, 0:2, 1:3, 2:6], volume[:, :, 0:2, 1:3, 2:6])
+        inside = box_mask(boxes, GRID)[0, 0]
+        assert (out[0][:, ~inside] == 0).all()
+
+    def test_feature_ramp(self) -> None:
+        # a crop holding a linear function of its fractional coordinates is reproduced at every voxel of the box
+        size = (4, 5, 6)
+        box = torch.tensor([-0.8, -0.3, 0.1, 0.7, 0.45, 0.6], dtype=torch.float64)
+        fr = [(torch.arange(n, dtype=torch.float64) + 0.5) / n for n in size]  # fractions along z, y, x
+        fz, fy, fx = torch.meshgrid(*fr, indexing="ij")
+        crop = (1 + 2 * fx - 3 * fy + 0.5 * fz)[None, None, None]
+        out = paste_boxes(torch.full((1, 1, *GRID.volume_shape), -7.0, dtype=torch.float64), crop, box.expand(1, 1, 6),
+                          GRID)
+        centres = GRID.voxel_centres(dtype=torch.float64)  # [Z, Y, X, 3]
+        f = (centres - box[:3]) / (box[3:] - box[:3])
+        # within the hull of the crop's cell centres the interpolation is exact; outside it clamps to the border
+        lo = torch.tensor([0.5 / size[2], 0.5 / size[1], 0.5 / size[0]], dtype=torch.float64)
+        fc = torch.maximum(torch.minimum(f, 1 - lo), lo)
+        expected = 1 + 2 * fc[..., 0] - 3 * fc[..., 1] + 0.5 * fc[..., 2]
+        inside = box_mask(box.expand(1, 1, 6), GRID)[0, 0]
+        assert inside.sum() > 10
+        torch.testing.assert_close(out[0, 0][inside], expected[inside])
+        assert (out[0, 0][~inside] == -7).all()
+
+    def test_feature_mask_and_order(self) -> None:
+        vol = torch.zeros(1, 1, *GRID.volume_shape)
+        boxes = torch.tensor([[[-1.0, -0.5, 0.0, 0.0, 0.5, 0.75], [-0.5, -0.5, 0.0, 0.5, 0.5, 0.75]]])
+        crops = torch.stack([torch.full((1, 2, 2, 2), 1.0), torch.full((1, 2, 2, 2), 2.0)])[None]
+        out = paste_boxes(vol, crops, boxes, GRID)
+        both = box_mask(boxes, GRID)[0]
+        assert (out[0, 0][both[1]] == 2).all() and (out[0, 0][both[0] & ~both[1]] == 1).all()
+        out = paste_boxes(vol, crops, boxes, GRID, mask=torch.tensor([[True, False]]))
+        assert (out[0, 0][both[0]] == 1).all() and (out[0, 0][~both[0]] == 0).all()
+
+    def test_gradcheck(self) -> None:
+        torch.manual_seed(6)
+        vol = torch.rand(1, 1, *GRID.volume_shape, dtype=torch.float64, requires_grad=True)
+        crop = torch.rand(1, 1, 1, 2, 3, 3, dtype=torch.float64, requires_grad=True)
+        box = torch.tensor([[[-0.7, -0.4, 0.05, 0.6, 0.3, 0.6]]], dtype=torch.float64)
+        assert torch.autograd.gradcheck(lambda v, c: paste_boxes(v, c, box, GRID), (vol, crop))
 
 
 class TestBoxMask:

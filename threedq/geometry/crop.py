@@ -14,7 +14,7 @@ from torch import Tensor
 
 from .grid import VoxelGridSpec
 
-__all__ = ["box_mask", "crop_boxes"]
+__all__ = ["box_mask", "crop_boxes", "paste_boxes"]
 
 
 def _check_boxes(boxes: Tensor) -> None:
@@ -112,3 +112,65 @@ def box_mask(boxes: Tensor, grid: VoxelGridSpec) -> Tensor:
         masks.append((centres >= boxes[..., axis, None]) & (centres <= boxes[..., axis + 3, None]))
     mx, my, mz = masks
     return mz[:, :, :, None, None] & my[:, :, None, :, None] & mx[:, :, None, None, :]
+
+
+def paste_boxes(volume: Tensor, crops: Tensor, boxes: Tensor, grid: VoxelGridSpec, mask: Tensor | None = None) -> Tensor:
+    """Write crops back into a volume, each resized to fill its box: the inverse of :func:`crop_boxes`.
+
+    Every voxel whose centre lies inside a box (:func:`box_mask`) takes the crop's value at the voxel's place in
+    the box: a centre at fraction ``f`` of the box along an axis samples the crop at fraction ``f`` (trilinear,
+    border-clamped), so a crop of ``n`` cells pasted into a box spanning exactly ``n`` voxels lands cell on voxel.
+    Boxes are pasted in order; where boxes overlap the later one wins. Voxels outside every box keep
+    ``volume``'s values.
+
+    Args:
+        volume: ``[B, C, Z, Y, X]`` volume on ``grid`` (not modified).
+        crops: ``[B, N, C, sz, sy, sx]`` crops, e.g. prototypes rotated to each object's yaw.
+        boxes: ``[B, N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
+        grid: the grid of ``volume``.
+        mask: ``[B, N]`` bool, which boxes to paste (default: all).
+
+    Returns:
+        ``[B, C, Z, Y, X]`` a new volume. Differentiable w.r.t. ``volume`` and ``crops``.
+
+    Convention:
+        Axis-aligned boxes in R; cell-centred voxels and crop cells, ``align_corners=False``.
+    """
+    if not isinstance(grid, VoxelGridSpec):
+        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
+    if volume.ndim != 5 or tuple(volume.shape[2:]) != grid.volume_shape:
+        raise ValueError(
+            f"volume must have shape [B, C, Z, Y, X] with (Z, Y, X) = {grid.volume_shape}, got {tuple(volume.shape)}"
+        )
+    _check_boxes(boxes)
+    B, C = volume.shape[:2]
+    N = boxes.shape[1]
+    if boxes.shape[0] != B or crops.ndim != 6 or tuple(crops.shape[:3]) != (B, N, C):
+        raise ValueError(
+            f"crops must have shape [B, N, C, sz, sy, sx] = [{B}, {N}, {C}, ...] to match volume and boxes "
+            f"{tuple(boxes.shape)}, got {tuple(crops.shape)}"
+        )
+    if mask is not None and tuple(mask.shape) != (B, N):
+        raise ValueError(f"mask must have shape [B, N] = [{B}, {N}], got {tuple(mask.shape)}")
+    boxes = boxes.to(volume.dtype)
+    inside = box_mask(boxes, grid)  # [B, N, Z, Y, X]
+    # voxel centres as fractions of each box, then as normalised crop coordinates in [-1, 1]
+    axes = [
+        lo + (torch.arange(n, device=volume.device, dtype=volume.dtype) + 0.5) * vs
+        for lo, n, vs in zip(grid.bounds_min, grid.resolution, grid.voxel_size, strict=True)
+    ]  # x, y, z centres
+    out = volume.clone()
+    for b in range(B):
+        for n in range(N):
+            if mask is not None and not bool(mask[b, n]):
+                continue
+            sel = inside[b, n]
+            if not bool(sel.any()):
+                continue
+            lo, hi = boxes[b, n, :3], boxes[b, n, 3:]
+            norm = [(2 * (c - lo[i]) / (hi[i] - lo[i]).clamp_min(1e-12) - 1) for i, c in enumerate(axes)]
+            gz, gy, gx = torch.meshgrid(norm[2], norm[1], norm[0], indexing="ij")
+            coords = torch.stack((gx, gy, gz), dim=-1)[None]  # [1, Z, Y, X, 3]
+            vals = F.grid_sample(crops[b, n][None], coords, mode="bilinear", padding_mode="border", align_corners=False)
+            out[b] = torch.where(sel[None], vals[0], out[b])
+    return out
