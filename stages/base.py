@@ -33,6 +33,7 @@ __all__ = [
     "DEFAULT_GRID",
     "EncoderStage",
     "SplitEvaluation",
+    "checkpoint_hparams",
     "checkpoint_state",
     "encoder_grid_from_checkpoint",
     "encoder_state_from_checkpoint",
@@ -87,6 +88,19 @@ def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
     if not enc:
         raise ValueError(f"{path}: field 'state_dict': no 'encoder.*' weights in this checkpoint")
     return enc
+
+
+def checkpoint_hparams(path: str | Path) -> dict[str, Any]:
+    """The ``hyper_parameters`` of a stage checkpoint (loaded with ``weights_only=True``).
+
+    Raises:
+        FileNotFoundError: no such file. ValueError: not loadable safely, or no hyperparameters (names the file).
+    """
+    obj = _load_safely(Path(path))
+    hp = obj.get("hyper_parameters") if isinstance(obj, dict) else None
+    if not isinstance(hp, dict):
+        raise ValueError(f"{path}: field 'hyper_parameters': missing (not a threedq stage checkpoint)")
+    return hp
 
 
 def encoder_grid_from_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -4,6 +4,7 @@
   (LightningCLI, subclass mode for model and data, YAML under ``configs/``).
 * ``threedq data generate|show|check|import|index`` — :mod:`threedq.pipeline.data_commands`.
 * ``threedq em`` — :func:`threedq.pipeline.em.run_em`; ``threedq eval`` — :func:`threedq.pipeline.report.run_eval`.
+* ``threedq parse`` — :func:`threedq.pipeline.parse_command.run_parse`; ``threedq label`` — :func:`threedq.pipeline.naming.run_label`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from jsonargparse import ArgumentParser
 from threedq.pipeline.data_commands import data_parsers, run_data
 from threedq.pipeline.em import run_em
 from threedq.pipeline.lightning_cli import OldClassPathError, ThreeDQCLI
+from threedq.pipeline.naming import run_label
+from threedq.pipeline.parse_command import run_parse
 from threedq.pipeline.report import run_eval
 from threedq.scene import SceneValidationError
 
@@ -39,6 +42,12 @@ def build_parser() -> ArgumentParser:
     ev = ArgumentParser(description=(run_eval.__doc__ or "").split("\n")[0])
     ev.add_function_arguments(run_eval)
     sub.add_subcommand("eval", ev, help="the paper's tables and figures for a quantizer checkpoint")
+    pa = ArgumentParser(description=(run_parse.__doc__ or "").split("\n")[0])
+    pa.add_function_arguments(run_parse)
+    sub.add_subcommand("parse", pa, help="parse scenes with a trained run: boxes, prototype (C), yaw (R), name")
+    la = ArgumentParser(description=(run_label.__doc__ or "").split("\n")[0])
+    la.add_function_arguments(run_label)
+    sub.add_subcommand("label", la, help="name a few objects (labels.yaml); names propagate to the prototypes")
     data_sub = data.add_subcommands(dest="action")
     for name, p, help_text in data_parsers():
         data_sub.add_subcommand(name, p, help=help_text)
@@ -60,6 +69,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         if cfg.command == "eval":
             run_eval(**dict(cfg.eval.items()))
+            return 0
+        if cfg.command == "parse":
+            summary = run_parse(**dict(cfg.parse.items()))
+            return 0 if summary["parsed"] or not summary["scenes"] else 1
+        if cfg.command == "label":
+            run_label(**dict(cfg.label.items()))
             return 0
         build_parser().print_help()
         return 2

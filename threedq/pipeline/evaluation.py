@@ -89,7 +89,8 @@ def collect_object_crops(
 
     Returns:
         ``learned`` ``[N, C, s, s, s]``, ``raw`` ``[N, 4, s, s, s]``, ``random`` ``[N, C, s, s, s]`` (if
-        requested), ``labels`` ``[N]``, ``boxes`` ``[N, 7]`` oriented GT boxes, ``scene`` ``[N]``.
+        requested), ``labels`` ``[N]``, ``boxes`` ``[N, 7]`` oriented GT boxes, ``aabb`` ``[N, 6]`` the cropped
+        boxes (GT hulls, or the given boxes), ``scene`` ``[N]`` (index in the split).
 
     Convention: boxes axis-aligned in R (z up), cropped as their tight hull.
     """
@@ -100,14 +101,14 @@ def collect_object_crops(
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(random_encoder_seed)
             random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels).to(stage.device).eval()
-    out: dict[str, list[Tensor]] = {k: [] for k in ("learned", "raw", "random", "labels", "boxes", "scene")}
+    out: dict[str, list[Tensor]] = {k: [] for k in ("learned", "raw", "random", "labels", "boxes", "aabb", "scene")}
     cache = stage.crop_cache if random_enc is not None and stage.crops_cacheable() else None
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
         crops = stage.object_crops(batch, num_input_views, crop_size)
         out["learned"].append(crops["features"].cpu())
         out["raw"].append(crops["raw"].cpu())
-        for k in ("labels", "boxes", "scene"):
+        for k in ("labels", "boxes", "aabb", "scene"):
             out[k].append(crops[k].cpu())
         if random_enc is not None:
             out["random"].append(_random_encoder_crops(stage, random_enc, batch, num_input_views, crop_size, cache))

@@ -11,7 +11,8 @@ On held-out scenes with GT boxes (paper Sec. 4.1-4.2):
 * Beyond the paper — relative yaw error between objects of one category assigned to one prototype.
 
 Prototype banks are fitted on the training split's objects and evaluated on the test split's objects.
-Outputs in ``out``: ``results.json``, ``results.md``, ``fig3a_accuracy_vs_k.png``,
+Outputs in ``out``: ``results.json``, ``results.md``, ``objects_test.json`` (each test object's prototype and
+yaw index), ``fig3a_accuracy_vs_k.png``,
 ``prototype_alignment.png``, ``retrieval.png``.
 """
 
@@ -269,6 +270,18 @@ def evaluate_quantizer(
         ax.set_title("Unsupervised classification accuracy vs K", fontsize=9)
         _save(fig, out / "fig3a_accuracy_vs_k.png")
     p, a, na = assignments["threedq"]
+    files = index.files("test")
+    atomic_write_json(out / "objects_test.json", {
+        "about": "the evaluation's per-object assignment (test split): the box cropped (frame R), its prototype, "
+                 "the yaw index a of the search (rotating the object by 360 a / num_angles deg aligns it with the "
+                 "prototype) and the cosine similarity",
+        "num_angles": na,
+        "objects": [
+            {"scene": files[int(s)], "box": [round(float(x), 6) for x in box], "prototype": int(k), "angle_index": int(ai),
+             "similarity": round(float(sc), 6)}
+            for s, box, k, ai, sc in zip(test["scene"], test["aabb"], p, a, res_bank.score.cpu())
+        ],
+    })  # fmt: skip
     _alignment_figure(test, p, a, na, out / "prototype_alignment.png", cats)
     _retrieval_figure(test, sims["learned"], out / "retrieval.png", cats)
     res["seconds"] = round(time.time() - t0, 1)

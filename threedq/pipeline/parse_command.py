@@ -1,0 +1,161 @@
+"""``threedq parse``: parse scenes a trained run has never seen; write JSON + PNG per scene (paper Sec. 4.5, Fig. 4).
+
+See :mod:`threedq.pipeline.parse` for what a run provides and the conventions of the output; with ``--renders``
+also the prototype gallery and, per scene, the objects re-rendered as their prototypes
+(:mod:`threedq.pipeline.renders`).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from threedq.atomic_io import atomic_write_bytes, atomic_write_json
+from threedq.data.box_files import load_boxes_file
+from threedq.pipeline.parse import (
+    SceneParser,
+    check_views,
+    find_scenes,
+    load_names,
+    load_or_make_appearance,
+    parse_figure,
+    parse_records,
+    resolve_run,
+)
+from threedq.pipeline.renders import load_view_decoder, prototype_gallery, replaced_render
+from threedq.scene import SceneValidationError, load_scene
+
+__all__ = ["run_parse"]
+
+
+def _png(path: Path, img: np.ndarray) -> None:
+    ok, png = cv2.imencode(".png", img[:, :, ::-1])
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    atomic_write_bytes(path, png.tobytes())
+
+
+def _scene_name(file: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(Path(file).with_suffix("")))
+
+
+def run_parse(
+    scenes: str,
+    out: str,
+    run: str | None = None,
+    encoder: str | None = None,
+    detector: str | None = None,
+    prototypes: str | None = None,
+    views: list[int] = [0],  # noqa: B006 - jsonargparse shows the default
+    split: str | None = None,
+    boxes: str | None = None,
+    score_threshold: float | None = None,
+    batch_size: int = 4,
+    pictures: bool = True,
+    renders: bool = False,
+    appearance_scenes: int = 100,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Parse scenes with a trained run: boxes, prototype id (C), yaw (R), similarity and name per object.
+
+    Args:
+        scenes: one scene ``.npz``, a dataset folder with ``index.json``, or a folder of ``.npz`` files (import a
+            capture first: ``threedq data import --format F SRC --out D``).
+        out: output folder: ``<scene>.json`` and ``<scene>.png`` per scene, ``summary.json``.
+        run: a ``threedq em`` work folder (its final encoder, detector and prototype bank).
+        encoder: overrides the run's encoder of the prototypes (a stage checkpoint).
+        detector: overrides the run's detector (a detector or self-labelling checkpoint).
+        prototypes: overrides the run's prototype bank (a quantizer checkpoint).
+        views: the views that are inputs, the same for every scene (negative counts from the end).
+        split: with a dataset folder, parse only this split.
+        boxes: a boxes file (``{scene file: (aabb, scores)}``, the layout of ``detections_<split>.npz``; scene files
+            relative to the dataset folder) whose boxes are matched instead of the detector's.
+        score_threshold: objectness of the boxes kept (default: the detector's hand-on threshold).
+        batch_size: scenes encoded together.
+        pictures: write ``<scene>.png``.
+        renders: also write ``gallery.png`` (every prototype decoded by the run's view decoder at 4 azimuths) and
+            per scene ``<scene>_replaced.png`` (a view that was not an input: real, decoded, and decoded with the
+            objects replaced by their prototypes at the inferred yaw).
+        appearance_scenes: training scenes used once to picture the prototypes in the bird's-eye view (0: none).
+        progress: show a progress bar.
+
+    Returns:
+        the summary (also written as ``summary.json``): scenes parsed, failed (one line each), objects, seconds.
+    """
+    if batch_size < 1:
+        raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
+    if not views:
+        raise ValueError("views: expected at least one view index")
+    outp = Path(out)
+    if outp.exists() and not outp.is_dir():
+        raise ValueError(f"out: {outp} exists and is not a folder")
+    artifacts = resolve_run(run, encoder, detector, prototypes)
+    root, files = find_scenes(scenes, split)
+    parser = SceneParser(artifacts, score_threshold=score_threshold)
+    names = load_names(artifacts.prototypes, parser.bank)
+    box_sets = load_boxes_file(boxes) if boxes else None
+    appearance = load_or_make_appearance(parser, appearance_scenes, progress) if pictures or renders else None
+    decoder = None
+    if renders:
+        if artifacts.viewpred is None:
+            raise FileNotFoundError("renders: the run has no view-prediction checkpoint (00_viewpred) to decode with")
+        decoder = load_view_decoder(artifacts.viewpred)
+    outp.mkdir(parents=True, exist_ok=True)
+    failed: list[str] = []
+    parsed: list[dict[str, Any]] = []
+    gallery_done = False
+    t0 = time.time()
+    bar = tqdm(total=len(files), desc="threedq parse", unit="scene", disable=not progress, dynamic_ncols=True)
+    for s in range(0, len(files), batch_size):
+        recs, chosen, ok_files = [], [], []
+        for f in files[s : s + batch_size]:
+            src = root / f
+            try:
+                if box_sets is not None and f not in box_sets:
+                    raise SceneValidationError(str(boxes), f, "the boxes file has no boxes for this scene")
+                rec = load_scene(src)
+                chosen.append(check_views(list(views), rec, str(src)))
+                recs.append(rec)
+                ok_files.append(f)
+            except (SceneValidationError, ValueError, OSError) as e:
+                failed.append(str(e).splitlines()[0] if str(e) else f"{src}: {type(e).__name__}")
+                print(f"threedq parse: skipped {failed[-1]}", file=sys.stderr)
+        given = None if box_sets is None else [box_sets[f] for f in ok_files]
+        for f, rec, v, res in zip(ok_files, recs, chosen, parse_records(parser, recs, chosen, names, batch_size, given)):
+            features = res.pop("_features")
+            doc = {"scene": str(root / f), **res, "models": artifacts.to_dict(), "score_threshold": parser.score_threshold}
+            name = _scene_name(f)
+            atomic_write_json(outp / f"{name}.json", doc)
+            if pictures:
+                _png(outp / f"{name}.png", parse_figure(rec, v, doc, parser, appearance))
+            if decoder is not None:
+                if not gallery_done:
+                    _png(outp / "gallery.png", prototype_gallery(parser, decoder, rec, appearance, names, view=v[0]))
+                    gallery_done = True
+                others = [i for i in range(rec.num_views) if i not in v]
+                if others:
+                    _png(outp / f"{name}_replaced.png", replaced_render(parser, decoder, rec, doc, features, others[0]))
+            parsed.append({"scene": str(root / f), "json": f"{name}.json", "objects": len(doc["objects"])})
+        bar.update(len(files[s : s + batch_size]))
+    bar.close()
+    summary = {
+        "scenes": len(files),
+        "parsed": len(parsed),
+        "failed": failed,
+        "objects": sum(p["objects"] for p in parsed),
+        "named_prototypes": len(names),
+        "seconds": round(time.time() - t0, 2),
+        "models": artifacts.to_dict(),
+        "files": parsed,
+    }
+    atomic_write_json(outp / "summary.json", summary)
+    print(f"threedq parse: {len(parsed)} of {len(files)} scene(s) parsed, {summary['objects']} object(s), "
+          f"{len(failed)} failed; wrote {outp}")  # fmt: skip
+    return summary
