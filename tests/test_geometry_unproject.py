@@ -13,6 +13,7 @@ from threedq.geometry import (
     occupancy_from_depth,
     unproject_rgb,
     unproject_rgbd,
+    unproject_rgbd_occupied,
     yaw_matrix,
 )
 
@@ -309,3 +310,31 @@ class TestUnprojectRgbd:
         small = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (4, 4, 4))
         fn = lambda x: unproject_rgbd(x, depth, K, R_T_cam.double(), small)  # noqa: E731
         assert torch.autograd.gradcheck(fn, (rgb,))
+
+
+class TestUnprojectRgbdOccupied:
+    """The sparse gather against the dense one (one body, two implementations)."""
+
+    def test_exception(self) -> None:
+        depth, K, R_T_cam, grid = plane_scene()
+        with pytest.raises(ValueError, match=r"rgb must have shape \[B, 3, H, W\]"):
+            unproject_rgbd_occupied(torch.rand(1, 1, 64, 64), depth, K, R_T_cam, grid)
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_feature_equals_dense(self, dtype: torch.dtype) -> None:
+        torch.manual_seed(7)
+        depth, K, R_T_cam, grid = plane_scene()
+        B = 2
+        rgb = torch.rand(B, 3, 64, 64, dtype=dtype)
+        depth = torch.stack([depth[0], depth[0] * 0.9]).to(dtype)
+        depth[1, :10] = 0  # invalid pixels
+        args = (rgb, depth, K.expand(B, -1, -1).to(dtype), R_T_cam.expand(B, -1, -1).to(dtype), grid)
+        dense, sparse = unproject_rgbd(*args), unproject_rgbd_occupied(*args)
+        assert sparse.shape == dense.shape and sparse.dtype == dense.dtype
+        assert (dense[:, 0] > 0).sum() > 10
+        torch.testing.assert_close(sparse, dense, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)
+
+    def test_empty_depth(self) -> None:
+        depth, K, R_T_cam, grid = plane_scene()
+        out = unproject_rgbd_occupied(torch.rand(1, 3, 64, 64), torch.zeros_like(depth), K, R_T_cam, grid)
+        assert (out == 0).all()

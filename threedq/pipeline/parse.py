@@ -50,7 +50,7 @@ from tqdm import tqdm
 from threedq.atomic_io import atomic_write_bytes
 from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
-from threedq.geometry import crop_boxes, rotate_yaw, yaw_angles
+from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.quantization.prototypes import PrototypeBank
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
 from threedq.stages.base import (
@@ -188,10 +188,16 @@ class SceneParser(torch.nn.Module):
         artifacts: from :func:`resolve_run`.
         score_threshold: objectness of the boxes kept (default: the detector's hand-on threshold).
         channels_last: run the encoders in ``channels_last_3d`` (numerically the same).
+        precision: ``"fp32"`` or ``"bf16"`` (autocast of the encoder and the detector head; crops and the rotation
+            search stay fp32). ``benchmarks/bench_parse.py`` measures the speed and how often the parse changes.
     """
 
-    def __init__(self, artifacts: RunArtifacts, score_threshold: float | None = None, channels_last: bool = True) -> None:
+    def __init__(self, artifacts: RunArtifacts, score_threshold: float | None = None, channels_last: bool = True,
+                 precision: str = "fp32") -> None:
         super().__init__()
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision: expected 'fp32' or 'bf16', got {precision!r}")
+        self.precision = precision
         self.artifacts = artifacts
         det_hp, q_hp = checkpoint_hparams(artifacts.detector), checkpoint_hparams(artifacts.prototypes)
         _checked_grid(q_hp, det_hp, artifacts.prototypes, artifacts.detector)
@@ -255,21 +261,37 @@ class SceneParser(torch.nn.Module):
         t0 = time.perf_counter()
         rgb, depth, K, pose = (batch[k].to(self.device) for k in ("rgb", "depth", "K", "R_T_cam"))
         det = self.detector
-        feats = det.encode_views(rgb, depth, K, pose)
+        B, V = rgb.shape[:2]
+        views = (rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
+        if V == 1:  # no multi-view aggregation, so no 'seen' mask: gather the image at occupied voxels only
+            x = unproject_rgbd_occupied(*views, det.grid)
+            seen = x[:, :1]
+        else:
+            x, seen = det.encoder_input(*views)
+        t["unproject"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        amp = torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16")
+        with amp:
+            feats = det.encode_input(x, seen, V)
         t["encode"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if boxes is None:
-            logits, box = det.head(feats)
-            dets = det.detect(logits, box, self.score_threshold)
+            with amp:
+                logits, box = det.head(feats)
+            dets = det.detect(logits.float(), box.float(), self.score_threshold)
         else:
             dets = [{"boxes": torch.as_tensor(a, dtype=torch.float32).reshape(-1, 6).to(feats.device),
                      "scores": torch.as_tensor(sc, dtype=torch.float32).reshape(-1).to(feats.device)} for a, sc in boxes]  # fmt: skip
         t["detect"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        q_feats = feats if self.q_stage is None else self.q_stage.encode_views(rgb, depth, K, pose)
+        if self.q_stage is None:
+            q_feats = feats
+        else:
+            with amp:
+                q_feats = self.q_stage.encode_input(x, seen, V)
+        q_feats = q_feats.float()
         t["encode_prototype_space"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        B = rgb.shape[0]
         P = max([d["boxes"].shape[0] for d in dets] + [1])
         aabb = feats.new_zeros(B, P, 6)
         mask = torch.zeros(B, P, dtype=torch.bool, device=feats.device)

@@ -57,6 +57,7 @@ def run_parse(
     split: str | None = None,
     boxes: str | None = None,
     score_threshold: float | None = None,
+    precision: str = "fp32",
     batch_size: int = 4,
     pictures: bool = True,
     renders: bool = False,
@@ -78,6 +79,8 @@ def run_parse(
         boxes: a boxes file (``{scene file: (aabb, scores)}``, the layout of ``detections_<split>.npz``; scene files
             relative to the dataset folder) whose boxes are matched instead of the detector's.
         score_threshold: objectness of the boxes kept (default: the detector's hand-on threshold).
+        precision: ``fp32`` or ``bf16`` (autocast of the encoder and detector; ``docs/benchmarks.md``: faster,
+            and the same prototype and yaw for >= 99% of objects on the embedded data).
         batch_size: scenes encoded together.
         pictures: write ``<scene>.png``.
         renders: also write ``gallery.png`` (every prototype decoded by the run's view decoder at 4 azimuths) and
@@ -98,7 +101,7 @@ def run_parse(
         raise ValueError(f"out: {outp} exists and is not a folder")
     artifacts = resolve_run(run, encoder, detector, prototypes)
     root, files = find_scenes(scenes, split)
-    parser = SceneParser(artifacts, score_threshold=score_threshold)
+    parser = SceneParser(artifacts, score_threshold=score_threshold, precision=precision)
     names = load_names(artifacts.prototypes, parser.bank)
     box_sets = load_boxes_file(boxes) if boxes else None
     appearance = load_or_make_appearance(parser, appearance_scenes, progress) if pictures or renders else None
