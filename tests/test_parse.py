@@ -233,3 +233,40 @@ class TestRenders:
         # decoded == replaced (below the panels' captions)
         assert np.array_equal(empty[16:, w + 3 : 2 * w + 3], empty[16:, 2 * w + 6 :])
         assert math.isfinite(float(empty.mean()))
+
+
+class TestImportThenParse:
+    def test_tum_folder_end_to_end(self, tmp_path: Path, tiny_run: Path, tiny_dataset: Path, capsys) -> None:
+        """A tilted, shifted TUM capture: ``threedq data import`` then ``threedq parse``; boxes map back to the capture."""
+        from capture_writers import write_objects, write_tum
+        from test_formats_import import tilt
+
+        from threedq.boxes import boxes_to_aabb
+
+        f = load_index(tiny_dataset).files("test")[0]
+        rec = load_scene(tiny_dataset / f)
+        c_T_w = tilt()
+        src = tmp_path / "rgbd_dataset_desk"
+        write_tum(src, rec, capture_T_world=c_T_w)
+        write_objects(src, rec, c_T_w)
+        K = rec.K[0]
+        data = tmp_path / "desk"
+        assert main(["data", "import", "--format", "tum", str(src), "--out", str(data), "--split", "test",
+                     "--intrinsics", str([float(x) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])])]) == 0  # fmt: skip
+        imported = load_scene(data / "test" / "rgbd_dataset_desk.npz")
+        out = tmp_path / "parsed"
+        assert main(["parse", "--run", str(tiny_run), "--scenes", str(data), "--out", str(out), "--score_threshold", "0",
+                     "--progress", "false"]) == 0  # fmt: skip
+        doc = json.loads((out / "test_rgbd_dataset_desk.json").read_text())
+        assert doc["objects"] and all("capture_T_box" in o for o in doc["objects"])
+        # on the imported GT boxes: each object's box centre, mapped to the capture frame, is where it was captured
+        boxes = tmp_path / "gt.npz"
+        save_boxes_file(boxes, {"test/rgbd_dataset_desk.npz": (boxes_to_aabb(imported.boxes.astype(np.float64)).astype(np.float32),
+                                                               np.ones(imported.num_objects, np.float32))})  # fmt: skip
+        assert main(["parse", "--run", str(tiny_run), "--scenes", str(data), "--out", str(tmp_path / "gt"), "--boxes",
+                     str(boxes), "--progress", "false"]) == 0  # fmt: skip
+        doc = json.loads((tmp_path / "gt" / "test_rgbd_dataset_desk.json").read_text())
+        got = np.array([np.array(o["capture_T_box"])[:3, 3] for o in doc["objects"]])
+        want = (c_T_w[:3, :3] @ rec.boxes[:, :3].astype(np.float64).T).T + c_T_w[:3, 3]
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, atol=0.02)
