@@ -42,6 +42,7 @@ import numpy as np
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, npz_bytes
 from threedq.boxes import box_corners
+from threedq.errors import InputError
 
 __all__ = [
     "SceneRecord",
@@ -58,15 +59,17 @@ __all__ = [
 INDEX_NAME = "index.json"
 INDEX_FORMAT = "threedq-scenes"
 INDEX_VERSION = 1
+INDEX_SPLITS = ("train", "val", "test")
 REQUIRED_KEYS = ("rgb", "depth", "K", "world_T_cam", "boxes", "categories")
 _ROT_TOL = 1e-3
 _BOUNDS_TOL = 1e-3
 
 
-class SceneValidationError(ValueError):
+class SceneValidationError(InputError):
     """A scene record or file breaks the canonical format. The message names the file and field."""
 
     def __init__(self, source: str, field_name: str, message: str) -> None:
+        message = " ".join(str(message).split())  # always one line (a library's reason may span several)
         self.source, self.field, self.reason = source, field_name, message
         super().__init__(f"{source}: field '{field_name}': {message}")
 
@@ -336,6 +339,14 @@ def load_index(folder: str | Path) -> DatasetIndex:
     scenes = d["scenes"]
     if not isinstance(scenes, list) or not all(isinstance(s, dict) and "file" in s and "split" in s for s in scenes):
         raise SceneValidationError(source, "scenes", "expected a list of {'file': ..., 'split': ...} entries")
+    for i, s in enumerate(scenes):
+        if s["split"] not in INDEX_SPLITS:
+            raise SceneValidationError(
+                source, "scenes", f"entry {i} ({s['file']!r}): unknown split {s['split']!r} (expected one of "
+                f"{', '.join(INDEX_SPLITS)})"
+            )
+        if not isinstance(s["file"], str) or not s["file"]:
+            raise SceneValidationError(source, "scenes", f"entry {i}: 'file' must be a relative path, got {s['file']!r}")
     try:
         lo = tuple(float(x) for x in d["scene_bounds"]["min"])
         hi = tuple(float(x) for x in d["scene_bounds"]["max"])

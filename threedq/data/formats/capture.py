@@ -279,7 +279,7 @@ def load_frames(
         shape = rgb.shape
         kept[int(i)] = (rgb, depth, np.asarray(K, np.float64))
     if not kept:
-        reasons = "; ".join(str(s) for s in skipped[:3]) or "no frames found"
+        reasons = "; ".join(dict.fromkeys(str(s) for s in skipped[:3])) or "no frames found"  # each reason once
         raise SceneValidationError(source, "frames", f"no usable frame ({reasons})")
     idx = sorted(kept)
     depth = np.stack([kept[i][1] for i in idx]).astype(np.float32)

@@ -68,7 +68,9 @@ def _spec(path: Path) -> dict[str, Any]:
     try:
         spec = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as e:
-        raise SceneValidationError(str(path), "<file>", f"not valid YAML ({e})") from e
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise SceneValidationError(str(path), "<file>", f"not valid YAML{where} ({getattr(e, 'problem', None) or e})") from e
     if not isinstance(spec, dict) or not isinstance(spec.get("cameras"), dict) or not spec["cameras"]:
         raise SceneValidationError(str(path), "cameras", "expected a mapping of camera folders")
     enc = (spec.get("depth") or {}).get("encoding", "uint16")
