@@ -26,6 +26,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from threedq.errors import InputError
 from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 
@@ -34,6 +35,7 @@ __all__ = [
     "EncoderStage",
     "SplitEvaluation",
     "checkpoint_hparams",
+    "checkpoint_stage",
     "checkpoint_state",
     "encoder_grid_from_checkpoint",
     "encoder_state_from_checkpoint",
@@ -50,20 +52,32 @@ DEFAULT_GRID: dict[str, Any] = {
 }
 
 
+def _torch_reason(e: Exception) -> str:
+    """One line of why ``torch.load`` refused a file (torch's own messages run over many lines)."""
+    text = str(e)
+    if "WeightsUnpickler error:" in text:  # weights_only=True refused a Python object; the next line says which
+        detail = next((ln.strip() for ln in text.split("WeightsUnpickler error:", 1)[1].splitlines() if ln.strip()), "")
+        detail = detail.split(" was not an allowed global")[0]
+        return f"torch.load(weights_only=True) refuses it: it holds Python objects, not only tensors ({detail})"
+    first = next((ln.strip() for ln in text.splitlines() if ln.strip()), type(e).__name__)
+    first = first.split(". This is an internal miniz error", 1)[0]
+    return f"truncated or not a checkpoint ({type(e).__name__}: {first})"
+
+
 def _load_safely(path: Path) -> object:
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint: no such file: {path}")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt files
-        raise ValueError(f"{path}: field '<file>': cannot be loaded safely ({type(e).__name__}: {e})") from e
+        raise InputError(f"{path}: field '<file>': cannot be loaded safely: {_torch_reason(e)}") from e
 
 
 def checkpoint_state(path: str | Path) -> dict[str, Tensor]:
     """The ``state_dict`` of a Lightning checkpoint, loaded with ``weights_only=True``."""
     obj = _load_safely(Path(path))
     if not (isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict)):
-        raise ValueError(f"{path}: field 'state_dict': not a Lightning checkpoint")
+        raise InputError(f"{path}: field 'state_dict': not a Lightning checkpoint")
     return obj["state_dict"]
 
 
@@ -81,12 +95,12 @@ def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
     is_checkpoint = isinstance(obj, dict) and "state_dict" in obj
     state = obj["state_dict"] if is_checkpoint else obj
     if not isinstance(state, dict):
-        raise ValueError(f"{path}: field 'state_dict': expected a checkpoint or a state dict")
+        raise InputError(f"{path}: field 'state_dict': expected a checkpoint or a state dict")
     enc = {k[len("encoder."):]: v for k, v in state.items() if k.startswith("encoder.")}
     if not enc and not is_checkpoint and state and all(isinstance(v, Tensor) for v in state.values()):
         enc = dict(state)  # a plain encoder state dict
     if not enc:
-        raise ValueError(f"{path}: field 'state_dict': no 'encoder.*' weights in this checkpoint")
+        raise InputError(f"{path}: field 'state_dict': no 'encoder.*' weights in this checkpoint")
     return enc
 
 
@@ -112,6 +126,37 @@ def encoder_grid_from_checkpoint(path: str | Path) -> dict[str, Any]:
     return {k: hp[k] for k in DEFAULT_GRID if hp.get(k) is not None}
 
 
+#: The stage of a checkpoint without a saved class path, by the weights it holds (first match wins).
+_STAGE_BY_WEIGHTS = (("self_labelling", ("bank.", "head.")), ("quantizer", ("bank.",)), ("detector", ("head.",)),
+                     ("viewpred", ("decoder.",)), ("mining", ("moco.",)))
+
+
+def checkpoint_stage(path: str | Path) -> str | None:
+    """Which stage wrote the Lightning checkpoint ``path`` (``viewpred``, ``detector``, ``quantizer``, ...).
+
+    Read from the class path LightningCLI saves in the hyperparameters (``threedq.stages.<stage>.<Class>``), else
+    told by the weights it holds; ``None`` if neither tells (e.g. a plain encoder state dict).
+
+    Raises:
+        FileNotFoundError: no such file.
+        InputError: not a checkpoint ``torch.load(weights_only=True)`` can read (names the file).
+    """
+    obj = _load_safely(Path(path))
+    if not isinstance(obj, dict):
+        return None
+    hp = obj.get("hyper_parameters")
+    cls = hp.get("_class_path") if isinstance(hp, dict) else None
+    if isinstance(cls, str) and cls.startswith("threedq.stages.") and cls.count(".") >= 3:
+        return cls.split(".")[2]
+    state = obj.get("state_dict")
+    if not isinstance(state, dict):
+        return None
+    for stage, prefixes in _STAGE_BY_WEIGHTS:
+        if all(any(k.startswith(p) for k in state) for p in prefixes):
+            return stage
+    return None
+
+
 def _same(a: Any, b: Any) -> bool:
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
@@ -132,7 +177,7 @@ def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict
     for k, default in DEFAULT_GRID.items():
         mine, theirs = given.get(k), stored.get(k)
         if mine is not None and theirs is not None and not _same(mine, theirs):
-            raise ValueError(
+            raise InputError(
                 f"{encoder_ckpt}: field '{k}': the encoder was trained with {k}={_plain(theirs)}, this stage asks "
                 f"for {_plain(mine)} (drop {k} from the stage config to use the encoder's)"
             )
@@ -152,13 +197,13 @@ def load_encoder_state(encoder: torch.nn.Module, path: str | Path) -> None:
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
     if missing or unexpected:
-        raise ValueError(
+        raise InputError(
             f"{path}: field 'state_dict': encoder weights do not fit this encoder "
             f"(missing {missing[:3]}, unexpected {unexpected[:3]})"
         )
     for k, v in state.items():
         if own[k].shape != v.shape:
-            raise ValueError(
+            raise InputError(
                 f"{path}: field 'encoder.{k}': shape {tuple(v.shape)} does not fit {tuple(own[k].shape)} "
                 "(different feature_dim or channels?)"
             )
