@@ -12,15 +12,15 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
-from jsonargparse import ArgumentParser
+from jsonargparse import ArgumentError, ArgumentParser
 
+from threedq.errors import InputError, error_line
 from threedq.pipeline.data_commands import data_parsers, run_data
 from threedq.pipeline.em import run_em
-from threedq.pipeline.lightning_cli import OldClassPathError, ThreeDQCLI
+from threedq.pipeline.lightning_cli import ThreeDQCLI, explain_parse_error
 from threedq.pipeline.naming import run_label
 from threedq.pipeline.parse_command import run_parse
 from threedq.pipeline.report import run_eval
-from threedq.scene import SceneValidationError
 
 __all__ = ["build_parser", "main"]
 
@@ -29,7 +29,8 @@ LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
 def build_parser() -> ArgumentParser:
     """The top-level parser (``fit``/``validate``/``test``/``predict`` are handed to :class:`ThreeDQCLI`)."""
-    parser = ArgumentParser(prog="threedq", description=__doc__.split("\n\n")[0] if __doc__ else None)
+    parser = ArgumentParser(prog="threedq", description=__doc__.split("\n\n")[0] if __doc__ else None,
+                            exit_on_error=False)  # a parse error is one line (main), not the usage
     sub = parser.add_subcommands(dest="command")
     for name in LIGHTNING_SUBCOMMANDS:
         p = ArgumentParser(description=f"Lightning '{name}' of a stage; see 'threedq {name} --help'.")
@@ -78,8 +79,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         build_parser().print_help()
         return 2
-    except (SceneValidationError, OldClassPathError, FileNotFoundError, RuntimeError) as e:
-        print(f"threedq: error: {e}", file=sys.stderr)
+    except ArgumentError as e:
+        print(f"threedq: error: {explain_parse_error(str(e), argv)}", file=sys.stderr)
+        return 2
+    except (InputError, OSError, RuntimeError) as e:  # a bad input, a full disk, ...: one line, no traceback
+        print(f"threedq: error: {error_line(e)}", file=sys.stderr)
         return 2
 
 

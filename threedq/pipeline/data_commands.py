@@ -1,8 +1,13 @@
 """``threedq data generate|show|check|import|index``: the embedded dataset generator, its contact sheet, a
-validator, the importer of on-disk capture formats and the index writer of a folder of canonical scenes."""
+validator, the importer of on-disk capture formats and the index writer of a folder of canonical scenes.
+
+A bad option is refused with one line naming it (:class:`~threedq.errors.InputError`), e.g.
+``--scenes: expected an int >= 1, got 0`` or ``--out data/x: exists and is not a folder``.
+"""
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Literal
@@ -15,9 +20,36 @@ from threedq.data.formats.importer import import_captures
 from threedq.data.formats.registry import FORMATS
 from threedq.data.generate import generate_dataset
 from threedq.data.generator_config import GeneratorConfig
+from threedq.errors import InputError
 from threedq.scene import SceneValidationError, load_index, load_scene
 
-__all__ = ["check_dataset", "data_parsers", "run_data"]
+__all__ = ["check_dataset", "data_parsers", "output_folder", "run_data"]
+
+#: ``generate``: the name an argument of GeneratorConfig / generate_dataset has as a command-line option.
+_GENERATE_OPTIONS = {"num_scenes": "scenes", "num_views": "views", "splits": "split"}
+
+
+def output_folder(option: str, path: str | Path) -> Path:
+    """``path`` as an output folder: refused (one line naming ``option``) if it exists and is not a folder, or if
+    it, or a folder above it, cannot be made."""
+    p = Path(path)
+    for q in (p, *p.parents):
+        if q.exists():
+            if not q.is_dir():
+                what = "exists and is not a folder" if q == p else f"cannot be made: {q} is a file, not a folder"
+                raise InputError(f"{option} {p}: {what}")
+            break
+    return p
+
+
+def _option_error(e: ValueError, names: dict[str, str]) -> InputError:
+    """A ValueError of a library function (``name: reason``) as an InputError naming the command-line option."""
+    text = str(e).splitlines()[0] if str(e) else type(e).__name__
+    m = re.match(r"([A-Za-z_][\w, ]*?): (.*)$", text)
+    if not m:
+        return InputError(text)
+    opts = ", ".join(f"--{names.get(n.strip(), n.strip())}" for n in m.group(1).split(","))
+    return InputError(f"{opts}: {m.group(2)}")
 
 FormatName = Literal[tuple(FORMATS)]  # type: ignore[valid-type]
 
@@ -83,28 +115,37 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
     action = cfg.action
     args = cfg[action]
     if action == "generate":
-        config = GeneratorConfig(
-            image_size=tuple(args.image_size),
-            num_views=args.views,
-            min_objects=args.min_objects,
-            max_objects=args.max_objects,
-            categories=tuple(args.categories) if args.categories else None,
-        )
-        index = generate_dataset(
-            args.out,
-            num_scenes=args.scenes,
-            seed=args.seed,
-            config=config,
-            split_fractions=tuple(args.split_fractions),
-            test_seed=args.test_seed,
-            splits=tuple(args.split),
-            workers=args.workers,
-            progress=args.progress,
-        )
+        out = output_folder("--out", args.out)
+        try:
+            config = GeneratorConfig(
+                image_size=tuple(args.image_size),
+                num_views=args.views,
+                min_objects=args.min_objects,
+                max_objects=args.max_objects,
+                categories=tuple(args.categories) if args.categories else None,
+            )
+            index = generate_dataset(
+                out,
+                num_scenes=args.scenes,
+                seed=args.seed,
+                config=config,
+                split_fractions=tuple(args.split_fractions),
+                test_seed=args.test_seed,
+                splits=tuple(args.split),
+                workers=args.workers,
+                progress=args.progress,
+            )
+        except InputError:
+            raise
+        except ValueError as e:  # an argument the generator refused, named as the option it came from
+            raise _option_error(e, _GENERATE_OPTIONS) from e
         counts = {s: len(index.files(s)) for s in ("train", "val", "test")}
         print(f"wrote {sum(counts.values())} scenes to {args.out} ({', '.join(f'{k} {v}' for k, v in counts.items())})")
         return 0
     if action == "show":
+        if Path(args.out).is_dir():
+            raise InputError(f"--out {args.out}: is a folder; give the PNG file to write")
+        output_folder("--out", Path(args.out).parent)
         out = contact_sheet(args.dir, args.out, num_scenes=args.scenes, views=args.views, split=args.split,
                             upscale=args.upscale)
         print(f"wrote {out}")
@@ -112,11 +153,14 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
     if action == "check":
         return check_dataset(args.dir)
     if action == "import":
+        output_folder("--out", args.out)
         options = {"intrinsics": args.intrinsics, "depth_units_per_metre": args.depth_units_per_metre,
                    "max_dt": args.max_dt}
         try:
             summary = import_captures(args.format, args.src, args.out, split=args.split, max_views=args.max_views,
                                       max_depth=args.max_depth, parser_options=options, progress=args.progress)
+        except InputError:
+            raise
         except ValueError as e:  # an option that does not apply to the format
             print(f"threedq: error: {e}", file=sys.stderr)
             return 2

@@ -4,6 +4,10 @@ A ``--config`` path that does not exist relative to the working directory is loo
 ``configs/`` folder, so ``threedq fit --config stages/viewpred.yaml`` works anywhere. A config (or a command
 line) that names a class by its path before threedq 0.2 (``stages.viewpred.ViewPrediction``) is refused with
 one line naming the new path (``threedq.stages.viewpred.ViewPrediction``).
+
+Every fault of a config is one line naming the config file (or the command line) and the field: YAML that does
+not parse or is not a mapping, an unknown key, a value of the wrong type (:class:`ConfigError`); so is a
+``--ckpt_path`` that is truncated, refused by ``torch.load(weights_only=True)`` or written by another stage.
 """
 
 from __future__ import annotations
@@ -15,12 +19,18 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import yaml
+from jsonargparse import ArgumentError
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
+from threedq.errors import InputError, flatten_message, user_error_in_chain
+from threedq.stages.base import checkpoint_stage
+
 __all__ = [
-    "ThreeDQCLI", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args", "test_checkpoint",
+    "ThreeDQCLI", "ConfigError", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args",
+    "test_checkpoint",
 ]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
@@ -50,8 +60,101 @@ def resolve_config(path: str | Path) -> Path:
     raise FileNotFoundError(f"config {str(path)!r} not found (tried {p.resolve()} and {packaged})")
 
 
-class OldClassPathError(ValueError):
+class OldClassPathError(InputError):
     """A config or command line names a stage or DataModule by its pre-0.2 top-level path."""
+
+
+class ConfigError(InputError):
+    """A config file (or the command line) does not parse, or names an unknown key or a value of the wrong type."""
+
+
+def check_config_file(path: Path) -> None:
+    """Refuse a config that is not YAML or not a mapping, and pre-0.2 class paths in it (one line naming ``path``).
+
+    Raises:
+        ConfigError, OldClassPathError.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (UnicodeDecodeError, IsADirectoryError) as e:
+        raise ConfigError(f"{path}: field '<file>': not a YAML text file ({type(e).__name__})") from e
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or flatten_message(str(e))
+        raise ConfigError(f"{path}: field '<file>': not valid YAML{where}: {problem}") from e
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{path}: field '<file>': expected a mapping of keys (model, data, trainer, ...), "
+                          f"got a {type(data).__name__}")
+    check_class_paths(text, str(path))
+
+
+def _has_key(tree: Any, keys: list[str]) -> bool:
+    for k in keys:
+        if not isinstance(tree, dict) or k not in tree:
+            return False
+        tree = tree[k]
+    return True
+
+
+def _find_key(tree: Any, name: str, prefix: str = "") -> str | None:
+    """The dotted path of the first key ``name`` anywhere in ``tree`` (depth-first), or None."""
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            here = f"{prefix}{k}"
+            if k == name:
+                return here
+            found = _find_key(v, name, here + ".")
+            if found:
+                return found
+    return None
+
+
+def _sources(args: Sequence[str]) -> list[tuple[str, Any]]:
+    """What each ``--config`` file (its YAML tree) and each command-line ``--key`` sets, in order."""
+    out: list[tuple[str, Any]] = []
+    prev = ""
+    for a in args:
+        if prev == "--config" or a.startswith("--config="):
+            path = Path(a.split("=", 1)[1] if a.startswith("--config=") else a)
+            try:
+                out.append((str(path), yaml.safe_load(path.read_text(encoding="utf-8"))))
+            except (OSError, UnicodeDecodeError, yaml.YAMLError):
+                pass
+        elif a.startswith("--") and a != "--config":
+            out.append(("command line", a[2:].split("=", 1)[0]))
+        prev = a
+    return out
+
+
+def explain_parse_error(message: str, args: Sequence[str]) -> str:
+    """One line for a jsonargparse error: where the faulty field is set (the last config file or command-line
+    option that sets it: last wins), the field, and what is wrong."""
+    text = flatten_message(message)
+    key = None
+    m = re.match(r'Parser key "([^"]+)": ?(.*)$', text)
+    if m:
+        key, text = m.group(1), m.group(2)
+    text = re.sub(r"^- ", "", text)
+    m2 = re.search(r"(?:does not accept option|Option) '([^']+)'", text)
+    nested = m2.group(1).lstrip("-") if m2 else None
+    for where, what in reversed(_sources(args)):
+        if where == "command line":
+            if what == key or (nested is not None and what.split(".")[-1] == nested.split(".")[-1]):
+                return f"--{what}: {text}"
+            continue
+        if nested is not None:
+            top = key.split(".")[0] if key else None
+            base = what.get(top) if top and isinstance(what, dict) else what
+            found = _find_key(base, nested.split(".")[-1]) if isinstance(base, dict) else None
+            if found is not None:
+                return f"{where}: field '{top + '.' + found if top else found}': {text}"
+        elif key is not None and _has_key(what, key.split(".")):
+            return f"{where}: field '{key}': {text}"
+    field = nested or key
+    return f"--{field}: {text}" if field else f"command line: {text}"
 
 
 _OLD_CLASS_PATH = re.compile(r"((?:stages|datamodules)\.[A-Za-z_][\w.]*)$")
@@ -87,11 +190,11 @@ def resolve_config_args(argv: Sequence[str]) -> list[str]:
     for a in argv:
         if prev == "--config":
             path = resolve_config(a)
-            check_class_paths(path.read_text(errors="replace"), str(path))
+            check_config_file(path)
             a = str(path)
         elif a.startswith("--config="):
             path = resolve_config(a.split("=", 1)[1])
-            check_class_paths(path.read_text(errors="replace"), str(path))
+            check_config_file(path)
             a = "--config=" + str(path)
         elif _is_class_key(prev):
             _refuse_old(a, f"command line {prev}")
@@ -130,6 +233,7 @@ class ThreeDQCLI(LightningCLI):
             self._init(None if args is None else resolve_config_args(args), run)
 
     def _init(self, args: Sequence[str] | None, run: bool) -> None:
+        self._args = list(args or [])
         super().__init__(
             model_class=L.LightningModule,
             datamodule_class=L.LightningDataModule,
@@ -137,13 +241,43 @@ class ThreeDQCLI(LightningCLI):
             subclass_mode_data=True,
             save_config_kwargs={"overwrite": True},
             seed_everything_default=0,
-            parser_kwargs={"default_env": True},
+            # a parse error is raised (and reported as one line naming the config file), not printed with the usage
+            parser_kwargs={"default_env": True, "exit_on_error": False},
             args=list(args) if args is not None else None,
             run=run,
         )
 
+    def parse_arguments(self, parser: Any, args: Any) -> None:
+        """Parse; a fault is a :class:`ConfigError` naming the config file that sets the field (or the command line).
+
+        A ``--ckpt_path`` is checked here, before Lightning reads it: one that cannot be loaded safely, or that
+        another stage wrote, is refused with one line naming it.
+        """
+        try:
+            super().parse_arguments(parser, args)
+        except ArgumentError as e:
+            raise ConfigError(explain_parse_error(str(e), self._args)) from None
+        sub = self.config.get(self.config.get("subcommand") or "") or self.config
+        ckpt = sub.get("ckpt_path") if hasattr(sub, "get") else None
+        if not ckpt or ckpt in ("last", "best", "hpc", "registry"):
+            return
+        if not Path(ckpt).is_file():
+            raise InputError(f"--ckpt_path {ckpt}: no such file")
+        stage = checkpoint_stage(ckpt)
+        model = sub.get("model")
+        cls = model.get("class_path") if hasattr(model, "get") else None
+        wanted = cls.split(".")[2] if isinstance(cls, str) and cls.startswith("threedq.stages.") else None
+        if stage and wanted and stage != wanted:
+            raise InputError(f"{ckpt}: this is a {stage} checkpoint; --ckpt_path of {cls} needs a {wanted} checkpoint")
+
     def instantiate_classes(self) -> None:
-        super().instantiate_classes()
+        try:
+            super().instantiate_classes()
+        except Exception as e:  # jsonargparse wraps what a class raised in its own multi-line error
+            inner = user_error_in_chain(e)
+            if inner is not None:
+                raise inner from None
+            raise
         if self._model_setup is not None:
             self._model_setup(self.model)
 
