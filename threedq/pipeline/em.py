@@ -44,16 +44,18 @@ import json
 import platform
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from threedq.errors import InputError
 from threedq.pipeline.crop_cache import CropCache
+from threedq.pipeline.data_commands import output_folder
 from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.evaluation import SEARCH_LABELS
 from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config, test_checkpoint
-from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer
+from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer, fewshot_cell, precision_label
 
 __all__ = ["run_em"]
 
@@ -151,9 +153,25 @@ def _evaluate_round(
     return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[])
 
 
+def _check_handed_on(det_eval: dict[str, Any], run_dir: Path, splits: tuple[str, ...]) -> None:
+    """Refuse to start a round on detections of a split where the detector hands on fewer than 2 boxes (mining,
+    quantization and the evaluation need at least 2 objects): one line naming the evaluation and the split."""
+    for split in splits:
+        h = (det_eval.get("handed_on") or {}).get(split) or {}
+        n = h.get("boxes")
+        if n is not None and n < 2:
+            raise RuntimeError(
+                f"{run_dir / 'results.json'}: field 'handed_on.{split}.boxes': the detector hands on {n} box(es) of the "
+                f"{split} split (objectness above {h.get('score_threshold')}), the rounds need at least 2; train the "
+                "detector longer or run the rounds on GT boxes (--boxes gt)"
+            )
+
+
 def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
             self_labels: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Paper Table 3 rows: per round 0..R, feature precision@10, Hungarian accuracy and detection mAP@0.5 (test).
+
+    ``precision_at_10`` is scored at ``k`` = min(10, N - 1) on a test split of N <= 10 objects (the row's ``k``).
 
     Round 0 is the state before the rounds: the warm-start detector (no prototypes, no fine-tuned encoder yet).
     A round's detection is its self-labelled detector's (the warm start's when self-labelling is off).
@@ -167,7 +185,7 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
     for i, r in enumerate(rounds):
         d = self_labels[i]["detector_eval"] if i < len(self_labels) else det_eval
         rows.append({"round": i + 1, "precision_at_10": r["retrieval"]["precision_at_k"]["learned"],
-                     "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
+                     "k": r["retrieval"]["k"], "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
     return rows
 
 
@@ -179,7 +197,8 @@ def _table3_figure(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
-    for key, label in (("precision_at_10", "features: precision@10"), ("hungarian_acc", "quantization: Hungarian acc."),
+    k = next((r["k"] for r in rows if r.get("k")), 10)
+    for key, label in (("precision_at_10", f"features: precision@{k}"), ("hungarian_acc", "quantization: Hungarian acc."),
                        ("map_50", "detection: mAP@0.5")):
         pts = [(r["round"], r[key]) for r in rows if r[key] is not None]
         if pts:
@@ -248,15 +267,16 @@ def _report(summary: dict[str, Any]) -> str:
         lines += [
             f"## Per EM round (threedq, {summary.get('boxes', 'gt')} boxes, held-out objects)",
             "",
-            f"precision@10: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}.",
+            f"{precision_label(rounds[0]['retrieval'])}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}.",
             "",
-            "| round | precision@10 | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
+            f"| round | precision@{rounds[0]['retrieval']['k']} | Hungarian acc. | few-shot acc. | yaw median err. (deg) | "
+            "yaw acc. @10 deg |",
             "|---|---|---|---|---|---|",
         ]
         for i, r in enumerate(rounds, 1):
             q = r["quantization"]["threedq"]
             p = r["retrieval"]["precision_at_k"]["learned"]
-            lines.append(f"| {i} | {p:.3f} | {q['hungarian_acc']:.3f} | {q['fewshot_acc']:.3f} | "
+            lines.append(f"| {i} | {p:.3f} | {q['hungarian_acc']:.3f} | {fewshot_cell(q['fewshot_acc'])} | "
                          f"{q['yaw_median_deg']:.1f} | {q['yaw_acc_10']:.3f} |")
         last = rounds[-1]
         r = last["retrieval"]
@@ -265,7 +285,7 @@ def _report(summary: dict[str, Any]) -> str:
             f"## Final round in detail ({last['num_test_objects']} test objects, {last['num_test_categories']} categories, "
             f"K = {last['num_prototypes']})",
             "",
-            f"Retrieval, rotation-max precision@{r['k']} over {r['num_angles']} yaw steps (paper Table 2); "
+            f"Retrieval, rotation-max {precision_label(r)} over {r['num_angles']} yaw steps (paper Table 2); "
             f"{SEARCH_LABELS[r['search']]}:",
             "",
             "| features | precision@%d |" % r["k"],
@@ -283,7 +303,7 @@ def _report(summary: dict[str, Any]) -> str:
                   "| method | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 | @20 |",
                   "|---|---|---|---|---|---|"]
         for m, v in last["quantization"].items():
-            lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {v['fewshot_acc']:.3f} | "
+            lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
                          f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
         lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`. "
                   "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
@@ -311,12 +331,14 @@ def _report(summary: dict[str, Any]) -> str:
             f"## Table 3: every module per round (held-out split; rounds on "
             f"{'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes)",
             "",
-            "Round 0 is the state before the rounds (the warm-start detector). precision@10: "
+            f"Round 0 is the state before the rounds (the warm-start detector). "
+            f"{precision_label(rounds[0]['retrieval']) if rounds else 'precision@10'}: "
             f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; detection: the round's detector "
             "(after its self-labelling), dataset-level mAP@0.5; precision / recall: its boxes above the 0.9 "
             "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false positive).",
             "",
-            "| round | features: precision@10 | quantization: Hungarian acc. | detection: mAP@0.5 | mAP@0.25 | "
+            f"| round | features: precision@{rounds[0]['retrieval']['k'] if rounds else 10} | quantization: Hungarian acc. | "
+            "detection: mAP@0.5 | mAP@0.25 | "
             "handed-on precision | recall |",
             "|---|---|---|---|---|---|---|",
         ]
@@ -363,8 +385,8 @@ def run_em(
     quantizer_config: str = "stages/quantizer.yaml",
     detector_config: str = "stages/detector.yaml",
     detection: bool = True,
-    boxes: str = "detections",
-    extra_configs: list[str] | None = None,
+    boxes: Literal["detections", "gt"] = "detections",
+    extra_configs: list[str] | str | None = None,
     max_steps: int | None = None,
     mining_config: str | None = "stages/mining.yaml",
     self_labelling_config: str | None = "stages/self_labelling.yaml",
@@ -382,7 +404,8 @@ def run_em(
         boxes: object boxes of the rounds: ``detections`` (the paper's protocol: the boxes the current detector
             hands on, above its score threshold; needs ``detection``; GT is used only to score, over the detections
             matched to GT at IoU 0.5) or ``gt`` (the oracle boxes, for comparison).
-        extra_configs: more configs composed after each stage's (e.g. ``trainer/gpu.yaml``, a data config).
+        extra_configs: more configs composed after each stage's (e.g. ``trainer/gpu.yaml``, a data config); one
+            path or a list (``--extra_configs my.yaml``, ``--extra_configs '[a.yaml, b.yaml]'``, ``--extra_configs+ x``).
         max_steps: override the training steps of the view-prediction stage.
         mining_config: the correspondence-learning stage config run at the start of every round, fine-tuning
             the encoder that the round's quantizer then uses (``stages/mining.yaml``: cross-scene mining;
@@ -392,13 +415,15 @@ def run_em(
             round's encoder and prototypes; the next round takes its boxes from the self-labelled detector);
             ``none``: the detector stays the warm start. Needs ``detection``.
     """
-    if rounds < 0:
-        raise ValueError(f"rounds: expected >= 0, got {rounds}")
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
+        raise InputError(f"--rounds: expected an int >= 0, got {rounds!r}")
     if boxes not in ("gt", "detections"):
-        raise ValueError(f"boxes: expected 'gt' or 'detections', got {boxes!r}")
+        raise InputError(f"--boxes: expected 'gt' or 'detections', got {boxes!r}")
     if boxes == "detections" and not detection:
-        raise ValueError("boxes: 'detections' needs detection=true")
-    work = Path(work_dir)
+        raise InputError("--boxes: 'detections' needs --detection true")
+    work = output_folder("--work_dir", work_dir)
+    if isinstance(extra_configs, (str, Path)):
+        extra_configs = [str(extra_configs)]
     extra = [resolve_config(c) for c in (extra_configs or [])]
     vp_configs = [resolve_config(config), *extra]
     q_configs = [resolve_config(quantizer_config), *extra]
@@ -420,7 +445,8 @@ def run_em(
         det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits)
         print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
               f"detector {det_eval['detector']['map_50']:.3f}")
-        if boxes == "detections":
+        if boxes == "detections" and rounds:
+            _check_handed_on(det_eval, work / "03_detector_eval", ("train", "test"))
             box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
     round_results: list[dict[str, Any]] = []
     mining_results: list[dict[str, Any]] = []
@@ -461,14 +487,16 @@ def run_em(
                                        "detector_eval": sl_eval})
             print(f"[em] round {r} self-labelling: detection mAP@0.5 {sl_eval['detector']['map_50']:.3f} "
                   f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
-            if boxes == "detections":
+            if boxes == "detections" and r < rounds:
+                _check_handed_on(sl_eval, work / f"r{r:02d}_detector_eval", ("train", "test"))
                 box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
         if mine:  # the next round fine-tunes the encoder again: this round's learned crops will not be asked for
             crop_cache.drop("features")
             crop_cache.drop("grid")
         q_res = round_results[-1]["quantization"]["threedq"]
-        print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {q_res['fewshot_acc']:.3f}, "
-              f"precision@10 {round_results[-1]['retrieval']['precision_at_k']['learned']:.3f}")
+        print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
+              f"{precision_label(round_results[-1]['retrieval'])} "
+              f"{round_results[-1]['retrieval']['precision_at_k']['learned']:.3f}")
     if rounds:
         print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
               f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")

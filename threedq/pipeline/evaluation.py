@@ -128,7 +128,8 @@ def retrieval_table(
         search: ``"fast"`` or ``"exact"`` (:func:`~threedq.quantization.rotation_search.all_pairs_rotation_max`).
 
     Returns:
-        ``{"k", "num_angles", "search", "num_objects", "num_categories", "precision_at_k": {name: p}}`` and the
+        ``{"k", "k_requested", "num_angles", "search", "num_objects", "num_categories", "precision_at_k": {name: p}}``
+        (``k`` is ``min(k_requested, N - 1)``: tables name it with :func:`threedq.pipeline.report.precision_label`) and the
         ``[N, N]`` similarity matrix of each crop set (for pictures). Categories with a single object still
         count as queries (they can only score 0), as in the paper's per-class average.
     """
@@ -138,9 +139,9 @@ def retrieval_table(
     n = labels.shape[0]
     if n < 2:
         raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
-    kk = min(k, n - 1)
+    kk = min(k, n - 1)  # a split of N <= k objects is scored at k = N - 1; "k_requested" keeps what was asked
     table: dict[str, Any] = {
-        "k": kk, "num_angles": num_angles, "search": search, "num_objects": n,
+        "k": kk, "k_requested": k, "num_angles": num_angles, "search": search, "num_objects": n,
         "num_categories": int(labels.unique().numel()), "precision_at_k": {},
     }
     sims: dict[str, Tensor] = {}

@@ -14,6 +14,12 @@ Prototype banks are fitted on the training split's objects and evaluated on the 
 Outputs in ``out``: ``results.json``, ``results.md``, ``objects_test.json`` (each test object's prototype and
 yaw index), ``fig3a_accuracy_vs_k.png``,
 ``prototype_alignment.png``, ``retrieval.png``.
+
+Small test splits: precision@10 needs 11 objects; with N <= 10 it is scored at k = N - 1 and every table says
+so (``precision@5 (k lowered from 10: 6 test objects)``); fewer than 2 objects is an error. Few-shot accuracy
+scores the objects that are not among the 2 labelled shots of their category, so a category of at most 2
+objects adds nothing to it; when no category has more (every object is a labelled shot) it is undefined:
+``NaN`` in ``results.json``, written ``n/a`` with the reason in the tables (:func:`fewshot_cell`).
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ from torch.utils.data import DataLoader  # noqa: E402
 
 from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
+from threedq.errors import InputError  # noqa: E402
+from threedq.stages.base import checkpoint_stage  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
 from threedq.data.draw import crop_birds_eye  # noqa: E402
 from threedq.pipeline.evaluation import (  # noqa: E402
@@ -44,19 +52,37 @@ from threedq.pipeline.evaluation import (  # noqa: E402
     retrieval_table,
 )
 from threedq.pipeline.crop_cache import CropCache  # noqa: E402
+from threedq.pipeline.data_commands import output_folder  # noqa: E402
 from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table  # noqa: E402
 from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
 from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
 from threedq.metrics import cluster_confusion, hungarian_accuracy  # noqa: E402
 from threedq.quantization.prototypes import fit_prototype_bank  # noqa: E402
 
-__all__ = ["run_eval", "quantization_metrics", "split_loader"]
+__all__ = ["run_eval", "quantization_metrics", "split_loader", "fewshot_cell", "precision_label"]
 
 METHOD_LABELS = {
     "threedq": "threedq (rotation-aware 3D prototypes)",
     "no_rot": "no-rot-3DQ (no rotation search)",
     "pointcloud": "point-cloud registration",
 }
+
+
+def precision_label(retrieval: dict[str, Any]) -> str:
+    """``precision@k`` of a :func:`~threedq.pipeline.evaluation.retrieval_table`, saying so when k was lowered for
+    a split of too few objects (``precision@5 (k lowered from 10: 6 test objects)``)."""
+    k, asked = retrieval["k"], retrieval.get("k_requested", retrieval["k"])
+    if k < asked:
+        return f"precision@{k} (k lowered from {asked}: {retrieval['num_objects']} test objects)"
+    return f"precision@{k}"
+
+
+def fewshot_cell(value: float | None, shots: int = 2) -> str:
+    """A few-shot accuracy for a table: ``n/a`` with the reason when it is undefined (NaN: every object is one of
+    the ``shots`` labelled ones of its category, so none is left to score)."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return f"n/a (no category has more than {shots} objects: all are labelled shots)"
+    return f"{value:.3f}"
 
 
 def split_loader(dm: Any, split: str, batch_size: int = 4) -> DataLoader:
@@ -119,6 +145,7 @@ def _retrieval_figure(test: dict[str, Tensor], sim: Tensor, path: Path, categori
     sim = sim.clone()
     sim.fill_diagonal_(-math.inf)
     n = sim.shape[0]
+    k = min(k, n - 1)  # a small split: as many neighbours as there are
     picks = torch.linspace(0, n - 1, steps=min(queries, n)).long()
     fig, axes = plt.subplots(len(picks), k + 1, figsize=(1.3 * (k + 1), 1.4 * len(picks)))
     axes = np.atleast_2d(axes)
@@ -131,7 +158,7 @@ def _retrieval_figure(test: dict[str, Tensor], sim: Tensor, path: Path, categori
             same = c == 0 or int(test["labels"][i]) == int(test["labels"][q])
             ax.set_title(("query: " if c == 0 else "") + categories[int(test["labels"][i])], fontsize=5,
                          color="black" if same else "red")
-    fig.suptitle("Retrieval with learned features: query and top-5 (red = other category)", fontsize=8)
+    fig.suptitle(f"Retrieval with learned features: query and top-{k} (red = other category)", fontsize=8)
     _save(fig, path)
 
 
@@ -154,8 +181,8 @@ def _markdown(res: dict[str, Any]) -> str:
         f"(GT boxes, {res['num_input_views']} input view(s) per scene); K = {res['num_prototypes']}"
         + (f"; baseline banks fitted on {res['num_train_objects']} training objects." if res["num_train_objects"] else "."),
         "",
-        f"## Retrieval (paper Table 2): rotation-max precision@{r['k']}, {r['num_angles']} yaw steps, macro over categories; "
-        f"{SEARCH_LABELS[r['search']]}",
+        f"## Retrieval (paper Table 2): rotation-max {precision_label(r)}, {r['num_angles']} yaw steps, macro over "
+        f"categories; {SEARCH_LABELS[r['search']]}",
         "",
         "| features | precision@%d |" % r["k"],
         "|---|---|",
@@ -174,7 +201,7 @@ def _markdown(res: dict[str, Any]) -> str:
     ]
     for m, v in res["quantization"].items():
         lines.append(
-            f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {v['fewshot_acc']:.3f} | "
+            f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
             f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |"
         )
     if res.get("curve"):
@@ -221,6 +248,9 @@ def evaluate_quantizer(
     test = collect_object_crops(model, split_loader(dm, "test"), nv, random_encoder_seed=seed, progress=progress)
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels, gt_yaw = test["labels"], test["boxes"][:, 6]
+    if labels.shape[0] < 2:
+        raise InputError(f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': the test split holds {labels.shape[0]} "
+                         "object(s); the evaluation (retrieval, clustering) needs at least 2")
     retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search)
     # the threedq row is what the stage's own test_step measured (trainer.test); the baselines below are fitted here
     n_scored = int(test_metrics.get("test/objects", -1))
@@ -293,7 +323,7 @@ def evaluate_quantizer(
 def run_eval(
     ckpt: str,
     config: str = "stages/quantizer.yaml",
-    extra_configs: list[str] | None = None,
+    extra_configs: list[str] | str | None = None,
     out: str = "runs/eval",
     baselines: bool = True,
     curve_k: list[int] | None = None,
@@ -307,7 +337,7 @@ def run_eval(
     Args:
         ckpt: a quantizer checkpoint (encoder weights + prototype bank), e.g. ``runs/quantizer/checkpoints/last.ckpt``.
         config: the quantizer config that names the data (a path or one inside the packaged configs/).
-        extra_configs: more configs composed after it.
+        extra_configs: more configs composed after it (one path or a list).
         out: output folder.
         baselines: also fit and evaluate no-rot-3DQ and point-cloud registration.
         curve_k: prototype counts of the accuracy-vs-K figure (default 10, 20, 41, 50, 80; [] skips it).
@@ -321,7 +351,16 @@ def run_eval(
             Written to ``table2.json`` and ``table2.md``.
     """
 
+    if isinstance(extra_configs, (str, Path)):
+        extra_configs = [str(extra_configs)]
     configs = [resolve_config(config), *(resolve_config(c) for c in (extra_configs or []))]
+    output_folder("--out", out)
+    if not Path(ckpt).is_file():
+        raise InputError(f"--ckpt {ckpt}: no such file")
+    stage = checkpoint_stage(ckpt)  # a missing, truncated or unsafe file is refused here, in one line
+    if stage != "quantizer":
+        kind = f"a {stage}" if stage else "not a stage"
+        raise InputError(f"{ckpt}: this is {kind} checkpoint; eval needs a quantizer checkpoint")
     cache = CropCache()  # the test pass and the crops below encode each test scene once
     cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: setattr(m, "crop_cache", cache))
     res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
