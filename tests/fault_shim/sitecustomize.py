@@ -1,0 +1,68 @@
+"""Fault injection for the subprocesses of ``tests/test_bad_inputs.py`` (test-only; never installed).
+
+Python imports ``sitecustomize`` at start-up from ``sys.path``; the tests put this folder first on ``PYTHONPATH``
+and set ``THREEDQ_FAULT=<ERRNO>:<folder>``. Then, inside ``<folder>``:
+
+* ``ENOSPC`` (a full disk): flushing a file to disk (``os.fsync``) and opening a file for writing with ``open``
+  fail with ``OSError(ENOSPC)``; creating folders and the temporary files of :mod:`threedq.atomic_io` still
+  works, as on a disk that is full but for its metadata.
+* ``EACCES`` (no write permission, for a root user whom ``chmod`` does not stop): creating a folder or a file,
+  or opening one for writing, fails with ``PermissionError``.
+
+Monkeypatching cannot reach a subprocess; this can. Without ``THREEDQ_FAULT`` it does nothing.
+"""
+
+from __future__ import annotations
+
+import builtins
+import errno
+import io
+import os
+
+_SPEC = os.environ.get("THREEDQ_FAULT", "")
+if _SPEC:
+    _code, _, _root = _SPEC.partition(":")
+    _ERR = getattr(errno, _code)
+    _ROOT = os.path.realpath(_root)
+
+    def _inside(path: object) -> bool:
+        try:
+            p = os.path.realpath(os.fspath(path))  # type: ignore[arg-type]
+        except TypeError:
+            return False
+        return p == _ROOT or p.startswith(_ROOT + os.sep)
+
+    def _fail(path: object) -> None:
+        raise OSError(_ERR, os.strerror(_ERR), os.fspath(path))  # type: ignore[arg-type]
+
+    _open, _io_open, _os_open, _fsync, _mkdir = builtins.open, io.open, os.open, os.fsync, os.mkdir
+
+    def _guarded_open(file, mode="r", *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        if isinstance(file, (str, bytes, os.PathLike)) and any(c in mode for c in "wax+") and _inside(file):
+            _fail(file)
+        return _io_open(file, mode, *args, **kwargs)
+
+    def _guarded_fsync(fd):  # noqa: ANN001, ANN202
+        try:
+            path = os.readlink(f"/proc/self/fd/{int(fd if isinstance(fd, int) else fd.fileno())}")
+        except OSError:
+            path = None
+        if path is not None and _inside(path):
+            _fail(path)
+        return _fsync(fd)
+
+    builtins.open = io.open = _guarded_open
+    os.fsync = _guarded_fsync
+    if _ERR == errno.EACCES:
+
+        def _guarded_os_open(path, flags, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+            if flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT) and _inside(path):
+                _fail(path)
+            return _os_open(path, flags, *args, **kwargs)
+
+        def _guarded_mkdir(path, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+            if _inside(path) and os.path.realpath(os.fspath(path)) != _ROOT:
+                _fail(path)
+            return _mkdir(path, *args, **kwargs)
+
+        os.open, os.mkdir = _guarded_os_open, _guarded_mkdir
