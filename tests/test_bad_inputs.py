@@ -31,7 +31,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -149,8 +149,7 @@ class Run:
 @dataclass
 class Case:
     name: str
-    build: Callable[[Ctx], Run]
-    marks: list = field(default_factory=list)
+    build: Callable[[Ctx], Run]  # makes the bad input in the case's folder; returns the command and expectations
 
 
 SCENE = "train/scene_000001.npz"
@@ -576,12 +575,22 @@ def outcomes(request: pytest.FixtureRequest, shared: Shared, tmp_path_factory: p
                 p.chmod(0o755)
         after = {k: v for k, v in snapshot(folder).items() if k in before}
         out[name] = Outcome(run, rc, so, se, before, after, seconds)
-    if os.environ.get("THREEDQ_BAD_INPUTS_TIMES"):
-        print("\n".join(f"{o.seconds:6.1f} s  {n}" for n, o in out.items() if isinstance(o, Outcome)))
+    for name, o in out.items():
+        if isinstance(o, Outcome):
+            _log(name, o)
     return out
 
 
 ERROR_PREFIX = "threedq: error: "
+
+
+def _log(name: str, o: Outcome) -> None:
+    """With THREEDQ_BAD_INPUTS_LOG=<file>: append what the case printed (for reading the corpus at a glance)."""
+    log = os.environ.get("THREEDQ_BAD_INPUTS_LOG")
+    if log:
+        with open(log, "a", encoding="utf-8") as f:
+            lines = " | ".join(error_lines(o)) or o.stderr.strip()[-300:]
+            f.write(f"{name}\t{o.returncode}\t{o.seconds:.1f}\t{lines}\n")
 
 
 def error_lines(o: Outcome) -> list[str]:
@@ -629,13 +638,16 @@ def test_bad_input_in_process(case: Case, shared: Shared, tmp_path: Path, monkey
         rc = e.code if isinstance(e.code, int) else 1
     out, err = capsys.readouterr()
     after = {k: v for k, v in snapshot(tmp_path).items() if k in before}
-    check(Outcome(run, rc, out, err, before, after, time.perf_counter() - t0))
+    outcome = Outcome(run, rc, out, err, before, after, time.perf_counter() - t0)
+    _log(case.name, outcome)
+    check(outcome)
     assert snapshot(shared.root) == shared_before, "a shared input changed"
 
 
 def check(o: Outcome) -> None:
     """The expectations every case shares (module docstring)."""
-    report = f"\n--- threedq {' '.join(o.run.argv)} ({o.seconds:.1f} s)\n--- stdout:\n{o.stdout[-3000:]}\n--- stderr:\n{o.stderr[-3000:]}"
+    report = (f"\n--- threedq {' '.join(o.run.argv)} ({o.seconds:.1f} s)\n--- stdout:\n{o.stdout[-3000:]}\n"
+              f"--- stderr:\n{o.stderr[-3000:]}")
     assert o.returncode != 0, report
     assert "Traceback" not in o.stderr and "Traceback" not in o.stdout, report
     assert "usage:" not in o.stderr, report
@@ -720,7 +732,8 @@ def test_error_line_of_a_dataloader_worker() -> None:
     from threedq.errors import error_line
 
     msg = ("Caught SceneValidationError in DataLoader worker process 0.\nOriginal Traceback (most recent call last):\n"
-           '  File "x.py", line 1, in f\nthreedq.scene.SceneValidationError: d/s.npz: field \'depth\': 1 non-finite value(s)\n')
+           '  File "x.py", line 1, in f\n'
+           "threedq.scene.SceneValidationError: d/s.npz: field 'depth': 1 non-finite value(s)\n")
     assert error_line(RuntimeError(msg)) == "d/s.npz: field 'depth': 1 non-finite value(s)"
 
 
