@@ -738,10 +738,13 @@ def test_error_line_of_a_dataloader_worker() -> None:
 
 
 def test_rounds_refuse_detections_with_too_few_boxes(tmp_path: Path) -> None:
+    from threedq.data.box_files import save_boxes_file
     from threedq.pipeline.em import _check_handed_on
 
-    ok = {"handed_on": {"train": {"boxes": 5, "score_threshold": 0.9}, "test": {"boxes": 2, "score_threshold": 0.9}}}
-    _check_handed_on(ok, tmp_path, ("train", "test"))
-    bad = {"handed_on": {"train": {"boxes": 0, "score_threshold": 0.9}, "test": {"boxes": 3, "score_threshold": 0.9}}}
-    with pytest.raises(RuntimeError, match=r"field 'handed_on.train.boxes': the detector hands on 0 box\(es\)"):
-        _check_handed_on(bad, tmp_path, ("train", "test"))
+    box = np.array([[0, 0, 0, 0.1, 0.1, 0.1]], np.float32)
+    save_boxes_file(tmp_path / "detections_train.npz", {"train/a.npz": (box, np.ones(1, np.float32)),
+                                                        "train/b.npz": (box, np.ones(1, np.float32))})
+    save_boxes_file(tmp_path / "detections_test.npz", {"test/a.npz": (box[:0], np.ones(0, np.float32))})
+    _check_handed_on(tmp_path, ("train",))
+    with pytest.raises(RuntimeError, match=r"detections_test.npz: field 'boxes': the detector hands on 0 box\(es\)"):
+        _check_handed_on(tmp_path, ("train", "test"))

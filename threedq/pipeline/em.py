@@ -49,6 +49,7 @@ from typing import Any, Literal
 import torch
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from threedq.data.box_files import load_boxes_file
 from threedq.errors import InputError
 from threedq.pipeline.crop_cache import CropCache
 from threedq.pipeline.data_commands import output_folder
@@ -153,17 +154,19 @@ def _evaluate_round(
     return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[])
 
 
-def _check_handed_on(det_eval: dict[str, Any], run_dir: Path, splits: tuple[str, ...]) -> None:
-    """Refuse to start a round on detections of a split where the detector hands on fewer than 2 boxes (mining,
-    quantization and the evaluation need at least 2 objects): one line naming the evaluation and the split."""
+def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
+    """Refuse to start a round on detections (``eval_dir/detections_<split>.npz``, the boxes handed on) of a split
+    with fewer than 2 boxes: mining, quantization and the evaluation need at least 2 objects. One line naming
+    the file."""
     for split in splits:
-        h = (det_eval.get("handed_on") or {}).get(split) or {}
-        n = h.get("boxes")
-        if n is not None and n < 2:
+        path = eval_dir / f"detections_{split}.npz"
+        if not path.is_file():
+            continue
+        n = sum(len(aabb) for aabb, _ in load_boxes_file(path).values())
+        if n < 2:
             raise RuntimeError(
-                f"{run_dir / 'results.json'}: field 'handed_on.{split}.boxes': the detector hands on {n} box(es) of the "
-                f"{split} split (objectness above {h.get('score_threshold')}), the rounds need at least 2; train the "
-                "detector longer or run the rounds on GT boxes (--boxes gt)"
+                f"{path}: field 'boxes': the detector hands on {n} box(es) of the {split} split, the rounds need at "
+                "least 2; train the detector longer or run the rounds on GT boxes (--boxes gt)"
             )
 
 
@@ -446,7 +449,7 @@ def run_em(
         print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
               f"detector {det_eval['detector']['map_50']:.3f}")
         if boxes == "detections" and rounds:
-            _check_handed_on(det_eval, work / "03_detector_eval", ("train", "test"))
+            _check_handed_on(work / "03_detector_eval", ("train", "test"))
             box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
     round_results: list[dict[str, Any]] = []
     mining_results: list[dict[str, Any]] = []
@@ -488,7 +491,7 @@ def run_em(
             print(f"[em] round {r} self-labelling: detection mAP@0.5 {sl_eval['detector']['map_50']:.3f} "
                   f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
             if boxes == "detections" and r < rounds:
-                _check_handed_on(sl_eval, work / f"r{r:02d}_detector_eval", ("train", "test"))
+                _check_handed_on(work / f"r{r:02d}_detector_eval", ("train", "test"))
                 box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
         if mine:  # the next round fine-tunes the encoder again: this round's learned crops will not be asked for
             crop_cache.drop("features")
