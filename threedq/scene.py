@@ -243,6 +243,8 @@ def load_scene(
     source = str(path)
     if not path.is_file():
         raise SceneValidationError(source, "<file>", "no such file")
+    if not zipfile.is_zipfile(path):  # np.load would take other bytes for a pickle or a .npy and say so
+        raise SceneValidationError(source, "<file>", "not a .npz (zip) archive: truncated, or another kind of file")
     try:
         with np.load(path, allow_pickle=False) as npz:
             keys = set(npz.files)

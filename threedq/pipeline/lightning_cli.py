@@ -57,6 +57,8 @@ def resolve_config(path: str | Path) -> Path:
     packaged = packaged_configs_dir() / p
     if not p.is_absolute() and packaged.is_file():
         return packaged
+    if p.is_absolute():
+        raise FileNotFoundError(f"config {str(path)!r} not found")
     raise FileNotFoundError(f"config {str(path)!r} not found (tried {p.resolve()} and {packaged})")
 
 
