@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import yaml
 
+from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_json
 from threedq.metrics.fewshot import few_shot_accuracy
 from threedq.pipeline.parse import SceneParser, check_views, names_path, parse_records, resolve_run
@@ -41,30 +42,30 @@ def load_labels(path: str | Path) -> tuple[Path, list[int], list[dict[str, Any]]
     try:
         doc = yaml.safe_load(p.read_text())
     except yaml.YAMLError as e:
-        raise ValueError(f"{p}: field '<file>': not valid YAML ({str(e).splitlines()[0]})") from e
+        raise InputError(f"{p}: field '<file>': not valid YAML ({str(e).splitlines()[0]})") from e
     if not isinstance(doc, dict) or not isinstance(doc.get("labels"), list) or not doc["labels"]:
-        raise ValueError(f"{p}: field 'labels': expected a non-empty list of {{scene, object or box, name}}")
+        raise InputError(f"{p}: field 'labels': expected a non-empty list of {{scene, object or box, name}}")
     root = Path(doc.get("scenes") or p.parent)
     if not root.is_absolute() and not root.is_dir():
         root = p.parent / root
     views = doc.get("views", [0])
     if not isinstance(views, list) or not views or not all(isinstance(v, int) for v in views):
-        raise ValueError(f"{p}: field 'views': expected a list of view indices, got {views!r}")
+        raise InputError(f"{p}: field 'views': expected a list of view indices, got {views!r}")
     out = []
     for i, item in enumerate(doc["labels"]):
         where = f"labels[{i}]"
         if not isinstance(item, dict) or not isinstance(item.get("scene"), str) or not str(item.get("name", "")).strip():
-            raise ValueError(f"{p}: field '{where}': expected a mapping with 'scene' and 'name', got {item!r}")
+            raise InputError(f"{p}: field '{where}': expected a mapping with 'scene' and 'name', got {item!r}")
         has_obj, has_box = "object" in item, "box" in item
         if has_obj == has_box:
-            raise ValueError(f"{p}: field '{where}': give exactly one of 'object' (an index) and 'box' (6 numbers)")
+            raise InputError(f"{p}: field '{where}': give exactly one of 'object' (an index) and 'box' (6 numbers)")
         if has_obj and (not isinstance(item["object"], int) or item["object"] < 0):
-            raise ValueError(f"{p}: field '{where}.object': expected an index >= 0, got {item['object']!r}")
+            raise InputError(f"{p}: field '{where}.object': expected an index >= 0, got {item['object']!r}")
         if has_box:
             box = item["box"]
             ok = isinstance(box, list) and len(box) == 6 and all(isinstance(v, (int, float)) for v in box)
             if not ok or not all(box[j] < box[j + 3] for j in range(3)):
-                raise ValueError(f"{p}: field '{where}.box': expected [xmin, ymin, zmin, xmax, ymax, zmax], got {box!r}")
+                raise InputError(f"{p}: field '{where}.box': expected [xmin, ymin, zmin, xmax, ymax, zmax], got {box!r}")
         out.append({**item, "name": str(item["name"]).strip()})
     return root, views, out
 

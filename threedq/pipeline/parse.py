@@ -47,6 +47,7 @@ import yaml
 from torch import Tensor
 from tqdm import tqdm
 
+from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_bytes
 from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
@@ -167,9 +168,9 @@ def load_names(prototypes: str | Path, bank: PrototypeBank | None = None) -> dic
         obj = json.loads(p.read_text())
         names = {int(k): str(v) for k, v in obj["names"].items()}
     except (ValueError, KeyError, TypeError, AttributeError) as e:
-        raise ValueError(f"{p}: field 'names': unreadable ({type(e).__name__}: {e})") from e
+        raise InputError(f"{p}: field 'names': unreadable ({type(e).__name__}: {e})") from e
     if bank is not None and obj.get("bank") != bank_fingerprint(bank):
-        raise ValueError(f"{p}: field 'bank': these names belong to another prototype bank; run threedq label again")
+        raise InputError(f"{p}: field 'bank': these names belong to another prototype bank; run threedq label again")
     return names
 
 
@@ -178,7 +179,7 @@ def _checked_grid(a: dict[str, Any], b: dict[str, Any], pa: Path, pb: Path) -> N
     for k in DEFAULT_GRID:
         va, vb = a.get(k), b.get(k)
         if va is not None and vb is not None and list(np.atleast_1d(va)) != list(np.atleast_1d(vb)):
-            raise ValueError(f"{pb}: field '{k}': {vb} differs from {pa}'s {va}: the checkpoints come from other grids")
+            raise InputError(f"{pb}: field '{k}': {vb} differs from {pa}'s {va}: the checkpoints come from other grids")
 
 
 class SceneParser(torch.nn.Module):
@@ -196,7 +197,7 @@ class SceneParser(torch.nn.Module):
                  precision: str = "fp32") -> None:
         super().__init__()
         if precision not in ("fp32", "bf16"):
-            raise ValueError(f"precision: expected 'fp32' or 'bf16', got {precision!r}")
+            raise InputError(f"precision: expected 'fp32' or 'bf16', got {precision!r}")
         self.precision = precision
         self.artifacts = artifacts
         det_hp, q_hp = checkpoint_hparams(artifacts.detector), checkpoint_hparams(artifacts.prototypes)
@@ -208,19 +209,19 @@ class SceneParser(torch.nn.Module):
         state = checkpoint_state(artifacts.detector)
         part = {k: v for k, v in state.items() if k.startswith(("encoder.", "head."))}
         if not any(k.startswith("head.") for k in part):
-            raise ValueError(f"{artifacts.detector}: field 'state_dict': no 'head.*' weights (not a detector checkpoint)")
+            raise InputError(f"{artifacts.detector}: field 'state_dict': no 'head.*' weights (not a detector checkpoint)")
         missing, _ = self.detector.load_state_dict(part, strict=False)
         missing = [k for k in missing if k.startswith(("encoder.", "head."))]
         if missing:
-            raise ValueError(f"{artifacts.detector}: field 'state_dict': missing {missing[0]} (and {len(missing) - 1} more)")
+            raise InputError(f"{artifacts.detector}: field 'state_dict': missing {missing[0]} (and {len(missing) - 1} more)")
         for k in ("num_prototypes", "crop_size", "num_angles"):
             if k not in q_hp:
-                raise ValueError(f"{artifacts.prototypes}: field 'hyper_parameters.{k}': missing (not a quantizer checkpoint)")
+                raise InputError(f"{artifacts.prototypes}: field 'hyper_parameters.{k}': missing (not a quantizer checkpoint)")
         self.bank = PrototypeBank(q_hp["num_prototypes"], self.detector.feature_dim, q_hp["crop_size"], q_hp["num_angles"],
                                   q_hp.get("init_threshold", 0.8), q_hp.get("search_method", "fast"))  # fmt: skip
         load_bank_state(self.bank, str(artifacts.prototypes))
         if self.bank.num_active == 0:
-            raise ValueError(f"{artifacts.prototypes}: field 'bank.active': the bank has no prototype")
+            raise InputError(f"{artifacts.prototypes}: field 'bank.active': the bank has no prototype")
         enc = encoder_state_from_checkpoint(artifacts.encoder)
         own = self.detector.encoder.state_dict()
         same = own.keys() == enc.keys() and all(torch.equal(own[k], enc[k].to(own[k].dtype)) for k in own)
@@ -232,7 +233,7 @@ class SceneParser(torch.nn.Module):
             try:
                 self.q_stage.encoder.load_state_dict(enc)
             except RuntimeError as e:
-                raise ValueError(f"{artifacts.encoder}: field 'state_dict': does not fit the grid ({e})") from e
+                raise InputError(f"{artifacts.encoder}: field 'state_dict': does not fit the grid ({e})") from e
         self.score_threshold = float(det_hp.get("score_threshold", 0.9) if score_threshold is None else score_threshold)
         self.crop_size = int(q_hp["crop_size"])
         self.num_angles = int(q_hp["num_angles"])

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json
 from threedq.data.box_files import load_boxes_file
 from threedq.pipeline.parse import (
@@ -93,12 +94,12 @@ def run_parse(
         the summary (also written as ``summary.json``): scenes parsed, failed (one line each), objects, seconds.
     """
     if batch_size < 1:
-        raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
+        raise InputError(f"batch_size: expected >= 1, got {batch_size}")
     if not views:
-        raise ValueError("views: expected at least one view index")
+        raise InputError("views: expected at least one view index")
     outp = Path(out)
     if outp.exists() and not outp.is_dir():
-        raise ValueError(f"out: {outp} exists and is not a folder")
+        raise InputError(f"out: {outp} exists and is not a folder")
     artifacts = resolve_run(run, encoder, detector, prototypes)
     root, files = find_scenes(scenes, split)
     parser = SceneParser(artifacts, score_threshold=score_threshold, precision=precision)

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from threedq.errors import InputError
 from threedq.geometry import paste_boxes, rotate_yaw, yaw_angles
 from threedq.pipeline.parse import SceneParser, prototype_top_view, scene_batch
 from threedq.scene import SceneRecord
@@ -43,10 +44,10 @@ def load_view_decoder(path: str | Path, channels_last: bool = True) -> ViewPredi
     vp = ViewPrediction(**{**kw, "channels_last": channels_last, "image_every_n_steps": 0})
     state = {k: v for k, v in checkpoint_state(path).items() if k.startswith("decoder.")}
     if not state:
-        raise ValueError(f"{path}: field 'state_dict': no 'decoder.*' weights (not a view-prediction checkpoint)")
+        raise InputError(f"{path}: field 'state_dict': no 'decoder.*' weights (not a view-prediction checkpoint)")
     missing, _ = vp.load_state_dict(state, strict=False)
     if [k for k in missing if k.startswith("decoder.")]:
-        raise ValueError(f"{path}: field 'state_dict': the decoder's weights are incomplete")
+        raise InputError(f"{path}: field 'state_dict': the decoder's weights are incomplete")
     return vp.eval()
 
 
