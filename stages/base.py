@@ -113,7 +113,7 @@ def checkpoint_hparams(path: str | Path) -> dict[str, Any]:
     obj = _load_safely(Path(path))
     hp = obj.get("hyper_parameters") if isinstance(obj, dict) else None
     if not isinstance(hp, dict):
-        raise ValueError(f"{path}: field 'hyper_parameters': missing (not a threedq stage checkpoint)")
+        raise InputError(f"{path}: field 'hyper_parameters': missing (not a threedq stage checkpoint)")
     return hp
 
 
