@@ -27,6 +27,7 @@ from torch.utils.data import DataLoader, Dataset
 from threedq.boxes import boxes_to_aabb
 from threedq.data.box_files import load_boxes_file
 from threedq.data.proposal_cache import propose_dataset
+from threedq.data.samplers import ContiguousDistributedSampler, EpochShuffleSampler
 from threedq.metrics.detection import assign_detections
 from threedq.proposals import ProposalParams
 from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_scene
@@ -100,20 +101,23 @@ class SceneDataset(Dataset):
     def __len__(self) -> int:
         return len(self.files)
 
-    def _choose_views(self, i: int, num_views: int, path: Path) -> np.ndarray:
+    def _choose_views(self, i: int, num_views: int, path: Path, epoch: int | None = None) -> np.ndarray:
         need = self.num_input_views + self.num_target_views
         if need > num_views:
             raise SceneValidationError(
                 str(path), "rgb", f"sample needs {need} distinct views but the scene has {num_views}"
             )
         if self.random_views:
+            if epoch is not None:  # drawn by an EpochShuffleSampler: the same views in any process or worker
+                return np.random.default_rng([self.seed, i, epoch, 1]).permutation(num_views)[:need]
             # torch's global generator: seeded by seed_everything (and per worker by Lightning).
             return torch.randperm(num_views)[:need].numpy()
         rng = np.random.default_rng([self.seed, i])
         return rng.permutation(num_views)[:need]
 
-    def __getitem__(self, i: int) -> dict[str, Any]:
-        """One scene.
+    def __getitem__(self, i: int | tuple[int, int]) -> dict[str, Any]:
+        """One scene: ``i`` is its index, or ``(index, epoch)`` as an :class:`~threedq.data.samplers.EpochShuffleSampler`
+        yields it (the train split's random views are then drawn from ``(seed, index, epoch)``).
 
         Returns:
             ``rgb`` [S,3,H,W] float in [0,1]; ``depth`` [S,H,W] metres (0 invalid); ``K`` [S,3,3];
@@ -128,13 +132,14 @@ class SceneDataset(Dataset):
 
         Convention: frame R = the record's world frame (metres, z up); OpenCV camera axes.
         """
+        i, epoch = (int(i[0]), int(i[1])) if isinstance(i, (tuple, list)) else (i, None)
         path = self.root / self.files[i]
         rec = load_scene(path, bounds=self.index.scene_bounds, num_categories=len(self.index.categories))
         if rec.num_objects > self.max_objects:
             raise SceneValidationError(
                 str(path), "boxes", f"{rec.num_objects} objects but max_objects is {self.max_objects}"
             )
-        views = self._choose_views(i, rec.num_views, path)
+        views = self._choose_views(i, rec.num_views, path, epoch)
         M = self.max_objects
         boxes = np.zeros((M, 7), np.float32)
         boxes[: rec.num_objects] = rec.boxes
@@ -321,10 +326,20 @@ class SceneFolderDataModule(L.LightningDataModule):
             self.setup()
         if split not in self.datasets:
             raise SceneValidationError(str(self.data_dir / "index.json"), "scenes", f"no scenes in split {split!r}")
+        dataset = self.datasets[split]
+        if shuffle:
+            # shuffled by (seed, epoch), each sample's random views by (seed, index, epoch): the same in one
+            # process or many (see threedq.data.samplers)
+            sampler: Any = EpochShuffleSampler(dataset, seed=self.seed)
+        elif torch.distributed.is_available() and torch.distributed.is_initialized():
+            # evaluation under DDP: each sample once, in the one-process order
+            sampler = ContiguousDistributedSampler(dataset)
+        else:
+            sampler = None
         return DataLoader(
-            self.datasets[split],
+            dataset,
             batch_size=self.batch_size,
-            shuffle=shuffle,
+            sampler=sampler,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             drop_last=False,

@@ -265,6 +265,26 @@ class EncoderStage(L.LightningModule):
             self.encoder.requires_grad_(False).eval()
         self.crop_cache: Any = None  # set by the caller (``threedq em``); not a hyperparameter
 
+    def setup(self, stage: str) -> None:
+        """Fix the run folder on every process (see :attr:`run_dir`)."""
+        super().setup(stage)
+        self._run_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+
+    @property
+    def run_dir(self) -> Path:
+        """The folder this run writes its pictures and diagnostics to (the logger's folder).
+
+        Taken once in :meth:`setup`, where every process runs: under DDP ``trainer.log_dir`` is a broadcast from
+        rank 0, so code that only rank 0 runs (writing a picture) must never ask for it: the other ranks would be
+        in the next gradient all-reduce, and the run would hang.
+        """
+        cached = getattr(self, "_run_dir", None)
+        if cached is not None:
+            return cached
+        if self.trainer is None:
+            raise RuntimeError("run_dir: the stage is not attached to a Trainer")
+        return Path(self.trainer.default_root_dir)
+
     def save_hyperparameters(self, *args: Any, **kwargs: Any) -> None:
         """Lightning's, with the resolved grid in place of the None a stage was given (checkpoints carry the grid)."""
         kwargs.setdefault("frame", inspect.currentframe().f_back)
@@ -379,7 +399,8 @@ class EncoderStage(L.LightningModule):
         Returns:
             ``features`` ``[N, C, s, s, s]`` crops of the feature grid, ``raw`` ``[N, 4, s, s, s]`` crops of the
             unprojected input ``cat[occ, occ * rgb]`` (union over the views), ``labels`` ``[N]``, ``boxes``
-            ``[N, 7]`` (oriented GT), ``aabb`` ``[N, 6]``, ``scene`` ``[N]`` — N = valid boxes of the batch.
+            ``[N, 7]`` (oriented GT), ``aabb`` ``[N, 6]``, ``scene`` ``[N]`` (the scene's index in its split), ``slot``
+            ``[N]`` (the box's row in the scene) — N = valid boxes of the batch.
 
         Convention: boxes axis-aligned in R, cropped as their hull and resized to a cube (aspect not kept).
         """
@@ -392,6 +413,7 @@ class EncoderStage(L.LightningModule):
             "boxes": batch["boxes"][mask],
             "aabb": batch["aabb"][mask],
             "scene": batch["scene_index"][:, None].expand_as(mask)[mask],
+            "slot": torch.arange(mask.shape[1], device=mask.device).expand_as(mask)[mask],
         }
         cache = self.crop_cache if self.crops_cacheable() else None
         if cache is not None:

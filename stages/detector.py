@@ -317,7 +317,7 @@ class Detector(EncoderStage):
         if self.trainer is None or not self.trainer.is_global_zero or self.trainer.sanity_checking:
             return
         img = detection_figure(batch, dets, max_scenes=2)
-        log_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+        log_dir = self.run_dir
         ok, png = cv2.imencode(".png", img[:, :, ::-1])
         if ok:
             atomic_write_bytes(log_dir / "images" / f"{tag}_detections_step{self.global_step:06d}.png", png.tobytes())

@@ -451,7 +451,7 @@ class Mining(SplitEvaluation, EncoderStage):
         return torch.tensor(list(index.symmetry_order), dtype=torch.long)
 
     def _write_diagnostics(self, info: dict[str, Any], pool: dict[str, Tensor], mined: dict[str, Tensor]) -> None:
-        out = Path(self.trainer.log_dir or self.trainer.default_root_dir) / "mining"
+        out = self.run_dir / "mining"
         name = f"refresh_{info['step']:06d}"
         atomic_write_text(out / f"{name}.json", json.dumps(info, indent=1) + "\n")
         n = min(8, mined["query_index"].numel())

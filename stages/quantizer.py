@@ -87,6 +87,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         if init_bank_ckpt:
             load_bank_state(self.bank, init_bank_ckpt)
         self._train_crops: list[Tensor] = []
+        self._train_keys: list[Tensor] = []
         sym = symmetry_order if symmetry_order is not None else [1] * num_classes
         self.metrics = torch.nn.ModuleDict(
             {
@@ -103,6 +104,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
 
     def setup(self, stage: str) -> None:
         """Take the category count and symmetry orders from the dataset's ``index.json`` when there is one."""
+        super().setup(stage)
         index = getattr(getattr(self.trainer, "datamodule", None), "index", None)
         if index is None:
             return
@@ -117,27 +119,43 @@ class Quantizer(SplitEvaluation, EncoderStage):
     # ------------------------------------------------------------------ training: collect, then EM
     def on_train_epoch_start(self) -> None:
         self._train_crops = []
+        self._train_keys = []
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         with torch.no_grad():
-            crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)["features"]
+            out = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
+        crops = out["features"]
         self._train_crops.append(crops.detach())
-        self.log("train/objects", float(crops.shape[0]), reduce_fx="sum", on_step=False, on_epoch=True, batch_size=1)
+        self._train_keys.append(out["scene"] * batch["box_mask"].shape[1] + out["slot"])
+        self.log("train/objects", float(crops.shape[0]), reduce_fx="sum", on_step=False, on_epoch=True, batch_size=1,
+                 sync_dist=True)
         if batch_idx == self.trainer.num_training_batches - 1:
             # EM on the last batch of the epoch, so that this epoch's validation sees the updated bank
             self._run_em()
 
     def _gathered_crops(self) -> Tensor:
+        """This epoch's training crops of every process, each object once, in the canonical order.
+
+        The canonical order (scene index, then the box's row) does not depend on the shuffle, nor on how DDP
+        dealt the scenes out, and an object that the distributed sampler's padding showed twice is kept once: so
+        the bank fitted on them is the same in one process and in many (the EM's seeded initialisation visits
+        the objects in an order drawn from this one).
+        """
         crops = torch.cat(self._train_crops) if self._train_crops else self.bank.prototypes[:0]
-        if self.trainer is None or self.trainer.world_size == 1:
-            return crops
-        # pad to the largest count so all_gather sees equal shapes on every process
-        n = torch.tensor([crops.shape[0]], device=crops.device)
-        counts = self.all_gather(n).flatten()
-        pad = int(counts.max()) - crops.shape[0]
-        padded = torch.cat([crops, crops.new_zeros(pad, *crops.shape[1:])])
-        gathered = self.all_gather(padded)  # [W, Nmax, ...]
-        return torch.cat([gathered[r, : int(c)] for r, c in enumerate(counts)])
+        keys = torch.cat(self._train_keys) if self._train_keys else torch.zeros(0, dtype=torch.long, device=crops.device)
+        if self.trainer is not None and self.trainer.world_size > 1:
+            # pad to the largest count so all_gather sees equal shapes on every process
+            n = torch.tensor([crops.shape[0]], device=crops.device)
+            counts = self.all_gather(n).flatten()
+            pad = int(counts.max()) - crops.shape[0]
+            gathered = self.all_gather(torch.cat([crops, crops.new_zeros(pad, *crops.shape[1:])]))  # [W, Nmax, ...]
+            gathered_keys = self.all_gather(torch.cat([keys, keys.new_zeros(pad)]))
+            crops = torch.cat([gathered[r, : int(c)] for r, c in enumerate(counts)])
+            keys = torch.cat([gathered_keys[r, : int(c)] for r, c in enumerate(counts)])
+        keys, order = torch.sort(keys, stable=True)
+        first = torch.ones_like(keys, dtype=torch.bool)
+        first[1:] = keys[1:] != keys[:-1]
+        return crops[order[first]]
 
     def on_train_epoch_end(self) -> None:
         if self._train_crops:  # the epoch stopped before its last batch (max_steps, limit_train_batches)
@@ -145,7 +163,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
 
     def _run_em(self) -> None:
         crops = self._gathered_crops()
-        self._train_crops = []
+        self._train_crops, self._train_keys = [], []
         if crops.shape[0] == 0:
             raise RuntimeError("quantizer: no object crops in the training split")
         bank = run_prototype_em(self.bank, crops, self.hparams.em_iterations, seed=self.hparams.seed,
@@ -190,10 +208,11 @@ class Quantizer(SplitEvaluation, EncoderStage):
                 f"{split}/yaw_acc10": yaw["acc_10"],
                 f"{split}/yaw_acc20": yaw["acc_20"],
                 f"{split}/yaw_pairs": float(yaw["num_pairs"]),
-                f"{split}/objects": float(m["hungarian"].confusion.sum()),
             },
             prog_bar=True,
         )
+        # the confusion matrix is this process's again after compute(): sum the counts over processes
+        self.log(f"{split}/objects", m["hungarian"].confusion.sum().float(), reduce_fx="sum", sync_dist=True)
         for metric in m.values():
             metric.reset()
 

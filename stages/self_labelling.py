@@ -387,7 +387,7 @@ class SelfLabelling(Detector):
         return info
 
     def _write_diagnostics(self, info: dict[str, Any], first: list[tuple[dict[str, Tensor], Tensor]]) -> None:
-        out = Path(self.trainer.log_dir or self.trainer.default_root_dir) / "self_labels"
+        out = self.run_dir / "self_labels"
         atomic_write_text(out / "labels.json", json.dumps(info, indent=1) + "\n")
         if first:
             atomic_write_bytes(out / "labels.png", self_labels_figure(first))

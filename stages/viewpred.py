@@ -281,7 +281,7 @@ class ViewPrediction(EncoderStage):
         img = view_prediction_figure(
             batch["rgb"][0, 0], r["pred"][0] + 0.5, r["target"][0] + 0.5, torch.sigmoid(r["occ_logits"][0, 0]), r["occ"][0, 0]
         )
-        log_dir = Path(self.trainer.log_dir or self.trainer.default_root_dir)
+        log_dir = self.run_dir
         ok, png = cv2.imencode(".png", img[:, :, ::-1])
         if ok:
             atomic_write_bytes(log_dir / "images" / f"{tag}_step{self.global_step:06d}.png", png.tobytes())

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import torch
 import yaml
 from jsonargparse import ArgumentError
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -26,6 +27,7 @@ from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
 from threedq.errors import InputError, flatten_message, user_error_in_chain
+from threedq.pipeline.strategy import DDPStrategy
 from threedq.stages.base import checkpoint_stage
 
 __all__ = [
@@ -291,6 +293,16 @@ class ThreeDQCLI(LightningCLI):
         there, refreshed every 100 training steps, so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
         """
         cfg = self._get(self.config_init, "trainer", default={})
+        accelerator = str(cfg.get("accelerator") or "auto")
+        on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
+        if cfg.get("sync_batchnorm") and on_cpu:
+            # torch's SyncBatchNorm has no CPU kernel: without this the processes start, then fail at the first step
+            raise ConfigError(
+                "--trainer.sync_batchnorm: SyncBatchNorm runs on GPUs only; on CPU use --config trainer/ddp_cpu.yaml "
+                "(or --trainer.sync_batchnorm false)"
+            )
+        if cfg.get("strategy") == "ddp":
+            kwargs["strategy"] = DDPStrategy()  # Lightning's, able to run the quantizer (no trainable parameter)
         root = Path(cfg.get("default_root_dir") or "runs/default")
         if cfg.get("logger") in (None, True) and not cfg.get("fast_dev_run"):
             kwargs["logger"] = [
