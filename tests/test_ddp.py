@@ -118,7 +118,7 @@ def runs(ddp_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
         "det_test": one(["test", *det, f"--ckpt_path={det_ckpt}", f"--trainer.default_root_dir={work / 'dett_1p'}"]),
         "mine_test": one(["test", *mine, f"--trainer.default_root_dir={work / 'mt_1p'}"]),
     }
-    return {"work": work, "ddp": dict(zip(["vp_test", "q_fit", "q_test", "det_fit", "det_test", "mine_test"], results)),
+    return {"work": work, "q_args": q, "ddp": dict(zip(["vp_test", "q_fit", "q_test", "det_fit", "det_test", "mine_test"], results)),
             "single": single}
 
 
@@ -163,6 +163,37 @@ class TestDDP:
         torch.testing.assert_close(a["bank.prototypes"], b["bank.prototypes"], atol=1e-5, rtol=1e-5)
         # each training object once in the EM: the padding of the distributed sampler is not counted twice
         assert runs["ddp"]["q_fit"]["train/objects"] >= runs["single"]["q_fit"]["train/objects"]
+
+
+class TestSlurm:
+    def test_srun_style_launch(self, runs: dict) -> None:
+        """Two processes started as ``srun --ntasks-per-node 2`` starts them (SLURM's variables set by hand, no
+        scheduler here): Lightning's SLURM environment forms the group; the metrics equal one process's."""
+        import csv
+        import socket
+
+        work = runs["work"]
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        args = [sys.executable, "-m", "threedq", "test", *runs["q_args"], "--config", "trainer/ddp_cpu.yaml",
+                f"--ckpt_path={work / 'q_ddp' / 'checkpoints' / 'last.ckpt'}", f"--trainer.default_root_dir={work / 'q_slurm'}"]
+        procs = []
+        for rank in range(2):
+            env = _env() | {"SLURM_JOB_ID": "1", "SLURM_JOB_NAME": "threedq", "SLURM_NTASKS": "2",
+                            "SLURM_NTASKS_PER_NODE": "2", "SLURM_PROCID": str(rank), "SLURM_LOCALID": str(rank),
+                            "SLURM_NODEID": "0", "SLURM_NODELIST": "localhost", "MASTER_PORT": str(port)}
+            procs.append(subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                          text=True))
+        outs = [p.communicate(timeout=300)[0] for p in procs]
+        assert [p.returncode for p in procs] == [0, 0], outs[0][-3000:]
+        assert "MEMBER: 2/2" in outs[1]
+        rows = list(csv.DictReader((work / "q_slurm" / "metrics.csv").open()))
+        got = {k: float(v) for r in rows for k, v in r.items() if k.startswith("test/") and v != ""}
+        one = runs["single"]["q_test"]
+        assert got["test/objects"] == one["test/objects"]
+        for key in ("test/hungarian_acc", "test/fewshot_acc", "test/yaw_median_deg"):
+            assert _same(got[key], one[key]), (key, got[key], one[key])
 
 
 class TestSamplers:

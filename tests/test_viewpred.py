@@ -275,7 +275,7 @@ class TestEm:
         run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt")
         assert "finished earlier" in capsys.readouterr().out
         assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
-        # killed during round 2's self-labelling, after its last checkpoint: a resumed run redoes only that stage
+        # killed during round 2's self-labelling: a resumed run redoes only that stage
         (work / "r02_self_labelling" / "stage.json").unlink()
         shutil.rmtree(work / "r02_detector_eval")
         q_stamp = (work / "r02_quantizer" / "checkpoints" / "last.ckpt").stat().st_mtime_ns
@@ -284,7 +284,8 @@ class TestEm:
         capsys.readouterr()
         again = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt", resume=True)
         out = capsys.readouterr().out
-        assert "round 2 self-labelling: resuming from" in out and "round 2 quantizer: finished earlier" in out
+        assert "round 2 self-labelling: unfinished (interrupted): restarting" in out
+        assert "round 2 quantizer: finished earlier" in out
         assert (work / "r02_quantizer" / "checkpoints" / "last.ckpt").stat().st_mtime_ns == q_stamp
         assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
         assert again["table3"][2]["map_50"] is not None
@@ -354,14 +355,17 @@ class TestEm:
         run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=1)
         run = work / "00_viewpred"
         (run / "stage.json").unlink()  # as if killed after its last checkpoint
+        (run / "images" / ".train_step000000.png.x1y2.tmp").write_bytes(b"torn")  # a write cut short
         (work / "01_viewpred_eval" / "metrics.json").unlink()
         with pytest.raises(RuntimeError, match="--resume"):
             run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=3)
         capsys.readouterr()
         run_em(rounds=0, work_dir=str(work), extra_configs=[cfg], max_steps=3, resume=True)
-        assert "resuming from" in capsys.readouterr().out
+        out = capsys.readouterr().out
+        assert "restarting it from its beginning" in out and "a write cut short" in out
         state = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
         assert state["global_step"] == 3
+        assert not list(work.rglob("*.tmp")) and (work / "01_viewpred_eval" / "metrics.json").is_file()
 
 
 class TestGridTravelsWithEncoder:

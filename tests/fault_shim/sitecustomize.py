@@ -9,15 +9,21 @@ and set ``THREEDQ_FAULT=<ERRNO>:<folder>``. Then, inside ``<folder>``:
 * ``EACCES`` (no write permission, for a root user whom ``chmod`` does not stop): creating a folder or a file,
   or opening one for writing, fails with ``PermissionError``.
 
-Monkeypatching cannot reach a subprocess; this can. Without ``THREEDQ_FAULT`` it does nothing.
+``THREEDQ_KILL_AT=<before|after>:<glob>`` (for ``tests/test_resume.py``): the process sends itself ``SIGKILL`` (a
+``kill -9``: no handler, no clean-up runs) when an ``os.replace`` targets a path matching ``<glob>`` (``fnmatch`` on the
+absolute path), just before or just after the rename: every atomic write of threedq ends in one.
+
+Monkeypatching cannot reach a subprocess; this can. Without ``THREEDQ_FAULT`` / ``THREEDQ_KILL_AT`` it does nothing.
 """
 
 from __future__ import annotations
 
 import builtins
 import errno
+import fnmatch
 import io
 import os
+import signal
 
 _SPEC = os.environ.get("THREEDQ_FAULT", "")
 if _SPEC:
@@ -66,3 +72,19 @@ if _SPEC:
             return _mkdir(path, *args, **kwargs)
 
         os.open, os.mkdir = _guarded_os_open, _guarded_mkdir
+
+_KILL = os.environ.get("THREEDQ_KILL_AT", "")
+if _KILL:
+    _when, _, _pattern = _KILL.partition(":")
+    _replace = os.replace
+
+    def _killing_replace(src, dst, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        hit = fnmatch.fnmatch(os.path.abspath(os.fspath(dst)), _pattern)
+        if hit and _when == "before":
+            os.kill(os.getpid(), signal.SIGKILL)
+        result = _replace(src, dst, *args, **kwargs)
+        if hit and _when == "after":
+            os.kill(os.getpid(), signal.SIGKILL)
+        return result
+
+    os.replace = _killing_replace

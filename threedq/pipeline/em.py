@@ -25,8 +25,13 @@ Layout of ``work_dir``::
 The rounds and their evaluations share one :class:`~threedq.pipeline.crop_cache.CropCache`: while the encoder does
 not change, each scene's object crops are computed once per process, not once per round.
 
-A finished stage (its ``stage.json`` exists) is never re-run; ``--resume`` continues an interrupted
-one from its ``checkpoints/last.ckpt``. Every stage saves its resolved ``config.yaml``, so each can be
+A finished stage (its ``stage.json`` exists) and a finished evaluation (its ``metrics.json`` / ``results.json``)
+are never re-run. ``--resume true`` continues a killed run: the stage that was interrupted restarts from its
+beginning in a cleared folder, and the temporary files of writes the kill cut short are removed, so the resumed run
+ends with the ``metrics.json`` an uninterrupted run of the same seed writes (``tests/test_resume.py``; a stage
+continued mid-way from its ``last.ckpt`` would not: Lightning restarts the epoch's data and does not restore the
+random generators). ``threedq fit --ckpt_path <run>/checkpoints/last.ckpt`` still continues one long stage mid-way,
+approximately. Every stage saves its resolved ``config.yaml``, so each can be
 re-run or inspected on its own with ``threedq fit --config <run>/config.yaml``.
 
 The paper's loop (Sec. 3.4): view-prediction pre-training and its evaluation; the detector warm-started from
@@ -42,6 +47,7 @@ from __future__ import annotations
 
 import json
 import platform
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Literal
@@ -56,7 +62,7 @@ from threedq.pipeline.data_commands import output_folder
 from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.evaluation import SEARCH_LABELS
 from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config, test_checkpoint
-from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer, fewshot_cell, precision_label
+from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer, fewshot_cell, method_rows, precision_label
 
 __all__ = ["run_em"]
 
@@ -66,6 +72,15 @@ ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer", "self_labelling")
 def _stage_done(run_dir: Path) -> dict[str, Any] | None:
     marker = run_dir / "stage.json"
     return json.loads(marker.read_text()) if marker.is_file() else None
+
+
+def _remove_torn_writes(work: Path) -> None:
+    """Delete the temporary files of atomic writes that a kill cut short (``.<name>.<random>.tmp``, see
+    :mod:`threedq.atomic_io`): the file they were to replace is intact, or absent and written again."""
+    for tmp in work.rglob(".*.tmp"):
+        if tmp.is_file():
+            tmp.unlink()
+            print(f"[em] removed {tmp} (a write cut short by the interruption)")
 
 
 def _cli_args(configs: list[Path], run_dir: Path, overrides: list[str]) -> list[str]:
@@ -84,19 +99,19 @@ def _fit_stage(
         print(f"[em] {name}: finished earlier ({run_dir / 'stage.json'}), not re-run")
         return done
     last = run_dir / "checkpoints" / "last.ckpt"
-    ckpt_args: list[str] = []
     if run_dir.exists() and any(run_dir.iterdir()):
         if not resume:
             raise RuntimeError(
                 f"{run_dir} holds an unfinished '{name}' run: pass --resume to continue it, or delete the folder"
             )
-        if last.is_file():
-            ckpt_args = ["--ckpt_path", str(last)]
-            print(f"[em] {name}: resuming from {last}")
+        # Restart the stage from its beginning: continuing from its last.ckpt would not give the numbers of an
+        # uninterrupted run (Lightning restarts the epoch's data and does not restore the random generators).
+        print(f"[em] {name}: unfinished (interrupted): restarting it from its beginning in a cleared {run_dir}")
+        shutil.rmtree(run_dir)
     print(f"[em] {name}: training in {run_dir}")
     t0 = time.time()
     setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
-    ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides), *ckpt_args], model_setup=setup)
+    ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides)], model_setup=setup)
     if not last.is_file():
         raise RuntimeError(f"{name}: training finished without writing {last}")
     info = {"stage": name, "checkpoint": str(last), "seconds": round(time.time() - t0, 1)}
@@ -305,7 +320,7 @@ def _report(summary: dict[str, Any]) -> str:
         lines += ["", "Clustering and pose (paper Tables 1 and 4; yaw error beyond the paper):", "",
                   "| method | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 | @20 |",
                   "|---|---|---|---|---|---|"]
-        for m, v in last["quantization"].items():
+        for m, v in method_rows(last["quantization"]):
             lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
                          f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
         lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`. "
@@ -399,7 +414,8 @@ def run_em(
     Args:
         rounds: EM rounds (detection -> mining -> quantization -> self-labelling) after pre-training.
         work_dir: folder of all runs of this experiment.
-        resume: continue an interrupted stage from its last checkpoint (finished stages are never re-run).
+        resume: continue a killed run: finished stages and evaluations are kept, the interrupted stage restarts from
+            its beginning (the numbers are those of an uninterrupted run).
         config: the view-prediction stage config (a path, or one inside the packaged configs/).
         quantizer_config: the quantizer stage config.
         detector_config: the detector stage config (trained from label-free pseudo-boxes by default).
@@ -425,6 +441,8 @@ def run_em(
     if boxes == "detections" and not detection:
         raise InputError("--boxes: 'detections' needs --detection true")
     work = output_folder("--work_dir", work_dir)
+    if resume:
+        _remove_torn_writes(work)
     if isinstance(extra_configs, (str, Path)):
         extra_configs = [str(extra_configs)]
     extra = [resolve_config(c) for c in (extra_configs or [])]

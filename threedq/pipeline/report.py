@@ -68,6 +68,13 @@ METHOD_LABELS = {
 }
 
 
+def method_rows(quantization: dict[str, Any]) -> list[tuple[str, Any]]:
+    """``quantization``'s (method, result) pairs in the tables' order (:data:`METHOD_LABELS`, then by name), the same
+    whether the dict was just computed or read back from a key-sorted JSON file."""
+    order = list(METHOD_LABELS)
+    return sorted(quantization.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
+
+
 def precision_label(retrieval: dict[str, Any]) -> str:
     """``precision@k`` of a :func:`~threedq.pipeline.evaluation.retrieval_table`, saying so when k was lowered for
     a split of too few objects (``precision@5 (k lowered from 10: 6 test objects)``)."""
@@ -199,7 +206,7 @@ def _markdown(res: dict[str, Any]) -> str:
         "| method | Hungarian acc. | few-shot acc. (2 shots) | yaw median err. (deg) | yaw acc. @10 deg | @20 deg |",
         "|---|---|---|---|---|---|",
     ]
-    for m, v in res["quantization"].items():
+    for m, v in method_rows(res["quantization"]):
         lines.append(
             f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
             f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |"
