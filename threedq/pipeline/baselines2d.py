@@ -95,15 +95,17 @@ def collect_resnet_features(
     """ResNet-18 box-pooled features of every GT object of ``loader`` (view 0): ``features`` ``[N, 512]``,
     ``labels`` ``[N]``, ``visible`` ``[N]`` bool."""
     net.eval()
+    device = next(net.parameters()).device
     out: dict[str, list[Tensor]] = {"features": [], "labels": [], "visible": []}
     for batch in tqdm(loader, desc="ResNet-18 features", disable=not progress, leave=False):
-        rgb = batch["rgb"][:, 0]
-        boxes2d, visible = project_boxes_2d(batch["boxes"], batch["K"][:, 0], batch["R_T_cam"][:, 0], rgb.shape[-2:])
+        rgb, boxes, K, pose = (batch[k].to(device) for k in ("rgb", "boxes", "K", "R_T_cam"))
+        rgb = rgb[:, 0]
+        boxes2d, visible = project_boxes_2d(boxes, K[:, 0], pose[:, 0], rgb.shape[-2:])
         f = object_features(net, rgb, boxes2d, input_size)
-        mask = batch["box_mask"]
-        out["features"].append(f[mask])
-        out["labels"].append(batch["categories"][mask])
-        out["visible"].append(visible[mask])
+        mask = batch["box_mask"].to(device)
+        out["features"].append(f[mask].cpu())
+        out["labels"].append(batch["categories"][batch["box_mask"]])
+        out["visible"].append(visible[mask].cpu())
     return {k: torch.cat(v) for k, v in out.items()}
 
 

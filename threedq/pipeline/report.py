@@ -81,6 +81,8 @@ METHOD_LABELS = {
     "pointcloud": "point-cloud registration",
     "q25d": "2.5DQ-Nets (2D prototypes, in-plane rotation search)",
 }
+
+
 def cluster_search_label(method: str = "fast") -> str:
     """How each clustering row searches rotations (every clustering table names it): the stage's bank (threedq)
     uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search."""
@@ -330,7 +332,7 @@ def evaluate_quantizer(
             proto, _, _ = _assign(m, train, test, k, A, em_iterations, seed)
             conf = cluster_confusion(proto, labels, k, len(cats))
             curve.setdefault(m, {})[str(k)] = float(hungarian_accuracy(conf))
-    for name, extra in (("q25d", q25d), ("resnet", resnet)):
+    for extra in (q25d, resnet):
         if extra is not None:
             extra.to(model.device)
     if q25d is not None:
