@@ -8,6 +8,8 @@ Convention:
     rest are local ops, each docstring says what kornia lacks (``benchmarks/bench_geometry_kornia.py``).
 """
 
+from .boxes2d import *  # noqa: F403
+from .boxes2d import __all__ as _boxes2d_all
 from .camera import *  # noqa: F403
 from .camera import __all__ as _camera_all
 from .crop import *  # noqa: F403
@@ -23,4 +25,4 @@ from .rotate import __all__ as _rotate_all
 from .unproject import *  # noqa: F403
 from .unproject import __all__ as _unproject_all
 
-__all__ = [*_grid_all, *_camera_all, *_unproject_all, *_crop_all, *_rotate_all, *_frustum_all, *_ground_all]
+__all__ = [*_grid_all, *_camera_all, *_unproject_all, *_crop_all, *_rotate_all, *_frustum_all, *_ground_all, *_boxes2d_all]

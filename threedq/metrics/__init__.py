@@ -9,7 +9,13 @@ from threedq.metrics.clustering import (
     purity,
 )
 from threedq.metrics.detection import DetectionMAP, assign_detections, average_precision, match_detections
-from threedq.metrics.fewshot import FewShotAccuracy, few_shot_accuracy, select_labelled
+from threedq.metrics.fewshot import (
+    FewShotAccuracy,
+    few_shot_accuracy,
+    linear_probe_accuracy,
+    nearest_shot_accuracy,
+    select_labelled,
+)
 from threedq.metrics.pose import RelativeYawError, relative_yaw_error, relative_yaw_errors
 from threedq.metrics.retrieval import RetrievalPrecisionAtK, retrieval_precision_at_k
 
@@ -25,6 +31,8 @@ __all__ = [
     "cluster_confusion",
     "few_shot_accuracy",
     "hungarian_accuracy",
+    "linear_probe_accuracy",
+    "nearest_shot_accuracy",
     "match_detections",
     "matching",
     "purity",

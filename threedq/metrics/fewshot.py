@@ -18,7 +18,7 @@ from torchmetrics.utilities import dim_zero_cat
 
 from threedq.metrics.clustering import _check_ids, _check_pair
 
-__all__ = ["FewShotAccuracy", "few_shot_accuracy", "select_labelled"]
+__all__ = ["FewShotAccuracy", "few_shot_accuracy", "linear_probe_accuracy", "nearest_shot_accuracy", "select_labelled"]
 
 
 def _check_shots(shots: int) -> None:
@@ -208,3 +208,94 @@ class FewShotAccuracy(Metric):
             return torch.tensor(float("nan"))
         clusters, labels = dim_zero_cat(self.clusters), dim_zero_cat(self.labels)
         return few_shot_accuracy(clusters, labels, self.shots, self.seed, self.num_clusters)["accuracy"]
+
+
+def _shot_split(labels: Tensor, shots: int, seed: int) -> tuple[Tensor, Tensor]:
+    labelled = select_labelled(labels, shots, seed)
+    evaluated = torch.ones(labels.numel(), dtype=torch.bool)
+    evaluated[labelled] = False
+    return labelled, evaluated
+
+
+def _check_features(features: Tensor, labels: Tensor) -> None:
+    if not isinstance(features, Tensor) or features.ndim != 2 or not features.is_floating_point():
+        raise ValueError(f"features must be a float tensor [N, D], got {getattr(features, 'shape', type(features))}")
+    _check_ids(labels, "labels", None)
+    if labels.numel() != features.shape[0]:
+        raise ValueError(f"labels must have {features.shape[0]} entries (one per feature row), got {labels.numel()}")
+
+
+def nearest_shot_accuracy(features: Tensor, labels: Tensor, shots: int = 2, seed: int = 0) -> dict[str, Tensor]:
+    """Few-shot accuracy by retrieval (the paper's "ResNetRet"): copy the label of the nearest labelled example.
+
+    The labelled examples are :func:`select_labelled` ``(labels, shots, seed)``; every other object takes the
+    label of the labelled example of highest cosine similarity (ties: the lowest index).
+
+    Args:
+        features: ``[N, D]`` object features.
+        labels: ``[N]`` category ids.
+        shots, seed: as :func:`few_shot_accuracy`.
+
+    Returns:
+        ``accuracy`` (scalar, NaN when every object is labelled), ``labelled_indices`` ``[M]``, ``predicted``
+        ``[N]`` (labelled objects keep their own label).
+
+    Convention: cosine similarity of the raw feature vectors; accuracy micro-averaged over the unlabelled objects.
+    """
+    _check_features(features, labels)
+    _check_shots(shots)
+    feats, labels = features.detach().double().cpu(), labels.detach().long().cpu()
+    labelled, evaluated = _shot_split(labels, shots, seed)
+    f = torch.nn.functional.normalize(feats, dim=1)
+    nearest = (f @ f[labelled].T).argmax(dim=1)  # [N]
+    predicted = labels[labelled][nearest]
+    predicted[labelled] = labels[labelled]
+    acc = (predicted[evaluated] == labels[evaluated]).float().mean() if evaluated.any() else torch.tensor(float("nan"))
+    return {"accuracy": acc, "labelled_indices": labelled, "predicted": predicted}
+
+
+def linear_probe_accuracy(
+    features: Tensor, labels: Tensor, shots: int = 2, seed: int = 0, weight_decay: float = 1e-3, iterations: int = 100
+) -> dict[str, Tensor]:
+    """Few-shot accuracy of a linear classifier trained on the labelled examples (the paper's "ResNetClass").
+
+    A multinomial logistic regression (the top layer, features frozen) on the L2-normalised features of the
+    :func:`select_labelled` examples, full batch, L-BFGS from zero weights in float64 with an L2 penalty
+    ``weight_decay * ||W||^2`` (deterministic); it predicts every other object.
+
+    Args:
+        features: ``[N, D]`` object features.
+        labels: ``[N]`` category ids.
+        shots, seed: as :func:`few_shot_accuracy`.
+        weight_decay: L2 penalty on the weights (not the bias).
+        iterations: L-BFGS iterations.
+
+    Returns:
+        ``accuracy`` (scalar, NaN when every object is labelled), ``labelled_indices`` ``[M]``, ``predicted`` ``[N]``.
+
+    Convention: classes are the category ids ``0 .. max(labels)``; a category without labelled examples is never
+    predicted (its logit has no positive example and is driven down).
+    """
+    _check_features(features, labels)
+    _check_shots(shots)
+    feats, labels = features.detach().double().cpu(), labels.detach().long().cpu()
+    labelled, evaluated = _shot_split(labels, shots, seed)
+    x = torch.nn.functional.normalize(feats, dim=1)
+    num_classes = int(labels.max()) + 1
+    w = torch.zeros(x.shape[1], num_classes, dtype=torch.float64, requires_grad=True)
+    b = torch.zeros(num_classes, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.LBFGS([w, b], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
+    xs, ys = x[labelled], labels[labelled]
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = torch.nn.functional.cross_entropy(xs @ w + b, ys) + weight_decay * w.pow(2).sum()
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        opt.step(closure)
+    with torch.no_grad():
+        predicted = (x @ w + b).argmax(dim=1)
+    acc = (predicted[evaluated] == labels[evaluated]).float().mean() if evaluated.any() else torch.tensor(float("nan"))
+    return {"accuracy": acc, "labelled_indices": labelled, "predicted": predicted}

@@ -169,12 +169,20 @@ def evaluate_features(
 
 
 def quantization_metrics(
-    clusters: Tensor, angles: Tensor, num_angles: int, num_clusters: int, labels: Tensor, gt_yaw: Tensor,
+    clusters: Tensor, angles: Tensor, num_angles: int, num_clusters: int, labels: Tensor, gt_yaw: Tensor | None,
     num_classes: int, symmetry_order: list[int], shots: int = 2, seed: int = 0,
 ) -> dict[str, float]:
-    """Hungarian accuracy, few-shot accuracy and relative yaw error of one assignment."""
+    """Hungarian accuracy, few-shot accuracy and relative yaw error of one assignment.
+
+    ``gt_yaw`` None (an assignment whose angles are not yaws, e.g. 2.5DQ-Nets' in-plane angles): the yaw fields
+    are NaN and ``yaw_pairs`` 0.
+    """
     conf = cluster_confusion(clusters, labels, num_clusters, num_classes)
     fs = few_shot_accuracy(clusters, labels, shots=shots, seed=seed, num_clusters=num_clusters)
+    if gt_yaw is None:
+        nan = float("nan")
+        return {"hungarian_acc": float(hungarian_accuracy(conf)), "fewshot_acc": float(fs["accuracy"]),
+                "yaw_median_deg": nan, "yaw_acc_10": nan, "yaw_acc_20": nan, "yaw_pairs": 0}
     est = yaw_angles(num_angles, dtype=torch.float64)[angles]
     yaw = relative_yaw_error(est, gt_yaw.double(), labels, clusters, symmetry_order)
     return {

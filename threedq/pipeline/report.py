@@ -9,6 +9,10 @@ On held-out scenes with GT boxes (paper Sec. 4.1-4.2):
   registration; and accuracy against K.
 * Table 1 — few-shot labelling accuracy (2 labelled crops per category propagated through the prototypes).
 * Beyond the paper — relative yaw error between objects of one category assigned to one prototype.
+* The 2D baselines (opt-in, :mod:`threedq.pipeline.baselines2d`): 2.5DQ-Nets (``--q25d``, a
+  ``stages/q25d.yaml`` checkpoint) in Tables 1 and 4 and Fig. 3a; ImageNet ResNet-18 (``--weights``, a
+  torchvision ``resnet18`` file) in Tables 2 (retrieval) and 1 (ResNetRet, ResNetClass). Without them the
+  tables say how to get those rows, never a number.
 
 Prototype banks are fitted on the training split's objects and evaluated on the test split's objects.
 Outputs in ``out``: ``results.json``, ``results.md``, ``objects_test.json`` (each test object's prototype and
@@ -52,6 +56,16 @@ from threedq.pipeline.evaluation import (  # noqa: E402
     retrieval_table,
 )
 from threedq.pipeline.crop_cache import CropCache  # noqa: E402
+from threedq.pipeline.baselines2d import (  # noqa: E402
+    Q25D_HOWTO,
+    RESNET_HOWTO,
+    collect_q25d_crops,
+    collect_resnet_features,
+    load_q25d,
+    load_resnet,
+    q25d_results,
+    resnet_results,
+)
 from threedq.pipeline.data_commands import output_folder  # noqa: E402
 from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table  # noqa: E402
 from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
@@ -65,6 +79,7 @@ METHOD_LABELS = {
     "threedq": "threedq (rotation-aware 3D prototypes)",
     "no_rot": "no-rot-3DQ (no rotation search)",
     "pointcloud": "point-cloud registration",
+    "q25d": "2.5DQ-Nets (2D prototypes, in-plane rotation search)",
 }
 
 
@@ -73,6 +88,16 @@ def method_rows(quantization: dict[str, Any]) -> list[tuple[str, Any]]:
     whether the dict was just computed or read back from a key-sorted JSON file."""
     order = list(METHOD_LABELS)
     return sorted(quantization.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
+
+
+def cluster_search_label(method: str = "fast") -> str:
+    """How each clustering row searches rotations (every clustering table names it): the stage's bank (threedq)
+    uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search."""
+    own = "exact search over 36 yaw steps (cosine over the full cube)" if method == "exact" else (
+        "fast search over 36 yaw steps (cosine over the inscribed cylinder)")
+    return (f"Prototype assignment: threedq by the {own}; no-rot-3DQ by the same bank EM with 1 yaw step (no search); "
+            "2.5DQ-Nets by the fast search on one-slice crops, i.e. over 36 in-plane angles (cosine over the inscribed "
+            "disc); point-cloud registration by its occupancy-only similarity over 36 yaw steps.")
 
 
 def precision_label(retrieval: dict[str, Any]) -> str:
@@ -199,24 +224,51 @@ def _markdown(res: dict[str, Any]) -> str:
                         ("random_encoder", "randomly initialised encoder")):
         if name in r["precision_at_k"]:
             lines.append(f"| {label} | {r['precision_at_k'][name]:.3f} |")
+    rn = res.get("resnet")
+    rn_label = "ImageNet ResNet-18 (layer4 pooled in the projected GT box; cosine, no rotation search)"
+    if rn is None:
+        lines.append(f"| {rn_label} | {RESNET_HOWTO} |")
+    else:
+        at = f" (at k = {rn['k']})" if rn["k"] != r["k"] else ""
+        lines.append(f"| {rn_label} | {rn['precision_at_k']:.3f}{at} |")
     lines += [
         "",
         f"## Clustering into K = {res['num_prototypes']} prototypes (paper Tables 1 and 4), and pose",
+        "",
+        res.get("cluster_search", cluster_search_label()),
         "",
         "| method | Hungarian acc. | few-shot acc. (2 shots) | yaw median err. (deg) | yaw acc. @10 deg | @20 deg |",
         "|---|---|---|---|---|---|",
     ]
     for m, v in method_rows(res["quantization"]):
-        lines.append(
-            f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
-            f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |"
-        )
+        if m == "q25d":
+            yaw = "n/a (in-plane angle, not a yaw) | n/a | n/a"
+        else:
+            yaw = f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f}"
+        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | {yaw} |")
+    if "q25d" not in res["quantization"]:
+        lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} | | | | |")
+    lines += ["", "## Few-shot labelling, 2 labelled objects per category (paper Table 1)", "",
+              "Prototype rows: labels propagated through the prototypes above (same search); ResNetRet: label of the "
+              "nearest labelled object (cosine, no rotation); ResNetClass: a linear classifier (logistic regression) "
+              "trained on the labelled objects' ResNet-18 features. The same labelled draw (seed) for every row.", "",
+              "| method | few-shot acc. |", "|---|---|"]
+    for m, v in method_rows(res["quantization"]):
+        lines.append(f"| {METHOD_LABELS.get(m, m)} | {fewshot_cell(v['fewshot_acc'])} |")
+    if "q25d" not in res["quantization"]:
+        lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} |")
+    for key, label in (("ret_acc", "ResNetRet (ImageNet ResNet-18, nearest labelled object)"),
+                       ("class_acc", "ResNetClass (ImageNet ResNet-18 + linear classifier on the shots)")):
+        lines.append(f"| {label} | {RESNET_HOWTO if rn is None else fewshot_cell(rn[key])} |")
     if res.get("curve"):
         ks = sorted({int(k) for v in res["curve"].values() for k in v})
-        lines += ["", "## Hungarian accuracy vs K (paper Fig. 3a)", "",
-                  "| method | " + " | ".join(f"K={k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
-        for m, v in res["curve"].items():
-            lines.append(f"| {METHOD_LABELS.get(m, m)} | " + " | ".join(f"{v[str(k)]:.3f}" for k in ks) + " |")
+        lines += ["", "## Hungarian accuracy vs K (paper Fig. 3a)", "", res.get("cluster_search", cluster_search_label()),
+                  "", "| method | " + " | ".join(f"K={k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
+        for m, v in method_rows(res["curve"]):
+            lines.append(f"| {METHOD_LABELS.get(m, m)} | " + " | ".join(
+                f"{v[str(k)]:.3f}" if str(k) in v else "-" for k in ks) + " |")
+        if "q25d" not in res["curve"]:
+            lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} |" + " |" * (len(ks) - 1))
     lines += ["", "Yaw error: pairs of objects of one asymmetric category assigned to one prototype; the estimated "
               "relative yaw (from the rotation search) against the true one.", ""]
     return "\n".join(lines)
@@ -234,6 +286,8 @@ def evaluate_quantizer(
     seed: int = 0,
     progress: bool = True,
     search: str = RETRIEVAL_SEARCH,
+    q25d: Any = None,
+    resnet: Any = None,
 ) -> dict[str, Any]:
     """The evaluation of a trained :class:`~threedq.stages.quantizer.Quantizer`; writes the outputs.
 
@@ -242,6 +296,9 @@ def evaluate_quantizer(
         out: output folder.
         test_metrics: what ``trainer.test`` returned for the stage (its ``test_step`` scores the threedq row:
             Hungarian, few-shot and yaw); retrieval, the baselines, the curve and the pictures are computed here.
+        q25d: a :class:`~threedq.stages.q25d.Q25D` (:func:`~threedq.pipeline.baselines2d.load_q25d`) for the
+            2.5DQ-Nets rows, or None (the tables say how to get them).
+        resnet: a :class:`~threedq.baselines.resnet.ResNet18` with ImageNet weights for the ResNet rows, or None.
     """
     out = Path(out)
     t0 = time.time()
@@ -282,6 +339,25 @@ def evaluate_quantizer(
             proto, _, _ = _assign(m, train, test, k, A, em_iterations, seed)
             conf = cluster_confusion(proto, labels, k, len(cats))
             curve.setdefault(m, {})[str(k)] = float(hungarian_accuracy(conf))
+    for extra in (q25d, resnet):
+        if extra is not None:
+            extra.to(model.device)
+    if q25d is not None:
+        t2 = time.time()
+        tr2 = collect_q25d_crops(q25d, split_loader(dm, "train"), progress)
+        te2 = collect_q25d_crops(q25d, split_loader(dm, "test"), progress)
+        if not torch.equal(te2["labels"], labels):
+            raise RuntimeError("2.5DQ-Nets: the test objects differ from threedq's (loader order?)")
+        row, q_curve = q25d_results(tr2, te2, K, A, len(cats), curve_k, em_iterations, seed)
+        quant["q25d"] = {**row, "num_train_objects": int(tr2["labels"].shape[0]), "seconds": round(time.time() - t2, 1)}
+        if q_curve:
+            curve["q25d"] = q_curve
+    resnet_res = None
+    if resnet is not None:
+        te_r = collect_resnet_features(resnet, split_loader(dm, "test"), progress=progress)
+        if not torch.equal(te_r["labels"], labels):
+            raise RuntimeError("ResNet-18: the test objects differ from threedq's (loader order?)")
+        resnet_res = resnet_results(te_r, k=10, seed=seed)
     res = {
         "split": "test",
         "num_train_objects": int(train["labels"].shape[0]),
@@ -292,6 +368,10 @@ def evaluate_quantizer(
         "retrieval": retrieval,
         "quantization": quant,
         "curve": curve,
+        "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast")),
+        "resnet": resnet_res,
+        "not_run": {**({} if q25d is not None else {"q25d": Q25D_HOWTO}),
+                    **({} if resnet is not None else {"resnet": RESNET_HOWTO})},
     }
     out.mkdir(parents=True, exist_ok=True)
     if curve:
@@ -338,6 +418,8 @@ def run_eval(
     seed: int = 0,
     search: str = RETRIEVAL_SEARCH,
     encoders: dict[str, str] | None = None,
+    q25d: str | None = None,
+    weights: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate a quantizer checkpoint on the held-out split; print and write the tables and figures.
 
@@ -356,6 +438,10 @@ def run_eval(
             Hungarian, few-shot and yaw beside it; rows for raw crops and a random encoder are added), e.g.
             ``{"rgbocc": "runs/viewpred/checkpoints/last.ckpt", "ours": "runs/mining/checkpoints/last.ckpt"}``.
             Written to ``table2.json`` and ``table2.md``.
+        q25d: a 2.5DQ-Nets checkpoint (``threedq fit --config stages/q25d.yaml``) for its rows in Tables 1 and 4
+            and Fig. 3a (banks fitted here on its 2D crops of the training split).
+        weights: a torchvision ``resnet18`` ImageNet state dict (e.g. ``resnet18-f37072fd.pth``; nothing is
+            downloaded) for the ResNet rows of Tables 1 and 2.
     """
 
     if isinstance(extra_configs, (str, Path)):
@@ -368,11 +454,13 @@ def run_eval(
     if stage != "quantizer":
         kind = f"a {stage}" if stage else "not a stage"
         raise InputError(f"{ckpt}: this is {kind} checkpoint; eval needs a quantizer checkpoint")
+    q25d_model = load_q25d(q25d) if q25d else None  # bad files are refused before the long work
+    resnet = load_resnet(weights) if weights else None
     cache = CropCache()  # the test pass and the crops below encode each test scene once
     cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: setattr(m, "crop_cache", cache))
     res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
                              curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
-                             em_iterations=em_iterations, seed=seed, search=search)
+                             em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet)
     print(_markdown(res))
     if encoders:
         dm = cli.datamodule

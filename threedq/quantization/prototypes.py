@@ -29,7 +29,8 @@ __all__ = ["PrototypeBank", "fill_free_slots", "fit_prototype_bank", "quantizati
 
 
 class PrototypeBank(nn.Module):
-    """K prototypes of shape ``[C, S, S, S]`` with incremental initialisation and closed-form EM updates.
+    """K prototypes of shape ``[C, D, S, S]`` (``D = S`` for 3D crops) with incremental initialisation and
+    closed-form EM updates.
 
     Args:
         num_prototypes: K, the number of slots.
@@ -40,6 +41,9 @@ class PrototypeBank(nn.Module):
         init_threshold: an exemplar opens a new prototype only if its best cosine to every prototype is
             below this (paper: 0.8).
         method: rotation search implementation, ``"fast"`` or ``"exact"``.
+        depth: D, the crops' extent along the rotation axis (default ``size``: ``S^3`` crops); ``depth=1``
+            holds 2D prototypes ``[C, 1, S, S]`` whose yaw search is an in-plane rotation search (2.5DQ-Nets,
+            :mod:`threedq.quantization.inplane`).
     """
 
     def __init__(
@@ -50,9 +54,11 @@ class PrototypeBank(nn.Module):
         num_angles: int = 36,
         init_threshold: float = 0.8,
         method: str = "fast",
+        depth: int | None = None,
     ) -> None:
         super().__init__()
-        if num_prototypes < 1 or channels < 1 or size < 1 or num_angles < 1:
+        depth = size if depth is None else depth
+        if num_prototypes < 1 or channels < 1 or size < 1 or num_angles < 1 or depth < 1:
             raise ValueError(
                 f"num_prototypes, channels, size, num_angles must be >= 1, got {num_prototypes}, {channels}, {size}, "
                 f"{num_angles}"
@@ -62,7 +68,7 @@ class PrototypeBank(nn.Module):
         self.num_angles = num_angles
         self.init_threshold = init_threshold
         self.method = method
-        shape = (num_prototypes, channels, size, size, size)
+        shape = (num_prototypes, channels, depth, size, size)
         self.register_buffer("prototypes", torch.zeros(shape))
         self.register_buffer("active", torch.zeros(num_prototypes, dtype=torch.bool))
         self.register_buffer("member_sum", torch.zeros(shape))
@@ -172,11 +178,14 @@ def fit_prototype_bank(
     seed: int = 0,
     chunk: int = 256,
 ) -> PrototypeBank:
-    """A new bank fitted to ``crops`` by :func:`run_prototype_em` (what the quantizer stage runs, in memory)."""
-    if crops.ndim != 5:
-        raise ValueError(f"crops: expected [N, C, S, S, S], got {tuple(crops.shape)}")
-    C, S = crops.shape[1], crops.shape[2]
-    bank = PrototypeBank(num_prototypes, C, S, num_angles, init_threshold, method).to(crops.device)
+    """A new bank fitted to ``crops`` by :func:`run_prototype_em` (what the quantizer stage runs, in memory).
+
+    ``crops`` ``[N, C, D, S, S]``: 3D crops (``D = S``) or 2D crops as one-slice volumes (``D = 1``).
+    """
+    if crops.ndim != 5 or crops.shape[3] != crops.shape[4]:
+        raise ValueError(f"crops: expected [N, C, D, S, S], got {tuple(crops.shape)}")
+    C, D, S = crops.shape[1], crops.shape[2], crops.shape[3]
+    bank = PrototypeBank(num_prototypes, C, S, num_angles, init_threshold, method, depth=D).to(crops.device)
     return run_prototype_em(bank, crops, iterations, seed=seed, fill_free=True, chunk=chunk)
 
 

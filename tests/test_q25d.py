@@ -1,0 +1,145 @@
+"""The 2.5DQ-Nets stage and the 2D baseline rows of ``threedq eval``, end to end on the tiny dataset.
+
+One module fixture trains (1-2 steps each) view prediction, the quantizer and 2.5DQ-Nets through the real
+CLI config path, and saves a randomly initialised ResNet-18 in torchvision's layout as the ``--weights`` file.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from threedq.baselines.resnet import ResNet18
+from threedq.errors import InputError
+
+
+@dataclass
+class Run:
+    root: Path
+    config: Path
+    viewpred: Path
+    quantizer: Path
+    q25d: Path
+    weights: Path
+
+
+def _tiny_config(path: Path, data_dir: Path, model: dict | None = None) -> Path:
+    path.write_text(yaml.safe_dump({
+        "model": {"init_args": model or {"grid_resolution": [32, 32, 16]}},
+        "data": {"init_args": {"data_dir": str(data_dir), "num_scenes": 12, "image_size": [32, 32], "num_views": 4,
+                               "generator_workers": 1}},
+        "trainer": {"max_steps": 1, "log_every_n_steps": 1, "limit_val_batches": 1, "enable_progress_bar": False,
+                    "enable_model_summary": False},
+    }))
+    return path
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory, tiny_dataset: Path) -> Run:
+    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+
+    root = tmp_path_factory.mktemp("q25d")
+    data = root / "data"
+    shutil.copytree(tiny_dataset, data, ignore=shutil.ignore_patterns("proposals"))
+    config = _tiny_config(root / "tiny.yaml", data)
+    common = ["--trainer.logger=false", "--trainer.enable_checkpointing=false"]
+    cli = ThreeDQCLI(args=["--config", str(resolve_config("stages/viewpred.yaml")), "--config", str(config), *common,
+                           f"--trainer.default_root_dir={root / 'runs'}"], run=False)
+    cli.trainer.fit(cli.model, datamodule=cli.datamodule)
+    vp = root / "viewpred.ckpt"
+    cli.trainer.save_checkpoint(vp, weights_only=True)
+    cli = ThreeDQCLI(args=["--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(config), *common,
+                           f"--model.init_args.encoder_ckpt={vp}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
+                           f"--trainer.default_root_dir={root / 'runs'}"], run=False)
+    cli.trainer.fit(cli.model, datamodule=cli.datamodule)
+    q = root / "quantizer.ckpt"
+    cli.trainer.save_checkpoint(q, weights_only=True)
+    q25d_cfg = _tiny_config(root / "tiny_q25d.yaml", data, {"crop_size": 8})
+    cli = ThreeDQCLI(args=["--config", str(resolve_config("stages/q25d.yaml")), "--config", str(q25d_cfg), *common,
+                           "--trainer.max_steps=2", f"--trainer.default_root_dir={root / 'runs'}"], run=False)
+    cli.trainer.fit(cli.model, datamodule=cli.datamodule)
+    q25d = root / "q25d.ckpt"
+    cli.trainer.save_checkpoint(q25d, weights_only=True)
+    torch.manual_seed(0)
+    weights = root / "resnet18.pth"
+    torch.save(ResNet18().state_dict(), weights)
+    shutil.rmtree(root / "runs", ignore_errors=True)
+    return Run(root, config, vp, q, q25d, weights)
+
+
+def test_stage_learns_and_crops_in_threedq_order(run: Run, tiny_dataset: Path) -> None:
+    """Autoencoding loss drops on a fixed batch; object crops come in the 3D stages' order with their labels."""
+    from threedq.pipeline.baselines2d import load_q25d
+    from threedq.scene import load_index
+    from threedq.datamodules.scene_folder import SceneDataset
+
+    model = load_q25d(run.q25d)
+    assert model.hparams.crop_size == 8
+    ds = SceneDataset(tiny_dataset, load_index(tiny_dataset), "train", num_target_views=0)
+    batch = torch.utils.data.default_collate([ds[0], ds[1]])
+    crops = model.object_crops(batch)
+    n = int(batch["box_mask"].sum())
+    assert crops["features"].shape == (n, 32, 8, 8)
+    assert torch.equal(crops["labels"], batch["categories"][batch["box_mask"]])
+    assert bool(crops["visible"].all())  # generated scenes keep their objects in view
+    torch.manual_seed(0)
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(8):
+        loss = model._step(batch)["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.8 * losses[0]
+
+
+def test_eval_rows_with_and_without_baselines(run: Run, tmp_path: Path) -> None:
+    from threedq.pipeline.report import run_eval
+
+    out = tmp_path / "with"
+    res = run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(out), baselines=True, curve_k=[2, 3],
+                   q25d=str(run.q25d), weights=str(run.weights), em_iterations=2)
+    q = res["quantization"]["q25d"]
+    assert 0.0 <= q["hungarian_acc"] <= 1.0 and q["yaw_pairs"] == 0
+    assert set(res["curve"]["q25d"]) == {"2", "3"}
+    rn = res["resnet"]
+    assert rn["num_objects"] == res["num_test_objects"] and 0.0 <= rn["precision_at_k"] <= 1.0
+    assert res["not_run"] == {}
+    md = (out / "results.md").read_text()
+    assert "| 2.5DQ-Nets (2D prototypes, in-plane rotation search) | " in md
+    assert "n/a (in-plane angle, not a yaw)" in md
+    assert "| ResNetRet (ImageNet ResNet-18, nearest labelled object) |" in md
+    assert "needs --weights" not in md and "not run" not in md
+    assert "in-plane angles" in md and "fast search" in md  # the tables name their searches
+    assert json.loads((out / "results.json").read_text())["resnet"]["k"] == rn["k"]
+
+    out = tmp_path / "without"
+    res = run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(out), baselines=False, curve_k=[2])
+    md = (out / "results.md").read_text()
+    assert "q25d" not in res["quantization"] and res["resnet"] is None
+    assert set(res["not_run"]) == {"q25d", "resnet"}
+    for table_row in ("| ImageNet ResNet-18 (layer4 pooled in the projected GT box; cosine, no rotation search) | needs --weights",
+                      "| ResNetClass (ImageNet ResNet-18 + linear classifier on the shots) | needs --weights",
+                      "| 2.5DQ-Nets (2D prototypes, in-plane rotation search) | not run: train it with `threedq fit --config "
+                      "stages/q25d.yaml`"):
+        assert table_row in md
+    assert md.count("2.5DQ-Nets (2D prototypes, in-plane rotation search) | not run") == 3  # Tables 4, 1 and Fig. 3a
+
+
+def test_bad_baseline_files_are_one_line_input_errors(run: Run, tmp_path: Path) -> None:
+    from threedq.pipeline.report import run_eval
+
+    with pytest.raises(InputError, match="this is a quantizer checkpoint; --q25d needs a 2.5DQ-Nets"):
+        run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "a"), q25d=str(run.quantizer))
+    bad = tmp_path / "bad.pth"
+    torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, bad)
+    with pytest.raises(InputError, match=r"bad.pth: field 'bn1.weight': missing"):
+        run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "b"), weights=str(bad))
