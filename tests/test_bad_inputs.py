@@ -40,6 +40,8 @@ import torch
 import yaml
 
 
+pytestmark = pytest.mark.slow
+
 TESTS = Path(__file__).resolve().parent
 SHIM = TESTS / "fault_shim"
 PARALLEL = 2
