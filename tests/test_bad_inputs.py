@@ -455,6 +455,10 @@ CASES: list[Case] = [
     Case("config_not_a_mapping", _config_case("- 1\n- 2\n", "{cfg}", "field '<file>'", "expected a mapping")),
     Case("config_old_class_path", _config_case("model:\n  class_path: stages.viewpred.ViewPrediction\n", "{cfg}",
                                                "field 'class_path'", "threedq.stages.viewpred.ViewPrediction")),
+    Case("config_syncbn_on_cpu", lambda ctx: Run(
+        ["fit", "--config", "stages/viewpred.yaml", "--config", str(ctx.shared.config), "--config", "trainer/ddp.yaml",
+         "--trainer.accelerator=cpu", "--trainer.devices=2", f"--trainer.default_root_dir={ctx.dir / 'run'}"],
+        ["--trainer.sync_batchnorm", "trainer/ddp_cpu.yaml"])),
     Case("config_missing_file", lambda ctx: Run(["fit", "--config", str(ctx.dir / "nope.yaml")],
                                                 [str(ctx.dir / "nope.yaml"), "not found"])),
     Case("option_wrong_type", lambda ctx: Run(["fit", "--config", "stages/viewpred.yaml", "--trainer.max_steps=abc"],
