@@ -20,7 +20,6 @@ from the prototypes, as in the paper); volumes ``[B, C, Z, Y, X]``.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import cv2

@@ -39,7 +39,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from pathlib import Path
 from typing import Any, Literal
 
 import cv2

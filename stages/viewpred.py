@@ -14,7 +14,6 @@ L1 on the above-ground pixels (``l1_fg``).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Literal
 
 import cv2
