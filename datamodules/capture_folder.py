@@ -35,7 +35,7 @@ class CaptureDataModule(SceneFolderDataModule):
         max_depth: depth beyond this many metres becomes 0.
         parser_options: keyword arguments of the format's parser (e.g. ``intrinsics`` for TUM).
         batch_size, num_workers, num_input_views, num_target_views, max_objects, seed, boxes, match_iou,
-            max_boxes: as in :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
+            max_boxes, train_random_views: as in :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
 
     FORMAT: ClassVar[str] = ""
@@ -56,6 +56,7 @@ class CaptureDataModule(SceneFolderDataModule):
         boxes: str = "gt",
         match_iou: float = 0.5,
         max_boxes: int = 8,
+        train_random_views: bool = True,
     ) -> None:
         super().__init__(
             data_dir=data_dir,
@@ -68,6 +69,7 @@ class CaptureDataModule(SceneFolderDataModule):
             boxes=boxes,
             match_iou=match_iou,
             max_boxes=max_boxes,
+            train_random_views=train_random_views,
         )
         bad = [s for s in capture_dirs if s not in ("train", "val", "test")]
         if bad:

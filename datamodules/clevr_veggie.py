@@ -38,7 +38,7 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         num_views: cameras per scene.
         max_objects: objects per scene (also the padding size of samples).
         generator_workers: processes used for generation.
-        batch_size, num_workers, num_input_views, num_target_views, seed, boxes, match_iou, max_boxes: as in
+        batch_size, num_workers, num_input_views, num_target_views, seed, boxes, match_iou, max_boxes, train_random_views: as in
             :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
 
@@ -60,6 +60,7 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         boxes: str = "gt",
         match_iou: float = 0.5,
         max_boxes: int = 8,
+        train_random_views: bool = True,
     ) -> None:
         super().__init__(
             data_dir=data_dir,
@@ -72,6 +73,7 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
             boxes=boxes,
             match_iou=match_iou,
             max_boxes=max_boxes,
+            train_random_views=train_random_views,
         )
         self.num_scenes = num_scenes
         self.split_fractions = tuple(split_fractions)

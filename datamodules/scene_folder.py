@@ -243,6 +243,10 @@ class SceneFolderDataModule(L.LightningDataModule):
             detector's ``detections_{split}.npz``). GT stays available as ``gt_aabb``/``gt_mask``.
         match_iou: IoU at which a proposed/detected box is matched to a GT object (metrics only).
         max_boxes: proposed/detected boxes per scene (highest scores kept).
+        train_random_views: draw the train split's views at random per epoch (view prediction, the detector);
+            ``False``: each training scene keeps the fixed per-scene choice that val and test use, so a stage that
+            only reads features (the quantizer) sees the views the other stages of an EM round encoded and shares
+            their feature grids (``threedq em``'s crop cache).
 
     With boxes other than GT, the train split keeps every box; val and test keep only the boxes matched
     to a GT object, so that the label-based metrics are defined (the unmatched ones are counted by the
@@ -261,6 +265,7 @@ class SceneFolderDataModule(L.LightningDataModule):
         boxes: str = "gt",
         match_iou: float = 0.5,
         max_boxes: int = 8,
+        train_random_views: bool = True,
     ) -> None:
         super().__init__()
         if boxes not in ("gt", "proposals") and "{split}" not in boxes:
@@ -270,6 +275,7 @@ class SceneFolderDataModule(L.LightningDataModule):
         self.boxes = boxes
         self.match_iou = match_iou
         self.max_boxes = max_boxes
+        self.train_random_views = bool(train_random_views)
         if batch_size < 1:
             raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
         if num_workers < 0:
@@ -304,7 +310,7 @@ class SceneFolderDataModule(L.LightningDataModule):
                     num_input_views=self.num_input_views,
                     num_target_views=self.num_target_views,
                     max_objects=self.max_objects,
-                    random_views=split == "train",
+                    random_views=split == "train" and self.train_random_views,
                     seed=self.seed,
                     box_sets=self.box_sets(split),
                     match_iou=self.match_iou,

@@ -343,20 +343,31 @@ class EncoderStage(L.LightningModule):
         With a :attr:`crop_cache` and :meth:`crops_cacheable`, a scene whose views were encoded before by the same
         weights is not encoded again (its whole grid is kept, under the ``"grid"`` kind).
         """
+        return self._encode_views(rgb, depth, K, R_T_cam)[0]
+
+    def _encode_views(
+        self, rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor, need_input: bool = False
+    ) -> tuple[Tensor, Tensor | None]:
+        """:meth:`encode_views`, and the unprojected input ``[B*S, 4, Z, Y, X]`` when it was computed or
+        ``need_input`` (else None)."""
         B, S = rgb.shape[:2]
         cache = self.crop_cache if self.crops_cacheable() and hasattr(self.crop_cache, "views_key") else None
+        x = None
+        if need_input or cache is None:
+            x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
         if cache is not None:
             head = ("grid", self.crop_cache_prefix(), cache.fingerprint(self.encoder))
             keys = [(*head, cache.views_key(rgb[b], depth[b], K[b], R_T_cam[b])) for b in range(B)]
             found = cache.get_many(keys)
             if found is not None:
-                return torch.stack(found).to(self.device)
-        x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
+                return torch.stack(found).to(self.device), x
+        if x is None:
+            x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
         feats = self.encode_input(x, seen, S)
         if cache is not None:
             for b in range(B):
                 cache.put(keys[b], feats[b])
-        return feats
+        return feats, x
 
     def encode_input(self, x: Tensor, seen: Tensor, num_views: int, encoder: torch.nn.Module | None = None) -> Tensor:
         """Encode unprojected views and aggregate each scene's ``num_views`` of them (see :meth:`encode_views`).
@@ -424,8 +435,10 @@ class EncoderStage(L.LightningModule):
             feats, raw = cache.get_many(f_keys), cache.get_many(r_keys)
             if feats is not None and raw is not None:
                 return {"features": torch.cat(feats).to(self.device), "raw": torch.cat(raw).to(self.device), **out}
-        x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
-        feats = crop_boxes(self.encode_input(x, seen, v), batch["aabb"], self.feature_grid, size)  # [B, M, ...]
+        # the whole grids go through the cache too (encode_views), so a stage that needs grids (self-labelling, the
+        # detector's evaluation, the mining pool) reads the scenes another stage already encoded with these weights
+        grid, x = self._encode_views(rgb, depth, K, pose, need_input=True)
+        feats = crop_boxes(grid, batch["aabb"], self.feature_grid, size)  # [B, M, ...]
         raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"], self.grid, size)
         if cache is not None:
             for b in range(B):

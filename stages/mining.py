@@ -10,7 +10,7 @@ One stage, three sources of positive pairs (``source``), all trained with InfoNC
   (``moco.encoder_k``), negatives come from the queue (``moco.queue``, ``[Q, D]``).
 * ``mined`` (ours, supplement "3D correspondence mining"): every ``refresh_every`` steps a pool of
   ``target_pool`` object crops (``crop_size^3``) is cut from random training scenes with the current encoder
-  (eval mode, no gradient), and the first ``query_pool`` of them are mined against the rest
+  (eval mode, no gradient, float32, each scene's fixed input views), and the first ``query_pool`` of them are mined against the rest
   (:func:`threedq.contrastive.mine_correspondences`: object-level rotation-max retrieval, the query patch
   searched over each target's patch grid at ``num_angles`` yaws, verification by the context ring at
   Manhattan distance ``context_distance``); the ``keep`` best verified pairs are kept. Each pair gives 8
@@ -36,6 +36,7 @@ Convention: frame R metres, z up; crops ``[N, C, Z, Y, X]``; yaw counter-clockwi
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import time
@@ -335,9 +336,23 @@ class Mining(SplitEvaluation, EncoderStage):
             raise RuntimeError("mining: the training dataloader has no .dataset to draw the pools from")
         return ds
 
+    def _pool_dataset(self) -> Any:
+        """The training split with each scene's fixed input views (the choice val, test and the self-labelling pool
+        use) instead of random ones: under ``threedq em`` the pool's crops then come from the feature grids the
+        previous round's self-labelling and detector evaluation left in the crop cache for these weights."""
+        ds = copy.copy(self._train_dataset())
+        if getattr(ds, "random_views", False):
+            ds.random_views = False
+        return ds
+
     @torch.no_grad()
     def _cut_pool(self, ds: Any, generator: torch.Generator) -> dict[str, Tensor]:
-        """Crops of at least ``target_pool`` objects (or all) from random training scenes, encoder in eval mode."""
+        """Crops of at least ``target_pool`` objects (or all) from random training scenes, encoder in eval mode,
+        in float32 whatever the training precision (the crops the other stages cached are float32)."""
+        with torch.autocast(self.device.type, enabled=False):
+            return self._cut_pool_fp32(ds, generator)
+
+    def _cut_pool_fp32(self, ds: Any, generator: torch.Generator) -> dict[str, Tensor]:
         was_training = self.encoder.training
         self.encoder.eval()
         want = self.hparams.target_pool
@@ -371,7 +386,7 @@ class Mining(SplitEvaluation, EncoderStage):
         t0 = time.time()
         rank = self.trainer.global_rank if self.trainer is not None else 0
         g = torch.Generator().manual_seed(hp.seed + 1009 * int(self.refreshes) + 7919 * rank)
-        pool = self._cut_pool(self._train_dataset(), g)
+        pool = self._cut_pool(self._pool_dataset(), g)
         feats = pool["features"]
         n_t = feats.shape[0]
         n_q = min(hp.query_pool, n_t)

@@ -167,6 +167,30 @@ class TestObjectCropsWithCache:
         for k in ref:
             assert torch.equal(first[k], ref[k]) and torch.equal(second[k], ref[k]), k
 
+    def test_grids_shared_with_encode_views(self, batch: dict[str, torch.Tensor]) -> None:
+        """object_crops keeps the whole grid: encode_views of the same views is then a hit equal to an uncached
+        encoding, and crops of other boxes (the next round's detections) are cut from it without encoding again."""
+        stage = _stage()
+        views = tuple(batch[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam"))
+        with torch.no_grad():
+            ref_grid = stage.encode_views(*views)
+            other = {**batch, "aabb": batch["aabb"] + 0.05}
+            ref_other = stage.object_crops(other, 1, 8)
+            stage.crop_cache = CropCache()
+            stage.object_crops(batch, 1, 8)
+            B = batch["rgb"].shape[0]
+            assert {k[0] for k in stage.crop_cache._store} == {"features", "raw", "grid"}
+            hits = stage.crop_cache.hits
+            grid = stage.encode_views(*views)
+            assert stage.crop_cache.hits == hits + B
+            calls = []
+            stage.encoder.register_forward_hook(lambda *a: calls.append(1))
+            got = stage.object_crops(other, 1, 8)
+        assert torch.equal(grid, ref_grid)
+        assert not calls  # new boxes, same views and weights: no encoder pass
+        for k in ref_other:
+            assert torch.equal(got[k], ref_other[k]), k
+
     def test_new_weights_are_a_miss(self, batch: dict[str, torch.Tensor]) -> None:
         stage = _stage(0)
         stage.crop_cache = CropCache()

@@ -181,3 +181,37 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         info = json.loads(logs[0].read_text())
         assert info["pairs"] >= 1 and 0.0 <= info["same_category"] <= 1.0 and info["queries"] == 6
         assert (run / "mining" / "refresh_000000.png").is_file()
+
+
+def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pool is cut from each scene's fixed views in float32 (even under bf16 autocast), so under ``threedq em``
+    it reads the grids a stage with the same weights left in the crop cache: no encoder pass, equal crops."""
+    from threedq.datamodules.scene_folder import SceneDataset
+    from threedq.pipeline.crop_cache import CropCache
+    from threedq.pipeline.report import split_loader
+    from threedq.scene import load_index
+
+    torch.manual_seed(0)
+    m = Mining(grid_resolution=(32, 32, 16), target_pool=4, query_pool=2, crop_size=8, queue_size=64)
+    index = load_index(tiny_dataset)
+    train = SceneDataset(tiny_dataset, index, "train", num_input_views=1, num_target_views=0, random_views=True)
+    monkeypatch.setattr(m, "_train_dataset", lambda: train)
+    pool_ds = m._pool_dataset()
+    assert pool_ds.random_views is False and train.random_views is True  # a copy: the training data is unchanged
+    ref = m._cut_pool(pool_ds, torch.Generator().manual_seed(3))
+    # another stage (same weights) encodes the training split from the fixed views, as split_loader gives them
+    m.crop_cache = CropCache()
+    dm = type("DM", (), {"data_dir": tiny_dataset, "index": index, "num_input_views": 1, "max_objects": 3, "seed": 0})()
+    m.eval()
+    with torch.no_grad():
+        for batch in split_loader(dm, "train", batch_size=2):
+            m.encode_views(*(batch[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam")))
+    calls = []
+    m.encoder.register_forward_hook(lambda *a: calls.append(1))
+    m.train()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = m._cut_pool(m._pool_dataset(), torch.Generator().manual_seed(3))
+    assert not calls and m.crop_cache.hits > 0
+    assert got["features"].dtype == torch.float32
+    for k in ref:
+        assert torch.equal(got[k], ref[k]), k

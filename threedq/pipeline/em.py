@@ -22,8 +22,10 @@ Layout of ``work_dir``::
       report.md               # the same as tables
       table3.png              # features, quantization and detection per round
 
-The rounds and their evaluations share one :class:`~threedq.pipeline.crop_cache.CropCache`: while the encoder does
-not change, each scene's object crops are computed once per process, not once per round.
+The stages after view prediction share one :class:`~threedq.pipeline.crop_cache.CropCache` (a process-wide store keyed
+by the encoder's weights, the input views and the boxes): each scene is encoded once per encoder, not once per
+stage. Every stage that reads features does so from each scene's fixed input views (the quantizer with
+``train_random_views: false``), so the grids one stage computed serve the next.
 
 A finished stage (its ``stage.json`` exists) and a finished evaluation (its ``metrics.json`` / ``results.json``)
 are never re-run. ``--resume true`` continues a killed run: the stage that was interrupted restarts from its
@@ -166,7 +168,8 @@ def _evaluate_round(
     setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
     cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
     # Fig. 3a (accuracy against K) is left to threedq eval, which keeps the main job short
-    return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[])
+    return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[],
+                              random_encoder=final)
 
 
 def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
@@ -456,14 +459,22 @@ def run_em(
     vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
     vp_ckpt = Path(vp["checkpoint"])
     vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, work / "01_viewpred_eval")
+    # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
+    # encoded once per encoder. The warm-start detector's evaluation leaves the grids of every split that round 1's
+    # mining pool reads; a round's quantizer encodes the training scenes its evaluation (the final one's banks),
+    # self-labelling, detector evaluation and the next round's mining pool then read. After a mining stage the
+    # encoder is new, and the older grids and crops are dropped.
+    crop_cache = CropCache()
     det, det_eval = None, None
     box_over: list[str] = []
     if detection:
         d_configs = [resolve_config(detector_config), *extra]
-        det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}"], resume)
+        det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}"], resume,
+                         crop_cache)
         # detections of every split only when the rounds take their boxes from the detector
         det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-        det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits)
+        det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits,
+                                      crop_cache=crop_cache)
         print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
               f"detector {det_eval['detector']['map_50']:.3f}")
         if boxes == "detections" and rounds:
@@ -475,15 +486,15 @@ def run_em(
     det_ckpt = Path(det["checkpoint"]) if det else None
     prev_bank: Path | None = None
     encoder = vp_ckpt
-    # Rounds share one crop cache, keyed by the encoder's weights: while the encoder does not change (no
-    # mining) each scene is encoded once, not once per round; after a mining stage the cache misses.
-    crop_cache = CropCache()
     for r in range(1, rounds + 1):
         if mine:
             m = _fit_stage(f"round {r} mining", m_configs, work / f"r{r:02d}_mining",
-                           [f"--model.init_args.encoder_ckpt={encoder}", *box_over], resume)
+                           [f"--model.init_args.encoder_ckpt={encoder}", *box_over], resume, crop_cache)
             encoder = Path(m["checkpoint"])
             mining_results.append({**m, "refreshes": _mining_diagnostics(work / f"r{r:02d}_mining")})
+            # the encoder is new: the previous one's grids and crops will not be asked for again
+            crop_cache.drop("features")
+            crop_cache.drop("grid")
         q_over = [f"--model.init_args.encoder_ckpt={encoder}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
                   *box_over]
         if prev_bank is not None:
@@ -511,9 +522,6 @@ def run_em(
             if boxes == "detections" and r < rounds:
                 _check_handed_on(work / f"r{r:02d}_detector_eval", ("train", "test"))
                 box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
-        if mine:  # the next round fine-tunes the encoder again: this round's learned crops will not be asked for
-            crop_cache.drop("features")
-            crop_cache.drop("grid")
         q_res = round_results[-1]["quantization"]["threedq"]
         print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
               f"{precision_label(round_results[-1]['retrieval'])} "

@@ -288,6 +288,7 @@ def evaluate_quantizer(
     search: str = RETRIEVAL_SEARCH,
     q25d: Any = None,
     resnet: Any = None,
+    random_encoder: bool = True,
 ) -> dict[str, Any]:
     """The evaluation of a trained :class:`~threedq.stages.quantizer.Quantizer`; writes the outputs.
 
@@ -299,6 +300,8 @@ def evaluate_quantizer(
         q25d: a :class:`~threedq.stages.q25d.Q25D` (:func:`~threedq.pipeline.baselines2d.load_q25d`) for the
             2.5DQ-Nets rows, or None (the tables say how to get them).
         resnet: a :class:`~threedq.baselines.resnet.ResNet18` with ImageNet weights for the ResNet rows, or None.
+        random_encoder: add the randomly initialised encoder's retrieval row (``threedq em`` scores it in the last
+            round only: its crops depend on each round's boxes, and the rounds' tables do not show it).
     """
     out = Path(out)
     t0 = time.time()
@@ -309,7 +312,8 @@ def evaluate_quantizer(
     need_train = baselines or bool(curve_k)  # only the banks fitted here need the training objects
     train = (collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
              if need_train else {"labels": torch.zeros(0, dtype=torch.long)})
-    test = collect_object_crops(model, split_loader(dm, "test"), nv, random_encoder_seed=seed, progress=progress)
+    test = collect_object_crops(model, split_loader(dm, "test"), nv, random_encoder_seed=seed if random_encoder else None,
+                                 progress=progress)
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels, gt_yaw = test["labels"], test["boxes"][:, 6]
     if labels.shape[0] < 2:
