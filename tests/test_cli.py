@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from threedq.cli import main
@@ -65,6 +66,30 @@ class TestDataCommands:
         bad = [line for line in out if str(victim) in line]
         assert len(bad) == 1 and "field '" in bad[0]
         assert "2/3 scenes valid" in out[-1]
+
+    def test_generate_scene_knobs(self, tmp_path: Path, capsys) -> None:
+        """The generator's scene knobs reach the scenes: smaller objects, closer cameras, a category subset."""
+        from threedq.scene import load_index, load_scene
+
+        d = tmp_path / "shifted"
+        args = ["data", "generate", "--out", str(d), "--scenes", "3", "--image_size", "[32, 32]", "--views", "3",
+                "--workers", "1", "--progress", "false", "--object_size", "0.2", "--scale_range", "[1.0, 1.0]",
+                "--distance_range", "[1.5, 1.6]", "--fov_deg", "70", "--elevation_range_deg", "[30, 40]",
+                "--categories", "[banana, mug]"]
+        assert main(args) == 0
+        index = load_index(d)
+        cfg = index.generator["config"]
+        assert (cfg["object_size"], cfg["distance_range"], cfg["fov_deg"]) == (0.2, [1.5, 1.6], 70.0)
+        assert list(index.categories) == ["banana", "mug"]
+        for f in index.files("train") + index.files("test"):
+            rec = load_scene(d / f)
+            assert float(rec.boxes[:, 3:6].max()) <= 0.2 + 1e-4  # largest extent = object_size at scale 1
+            # cameras look at (0, 0, 0.2) +- (0.1, 0.1, 0.05) from 1.5-1.6 m
+            dist = np.linalg.norm(rec.world_T_cam[:, :3, 3] - np.array([0.0, 0.0, 0.2]), axis=1)
+            assert dist.min() > 1.5 - 0.16 and dist.max() < 1.6 + 0.16
+            assert np.allclose(rec.K[:, 0, 0], 16 / np.tan(np.radians(35)), rtol=1e-3)  # 70 deg FOV at 32 px
+        assert main([*args[:3], str(tmp_path / "bad"), *args[4:], "--fov_deg", "200"]) == 2
+        assert "--fov_deg" in capsys.readouterr().err
 
     def test_bad_dataset_folder(self, tmp_path: Path, capsys) -> None:
         assert main(["data", "check", str(tmp_path)]) == 2

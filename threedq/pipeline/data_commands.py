@@ -67,6 +67,18 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     gen.add_argument("--min_objects", type=int, default=1)
     gen.add_argument("--max_objects", type=int, default=3)
     gen.add_argument("--categories", type=list[str] | None, default=None, help="category names to use (default all 41)")
+    # the scene knobs of GeneratorConfig (defaults: the embedded data's), to make data unlike it
+    d = GeneratorConfig()
+    gen.add_argument("--object_size", type=float, default=d.object_size,
+                     help="largest extent of an object before its random scale, metres")
+    gen.add_argument("--scale_range", type=tuple[float, float], default=d.scale_range, help="random object scale (low, high)")
+    gen.add_argument("--placement_radius", type=float, default=d.placement_radius,
+                     help="object centres lie within this distance of the origin, metres")
+    gen.add_argument("--distance_range", type=tuple[float, float], default=d.distance_range,
+                     help="camera distance to the look-at point (low, high), metres")
+    gen.add_argument("--fov_deg", type=float, default=d.fov_deg, help="horizontal field of view, degrees")
+    gen.add_argument("--elevation_range_deg", type=tuple[float, float], default=d.elevation_range_deg,
+                     help="camera elevation above the ground (low, high), degrees")
     gen.add_argument("--workers", type=int, default=2, help="rendering processes")
     gen.add_argument("--progress", type=bool, default=True)
 
@@ -123,6 +135,12 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
                 min_objects=args.min_objects,
                 max_objects=args.max_objects,
                 categories=tuple(args.categories) if args.categories else None,
+                object_size=args.object_size,
+                scale_range=tuple(args.scale_range),
+                placement_radius=args.placement_radius,
+                distance_range=tuple(args.distance_range),
+                fov_deg=args.fov_deg,
+                elevation_range_deg=tuple(args.elevation_range_deg),
             )
             index = generate_dataset(
                 out,
