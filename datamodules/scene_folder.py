@@ -16,6 +16,9 @@ record is its world frame (metres, z up, centred on the scene).
 
 from __future__ import annotations
 
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +38,66 @@ from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_s
 __all__ = ["SceneDataset", "SceneFolderDataModule", "detections_as_objects"]
 
 SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class _SceneViews:
+    """The views of one sample and the scene's objects, as read from its record (arrays are not modified)."""
+
+    rgb: np.ndarray  # [S, H, W, 3] uint8
+    depth: np.ndarray  # [S, H, W] float32
+    K: np.ndarray  # [S, 3, 3] float32
+    world_T_cam: np.ndarray  # [S, 4, 4] float32
+    view_ids: np.ndarray  # [S] int64
+    instance: np.ndarray | None  # [S, H, W]
+    boxes: np.ndarray  # [M, 7]
+    categories: np.ndarray  # [M]
+
+    @property
+    def nbytes(self) -> int:
+        arrays = (self.rgb, self.depth, self.K, self.world_T_cam, self.instance, self.boxes, self.categories)
+        return sum(a.nbytes for a in arrays if a is not None)
+
+
+class _ViewCache:
+    """A process-wide LRU of the fixed views of scenes already read (a few hundred KiB per scene).
+
+    The stages after view prediction read each scene's fixed input views again and again (the quantizer, the
+    evaluations, self-labelling, the detections of every split, in every round of ``threedq em``); a record holds all
+    its views compressed, and reading + validating one costs ~10 ms. The key holds the file's size and modification
+    time, so a rewritten file is read again. ``THREEDQ_VIEW_CACHE_MB`` (default 1024, 0 = off) caps its size.
+    """
+
+    def __init__(self) -> None:
+        self._items: OrderedDict[tuple, _SceneViews] = OrderedDict()
+        self.nbytes = 0
+
+    @property
+    def limit(self) -> int:
+        return int(float(os.environ.get("THREEDQ_VIEW_CACHE_MB", "1024")) * 2**20)
+
+    def get(self, key: tuple) -> _SceneViews | None:
+        v = self._items.get(key)
+        if v is not None:
+            self._items.move_to_end(key)
+        return v
+
+    def put(self, key: tuple, v: _SceneViews) -> None:
+        limit = self.limit
+        if v.nbytes > limit or key in self._items:
+            return
+        self._items[key] = v
+        self.nbytes += v.nbytes
+        while self.nbytes > limit:
+            _, old = self._items.popitem(last=False)
+            self.nbytes -= old.nbytes
+
+    def clear(self) -> None:
+        self._items.clear()
+        self.nbytes = 0
+
+
+_VIEW_CACHE = _ViewCache()
 
 
 class SceneDataset(Dataset):
@@ -134,29 +197,25 @@ class SceneDataset(Dataset):
         """
         i, epoch = (int(i[0]), int(i[1])) if isinstance(i, (tuple, list)) else (i, None)
         path = self.root / self.files[i]
-        rec = load_scene(path, bounds=self.index.scene_bounds, num_categories=len(self.index.categories))
-        if rec.num_objects > self.max_objects:
-            raise SceneValidationError(
-                str(path), "boxes", f"{rec.num_objects} objects but max_objects is {self.max_objects}"
-            )
-        views = self._choose_views(i, rec.num_views, path, epoch)
+        v = self._views(i, path, epoch)
         M = self.max_objects
+        n = len(v.boxes)
         boxes = np.zeros((M, 7), np.float32)
-        boxes[: rec.num_objects] = rec.boxes
+        boxes[:n] = v.boxes
         aabb = np.zeros((M, 6), np.float32)
-        aabb[: rec.num_objects] = boxes_to_aabb(rec.boxes.astype(np.float64))
+        aabb[:n] = boxes_to_aabb(v.boxes.astype(np.float64))
         cats = np.full((M,), -1, np.int64)
-        cats[: rec.num_objects] = rec.categories
+        cats[:n] = v.categories
         out: dict[str, Any] = {
-            "rgb": torch.from_numpy(rec.rgb[views]).permute(0, 3, 1, 2).float().div_(255.0),
-            "depth": torch.from_numpy(rec.depth[views].astype(np.float32)),
-            "K": torch.from_numpy(rec.K[views].astype(np.float32)),
-            "R_T_cam": torch.from_numpy(rec.world_T_cam[views].astype(np.float32)),
-            "view_ids": torch.from_numpy(views.astype(np.int64)),
+            "rgb": torch.from_numpy(v.rgb).permute(0, 3, 1, 2).float().div_(255.0),
+            "depth": torch.from_numpy(v.depth.copy()),
+            "K": torch.from_numpy(v.K.copy()),
+            "R_T_cam": torch.from_numpy(v.world_T_cam.copy()),
+            "view_ids": torch.from_numpy(v.view_ids.copy()),
             "boxes": torch.from_numpy(boxes),
             "aabb": torch.from_numpy(aabb),
             "categories": torch.from_numpy(cats),
-            "box_mask": torch.arange(M) < rec.num_objects,
+            "box_mask": torch.arange(M) < n,
             "scene_index": torch.tensor(i, dtype=torch.long),
             "num_input_views": torch.tensor(self.num_input_views, dtype=torch.long),
         }
@@ -164,13 +223,43 @@ class SceneDataset(Dataset):
         if self.box_sets is not None:
             out.update(
                 detections_as_objects(
-                    *self.box_sets[self.files[i]], rec.boxes, rec.categories, self.match_iou,
+                    *self.box_sets[self.files[i]], v.boxes, v.categories, self.match_iou,
                     self.keep_unmatched, self.max_boxes,
                 )
             )
-        if rec.instance is not None:
-            out["instance"] = torch.from_numpy(rec.instance[views].astype(np.int64))
+        if v.instance is not None:
+            out["instance"] = torch.from_numpy(v.instance.astype(np.int64))
         return out
+
+    def _views(self, i: int, path: Path, epoch: int | None) -> _SceneViews:
+        """The chosen views of scene ``i`` and its objects: read and validated from ``path``, or, for a fixed view
+        choice, from :data:`_VIEW_CACHE` when the file (size, modification time) is the one read before."""
+        bounds, ncat = self.index.scene_bounds, len(self.index.categories)
+        key = None
+        if not self.random_views:
+            try:
+                st = path.stat()
+                key = (str(path.resolve()), st.st_mtime_ns, st.st_size, repr(bounds), ncat, self.seed, i,
+                       self.num_input_views + self.num_target_views, self.max_objects)
+            except OSError:
+                key = None  # load_scene names the missing file
+            hit = _VIEW_CACHE.get(key) if key is not None else None
+            if hit is not None:
+                return hit
+        rec = load_scene(path, bounds=bounds, num_categories=ncat)
+        if rec.num_objects > self.max_objects:
+            raise SceneValidationError(
+                str(path), "boxes", f"{rec.num_objects} objects but max_objects is {self.max_objects}"
+            )
+        views = self._choose_views(i, rec.num_views, path, epoch)
+        v = _SceneViews(
+            rgb=rec.rgb[views], depth=rec.depth[views].astype(np.float32), K=rec.K[views].astype(np.float32),
+            world_T_cam=rec.world_T_cam[views].astype(np.float32), view_ids=views.astype(np.int64),
+            instance=None if rec.instance is None else rec.instance[views], boxes=rec.boxes, categories=rec.categories,
+        )
+        if key is not None:
+            _VIEW_CACHE.put(key, v)
+        return v
 
 
 def detections_as_objects(

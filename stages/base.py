@@ -18,6 +18,7 @@ trains the encoder from scratch) needs them in its config.
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 from pathlib import Path
 from typing import Any
@@ -324,6 +325,15 @@ class EncoderStage(L.LightningModule):
     def crops_cacheable(self) -> bool:
         """Whether crops of this stage's encoder may come from :attr:`crop_cache` (no gradient, encoder in eval mode)."""
         return self.crop_cache is not None and not torch.is_grad_enabled() and not self.encoder.training
+
+    def precision_context(self) -> Any:
+        """The autocast context of the trainer this stage runs under (``trainer.precision``), for work done outside the
+        trainer's own loops (the evaluations' crops and detections), so that it computes, and keys the crop cache, as
+        the stage's ``test_step`` does; a no-op without a trainer."""
+        trainer = getattr(self, "_trainer", None)
+        if trainer is None:
+            return contextlib.nullcontext()
+        return trainer.precision_plugin.forward_context()
 
     def crop_cache_prefix(self) -> str:
         """What besides weights and inputs decides a crop: grid, memory format, device type and autocast state."""

@@ -53,7 +53,8 @@ from threedq.data.draw import draw_boxes
 from threedq.geometry import VoxelGridSpec, crop_boxes
 from threedq.metrics.detection import assign_detections
 from threedq.quantization.prototypes import PrototypeBank
-from threedq.stages.base import checkpoint_state
+from threedq.errors import InputError
+from threedq.stages.base import checkpoint_hparams, checkpoint_state
 from threedq.stages.detector import Detector, _aabb_to_boxes7, detection_targets
 from threedq.stages.quantizer import load_bank_state
 
@@ -141,8 +142,20 @@ def self_label_targets(
     return label, target
 
 
-def load_head_state(head: torch.nn.Module, path: str | Path) -> None:
-    """Load the ``head.*`` weights of a detector (or self-labelling) checkpoint into ``head``."""
+def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = None) -> None:
+    """Load the ``head.*`` weights of a detector (or self-labelling) checkpoint into ``head``.
+
+    With ``anchor_size``, refuse a detector trained with another anchor (its boxes would decode at the wrong size),
+    naming the checkpoint and the field; a checkpoint without saved hyperparameters is not checked.
+    """
+    if anchor_size is not None:
+        hp = _hparams_or_none(path)
+        trained = None if hp is None else hp.get("anchor_size")
+        if trained is not None and [round(float(a), 6) for a in trained] != [round(float(a), 6) for a in anchor_size]:
+            raise InputError(
+                f"{path}: field 'anchor_size': the detector was trained with anchor_size={list(trained)}, this stage "
+                f"asks for {list(anchor_size)} (set model.init_args.anchor_size to the detector's)"
+            )
     state = {k[len("head."):]: v for k, v in checkpoint_state(path).items() if k.startswith("head.")}
     if not state:
         raise ValueError(f"{path}: field 'state_dict': no 'head.*' weights (not a detector checkpoint?)")
@@ -150,6 +163,15 @@ def load_head_state(head: torch.nn.Module, path: str | Path) -> None:
         head.load_state_dict(state)
     except RuntimeError as e:
         raise ValueError(f"{path}: field 'state_dict': the detector head does not fit this stage: {e}") from None
+
+
+def _hparams_or_none(path: str | Path) -> dict[str, Any] | None:
+    try:
+        return checkpoint_hparams(path)
+    except InputError as e:
+        if "hyper_parameters" in str(e):  # a bare state dict: nothing to check
+            return None
+        raise
 
 
 class SelfLabelling(Detector):
@@ -231,7 +253,7 @@ class SelfLabelling(Detector):
             raise ValueError(f"pool_scenes, batch_size: expected >= 1, got {pool_scenes}, {batch_size}")
         self.save_hyperparameters()
         if detector_ckpt:
-            load_head_state(self.head, detector_ckpt)
+            load_head_state(self.head, detector_ckpt, anchor_size)
         self.bank: PrototypeBank | None = None
         if bank_ckpt:
             num = checkpoint_state(bank_ckpt).get("bank.prototypes")

@@ -53,6 +53,39 @@ class TestSceneFolderDataModule:
         b = SceneDataset(tiny_dataset, index, "test", seed=1)[1]["view_ids"]
         assert torch.equal(a, b)
 
+    def test_fixed_views_are_read_once_and_again_after_a_rewrite(self, tiny_dataset: Path, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+        """The fixed views of a scene come from the process-wide view cache the second time (equal samples, no
+        read), and a rewritten file is read again; random views are never cached."""
+        import threedq.datamodules.scene_folder as sf
+
+        data = tmp_path / "d"
+        shutil.copytree(tiny_dataset, data)
+        index = load_index(data)
+        reads: list[str] = []
+        real = sf.load_scene
+        monkeypatch.setattr(sf, "load_scene", lambda path, **kw: reads.append(str(path)) or real(path, **kw))
+        ds = SceneDataset(data, index, "val", num_input_views=1, num_target_views=1, seed=3)
+        first = ds[0]
+        again = SceneDataset(data, index, "val", num_input_views=1, num_target_views=1, seed=3)[0]
+        assert len(reads) == 1
+        for k, v in first.items():
+            assert torch.equal(v, again[k]), k
+        again["rgb"].mul_(0)  # a consumer writing into its sample does not reach the cache
+        assert torch.equal(ds[0]["rgb"], first["rgb"]) and len(reads) == 1
+        path = data / index.files("val")[0]
+        rec = load_scene(path)
+        rec.rgb[:] = 255 - rec.rgb
+        from threedq.scene import save_scene
+
+        save_scene(path, rec)
+        changed = ds[0]
+        assert len(reads) == 2 and torch.allclose(changed["rgb"], 1 - first["rgb"])
+        rnd = SceneDataset(data, index, "train", num_input_views=1, num_target_views=0, random_views=True)
+        n = len(reads)
+        rnd[0], rnd[0]
+        assert len(reads) == n + 2
+
     def test_random_views_follow_the_seed(self, tiny_dataset: Path) -> None:
         index = load_index(tiny_dataset)
         ds = SceneDataset(tiny_dataset, index, "train", num_input_views=2, random_views=True)

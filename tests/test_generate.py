@@ -18,7 +18,8 @@ import pytest
 
 from threedq.boxes import box_corners
 from threedq.data import CATEGORIES, GeneratorConfig, generate_dataset
-from threedq.data.catalog import CATEGORY_NAMES, CLEVR_COLORS, category_by_name
+from threedq.data.catalog import CATEGORY_NAMES, CLEVR_COLORS, HELD_OUT_CATEGORIES, HELD_OUT_NAMES, category_by_name
+from threedq.data.meshes import category_extents
 from threedq.data.generator_config import GENERATOR_VERSION
 from threedq.data.layout import intrinsics, sample_scene
 from threedq.data.splits import derive_test_seed, scene_seed_sequence, split_sizes
@@ -61,6 +62,33 @@ def test_catalogue():
 
 
 # -- sampling (numpy only) ------------------------------------------------------------------------
+def test_held_out_categories(tmp_path):
+    """8 categories the embedded set never draws: selectable by name, own symmetry orders, rendered with boxes of
+    their mesh's proportions (a shifted dataset: smaller objects, closer cameras, a wider field of view)."""
+    assert len(HELD_OUT_NAMES) == len(set(HELD_OUT_NAMES)) == 8
+    assert not set(HELD_OUT_NAMES) & set(CATEGORY_NAMES)
+    assert set(GeneratorConfig().category_names) == set(CATEGORY_NAMES)  # the default never draws them
+    assert {c.source for c in HELD_OUT_CATEGORIES}.isdisjoint(c.source for c in CATEGORIES)
+    orders = {c.name: c.symmetry_order for c in HELD_OUT_CATEGORIES}
+    assert orders["bowl"] == orders["cups"] == 0 and orders["rubiks_cube"] == 4 and orders["sugar_box"] == 2
+    assert orders["scissors"] == orders["spatula"] == orders["adjustable_wrench"] == 1
+    with pytest.raises(ValueError, match="held out of the embedded set: sugar_box"):
+        category_by_name("dragon")
+    cfg = GeneratorConfig(image_size=(48, 48), num_views=6, max_objects=1, categories=("bowl", "scissors"),
+                          object_size=0.3, distance_range=(1.8, 2.2), fov_deg=65.0)
+    assert cfg.symmetry_order == (0, 1)
+    generate_dataset(tmp_path, 4, seed=3, config=cfg, split_fractions=(1, 0, 0), workers=1, progress=False)
+    index = load_index(tmp_path)
+    assert index.categories == ["bowl", "scissors"] and index.symmetry_order == [0, 1]
+    for f in index.files("train"):
+        rec = load_scene(tmp_path / f)
+        (box,), (cat,) = rec.boxes, rec.categories
+        ext = category_extents(index.categories[int(cat)])
+        assert np.allclose(np.sort(box[3:6]) / box[3:6].max(), np.sort(ext) / ext.max(), atol=1e-4)
+        assert 0.3 * 0.75 - 1e-6 <= box[3:6].max() <= 0.3 * 1.25 + 1e-6
+        assert (rec.instance == 1).sum() > 0  # the object is seen
+
+
 def test_sample_scene_layout_invariants():
     cfg = GeneratorConfig()
     lo, hi = np.array(cfg.scene_bounds[0]), np.array(cfg.scene_bounds[1])

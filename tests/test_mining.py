@@ -260,6 +260,30 @@ class TestMatchPatch:
         with pytest.raises(ValueError, match="allowed_yaws"):
             match_patch(queries[0], qpos, targets, allowed_yaws=torch.zeros(4, A, dtype=torch.bool))
 
+    def test_allowed_yaws_equal_the_masked_full_search(self) -> None:
+        """Searching only the allowed yaws (windows of varying width, rows of different sizes) gives what the full
+        36-yaw search masked to those yaws gives: the same yaw, position and cosine."""
+        torch.manual_seed(3)
+        queries, targets = unit(1, 4, S, S, S), unit(6, 4, S, S, S, seed=1)
+        qpos = torch.tensor([5, 9, 5])
+        allowed = torch.zeros(6, A, dtype=torch.bool)
+        for k, (centre, w) in enumerate([(0, 1), (35, 1), (10, 0), (20, 3), (7, 2), (30, 1)]):
+            allowed[k, [(centre + d) % A for d in range(-w, w + 1)]] = True
+        allowed[5, 2] = True  # a row with two separate windows
+        yaw, pos, cos = match_patch(queries[0], qpos, targets, allowed_yaws=allowed)
+        for k in range(6):
+            best = None
+            for a in range(A):  # the naive reference: one yaw at a time, first maximum wins
+                if not allowed[k, a]:
+                    continue
+                one = torch.zeros(1, A, dtype=torch.bool)
+                one[0, a] = True
+                y, p, c = match_patch(queries[0], qpos, targets[k : k + 1], allowed_yaws=one)
+                if best is None or c.item() > best[2]:
+                    best = (int(y), p[0].tolist(), c.item())
+            assert (int(yaw[k]), pos[k].tolist()) == best[:2]
+            assert cos[k].item() == pytest.approx(best[2], abs=1e-6)
+
     def test_errors(self) -> None:
         q, t = unit(1, 4, 8, 8, 8)[0], unit(2, 4, 8, 8, 8)
         with pytest.raises(ValueError, match="leaves the volume"):

@@ -229,3 +229,10 @@ def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:
                             "--ckpt_path", str(ckpt)])  # fmt: skip
     assert cli2.model.trainer.global_step == 4
     assert torch.equal(cli2.model.labels.cpu(), state["labels"])
+    # a detector trained with another anchor is refused by name (its boxes would decode at the wrong size)
+    from threedq.errors import InputError
+
+    with pytest.raises(InputError, match=r"det.*last\.ckpt: field 'anchor_size': the detector was trained with "
+                                         r"anchor_size=\[0\.5, 0\.5, 0\.5\], this stage asks for \[0\.3, 0\.3, 0\.3\]"):
+        SelfLabelling(encoder_ckpt=str(enc), grid_resolution=(32, 32, 16), anchor_size=(0.3, 0.3, 0.3),
+                      detector_ckpt=str(det / "checkpoints" / "last.ckpt"))

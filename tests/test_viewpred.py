@@ -410,3 +410,32 @@ class TestGridTravelsWithEncoder:
 
         s = EncoderStage()
         assert s.grid.resolution == DEFAULT_GRID["grid_resolution"] and s.feature_dim == DEFAULT_GRID["feature_dim"]
+
+
+def test_em_given_viewpred_checkpoint(tmp_path: Path, tiny_dataset: Path, capsys) -> None:
+    """``--viewpred_ckpt``: no view prediction is trained; the detector and the rounds run on the given encoder."""
+    from threedq.errors import InputError
+    from threedq.pipeline.em import run_em
+    from threedq.stages.base import encoder_state_from_checkpoint
+
+    cfg = _em_config(tmp_path, tiny_dataset)
+    first = tmp_path / "first"
+    run_em(rounds=0, work_dir=str(first), extra_configs=[cfg], detection=False, boxes="gt", max_steps=2)
+    given = first / "00_viewpred" / "checkpoints" / "last.ckpt"
+    work = tmp_path / "em"
+    capsys.readouterr()
+    summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt",
+                     viewpred_ckpt=str(given))
+    assert "viewpred: given" in capsys.readouterr().out
+    assert not (work / "00_viewpred").exists() and summary["viewpred"]["given"]
+    enc = encoder_state_from_checkpoint(given)
+    for stage in ("02_detector", "r01_quantizer", "r01_self_labelling"):
+        used = encoder_state_from_checkpoint(work / stage / "checkpoints" / "last.ckpt")
+        assert all(torch.equal(used[k], enc[k]) for k in enc), stage
+    assert summary["viewpred_eval"]["view_prediction"]["num_scenes"] == 2
+    assert "given with --viewpred_ckpt" in (work / "report.md").read_text()
+    with pytest.raises(InputError, match="this is a detector checkpoint; --viewpred_ckpt needs a viewpred"):
+        run_em(rounds=0, work_dir=str(tmp_path / "x"), extra_configs=[cfg],
+               viewpred_ckpt=str(work / "02_detector" / "checkpoints" / "last.ckpt"))
+    with pytest.raises(InputError, match="--viewpred_ckpt .*nope.ckpt: no such file"):
+        run_em(rounds=0, work_dir=str(tmp_path / "x"), extra_configs=[cfg], viewpred_ckpt=str(tmp_path / "nope.ckpt"))

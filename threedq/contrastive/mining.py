@@ -219,29 +219,38 @@ def _yaw_theta(angles: Tensor, ny: int, nx: int) -> Tensor:
 def _rotated_grid_patches(targets: Tensor, angles: Tensor, starts: Sequence[list[int]], patch: int) -> Tensor:
     """Patches of every yaw-rotated target at every grid position: ``[K, A, G, C * patch^3]``, not normalised.
 
+    ``angles``: ``[A]`` yaws shared by every target, or ``[K, A]`` yaws of each target.
+
     Equal to cutting the patches out of ``rotate_yaw(targets, angles)`` (the same sampling grid is used) but
     only the voxel rows/columns/slices that some grid patch covers are interpolated. Flattening order per patch:
     channel-major ``[C, pz, py, px]``, like ``crop[:, z:z+p, y:y+p, x:x+p].reshape(-1)``.
     """
     k, channels = targets.shape[:2]
-    n_angles = angles.shape[0]
+    n_angles = angles.shape[-1]
     out = _rotated_grid_samples(targets, angles, starts, patch)
     out = out.permute(0, 4, 2, 5, 7, 1, 3, 6, 8)  # [K, A, Gz, Gy, Gx, C, pz, py, px]
     return out.reshape(k, n_angles, out.shape[2] * out.shape[3] * out.shape[4], channels * patch**3)
 
 
 def _rotated_grid_samples(targets: Tensor, angles: Tensor, starts: Sequence[list[int]], patch: int) -> Tensor:
-    """The samples of :func:`_rotated_grid_patches` before reordering: ``[K, C, Gz, pz, A, Gy, py, Gx, px]`` (a view)."""
+    """The samples of :func:`_rotated_grid_patches` before reordering: ``[K, C, Gz, pz, A, Gy, py, Gx, px]`` (a view).
+
+    ``angles``: ``[A]`` yaws shared by every target, or ``[K, A]`` yaws of each target.
+    """
     k, channels, nz, ny, nx = targets.shape
-    n_angles = angles.shape[0]
+    n_angles = angles.shape[-1]
     dev = targets.device
     r = torch.arange(patch, device=dev)
     zs, ys, xs = ((torch.tensor(s, device=dev)[:, None] + r).reshape(-1) for s in starts)  # [G_i * p] each
-    coords = F.affine_grid(_yaw_theta(angles, ny, nx), [n_angles, 1, ny, nx], align_corners=False)  # [A, Y, X, 2]
-    coords = coords[:, ys][:, :, xs]  # [A, Ly, Lx, 2]
+    flat = angles.reshape(-1)
+    coords = F.affine_grid(_yaw_theta(flat, ny, nx), [flat.numel(), 1, ny, nx], align_corners=False)  # [A', Y, X, 2]
+    coords = coords[:, ys][:, :, xs]  # [A', Ly, Lx, 2]
     ly, lx, lz = ys.numel(), xs.numel(), zs.numel()
     slices = targets[:, :, zs].reshape(k, channels * lz, ny, nx)
-    grid = coords.reshape(1, n_angles * ly, lx, 2).expand(k, -1, -1, -1)
+    if angles.dim() == 1:
+        grid = coords.reshape(1, n_angles * ly, lx, 2).expand(k, -1, -1, -1)
+    else:
+        grid = coords.reshape(k, n_angles * ly, lx, 2)
     out = F.grid_sample(slices, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     gz, gy, gx = (len(s) for s in starts)
     return out.view(k, channels, gz, patch, n_angles, gy, patch, gx, patch)
@@ -369,21 +378,30 @@ def match_patch(
             got = tuple(allowed_yaws.shape) if isinstance(allowed_yaws, Tensor) else type(allowed_yaws).__name__
             raise ValueError(f"allowed_yaws must be a bool tensor [{k}, {num_angles}] with a True in every row, got {got}")
     angles = yaw_angles(num_angles, device=dev, dtype=dtype)
+    # The yaws searched per target, ascending: all, or only the allowed ones (rows padded with their first allowed
+    # yaw, which cannot win a tie against itself listed earlier), so that a window of 3 of 36 yaws interpolates 3.
+    if allowed_yaws is None:
+        yaw_table = torch.arange(num_angles, device=dev).expand(k, -1)
+    else:
+        allowed = allowed_yaws.to(dev)
+        width = int(allowed.sum(dim=1).max())
+        order = torch.sort((~allowed).to(torch.int8), dim=1, stable=True).indices[:, :width]  # allowed first, ascending
+        first = order[:, :1].expand(-1, width)
+        yaw_table = torch.where(torch.gather(allowed, 1, order), order, first)
     n_grid = math.prod(len(s) for s in starts)
-    per_target = num_angles * n_grid * q.numel() * 2  # samples + normalised copy
+    per_target = yaw_table.shape[1] * n_grid * q.numel() * 2  # samples + normalised copy
     chunk = max(1, _CHUNK_FLOATS // per_target)
     best_cos, best_idx = [], []
     for i in range(0, k, chunk):
-        feats = F.normalize(_rotated_grid_patches(target_crops[i : i + chunk], angles, starts, patch), dim=-1)
-        cos = feats @ q  # [k_i, A, G]
-        if allowed_yaws is not None:
-            cos = cos.masked_fill(~allowed_yaws[i : i + chunk, :, None].to(dev), float("-inf"))
-        cos = cos.flatten(1)  # [k_i, A * G]
+        t_angles = angles if allowed_yaws is None else angles[yaw_table[i : i + chunk]]
+        feats = F.normalize(_rotated_grid_patches(target_crops[i : i + chunk], t_angles, starts, patch), dim=-1)
+        cos = (feats @ q).flatten(1)  # [k_i, A' * G]
         b, j = cos.max(dim=1)
         best_cos.append(b)
         best_idx.append(j)
     cosine, flat = torch.cat(best_cos), torch.cat(best_idx)
-    yaw, g = flat // n_grid, flat % n_grid
+    yaw = torch.gather(yaw_table, 1, (flat // n_grid)[:, None])[:, 0]
+    g = flat % n_grid
     gy_gx = len(starts[1]) * len(starts[2])
     gi = torch.stack((g // gy_gx, (g // len(starts[2])) % len(starts[1]), g % len(starts[2])), dim=-1)
     table = [torch.tensor(s, dtype=torch.long, device=dev) for s in starts]

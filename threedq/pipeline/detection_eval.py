@@ -82,7 +82,8 @@ def detect_split(
     first: list = []
     for batch in tqdm(loader, desc="detect", disable=not progress, leave=False):
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
-        logits, box = stage(batch)
+        with stage.precision_context():  # as the stage's test_step runs (and keys the crop cache)
+            logits, box = stage(batch)
         dets = stage.detect(logits, box, score_threshold)
         for i, d in zip(batch["scene_index"].tolist(), dets):
             out[files[i]] = (d["boxes"].cpu().numpy(), d["scores"].cpu().numpy())

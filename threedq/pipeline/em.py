@@ -65,6 +65,7 @@ from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.evaluation import SEARCH_LABELS
 from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config, test_checkpoint
 from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer, fewshot_cell, method_rows, precision_label
+from threedq.stages.base import checkpoint_stage
 
 __all__ = ["run_em"]
 
@@ -119,6 +120,23 @@ def _fit_stage(
     info = {"stage": name, "checkpoint": str(last), "seconds": round(time.time() - t0, 1)}
     atomic_write_json(run_dir / "stage.json", info)
     return info
+
+
+def _given_viewpred(path: str | Path) -> dict[str, Any]:
+    """The stage record of a view-prediction checkpoint given with ``--viewpred_ckpt`` (not trained here).
+
+    Raises:
+        InputError: no such file, not a checkpoint that loads safely, or another stage's (one line naming it).
+    """
+    ckpt = Path(path)
+    if not ckpt.is_file():
+        raise InputError(f"--viewpred_ckpt {ckpt}: no such file")
+    stage = checkpoint_stage(ckpt)
+    if stage != "viewpred":
+        kind = f"a {stage}" if stage else "not a stage"
+        raise InputError(f"{ckpt}: this is {kind} checkpoint; --viewpred_ckpt needs a viewpred checkpoint")
+    print(f"[em] viewpred: given ({ckpt}), not trained here")
+    return {"stage": "viewpred", "checkpoint": str(ckpt.resolve()), "seconds": 0.0, "given": True}
 
 
 def _mining_diagnostics(run_dir: Path) -> list[dict[str, Any]]:
@@ -249,7 +267,9 @@ def _report(summary: dict[str, Any]) -> str:
         "",
         f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}",
         f"- machine: {summary['machine']}; torch {summary['torch']}",
-        f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` ({summary['viewpred'].get('seconds', '?')} s)",
+        f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` "
+        + ("(given with --viewpred_ckpt, not trained here)" if summary["viewpred"].get("given")
+           else f"({summary['viewpred'].get('seconds', '?')} s)"),
         "",
         f"## View prediction on held-out scenes ({vp['num_scenes']} scenes)",
         "",
@@ -411,6 +431,8 @@ def run_em(
     max_steps: int | None = None,
     mining_config: str | None = "stages/mining.yaml",
     self_labelling_config: str | None = "stages/self_labelling.yaml",
+    viewpred_ckpt: str | None = None,
+    frozen_precision: Literal["bf16-mixed", "32-true"] = "bf16-mixed",
 ) -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
@@ -436,6 +458,13 @@ def run_em(
         self_labelling_config: the detector self-labelling stage config run at the end of every round (with the
             round's encoder and prototypes; the next round takes its boxes from the self-labelled detector);
             ``none``: the detector stays the warm start. Needs ``detection``.
+        viewpred_ckpt: a view-prediction checkpoint to start from instead of training one (e.g. the embedded data's
+            encoder on a dataset of your own: the detector is still warm-started from this dataset's own label-free
+            pseudo-boxes and self-labelled on it). It is evaluated on this dataset's test split and copied nowhere.
+        frozen_precision: Lightning precision of the stages that read a frozen encoder (the detector, the quantizer,
+            self-labelling and every evaluation after view prediction): ``bf16-mixed`` (default: the encoder's
+            forward about 2x faster on CPUs with bf16 and on GPUs) or ``32-true``. View prediction keeps its
+            config's precision, mining its own (``bf16-mixed``).
     """
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
         raise InputError(f"--rounds: expected an int >= 0, got {rounds!r}")
@@ -443,6 +472,9 @@ def run_em(
         raise InputError(f"--boxes: expected 'gt' or 'detections', got {boxes!r}")
     if boxes == "detections" and not detection:
         raise InputError("--boxes: 'detections' needs --detection true")
+    if frozen_precision not in ("bf16-mixed", "32-true"):
+        raise InputError(f"--frozen_precision: expected 'bf16-mixed' or '32-true', got {frozen_precision!r}")
+    prec = [f"--trainer.precision={frozen_precision}"]
     work = output_folder("--work_dir", work_dir)
     if resume:
         _remove_torn_writes(work)
@@ -456,7 +488,10 @@ def run_em(
     relabel = detection and self_labelling_config not in (None, "", "none")
     sl_configs = [resolve_config(self_labelling_config), *extra] if relabel else []
     overrides = [f"--trainer.max_steps={max_steps}"] if max_steps is not None else []
-    vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
+    if viewpred_ckpt is not None:
+        vp = _given_viewpred(viewpred_ckpt)
+    else:
+        vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
     vp_ckpt = Path(vp["checkpoint"])
     vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, work / "01_viewpred_eval")
     # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
@@ -469,11 +504,11 @@ def run_em(
     box_over: list[str] = []
     if detection:
         d_configs = [resolve_config(detector_config), *extra]
-        det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}"], resume,
-                         crop_cache)
+        det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}", *prec],
+                         resume, crop_cache)
         # detections of every split only when the rounds take their boxes from the detector
         det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-        det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits,
+        det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits, prec,
                                       crop_cache=crop_cache)
         print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
               f"detector {det_eval['detector']['map_50']:.3f}")
@@ -496,17 +531,17 @@ def run_em(
             crop_cache.drop("features")
             crop_cache.drop("grid")
         q_over = [f"--model.init_args.encoder_ckpt={encoder}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
-                  *box_over]
+                  *box_over, *prec]
         if prev_bank is not None:
             q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
         q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume, crop_cache)
         prev_bank = Path(q["checkpoint"])
         round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds,
-                                            overrides=box_over, crop_cache=crop_cache))
+                                            overrides=[*box_over, *prec], crop_cache=crop_cache))
         if relabel:
             assert det_ckpt is not None
             run = work / f"r{r:02d}_self_labelling"
-            sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}"]
+            sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}", *prec]
             sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
                             [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume, crop_cache)
             det_ckpt = Path(sl["checkpoint"])

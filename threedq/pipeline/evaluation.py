@@ -105,8 +105,9 @@ def collect_object_crops(
     cache = stage.crop_cache if random_enc is not None and stage.crops_cacheable() else None
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
-        crops = stage.object_crops(batch, num_input_views, crop_size)
-        out["learned"].append(crops["features"].cpu())
+        with stage.precision_context():  # as the stage's test_step encodes (and keys the crop cache)
+            crops = stage.object_crops(batch, num_input_views, crop_size)
+        out["learned"].append(crops["features"].float().cpu())
         out["raw"].append(crops["raw"].cpu())
         for k in ("labels", "boxes", "aabb", "scene"):
             out[k].append(crops[k].cpu())
