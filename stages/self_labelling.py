@@ -311,7 +311,11 @@ class SelfLabelling(Detector):
             idx = order[start:start + 8]
             batch = {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in default_collate([ds[j] for j in idx]).items()}
             v = self.input_views(batch)
-            g = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+            # encoded under the trainer's precision, as training_step would (Lightning's autocast covers the steps, not
+            # this hook): the grids then come from the crop cache the round's quantizer filled; labelled in fp32
+            with self.precision_context():
+                g = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+            g = g.float()
             grids.append(g.to("cpu"))
             if label_now:
                 props = None if proposals is None else [proposals[ds.files[j]][0] for j in idx]

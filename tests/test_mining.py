@@ -408,6 +408,30 @@ class TestMineCorrespondences:
         with pytest.raises(ValueError, match="rank_by"):
             mine_correspondences(queries, targets, rank_by="cosine")
 
+    @pytest.mark.parametrize("keep", [1, 3, 10, 1000])
+    def test_ranked_by_retrieval_verifies_only_what_can_be_kept(self, keep: int, monkeypatch: pytest.MonkeyPatch) -> None:
+        """Verification stops once ``keep`` pairs passed (pairs from the most similar down): the kept pairs equal
+        those of verifying every pair, and fewer pairs are verified when few are kept."""
+        import threedq.contrastive.mining as mining
+
+        queries, targets = unit(6, 4, S, S, S, seed=4), unit(9, 4, S, S, S, seed=5)
+        kwargs = dict(top_k=6, keep=keep, min_score=0.3, min_cosine=0.0, rank_by="retrieval", yaw_window=1)
+        monkeypatch.setattr(mining, "_VERIFY_PAIRS", 10_000)  # one chunk: every pair is verified
+        full = mine_correspondences(queries, targets, **kwargs)
+        calls = []
+        real = mining._verify_batch
+        monkeypatch.setattr(mining, "_verify_batch", lambda *a, **k: calls.append(a[0].shape[0]) or real(*a, **k))
+        monkeypatch.setattr(mining, "_VERIFY_PAIRS", 4)
+        lazy = mine_correspondences(queries, targets, **kwargs)
+        assert set(full) == set(lazy)
+        for k in full:
+            torch.testing.assert_close(lazy[k], full[k], rtol=0, atol=1e-6)
+        assert 0 < full["query_index"].numel() <= keep
+        if keep < full["query_index"].numel() + 1:  # enough pairs passed: the rest was not verified
+            assert sum(calls) < 6 * 6
+        else:
+            assert sum(calls) == 6 * 6
+
     def test_keep_and_explicit_positions(self) -> None:
         queries, targets, b = planted(90)
         qpos = torch.tensor([[9, 5, 9], [5, 5, 5], [9, 9, 9]])

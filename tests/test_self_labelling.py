@@ -236,3 +236,45 @@ def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:
                                          r"anchor_size=\[0\.5, 0\.5, 0\.5\], this stage asks for \[0\.3, 0\.3, 0\.3\]"):
         SelfLabelling(encoder_ckpt=str(enc), grid_resolution=(32, 32, 16), anchor_size=(0.3, 0.3, 0.3),
                       detector_ckpt=str(det / "checkpoints" / "last.ckpt"))
+
+
+def test_test_a_checkpoint_from_another_folder(tmp_path: Path, tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Stages run with relative paths save them in their hyperparameters, which Lightning puts over the config of a
+    later ``threedq test --ckpt_path``; from another folder those files are not there, and the checkpoint's own
+    weights (encoder, head, bank) are used instead of failing."""
+    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+    from threedq.stages.base import EncoderStage
+
+    run_dir = tmp_path / "project"
+    run_dir.mkdir()
+    monkeypatch.chdir(run_dir)
+    torch.manual_seed(0)
+    torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), "enc.pt")
+    data = (f"--data.init_args.data_dir={tiny_dataset}", "--data.init_args.num_scenes=12",
+            "--data.init_args.image_size=[32, 32]", "--data.init_args.num_views=4",
+            "--data.init_args.generator_workers=1", "--trainer.enable_progress_bar=false",
+            "--trainer.enable_model_summary=false", "--trainer.limit_val_batches=0", "--trainer.num_sanity_val_steps=0")
+    common = ("--model.init_args.encoder_ckpt=enc.pt", "--model.init_args.grid_resolution=[32, 32, 16]")
+    ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/detector.yaml")), *common, *data,
+                     "--data.init_args.boxes=gt", "--trainer.max_steps=2", "--trainer.default_root_dir=det"])
+    ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), *common, *data,
+                     "--model.init_args.num_prototypes=4", "--model.init_args.crop_size=8",
+                     "--model.init_args.num_angles=8", "--trainer.max_steps=-1", "--trainer.default_root_dir=q"])
+    sl_args = ["--config", str(resolve_config("stages/self_labelling.yaml")), *data, "--model.init_args.crop_size=8",
+               "--model.init_args.num_angles=8", "--model.init_args.candidate_threshold=0.0",
+               "--model.init_args.batch_size=2"]
+    ThreeDQCLI(args=["fit", *sl_args, *common, "--model.init_args.detector_ckpt=det/checkpoints/last.ckpt",
+                     "--model.init_args.bank_ckpt=q/checkpoints/last.ckpt", "--trainer.max_steps=2",
+                     "--trainer.default_root_dir=sl"])
+    ckpt = (run_dir / "sl" / "checkpoints" / "last.ckpt").resolve()
+    saved = torch.load(ckpt, weights_only=True, map_location="cpu")
+    assert saved["hyper_parameters"]["detector_ckpt"] == "det/checkpoints/last.ckpt"  # relative: the bug's setting
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    cli = ThreeDQCLI(args=["test", *sl_args, "--ckpt_path", str(ckpt), "--trainer.logger=false",
+                           "--trainer.default_root_dir=t"])
+    assert cli.model.hparams.encoder_ckpt == str(ckpt) and cli.model.hparams.detector_ckpt is None
+    assert "test/map_50" in cli.trainer.logged_metrics
+    head = {k: v for k, v in saved["state_dict"].items() if k.startswith("head.")}
+    assert all(torch.equal(cli.model.state_dict()[k].cpu(), v) for k, v in head.items())

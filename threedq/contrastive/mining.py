@@ -745,13 +745,22 @@ def mine_correspondences(
                 "yaw": empty.clone(), "match_cosine": fz, "score": fz.clone(), "retrieval_sim": fz.clone()}
     qi, ti, yaw, pos, cos, rsim = (torch.cat(c) for c in zip(*rows))
     qpos = query_positions[qi]
-    # verified in chunks of pairs: gathering the crops of all N * top_k pairs at once would hold them all
-    scores = []
-    for i in range(0, qi.numel(), _VERIFY_PAIRS):
-        sl = slice(i, i + _VERIFY_PAIRS)
-        scores.append(_verify_batch(query_crops[qi[sl]], qpos[sl], target_crops[ti[sl]].to(query_crops.dtype), pos[sl],
-                                    yaw[sl], num_angles, patch, context_distance, float(min_cosine), 1)[0])
-    score = torch.cat(scores)
+    # Verified in chunks of pairs (gathering the crops of all N * top_k pairs at once would hold them all). Ranked by
+    # retrieval, the pairs are verified from the most similar down, and only until ``keep`` of them have passed and
+    # the next pair is strictly less similar: the pairs left unverified could not be kept, so the result is the one
+    # of verifying them all (score -inf marks them), at a fraction of the cost.
+    n_pairs = qi.numel()
+    visit = torch.argsort(rsim, descending=True, stable=True) if rank_by == "retrieval" else torch.arange(n_pairs, device=dev)
+    score = torch.full_like(cos, float("-inf"))
+    passed = 0
+    for i in range(0, n_pairs, _VERIFY_PAIRS):
+        sl = visit[i : i + _VERIFY_PAIRS]
+        score[sl] = _verify_batch(query_crops[qi[sl]], qpos[sl], target_crops[ti[sl]].to(query_crops.dtype), pos[sl],
+                                  yaw[sl], num_angles, patch, context_distance, float(min_cosine), 1)[0].to(score.dtype)
+        passed += int((score[sl] >= min_score).sum())
+        done = i + sl.numel()
+        if rank_by == "retrieval" and passed >= keep and done < n_pairs and rsim[visit[done]] < rsim[visit[done - 1]]:
+            break
     first, second = (score, cos) if rank_by == "score" else (rsim, score)
     order = torch.argsort(second, descending=True, stable=True)
     order = order[torch.argsort(first[order], descending=True, stable=True)]

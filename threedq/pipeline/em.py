@@ -122,6 +122,16 @@ def _fit_stage(
     return info
 
 
+def _bf16_is_native() -> bool:
+    """Whether bf16 runs natively here: a GPU that supports it, else a CPU whose oneDNN has bf16 kernels."""
+    if torch.cuda.is_available():
+        return bool(torch.cuda.is_bf16_supported())
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
 def _given_viewpred(path: str | Path) -> dict[str, Any]:
     """The stage record of a view-prediction checkpoint given with ``--viewpred_ckpt`` (not trained here).
 
@@ -266,7 +276,8 @@ def _report(summary: dict[str, Any]) -> str:
         "# threedq em report",
         "",
         f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}",
-        f"- machine: {summary['machine']}; torch {summary['torch']}",
+        f"- machine: {summary['machine']}; torch {summary['torch']}; frozen-encoder stages in "
+        f"{summary.get('frozen_precision', '32-true')}",
         f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` "
         + ("(given with --viewpred_ckpt, not trained here)" if summary["viewpred"].get("given")
            else f"({summary['viewpred'].get('seconds', '?')} s)"),
@@ -432,7 +443,7 @@ def run_em(
     mining_config: str | None = "stages/mining.yaml",
     self_labelling_config: str | None = "stages/self_labelling.yaml",
     viewpred_ckpt: str | None = None,
-    frozen_precision: Literal["bf16-mixed", "32-true"] = "bf16-mixed",
+    frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
 ) -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
@@ -462,9 +473,10 @@ def run_em(
             encoder on a dataset of your own: the detector is still warm-started from this dataset's own label-free
             pseudo-boxes and self-labelled on it). It is evaluated on this dataset's test split and copied nowhere.
         frozen_precision: Lightning precision of the stages that read a frozen encoder (the detector, the quantizer,
-            self-labelling and every evaluation after view prediction): ``bf16-mixed`` (default: the encoder's
-            forward about 2x faster on CPUs with bf16 and on GPUs) or ``32-true``. View prediction keeps its
-            config's precision, mining its own (``bf16-mixed``).
+            self-labelling and every evaluation after view prediction): ``bf16-mixed`` (the encoder's forward about
+            2x faster on CPUs with bf16 instructions and on GPUs), ``32-true``, or ``auto`` (default: bf16 where the
+            CPU (oneDNN) or the GPU runs it natively, else fp32). View prediction keeps its config's precision,
+            mining its own (``bf16-mixed``).
     """
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
         raise InputError(f"--rounds: expected an int >= 0, got {rounds!r}")
@@ -472,8 +484,10 @@ def run_em(
         raise InputError(f"--boxes: expected 'gt' or 'detections', got {boxes!r}")
     if boxes == "detections" and not detection:
         raise InputError("--boxes: 'detections' needs --detection true")
-    if frozen_precision not in ("bf16-mixed", "32-true"):
-        raise InputError(f"--frozen_precision: expected 'bf16-mixed' or '32-true', got {frozen_precision!r}")
+    if frozen_precision not in ("auto", "bf16-mixed", "32-true"):
+        raise InputError(f"--frozen_precision: expected 'auto', 'bf16-mixed' or '32-true', got {frozen_precision!r}")
+    if frozen_precision == "auto":
+        frozen_precision = "bf16-mixed" if _bf16_is_native() else "32-true"
     prec = [f"--trainer.precision={frozen_precision}"]
     work = output_folder("--work_dir", work_dir)
     if resume:
@@ -579,6 +593,7 @@ def run_em(
         "detector": det,
         "detector_eval": det_eval,
         "boxes": boxes,
+        "frozen_precision": frozen_precision,
         "round_results": round_results,
         "final_eval_dir": str(work / f"r{rounds:02d}_eval") if rounds else None,
         "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),

@@ -274,6 +274,29 @@ class ThreeDQCLI(LightningCLI):
         if stage and wanted and stage != wanted:
             raise InputError(f"{ckpt}: this is a {stage} checkpoint; --ckpt_path of {cls} needs a {wanted} checkpoint")
 
+    def _parse_ckpt_path(self) -> None:
+        """Lightning puts the hyperparameters saved in ``--ckpt_path`` over the config. Those of a threedq stage name
+        the files it started from (``encoder_ckpt``, ``detector_ckpt``, ``bank_ckpt``, ``init_bank_ckpt``), often
+        relative to the folder it ran in; the checkpoint itself holds those weights. A named file that is not there
+        (another working folder, a moved run) is replaced by the checkpoint itself (encoder, bank) or dropped
+        (the detector head, the initial bank: the checkpoint's own are loaded)."""
+        super()._parse_ckpt_path()
+        sub = self.config.get("subcommand")
+        cfg = self.config.get(sub) if sub else None
+        ckpt = cfg.get("ckpt_path") if cfg is not None else None
+        model = cfg.get("model") if cfg is not None else None
+        if not ckpt or not Path(str(ckpt)).is_file() or model is None:
+            return
+        for args_key in ("init_args", "dict_kwargs"):
+            args = model.get(args_key) if hasattr(model, "get") else None
+            if args is None or not hasattr(args, "get"):
+                continue
+            for key, replacement in (("encoder_ckpt", str(ckpt)), ("bank_ckpt", str(ckpt)), ("detector_ckpt", None),
+                                     ("init_bank_ckpt", None)):
+                value = args.get(key)
+                if isinstance(value, str) and value and not Path(value).is_file():
+                    args[key] = replacement
+
     def instantiate_classes(self) -> None:
         try:
             super().instantiate_classes()
