@@ -438,6 +438,8 @@ class Mining(SplitEvaluation, EncoderStage):
             "queries": n_q, "pairs": int(qi.numel()), "min_cosine": round(min_cos, 4),
             "score_mean": float(mined["score"].mean()) if qi.numel() else float("nan"),
             "same_category": float(same.sum() / labelled.sum()) if labelled.any() else float("nan"),
+            # the pairs same_category is measured on: both boxes match a GT object (detected boxes may not)
+            "labelled_pairs": int(labelled.sum()),
             "seconds": round(seconds, 1),
         }
         sym = self._symmetry()

@@ -37,7 +37,9 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory, tiny_dataset: Path) -> Pa
 
     tmp = tmp_path_factory.mktemp("tiny_run")
     work = tmp / "em"
-    run_em(rounds=1, work_dir=str(work), extra_configs=[_em_config(tmp, tiny_dataset)], boxes="gt")
+    # fp32 evaluation: the parse (fp32 by default) must reproduce it exactly
+    run_em(rounds=1, work_dir=str(work), extra_configs=[_em_config(tmp, tiny_dataset)], boxes="gt",
+           frozen_precision="32-true")
     return work
 
 

@@ -303,6 +303,7 @@ class TestEm:
         assert summary["mining_results"][0]["checkpoint"] == str(mined)
         refreshes = summary["mining_results"][0]["refreshes"]
         assert refreshes and refreshes[0]["pairs"] >= 1 and 0 <= refreshes[0]["same_category"] <= 1
+        assert 1 <= refreshes[0]["labelled_pairs"] <= refreshes[0]["pairs"]  # GT boxes: every box is on an object
         vp = encoder_state_from_checkpoint(work / "00_viewpred" / "checkpoints" / "last.ckpt")
         tuned = encoder_state_from_checkpoint(mined)
         used = encoder_state_from_checkpoint(work / "r01_quantizer" / "checkpoints" / "last.ckpt")

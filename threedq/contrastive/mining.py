@@ -377,6 +377,8 @@ def match_patch(
                 or allowed_yaws.shape != (k, num_angles) or not bool(allowed_yaws.any(dim=1).all())):
             got = tuple(allowed_yaws.shape) if isinstance(allowed_yaws, Tensor) else type(allowed_yaws).__name__
             raise ValueError(f"allowed_yaws must be a bool tensor [{k}, {num_angles}] with a True in every row, got {got}")
+    if allowed_yaws is not None and bool(allowed_yaws.all()):
+        allowed_yaws = None  # every yaw allowed: the shared path (one sampling grid for all targets) is faster
     angles = yaw_angles(num_angles, device=dev, dtype=dtype)
     # The yaws searched per target, ascending: all, or only the allowed ones (rows padded with their first allowed
     # yaw, which cannot win a tie against itself listed earlier), so that a window of 3 of 36 yaws interpolates 3.

@@ -366,15 +366,15 @@ def _report(summary: dict[str, Any]) -> str:
             f"## Correspondence mining per round (`{summary.get('mining_config')}`; categories and yaws used for "
             "measuring only)",
             "",
-            "| round | refresh | pairs | same category | yaw median err., same-category asymmetric pairs (deg) | "
-            "context cosine threshold | seconds |",
-            "|---|---|---|---|---|---|---|",
+            "| round | refresh | pairs | of them on two GT objects | same category (of those) | yaw median err., "
+            "same-category asymmetric pairs (deg) | context cosine threshold | seconds |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for i, m in enumerate(mining, 1):
             for f in m["refreshes"]:
                 yaw = f"{f['yaw_median_err_deg']:.1f} ({f['yaw_pairs']} pairs)" if "yaw_median_err_deg" in f else "-"
-                lines.append(f"| {i} | {f['refresh']} | {f['pairs']} | {f['same_category']:.3f} | {yaw} | "
-                             f"{f['min_cosine']:.3f} | {f['seconds']} |")
+                lines.append(f"| {i} | {f['refresh']} | {f['pairs']} | {f.get('labelled_pairs', '-')} | "
+                             f"{f['same_category']:.3f} | {yaw} | {f['min_cosine']:.3f} | {f['seconds']} |")
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
     table3 = summary.get("table3") or []
     if table3:
