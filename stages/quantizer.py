@@ -48,7 +48,8 @@ class Quantizer(SplitEvaluation, EncoderStage):
             from the bank.
         em_iterations: E/M rounds at the end of each training epoch.
         search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
-        num_classes: categories of the dataset (metrics only; labels are never used for training).
+        num_classes: categories of the dataset (metrics only; labels are never used for training); ``None``: the count
+            in the dataset's ``index.json`` (41, the embedded data's, until a dataset is attached).
         symmetry_order: per category, its yaw symmetry order (``index.json``); for the yaw-error metric.
         shots: labelled examples per category of the few-shot metric (paper: 2).
         seed: seed of the incremental-initialisation order and of the few-shot draw.
@@ -74,7 +75,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         fill_free_slots: bool = True,
         em_iterations: int = 10,
         search_method: str = "fast",
-        num_classes: int = 41,
+        num_classes: int | None = None,
         symmetry_order: list[int] | None = None,
         shots: int = 2,
         seed: int = 0,
@@ -88,7 +89,13 @@ class Quantizer(SplitEvaluation, EncoderStage):
             load_bank_state(self.bank, init_bank_ckpt)
         self._train_crops: list[Tensor] = []
         self._train_keys: list[Tensor] = []
-        sym = symmetry_order if symmetry_order is not None else [1] * num_classes
+        n = num_classes if num_classes is not None else 41
+        sym = symmetry_order if symmetry_order is not None else [1] * n
+        self._make_metrics(n, sym)
+
+    def _make_metrics(self, num_classes: int, sym: list[int]) -> None:
+        hp = self.hparams
+        num_prototypes, shots, seed = hp.num_prototypes, hp.shots, hp.seed
         self.metrics = torch.nn.ModuleDict(
             {
                 split: torch.nn.ModuleDict(
@@ -108,7 +115,10 @@ class Quantizer(SplitEvaluation, EncoderStage):
         index = getattr(getattr(self.trainer, "datamodule", None), "index", None)
         if index is None:
             return
-        if len(index.categories) != self.hparams.num_classes:
+        if self.hparams.num_classes is None:
+            self._make_metrics(len(index.categories), list(index.symmetry_order))
+            self.metrics.to(self.device)
+        elif len(index.categories) != self.hparams.num_classes:
             raise ValueError(
                 f"num_classes: the quantizer was configured for {self.hparams.num_classes} categories but the "
                 f"dataset's index.json lists {len(index.categories)}"
