@@ -92,10 +92,6 @@ class _ViewCache:
             _, old = self._items.popitem(last=False)
             self.nbytes -= old.nbytes
 
-    def clear(self) -> None:
-        self._items.clear()
-        self.nbytes = 0
-
 
 _VIEW_CACHE = _ViewCache()
 

@@ -105,8 +105,9 @@ def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
     return enc
 
 
-def checkpoint_hparams(path: str | Path) -> dict[str, Any]:
-    """The ``hyper_parameters`` of a stage checkpoint (loaded with ``weights_only=True``).
+def checkpoint_hparams(path: str | Path, missing_ok: bool = False) -> dict[str, Any]:
+    """The ``hyper_parameters`` of a stage checkpoint (loaded with ``weights_only=True``); ``{}`` for a file without
+    them (a bare state dict) when ``missing_ok``.
 
     Raises:
         FileNotFoundError: no such file. ValueError: not loadable safely, or no hyperparameters (names the file).
@@ -114,6 +115,8 @@ def checkpoint_hparams(path: str | Path) -> dict[str, Any]:
     obj = _load_safely(Path(path))
     hp = obj.get("hyper_parameters") if isinstance(obj, dict) else None
     if not isinstance(hp, dict):
+        if missing_ok:
+            return {}
         raise InputError(f"{path}: field 'hyper_parameters': missing (not a threedq stage checkpoint)")
     return hp
 
@@ -156,6 +159,21 @@ def checkpoint_stage(path: str | Path) -> str | None:
         if all(any(k.startswith(p) for k in state) for p in prefixes):
             return stage
     return None
+
+
+def require_stage(path: str | Path, wanted: str, option: str, needs: str | None = None) -> None:
+    """Refuse, in one line naming the file, a checkpoint that is missing or that another stage wrote.
+
+    Args:
+        path: the checkpoint; wanted: the stage it must come from (``quantizer``, ``viewpred``, ...); option: the
+            command-line option that named it (for a missing file); needs: who needs it (default ``option``).
+    """
+    if not Path(path).is_file():
+        raise InputError(f"{option} {path}: no such file")
+    stage = checkpoint_stage(path)  # a truncated or unsafe file is refused here, in one line
+    if stage != wanted:
+        kind = f"a {stage}" if stage else "not a stage"
+        raise InputError(f"{path}: this is {kind} checkpoint; {needs or option} needs a {wanted} checkpoint")
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -149,8 +149,7 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
     naming the checkpoint and the field; a checkpoint without saved hyperparameters is not checked.
     """
     if anchor_size is not None:
-        hp = _hparams_or_none(path)
-        trained = None if hp is None else hp.get("anchor_size")
+        trained = checkpoint_hparams(path, missing_ok=True).get("anchor_size")
         if trained is not None and [round(float(a), 6) for a in trained] != [round(float(a), 6) for a in anchor_size]:
             raise InputError(
                 f"{path}: field 'anchor_size': the detector was trained with anchor_size={list(trained)}, this stage "
@@ -163,15 +162,6 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
         head.load_state_dict(state)
     except RuntimeError as e:
         raise ValueError(f"{path}: field 'state_dict': the detector head does not fit this stage: {e}") from None
-
-
-def _hparams_or_none(path: str | Path) -> dict[str, Any] | None:
-    try:
-        return checkpoint_hparams(path)
-    except InputError as e:
-        if "hyper_parameters" in str(e):  # a bare state dict: nothing to check
-            return None
-        raise
 
 
 class SelfLabelling(Detector):

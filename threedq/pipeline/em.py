@@ -65,7 +65,7 @@ from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.evaluation import SEARCH_LABELS
 from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config, test_checkpoint
 from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer, fewshot_cell, method_rows, precision_label
-from threedq.stages.base import checkpoint_stage
+from threedq.stages.base import require_stage
 
 __all__ = ["run_em"]
 
@@ -139,12 +139,7 @@ def _given_viewpred(path: str | Path) -> dict[str, Any]:
         InputError: no such file, not a checkpoint that loads safely, or another stage's (one line naming it).
     """
     ckpt = Path(path)
-    if not ckpt.is_file():
-        raise InputError(f"--viewpred_ckpt {ckpt}: no such file")
-    stage = checkpoint_stage(ckpt)
-    if stage != "viewpred":
-        kind = f"a {stage}" if stage else "not a stage"
-        raise InputError(f"{ckpt}: this is {kind} checkpoint; --viewpred_ckpt needs a viewpred checkpoint")
+    require_stage(ckpt, "viewpred", "--viewpred_ckpt")
     print(f"[em] viewpred: given ({ckpt}), not trained here")
     return {"stage": "viewpred", "checkpoint": str(ckpt.resolve()), "seconds": 0.0, "given": True}
 

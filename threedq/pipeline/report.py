@@ -45,7 +45,7 @@ from torch.utils.data import DataLoader  # noqa: E402
 from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
 from threedq.errors import InputError  # noqa: E402
-from threedq.stages.base import checkpoint_stage  # noqa: E402
+from threedq.stages.base import require_stage  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
 from threedq.data.draw import crop_birds_eye  # noqa: E402
 from threedq.pipeline.evaluation import (  # noqa: E402
@@ -452,12 +452,7 @@ def run_eval(
         extra_configs = [str(extra_configs)]
     configs = [resolve_config(config), *(resolve_config(c) for c in (extra_configs or []))]
     output_folder("--out", out)
-    if not Path(ckpt).is_file():
-        raise InputError(f"--ckpt {ckpt}: no such file")
-    stage = checkpoint_stage(ckpt)  # a missing, truncated or unsafe file is refused here, in one line
-    if stage != "quantizer":
-        kind = f"a {stage}" if stage else "not a stage"
-        raise InputError(f"{ckpt}: this is {kind} checkpoint; eval needs a quantizer checkpoint")
+    require_stage(ckpt, "quantizer", "--ckpt", needs="eval")
     q25d_model = load_q25d(q25d) if q25d else None  # bad files are refused before the long work
     resnet = load_resnet(weights) if weights else None
     cache = CropCache()  # the test pass and the crops below encode each test scene once
