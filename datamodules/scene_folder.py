@@ -17,6 +17,7 @@ record is its world frame (metres, z up, centred on the scene).
 from __future__ import annotations
 
 import os
+import zipfile
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -411,6 +412,29 @@ class SceneFolderDataModule(L.LightningDataModule):
             cache = self.data_dir / "proposals" / f"{split}.npz"
             return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2))
         return load_boxes_file(self.boxes.format(split=split))
+
+    def box_extents(self, split: str = "train") -> np.ndarray:
+        """``[N, 3]`` extents (x, y, z; metres) of the object boxes a split's samples carry: the axis-aligned hulls
+        of the GT boxes, or the ``max_boxes`` highest-scoring proposed/detected boxes of each scene (``boxes``).
+
+        What a detector with ``anchor_size: null`` takes its anchor from.
+        """
+        sets = self.box_sets(split)
+        if sets is not None:
+            rows = [np.asarray(a, np.float64).reshape(-1, 6)[np.argsort(-np.asarray(sc).reshape(-1), kind="stable")[: self.max_boxes]]
+                    for a, sc in (sets[f] for f in self.index.files(split) if f in sets)]  # fmt: skip
+        else:
+            rows = []
+            for f in self.index.files(split):
+                path = self.data_dir / f
+                try:
+                    with np.load(path, allow_pickle=False) as npz:
+                        boxes = np.asarray(npz["boxes"], np.float64).reshape(-1, 7)
+                except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError) as e:
+                    raise SceneValidationError(str(path), "boxes", f"cannot be read: {e}") from e
+                rows.append(boxes_to_aabb(boxes))
+        aabb = np.concatenate(rows) if rows else np.zeros((0, 6))
+        return aabb[:, 3:] - aabb[:, :3]
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         if split not in self.datasets:

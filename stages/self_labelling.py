@@ -107,7 +107,7 @@ def center_surround_similarity(grid: Tensor, aabb: Tensor, spec: VoxelGridSpec, 
 
 def self_label_targets(
     centres: Tensor, pos_aabb: Tensor, pos_mask: Tensor, neg_aabb: Tensor, neg_mask: Tensor, anchor: Tensor,
-    inner_fraction: float = 0.5, negative_margin: float = 0.1, surround: float = 0.0,
+    inner_fraction: float = 0.5, negative_margin: float = 0.1, surround: float = 0.0, min_height: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """Objectness labels and box targets confined to the union of the positive and negative regions.
 
@@ -122,13 +122,15 @@ def self_label_targets(
         pos_aabb: ``[B, P, 6]`` positive boxes, pos_mask ``[B, P]``; neg_aabb ``[B, Q, 6]``, neg_mask ``[B, Q]``.
         anchor, inner_fraction, negative_margin: as in :func:`~threedq.stages.detector.detection_targets`.
         surround: width of the negative shell around each positive box, in units of its extent (0: none).
+        min_height: positive boxes less tall than this give no positives (their region is ignored), as in
+            :func:`~threedq.stages.detector.detection_targets`.
 
     Returns:
         ``label`` ``[B, Z, Y, X]`` (1 positive, 0 negative, -1 ignored) and ``target`` ``[B, 6, Z, Y, X]``.
 
     Convention: frame R metres; x, y, z order inside the last dimensions.
     """
-    label, target, _ = detection_targets(centres, pos_aabb, pos_mask, anchor, inner_fraction, negative_margin)
+    label, target, _ = detection_targets(centres, pos_aabb, pos_mask, anchor, inner_fraction, negative_margin, min_height)
     B = label.shape[0]
     p = centres.reshape(1, 1, -1, 3)
     in_neg = ((p >= neg_aabb[..., None, :3]) & (p <= neg_aabb[..., None, 3:])).all(-1) & neg_mask[..., None]
@@ -200,7 +202,7 @@ class SelfLabelling(Detector):
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = True,
         channels_last: bool = True,
-        anchor_size: tuple[float, float, float] = (0.5, 0.5, 0.5),
+        anchor_size: tuple[float, float, float] | None = None,
         channels: int = 32,
         num_blocks: int = 3,
         inner_fraction: float = 0.5,
@@ -228,12 +230,17 @@ class SelfLabelling(Detector):
         surround_crop_size: int = 8,
         snap_to_proposals: float = 0.0,
         surround_negatives: float = 0.0,
+        min_box_height: float | None = None,
     ) -> None:
         if not freeze_encoder:
             raise ValueError("freeze_encoder: self-labelling trains the detector head on a frozen encoder")
+        if anchor_size is None and detector_ckpt:  # the anchor the detector was trained with
+            trained = checkpoint_hparams(detector_ckpt, missing_ok=True).get("anchor_size")
+            anchor_size = None if trained is None else tuple(float(a) for a in trained)
         super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last,
                          anchor_size, channels, num_blocks, inner_fraction, negative_margin, box_weight, score_threshold,
-                         eval_score_threshold, nms_iou, nms_iomin, max_detections, lr, image_every_n_steps)  # fmt: skip
+                         eval_score_threshold, nms_iou, nms_iomin, max_detections, lr, image_every_n_steps,
+                         min_box_height)  # fmt: skip
         for name, v in (("positive_threshold", positive_threshold), ("negative_threshold", negative_threshold)):
             if not -1.0 <= v <= 1.0:
                 raise ValueError(f"{name}: expected a cosine in [-1, 1], got {v}")
@@ -259,6 +266,7 @@ class SelfLabelling(Detector):
 
     # ------------------------------------------------------------------ checkpoint
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
         labels = checkpoint.get("state_dict", {}).get("labels")
         if labels is not None:
             self.labels = torch.zeros_like(labels)
@@ -423,7 +431,7 @@ class SelfLabelling(Detector):
         logits, box = self.head(grids)
         label, target = self_label_targets(self.centres, pos_aabb, pos_mask, neg_aabb, neg_mask, self.anchor,
                                            self.hparams.inner_fraction, self.hparams.negative_margin,
-                                           self.hparams.surround_negatives)  # fmt: skip
+                                           self.hparams.surround_negatives, self.min_box_height)  # fmt: skip
         r = self.loss_from_targets(logits, box, label, target)
         self.log_dict({"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"],
                        "train/num_pos": r["num_pos"].float(), "train/num_neg": r["num_neg"].float()},

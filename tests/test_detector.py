@@ -67,11 +67,118 @@ class TestDetectionTargets:
         # Both boxes own some positive cell.
         assert set(assigned[0][pos].tolist()) == {0, 1}
 
+    def test_thin_box_gives_no_positive_and_its_region_is_ignored(self) -> None:
+        centres, anchor = _grid()
+        thin = torch.tensor([[[-0.5, -0.5, 0.0, 0.5, 0.5, 0.03]]])  # 3 cm tall: below a 4 cm min_height
+        one = torch.tensor([[True]])
+        counted, _, _ = detection_targets(centres, thin, one, anchor, 0.5, 0.1, min_height=0.0)
+        label, _, assigned = detection_targets(centres, thin, one, anchor, 0.5, 0.1, min_height=0.04)
+        assert int((counted == 1).sum()) == 1  # no cell centre is within the inner 1.5 cm: only the nearest cell
+        assert int((label == 1).sum()) == 0 and int(assigned.max()) == -1
+        # Naive reference: cells within 0.1 m of the box are ignored, the rest negative.
+        for z in range(4):
+            for y in range(8):
+                for x in range(8):
+                    p = centres[z, y, x]
+                    near = bool(((p >= torch.tensor([-0.6, -0.6, -0.1])) & (p <= torch.tensor([0.6, 0.6, 0.13]))).all())
+                    assert label[0, z, y, x] == (-1 if near else 0)
+        # a box exactly min_height tall still counts
+        edge = torch.tensor([[[-0.5, -0.5, 0.0, 0.5, 0.5, 0.25]]])
+        label, _, _ = detection_targets(centres, edge, one, anchor, 0.5, 0.1, min_height=0.25)
+        assert int((label == 1).sum()) > 0
+
     def test_masked_box_is_ignored(self) -> None:
         centres, anchor = _grid()
         box = torch.tensor([[[-0.5, -0.5, 0.0, 0.5, 0.5, 0.5]]])
         label, _, _ = detection_targets(centres, box, torch.tensor([[False]]), anchor)
         assert (label == 0).all()
+
+
+class TestAnchorFromBoxes:
+    def test_median_of_the_boxes_tall_enough(self) -> None:
+        m = Detector(**SMALL)
+        assert m.hparams.anchor_size is None
+        ext = np.array([[0.2, 0.3, 0.4], [0.4, 0.5, 0.6], [0.6, 0.7, 0.8], [1.0, 1.0, 0.01], [0.9, 0.9, np.nan]])
+        m.set_anchor_from_boxes(ext, "test boxes")
+        assert m.hparams.anchor_size == (0.4, 0.5, 0.6)  # the thin and the non-finite box are left out
+        assert torch.allclose(m.anchor, torch.tensor([0.4, 0.5, 0.6]))
+
+    def test_default_min_height_is_half_a_feature_voxel(self) -> None:
+        m = Detector(**SMALL)
+        assert m.min_box_height == pytest.approx(m.feature_grid.voxel_size[2] / 2)
+        assert Detector(min_box_height=0.0, **SMALL).min_box_height == 0.0
+
+    def test_exceptions(self) -> None:
+        m = Detector(**SMALL)
+        with pytest.raises(ValueError, match=r"my boxes: anchor_size: null .* min_box_height=0\.04 m tall"):
+            Detector(min_box_height=0.04, **SMALL).set_anchor_from_boxes(np.array([[0.3, 0.3, 0.02]]), "my boxes")
+        z = torch.zeros(1, 4, 8, 8)
+        with pytest.raises(RuntimeError, match="anchor_size is null"):
+            m.loss(z, torch.zeros(1, 6, 4, 8, 8), torch.zeros(1, 1, 6), torch.ones(1, 1, dtype=torch.bool))
+        with pytest.raises(RuntimeError, match="anchor_size is null"):
+            m.detect(z, torch.zeros(1, 6, 4, 8, 8))
+        with pytest.raises(ValueError, match="min_box_height"):
+            Detector(min_box_height=-0.1, **SMALL)
+        with pytest.raises(ValueError, match="anchor_size"):
+            Detector(anchor_size=(0.5, float("inf"), 0.5), **SMALL)
+
+    def test_box_extents_of_the_gt_boxes(self, tiny_dataset: Path) -> None:
+        from threedq.boxes import box_corners
+        from threedq.scene import load_scene
+
+        dm = SceneFolderDataModule(str(tiny_dataset))
+        ext = dm.box_extents("train")
+        ref = []  # independent: the extent of each box's 8 corners
+        for f in dm.index.files("train"):
+            for c in box_corners(load_scene(tiny_dataset / f).boxes.astype(np.float64)):
+                ref.append(c.max(0) - c.min(0))
+        assert ext.shape == (len(ref), 3)
+        assert np.allclose(ext, np.array(ref), atol=1e-6)
+
+    def test_box_extents_of_a_box_file_keep_the_best_max_boxes(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        dm0 = SceneFolderDataModule(str(tiny_dataset))
+        sets = {}
+        for split in ("train", "val", "test"):
+            for f in dm0.index.files(split):
+                a = np.array([[0, 0, 0, 0.1, 0.1, 0.1], [0, 0, 0, 0.2, 0.3, 0.4], [0, 0, 0, 0.5, 0.5, 0.5]], np.float32)
+                sets[f] = (a, np.array([0.1, 0.9, 0.5], np.float32))
+        for split in ("train", "val", "test"):
+            save_boxes_file(tmp_path / f"b_{split}.npz", {f: sets[f] for f in dm0.index.files(split)})
+        dm = SceneFolderDataModule(str(tiny_dataset), boxes=str(tmp_path / "b_{split}.npz"), max_boxes=2)
+        ext = dm.box_extents("train")
+        n = len(dm0.index.files("train"))
+        assert ext.shape == (2 * n, 3)
+        assert np.allclose(ext[:2], [[0.2, 0.3, 0.4], [0.5, 0.5, 0.5]], atol=1e-6)  # scores 0.9, 0.5; 0.1 dropped
+
+    def test_fit_takes_it_and_a_loaded_checkpoint_keeps_it(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        import lightning as L
+
+        from threedq.errors import InputError
+
+        torch.manual_seed(0)
+        kw = dict(batch_size=2, num_target_views=0)
+        dm = SceneFolderDataModule(str(tiny_dataset), boxes="gt", **kw)
+        m = Detector(**SMALL)
+        trainer = L.Trainer(max_steps=2, limit_val_batches=0, num_sanity_val_steps=0, logger=False,
+                            enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)  # fmt: skip
+        trainer.fit(m, datamodule=dm)
+        ext = dm.box_extents("train")
+        expect = tuple(round(float(v), 4) for v in np.median(ext[ext[:, 2] >= m.min_box_height], axis=0))
+        assert m.hparams.anchor_size == expect
+        ckpt = tmp_path / "det.ckpt"
+        trainer.save_checkpoint(ckpt)
+        assert tuple(torch.load(ckpt, weights_only=True)["hyper_parameters"]["anchor_size"]) == expect
+        # tested on data whose boxes have another median: the checkpoint's anchor, not the data's
+        other = SceneFolderDataModule(str(tiny_dataset), boxes="gt", max_boxes=1, **kw)
+        other.box_extents = lambda split: np.array([[0.9, 0.9, 0.9]])  # type: ignore[method-assign]
+        m2 = Detector(**SMALL)
+        tester = L.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)
+        tester.test(m2, datamodule=other, ckpt_path=str(ckpt), verbose=False, weights_only=True)
+        assert m2.hparams.anchor_size == expect and torch.allclose(m2.anchor, torch.tensor(expect))
+        # an explicit, different anchor is refused by name
+        with pytest.raises(InputError, match=r"anchor_size.*trained with anchor_size=.*asks for \[0\.9, 0\.9, 0\.9\]"):
+            tester.test(Detector(anchor_size=(0.9, 0.9, 0.9), **SMALL), datamodule=other, ckpt_path=str(ckpt),
+                        verbose=False, weights_only=True)  # fmt: skip
 
 
 class TestDetectorHead:
@@ -128,7 +235,7 @@ class TestDetectorStage:
         assert img.dtype == np.uint8 and img.ndim == 3
 
     def test_frozen_encoder_gets_no_gradient(self, train_batch: dict[str, torch.Tensor]) -> None:
-        m = Detector(**SMALL)
+        m = Detector(anchor_size=(0.5, 0.5, 0.5), **SMALL)
         logits, box = m(train_batch)
         m.loss(logits, box, train_batch["aabb"], train_batch["box_mask"])["loss"].backward()
         assert all(p.grad is None for p in m.encoder.parameters())

@@ -229,11 +229,17 @@ def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:
                             "--ckpt_path", str(ckpt)])  # fmt: skip
     assert cli2.model.trainer.global_step == 4
     assert torch.equal(cli2.model.labels.cpu(), state["labels"])
-    # a detector trained with another anchor is refused by name (its boxes would decode at the wrong size)
+    # the packaged config's anchor_size: null takes the anchor the detector was trained with (the median extent of
+    # its training boxes, saved in its hyperparameters)
     from threedq.errors import InputError
+    from threedq.stages.base import checkpoint_hparams
 
+    trained = checkpoint_hparams(det / "checkpoints" / "last.ckpt")["anchor_size"]
+    assert trained is not None and model.hparams.anchor_size == tuple(trained)
+    assert torch.allclose(model.anchor.cpu(), torch.tensor(trained, dtype=torch.float32))
+    # a detector trained with another anchor is refused by name (its boxes would decode at the wrong size)
     with pytest.raises(InputError, match=r"det.*last\.ckpt: field 'anchor_size': the detector was trained with "
-                                         r"anchor_size=\[0\.5, 0\.5, 0\.5\], this stage asks for \[0\.3, 0\.3, 0\.3\]"):
+                                         r"anchor_size=\[.*\], this stage asks for \[0\.3, 0\.3, 0\.3\]"):
         SelfLabelling(encoder_ckpt=str(enc), grid_resolution=(32, 32, 16), anchor_size=(0.3, 0.3, 0.3),
                       detector_ckpt=str(det / "checkpoints" / "last.ckpt"))
 
