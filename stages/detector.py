@@ -148,6 +148,15 @@ def detection_targets(
     return label.view(B, Z, Y, X), target, assigned
 
 
+def check_same_anchor(trained: Any, asked: Any, source: str) -> None:
+    """Refuse to decode a detector's boxes with another anchor than it was trained with (``InputError`` naming
+    ``source``, the field and both anchors)."""
+    if [round(float(a), 6) for a in trained] != [round(float(a), 6) for a in asked]:
+        raise InputError(f"{source}: field 'anchor_size': the detector was trained with anchor_size={list(trained)}, "
+                         f"this stage asks for {list(asked)} (set model.init_args.anchor_size to null or to the "
+                         "detector's)")  # fmt: skip
+
+
 def decode_boxes(centres: Tensor, box: Tensor, anchor: Tensor) -> Tensor:
     """Boxes ``[B, Z, Y, X, 6]`` (xmin..zmax) from regressions ``[B, 6, Z, Y, X]`` at cell centres ``[Z, Y, X, 3]``."""
     r = box.permute(0, 2, 3, 4, 1)
@@ -279,11 +288,8 @@ class Detector(EncoderStage):
         trained = (checkpoint.get("hyper_parameters") or {}).get("anchor_size")
         if trained is None:
             return
-        mine = self.hparams.anchor_size
-        if self._anchor_explicit and [round(float(a), 6) for a in mine] != [round(float(a), 6) for a in trained]:
-            raise InputError(f"checkpoint field 'anchor_size': the detector was trained with anchor_size="
-                             f"{list(trained)}, this stage asks for {list(mine)} (set model.init_args.anchor_size "
-                             "to null or to the detector's)")  # fmt: skip
+        if self._anchor_explicit:
+            check_same_anchor(trained, self.hparams.anchor_size, "checkpoint")
         self._set_anchor(trained)
 
     def _check_anchor(self) -> None:

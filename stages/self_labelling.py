@@ -53,9 +53,8 @@ from threedq.data.draw import draw_boxes
 from threedq.geometry import VoxelGridSpec, crop_boxes
 from threedq.metrics.detection import assign_detections
 from threedq.quantization.prototypes import PrototypeBank
-from threedq.errors import InputError
 from threedq.stages.base import checkpoint_hparams, checkpoint_state
-from threedq.stages.detector import Detector, _aabb_to_boxes7, detection_targets
+from threedq.stages.detector import Detector, _aabb_to_boxes7, check_same_anchor, detection_targets
 from threedq.stages.quantizer import load_bank_state
 
 __all__ = ["SelfLabelling", "center_surround_similarity", "self_label_targets", "load_head_state"]
@@ -152,11 +151,8 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
     """
     if anchor_size is not None:
         trained = checkpoint_hparams(path, missing_ok=True).get("anchor_size")
-        if trained is not None and [round(float(a), 6) for a in trained] != [round(float(a), 6) for a in anchor_size]:
-            raise InputError(
-                f"{path}: field 'anchor_size': the detector was trained with anchor_size={list(trained)}, this stage "
-                f"asks for {list(anchor_size)} (set model.init_args.anchor_size to the detector's)"
-            )
+        if trained is not None:
+            check_same_anchor(trained, anchor_size, str(path))
     state = {k[len("head."):]: v for k, v in checkpoint_state(path).items() if k.startswith("head.")}
     if not state:
         raise ValueError(f"{path}: field 'state_dict': no 'head.*' weights (not a detector checkpoint?)")
@@ -234,6 +230,7 @@ class SelfLabelling(Detector):
     ) -> None:
         if not freeze_encoder:
             raise ValueError("freeze_encoder: self-labelling trains the detector head on a frozen encoder")
+        asked_anchor = anchor_size  # an explicit anchor is checked against the detector's below
         if anchor_size is None and detector_ckpt:  # the anchor the detector was trained with
             trained = checkpoint_hparams(detector_ckpt, missing_ok=True).get("anchor_size")
             anchor_size = None if trained is None else tuple(float(a) for a in trained)
@@ -250,7 +247,7 @@ class SelfLabelling(Detector):
             raise ValueError(f"pool_scenes, batch_size: expected >= 1, got {pool_scenes}, {batch_size}")
         self.save_hyperparameters()
         if detector_ckpt:
-            load_head_state(self.head, detector_ckpt, anchor_size)
+            load_head_state(self.head, detector_ckpt, asked_anchor)
         self.bank: PrototypeBank | None = None
         if bank_ckpt:
             num = checkpoint_state(bank_ckpt).get("bank.prototypes")
