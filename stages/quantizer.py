@@ -17,7 +17,7 @@ from torch import Tensor
 from threedq.stages.base import EncoderStage, SplitEvaluation, checkpoint_state
 from threedq.geometry import yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
-from threedq.quantization.prototypes import PrototypeBank, quantization_loss, run_prototype_em
+from threedq.quantization.prototypes import PrototypeBank, assign_chunked, quantization_loss, run_prototype_em
 
 __all__ = ["Quantizer", "load_bank_state"]
 
@@ -176,9 +176,10 @@ class Quantizer(SplitEvaluation, EncoderStage):
         self._train_crops, self._train_keys = [], []
         if crops.shape[0] == 0:
             raise RuntimeError("quantizer: no object crops in the training split")
+        spectra: dict = {}  # each chunk's polar spectrum, computed once for the EM and the assignment below
         bank = run_prototype_em(self.bank, crops, self.hparams.em_iterations, seed=self.hparams.seed,
-                                fill_free=self.hparams.fill_free_slots)
-        res = bank.assign(crops)
+                                fill_free=self.hparams.fill_free_slots, spectra=spectra)
+        res = assign_chunked(bank, crops, spectra=spectra)
         self.log_dict(
             {
                 "train/prototypes_active": float(bank.num_active),

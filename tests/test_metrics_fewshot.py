@@ -138,3 +138,39 @@ class TestFewShotAccuracyMetric:
             metric.update(torch.tensor([0, 1]), torch.tensor([0, 3]))
         with pytest.raises(ValueError, match=r"clusters must lie in \[0, 2\)"):
             metric.update(torch.tensor([0, 2]), torch.tensor([0, 1]))
+
+
+class TestLinearProbe:
+    """A linear probe trained on every labelled training object (Table 2's reference row), scored on test objects."""
+
+    def _clusters(self, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+        g = torch.Generator().manual_seed(seed)
+        labels = torch.arange(n) % 3
+        centres = torch.tensor([[4.0, 0.0], [0.0, 4.0], [-4.0, -4.0]])
+        return centres[labels] + 0.3 * torch.randn(n, 2, generator=g), labels
+
+    def test_separable_classes_are_all_right(self) -> None:
+        from threedq.metrics import linear_probe
+
+        xtr, ytr = self._clusters(30, 0)
+        xte, yte = self._clusters(12, 1)
+        out = linear_probe(xtr, ytr, xte, yte)
+        assert out["accuracy"].item() == 1.0 and torch.equal(out["predicted"], yte)
+
+    def test_units_do_not_matter(self) -> None:
+        from threedq.metrics import linear_probe
+
+        xtr, ytr = self._clusters(30, 2)
+        xte, yte = self._clusters(30, 3)
+        xtr[:, 0] += 0.5 * torch.randn(30, generator=torch.Generator().manual_seed(4))  # overlapping classes
+        scale = torch.tensor([1000.0, 0.001])
+        a = linear_probe(xtr, ytr, xte, yte)["predicted"]
+        b = linear_probe(xtr * scale + 7, ytr, xte * scale + 7, yte)["predicted"]
+        assert (a == b).float().mean().item() >= 0.95  # standardised: the same classifier up to L-BFGS rounding
+
+    def test_exception(self) -> None:
+        from threedq.metrics import linear_probe
+
+        with pytest.raises(ValueError, match="width"):
+            linear_probe(torch.zeros(4, 2), torch.zeros(4, dtype=torch.long), torch.zeros(4, 3),
+                         torch.zeros(4, dtype=torch.long))

@@ -166,3 +166,50 @@ class TestQuantizerStage:
         assert torch.equal(warm.bank.prototypes, state["bank.prototypes"])
         with pytest.raises(ValueError, match="bank"):
             Quantizer(grid_resolution=(32, 32, 16), num_prototypes=5, crop_size=8, init_bank_ckpt=str(ckpt))
+
+
+class TestSpectrumReuse:
+    """The EM computes each chunk's polar spectrum once: one test body against the recomputing reference path."""
+
+    def _crops(self) -> torch.Tensor:
+        shapes = base_shapes(6, channels=4)
+        crops, _, _ = rotated_copies(shapes, per=12)
+        return torch.nn.functional.normalize(crops + 0.05 * torch.randn(crops.shape, generator=torch.Generator().manual_seed(3)), dim=1)
+
+    @pytest.mark.parametrize("chunk", [7, 256])
+    def test_em_equals_the_recomputing_path(self, chunk: int) -> None:
+        from threedq.quantization.prototypes import run_prototype_em
+
+        crops = self._crops()
+        banks = []
+        for reuse in (False, True):
+            bank = PrototypeBank(10, crops.shape[1], crops.shape[-1], 36, 0.8)
+            banks.append(run_prototype_em(bank, crops, iterations=3, seed=0, chunk=chunk, reuse_spectra=reuse))
+        assert torch.equal(banks[0].active, banks[1].active)
+        assert torch.equal(banks[0].prototypes, banks[1].prototypes)
+
+    def test_add_and_chunked_assign(self) -> None:
+        from threedq.quantization.prototypes import assign_chunked
+
+        crops = self._crops()
+        a, b = (PrototypeBank(10, crops.shape[1], crops.shape[-1], 36, 0.8) for _ in range(2))
+        assert torch.equal(a.add(crops, reuse_spectrum=False), b.add(crops, reuse_spectrum=True))
+        assert torch.equal(a.prototypes, b.prototypes)
+        whole = a.assign(crops)
+        spectra: dict = {}
+        parts = assign_chunked(a, crops, chunk=5, spectra=spectra)
+        assert len(spectra) == math.ceil(crops.shape[0] / 5)
+        assert torch.equal(parts.prototype, whole.prototype) and torch.equal(parts.angle, whole.angle)
+        assert torch.allclose(parts.score, whole.score, atol=1e-6)
+
+    def test_spectrum_slices_and_errors(self) -> None:
+        from threedq.quantization.rotation_search import best_prototype_and_yaw, polar_spectrum
+
+        crops = self._crops()
+        spec = polar_spectrum(crops, 36)
+        part = polar_spectrum(crops[3:9], 36)
+        assert torch.equal(spec.take(3, 9).coef, part.coef) and torch.equal(spec.take(3, 9).norm, part.norm)
+        with pytest.raises(ValueError, match="objects_spectrum"):
+            best_prototype_and_yaw(crops[:4], crops[:2], 36, objects_spectrum=spec.take(0, 3))
+        with pytest.raises(ValueError, match="another plan"):
+            best_prototype_and_yaw(crops[:4], crops[:2], 36, objects_spectrum=polar_spectrum(crops[:4], 12))

@@ -143,3 +143,34 @@ def test_bad_baseline_files_are_one_line_input_errors(run: Run, tmp_path: Path) 
     torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, bad)
     with pytest.raises(InputError, match=r"bad.pth: field 'bn1.weight': missing"):
         run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "b"), weights=str(bad))
+
+
+def test_eval_on_a_folder_with_only_a_test_split(run: Run, tmp_path: Path, capsys) -> None:
+    """``threedq eval --baselines true`` on a folder indexed by ``threedq data index`` with only a test split: the
+    retrieval table and its references are scored, the banks fitted on training objects are said not to run (one
+    line), no traceback."""
+    from threedq.cli import main
+    from threedq.scene import load_index
+
+    src = run.root / "data"
+    folder = tmp_path / "test_only"
+    shutil.copytree(src / "test", folder / "test")
+    cats = load_index(src).categories
+    assert main(["data", "index", str(folder), "--categories", json.dumps(list(cats))]) == 0
+    assert load_index(folder).files("train") == []
+    cfg = tmp_path / "folder.yaml"
+    cfg.write_text(yaml.safe_dump({"data": {
+        "class_path": "threedq.datamodules.scene_folder.SceneFolderDataModule",
+        "init_args": {"data_dir": str(folder), "num_target_views": 0, "train_random_views": False}}}))
+    out = tmp_path / "eval"
+    capsys.readouterr()
+    assert main(["eval", "--ckpt", str(run.quantizer), "--extra_configs", f"[{run.config}, {cfg}]", "--out", str(out),
+                 "--baselines", "true", "--curve_k", "[2]"]) == 0
+    printed = capsys.readouterr().out
+    assert "no training split" in printed and "Traceback" not in printed
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["quantization"]) == {"threedq"} and res["curve"] == {} and res["probe"] is None
+    assert "no training split" in res["baselines_not_run"]
+    assert set(res["retrieval"]["protocols"]) == {"strict", "paper"}
+    md = (out / "results.md").read_text()
+    assert "Not run:" in md and "paper protocol" in md and (out / "per_category_retrieval.png").is_file()

@@ -2,8 +2,16 @@
 
 - :mod:`threedq.baselines.pointcloud`: the "point cloud registration" baseline of section 4.2 (objects
   clustered into registered point-set prototypes with a rotation-aware, occupancy-only similarity).
+- :mod:`threedq.baselines.descriptor`: a six-number colour + size descriptor (a reference row of Table 2).
 """
 
+from threedq.baselines.descriptor import colour_size_descriptor, descriptor_similarity
 from threedq.baselines.pointcloud import PointCloudPrototypes, occupied_points, rotation_aware_similarity
 
-__all__ = ["PointCloudPrototypes", "occupied_points", "rotation_aware_similarity"]
+__all__ = [
+    "PointCloudPrototypes",
+    "colour_size_descriptor",
+    "descriptor_similarity",
+    "occupied_points",
+    "rotation_aware_similarity",
+]

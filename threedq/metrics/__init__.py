@@ -12,14 +12,24 @@ from threedq.metrics.detection import DetectionMAP, assign_detections, average_p
 from threedq.metrics.fewshot import (
     FewShotAccuracy,
     few_shot_accuracy,
+    linear_probe,
     linear_probe_accuracy,
     nearest_shot_accuracy,
     select_labelled,
 )
 from threedq.metrics.pose import RelativeYawError, relative_yaw_error, relative_yaw_errors
-from threedq.metrics.retrieval import RetrievalPrecisionAtK, retrieval_precision_at_k
+from threedq.metrics.retrieval import (
+    PROTOCOLS,
+    RetrievalPrecisionAtK,
+    per_class_precision_at_k,
+    precision_ceiling,
+    retrieval_confusion,
+    retrieval_precision_at_k,
+    same_object_top1,
+)
 
 __all__ = [
+    "PROTOCOLS",
     "ClusterPurity",
     "DetectionMAP",
     "FewShotAccuracy",
@@ -31,6 +41,7 @@ __all__ = [
     "cluster_confusion",
     "few_shot_accuracy",
     "hungarian_accuracy",
+    "linear_probe",
     "linear_probe_accuracy",
     "nearest_shot_accuracy",
     "match_detections",
@@ -38,6 +49,10 @@ __all__ = [
     "purity",
     "relative_yaw_error",
     "relative_yaw_errors",
+    "per_class_precision_at_k",
+    "precision_ceiling",
+    "retrieval_confusion",
     "retrieval_precision_at_k",
+    "same_object_top1",
     "select_labelled",
 ]

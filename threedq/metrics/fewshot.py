@@ -18,7 +18,14 @@ from torchmetrics.utilities import dim_zero_cat
 
 from threedq.metrics.clustering import _check_ids, _check_pair
 
-__all__ = ["FewShotAccuracy", "few_shot_accuracy", "linear_probe_accuracy", "nearest_shot_accuracy", "select_labelled"]
+__all__ = [
+    "FewShotAccuracy",
+    "few_shot_accuracy",
+    "linear_probe",
+    "linear_probe_accuracy",
+    "nearest_shot_accuracy",
+    "select_labelled",
+]
 
 
 def _check_shots(shots: int) -> None:
@@ -281,21 +288,59 @@ def linear_probe_accuracy(
     feats, labels = features.detach().double().cpu(), labels.detach().long().cpu()
     labelled, evaluated = _shot_split(labels, shots, seed)
     x = torch.nn.functional.normalize(feats, dim=1)
-    num_classes = int(labels.max()) + 1
+    w, b = _fit_logistic(x[labelled], labels[labelled], int(labels.max()) + 1, weight_decay, iterations)
+    with torch.no_grad():
+        predicted = (x @ w + b).argmax(dim=1)
+    acc = (predicted[evaluated] == labels[evaluated]).float().mean() if evaluated.any() else torch.tensor(float("nan"))
+    return {"accuracy": acc, "labelled_indices": labelled, "predicted": predicted}
+
+
+def _fit_logistic(x: Tensor, y: Tensor, num_classes: int, weight_decay: float, iterations: int) -> tuple[Tensor, Tensor]:
+    """Multinomial logistic regression ``x @ w + b`` (float64, full batch, L-BFGS from zero weights, L2 penalty
+    ``weight_decay * ||w||^2`` on the weights only; deterministic). Returns ``(w [D, num_classes], b [num_classes])``."""
     w = torch.zeros(x.shape[1], num_classes, dtype=torch.float64, requires_grad=True)
     b = torch.zeros(num_classes, dtype=torch.float64, requires_grad=True)
     opt = torch.optim.LBFGS([w, b], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
-    xs, ys = x[labelled], labels[labelled]
 
     def closure() -> Tensor:
         opt.zero_grad()
-        loss = torch.nn.functional.cross_entropy(xs @ w + b, ys) + weight_decay * w.pow(2).sum()
+        loss = torch.nn.functional.cross_entropy(x @ w + b, y) + weight_decay * w.pow(2).sum()
         loss.backward()
         return loss
 
     with torch.enable_grad():
         opt.step(closure)
-    with torch.no_grad():
-        predicted = (x @ w + b).argmax(dim=1)
-    acc = (predicted[evaluated] == labels[evaluated]).float().mean() if evaluated.any() else torch.tensor(float("nan"))
-    return {"accuracy": acc, "labelled_indices": labelled, "predicted": predicted}
+    return w.detach(), b.detach()
+
+
+def linear_probe(
+    train_features: Tensor, train_labels: Tensor, test_features: Tensor, test_labels: Tensor,
+    weight_decay: float = 1e-4, iterations: int = 200,
+) -> dict[str, Tensor]:
+    """Accuracy of a linear classifier trained on every labelled training object, on the test objects.
+
+    The features stay frozen (labels train the probe only): each dimension is standardised by the training
+    objects' mean and standard deviation, then a multinomial logistic regression is fitted as in
+    :func:`linear_probe_accuracy` (float64, L-BFGS, deterministic).
+
+    Args:
+        train_features: ``[N, D]``; train_labels: ``[N]`` category ids.
+        test_features: ``[M, D]``; test_labels: ``[M]``.
+        weight_decay, iterations: L2 penalty on the weights and L-BFGS iterations.
+
+    Returns:
+        ``accuracy`` (scalar: share of test objects predicted right) and ``predicted`` ``[M]``.
+
+    Convention: classes are ``0 .. max(train, test labels)``; a class absent from training is never predicted.
+    """
+    _check_features(train_features, train_labels)
+    _check_features(test_features, test_labels)
+    if train_features.shape[1] != test_features.shape[1]:
+        raise ValueError(f"train and test features differ in width: {train_features.shape[1]} vs {test_features.shape[1]}")
+    xtr, xte = train_features.detach().double().cpu(), test_features.detach().double().cpu()
+    ytr, yte = train_labels.detach().long().cpu(), test_labels.detach().long().cpu()
+    mean, std = xtr.mean(0), xtr.std(0, unbiased=False).clamp_min(1e-12)
+    num_classes = int(max(ytr.max(), yte.max())) + 1
+    w, b = _fit_logistic((xtr - mean) / std, ytr, num_classes, weight_decay, iterations)
+    predicted = (((xte - mean) / std) @ w + b).argmax(dim=1)
+    return {"accuracy": (predicted == yte).double().mean(), "predicted": predicted}

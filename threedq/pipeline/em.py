@@ -10,10 +10,13 @@ Layout of ``work_dir``::
       02_detector/            # 3D detector on the frozen encoder, trained from label-free pseudo-boxes
       03_detector_eval/       # mAP@0.25/0.5 of pseudo-boxes and detector, detections.png, detections_<split>.npz
                               #   (the boxes above 0.9 handed on to round 1; only the test split's with --boxes gt)
+      r00_quantizer/          # round 0 (the paper's iteration 0): prototypes on the view-prediction encoder, on the
+      r00_eval/               #   boxes round 1 takes; its evaluation (Table 3's first feature and clustering row)
       r01_mining/             # round 1: the encoder fine-tuned by correspondence mining on those boxes;
                               #   mining/refresh_*.json|png
       r01_quantizer/          # round 1: prototypes on that encoder, frozen (LightningCLI run)
-      r01_eval/               # round 1: results.json/.md (retrieval, Hungarian, few-shot, yaw) + figures
+      r01_eval/               # round 1: results.json/.md (retrieval under the strict and the paper protocol,
+                              #   Hungarian, few-shot, yaw) + figures
       r01_self_labelling/     # round 1: the detector fine-tuned on labels from the prototypes and the
                               #   center-surround score; self_labels/labels.json|png
       r01_detector_eval/      # round 1: its mAP, detections.png, detections_<split>.npz for round 2
@@ -63,13 +66,33 @@ from threedq.pipeline.crop_cache import CropCache
 from threedq.pipeline.data_commands import output_folder
 from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.evaluation import SEARCH_LABELS
-from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config, test_checkpoint
-from threedq.pipeline.report import METHOD_LABELS, evaluate_quantizer, fewshot_cell, method_rows, precision_label
+from threedq.metrics.retrieval import PROTOCOL_LABELS
+from threedq.pipeline.lightning_cli import ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint
+from threedq.pipeline.report import (
+    METHOD_LABELS,
+    evaluate_quantizer,
+    fewshot_cell,
+    method_rows,
+    precision_label,
+    retrieval_markdown,
+)
 from threedq.stages.base import require_stage
 
 __all__ = ["run_em"]
 
 ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer", "self_labelling")
+
+
+def _config_label(path: Path, work: Path) -> str:
+    """How the report names a config file: inside the packaged configs as ``stages/mining.yaml``, else relative to
+    the work folder's parent (where ``threedq em`` is usually run) when it lies below it, else as given."""
+    path = Path(path)
+    for base in (packaged_configs_dir(), work.resolve().parent):
+        try:
+            return str(path.resolve().relative_to(Path(base).resolve()))
+        except ValueError:
+            continue
+    return str(path)
 
 
 def _stage_done(run_dir: Path) -> dict[str, Any] | None:
@@ -211,13 +234,28 @@ def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
             )
 
 
+def _feature_cells(retrieval: dict[str, Any] | None) -> dict[str, Any]:
+    """The learned features' Table 3 cells of a round's retrieval table: precision@k under the strict and the paper
+    protocol (with their ceilings on the round's pool) and the same-object top-1 rate."""
+    if not retrieval:
+        return {"precision_at_10": None, "precision_at_10_paper": None, "same_object_top1": None}
+    paper = retrieval.get("protocols", {}).get("paper", {})
+    return {"precision_at_10": retrieval["precision_at_k"]["learned"], "k": retrieval["k"],
+            "precision_at_10_paper": paper.get("precision_at_k", {}).get("learned"),
+            "same_object_top1": paper.get("same_object_top1", {}).get("learned"), "pool": retrieval["num_objects"],
+            "ceiling_strict": retrieval.get("protocols", {}).get("strict", {}).get("ceiling"),
+            "ceiling_paper": paper.get("ceiling")}
+
+
 def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
-            self_labels: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Paper Table 3 rows: per round 0..R, feature precision@10, Hungarian accuracy and detection mAP@0.5 (test).
+            self_labels: list[dict[str, Any]], round0: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """Paper Table 3 rows: per round 0..R, feature precision@10 (strict and paper protocol, same-object top-1),
+    Hungarian accuracy and detection mAP@0.5 (test).
 
     ``precision_at_10`` is scored at ``k`` = min(10, N - 1) on a test split of N <= 10 objects (the row's ``k``).
 
-    Round 0 is the state before the rounds: the warm-start detector (no prototypes, no fine-tuned encoder yet).
+    Round 0 is the paper's iteration 0, the state before the rounds: the warm-start detector, and the view-prediction
+    encoder's features and prototypes (``round0``: a quantizer fitted on them) on the boxes round 1 takes.
     A round's detection is its self-labelled detector's (the warm start's when self-labelling is off).
     """
     def det_row(d: dict[str, Any] | None) -> dict[str, Any]:
@@ -225,11 +263,12 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
             return {"map_50": None, "map_25": None, "handed_on_test": None}
         return {"map_50": d["detector"]["map_50"], "map_25": d["detector"]["map_25"],
                 "handed_on_test": d.get("handed_on", {}).get("test")}
-    rows = [{"round": 0, "precision_at_10": None, "hungarian_acc": None, **det_row(det_eval)}]
+    rows = [{"round": 0, **_feature_cells(round0["retrieval"] if round0 else None),
+             "hungarian_acc": round0["quantization"]["threedq"]["hungarian_acc"] if round0 else None, **det_row(det_eval)}]
     for i, r in enumerate(rounds):
         d = self_labels[i]["detector_eval"] if i < len(self_labels) else det_eval
-        rows.append({"round": i + 1, "precision_at_10": r["retrieval"]["precision_at_k"]["learned"],
-                     "k": r["retrieval"]["k"], "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
+        rows.append({"round": i + 1, **_feature_cells(r["retrieval"]),
+                     "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
     return rows
 
 
@@ -242,9 +281,10 @@ def _table3_figure(rows: list[dict[str, Any]], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
     k = next((r["k"] for r in rows if r.get("k")), 10)
-    for key, label in (("precision_at_10", f"features: precision@{k}"), ("hungarian_acc", "quantization: Hungarian acc."),
-                       ("map_50", "detection: mAP@0.5")):
-        pts = [(r["round"], r[key]) for r in rows if r[key] is not None]
+    for key, label in (("precision_at_10", f"features: precision@{k}, strict"),
+                       ("precision_at_10_paper", f"features: precision@{k}, paper protocol"),
+                       ("hungarian_acc", "quantization: Hungarian acc."), ("map_50", "detection: mAP@0.5")):
+        pts = [(r["round"], r[key]) for r in rows if r.get(key) is not None]
         if pts:
             ax.plot(*zip(*pts), marker="o", label=label)
     ax.set_xlabel("EM round")
@@ -306,25 +346,32 @@ def _report(summary: dict[str, Any]) -> str:
             f"| detector trained on the pseudo-boxes | {dd['map_25']:.3f} | {dd['map_50']:.3f} |",
             "",
             f"Detections beside GT: `{summary['work_dir']}/03_detector_eval/detections.png`. "
-            f"Rounds use {summary.get('boxes', 'gt')} boxes.",
+            f"Rounds use {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes.",
             "",
         ]
     rounds = summary.get("round_results", [])
+    r0 = summary.get("round0_result")
     if rounds:
+        pk = precision_label(rounds[0]["retrieval"])
         lines += [
-            f"## Per EM round (threedq, {summary.get('boxes', 'gt')} boxes, held-out objects)",
+            f"## Per EM round (threedq, {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes, "
+            "held-out objects)",
             "",
-            f"{precision_label(rounds[0]['retrieval'])}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}.",
+            f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}; strict: {PROTOCOL_LABELS['strict']}; paper: "
+            f"{PROTOCOL_LABELS['paper']}. Round 0 is the view-prediction encoder and a bank fitted on it, on round 1's "
+            "boxes (the paper's iteration 0).",
             "",
-            f"| round | precision@{rounds[0]['retrieval']['k']} | Hungarian acc. | few-shot acc. | yaw median err. (deg) | "
-            "yaw acc. @10 deg |",
-            "|---|---|---|---|---|---|",
+            f"| round | {pk}, strict | {pk}, paper | same object nearest (paper) | pool (ceiling strict / paper) | "
+            "Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
-        for i, r in enumerate(rounds, 1):
+        for i, r in ([(0, r0)] if r0 else []) + list(enumerate(rounds, 1)):
             q = r["quantization"]["threedq"]
-            p = r["retrieval"]["precision_at_k"]["learned"]
-            lines.append(f"| {i} | {p:.3f} | {q['hungarian_acc']:.3f} | {fewshot_cell(q['fewshot_acc'])} | "
-                         f"{q['yaw_median_deg']:.1f} | {q['yaw_acc_10']:.3f} |")
+            c = _feature_cells(r["retrieval"])
+            ceil = (f"{c['pool']} ({_fmt(c['ceiling_strict'])} / {_fmt(c['ceiling_paper'])})")
+            lines.append(f"| {i} | {_fmt(c['precision_at_10'])} | {_fmt(c['precision_at_10_paper'])} | "
+                         f"{_fmt(c['same_object_top1'])} | {ceil} | {q['hungarian_acc']:.3f} | "
+                         f"{fewshot_cell(q['fewshot_acc'])} | {q['yaw_median_deg']:.1f} | {q['yaw_acc_10']:.3f} |")
         last = rounds[-1]
         r = last["retrieval"]
         lines += [
@@ -332,27 +379,18 @@ def _report(summary: dict[str, Any]) -> str:
             f"## Final round in detail ({last['num_test_objects']} test objects, {last['num_test_categories']} categories, "
             f"K = {last['num_prototypes']})",
             "",
-            f"Retrieval, rotation-max {precision_label(r)} over {r['num_angles']} yaw steps (paper Table 2); "
-            f"{SEARCH_LABELS[r['search']]}:",
+            "Retrieval (paper Table 2):",
             "",
-            "| features | precision@%d |" % r["k"],
-            "|---|---|",
+            *retrieval_markdown(r, last.get("probe"), learned="threedq features of the final round (learned)"),
         ]
-        names = {
-            "learned": "threedq view prediction (learned)",
-            "raw_rgb_occupancy": "(a) raw RGB + occupancy crops, no learning",
-            "random_encoder": "(b) randomly initialised encoder",
-        }
-        for key, label in names.items():
-            if key in r["precision_at_k"]:
-                lines.append(f"| {label} | {r['precision_at_k'][key]:.3f} |")
         lines += ["", "Clustering and pose (paper Tables 1 and 4; yaw error beyond the paper):", "",
                   "| method | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 | @20 |",
                   "|---|---|---|---|---|---|"]
         for m, v in method_rows(last["quantization"]):
             lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
                          f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
-        lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`. "
+        lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`, "
+                  "`per_category_retrieval.png` (per-category precision@10 under both protocols, the most confused pairs). "
                   "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
     mining = summary.get("mining_results") or []
     if mining:
@@ -378,20 +416,23 @@ def _report(summary: dict[str, Any]) -> str:
             f"## Table 3: every module per round (held-out split; rounds on "
             f"{'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes)",
             "",
-            f"Round 0 is the state before the rounds (the warm-start detector). "
+            "Round 0 is the state before the rounds (the paper's iteration 0): the warm-start detector, and the "
+            "view-prediction encoder's features and prototypes on the boxes round 1 takes. "
             f"{precision_label(rounds[0]['retrieval']) if rounds else 'precision@10'}: "
-            f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; detection: the round's detector "
+            f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; strict and paper protocol as above "
+            "(pool and ceilings in the per-round table); detection: the round's detector "
             "(after its self-labelling), dataset-level mAP@0.5; precision / recall: its boxes above the 0.9 "
             "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false positive).",
             "",
-            f"| round | features: precision@{rounds[0]['retrieval']['k'] if rounds else 10} | quantization: Hungarian acc. | "
-            "detection: mAP@0.5 | mAP@0.25 | "
+            f"| round | features: precision@{rounds[0]['retrieval']['k'] if rounds else 10}, strict | paper protocol | "
+            "same object nearest | quantization: Hungarian acc. | detection: mAP@0.5 | mAP@0.25 | "
             "handed-on precision | recall |",
-            "|---|---|---|---|---|---|---|",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for t in table3:
             h = t["handed_on_test"] or {}
-            lines.append(f"| {t['round']} | {_fmt(t['precision_at_10'])} | {_fmt(t['hungarian_acc'])} | {_fmt(t['map_50'])} | "
+            lines.append(f"| {t['round']} | {_fmt(t['precision_at_10'])} | {_fmt(t.get('precision_at_10_paper'))} | "
+                         f"{_fmt(t.get('same_object_top1'))} | {_fmt(t['hungarian_acc'])} | {_fmt(t['map_50'])} | "
                          f"{_fmt(t['map_25'])} | {_fmt(h.get('precision'))} | {_fmt(h.get('recall'))} |")
         lines += ["", f"Curves: `{summary['work_dir']}/table3.png`."]
     sl = summary.get("self_label_results") or []
@@ -524,6 +565,15 @@ def run_em(
         if boxes == "detections" and rounds:
             _check_handed_on(work / "03_detector_eval", ("train", "test"))
             box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
+    round0 = None
+    if rounds:
+        # the paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes (the
+        # grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM)
+        q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, work / "r00_quantizer",
+                        [f"--model.init_args.encoder_ckpt={vp_ckpt}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
+                         *box_over, *prec], resume, crop_cache)
+        round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), work / "r00_eval", final=False,
+                                 overrides=[*box_over, *prec], crop_cache=crop_cache)
     round_results: list[dict[str, Any]] = []
     mining_results: list[dict[str, Any]] = []
     self_label_results: list[dict[str, Any]] = []
@@ -567,9 +617,10 @@ def run_em(
                 _check_handed_on(work / f"r{r:02d}_detector_eval", ("train", "test"))
                 box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
         q_res = round_results[-1]["quantization"]["threedq"]
+        c = _feature_cells(round_results[-1]["retrieval"])
         print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
-              f"{precision_label(round_results[-1]['retrieval'])} "
-              f"{round_results[-1]['retrieval']['precision_at_k']['learned']:.3f}")
+              f"{precision_label(round_results[-1]['retrieval'])} {c['precision_at_10']:.3f} (strict), "
+              f"{_fmt(c['precision_at_10_paper'])} (paper protocol)")
     if rounds:
         print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
               f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")
@@ -578,10 +629,11 @@ def run_em(
         "rounds": rounds,
         "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
         if rounds else [],
-        "self_labelling_config": str(sl_configs[0]) if relabel else None,
+        "self_labelling_config": _config_label(sl_configs[0], work) if relabel else None,
         "self_label_results": self_label_results,
-        "table3": _table3(det_eval, round_results, self_label_results) if rounds else [],
-        "mining_config": str(m_configs[0]) if mine else None,
+        "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
+        "round0_result": round0,
+        "mining_config": _config_label(m_configs[0], work) if mine else None,
         "mining_results": mining_results,
         "viewpred": vp,
         "viewpred_eval": vp_eval,

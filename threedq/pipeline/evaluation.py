@@ -1,13 +1,16 @@
-"""Evaluation of learned 3D features on held-out scenes (paper Table 2 protocol, GT boxes).
+"""Evaluation of learned 3D features on held-out scenes (paper Table 2, GT or detected boxes).
 
-For every object of the evaluated split, its axis-aligned GT box is cropped out of the scene's feature
+For every object of the evaluated split, its axis-aligned box is cropped out of the scene's feature
 grid and resized to 16^3; crops are compared at their best relative yaw over 36 steps of 10 deg and
 rotation-max retrieval precision@10 is macro-averaged over categories. :func:`retrieval_table` is the one
-implementation of that measurement (``threedq em``, ``threedq eval`` and the benchmarks all call it); it
-uses one declared search (:data:`RETRIEVAL_SEARCH`, ``"fast"`` unless asked otherwise) and records it, so
-every table can name it. Two references are computed
-side by side: (a) raw ``cat[occ, occ * rgb]`` crops of the input grid (no learning) and (b) the same
-encoder with random weights.
+implementation of that measurement (``threedq em``, ``threedq eval`` and the benchmarks all call it), under both
+protocols of :mod:`threedq.metrics.retrieval` (``strict``: leave-one-out over one view; ``paper``: the queries
+against the same objects seen from a second fixed view of their scene, the twin counted as a hit), each with the
+perfect-feature ceiling of its pool. It uses one declared search (:data:`RETRIEVAL_SEARCH`, ``"fast"`` unless asked
+otherwise) and records it, so every table can name it. References computed side by side: (a) raw
+``cat[occ, occ * rgb]`` crops of the input grid (no learning), (b) the same encoder with random weights, (c) a
+six-number colour + size descriptor (:mod:`threedq.baselines.descriptor`); :func:`probe_table` adds a linear probe
+on the frozen features (labels train the probe only).
 """
 
 from __future__ import annotations
@@ -19,11 +22,17 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm import tqdm
 
+from threedq.baselines.descriptor import colour_size_descriptor, descriptor_similarity
 from threedq.stages.base import EncoderStage
 from threedq.pipeline.crop_cache import CropCache, sample_key
 from threedq.geometry import crop_boxes, yaw_angles
-from threedq.metrics import cluster_confusion, few_shot_accuracy, hungarian_accuracy, relative_yaw_error
-from threedq.metrics.retrieval import retrieval_precision_at_k
+from threedq.metrics import cluster_confusion, few_shot_accuracy, hungarian_accuracy, linear_probe, relative_yaw_error
+from threedq.metrics.retrieval import (
+    PROTOCOLS,
+    precision_ceiling,
+    retrieval_precision_at_k,
+    same_object_top1,
+)
 from threedq.quantization.rotation_search import SEARCH_METHODS, all_pairs_rotation_max
 from threedq.nets import UNet3D
 
@@ -32,6 +41,7 @@ __all__ = [
     "SEARCH_LABELS",
     "collect_object_crops",
     "evaluate_features",
+    "probe_table",
     "quantization_metrics",
     "retrieval_table",
 ]
@@ -45,6 +55,10 @@ SEARCH_LABELS = {
 }
 #: Crop sets of :func:`collect_object_crops` and their names in result tables.
 FEATURE_SETS = (("learned", "learned"), ("raw_rgb_occupancy", "raw"), ("random_encoder", "random"))
+#: The hand-made reference's name in result tables (computed from the ``raw`` crops and the boxes).
+DESCRIPTOR = "colour_size_descriptor"
+#: What the paper protocol's gallery is, as tables say it.
+GALLERY_VIEW = "each scene's second fixed view (the first view after the input views)"
 
 
 def _random_encoder_crops(
@@ -69,6 +83,15 @@ def _random_encoder_crops(
     return rand[mask].cpu()
 
 
+def _single_view(batch: dict[str, Tensor], view: int) -> dict[str, Tensor]:
+    """``batch`` with view ``view`` of every sample as its only view (the boxes, in frame R, are the same)."""
+    out = dict(batch)
+    for k in ("rgb", "depth", "K", "R_T_cam", "view_ids", "instance"):
+        if k in batch and isinstance(batch[k], Tensor):
+            out[k] = batch[k][:, view : view + 1]
+    return out
+
+
 @torch.no_grad()
 def collect_object_crops(
     stage: EncoderStage,
@@ -77,6 +100,7 @@ def collect_object_crops(
     crop_size: int = 16,
     random_encoder_seed: int | None = 0,
     progress: bool = True,
+    gallery: bool = False,
 ) -> dict[str, Tensor]:
     """Crop every GT object of every scene of ``loader`` out of three volumes.
 
@@ -86,11 +110,15 @@ def collect_object_crops(
         num_input_views: views aggregated per scene (the paper tests with one).
         crop_size: crops are ``crop_size^3``.
         random_encoder_seed: seed of the randomly initialised reference encoder (None: skip it).
+        gallery: also crop the same boxes out of the grid of each scene's next view alone (view
+            ``num_input_views``, which the loader must hold: :func:`~threedq.pipeline.report.split_loader` with
+            ``gallery=True``): the paper protocol's gallery, row ``i`` the twin of query ``i``.
 
     Returns:
         ``learned`` ``[N, C, s, s, s]``, ``raw`` ``[N, 4, s, s, s]``, ``random`` ``[N, C, s, s, s]`` (if
         requested), ``labels`` ``[N]``, ``boxes`` ``[N, 7]`` oriented GT boxes, ``aabb`` ``[N, 6]`` the cropped
-        boxes (GT hulls, or the given boxes), ``scene`` ``[N]`` (index in the split).
+        boxes (GT hulls, or the given boxes), ``scene`` ``[N]`` (index in the split); with ``gallery`` also
+        ``gallery_learned``, ``gallery_raw`` and ``gallery_random`` (if requested) of the second view.
 
     Convention: boxes axis-aligned in R (z up), cropped as their tight hull.
     """
@@ -101,38 +129,63 @@ def collect_object_crops(
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(random_encoder_seed)
             random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels).to(stage.device).eval()
-    out: dict[str, list[Tensor]] = {k: [] for k in ("learned", "raw", "random", "labels", "boxes", "aabb", "scene")}
+    keys = ("learned", "raw", "random", "labels", "boxes", "aabb", "scene", "gallery_learned", "gallery_raw",
+            "gallery_random")
+    out: dict[str, list[Tensor]] = {k: [] for k in keys}
     cache = stage.crop_cache if random_enc is not None and stage.crops_cacheable() else None
+    v = num_input_views
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
-        batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
+        batch = {k: t.to(stage.device) if isinstance(t, Tensor) else t for k, t in batch.items()}
         with stage.precision_context():  # as the stage's test_step encodes (and keys the crop cache)
-            crops = stage.object_crops(batch, num_input_views, crop_size)
+            crops = stage.object_crops(batch, v, crop_size)
+            if gallery:
+                if batch["rgb"].shape[1] <= v:
+                    raise ValueError(f"gallery: the loader's samples hold {batch['rgb'].shape[1]} view(s), the paper "
+                                     f"protocol needs a view after the {v} input view(s) (split_loader(gallery=True))")
+                other = _single_view(batch, v)
+                g = stage.object_crops(other, 1, crop_size)
+                out["gallery_learned"].append(g["features"].float().cpu())
+                out["gallery_raw"].append(g["raw"].cpu())
         out["learned"].append(crops["features"].float().cpu())
         out["raw"].append(crops["raw"].cpu())
         for k in ("labels", "boxes", "aabb", "scene"):
             out[k].append(crops[k].cpu())
         if random_enc is not None:
-            out["random"].append(_random_encoder_crops(stage, random_enc, batch, num_input_views, crop_size, cache))
+            out["random"].append(_random_encoder_crops(stage, random_enc, batch, v, crop_size, cache))
+            if gallery:
+                out["gallery_random"].append(_random_encoder_crops(stage, random_enc, other, 1, crop_size, cache))
     stage.train(was_training)
     return {k: torch.cat(v) for k, v in out.items() if v}
 
 
+def _scores(sim: Tensor, labels: Tensor, k: int, protocol: str) -> float:
+    return float(retrieval_precision_at_k(sim, labels, labels, k, exclude_diagonal=protocol == "strict"))
+
+
 def retrieval_table(
-    crops: dict[str, Tensor], k: int = 10, num_angles: int = 36, search: str = RETRIEVAL_SEARCH
+    crops: dict[str, Tensor], k: int = 10, num_angles: int = 36, search: str = RETRIEVAL_SEARCH,
+    coarse_labels: Tensor | None = None,
 ) -> tuple[dict[str, Any], dict[str, Tensor]]:
-    """Leave-one-out rotation-max retrieval precision@k of every crop set in ``crops`` (paper Table 2).
+    """Rotation-max retrieval precision@k of every crop set in ``crops`` under both protocols (paper Table 2).
 
     Args:
-        crops: :func:`collect_object_crops` output (``labels`` and any of ``learned``, ``raw``, ``random``).
-        k: neighbours per query (at most N - 1 are used).
+        crops: :func:`collect_object_crops` output (``labels`` and any of ``learned``, ``raw``, ``random``; with
+            ``gallery_<set>`` the paper protocol is scored too; with ``raw`` and ``aabb`` the colour + size
+            descriptor row).
+        k: neighbours per query (at most N - 1 are used, under both protocols).
         num_angles: yaw steps of the search.
         search: ``"fast"`` or ``"exact"`` (:func:`~threedq.quantization.rotation_search.all_pairs_rotation_max`).
+        coarse_labels: ``[N]`` coarser category ids (:func:`threedq.data.catalog.coarse_category`) for an extra,
+            marked paper-protocol row of the learned features; None: no such row.
 
     Returns:
-        ``{"k", "k_requested", "num_angles", "search", "num_objects", "num_categories", "precision_at_k": {name: p}}``
-        (``k`` is ``min(k_requested, N - 1)``: tables name it with :func:`threedq.pipeline.report.precision_label`) and the
-        ``[N, N]`` similarity matrix of each crop set (for pictures). Categories with a single object still
-        count as queries (they can only score 0), as in the paper's per-class average.
+        The table: ``{"k", "k_requested", "num_angles", "search", "num_objects", "num_categories",
+        "precision_at_k": {name: p} (strict, kept for older readers), "protocols": {protocol: {"pool",
+        "ceiling", "precision_at_k": {name: p}, ["same_object_top1": {name: rate}, "gallery", "coarse"]}}}``
+        (``k`` is ``min(k_requested, N - 1)``: tables name it with :func:`threedq.pipeline.report.precision_label`);
+        and the similarity matrices, ``{name: [N, N]}`` of the strict protocol and ``{"paper/<name>": [N, N]}``
+        (query x gallery) for pictures. Categories with a single object still count as queries, as in the paper's
+        per-class average. The descriptor has no rotation search (it does not change with yaw).
     """
     if search not in SEARCH_METHODS:
         raise ValueError(f"search: expected one of {SEARCH_METHODS}, got {search!r}")
@@ -141,17 +194,67 @@ def retrieval_table(
     if n < 2:
         raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
     kk = min(k, n - 1)  # a split of N <= k objects is scored at k = N - 1; "k_requested" keeps what was asked
-    table: dict[str, Any] = {
-        "k": kk, "k_requested": k, "num_angles": num_angles, "search": search, "num_objects": n,
-        "num_categories": int(labels.unique().numel()), "precision_at_k": {},
-    }
+    protocols: dict[str, dict[str, Any]] = {"strict": {"pool": n, "precision_at_k": {},
+                                                      "ceiling": float(precision_ceiling(labels, labels, kk, True))}}
+    paper = any(f"gallery_{key}" in crops for _, key in FEATURE_SETS)
+    if paper:
+        protocols["paper"] = {"pool": n, "gallery": GALLERY_VIEW, "precision_at_k": {}, "same_object_top1": {},
+                              "ceiling": float(precision_ceiling(labels, labels, kk, False))}
     sims: dict[str, Tensor] = {}
+
+    def score(name: str, protocol: str, sim: Tensor) -> None:
+        protocols[protocol]["precision_at_k"][name] = _scores(sim, labels, kk, protocol)
+        if protocol == "paper":
+            protocols[protocol]["same_object_top1"][name] = float(same_object_top1(sim))
+        sims[name if protocol == "strict" else f"paper/{name}"] = sim
+
     for name, key in FEATURE_SETS:
         if key in crops:
-            sim, _ = all_pairs_rotation_max(crops[key], crops[key], num_angles, method=search)
-            sims[name] = sim
-            table["precision_at_k"][name] = float(retrieval_precision_at_k(sim, labels, labels, kk, exclude_diagonal=True))
+            score(name, "strict", all_pairs_rotation_max(crops[key], crops[key], num_angles, method=search)[0])
+        if f"gallery_{key}" in crops:
+            score(name, "paper", all_pairs_rotation_max(crops[key], crops[f"gallery_{key}"], num_angles,
+                                                        method=search)[0])
+    if "raw" in crops and "aabb" in crops:
+        d = colour_size_descriptor(crops["raw"], crops["aabb"])
+        score(DESCRIPTOR, "strict", descriptor_similarity(d, d))
+        if "gallery_raw" in crops:
+            score(DESCRIPTOR, "paper", descriptor_similarity(d, colour_size_descriptor(crops["gallery_raw"], crops["aabb"])))
+    if paper and coarse_labels is not None and "paper/learned" in sims:
+        if coarse_labels.shape != labels.shape:
+            raise ValueError(f"coarse_labels: expected [{n}], got {tuple(coarse_labels.shape)}")
+        protocols["paper"]["coarse"] = {
+            "num_classes": int(coarse_labels.unique().numel()),
+            "ceiling": float(precision_ceiling(coarse_labels, coarse_labels, kk, False)),
+            "precision_at_k": {"learned": float(retrieval_precision_at_k(sims["paper/learned"], coarse_labels,
+                                                                         coarse_labels, kk))},
+        }
+    table: dict[str, Any] = {
+        "k": kk, "k_requested": k, "num_angles": num_angles, "search": search, "num_objects": n,
+        "num_categories": int(labels.unique().numel()),
+        "precision_at_k": dict(protocols["strict"]["precision_at_k"]), "protocols": protocols,
+    }
     return table, sims
+
+
+def pooled_features(crops: dict[str, Tensor]) -> dict[str, Tensor]:
+    """``{name: [N, D]}`` what the linear probe reads: each crop set averaged over its voxels (``[N, C]``, which does
+    not change with yaw) and the six-number descriptor."""
+    out = {name: crops[key].flatten(2).mean(2) for name, key in FEATURE_SETS if key in crops}
+    if "raw" in crops and "aabb" in crops:
+        out[DESCRIPTOR] = colour_size_descriptor(crops["raw"], crops["aabb"])
+    return out
+
+
+def probe_table(train: dict[str, Tensor], test: dict[str, Tensor]) -> dict[str, Any]:
+    """Linear-probe accuracy of every feature set that both splits hold (:func:`threedq.metrics.linear_probe`:
+    a logistic regression trained with the training objects' labels on their voxel-averaged crops, which stay
+    frozen; scored on the test objects). ``{"train_objects", "test_objects", "accuracy": {name: acc}}``."""
+    keep = train["labels"] >= 0  # boxes that match no GT object (detected boxes) carry no label to train on
+    tr = {name: f[keep] for name, f in pooled_features(train).items()}
+    te = pooled_features(test)
+    acc = {name: float(linear_probe(tr[name], train["labels"][keep], te[name], test["labels"])["accuracy"])
+           for name in te if name in tr}
+    return {"train_objects": int(keep.sum()), "test_objects": int(test["labels"].shape[0]), "accuracy": acc}
 
 
 def evaluate_features(

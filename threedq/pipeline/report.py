@@ -17,7 +17,8 @@ On held-out scenes with GT boxes (paper Sec. 4.1-4.2):
 Prototype banks are fitted on the training split's objects and evaluated on the test split's objects.
 Outputs in ``out``: ``results.json``, ``results.md``, ``objects_test.json`` (each test object's prototype and
 yaw index), ``fig3a_accuracy_vs_k.png``,
-``prototype_alignment.png``, ``retrieval.png``.
+``prototype_alignment.png``, ``retrieval.png``, ``per_category_retrieval.png`` (per-category precision@10 under both
+protocols and the most confused category pairs).
 
 Small test splits: precision@10 needs 11 objects; with N <= 10 it is scored at k = N - 1 and every table says
 so (``precision@5 (k lowered from 10: 6 test objects)``); fewer than 2 objects is an error. Few-shot accuracy
@@ -49,9 +50,11 @@ from threedq.stages.base import require_stage  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
 from threedq.data.draw import crop_birds_eye  # noqa: E402
 from threedq.pipeline.evaluation import (  # noqa: E402
+    DESCRIPTOR,
     RETRIEVAL_SEARCH,
     SEARCH_LABELS,
     collect_object_crops,
+    probe_table,
     quantization_metrics,
     retrieval_table,
 )
@@ -70,10 +73,20 @@ from threedq.pipeline.data_commands import output_folder  # noqa: E402
 from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table  # noqa: E402
 from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
 from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
+from threedq.data.catalog import coarse_category  # noqa: E402
 from threedq.metrics import cluster_confusion, hungarian_accuracy  # noqa: E402
+from threedq.metrics.retrieval import PROTOCOL_LABELS, per_class_precision_at_k, retrieval_confusion  # noqa: E402
 from threedq.quantization.prototypes import fit_prototype_bank  # noqa: E402
 
-__all__ = ["run_eval", "quantization_metrics", "split_loader", "fewshot_cell", "precision_label"]
+__all__ = [
+    "coarse_labels",
+    "fewshot_cell",
+    "precision_label",
+    "quantization_metrics",
+    "retrieval_markdown",
+    "run_eval",
+    "split_loader",
+]
 
 METHOD_LABELS = {
     "threedq": "threedq (rotation-aware 3D prototypes)",
@@ -117,15 +130,130 @@ def fewshot_cell(value: float | None, shots: int = 2) -> str:
     return f"{value:.3f}"
 
 
-def split_loader(dm: Any, split: str, batch_size: int = 4) -> DataLoader:
-    """A deterministic loader over one split of a scene DataModule (fixed views, no shuffling)."""
+def split_loader(dm: Any, split: str, batch_size: int = 4, gallery: bool = False) -> DataLoader:
+    """A deterministic loader over one split of a scene DataModule (fixed views, no shuffling).
+
+    ``gallery``: each sample also holds the scene's next fixed view after the input views (the paper retrieval
+    protocol's gallery view); the input views are the same either way.
+    """
     ds = SceneDataset(
-        dm.data_dir, dm.index, split, num_input_views=dm.num_input_views, num_target_views=0,
+        dm.data_dir, dm.index, split, num_input_views=dm.num_input_views, num_target_views=1 if gallery else 0,
         max_objects=dm.max_objects, random_views=False, seed=dm.seed,
         box_sets=dm.box_sets(split) if hasattr(dm, "box_sets") else None,
         match_iou=getattr(dm, "match_iou", 0.5), keep_unmatched=split == "train", max_boxes=getattr(dm, "max_boxes", 8),
     )
     return DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=0)
+
+
+def coarse_labels(categories: list[str], labels: Tensor) -> Tensor | None:
+    """``labels`` mapped to :func:`~threedq.data.catalog.coarse_category` ids (CLEVR primitives by shape), or None
+    when that mapping merges no category of this dataset (no coarse row then)."""
+    names = [coarse_category(c) for c in categories]
+    if len(set(names)) == len(names):
+        return None
+    ids = {n: i for i, n in enumerate(dict.fromkeys(names))}
+    table = torch.tensor([ids[n] for n in names], dtype=torch.long)
+    return table[labels.long().clamp_min(0)]
+
+
+#: Row names of the retrieval table.
+RETRIEVAL_ROWS = {
+    "learned": "threedq learned features",
+    "raw_rgb_occupancy": "(a) raw RGB + occupancy crops, no learning",
+    "random_encoder": "(b) randomly initialised encoder",
+    DESCRIPTOR: "(c) six numbers: mean colour of the occupied voxels + sorted box extents (no learning)",
+}
+
+
+def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, learned: str | None = None,
+                       extra_rows: list[str] | None = None) -> list[str]:
+    """Paper Table 2 as markdown lines: each feature set under both protocols, the same-object top-1 rate and the
+    linear probe, with the protocol, pool, search and perfect-feature ceiling of each column stated."""
+    pk = precision_label(r)
+    prot = r.get("protocols") or {"strict": {"pool": r["num_objects"], "precision_at_k": r["precision_at_k"]}}
+    st, pa = prot.get("strict", {}), prot.get("paper")
+    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}.", ""]
+    for name in ("strict", "paper"):
+        if name in prot:
+            c = prot[name]
+            ceiling = f"; perfect features would score {c['ceiling']:.3f} on this pool" if "ceiling" in c else ""
+            gallery = f" (gallery: {c['gallery']})" if c.get("gallery") else ""
+            lines.append(f"- **{name}**: {PROTOCOL_LABELS[name]}{gallery}; pool {c['pool']} objects{ceiling}.")
+    if probe:
+        lines.append(f"- **linear probe**: a logistic regression on the voxel-averaged frozen crops, trained with the "
+                     f"labels of {probe['train_objects']} training objects (the labels train the probe only), "
+                     f"accuracy on the {probe['test_objects']} test objects.")
+    lines.append("")
+    head = f"| features | {pk}, strict |"
+    sep = "|---|---|"
+    if pa:
+        head += f" {pk}, paper | same object nearest (paper, top-1) |"
+        sep += "---|---|"
+    if probe:
+        head += " linear probe acc. |"
+        sep += "---|"
+    lines += [head, sep]
+    names = dict(RETRIEVAL_ROWS)
+    if learned:
+        names["learned"] = learned
+    for key, label in names.items():
+        if key not in st.get("precision_at_k", {}):
+            continue
+        row = f"| {label} | {st['precision_at_k'][key]:.3f} |"
+        if pa:
+            p = pa["precision_at_k"].get(key)
+            t = pa.get("same_object_top1", {}).get(key)
+            row += f" {'-' if p is None else f'{p:.3f}'} | {'-' if t is None else f'{t:.3f}'} |"
+        if probe:
+            a = probe["accuracy"].get(key)
+            row += f" {'-' if a is None else f'{a:.3f}'} |"
+        lines.append(row)
+    if pa and pa.get("coarse"):
+        c = pa["coarse"]
+        row = (f"| *coarse labels, not the headline*: learned, {c['num_classes']} classes (CLEVR primitives by shape "
+               f"only; ceiling {c['ceiling']:.3f}) | - | {c['precision_at_k']['learned']:.3f} | - |")
+        lines.append(row + (" - |" if probe else ""))
+    lines += extra_rows or []
+    return lines
+
+
+def _per_category_figure(test: dict[str, Tensor], sims: dict[str, Tensor], k: int, path: Path,
+                         categories: list[str], top_pairs: int = 12) -> list[dict[str, Any]]:
+    """Per-category precision@k of the learned features (strict and paper protocol) and the most confused category
+    pairs (top-k slots of one category's queries held by another's objects, both directions added); returns the
+    pairs."""
+    labels = test["labels"]
+    C = len(categories)
+    curves = {}
+    for name, key, excl in (("strict", "learned", True), ("paper", "paper/learned", False)):
+        if key in sims:
+            cls, prec = per_class_precision_at_k(sims[key], labels, labels, k, exclude_diagonal=excl)
+            curves[name] = dict(zip(cls.tolist(), prec.tolist()))
+    conf = retrieval_confusion(sims["learned"], labels, labels, C, k, exclude_diagonal=True)
+    sym = (conf + conf.T).triu(1)
+    flat = sym.flatten()
+    order = flat.argsort(descending=True)[:top_pairs]
+    pairs = [{"a": categories[int(i) // C], "b": categories[int(i) % C], "slots": int(flat[i]),
+              "share_of_a_slots": round(float(conf[int(i) // C, int(i) % C]) / max(1, int(conf[int(i) // C].sum())), 4),
+              "share_of_b_slots": round(float(conf[int(i) % C, int(i) // C]) / max(1, int(conf[int(i) % C].sum())), 4)}
+             for i in order if flat[i] > 0]
+    present = sorted(curves.get("strict", {}))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 0.18 * len(present) + 1.8), gridspec_kw={"width_ratios": [2, 1]})
+    y = np.arange(len(present))
+    for off, (name, cur) in zip((-0.2, 0.2), curves.items()):
+        ax.barh(y + off, [cur.get(c, 0.0) for c in present], height=0.4, label=f"{name} protocol")
+    ax.set_yticks(y, [categories[c] for c in present], fontsize=6)
+    ax.invert_yaxis()
+    ax.set_xlim(0, 1)
+    ax.set_xlabel(f"precision@{k} (learned features)")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("Per-category retrieval precision", fontsize=9)
+    ax2.axis("off")
+    text = "\n".join(f"{p['a']} <-> {p['b']}: {p['slots']} slots" for p in pairs) or "none"
+    ax2.text(0, 1, f"Most confused category pairs\n(top-{k} slots of one held by the other,\nstrict protocol, both "
+                   f"directions)\n\n{text}", va="top", fontsize=7, family="monospace")
+    _save(fig, path)
+    return pairs
 
 
 def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int,
@@ -210,27 +338,29 @@ def _markdown(res: dict[str, Any]) -> str:
         "# threedq evaluation",
         "",
         f"Held-out split `{res['split']}`: {res['num_test_objects']} objects in {res['num_test_categories']} categories "
-        f"(GT boxes, {res['num_input_views']} input view(s) per scene); K = {res['num_prototypes']}"
+        f"({res.get('box_source', 'GT boxes')}, {res['num_input_views']} input view(s) per scene); K = {res['num_prototypes']}"
         + (f"; baseline banks fitted on {res['num_train_objects']} training objects." if res["num_train_objects"] else "."),
         "",
-        f"## Retrieval (paper Table 2): rotation-max {precision_label(r)}, {r['num_angles']} yaw steps, macro over "
-        f"categories; {SEARCH_LABELS[r['search']]}",
+        "## Retrieval (paper Table 2)",
         "",
-        "| features | precision@%d |" % r["k"],
-        "|---|---|",
     ]
-    for name, label in (("learned", "threedq view-prediction features"),
-                        ("raw_rgb_occupancy", "raw RGB + occupancy crops (no learning)"),
-                        ("random_encoder", "randomly initialised encoder")):
-        if name in r["precision_at_k"]:
-            lines.append(f"| {label} | {r['precision_at_k'][name]:.3f} |")
     rn = res.get("resnet")
     rn_label = "ImageNet ResNet-18 (layer4 pooled in the projected GT box; cosine, no rotation search)"
+    pad = (" - | - |" if "paper" in r.get("protocols", {}) else "") + (" - |" if res.get("probe") else "")
     if rn is None:
-        lines.append(f"| {rn_label} | {RESNET_HOWTO} |")
+        rn_row = f"| {rn_label} | {RESNET_HOWTO} |" + pad
     else:
         at = f" (at k = {rn['k']})" if rn["k"] != r["k"] else ""
-        lines.append(f"| {rn_label} | {rn['precision_at_k']:.3f}{at} |")
+        rn_row = f"| {rn_label} | {rn['precision_at_k']:.3f}{at} |" + pad
+    lines += retrieval_markdown(r, res.get("probe"), learned="threedq learned features (the evaluated encoder)",
+                                extra_rows=[rn_row])
+    if res.get("baselines_not_run"):
+        lines += ["", f"Not run: {res['baselines_not_run']}."]
+    if res.get("confused_pairs"):
+        lines += ["", "Most confused category pairs (learned features, strict protocol; top-k slots of one category's "
+                  "queries held by the other's objects, both directions): " + "; ".join(
+                      f"{p['a']} / {p['b']} ({p['slots']})" for p in res["confused_pairs"][:8])
+                  + ". Per category: `per_category_retrieval.png`."]
     lines += [
         "",
         f"## Clustering into K = {res['num_prototypes']} prototypes (paper Tables 1 and 4), and pose",
@@ -309,17 +439,25 @@ def evaluate_quantizer(
     index = dm.index
     cats, sym = list(index.categories), list(index.symmetry_order)
     nv = dm.num_input_views
-    need_train = baselines or bool(curve_k)  # only the banks fitted here need the training objects
+    need_train = baselines or bool(curve_k) or q25d is not None  # the banks and the probe fitted here need them
+    no_train = None
+    if need_train and not index.files("train"):
+        no_train = (f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': no training split, and the no-rot-3DQ, "
+                    "point-cloud, 2.5DQ-Nets banks, the accuracy-vs-K curve and the linear probe are fitted on training "
+                    "objects: not run (retrieval, its references and the threedq prototypes are scored)")
+        print(f"threedq eval: {no_train}")
+        baselines, curve_k, q25d, need_train = False, [], None, False
     train = (collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
              if need_train else {"labels": torch.zeros(0, dtype=torch.long)})
-    test = collect_object_crops(model, split_loader(dm, "test"), nv, random_encoder_seed=seed if random_encoder else None,
-                                 progress=progress)
+    test = collect_object_crops(model, split_loader(dm, "test", gallery=True), nv,
+                                random_encoder_seed=seed if random_encoder else None, progress=progress, gallery=True)
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels, gt_yaw = test["labels"], test["boxes"][:, 6]
     if labels.shape[0] < 2:
         raise InputError(f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': the test split holds {labels.shape[0]} "
                          "object(s); the evaluation (retrieval, clustering) needs at least 2")
-    retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search)
+    retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search, coarse_labels=coarse_labels(cats, labels))
+    probe = probe_table(train, test) if baselines and int((train["labels"] >= 0).sum()) > 0 else None
     # the threedq row is what the stage's own test_step measured (trainer.test); the baselines below are fitted here
     n_scored = int(test_metrics.get("test/objects", -1))
     if n_scored != labels.shape[0]:
@@ -364,12 +502,16 @@ def evaluate_quantizer(
         resnet_res = resnet_results(te_r, k=10, seed=seed)
     res = {
         "split": "test",
+        "box_source": ("GT boxes" if getattr(dm, "boxes", "gt") == "gt" else
+                       f"given boxes ({dm.boxes}) matched to GT at IoU {getattr(dm, 'match_iou', 0.5)}, the matched ones scored"),
         "num_train_objects": int(train["labels"].shape[0]),
         "num_test_objects": int(labels.shape[0]),
         "num_test_categories": int(labels.unique().numel()),
         "num_input_views": nv,
         "num_prototypes": K,
         "retrieval": retrieval,
+        "probe": probe,
+        "baselines_not_run": no_train,
         "quantization": quant,
         "curve": curve,
         "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast")),
@@ -405,6 +547,7 @@ def evaluate_quantizer(
     })  # fmt: skip
     _alignment_figure(test, p, a, na, out / "prototype_alignment.png", cats)
     _retrieval_figure(test, sims["learned"], out / "retrieval.png", cats)
+    res["confused_pairs"] = _per_category_figure(test, sims, retrieval["k"], out / "per_category_retrieval.png", cats)
     res["seconds"] = round(time.time() - t0, 1)
     atomic_write_json(out / "results.json", res)
     atomic_write_text(out / "results.md", _markdown(res))
@@ -463,7 +606,7 @@ def run_eval(
     print(_markdown(res))
     if encoders:
         dm = cli.datamodule
-        table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test"), encoders,
+        table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test", gallery=True), encoders,
                                    len(dm.index.categories), list(dm.index.symmetry_order), dm.num_input_views,
                                    K=cli.model.bank.active.numel(), num_angles=cli.model.hparams.num_angles,
                                    em_iterations=em_iterations, seed=seed, search=search)

@@ -358,6 +358,10 @@ class PolarSpectrum:
     def __len__(self) -> int:
         return self.coef.shape[0]
 
+    def take(self, start: int, stop: int | None = None) -> PolarSpectrum:
+        """The spectrum of items ``start:stop`` (views, no copy): what ``polar_spectrum`` of those items gives."""
+        return PolarSpectrum(self.coef[start:stop], self.dc[start:stop], self.plan, self.norm[start:stop])
+
     def block(self, index: int, start: int = 0, stop: int | None = None) -> Tensor:
         """``[n, width * D]`` view of block ``index`` for items ``start:stop`` (no copy)."""
         b = self.plan.blocks[index]
@@ -624,6 +628,7 @@ def best_prototype_and_yaw(
     bandlimit: bool = True,
     compute_dtype: torch.dtype | None = None,
     chunk: int | None = None,
+    objects_spectrum: PolarSpectrum | None = None,
 ) -> RotationSearchResult:
     """Best prototype and yaw for every object crop (the paper's quantisation step, Eq. 1).
 
@@ -647,6 +652,9 @@ def best_prototype_and_yaw(
         compute_dtype: ``"fast"`` only: e.g. ``torch.bfloat16`` (~2x faster on CPUs with bf16 matmul, see
             ``yaw_correlation`` for the precision); default the objects' dtype.
         chunk: objects per GEMM (default: ~64 MiB of scratch for ``"fast"``, 16 for ``"exact"``).
+        objects_spectrum: ``"fast"`` only: ``polar_spectrum(objects, ...)`` computed earlier with the same settings
+            (an EM that assigns the same objects to changing prototypes computes it once); the result is the one of
+            computing it here. Its plan must be the one the prototypes get (else ``ValueError``).
 
     Returns:
         ``RotationSearchResult`` (``scores`` ``[N, K, A]`` float32 for low-precision compute, else the input
@@ -669,8 +677,13 @@ def best_prototype_and_yaw(
             for start, s in _exact_scores(objects, prototypes, num_angles, chunk or 16):
                 scores[start : start + s.shape[0]] = s
         else:
-            q = polar_spectrum(objects, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
+            q = objects_spectrum
+            if q is None:
+                q = polar_spectrum(objects, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
             g = polar_spectrum(prototypes, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
+            if len(q) != n or q.plan is not g.plan:
+                raise ValueError(f"objects_spectrum: expected the polar spectrum of the {n} objects computed with the "
+                                 f"prototypes' settings, got {len(q)} items{'' if q.plan is g.plan else ' of another plan'}")
             lag = q.plan.lag_basis
             scores = torch.empty(n, k, num_angles, device=objects.device, dtype=lag.dtype)
             inv_q, inv_g = _inverse_norms(q), _inverse_norms(g)
