@@ -165,7 +165,7 @@ def test_eval_on_a_folder_with_only_a_test_split(run: Run, tmp_path: Path, capsy
     out = tmp_path / "eval"
     capsys.readouterr()
     assert main(["eval", "--ckpt", str(run.quantizer), "--extra_configs", f"[{run.config}, {cfg}]", "--out", str(out),
-                 "--baselines", "true", "--curve_k", "[2]"]) == 0
+                 "--baselines", "true", "--curve_k", "[2]", "--encoders", json.dumps({"vp": str(run.viewpred)})]) == 0
     printed = capsys.readouterr().out
     assert "no training split" in printed and "Traceback" not in printed
     res = json.loads((out / "results.json").read_text())
@@ -174,3 +174,40 @@ def test_eval_on_a_folder_with_only_a_test_split(run: Run, tmp_path: Path, capsy
     assert set(res["retrieval"]["protocols"]) == {"strict", "paper"}
     md = (out / "results.md").read_text()
     assert "Not run:" in md and "paper protocol" in md and (out / "per_category_retrieval.png").is_file()
+    # Table 2 per feature set: retrieval under both protocols, no probe or banks without training objects
+    t2 = json.loads((out / "table2.json").read_text())
+    assert t2["num_train_objects"] == 0 and "retrieval only" in (out / "table2.md").read_text()
+    vp = t2["rows"]["vp"]
+    assert 0 <= vp["precision_at_10_paper"] <= 1 and vp["hungarian_acc"] != vp["hungarian_acc"]  # NaN
+
+
+def test_eval_on_single_view_scenes_scores_the_strict_protocol(run: Run, tmp_path: Path, capsys) -> None:
+    """Scenes with one view have no second view for the paper protocol's gallery: the evaluation says so in one line
+    naming a scene file and scores the strict protocol."""
+    from dataclasses import replace
+
+    from threedq.cli import main
+    from threedq.scene import load_index, load_scene, save_scene
+
+    src = run.root / "data"
+    folder = tmp_path / "one_view"
+    for f in sorted((src / "test").glob("*.npz")):
+        rec = load_scene(f)
+        one = replace(rec, rgb=rec.rgb[:1], depth=rec.depth[:1], K=rec.K[:1], world_T_cam=rec.world_T_cam[:1],
+                      instance=None if rec.instance is None else rec.instance[:1])
+        save_scene(folder / "test" / f.name, one)
+    assert main(["data", "index", str(folder), "--categories", json.dumps(list(load_index(src).categories))]) == 0
+    cfg = tmp_path / "folder.yaml"
+    cfg.write_text(yaml.safe_dump({"data": {
+        "class_path": "threedq.datamodules.scene_folder.SceneFolderDataModule",
+        "init_args": {"data_dir": str(folder), "num_target_views": 0, "train_random_views": False}}}))
+    out = tmp_path / "eval"
+    capsys.readouterr()
+    assert main(["eval", "--ckpt", str(run.quantizer), "--extra_configs", f"[{run.config}, {cfg}]", "--out", str(out),
+                 "--baselines", "false", "--curve_k", "[]", "--encoders", json.dumps({"vp": str(run.viewpred)})]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["retrieval"]["protocols"]) == {"strict"}
+    assert "paper protocol needs a view" in res["paper_protocol_not_run"] and ".npz" in res["paper_protocol_not_run"]
+    assert "paper protocol needs a view" in capsys.readouterr().out
+    t2 = json.loads((out / "table2.json").read_text())
+    assert t2["rows"]["vp"]["precision_at_10_paper"] is None and 0 <= t2["rows"]["vp"]["precision_at_10"] <= 1

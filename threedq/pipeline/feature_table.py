@@ -52,9 +52,15 @@ def _retrieval_cells(test: dict[str, torch.Tensor], key: str, name: str, num_ang
             "ceilings": {p: v["ceiling"] for p, v in prot.items()}, "pool": table["num_objects"]}
 
 
-def _row(train: dict[str, torch.Tensor], test: dict[str, torch.Tensor], key: str, K: int, num_angles: int,
+_NO_TRAIN = {"probe_acc": float("nan"), "hungarian_acc": float("nan"), "fewshot_acc": float("nan"),
+             "yaw_median_deg": float("nan"), "yaw_acc_10": float("nan"), "yaw_acc_20": float("nan"), "yaw_pairs": 0}
+
+
+def _row(train: dict[str, torch.Tensor] | None, test: dict[str, torch.Tensor], key: str, K: int, num_angles: int,
          em_iterations: int, seed: int, search: str, num_classes: int, symmetry: list[int]) -> dict[str, Any]:
     cells = _retrieval_cells(test, key, key, num_angles, search)
+    if train is None:  # no training split: retrieval only (the probe and the banks are fitted on training objects)
+        return {**cells, **_NO_TRAIN}
     probe = probe_table({"labels": train["labels"], key: train[key]}, {"labels": test["labels"], key: test[key]})
     bank = fit_prototype_bank(train[key], min(K, train[key].shape[0]), iterations=em_iterations, num_angles=num_angles,
                               seed=seed)
@@ -65,10 +71,12 @@ def _row(train: dict[str, torch.Tensor], test: dict[str, torch.Tensor], key: str
     return {**cells, "probe_acc": probe["accuracy"][name], **q}
 
 
-def _descriptor_row(train: dict[str, torch.Tensor], test: dict[str, torch.Tensor], num_angles: int,
+def _descriptor_row(train: dict[str, torch.Tensor] | None, test: dict[str, torch.Tensor], num_angles: int,
                     search: str) -> dict[str, Any]:
     """The colour + size descriptor: retrieval and probe (no prototypes: it is six numbers, not a crop)."""
     cells = _retrieval_cells(test, "raw", DESCRIPTOR, num_angles, search)
+    if train is None:
+        return {**cells, **_NO_TRAIN}
     probe = probe_table({k: train[k] for k in ("labels", "raw", "aabb")}, {k: test[k] for k in ("labels", "raw", "aabb")})
     nan = float("nan")
     return {**cells, "probe_acc": probe["accuracy"][DESCRIPTOR], "hungarian_acc": nan, "fewshot_acc": nan,
@@ -117,9 +125,11 @@ def feature_sets_table(
             gallery = test_loader.dataset.num_target_views > 0  # a split_loader(..., gallery=True): the paper protocol
             test = collect_object_crops(stage, test_loader, num_input_views, random_encoder_seed=seed if first else None,
                                         progress=progress, gallery=gallery)
-            train = collect_object_crops(stage, train_loader, num_input_views, random_encoder_seed=seed if first else None,
-                                         progress=progress)
-            n_train = int(train["labels"].shape[0])
+            train = None
+            if len(train_loader.dataset):  # a folder without a training split gets retrieval rows only
+                train = collect_object_crops(stage, train_loader, num_input_views,
+                                             random_encoder_seed=seed if first else None, progress=progress)
+                n_train = int(train["labels"].shape[0])
             if first:
                 base = test
                 rows["raw crops"] = {**_row(train, test, "raw", **kw), "checkpoint": None}
@@ -148,9 +158,10 @@ def _cell(v: float | None, digits: int = 3) -> str:
 def feature_sets_markdown(table: dict[str, Any]) -> str:
     """The table as markdown, naming the search, the protocols, their pool and ceilings."""
     ceil = table.get("ceilings", {})
+    banks = (f"banks of K = {table['K']} fitted on {table['num_train_objects']} training objects"
+             if table["num_train_objects"] else "no training split: retrieval only (no probe, no banks)")
     lines = [
-        f"## Feature sets (paper Table 2, with clustering): {table['num_test_objects']} test objects, banks of "
-        f"K = {table['K']} fitted on {table['num_train_objects']} training objects",
+        f"## Feature sets (paper Table 2, with clustering): {table['num_test_objects']} test objects, {banks}",
         "",
         f"precision@10: {SEARCH_LABELS[table['search']]}.",
         *(f"- {p}: {PROTOCOL_LABELS[p]}; pool {table['num_test_objects']} objects; perfect features would score "

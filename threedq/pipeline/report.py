@@ -46,6 +46,7 @@ from torch.utils.data import DataLoader  # noqa: E402
 from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
 from threedq.errors import InputError  # noqa: E402
+from threedq.scene import SceneValidationError  # noqa: E402
 from threedq.stages.base import require_stage  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
 from threedq.data.draw import crop_birds_eye  # noqa: E402
@@ -242,6 +243,10 @@ def _per_category_figure(test: dict[str, Tensor], sims: dict[str, Tensor], k: in
     y = np.arange(len(present))
     for off, (name, cur) in zip((-0.2, 0.2), curves.items()):
         ax.barh(y + off, [cur.get(c, 0.0) for c in present], height=0.4, label=f"{name} protocol")
+    n_c = torch.bincount(labels, minlength=C)
+    ax.plot([min(k, int(n_c[c]) - 1) / k for c in present], y - 0.2, "k|", ms=7, label="ceiling, strict (category size)")
+    if "paper" in curves:
+        ax.plot([min(k, int(n_c[c])) / k for c in present], y + 0.2, "r|", ms=7, label="ceiling, paper")
     ax.set_yticks(y, [categories[c] for c in present], fontsize=6)
     ax.invert_yaxis()
     ax.set_xlim(0, 1)
@@ -254,6 +259,26 @@ def _per_category_figure(test: dict[str, Tensor], sims: dict[str, Tensor], k: in
                    f"directions)\n\n{text}", va="top", fontsize=7, family="monospace")
     _save(fig, path)
     return pairs
+
+
+def collect_with_gallery(model: Any, dm: Any, split: str, num_input_views: int, random_encoder_seed: int | None,
+                         progress: bool = True) -> tuple[dict[str, Tensor], str | None]:
+    """:func:`~threedq.pipeline.evaluation.collect_object_crops` of ``split`` with the paper protocol's gallery view,
+    or, when a scene has no view beyond its input views (a single-view capture), without it: then the reason, one
+    line naming the scene file, is returned (and printed) and only the strict protocol can be scored."""
+    try:
+        crops = collect_object_crops(model, split_loader(dm, split, gallery=True), num_input_views,
+                                     random_encoder_seed=random_encoder_seed, progress=progress, gallery=True)
+        return crops, None
+    except SceneValidationError as e:
+        if "distinct views" not in e.reason:
+            raise
+        reason = (f"{e.source}: field 'rgb': the paper protocol needs a view of every {split} scene beyond its "
+                  f"{num_input_views} input view(s) ({e.reason}); retrieval scored under the strict protocol only")
+        print(f"threedq eval: {reason}")
+    crops = collect_object_crops(model, split_loader(dm, split), num_input_views,
+                                 random_encoder_seed=random_encoder_seed, progress=progress)
+    return crops, reason
 
 
 def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int,
@@ -354,6 +379,8 @@ def _markdown(res: dict[str, Any]) -> str:
         rn_row = f"| {rn_label} | {rn['precision_at_k']:.3f}{at} |" + pad
     lines += retrieval_markdown(r, res.get("probe"), learned="threedq learned features (the evaluated encoder)",
                                 extra_rows=[rn_row])
+    if res.get("paper_protocol_not_run"):
+        lines += ["", f"Not run: {res['paper_protocol_not_run']}."]
     if res.get("baselines_not_run"):
         lines += ["", f"Not run: {res['baselines_not_run']}."]
     if res.get("confused_pairs"):
@@ -449,8 +476,7 @@ def evaluate_quantizer(
         baselines, curve_k, q25d, need_train = False, [], None, False
     train = (collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
              if need_train else {"labels": torch.zeros(0, dtype=torch.long)})
-    test = collect_object_crops(model, split_loader(dm, "test", gallery=True), nv,
-                                random_encoder_seed=seed if random_encoder else None, progress=progress, gallery=True)
+    test, no_paper = collect_with_gallery(model, dm, "test", nv, seed if random_encoder else None, progress)
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels, gt_yaw = test["labels"], test["boxes"][:, 6]
     if labels.shape[0] < 2:
@@ -512,6 +538,7 @@ def evaluate_quantizer(
         "retrieval": retrieval,
         "probe": probe,
         "baselines_not_run": no_train,
+        "paper_protocol_not_run": no_paper,
         "quantization": quant,
         "curve": curve,
         "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast")),
@@ -606,7 +633,8 @@ def run_eval(
     print(_markdown(res))
     if encoders:
         dm = cli.datamodule
-        table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test", gallery=True), encoders,
+        gallery = not res.get("paper_protocol_not_run")  # every test scene has a view to serve as the gallery
+        table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test", gallery=gallery), encoders,
                                    len(dm.index.categories), list(dm.index.symmetry_order), dm.num_input_views,
                                    K=cli.model.bank.active.numel(), num_angles=cli.model.hparams.num_angles,
                                    em_iterations=em_iterations, seed=seed, search=search)
