@@ -49,6 +49,12 @@ def test_rows_against_direct_measurement(tmp_path: Path, tiny_dataset: Path) -> 
     paper = direct["protocols"]["paper"]
     assert rows["b"]["precision_at_10_paper"] == pytest.approx(paper["precision_at_k"]["learned"])
     assert rows["b"]["same_object_top1"] == pytest.approx(paper["same_object_top1"]["learned"])
+    # the descriptor row is the descriptor's retrieval, not the raw crops' (it is computed from them)
+    refs, _ = retrieval_table({k: test[k] for k in ("labels", "raw", "gallery_raw", "aabb")}, k=10, num_angles=8)
+    d = rows["colour + size descriptor"]
+    assert d["precision_at_10"] == pytest.approx(refs["protocols"]["strict"]["precision_at_k"]["colour_size_descriptor"])
+    assert d["same_object_top1"] == pytest.approx(refs["protocols"]["paper"]["same_object_top1"]["colour_size_descriptor"])
+    assert rows["raw crops"]["precision_at_10"] == pytest.approx(refs["precision_at_k"]["raw_rgb_occupancy"])
     # the gallery is another view: its crops differ from the queries' (the input view's crops are unchanged)
     assert not torch.equal(test["gallery_learned"], test["learned"])
     plain = collect_object_crops(b.eval(), split_loader(dm, "test"), 1, random_encoder_seed=None, progress=False)

@@ -81,6 +81,9 @@ from threedq.stages.base import require_stage
 __all__ = ["run_em"]
 
 ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer", "self_labelling")
+#: How a round fits its quantizer: one epoch over the training boxes, no validation pass (the round's evaluation
+#: scores the bank on the test split; the val split's numbers were read by nothing).
+_QUANTIZER_FIT = ("--trainer.max_steps=-1", "--trainer.max_epochs=1", "--trainer.limit_val_batches=0")
 
 
 def _config_label(path: Path, work: Path) -> str:
@@ -215,7 +218,7 @@ def _evaluate_round(
     cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
     # Fig. 3a (accuracy against K) is left to threedq eval, which keeps the main job short
     return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[],
-                              random_encoder=final)
+                              random_encoder=final, per_category=final)
 
 
 def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
@@ -570,8 +573,8 @@ def run_em(
         # the paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes (the
         # grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM)
         q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, work / "r00_quantizer",
-                        [f"--model.init_args.encoder_ckpt={vp_ckpt}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
-                         *box_over, *prec], resume, crop_cache)
+                        [f"--model.init_args.encoder_ckpt={vp_ckpt}", *_QUANTIZER_FIT, *box_over, *prec], resume,
+                        crop_cache)
         round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), work / "r00_eval", final=False,
                                  overrides=[*box_over, *prec], crop_cache=crop_cache)
     round_results: list[dict[str, Any]] = []
@@ -589,8 +592,7 @@ def run_em(
             # the encoder is new: the previous one's grids and crops will not be asked for again
             crop_cache.drop("features")
             crop_cache.drop("grid")
-        q_over = [f"--model.init_args.encoder_ckpt={encoder}", "--trainer.max_steps=-1", "--trainer.max_epochs=1",
-                  *box_over, *prec]
+        q_over = [f"--model.init_args.encoder_ckpt={encoder}", *_QUANTIZER_FIT, *box_over, *prec]
         if prev_bank is not None:
             q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
         q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume, crop_cache)

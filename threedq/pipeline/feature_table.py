@@ -43,7 +43,8 @@ def _retrieval_cells(test: dict[str, torch.Tensor], key: str, name: str, num_ang
     if name == DESCRIPTOR:
         crops = {k: test[k] for k in ("labels", "raw", "gallery_raw", "aabb") if k in test}
     table, _ = retrieval_table(crops, k=10, num_angles=num_angles, search=search)
-    row_key = {"learned": "learned", "raw": "raw_rgb_occupancy", "random": "random_encoder"}.get(key, DESCRIPTOR)
+    row_key = DESCRIPTOR if name == DESCRIPTOR else {"learned": "learned", "raw": "raw_rgb_occupancy",
+                                                     "random": "random_encoder"}[key]
     prot = table["protocols"]
     paper = prot.get("paper")
     return {"precision_at_10": prot["strict"]["precision_at_k"][row_key], "k": table["k"],

@@ -446,6 +446,7 @@ def evaluate_quantizer(
     q25d: Any = None,
     resnet: Any = None,
     random_encoder: bool = True,
+    per_category: bool = True,
 ) -> dict[str, Any]:
     """The evaluation of a trained :class:`~threedq.stages.quantizer.Quantizer`; writes the outputs.
 
@@ -459,6 +460,8 @@ def evaluate_quantizer(
         resnet: a :class:`~threedq.baselines.resnet.ResNet18` with ImageNet weights for the ResNet rows, or None.
         random_encoder: add the randomly initialised encoder's retrieval row (``threedq em`` scores it in the last
             round only: its crops depend on each round's boxes, and the rounds' tables do not show it).
+        per_category: draw ``per_category_retrieval.png`` and list the most confused category pairs (``threedq em``:
+            the last round only).
     """
     out = Path(out)
     t0 = time.time()
@@ -574,7 +577,9 @@ def evaluate_quantizer(
     })  # fmt: skip
     _alignment_figure(test, p, a, na, out / "prototype_alignment.png", cats)
     _retrieval_figure(test, sims["learned"], out / "retrieval.png", cats)
-    res["confused_pairs"] = _per_category_figure(test, sims, retrieval["k"], out / "per_category_retrieval.png", cats)
+    if per_category:
+        res["confused_pairs"] = _per_category_figure(test, sims, retrieval["k"], out / "per_category_retrieval.png",
+                                                     cats)
     res["seconds"] = round(time.time() - t0, 1)
     atomic_write_json(out / "results.json", res)
     atomic_write_text(out / "results.md", _markdown(res))
