@@ -145,17 +145,13 @@ def test_bad_baseline_files_are_one_line_input_errors(run: Run, tmp_path: Path) 
         run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "b"), weights=str(bad))
 
 
-def test_eval_on_a_folder_with_only_a_test_split(run: Run, tmp_path: Path, capsys) -> None:
-    """``threedq eval --baselines true`` on a folder indexed by ``threedq data index`` with only a test split: the
-    retrieval table and its references are scored, the banks fitted on training objects are said not to run (one
-    line), no traceback."""
+def _eval_test_folder(run: Run, tmp_path: Path, folder: Path, *options: str) -> Path:
+    """Index ``folder`` (only a ``test/`` split) with ``threedq data index`` and run ``threedq eval`` of the run's
+    quantizer on it, with ``--encoders`` for Table 2 per feature set; returns the output folder."""
     from threedq.cli import main
     from threedq.scene import load_index
 
-    src = run.root / "data"
-    folder = tmp_path / "test_only"
-    shutil.copytree(src / "test", folder / "test")
-    cats = load_index(src).categories
+    cats = load_index(run.root / "data").categories
     assert main(["data", "index", str(folder), "--categories", json.dumps(list(cats))]) == 0
     assert load_index(folder).files("train") == []
     cfg = tmp_path / "folder.yaml"
@@ -163,9 +159,19 @@ def test_eval_on_a_folder_with_only_a_test_split(run: Run, tmp_path: Path, capsy
         "class_path": "threedq.datamodules.scene_folder.SceneFolderDataModule",
         "init_args": {"data_dir": str(folder), "num_target_views": 0, "train_random_views": False}}}))
     out = tmp_path / "eval"
-    capsys.readouterr()
     assert main(["eval", "--ckpt", str(run.quantizer), "--extra_configs", f"[{run.config}, {cfg}]", "--out", str(out),
-                 "--baselines", "true", "--curve_k", "[2]", "--encoders", json.dumps({"vp": str(run.viewpred)})]) == 0
+                 *options, "--encoders", json.dumps({"vp": str(run.viewpred)})]) == 0
+    return out
+
+
+def test_eval_on_a_folder_with_only_a_test_split(run: Run, tmp_path: Path, capsys) -> None:
+    """``threedq eval --baselines true`` on a folder indexed by ``threedq data index`` with only a test split: the
+    retrieval table and its references are scored, the banks fitted on training objects are said not to run (one
+    line), no traceback."""
+    folder = tmp_path / "test_only"
+    shutil.copytree(run.root / "data" / "test", folder / "test")
+    capsys.readouterr()
+    out = _eval_test_folder(run, tmp_path, folder, "--baselines", "true", "--curve_k", "[2]")
     printed = capsys.readouterr().out
     assert "no training split" in printed and "Traceback" not in printed
     res = json.loads((out / "results.json").read_text())
@@ -186,25 +192,16 @@ def test_eval_on_single_view_scenes_scores_the_strict_protocol(run: Run, tmp_pat
     naming a scene file and scores the strict protocol."""
     from dataclasses import replace
 
-    from threedq.cli import main
-    from threedq.scene import load_index, load_scene, save_scene
+    from threedq.scene import load_scene, save_scene
 
-    src = run.root / "data"
     folder = tmp_path / "one_view"
-    for f in sorted((src / "test").glob("*.npz")):
+    for f in sorted((run.root / "data" / "test").glob("*.npz")):
         rec = load_scene(f)
         one = replace(rec, rgb=rec.rgb[:1], depth=rec.depth[:1], K=rec.K[:1], world_T_cam=rec.world_T_cam[:1],
                       instance=None if rec.instance is None else rec.instance[:1])
         save_scene(folder / "test" / f.name, one)
-    assert main(["data", "index", str(folder), "--categories", json.dumps(list(load_index(src).categories))]) == 0
-    cfg = tmp_path / "folder.yaml"
-    cfg.write_text(yaml.safe_dump({"data": {
-        "class_path": "threedq.datamodules.scene_folder.SceneFolderDataModule",
-        "init_args": {"data_dir": str(folder), "num_target_views": 0, "train_random_views": False}}}))
-    out = tmp_path / "eval"
     capsys.readouterr()
-    assert main(["eval", "--ckpt", str(run.quantizer), "--extra_configs", f"[{run.config}, {cfg}]", "--out", str(out),
-                 "--baselines", "false", "--curve_k", "[]", "--encoders", json.dumps({"vp": str(run.viewpred)})]) == 0
+    out = _eval_test_folder(run, tmp_path, folder, "--baselines", "false", "--curve_k", "[]")
     res = json.loads((out / "results.json").read_text())
     assert set(res["retrieval"]["protocols"]) == {"strict"}
     assert "paper protocol needs a view" in res["paper_protocol_not_run"] and ".npz" in res["paper_protocol_not_run"]
