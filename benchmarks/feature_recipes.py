@@ -1,0 +1,252 @@
+"""Feature recipe study (issue #30): view-prediction recipes vs. what the learned 3D features retrieve.
+
+Each recipe (``--variant NAME=OVERRIDES``: extra LightningCLI overrides of ``configs/stages/viewpred.yaml``) is
+trained from scratch once per seed (``--seeds``) up to the largest of ``--eval_steps`` (a recipe's own
+``--trainer.max_steps=N`` stops it earlier; ``--config stages/supervised.yaml`` first trains that stage instead,
+e.g. the label-supervised ceiling); at every step of
+``--eval_steps`` the encoder is scored on the test split's GT boxes (the learning rate is constant, so step ``s``
+of a long run is a run of ``s`` steps):
+
+* rotation-max precision@10 under both protocols of ``threedq.pipeline.evaluation.retrieval_table`` (``strict``:
+  leave-one-out over one view; ``paper``: gallery = the same objects from each scene's second fixed view, twin
+  counted) and the same-object top-1 rate, each for two similarities: the paper's cosine over the whole crop and
+  the occupancy-weighted cosine (:func:`threedq.geometry.occupancy_weighted`, a departure: voxels near observed
+  surface count more);
+* with ``--probe``: the linear probe on the voxel-averaged crops (labels train the probe only);
+* the raw ``cat[occ, occ*rgb]`` crops and the six-number colour + size descriptor on the same objects;
+* seconds per training step (the trainer's fit time / steps, evaluation excluded).
+
+One JSON line per (recipe, seed, step) is appended to ``--out`` as soon as it is measured (a killed study keeps
+its rows; ``--table_only`` prints the table of an existing file). The table gives, per recipe and step, the
+mean and the range over the seeds. ``--jobs N`` trains N (recipe, seed) pairs at once in subprocesses (on a GPU;
+on a 2-core CPU keep 1: two trainings halve each other's speed and spoil ``s/step``). Run it from a folder holding
+the embedded data (``data/clevr_veggie``, made by ``threedq em`` or ``threedq fit``) or pass ``--data_dir``.
+``--score NAME=CKPT`` scores existing checkpoints the same way instead of training (e.g. the main job's encoders on
+another dataset: ``--data_dir data/shifted --score rgbocc=runs/em/00_viewpred/checkpoints/last.ckpt``).
+
+    python benchmarks/feature_recipes.py --seeds 0 1 --eval_steps 500 1000 2000 \\
+        --variant default= --variant "3 targets=--data.init_args.num_target_views=3"
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import cpu_name  # noqa: E402
+
+DEFAULT_VARIANTS = [
+    "default=",
+    "3 targets=--data.init_args.num_target_views=3",
+    "batch 4=--data.init_args.batch_size=4",
+]
+#: (name in the rows, similarity applied to the learned crops before the rotation search)
+SIMILARITIES = ("cosine", "occupancy")
+
+
+def _score(crops: dict, similarity: str) -> dict[str, Any]:
+    from threedq.geometry import occupancy_weighted
+    from threedq.pipeline.evaluation import retrieval_table
+
+    c = dict(crops)
+    if similarity == "occupancy":
+        for key, raw in (("learned", "raw"), ("gallery_learned", "gallery_raw")):
+            c[key] = occupancy_weighted(c[key], c[raw][:, :1])
+        c = {k: v for k, v in c.items() if k in ("learned", "gallery_learned", "labels")}
+    table, _ = retrieval_table(c)
+    p = table["protocols"]
+    out = {f"{similarity}/strict": p["strict"]["precision_at_k"]["learned"],
+           f"{similarity}/paper": p["paper"]["precision_at_k"]["learned"],
+           f"{similarity}/top1": p["paper"]["same_object_top1"]["learned"]}
+    if similarity == "cosine":
+        for name, key in (("raw_rgb_occupancy", "raw"), ("colour_size_descriptor", "descriptor")):
+            out[f"{key}/strict"] = p["strict"]["precision_at_k"][name]
+            out[f"{key}/paper"] = p["paper"]["precision_at_k"][name]
+            out[f"{key}/top1"] = p["paper"]["same_object_top1"][name]
+        out["pool"] = table["num_objects"]
+        out["ceiling/strict"], out["ceiling/paper"] = p["strict"]["ceiling"], p["paper"]["ceiling"]
+    return out
+
+
+def score_encoder(stage: Any, dm: Any, probe: bool) -> dict[str, Any]:
+    """Every number of one row for ``stage``'s encoder on the test split's GT boxes."""
+    import torch
+
+    from threedq.pipeline.evaluation import collect_object_crops, probe_table
+    from threedq.pipeline.report import split_loader
+
+    with torch.no_grad():
+        crops = collect_object_crops(stage, split_loader(dm, "test", gallery=True), random_encoder_seed=None,
+                                     progress=False, gallery=True)
+        row: dict[str, Any] = {}
+        for sim in SIMILARITIES:
+            row.update(_score(crops, sim))
+        if probe:
+            train = collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None, progress=False)
+            acc = probe_table(train, crops)["accuracy"]
+            row["probe/learned"], row["probe/raw"] = acc["learned"], acc["raw_rgb_occupancy"]
+            row["probe/descriptor"] = acc["colour_size_descriptor"]
+    return row
+
+
+def _device_name(device: Any) -> str:
+    import torch
+
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else f"{device.type}, {cpu_name()}"
+
+
+def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], root: Path, out: Path, probe: bool,
+            data_dir: str | None) -> None:
+    """Train one (recipe, seed) and append a row per evaluation step to ``out``."""
+    import lightning as L
+
+    from threedq.pipeline.lightning_cli import ThreeDQCLI
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    config, quiet = configs / "stages" / "viewpred.yaml", ["--model.init_args.image_every_n_steps=0"]
+    if overrides[:1] == ["--config"]:  # another stage's config (e.g. stages/supervised.yaml, the label ceiling)
+        config, quiet, overrides = configs / overrides[1], [], overrides[2:]
+    steps = sorted(set(eval_steps))
+    extra = [f"--data.init_args.data_dir={data_dir}"] if data_dir else []
+    cli = ThreeDQCLI(
+        args=["--config", str(config), f"--seed_everything={seed}", f"--trainer.max_steps={steps[-1]}",
+              f"--trainer.default_root_dir={root / name.replace(' ', '_') / f'seed{seed}'}", *quiet,
+              "--trainer.check_val_every_n_epoch=100000", "--trainer.enable_progress_bar=false",
+              "--trainer.enable_checkpointing=false", *extra, *overrides],
+        run=False,
+    )
+    timer = {"train_s": 0.0, "t0": time.perf_counter()}
+
+    class Evaluate(L.Callback):
+        def on_train_batch_end(self, trainer: L.Trainer, stage: Any, *args: Any) -> None:
+            if trainer.global_step not in steps:
+                return
+            timer["train_s"] += time.perf_counter() - timer["t0"]
+            t = time.perf_counter()
+            row = {"variant": name, "overrides": overrides, "seed": seed, "steps": trainer.global_step,
+                   "s_per_step": timer["train_s"] / trainer.global_step, **score_encoder(stage, cli.datamodule, probe),
+                   "eval_s": round(time.perf_counter() - t, 1), "device": _device_name(stage.device)}
+            with out.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(f"{name} seed {seed} step {trainer.global_step}: paper {row['cosine/paper']:.3f} "
+                  f"(occupancy {row['occupancy/paper']:.3f}) top-1 {row['cosine/top1']:.3f}", flush=True)
+            timer["t0"] = time.perf_counter()
+
+    cli.trainer.callbacks.append(Evaluate())
+    cli.trainer.fit(cli.model, cli.datamodule)
+
+
+def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool) -> None:
+    """One row per ``NAME=CKPT``: the checkpoint's encoder scored as :func:`score_encoder` does (no training)."""
+    from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
+    from threedq.datamodules.scene_folder import SceneFolderDataModule
+    from threedq.stages.viewpred import ViewPrediction
+
+    dm = SceneFolderDataModule(data_dir=data_dir) if data_dir else ClevrVeggieDataModule()
+    dm.prepare_data()
+    dm.setup("fit")
+    dm.setup("test")
+    for spec in specs:
+        name, _, ckpt = spec.partition("=")
+        stage = ViewPrediction(encoder_ckpt=ckpt).eval()
+        row = {"variant": name, "overrides": [ckpt], "seed": None, "steps": 0, "s_per_step": float("nan"),
+               **score_encoder(stage, dm, probe), "device": _device_name(stage.device), "data_dir": data_dir}
+        with out.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+COLUMNS = [("cosine/strict", "strict"), ("cosine/paper", "paper"), ("cosine/top1", "top-1"),
+           ("occupancy/strict", "strict (occ.-weighted)"), ("occupancy/paper", "paper (occ.-weighted)"),
+           ("occupancy/top1", "top-1 (occ.-weighted)"), ("probe/learned", "linear probe")]
+
+
+def _cell(values: list[float]) -> str:
+    if not values:
+        return "-"
+    m = sum(values) / len(values)
+    return f"{m:.3f} ({min(values):.3f}-{max(values):.3f})" if len(values) > 1 else f"{m:.3f}"
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """Markdown: one line per (recipe, steps), mean (range) over seeds; the references from the same rows."""
+    groups: dict[tuple[str, int], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["variant"], r["steps"]), []).append(r)
+    head = "| recipe | steps | seeds | s/step | " + " | ".join(c for _, c in COLUMNS) + " |"
+    lines = [head, "|" + "---|" * (4 + len(COLUMNS))]
+    for (name, steps), rs in groups.items():
+        cells = [_cell([r[k] for r in rs if k in r]) for k, _ in COLUMNS]
+        sps = [r["s_per_step"] for r in rs if r["s_per_step"] == r["s_per_step"]]  # NaN: a scored checkpoint
+        lines.append(f"| {name} | {steps or '-'} | {len(rs)} | {_cell(sps)} | " + " | ".join(cells) + " |")
+    refs = [("raw", "raw crops"), ("descriptor", "colour + size descriptor")]
+    lines += ["", "| reference (same objects) | strict | paper | top-1 | linear probe |", "|---|---|---|---|---|"]
+    for key, label in refs:
+        cells = [_cell([r[f"{key}/{m}"] for r in rows if f"{key}/{m}" in r][:1]) for m in ("strict", "paper", "top1")]
+        probe = _cell([r[f"probe/{key}"] for r in rows if f"probe/{key}" in r][:1])
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {probe} |")
+    if rows:
+        r = rows[0]
+        lines.append(f"| perfect features (ceiling) | {r['ceiling/strict']:.3f} | {r['ceiling/paper']:.3f} | 1 | 1 |")
+        lines.append(f"\npool: {r['pool']} test objects (GT boxes); fast rotation search, 36 yaws; k = 10")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--variant", action="append", help="NAME=OVERRIDE[ OVERRIDE...] (repeatable)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--eval_steps", type=int, nargs="+", default=[500, 1000, 2000])
+    ap.add_argument("--probe", action="store_true", help="also the linear probe (encodes the training split)")
+    ap.add_argument("--jobs", type=int, default=1, help="(recipe, seed) trainings at once, in subprocesses")
+    ap.add_argument("--common", default="", help="overrides added to every recipe, e.g. '--trainer.accelerator=gpu'")
+    ap.add_argument("--data_dir", default=None, help="default: the stage config's (data/clevr_veggie)")
+    ap.add_argument("--root", type=Path, default=Path("runs/feature_recipes"))
+    ap.add_argument("--out", type=Path, default=Path("runs/feature_recipes/results.jsonl"))
+    ap.add_argument("--table_only", action="store_true", help="print the table of --out and stop")
+    ap.add_argument("--score", action="append", metavar="NAME=CKPT",
+                    help="score an existing encoder checkpoint instead of training (repeatable; any stage's "
+                         "checkpoint); with --data_dir any scene folder (threedq data generate / index)")
+    ap.add_argument("--one", nargs=2, metavar=("SPEC", "SEED"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.one:
+        name, _, rest = args.one[0].partition("=")
+        run_one(name, rest.split() + args.common.split(), int(args.one[1]), args.eval_steps, args.root, args.out,
+                args.probe, args.data_dir)
+        return
+    if args.score:
+        score_checkpoints(args.score, args.data_dir, args.out, args.probe)
+    elif not args.table_only:
+        jobs = [(spec, seed) for spec in (args.variant or DEFAULT_VARIANTS) for seed in args.seeds]
+        common = ["--eval_steps", *map(str, args.eval_steps), "--root", str(args.root), "--out", str(args.out)]
+        common += [f"--common={args.common}"] if args.common else []
+        common += (["--probe"] if args.probe else []) + (["--data_dir", args.data_dir] if args.data_dir else [])
+        running: list[subprocess.Popen] = []
+        for spec, seed in jobs:
+            while len(running) >= args.jobs:
+                running = [p for p in running if p.poll() is None]
+                time.sleep(1)
+            env = dict(os.environ)
+            if args.jobs > 1:
+                env.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 2) // args.jobs)))
+            running.append(subprocess.Popen([sys.executable, __file__, "--one", spec, str(seed), *common], env=env))
+        failed = [p.args for p in running if p.wait() != 0]
+        if failed:
+            print(f"failed: {failed}", file=sys.stderr)
+    rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()]
+    print(f"\nmachine: {rows[0]['device'] if rows else cpu_name()}  date: {time.strftime('%Y-%m-%d')}  "
+          f"precision@10 of the test split's GT boxes\n")
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
