@@ -1,0 +1,164 @@
+"""Every packaged config (``configs/``), each parsed as itself and run for one batch on the tiny dataset.
+
+A stage config is the only ``--config`` of its run; a data or trainer config is composed with
+``stages/viewpred.yaml`` (they hold no model) and its own values must reach the parsed result. Each runs with
+``--trainer.fast_dev_run=true`` on the tiny fixture: the overrides below only point the data at the fixture, shrink
+the grid to it and hand over the checkpoints a stage reads (made by the packaged configs of the stages that write
+them); nothing else of the config is replaced. Trainer configs that need a GPU or several processes
+(``gpu``, ``ddp``, ``ddp_cpu``) are parsed, not run: CI has neither (``tests/test_ddp.py`` runs real DDP).
+A copy of a config with one key misspelt must fail the same check (``TestMutatedConfig``).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from threedq.cli import main
+from threedq.pipeline.lightning_cli import ThreeDQCLI, packaged_configs_dir, resolve_config
+
+CONFIGS = sorted(str(p.relative_to(packaged_configs_dir())) for p in packaged_configs_dir().glob("*/*.yaml"))
+#: Trainer configs parsed but not run here (a GPU, or several processes).
+PARSE_ONLY = {"trainer/gpu.yaml", "trainer/ddp.yaml", "trainer/ddp_cpu.yaml"}
+#: Stages whose config names its own grid (they train an encoder from scratch): shrunk to the tiny data.
+OWN_GRID = {"stages/viewpred.yaml", "stages/supervised.yaml", "paper/viewpred.yaml"}
+#: What each stage config reads from another stage's checkpoint (filled by the ``checkpoints`` fixture).
+NEEDS = {
+    "stages/detector.yaml": ("encoder_ckpt",),
+    "stages/detector_gt.yaml": ("encoder_ckpt",),
+    "stages/quantizer.yaml": ("encoder_ckpt",),
+    "stages/mining.yaml": ("encoder_ckpt",),
+    "stages/vc.yaml": ("encoder_ckpt",),
+    "stages/vc_moco.yaml": ("encoder_ckpt",),
+    "stages/self_labelling.yaml": ("encoder_ckpt", "detector_ckpt", "bank_ckpt"),
+}
+TINY_GRID = "--model.init_args.grid_resolution=[32, 32, 16]"
+
+
+def _load(config: str) -> dict:
+    return yaml.safe_load(resolve_config(config).read_text())
+
+
+def _data_args(data_dir: Path) -> list[str]:
+    return [f"--data.init_args.data_dir={data_dir}", "--data.init_args.num_scenes=12",
+            "--data.init_args.image_size=[32, 32]", "--data.init_args.num_views=4",
+            "--data.init_args.generator_workers=1"]
+
+
+def _run_args(config: str, data_dir: Path, root: Path, ckpts: dict[str, Path]) -> list[str]:
+    """``fit`` of ``config`` as itself, on the tiny data, for one batch."""
+    args = ["fit"]
+    if config.startswith(("data/", "trainer/")):
+        args += ["--config", "stages/viewpred.yaml"]
+    args += ["--config", config, *_data_args(data_dir), "--trainer.fast_dev_run=true",
+             "--trainer.enable_progress_bar=false", "--trainer.enable_model_summary=false",
+             f"--trainer.default_root_dir={root}"]
+    if config.startswith(("data/", "trainer/")) or config in OWN_GRID:
+        args.append(TINY_GRID)
+    for key in NEEDS.get(config, ()):
+        args.append(f"--model.init_args.{key}={ckpts[key]}")
+    if "encoder_ckpt" in NEEDS.get(config, ()):
+        args.append(TINY_GRID)  # a bare encoder state dict carries no grid
+    if config == "stages/self_labelling.yaml":
+        args += ["--model.init_args.crop_size=8", "--model.init_args.num_angles=8"]  # the tiny bank's
+    return args
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory: pytest.TempPathFactory, tiny_dataset: Path) -> dict[str, Path]:
+    """An encoder, a detector and a prototype bank for the stages that read them, each by its packaged config."""
+    from threedq.stages.base import EncoderStage
+
+    root = tmp_path_factory.mktemp("configs")
+    torch.manual_seed(0)
+    enc = root / "encoder.pt"
+    torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
+    out = {"encoder_ckpt": enc}
+    for key, config, extra in (
+        ("detector_ckpt", "stages/detector.yaml", ["--data.init_args.boxes=gt"]),
+        ("bank_ckpt", "stages/quantizer.yaml", ["--model.init_args.crop_size=8", "--model.init_args.num_angles=8",
+                                                 "--model.init_args.num_prototypes=4"]),
+    ):
+        cli = ThreeDQCLI(args=[*_run_args(config, tiny_dataset, root / key, out)[1:], *extra], run=False)
+        cli.trainer.fit(cli.model, datamodule=cli.datamodule)
+        out[key] = root / f"{key}.ckpt"
+        cli.trainer.save_checkpoint(out[key], weights_only=True)
+    return out
+
+
+@pytest.fixture(scope="module")
+def data_copy(tmp_path_factory: pytest.TempPathFactory, tiny_dataset: Path) -> Path:
+    """The tiny dataset without its proposal cache (the detector config's warm start computes it)."""
+    out = tmp_path_factory.mktemp("configs_data") / "data"
+    shutil.copytree(tiny_dataset, out, ignore=shutil.ignore_patterns("proposals"))
+    return out
+
+
+def _exit_code(argv: list[str]) -> int:
+    """What ``threedq <argv>`` exits with (``--print_config`` exits 0 through SystemExit; errors return 2)."""
+    try:
+        return main(argv)
+    except SystemExit as e:
+        return int(e.code or 0)
+
+
+def _check_parse(config: str, capsys: pytest.CaptureFixture[str]) -> dict:
+    """``--print_config`` of the config as it is run above; returns the printed config."""
+    args = ["fit"] + (["--config", "stages/viewpred.yaml"] if config.startswith(("data/", "trainer/")) else [])
+    code = _exit_code([*args, "--config", config, "--print_config"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    return yaml.safe_load(out.out)
+
+
+@pytest.mark.parametrize("config", CONFIGS)
+def test_parses_as_itself(config: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """The printed config holds this file's class paths and values (not another config's)."""
+    own, printed = _load(config), _check_parse(config, capsys)
+    for section in ("model", "data"):
+        if section in own:
+            assert printed[section]["class_path"] == own[section]["class_path"]
+            for key, value in (own[section].get("init_args") or {}).items():
+                got = printed[section]["init_args"][key]
+                assert got == value or (isinstance(value, list) and list(got) == value), (section, key)
+    for key, value in (own.get("trainer") or {}).items():
+        assert printed["trainer"][key] == value, ("trainer", key)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("config", [c for c in CONFIGS if c not in PARSE_ONLY])
+def test_runs_one_batch(config: str, tmp_path: Path, data_copy: Path, checkpoints: dict[str, Path]) -> None:
+    """``threedq fit --config <config>`` trains and validates one batch on the tiny data."""
+    args = _run_args(config, data_copy, tmp_path, checkpoints)
+    cli = ThreeDQCLI(args=args)
+    assert cli.trainer.state.finished, config
+    assert cli.trainer.global_step <= 1
+
+
+class TestMutatedConfig:
+    """The checks above fail on a config with one key misspelt, in the model, the data or the trainer."""
+
+    @pytest.mark.parametrize("section, key", [("model", "rgb_weight"), ("data", "batch_size"), ("trainer", "max_steps")])
+    def test_misspelt_key_fails(self, section: str, key: str, tmp_path: Path,
+                                capsys: pytest.CaptureFixture[str]) -> None:
+        cfg = _load("stages/viewpred.yaml")
+        block = cfg[section]["init_args"] if section != "trainer" else cfg[section]
+        block[key[:-1] + "x"] = block.pop(key)
+        bad = tmp_path / "viewpred_mutated.yaml"
+        bad.write_text(yaml.safe_dump(cfg))
+        assert _exit_code(["fit", "--config", str(bad), "--print_config"]) != 0
+        assert key[:-1] + "x" in capsys.readouterr().err
+
+    def test_changed_value_is_seen(self, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                   monkeypatch: pytest.MonkeyPatch) -> None:
+        """A value changed in the file reaches the parsed config, so ``test_parses_as_itself`` reads the file."""
+        cfg = _load("stages/viewpred.yaml")
+        cfg["model"]["init_args"]["rgb_weight"] = 7.5
+        (tmp_path / "stages").mkdir()
+        (tmp_path / "stages" / "viewpred.yaml").write_text(yaml.safe_dump(cfg))
+        monkeypatch.chdir(tmp_path)  # a local file wins over the packaged one (resolve_config)
+        assert _check_parse("stages/viewpred.yaml", capsys)["model"]["init_args"]["rgb_weight"] == 7.5
