@@ -1,4 +1,4 @@
-"""The shared 3D encoder and its checkpoint contract, common to every stage.
+"""The shared 3D encoder, common to every stage (its checkpoint contract: :mod:`threedq.stages.checkpoint`).
 
 Every stage is a LightningModule that owns ``self.encoder`` (a :class:`~threedq.nets.UNet3D` over
 ``cat[occ, occ * rgb]`` of the input grid, producing L2-normalised features at half resolution).
@@ -30,6 +30,17 @@ from torch import Tensor
 from threedq.errors import InputError
 from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
+from threedq.stages.checkpoint import (  # noqa: F401 - re-exported: the names' home before stages/checkpoint.py
+    DEFAULT_GRID,
+    checkpoint_hparams,
+    checkpoint_stage,
+    checkpoint_state,
+    encoder_grid_from_checkpoint,
+    encoder_state_from_checkpoint,
+    load_encoder_state,
+    require_stage,
+    resolve_grid,
+)
 
 __all__ = [
     "DEFAULT_GRID",
@@ -43,191 +54,6 @@ __all__ = [
     "load_encoder_state",
     "resolve_grid",
 ]
-
-#: The grid of a stage that is given none and whose encoder checkpoint carries none (the embedded data's).
-DEFAULT_GRID: dict[str, Any] = {
-    "grid_min": (-1.28, -1.28, -0.32),
-    "grid_max": (1.28, 1.28, 0.96),
-    "grid_resolution": (64, 64, 32),
-    "feature_dim": 32,
-}
-
-
-def _torch_reason(e: Exception) -> str:
-    """One line of why ``torch.load`` refused a file (torch's own messages run over many lines)."""
-    text = str(e)
-    if "WeightsUnpickler error:" in text:  # weights_only=True refused a Python object; the next line says which
-        detail = next((ln.strip() for ln in text.split("WeightsUnpickler error:", 1)[1].splitlines() if ln.strip()), "")
-        detail = detail.split(" was not an allowed global")[0]
-        return f"torch.load(weights_only=True) refuses it: it holds Python objects, not only tensors ({detail})"
-    first = next((ln.strip() for ln in text.splitlines() if ln.strip()), type(e).__name__)
-    first = first.split(". This is an internal miniz error", 1)[0]
-    return f"truncated or not a checkpoint ({type(e).__name__}: {first})"
-
-
-def _load_safely(path: Path) -> object:
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint: no such file: {path}")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt files
-        raise InputError(f"{path}: field '<file>': cannot be loaded safely: {_torch_reason(e)}") from e
-
-
-def checkpoint_state(path: str | Path) -> dict[str, Tensor]:
-    """The ``state_dict`` of a Lightning checkpoint, loaded with ``weights_only=True``."""
-    obj = _load_safely(Path(path))
-    if not (isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict)):
-        raise InputError(f"{path}: field 'state_dict': not a Lightning checkpoint")
-    return obj["state_dict"]
-
-
-def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
-    """The encoder's ``state_dict`` stored in ``path`` (a Lightning checkpoint or a plain state dict).
-
-    Raises:
-        FileNotFoundError: no such file.
-        ValueError: the file holds no encoder weights (message names the file).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"encoder_ckpt: no such file: {path}")
-    obj = _load_safely(path)
-    is_checkpoint = isinstance(obj, dict) and "state_dict" in obj
-    state = obj["state_dict"] if is_checkpoint else obj
-    if not isinstance(state, dict):
-        raise InputError(f"{path}: field 'state_dict': expected a checkpoint or a state dict")
-    enc = {k[len("encoder."):]: v for k, v in state.items() if k.startswith("encoder.")}
-    if not enc and not is_checkpoint and state and all(isinstance(v, Tensor) for v in state.values()):
-        enc = dict(state)  # a plain encoder state dict
-    if not enc:
-        raise InputError(f"{path}: field 'state_dict': no 'encoder.*' weights in this checkpoint")
-    return enc
-
-
-def checkpoint_hparams(path: str | Path, missing_ok: bool = False) -> dict[str, Any]:
-    """The ``hyper_parameters`` of a stage checkpoint (loaded with ``weights_only=True``); ``{}`` for a file without
-    them (a bare state dict) when ``missing_ok``.
-
-    Raises:
-        FileNotFoundError: no such file. ValueError: not loadable safely, or no hyperparameters (names the file).
-    """
-    obj = _load_safely(Path(path))
-    hp = obj.get("hyper_parameters") if isinstance(obj, dict) else None
-    if not isinstance(hp, dict):
-        if missing_ok:
-            return {}
-        raise InputError(f"{path}: field 'hyper_parameters': missing (not a threedq stage checkpoint)")
-    return hp
-
-
-def encoder_grid_from_checkpoint(path: str | Path) -> dict[str, Any]:
-    """The grid fields (:data:`DEFAULT_GRID` keys) stored in a stage checkpoint's hyperparameters ({} if none)."""
-    obj = _load_safely(Path(path))
-    hp = obj.get("hyper_parameters") if isinstance(obj, dict) else None
-    if not isinstance(hp, dict):
-        return {}
-    return {k: hp[k] for k in DEFAULT_GRID if hp.get(k) is not None}
-
-
-#: The stage of a checkpoint without a saved class path, by the weights it holds (first match wins).
-_STAGE_BY_WEIGHTS = (("self_labelling", ("bank.", "head.")), ("quantizer", ("bank.",)), ("detector", ("head.",)),
-                     ("viewpred", ("decoder.",)), ("mining", ("moco.",)))
-
-
-def checkpoint_stage(path: str | Path) -> str | None:
-    """Which stage wrote the Lightning checkpoint ``path`` (``viewpred``, ``detector``, ``quantizer``, ...).
-
-    Read from the class path LightningCLI saves in the hyperparameters (``threedq.stages.<stage>.<Class>``), else
-    told by the weights it holds; ``None`` if neither tells (e.g. a plain encoder state dict).
-
-    Raises:
-        FileNotFoundError: no such file.
-        InputError: not a checkpoint ``torch.load(weights_only=True)`` can read (names the file).
-    """
-    obj = _load_safely(Path(path))
-    if not isinstance(obj, dict):
-        return None
-    hp = obj.get("hyper_parameters")
-    cls = hp.get("_class_path") if isinstance(hp, dict) else None
-    if isinstance(cls, str) and cls.startswith("threedq.stages.") and cls.count(".") >= 3:
-        return cls.split(".")[2]
-    state = obj.get("state_dict")
-    if not isinstance(state, dict):
-        return None
-    for stage, prefixes in _STAGE_BY_WEIGHTS:
-        if all(any(k.startswith(p) for k in state) for p in prefixes):
-            return stage
-    return None
-
-
-def require_stage(path: str | Path, wanted: str, option: str, needs: str | None = None) -> None:
-    """Refuse, in one line naming the file, a checkpoint that is missing or that another stage wrote.
-
-    Args:
-        path: the checkpoint; wanted: the stage it must come from (``quantizer``, ``viewpred``, ...); option: the
-            command-line option that named it (for a missing file); needs: who needs it (default ``option``).
-    """
-    if not Path(path).is_file():
-        raise InputError(f"{option} {path}: no such file")
-    stage = checkpoint_stage(path)  # a truncated or unsafe file is refused here, in one line
-    if stage != wanted:
-        kind = f"a {stage}" if stage else "not a stage"
-        raise InputError(f"{path}: this is {kind} checkpoint; {needs or option} needs a {wanted} checkpoint")
-
-
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
-    return float(a) == float(b)
-
-
-def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict[str, Any]:
-    """The grid of a stage: what it names, else what its encoder checkpoint carries, else :data:`DEFAULT_GRID`.
-
-    Raises:
-        ValueError: the stage names a value that differs from its encoder checkpoint's (one line naming the
-            checkpoint and the field).
-    """
-    if encoder_ckpt and not Path(encoder_ckpt).is_file():
-        raise FileNotFoundError(f"encoder_ckpt: no such file: {encoder_ckpt}")
-    stored = encoder_grid_from_checkpoint(encoder_ckpt) if encoder_ckpt else {}
-    out: dict[str, Any] = {}
-    for k, default in DEFAULT_GRID.items():
-        mine, theirs = given.get(k), stored.get(k)
-        if mine is not None and theirs is not None and not _same(mine, theirs):
-            raise InputError(
-                f"{encoder_ckpt}: field '{k}': the encoder was trained with {k}={_plain(theirs)}, this stage asks "
-                f"for {_plain(mine)} (drop {k} from the stage config to use the encoder's)"
-            )
-        value = mine if mine is not None else theirs if theirs is not None else default
-        out[k] = int(value) if k == "feature_dim" else tuple(value)
-    return out
-
-
-def _plain(v: Any) -> Any:
-    return list(v) if isinstance(v, (list, tuple)) else v
-
-
-def load_encoder_state(encoder: torch.nn.Module, path: str | Path) -> None:
-    """Load the encoder weights of ``path`` into ``encoder`` (strict: every key and shape must match)."""
-    state = encoder_state_from_checkpoint(path)
-    own = encoder.state_dict()
-    missing = sorted(set(own) - set(state))
-    unexpected = sorted(set(state) - set(own))
-    if missing or unexpected:
-        raise InputError(
-            f"{path}: field 'state_dict': encoder weights do not fit this encoder "
-            f"(missing {missing[:3]}, unexpected {unexpected[:3]})"
-        )
-    for k, v in state.items():
-        if own[k].shape != v.shape:
-            raise InputError(
-                f"{path}: field 'encoder.{k}': shape {tuple(v.shape)} does not fit {tuple(own[k].shape)} "
-                "(different feature_dim or channels?)"
-            )
-    encoder.load_state_dict(state)
-
 
 class EncoderStage(L.LightningModule):
     """Base of every stage: the voxel grid, the shared encoder and multi-view encoding.

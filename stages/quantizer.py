@@ -14,7 +14,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from threedq.stages.base import EncoderStage, SplitEvaluation, checkpoint_state
+from threedq.stages.base import EncoderStage, SplitEvaluation
+from threedq.stages.checkpoint import load_checkpoint
 from threedq.geometry import yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
 from threedq.quantization.prototypes import PrototypeBank, assign_chunked, quantization_loss, run_prototype_em
@@ -24,7 +25,7 @@ __all__ = ["Quantizer", "load_bank_state"]
 
 def load_bank_state(bank: PrototypeBank, path: str) -> None:
     """Load the ``bank.*`` buffers of a quantizer checkpoint into ``bank`` (shapes must match)."""
-    state = {k[len("bank."):]: v for k, v in checkpoint_state(path).items() if k.startswith("bank.")}
+    state = load_checkpoint(path).prefixed("bank.")
     if not state:
         raise ValueError(f"{path}: field 'state_dict': no 'bank.*' buffers (not a quantizer checkpoint?)")
     own = bank.state_dict()

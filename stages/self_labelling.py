@@ -53,7 +53,7 @@ from threedq.data.draw import draw_boxes
 from threedq.geometry import VoxelGridSpec, crop_boxes
 from threedq.metrics.detection import assign_detections
 from threedq.quantization.prototypes import PrototypeBank
-from threedq.stages.base import checkpoint_hparams, checkpoint_state
+from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
 from threedq.stages.detector import Detector, _aabb_to_boxes7, check_same_anchor, detection_targets
 from threedq.stages.quantizer import load_bank_state
 
@@ -153,7 +153,7 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
         trained = checkpoint_hparams(path, missing_ok=True).get("anchor_size")
         if trained is not None:
             check_same_anchor(trained, anchor_size, str(path))
-    state = {k[len("head."):]: v for k, v in checkpoint_state(path).items() if k.startswith("head.")}
+    state = load_checkpoint(path).prefixed("head.")
     if not state:
         raise ValueError(f"{path}: field 'state_dict': no 'head.*' weights (not a detector checkpoint?)")
     try:
@@ -250,7 +250,7 @@ class SelfLabelling(Detector):
             load_head_state(self.head, detector_ckpt, asked_anchor)
         self.bank: PrototypeBank | None = None
         if bank_ckpt:
-            num = checkpoint_state(bank_ckpt).get("bank.prototypes")
+            num = load_checkpoint(bank_ckpt).prefixed("bank.").get("prototypes")
             if num is None:
                 raise ValueError(f"{bank_ckpt}: field 'state_dict': no 'bank.prototypes' (not a quantizer checkpoint?)")
             self.bank = PrototypeBank(num.shape[0], self.feature_dim, crop_size, num_angles, method=search_method)

@@ -31,7 +31,7 @@ from threedq.metrics import cluster_confusion, hungarian_accuracy, linear_probe_
 from threedq.metrics.retrieval import retrieval_precision_at_k
 from threedq.pipeline.evaluation import quantization_metrics
 from threedq.quantization.prototypes import fit_prototype_bank
-from threedq.stages.base import checkpoint_hparams, checkpoint_stage, checkpoint_state
+from threedq.stages.checkpoint import checkpoint_hparams, checkpoint_stage, checkpoint_state
 from threedq.stages.q25d import Q25D
 
 __all__ = [

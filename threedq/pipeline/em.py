@@ -76,7 +76,7 @@ from threedq.pipeline.report import (
     precision_label,
     retrieval_markdown,
 )
-from threedq.stages.base import require_stage
+from threedq.stages.checkpoint import require_stage
 
 __all__ = ["run_em"]
 

@@ -32,7 +32,8 @@ from threedq.pipeline.evaluation import (
     retrieval_table,
 )
 from threedq.quantization.prototypes import fit_prototype_bank
-from threedq.stages.base import EncoderStage, load_encoder_state
+from threedq.stages.base import EncoderStage
+from threedq.stages.checkpoint import load_encoder_state
 
 __all__ = ["feature_sets_table", "feature_sets_markdown"]
 

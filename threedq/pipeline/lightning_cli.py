@@ -28,7 +28,7 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
 from threedq.errors import InputError, flatten_message, user_error_in_chain
 from threedq.pipeline.strategy import DDPStrategy
-from threedq.stages.base import checkpoint_stage
+from threedq.stages.checkpoint import checkpoint_stage
 
 __all__ = [
     "ThreeDQCLI", "ConfigError", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args",

@@ -54,9 +54,9 @@ from threedq.data.formats.normalise import boxes_to_capture_frame
 from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.quantization.prototypes import PrototypeBank
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
-from threedq.stages.base import (
+from threedq.stages.base import EncoderStage
+from threedq.stages.checkpoint import (
     DEFAULT_GRID,
-    EncoderStage,
     checkpoint_hparams,
     checkpoint_state,
     encoder_state_from_checkpoint,

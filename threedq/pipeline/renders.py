@@ -30,7 +30,7 @@ from threedq.errors import InputError
 from threedq.geometry import paste_boxes, rotate_yaw, yaw_angles
 from threedq.pipeline.parse import SceneParser, prototype_top_view, scene_batch
 from threedq.scene import SceneRecord
-from threedq.stages.base import checkpoint_hparams, checkpoint_state
+from threedq.stages.checkpoint import checkpoint_hparams, checkpoint_state
 from threedq.stages.viewpred import ViewPrediction
 
 __all__ = ["load_view_decoder", "orbit_poses", "prototype_gallery", "replaced_render"]

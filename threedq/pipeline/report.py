@@ -47,7 +47,7 @@ from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
 from threedq.errors import InputError  # noqa: E402
 from threedq.scene import SceneValidationError  # noqa: E402
-from threedq.stages.base import require_stage  # noqa: E402
+from threedq.stages.checkpoint import require_stage  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
 from threedq.data.draw import crop_birds_eye  # noqa: E402
 from threedq.pipeline.evaluation import (  # noqa: E402

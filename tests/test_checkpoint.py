@@ -1,0 +1,107 @@
+"""The checkpoint contract (stages/checkpoint.py): one object per file, read once, refused in one line when unsafe."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from threedq.errors import InputError
+from threedq.stages import checkpoint as ck
+from threedq.stages.base import EncoderStage
+
+
+@pytest.fixture()
+def count_loads(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    """Every ``torch.load`` the contract makes, by path (the cache starts empty)."""
+    monkeypatch.setattr(ck, "_CACHE", type(ck._CACHE)())
+    calls: list[Path] = []
+    real = torch.load
+
+    def load(path, *args, **kwargs):
+        calls.append(Path(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(ck.torch, "load", load)
+    return calls
+
+
+def _lightning_file(path: Path, hparams: dict | None, state: dict) -> Path:
+    obj = {"state_dict": state, **({"hyper_parameters": hparams} if hparams is not None else {})}
+    torch.save(obj, path)
+    return path
+
+
+class TestLoadCheckpoint:
+    def test_every_helper_reads_the_file_once(self, tmp_path: Path, count_loads: list[Path]) -> None:
+        p = _lightning_file(tmp_path / "q.ckpt", {"_class_path": "threedq.stages.quantizer.Quantizer", "feature_dim": 8},
+                            {"encoder.w": torch.ones(2), "bank.prototypes": torch.zeros(3, 8)})
+        assert ck.checkpoint_stage(p) == "quantizer"
+        assert ck.checkpoint_hparams(p)["feature_dim"] == 8
+        assert ck.encoder_grid_from_checkpoint(p) == {"feature_dim": 8}
+        assert set(ck.checkpoint_state(p)) == {"encoder.w", "bank.prototypes"}
+        assert torch.equal(ck.encoder_state_from_checkpoint(p)["w"], torch.ones(2))
+        ck.require_stage(p, "quantizer", "--ckpt")
+        assert count_loads == [p]
+
+    def test_a_stage_reads_its_encoder_file_once(self, tmp_path: Path, count_loads: list[Path]) -> None:
+        torch.manual_seed(0)
+        src = EncoderStage(grid_resolution=(16, 16, 8), feature_dim=8)
+        p = _lightning_file(tmp_path / "vp.ckpt", {"grid_resolution": [16, 16, 8], "feature_dim": 8},
+                            {f"encoder.{k}": v for k, v in src.encoder.state_dict().items()})
+        stage = EncoderStage(encoder_ckpt=str(p))  # the grid and the weights, from one read
+        assert stage.grid_fields["grid_resolution"] == (16, 16, 8) and count_loads == [p]
+        for k, v in src.encoder.state_dict().items():
+            assert torch.equal(stage.encoder.state_dict()[k], v)
+
+    def test_rewritten_file_is_read_again(self, tmp_path: Path, count_loads: list[Path]) -> None:
+        p = _lightning_file(tmp_path / "a.ckpt", {"x": 1}, {"head.w": torch.zeros(1)})
+        assert ck.checkpoint_hparams(p)["x"] == 1
+        _lightning_file(p, {"x": 2, "y": [1, 2, 3]}, {"head.w": torch.zeros(1)})
+        os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 10**9))  # a later mtime, whatever the clock
+        assert ck.checkpoint_hparams(p)["x"] == 2
+        assert count_loads == [p, p]
+
+    def test_returned_mappings_do_not_change_the_cache(self, tmp_path: Path, count_loads: list[Path]) -> None:
+        p = _lightning_file(tmp_path / "a.ckpt", {"x": 1}, {"head.w": torch.zeros(1)})
+        ck.checkpoint_hparams(p)["x"] = 99
+        ck.checkpoint_state(p).pop("head.w")
+        assert ck.checkpoint_hparams(p)["x"] == 1 and "head.w" in ck.checkpoint_state(p)
+
+    def test_prefixed_and_stage_by_weights(self, tmp_path: Path) -> None:
+        p = _lightning_file(tmp_path / "d.ckpt", None, {"head.a.w": torch.ones(1), "encoder.b": torch.zeros(1)})
+        c = ck.load_checkpoint(p)
+        assert set(c.prefixed("head.")) == {"a.w"} and c.prefixed("bank.") == {}
+        assert c.stage == "detector" and c.hparams is None and c.grid == {}
+        assert ck.checkpoint_hparams(p, missing_ok=True) == {}
+        with pytest.raises(InputError, match="hyper_parameters"):
+            ck.checkpoint_hparams(p)
+
+    def test_bare_encoder_state_dict(self, tmp_path: Path) -> None:
+        p = tmp_path / "enc.pt"
+        torch.save({"conv.weight": torch.ones(2)}, p)
+        c = ck.load_checkpoint(p)
+        assert not c.is_lightning and c.stage is None
+        assert set(ck.encoder_state_from_checkpoint(p)) == {"conv.weight"}
+        with pytest.raises(InputError, match="not a Lightning checkpoint"):
+            ck.checkpoint_state(p)
+
+    @pytest.mark.parametrize("content", [b"not a checkpoint", b"PK\x03\x04 truncated"])
+    def test_unreadable_file_is_one_line_naming_it(self, tmp_path: Path, content: bytes) -> None:
+        p = tmp_path / "bad.ckpt"
+        p.write_bytes(content)
+        with pytest.raises(InputError) as e:
+            ck.load_checkpoint(p)
+        assert str(p) in str(e.value) and "\n" not in str(e.value)
+
+    def test_python_objects_are_refused(self, tmp_path: Path) -> None:
+        p = tmp_path / "pickle.ckpt"
+        torch.save({"state_dict": {}, "hyper_parameters": {"f": Path("x")}}, p)
+        with pytest.raises(InputError, match="weights_only"):
+            ck.load_checkpoint(p)
+
+    def test_missing_file(self, tmp_path: Path) -> None:
+        with pytest.raises(FileNotFoundError, match="no such file"):
+            ck.load_checkpoint(tmp_path / "nope.ckpt")
