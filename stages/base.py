@@ -27,7 +27,6 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from threedq.errors import InputError
 from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 from threedq.stages.checkpoint import (  # noqa: F401 - re-exported: the names' home before stages/checkpoint.py
