@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import logging
 
+from threedq.datamodules.scene_folder import SceneFolderDataModule
+
 from threedq.data.generate import generate_dataset
 from threedq.data.generator_config import GeneratorConfig
-from threedq.datamodules.scene_folder import SceneFolderDataModule
+from threedq.locks import exclusive
 from threedq.scene import INDEX_NAME, SceneValidationError, load_index
 
 __all__ = ["ClevrVeggieDataModule"]
@@ -84,18 +86,24 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         )
 
     def prepare_data(self) -> None:
-        """Generate the dataset if ``data_dir`` has no ``index.json`` (Lightning runs this on one process)."""
+        """Generate the dataset if ``data_dir`` has no ``index.json`` (Lightning runs this on one process per node).
+
+        Another process generating the same folder (a second run started on a fresh clone) is waited for, and its
+        dataset is then read, not generated again.
+        """
         if not (self.data_dir / INDEX_NAME).is_file():
-            log.info("generating %d scenes into %s", self.num_scenes, self.data_dir)
-            generate_dataset(
-                self.data_dir,
-                num_scenes=self.num_scenes,
-                seed=self.generator_seed,
-                config=self.generator_config,
-                split_fractions=self.split_fractions,
-                workers=self.generator_workers,
-            )
-            return
+            with exclusive(self.data_dir, what="generating"):
+                if not (self.data_dir / INDEX_NAME).is_file():  # not made meanwhile by the process waited for
+                    log.info("generating %d scenes into %s", self.num_scenes, self.data_dir)
+                    generate_dataset(
+                        self.data_dir,
+                        num_scenes=self.num_scenes,
+                        seed=self.generator_seed,
+                        config=self.generator_config,
+                        split_fractions=self.split_fractions,
+                        workers=self.generator_workers,
+                    )
+                    return
         index = load_index(self.data_dir)
         made_with = index.generator.get("config_hash")
         if made_with is not None and made_with != self.generator_config.hash():

@@ -18,22 +18,32 @@ The grid travels with the encoder: every stage checkpoint stores ``grid_min``, `
 them itself (:func:`resolve_grid`); a stage that names a different grid than its encoder was trained on is refused
 with one line naming the checkpoint and the field. Only view prediction (which trains the encoder from scratch) needs
 them in its config.
+
+Writing: :class:`AtomicCheckpointIO` is the Lightning checkpoint writer of every threedq run (``threedq fit``, the
+stages of ``threedq em``): each file is written beside its destination, flushed and renamed over it
+(:func:`threedq.atomic_io.atomic_write_bytes`), so a full disk, a read-only folder or a kill leaves the previous
+checkpoint whole (Lightning's own writer stages the bytes in the system's temporary folder and copies them over when
+that is on another disk).
 """
 
 from __future__ import annotations
 
+import io
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.plugins.io import TorchCheckpointIO
 from torch import Tensor
 
+from threedq.atomic_io import atomic_write_bytes
 from threedq.errors import InputError
 
 __all__ = [
     "DEFAULT_GRID",
+    "AtomicCheckpointIO",
     "StageCheckpoint",
     "checkpoint_hparams",
     "checkpoint_stage",
@@ -53,6 +63,21 @@ DEFAULT_GRID: dict[str, Any] = {
     "grid_resolution": (64, 64, 32),
     "feature_dim": 32,
 }
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's ``torch.save`` checkpoint writer, each file written atomically in its own folder.
+
+    A failed write (no space left, no permission) raises ``OSError`` naming the checkpoint and leaves the previous
+    file as it was; a kill mid-write leaves at most a temporary ``.<name>.<random>.tmp`` beside it.
+    """
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__}.save_checkpoint takes no storage_options, got {storage_options!r}")
+        buf = io.BytesIO()
+        torch.save(checkpoint, buf)
+        atomic_write_bytes(path, buf.getvalue())
 
 
 def _torch_reason(e: Exception) -> str:

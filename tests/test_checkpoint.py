@@ -105,3 +105,40 @@ class TestLoadCheckpoint:
     def test_missing_file(self, tmp_path: Path) -> None:
         with pytest.raises(FileNotFoundError, match="no such file"):
             ck.load_checkpoint(tmp_path / "nope.ckpt")
+
+
+class TestAtomicCheckpointIO:
+    def test_smoke_round_trip(self, tmp_path: Path) -> None:
+        io = ck.AtomicCheckpointIO()
+        state = {"state_dict": {"w": torch.arange(6.0).reshape(2, 3)}, "hyper_parameters": {"a": 1}}
+        io.save_checkpoint(state, tmp_path / "sub" / "last.ckpt")
+        back = torch.load(tmp_path / "sub" / "last.ckpt", weights_only=True)
+        assert torch.equal(back["state_dict"]["w"], state["state_dict"]["w"]) and back["hyper_parameters"] == {"a": 1}
+
+    def test_exception(self, tmp_path: Path) -> None:
+        with pytest.raises(TypeError, match="storage_options"):
+            ck.AtomicCheckpointIO().save_checkpoint({}, tmp_path / "x.ckpt", storage_options={"x": 1})
+
+    def test_full_disk_keeps_the_previous_checkpoint(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        import errno
+
+        path = tmp_path / "last.ckpt"
+        io = ck.AtomicCheckpointIO()
+        io.save_checkpoint({"step": torch.tensor(1)}, path)
+        before = path.read_bytes()
+
+        def full(fd: int) -> None:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(os, "fsync", full)
+        with pytest.raises(OSError) as e:
+            io.save_checkpoint({"step": torch.tensor(2)}, path)
+        assert e.value.errno == errno.ENOSPC and e.value.filename == str(path)
+        assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]
+
+    def test_every_cli_run_writes_through_it(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        from threedq.pipeline.lightning_cli import ThreeDQCLI
+
+        cli = ThreeDQCLI(args=["--config", "stages/viewpred.yaml", f"--data.init_args.data_dir={tiny_dataset}",
+                               f"--trainer.default_root_dir={tmp_path}"], run=False)
+        assert isinstance(cli.trainer.strategy.checkpoint_io, ck.AtomicCheckpointIO)

@@ -3,7 +3,7 @@
 Layers (``docs/architecture.md``), lowest first; a module may import from its own layer or below, never
 above, and no two modules may import each other through any chain (function-local imports included):
 
-    core      threedq.{atomic_io, boxes, scene, geometry, nets, quantization, contrastive, metrics, baselines,
+    core      threedq.{atomic_io, locks, boxes, scene, geometry, nets, quantization, contrastive, metrics, baselines,
               proposals, data}
     stages    threedq.stages, threedq.datamodules
     pipeline  threedq.pipeline

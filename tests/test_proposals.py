@@ -150,3 +150,31 @@ def test_tiny_dataset_end_to_end_and_cache(tiny_dataset: Path, tmp_path: Path, m
 
     with pytest.raises(ValueError, match="split"):
         propose_dataset(tiny_dataset, "nope", tmp_path / "x.npz", progress=False)
+
+
+def test_full_disk_while_caching_keeps_the_cache_and_resumes_equal(tiny_dataset: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A write of the cache that fails for lack of space names the cache and leaves the previous one whole; run again
+    once there is space, it completes to what an uninterrupted computation gives."""
+    import errno
+    import os
+
+    clean = propose_dataset(tiny_dataset, "train", tmp_path / "clean.npz", progress=False)
+    cache = tmp_path / "cache.npz"
+    propose_dataset(tiny_dataset, "train", cache, max_scenes=2, progress=False)
+    before = cache.read_bytes()
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError) as e:
+        propose_dataset(tiny_dataset, "train", cache, save_every=1, progress=False)
+    assert e.value.errno == errno.ENOSPC and e.value.filename == str(cache)
+    assert cache.read_bytes() == before and not list(tmp_path.glob(".*.tmp"))
+    monkeypatch.undo()
+    resumed = propose_dataset(tiny_dataset, "train", cache, progress=False)
+    assert list(resumed) == list(clean)
+    for f in clean:
+        np.testing.assert_array_equal(resumed[f][0], clean[f][0])
+        np.testing.assert_array_equal(resumed[f][1], clean[f][1])

@@ -12,19 +12,29 @@ Each time ``--resume true`` goes on. The finished run equals an uninterrupted ru
 ``metrics.json`` (timings and the work folder's own path aside), bit-identical checkpoints of every stage (encoder,
 detector, prototype bank), the same files, no temporary file left. The uninterrupted run is itself a separate
 process from each part of the resumed one, so this also shows that a seed reproduces a CPU run bit for bit.
+
+While the uninterrupted run holds its work folder, a second ``threedq em`` on the same folder is refused with one line
+naming the folder and the first run (:mod:`threedq.locks`). And a full disk: one kind of write after another fails
+(``ENOSPC``, once ``EACCES``: a checkpoint, a stage marker, the detections handed on, a prototype bank, a round's
+results, self-labels, ``metrics.json``, ``report.md``), each run stops with one line naming the file, and the run
+resumed once the space is back equals the uninterrupted one; a failed rewrite of ``metrics.json`` keeps the old file.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
+
+from threedq.locks import FOLDER_LOCK_NAME
 
 pytestmark = pytest.mark.slow
 
@@ -43,15 +53,26 @@ def _config(tmp: Path, data_dir: Path) -> Path:
     return cfg
 
 
-def _em(work: Path, cfg: Path, *extra: str, kill_at: str | None = None) -> subprocess.CompletedProcess:
+def _em_command(work: Path, cfg: Path, *extra: str, kill_at: str | None = None,
+                fault: tuple[str, str, str] | None = None, pause_at: str | None = None) -> tuple[list[str], dict]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(TESTS / "fault_shim"), env.get("PYTHONPATH", "")])
     env["OMP_NUM_THREADS"] = "2"
-    env.pop("THREEDQ_KILL_AT", None)
+    for name in ("THREEDQ_KILL_AT", "THREEDQ_FAULT", "THREEDQ_FAULT_MATCH", "THREEDQ_PAUSE_AT"):
+        env.pop(name, None)
     if kill_at is not None:
         env["THREEDQ_KILL_AT"] = kill_at
+    if fault is not None:  # (errno name, folder, glob of the files whose writes fail)
+        env["THREEDQ_FAULT"], env["THREEDQ_FAULT_MATCH"] = f"{fault[0]}:{fault[1]}", fault[2]
+    if pause_at is not None:
+        env["THREEDQ_PAUSE_AT"] = pause_at
     cmd = [sys.executable, "-m", "threedq", "em", "--rounds", "2", "--work_dir", str(work), "--extra_configs",
            str(cfg), "--mining_config", "none", "--boxes", "gt", *extra]
+    return cmd, env
+
+
+def _em(work: Path, cfg: Path, *extra: str, **faults: Any) -> subprocess.CompletedProcess:
+    cmd, env = _em_command(work, cfg, *extra, **faults)
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -82,12 +103,38 @@ KILLS = [
 
 
 @pytest.fixture(scope="module")
-def runs(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+def reference(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The uninterrupted run; while it runs (paused once the detector has finished), a second ``threedq em`` on the
+    same work folder is started and must be refused."""
     tmp = tmp_path_factory.mktemp("resume")
     cfg = _config(tmp, tiny_dataset)
-    ref, killed = tmp / "uninterrupted", tmp / "killed"
-    res = _em(ref, cfg)
-    assert res.returncode == 0, res.stderr[-3000:]
+    ref = tmp / "uninterrupted"
+    cmd, env = _em_command(ref, cfg, pause_at="*/02_detector/stage.json")
+    first = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    try:
+        seen = []
+        for line in first.stderr:  # until it pauses, holding the work folder
+            seen.append(line)
+            if "[fault_shim] paused" in line:
+                break
+        else:
+            raise AssertionError(f"the first run never paused (exit {first.wait()}):\n{''.join(seen)[-3000:]}")
+        second = _em(ref, cfg)
+        first.stdin.write("\n")
+        first.stdin.flush()
+        out, err = first.communicate(timeout=600)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert first.returncode == 0, err[-3000:]
+    return {"ref": ref, "cfg": cfg, "tmp": tmp, "first_pid": first.pid, "second": second}
+
+
+@pytest.fixture(scope="module")
+def runs(reference: dict) -> dict:
+    ref, cfg, tmp = reference["ref"], reference["cfg"], reference["tmp"]
+    killed = tmp / "killed"
     log = []
     for what, at in KILLS:
         res = _em(killed, cfg, "--resume", "true", kill_at=at)
@@ -108,6 +155,8 @@ class TestKillAndResume:
         assert "detector: finished earlier" in outs[1]
         # after the kill during round 2's self-labelling: rounds 1 and 2 up to it are kept
         assert "round 2 quantizer: finished earlier" in outs[3] and "round 2 self-labelling: unfinished" in outs[3]
+        # each killed run left its lock file behind, naming it; the next run took the folder at once
+        assert (runs["killed"] / FOLDER_LOCK_NAME).is_file()
 
     def test_metrics_equal_uninterrupted(self, runs: dict) -> None:
         ref, killed = runs["ref"], runs["killed"]
@@ -134,3 +183,76 @@ class TestKillAndResume:
         assert _files(ref) == _files(killed)
         for p in killed.rglob("*.json"):
             json.loads(p.read_text())  # every JSON whole
+
+
+class TestSecondRunRefused:
+    def test_second_em_on_a_held_work_folder_stops_with_one_line(self, reference: dict) -> None:
+        second, ref = reference["second"], reference["ref"]
+        assert second.returncode == 2, second.stderr[-3000:]
+        lines = [ln for ln in second.stderr.splitlines() if ln.strip()]
+        assert len(lines) == 1, second.stderr[-3000:]
+        assert lines[0].startswith("threedq: error: ") and f"{ref} is in use by another threedq run" in lines[0]
+        assert f"pid {reference['first_pid']}" in lines[0] and "threedq em --rounds 2" in lines[0]
+        assert "[em]" not in second.stdout  # refused before it did anything
+
+    def test_the_first_run_is_untouched(self, reference: dict, runs: dict) -> None:
+        # it finished (the fixture checks) and equals the killed-and-resumed run (TestKillAndResume): the second
+        # run wrote nothing into it
+        assert _normalised(reference["ref"] / "metrics.json", reference["ref"]) == \
+            _normalised(runs["killed"] / "metrics.json", runs["killed"])
+
+
+# One kind of write after another fails for lack of space (or permission), each in a run resumed from the one before;
+# the order is the order in which a run writes them.
+FULL_DISK = [
+    ("ENOSPC", "a checkpoint", "*/00_viewpred/checkpoints/last.ckpt"),
+    ("ENOSPC", "a stage marker", "*/02_detector/stage.json"),
+    ("ENOSPC", "the detections handed on", "*/03_detector_eval/detections_test.npz"),
+    ("ENOSPC", "a prototype bank (the quantizer's checkpoint)", "*/r01_quantizer/checkpoints/last.ckpt"),
+    ("ENOSPC", "a round's results", "*/r01_eval/results.json"),
+    ("ENOSPC", "self-labels", "*/r01_self_labelling/self_labels/labels.json"),
+    ("EACCES", "a read-only folder", "*/r02_eval/results.json"),
+    ("ENOSPC", "metrics.json", "*/full_disk/metrics.json"),
+    ("ENOSPC", "report.md", "*/full_disk/report.md"),
+]
+
+
+@pytest.fixture(scope="module")
+def full_disk(reference: dict) -> dict:
+    ref, cfg, tmp = reference["ref"], reference["cfg"], reference["tmp"]
+    work = tmp / "full_disk"
+    log = []
+    for errno_name, what, glob in FULL_DISK:
+        log.append((errno_name, what, glob, _em(work, cfg, "--resume", "true", fault=(errno_name, str(work), glob))))
+    final = _em(work, cfg, "--resume", "true")
+    assert final.returncode == 0, final.stderr[-3000:]
+    before = (work / "metrics.json").read_bytes()
+    rewrite = _em(work, cfg, "--resume", "true", fault=("ENOSPC", str(work), "*/full_disk/metrics.json"))
+    return {"ref": ref, "work": work, "log": log, "before": before, "rewrite": rewrite}
+
+
+class TestFullDisk:
+    def test_each_failed_write_stops_with_one_line_naming_the_file(self, full_disk: dict) -> None:
+        for errno_name, what, glob, res in full_disk["log"]:
+            assert res.returncode == 2, f"{what}: exit {res.returncode}\n{res.stderr[-3000:]}"
+            last = [ln for ln in res.stderr.splitlines() if ln.strip()][-1]
+            cause = "no space left on device" if errno_name == "ENOSPC" else "permission denied"
+            assert last.startswith("threedq: error: "), f"{what}: {last}"
+            assert fnmatch.fnmatch(last.split("threedq: error: ")[1].split(": ")[0], glob), f"{what}: {last}"
+            assert cause in last.lower(), f"{what}: {last}"
+            assert "Traceback" not in res.stderr, f"{what}: {res.stderr[-3000:]}"
+
+    def test_resumed_after_space_is_freed_equals_uninterrupted(self, full_disk: dict) -> None:
+        ref, work = full_disk["ref"], full_disk["work"]
+        assert _normalised(ref / "metrics.json", ref) == _normalised(work / "metrics.json", work)
+        for rel in sorted(p.relative_to(ref) for p in ref.rglob("last.ckpt")):
+            sa = torch.load(ref / rel, weights_only=True, map_location="cpu")["state_dict"]
+            sb = torch.load(work / rel, weights_only=True, map_location="cpu")["state_dict"]
+            assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa), rel
+        assert _files(ref) == _files(work)
+        assert not [p for p in work.rglob("*.tmp")]
+
+    def test_a_failed_rewrite_keeps_the_previous_file(self, full_disk: dict) -> None:
+        res, work = full_disk["rewrite"], full_disk["work"]
+        assert res.returncode == 2 and f"{work / 'metrics.json'}: no space left on device" in res.stderr
+        assert (work / "metrics.json").read_bytes() == full_disk["before"]

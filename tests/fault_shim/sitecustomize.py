@@ -1,4 +1,4 @@
-"""Fault injection for the subprocesses of ``tests/test_bad_inputs.py`` (test-only; never installed).
+"""Fault injection for the subprocesses of ``tests/test_bad_inputs.py`` and ``tests/test_resume.py`` (test-only).
 
 Python imports ``sitecustomize`` at start-up from ``sys.path``; the tests put this folder first on ``PYTHONPATH``
 and set ``THREEDQ_FAULT=<ERRNO>:<folder>``. Then, inside ``<folder>``:
@@ -9,11 +9,19 @@ and set ``THREEDQ_FAULT=<ERRNO>:<folder>``. Then, inside ``<folder>``:
 * ``EACCES`` (no write permission, for a root user whom ``chmod`` does not stop): creating a folder or a file,
   or opening one for writing, fails with ``PermissionError``.
 
+``THREEDQ_FAULT_MATCH=<glob>`` narrows the fault to the files whose absolute path matches ``<glob>`` (``fnmatch``;
+the temporary file of an atomic write, ``.<name>.<random>.tmp``, counts as the ``<name>`` it is written for), so a
+run fails at one kind of write (``*/checkpoints/last.ckpt``, ``*/r01_eval/results.json``) and nowhere else.
+
 ``THREEDQ_KILL_AT=<before|after>:<glob>`` (for ``tests/test_resume.py``): the process sends itself ``SIGKILL`` (a
 ``kill -9``: no handler, no clean-up runs) when an ``os.replace`` targets a path matching ``<glob>`` (``fnmatch`` on the
 absolute path), just before or just after the rename: every atomic write of threedq ends in one.
 
-Monkeypatching cannot reach a subprocess; this can. Without ``THREEDQ_FAULT`` / ``THREEDQ_KILL_AT`` it does nothing.
+``THREEDQ_PAUSE_AT=<glob>`` (for a second process to meet this one at a known point): after the first rename onto a
+path matching ``<glob>`` the process prints ``[fault_shim] paused after writing <path>`` to stderr and waits for a line
+on its stdin.
+
+Monkeypatching cannot reach a subprocess; this can. Without these variables it does nothing.
 """
 
 from __future__ import annotations
@@ -23,20 +31,30 @@ import errno
 import fnmatch
 import io
 import os
+import re
 import signal
+import sys
 
 _SPEC = os.environ.get("THREEDQ_FAULT", "")
 if _SPEC:
     _code, _, _root = _SPEC.partition(":")
     _ERR = getattr(errno, _code)
     _ROOT = os.path.realpath(_root)
+    _MATCH = os.environ.get("THREEDQ_FAULT_MATCH", "")
+    _TEMPORARY = re.compile(r"^\.(.+)\.[A-Za-z0-9_]+\.tmp$")  # threedq.atomic_io's temporary file of <name>
 
     def _inside(path: object) -> bool:
         try:
-            p = os.path.realpath(os.fspath(path))  # type: ignore[arg-type]
+            p = os.path.realpath(os.fsdecode(path))  # type: ignore[arg-type]
         except TypeError:
             return False
-        return p == _ROOT or p.startswith(_ROOT + os.sep)
+        if not (p == _ROOT or p.startswith(_ROOT + os.sep)):
+            return False
+        if not _MATCH:
+            return True
+        head, name = os.path.split(p)
+        m = _TEMPORARY.match(name)
+        return fnmatch.fnmatch(os.path.join(head, m.group(1)) if m else p, _MATCH)
 
     def _fail(path: object) -> None:
         raise OSError(_ERR, os.strerror(_ERR), os.fspath(path))  # type: ignore[arg-type]
@@ -67,24 +85,31 @@ if _SPEC:
             return _os_open(path, flags, *args, **kwargs)
 
         def _guarded_mkdir(path, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
-            if _inside(path) and os.path.realpath(os.fspath(path)) != _ROOT:
+            if _inside(path) and os.path.realpath(os.fsdecode(path)) != _ROOT:
                 _fail(path)
             return _mkdir(path, *args, **kwargs)
 
         os.open, os.mkdir = _guarded_os_open, _guarded_mkdir
 
 _KILL = os.environ.get("THREEDQ_KILL_AT", "")
-if _KILL:
+_PAUSE = os.environ.get("THREEDQ_PAUSE_AT", "")
+if _KILL or _PAUSE:
     _when, _, _pattern = _KILL.partition(":")
     _replace = os.replace
+    _paused: list[str] = []
 
     def _killing_replace(src, dst, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
-        hit = fnmatch.fnmatch(os.path.abspath(os.fspath(dst)), _pattern)
+        target = os.path.abspath(os.fspath(dst))
+        hit = bool(_KILL) and fnmatch.fnmatch(target, _pattern)
         if hit and _when == "before":
             os.kill(os.getpid(), signal.SIGKILL)
         result = _replace(src, dst, *args, **kwargs)
         if hit and _when == "after":
             os.kill(os.getpid(), signal.SIGKILL)
+        if _PAUSE and not _paused and fnmatch.fnmatch(target, _PAUSE):
+            _paused.append(target)  # once: say so, and wait for a line on stdin
+            print(f"[fault_shim] paused after writing {target}", file=sys.stderr, flush=True)
+            sys.stdin.readline()
         return result
 
     os.replace = _killing_replace

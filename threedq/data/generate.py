@@ -30,6 +30,7 @@ from threedq.data.layout import sample_scene
 from threedq.data.render import Renderer
 from threedq.data.render_scene import make_renderer, render_scene
 from threedq.data.splits import SPLIT_CODES, SPLITS, derive_test_seed, scene_file, scene_seed_sequence, split_sizes
+from threedq.locks import exclusive
 from threedq.scene import DatasetIndex, SceneValidationError, load_scene, save_index, save_scene
 
 __all__ = ["generate_dataset"]
@@ -184,68 +185,70 @@ def generate_dataset(
     sizes = split_sizes(int(num_scenes), fractions, splits)
     split_seed = {"train": int(seed), "val": int(seed), "test": eff_test_seed}
     tasks = [_Task(s, i, split_seed[s]) for s in splits for i in range(sizes[s])]
-    for s in splits:
-        (out / s).mkdir(parents=True, exist_ok=True)
-        _remove_stale_temporaries(out / s)
-    config_hash = config.hash()
+    # One process generates a folder at a time; another one asking for it waits, then finds its scenes kept.
+    with exclusive(out, what="generating"):
+        for s in splits:
+            (out / s).mkdir(parents=True, exist_ok=True)
+            _remove_stale_temporaries(out / s)
+        config_hash = config.hash()
 
-    from tqdm import tqdm
+        from tqdm import tqdm
 
-    bar = tqdm(total=len(tasks), disable=not progress, desc="threedq scenes", unit="scene", dynamic_ncols=True)
-    kept = 0
-    try:
-        n_proc = min(workers, len(tasks))
-        main_file = getattr(sys.modules.get("__main__"), "__file__", None)
-        if n_proc > 1 and main_file is not None and not os.path.isfile(main_file):
-            # "spawn" re-runs the main script in each worker; a script read from stdin cannot be
-            # re-run and the pool would restart its crashing workers forever.
-            warnings.warn(
-                f"workers={workers}: the main script {main_file!r} is not a file; rendering in-process", stacklevel=2
-            )
-            n_proc = 1
-        if n_proc <= 1:
-            renderer: list[Renderer] = []
+        bar = tqdm(total=len(tasks), disable=not progress, desc="threedq scenes", unit="scene", dynamic_ncols=True)
+        kept = 0
+        try:
+            n_proc = min(workers, len(tasks))
+            main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+            if n_proc > 1 and main_file is not None and not os.path.isfile(main_file):
+                # "spawn" re-runs the main script in each worker; a script read from stdin cannot be
+                # re-run and the pool would restart its crashing workers forever.
+                warnings.warn(
+                    f"workers={workers}: the main script {main_file!r} is not a file; rendering in-process", stacklevel=2
+                )
+                n_proc = 1
+            if n_proc <= 1:
+                renderer: list[Renderer] = []
 
-            def get_renderer() -> Renderer:
-                if not renderer:
-                    renderer.append(make_renderer(config))
-                return renderer[0]
+                def get_renderer() -> Renderer:
+                    if not renderer:
+                        renderer.append(make_renderer(config))
+                    return renderer[0]
 
-            try:
-                for task in tasks:
-                    kept += _run_task(task, out, config, config_hash, get_renderer)[2] == "kept"
-                    bar.update(1)
-            finally:
-                for r in renderer:
-                    r.release()
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            threads = max(1, (os.cpu_count() or 1) // n_proc)
-            with ctx.Pool(n_proc, initializer=_init_worker, initargs=(str(out), config.to_dict(), threads)) as pool:
-                for _, _, status in pool.imap_unordered(_worker_task, tasks, chunksize=1):
-                    kept += status == "kept"
-                    bar.update(1)
-                    bar.set_postfix(kept=kept, refresh=False)
-    finally:
-        bar.close()
+                try:
+                    for task in tasks:
+                        kept += _run_task(task, out, config, config_hash, get_renderer)[2] == "kept"
+                        bar.update(1)
+                finally:
+                    for r in renderer:
+                        r.release()
+            else:
+                ctx = multiprocessing.get_context("spawn")
+                threads = max(1, (os.cpu_count() or 1) // n_proc)
+                with ctx.Pool(n_proc, initializer=_init_worker, initargs=(str(out), config.to_dict(), threads)) as pool:
+                    for _, _, status in pool.imap_unordered(_worker_task, tasks, chunksize=1):
+                        kept += status == "kept"
+                        bar.update(1)
+                        bar.set_postfix(kept=kept, refresh=False)
+        finally:
+            bar.close()
 
-    index = DatasetIndex(
-        categories=list(config.category_names),
-        symmetry_order=list(config.symmetry_order),
-        scenes=[{"file": scene_file(t.split, t.index), "split": t.split} for t in tasks],
-        scene_bounds=config.scene_bounds,
-        generator={
-            "name": "threedq.data.generate",
-            "version": GENERATOR_VERSION,
-            "config": config.to_dict(),
-            "config_hash": config_hash,
-            "seed": int(seed),
-            "test_seed": eff_test_seed,
-            "split_fractions": list(fractions),
-            "num_scenes": int(num_scenes),
-            "split_sizes": {s: sizes[s] for s in splits},
-        },
-        seed=int(seed),
-    )
-    save_index(out, index)
+        index = DatasetIndex(
+            categories=list(config.category_names),
+            symmetry_order=list(config.symmetry_order),
+            scenes=[{"file": scene_file(t.split, t.index), "split": t.split} for t in tasks],
+            scene_bounds=config.scene_bounds,
+            generator={
+                "name": "threedq.data.generate",
+                "version": GENERATOR_VERSION,
+                "config": config.to_dict(),
+                "config_hash": config_hash,
+                "seed": int(seed),
+                "test_seed": eff_test_seed,
+                "split_fractions": list(fractions),
+                "num_scenes": int(num_scenes),
+                "split_sizes": {s: sizes[s] for s in splits},
+            },
+            seed=int(seed),
+        )
+        save_index(out, index)
     return index

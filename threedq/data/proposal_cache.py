@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from threedq.data.box_files import load_boxes_file_with_params, save_boxes_file
+from threedq.locks import exclusive
 from threedq.proposals import PROPOSALS_VERSION, Bounds, ProposalParams, propose_boxes
 from threedq.scene import load_index, load_scene
 
@@ -69,8 +70,6 @@ def propose_dataset(
 
     Convention: world frame, metres, z up; boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
     """
-    from tqdm import tqdm
-
     params = ProposalParams() if params is None else params
     if not isinstance(params, ProposalParams):
         raise ValueError(f"params: expected a ProposalParams or None, got {type(params).__name__}")  # noqa: TRY004 - ValueError naming the argument
@@ -89,19 +88,38 @@ def propose_dataset(
     bounds = index.scene_bounds if use_bounds else None
     pjson = _params_json(params, bounds)
 
-    results: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    if cache_path.exists():
+    def read_cache(warn: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        if not cache_path.exists():
+            return {}
         try:
             cached_params, cached = load_boxes_file_with_params(cache_path)
         except ValueError as e:
             if not recompute_corrupt:
                 raise
-            warnings.warn(f"{e}; recomputing it", stacklevel=2)
-        else:
-            if cached_params == pjson:
-                results = {k: v for k, v in cached.items()}
-            else:
-                warnings.warn(f"{cache_path}: made with other parameters; recomputing it", stacklevel=2)
+            if warn:
+                warnings.warn(f"{e}; recomputing it", stacklevel=3)
+            return {}
+        if cached_params != pjson:
+            if warn:
+                warnings.warn(f"{cache_path}: made with other parameters; recomputing it", stacklevel=3)
+            return {}
+        return dict(cached.items())
+
+    results = read_cache(warn=False)
+    if cache_path.exists() and all(f in results for f in files):
+        return {f: results[f] for f in files}
+    # Another process may be computing the same cache: the first computes, the others wait and read its file.
+    with exclusive(cache_path, what="computing proposals into"):
+        results = read_cache(warn=True)
+        _complete(results, files, data_dir, cache_path, pjson, bounds, params, save_every, progress)
+    return {f: results[f] for f in files}
+
+
+def _complete(results: dict[str, tuple[np.ndarray, np.ndarray]], files: list[str], data_dir: Path, cache_path: Path,
+              pjson: str, bounds: Bounds | None, params: ProposalParams, save_every: int, progress: bool) -> None:
+    """Compute the scenes of ``files`` missing from ``results`` into it, saving the cache every ``save_every``."""
+    from tqdm import tqdm
+
     all_names = list(dict.fromkeys([*results.keys(), *files]))
     todo = [f for f in files if f not in results]
     kwargs = asdict(params)
@@ -121,4 +139,3 @@ def propose_dataset(
                 dirty = 0
     if dirty or not cache_path.exists():
         save_boxes_file(cache_path, {k: results[k] for k in all_names if k in results}, pjson)
-    return {f: results[f] for f in files}

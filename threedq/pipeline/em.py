@@ -62,6 +62,7 @@ import torch
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text
 from threedq.data.box_files import load_boxes_file
 from threedq.errors import InputError
+from threedq.locks import hold_folder
 from threedq.pipeline.crop_cache import CropCache
 from threedq.pipeline.data_commands import output_folder
 from threedq.pipeline.detection_eval import evaluate_detection
@@ -529,132 +530,133 @@ def run_em(
         frozen_precision = "bf16-mixed" if _bf16_is_native() else "32-true"
     prec = [f"--trainer.precision={frozen_precision}"]
     work = output_folder("--work_dir", work_dir)
-    if resume:
-        _remove_torn_writes(work)
-    if isinstance(extra_configs, (str, Path)):
-        extra_configs = [str(extra_configs)]
-    extra = [resolve_config(c) for c in (extra_configs or [])]
-    vp_configs = [resolve_config(config), *extra]
-    q_configs = [resolve_config(quantizer_config), *extra]
-    mine = mining_config not in (None, "", "none")
-    m_configs = [resolve_config(mining_config), *extra] if mine else []
-    relabel = detection and self_labelling_config not in (None, "", "none")
-    sl_configs = [resolve_config(self_labelling_config), *extra] if relabel else []
-    overrides = [f"--trainer.max_steps={max_steps}"] if max_steps is not None else []
-    if viewpred_ckpt is not None:
-        vp = _given_viewpred(viewpred_ckpt)
-    else:
-        vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
-    vp_ckpt = Path(vp["checkpoint"])
-    vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, work / "01_viewpred_eval")
-    # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
-    # encoded once per encoder. The warm-start detector's evaluation leaves the grids of every split that round 1's
-    # mining pool reads; a round's quantizer encodes the training scenes its evaluation (the final one's banks),
-    # self-labelling, detector evaluation and the next round's mining pool then read. After a mining stage the
-    # encoder is new, and the older grids and crops are dropped.
-    crop_cache = CropCache()
-    det, det_eval = None, None
-    box_over: list[str] = []
-    if detection:
-        d_configs = [resolve_config(detector_config), *extra]
-        det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}", *prec],
-                         resume, crop_cache)
-        # detections of every split only when the rounds take their boxes from the detector
-        det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-        det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits, prec,
-                                      crop_cache=crop_cache)
-        print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
-              f"detector {det_eval['detector']['map_50']:.3f}")
-        if boxes == "detections" and rounds:
-            _check_handed_on(work / "03_detector_eval", ("train", "test"))
-            box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
-    round0 = None
-    if rounds:
-        # the paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes (the
-        # grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM)
-        q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, work / "r00_quantizer",
-                        [f"--model.init_args.encoder_ckpt={vp_ckpt}", *_QUANTIZER_FIT, *box_over, *prec], resume,
-                        crop_cache)
-        round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), work / "r00_eval", final=False,
-                                 overrides=[*box_over, *prec], crop_cache=crop_cache)
-    round_results: list[dict[str, Any]] = []
-    mining_results: list[dict[str, Any]] = []
-    self_label_results: list[dict[str, Any]] = []
-    det_ckpt = Path(det["checkpoint"]) if det else None
-    prev_bank: Path | None = None
-    encoder = vp_ckpt
-    for r in range(1, rounds + 1):
-        if mine:
-            m = _fit_stage(f"round {r} mining", m_configs, work / f"r{r:02d}_mining",
-                           [f"--model.init_args.encoder_ckpt={encoder}", *box_over], resume, crop_cache)
-            encoder = Path(m["checkpoint"])
-            mining_results.append({**m, "refreshes": _mining_diagnostics(work / f"r{r:02d}_mining")})
-            # the encoder is new: the previous one's grids and crops will not be asked for again
-            crop_cache.drop("features")
-            crop_cache.drop("grid")
-        q_over = [f"--model.init_args.encoder_ckpt={encoder}", *_QUANTIZER_FIT, *box_over, *prec]
-        if prev_bank is not None:
-            q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
-        q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume, crop_cache)
-        prev_bank = Path(q["checkpoint"])
-        round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds,
-                                            overrides=[*box_over, *prec], crop_cache=crop_cache))
-        if relabel:
-            assert det_ckpt is not None
-            run = work / f"r{r:02d}_self_labelling"
-            sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}", *prec]
-            sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
-                            [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume, crop_cache)
-            det_ckpt = Path(sl["checkpoint"])
-            # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
-            splits = det_splits if r < rounds else ("test",)
-            sl_eval = _evaluate_detector(sl_configs, det_ckpt, work / f"r{r:02d}_detector_eval", splits,
-                                         [*sl_over, "--model.init_args.detector_ckpt=null"], crop_cache)
-            labels = run / "self_labels" / "labels.json"
-            self_label_results.append({**sl, "labels": json.loads(labels.read_text()) if labels.is_file() else None,
-                                       "detector_eval": sl_eval})
-            print(f"[em] round {r} self-labelling: detection mAP@0.5 {sl_eval['detector']['map_50']:.3f} "
-                  f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
-            if boxes == "detections" and r < rounds:
-                _check_handed_on(work / f"r{r:02d}_detector_eval", ("train", "test"))
-                box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
-        q_res = round_results[-1]["quantization"]["threedq"]
-        c = _feature_cells(round_results[-1]["retrieval"])
-        print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
-              f"{precision_label(round_results[-1]['retrieval'])} {c['precision_at_10']:.3f} (strict), "
-              f"{_fmt(c['precision_at_10_paper'])} (paper protocol)")
-    if rounds:
-        print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
-              f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")
-    summary = {
-        "work_dir": str(work),
-        "rounds": rounds,
-        "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
-        if rounds else [],
-        "self_labelling_config": _config_label(sl_configs[0], work) if relabel else None,
-        "self_label_results": self_label_results,
-        "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
-        "round0_result": round0,
-        "mining_config": _config_label(m_configs[0], work) if mine else None,
-        "mining_results": mining_results,
-        "viewpred": vp,
-        "viewpred_eval": vp_eval,
-        "detector": det,
-        "detector_eval": det_eval,
-        "boxes": boxes,
-        "frozen_precision": frozen_precision,
-        "round_results": round_results,
-        "final_eval_dir": str(work / f"r{rounds:02d}_eval") if rounds else None,
-        "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),
-        "torch": torch.__version__,
-    }
-    atomic_write_json(work / "metrics.json", summary)
-    if summary["table3"]:
-        _table3_figure(summary["table3"], work / "table3.png")
-    atomic_write_text(work / "report.md", _report(summary))
-    if round_results:
-        p = round_results[-1]["retrieval"]["precision_at_k"]
-        k = round_results[-1]["retrieval"]["k"]
-        print(f"[em] precision@{k}: " + ", ".join(f"{name} {v:.3f}" for name, v in p.items()))
-    print(f"[em] wrote {work / 'report.md'} and {work / 'metrics.json'}")
-    return summary
+    with hold_folder(work, check_below=True):  # one run per work folder (a second one is refused)
+        if resume:
+            _remove_torn_writes(work)
+        if isinstance(extra_configs, (str, Path)):
+            extra_configs = [str(extra_configs)]
+        extra = [resolve_config(c) for c in (extra_configs or [])]
+        vp_configs = [resolve_config(config), *extra]
+        q_configs = [resolve_config(quantizer_config), *extra]
+        mine = mining_config not in (None, "", "none")
+        m_configs = [resolve_config(mining_config), *extra] if mine else []
+        relabel = detection and self_labelling_config not in (None, "", "none")
+        sl_configs = [resolve_config(self_labelling_config), *extra] if relabel else []
+        overrides = [f"--trainer.max_steps={max_steps}"] if max_steps is not None else []
+        if viewpred_ckpt is not None:
+            vp = _given_viewpred(viewpred_ckpt)
+        else:
+            vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
+        vp_ckpt = Path(vp["checkpoint"])
+        vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, work / "01_viewpred_eval")
+        # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
+        # encoded once per encoder. The warm-start detector's evaluation leaves the grids of every split that round 1's
+        # mining pool reads; a round's quantizer encodes the training scenes its evaluation (the final one's banks),
+        # self-labelling, detector evaluation and the next round's mining pool then read. After a mining stage the
+        # encoder is new, and the older grids and crops are dropped.
+        crop_cache = CropCache()
+        det, det_eval = None, None
+        box_over: list[str] = []
+        if detection:
+            d_configs = [resolve_config(detector_config), *extra]
+            det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}", *prec],
+                             resume, crop_cache)
+            # detections of every split only when the rounds take their boxes from the detector
+            det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
+            det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits, prec,
+                                          crop_cache=crop_cache)
+            print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
+                  f"detector {det_eval['detector']['map_50']:.3f}")
+            if boxes == "detections" and rounds:
+                _check_handed_on(work / "03_detector_eval", ("train", "test"))
+                box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
+        round0 = None
+        if rounds:
+            # the paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes (the
+            # grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM)
+            q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, work / "r00_quantizer",
+                            [f"--model.init_args.encoder_ckpt={vp_ckpt}", *_QUANTIZER_FIT, *box_over, *prec], resume,
+                            crop_cache)
+            round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), work / "r00_eval", final=False,
+                                     overrides=[*box_over, *prec], crop_cache=crop_cache)
+        round_results: list[dict[str, Any]] = []
+        mining_results: list[dict[str, Any]] = []
+        self_label_results: list[dict[str, Any]] = []
+        det_ckpt = Path(det["checkpoint"]) if det else None
+        prev_bank: Path | None = None
+        encoder = vp_ckpt
+        for r in range(1, rounds + 1):
+            if mine:
+                m = _fit_stage(f"round {r} mining", m_configs, work / f"r{r:02d}_mining",
+                               [f"--model.init_args.encoder_ckpt={encoder}", *box_over], resume, crop_cache)
+                encoder = Path(m["checkpoint"])
+                mining_results.append({**m, "refreshes": _mining_diagnostics(work / f"r{r:02d}_mining")})
+                # the encoder is new: the previous one's grids and crops will not be asked for again
+                crop_cache.drop("features")
+                crop_cache.drop("grid")
+            q_over = [f"--model.init_args.encoder_ckpt={encoder}", *_QUANTIZER_FIT, *box_over, *prec]
+            if prev_bank is not None:
+                q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
+            q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume, crop_cache)
+            prev_bank = Path(q["checkpoint"])
+            round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds,
+                                                overrides=[*box_over, *prec], crop_cache=crop_cache))
+            if relabel:
+                assert det_ckpt is not None
+                run = work / f"r{r:02d}_self_labelling"
+                sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}", *prec]
+                sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
+                                [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume, crop_cache)
+                det_ckpt = Path(sl["checkpoint"])
+                # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
+                splits = det_splits if r < rounds else ("test",)
+                sl_eval = _evaluate_detector(sl_configs, det_ckpt, work / f"r{r:02d}_detector_eval", splits,
+                                             [*sl_over, "--model.init_args.detector_ckpt=null"], crop_cache)
+                labels = run / "self_labels" / "labels.json"
+                self_label_results.append({**sl, "labels": json.loads(labels.read_text()) if labels.is_file() else None,
+                                           "detector_eval": sl_eval})
+                print(f"[em] round {r} self-labelling: detection mAP@0.5 {sl_eval['detector']['map_50']:.3f} "
+                      f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
+                if boxes == "detections" and r < rounds:
+                    _check_handed_on(work / f"r{r:02d}_detector_eval", ("train", "test"))
+                    box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
+            q_res = round_results[-1]["quantization"]["threedq"]
+            c = _feature_cells(round_results[-1]["retrieval"])
+            print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
+                  f"{precision_label(round_results[-1]['retrieval'])} {c['precision_at_10']:.3f} (strict), "
+                  f"{_fmt(c['precision_at_10_paper'])} (paper protocol)")
+        if rounds:
+            print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
+                  f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")
+        summary = {
+            "work_dir": str(work),
+            "rounds": rounds,
+            "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
+            if rounds else [],
+            "self_labelling_config": _config_label(sl_configs[0], work) if relabel else None,
+            "self_label_results": self_label_results,
+            "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
+            "round0_result": round0,
+            "mining_config": _config_label(m_configs[0], work) if mine else None,
+            "mining_results": mining_results,
+            "viewpred": vp,
+            "viewpred_eval": vp_eval,
+            "detector": det,
+            "detector_eval": det_eval,
+            "boxes": boxes,
+            "frozen_precision": frozen_precision,
+            "round_results": round_results,
+            "final_eval_dir": str(work / f"r{rounds:02d}_eval") if rounds else None,
+            "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),
+            "torch": torch.__version__,
+        }
+        atomic_write_json(work / "metrics.json", summary)
+        if summary["table3"]:
+            _table3_figure(summary["table3"], work / "table3.png")
+        atomic_write_text(work / "report.md", _report(summary))
+        if round_results:
+            p = round_results[-1]["retrieval"]["precision_at_k"]
+            k = round_results[-1]["retrieval"]["k"]
+            print(f"[em] precision@{k}: " + ", ".join(f"{name} {v:.3f}" for name, v in p.items()))
+        print(f"[em] wrote {work / 'report.md'} and {work / 'metrics.json'}")
+        return summary

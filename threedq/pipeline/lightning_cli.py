@@ -15,6 +15,7 @@ from __future__ import annotations
 import re
 import warnings
 from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +28,9 @@ from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
 from threedq.errors import InputError, flatten_message, user_error_in_chain
+from threedq.locks import hold_folder
 from threedq.pipeline.strategy import DDPStrategy
-from threedq.stages.checkpoint import checkpoint_stage
+from threedq.stages.checkpoint import AtomicCheckpointIO, checkpoint_stage
 
 __all__ = [
     "ThreeDQCLI", "ConfigError", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args",
@@ -36,6 +38,8 @@ __all__ = [
 ]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
+#: Where a run writes when its config names no ``trainer.default_root_dir``.
+DEFAULT_ROOT = "runs/default"
 
 
 def packaged_configs_dir() -> Path:
@@ -231,7 +235,8 @@ class ThreeDQCLI(LightningCLI):
         to hand every stage the same :class:`~threedq.pipeline.crop_cache.CropCache`).
         """
         self._model_setup = model_setup
-        with warnings.catch_warnings():
+        self._hold = ExitStack()  # the run's folder, held from before instantiation to the end of the subcommand
+        with self._hold, warnings.catch_warnings():
             # threedq passes its own (config-resolved) command line as args= on purpose.
             warnings.filterwarnings("ignore", message=".*args parameter is intended to run from within Python.*")
             self._init(None if args is None else resolve_config_args(args), run)
@@ -297,6 +302,14 @@ class ThreeDQCLI(LightningCLI):
                 if isinstance(value, str) and value and not Path(value).is_file():
                     args[key] = replacement
 
+    def before_instantiate_classes(self) -> None:
+        """A run of a subcommand holds its ``trainer.default_root_dir`` (:func:`~threedq.locks.hold_folder`): a
+        second run writing into it, or into a folder inside one that another run holds (a ``threedq em`` work
+        folder), is refused before anything is built or written."""
+        if self.subcommand is not None:
+            root = self._get(self.config, "trainer", default={}).get("default_root_dir") or DEFAULT_ROOT
+            self._hold.enter_context(hold_folder(root))
+
     def instantiate_classes(self) -> None:
         try:
             super().instantiate_classes()
@@ -326,7 +339,7 @@ class ThreeDQCLI(LightningCLI):
             )
         if cfg.get("strategy") == "ddp":
             kwargs["strategy"] = DDPStrategy()  # Lightning's, able to run the quantizer (no trainable parameter)
-        root = Path(cfg.get("default_root_dir") or "runs/default")
+        root = Path(cfg.get("default_root_dir") or DEFAULT_ROOT)
         if cfg.get("logger") in (None, True) and not cfg.get("fast_dev_run"):
             kwargs["logger"] = [
                 TensorBoardLogger(save_dir=str(root), name="", version=""),
@@ -336,6 +349,8 @@ class ThreeDQCLI(LightningCLI):
         if cfg.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in callbacks):
             ckpt = ModelCheckpoint(dirpath=root / "checkpoints", save_last=True, every_n_train_steps=100)
             kwargs["callbacks"] = [*callbacks, ckpt]
+        if not cfg.get("plugins"):  # every checkpoint written atomically (a full disk keeps the previous one whole)
+            kwargs["plugins"] = [AtomicCheckpointIO()]
         return super().instantiate_trainer(**kwargs)
 
 

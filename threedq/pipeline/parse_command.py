@@ -20,6 +20,7 @@ from tqdm import tqdm
 from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json
 from threedq.data.box_files import load_boxes_file
+from threedq.locks import hold_folder
 from threedq.pipeline.parse import (
     SceneParser,
     check_views,
@@ -111,55 +112,56 @@ def run_parse(
         if artifacts.viewpred is None:
             raise FileNotFoundError("renders: the run has no view-prediction checkpoint (00_viewpred) to decode with")
         decoder = load_view_decoder(artifacts.viewpred)
-    outp.mkdir(parents=True, exist_ok=True)
-    failed: list[str] = []
-    parsed: list[dict[str, Any]] = []
-    gallery_done = False
-    t0 = time.time()
-    bar = tqdm(total=len(files), desc="threedq parse", unit="scene", disable=not progress, dynamic_ncols=True)
-    for s in range(0, len(files), batch_size):
-        recs, chosen, ok_files = [], [], []
-        for f in files[s : s + batch_size]:
-            src = root / f
-            try:
-                if box_sets is not None and f not in box_sets:
-                    raise SceneValidationError(str(boxes), f, "the boxes file has no boxes for this scene")
-                rec = load_scene(src)
-                chosen.append(check_views(list(views), rec, str(src)))
-                recs.append(rec)
-                ok_files.append(f)
-            except (SceneValidationError, ValueError, OSError) as e:
-                failed.append(str(e).splitlines()[0] if str(e) else f"{src}: {type(e).__name__}")
-                print(f"threedq parse: skipped {failed[-1]}", file=sys.stderr)
-        given = None if box_sets is None else [box_sets[f] for f in ok_files]
-        for f, rec, v, res in zip(ok_files, recs, chosen, parse_records(parser, recs, chosen, names, batch_size, given)):
-            features = res.pop("_features")
-            doc = {"scene": str(root / f), **res, "models": artifacts.to_dict(), "score_threshold": parser.score_threshold}
-            name = _scene_name(f)
-            atomic_write_json(outp / f"{name}.json", doc)
-            if pictures:
-                _png(outp / f"{name}.png", parse_figure(rec, v, doc, parser, appearance))
-            if decoder is not None:
-                if not gallery_done:
-                    _png(outp / "gallery.png", prototype_gallery(parser, decoder, rec, appearance, names, view=v[0]))
-                    gallery_done = True
-                others = [i for i in range(rec.num_views) if i not in v]
-                if others:
-                    _png(outp / f"{name}_replaced.png", replaced_render(parser, decoder, rec, doc, features, others[0]))
-            parsed.append({"scene": str(root / f), "json": f"{name}.json", "objects": len(doc["objects"])})
-        bar.update(len(files[s : s + batch_size]))
-    bar.close()
-    summary = {
-        "scenes": len(files),
-        "parsed": len(parsed),
-        "failed": failed,
-        "objects": sum(p["objects"] for p in parsed),
-        "named_prototypes": len(names),
-        "seconds": round(time.time() - t0, 2),
-        "models": artifacts.to_dict(),
-        "files": parsed,
-    }
-    atomic_write_json(outp / "summary.json", summary)
-    print(f"threedq parse: {len(parsed)} of {len(files)} scene(s) parsed, {summary['objects']} object(s), "
-          f"{len(failed)} failed; wrote {outp}")  # fmt: skip
-    return summary
+    with hold_folder(outp):  # one run writes this folder at a time
+        outp.mkdir(parents=True, exist_ok=True)
+        failed: list[str] = []
+        parsed: list[dict[str, Any]] = []
+        gallery_done = False
+        t0 = time.time()
+        bar = tqdm(total=len(files), desc="threedq parse", unit="scene", disable=not progress, dynamic_ncols=True)
+        for s in range(0, len(files), batch_size):
+            recs, chosen, ok_files = [], [], []
+            for f in files[s : s + batch_size]:
+                src = root / f
+                try:
+                    if box_sets is not None and f not in box_sets:
+                        raise SceneValidationError(str(boxes), f, "the boxes file has no boxes for this scene")
+                    rec = load_scene(src)
+                    chosen.append(check_views(list(views), rec, str(src)))
+                    recs.append(rec)
+                    ok_files.append(f)
+                except (SceneValidationError, ValueError, OSError) as e:
+                    failed.append(str(e).splitlines()[0] if str(e) else f"{src}: {type(e).__name__}")
+                    print(f"threedq parse: skipped {failed[-1]}", file=sys.stderr)
+            given = None if box_sets is None else [box_sets[f] for f in ok_files]
+            for f, rec, v, res in zip(ok_files, recs, chosen, parse_records(parser, recs, chosen, names, batch_size, given)):
+                features = res.pop("_features")
+                doc = {"scene": str(root / f), **res, "models": artifacts.to_dict(), "score_threshold": parser.score_threshold}
+                name = _scene_name(f)
+                atomic_write_json(outp / f"{name}.json", doc)
+                if pictures:
+                    _png(outp / f"{name}.png", parse_figure(rec, v, doc, parser, appearance))
+                if decoder is not None:
+                    if not gallery_done:
+                        _png(outp / "gallery.png", prototype_gallery(parser, decoder, rec, appearance, names, view=v[0]))
+                        gallery_done = True
+                    others = [i for i in range(rec.num_views) if i not in v]
+                    if others:
+                        _png(outp / f"{name}_replaced.png", replaced_render(parser, decoder, rec, doc, features, others[0]))
+                parsed.append({"scene": str(root / f), "json": f"{name}.json", "objects": len(doc["objects"])})
+            bar.update(len(files[s : s + batch_size]))
+        bar.close()
+        summary = {
+            "scenes": len(files),
+            "parsed": len(parsed),
+            "failed": failed,
+            "objects": sum(p["objects"] for p in parsed),
+            "named_prototypes": len(names),
+            "seconds": round(time.time() - t0, 2),
+            "models": artifacts.to_dict(),
+            "files": parsed,
+        }
+        atomic_write_json(outp / "summary.json", summary)
+        print(f"threedq parse: {len(parsed)} of {len(files)} scene(s) parsed, {summary['objects']} object(s), "
+              f"{len(failed)} failed; wrote {outp}")  # fmt: skip
+        return summary

@@ -46,6 +46,7 @@ from torch.utils.data import DataLoader  # noqa: E402
 from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
 from threedq.errors import InputError  # noqa: E402
+from threedq.locks import hold_folder  # noqa: E402
 from threedq.scene import SceneValidationError  # noqa: E402
 from threedq.stages.checkpoint import require_stage  # noqa: E402
 from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
@@ -630,22 +631,23 @@ def run_eval(
     require_stage(ckpt, "quantizer", "--ckpt", needs="eval")
     q25d_model = load_q25d(q25d) if q25d else None  # bad files are refused before the long work
     resnet = load_resnet(weights) if weights else None
-    cache = CropCache()  # the test pass and the crops below encode each test scene once
-    cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: setattr(m, "crop_cache", cache))
-    res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
-                             curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
-                             em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet)
-    print(_markdown(res))
-    if encoders:
-        dm = cli.datamodule
-        gallery = not res.get("paper_protocol_not_run")  # every test scene has a view to serve as the gallery
-        table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test", gallery=gallery), encoders,
-                                   len(dm.index.categories), list(dm.index.symmetry_order), dm.num_input_views,
-                                   K=cli.model.bank.active.numel(), num_angles=cli.model.hparams.num_angles,
-                                   em_iterations=em_iterations, seed=seed, search=search)
-        res["feature_sets"] = table
-        atomic_write_json(Path(out) / "table2.json", table)
-        atomic_write_text(Path(out) / "table2.md", feature_sets_markdown(table))
-        print(feature_sets_markdown(table))
-    print(f"wrote {Path(out) / 'results.md'}, results.json and figures in {out}")
-    return res
+    with hold_folder(out):  # one run writes this folder at a time
+        cache = CropCache()  # the test pass and the crops below encode each test scene once
+        cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: setattr(m, "crop_cache", cache))
+        res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
+                                 curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
+                                 em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet)
+        print(_markdown(res))
+        if encoders:
+            dm = cli.datamodule
+            gallery = not res.get("paper_protocol_not_run")  # every test scene has a view to serve as the gallery
+            table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test", gallery=gallery), encoders,
+                                       len(dm.index.categories), list(dm.index.symmetry_order), dm.num_input_views,
+                                       K=cli.model.bank.active.numel(), num_angles=cli.model.hparams.num_angles,
+                                       em_iterations=em_iterations, seed=seed, search=search)
+            res["feature_sets"] = table
+            atomic_write_json(Path(out) / "table2.json", table)
+            atomic_write_text(Path(out) / "table2.md", feature_sets_markdown(table))
+            print(feature_sets_markdown(table))
+        print(f"wrote {Path(out) / 'results.md'}, results.json and figures in {out}")
+        return res
