@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from test_em import _em_config
 
-from test_viewpred import _em_config
 from threedq.cli import main
 from threedq.data.box_files import save_boxes_file
 from threedq.geometry import rotate_yaw, yaw_angles

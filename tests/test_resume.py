@@ -77,10 +77,11 @@ def _em(work: Path, cfg: Path, *extra: str, **faults: Any) -> subprocess.Complet
 
 
 def _normalised(path: Path, work: Path) -> object:
-    """metrics.json without timings, with the run folder's own path replaced by a placeholder."""
+    """metrics.json without timings and crop-cache counts (what one process saved), with the run folder's own path
+    replaced by a placeholder."""
     def walk(o: object) -> object:
         if isinstance(o, dict):
-            return {k: walk(v) for k, v in o.items() if k != "seconds"}
+            return {k: walk(v) for k, v in o.items() if k not in ("seconds", "crop_cache")}
         if isinstance(o, list):
             return [walk(v) for v in o]
         if isinstance(o, str):

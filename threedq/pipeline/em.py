@@ -25,6 +25,8 @@ Layout of ``work_dir``::
       report.md               # the same as tables
       table3.png              # features, quantization and detection per round
 
+(the names are :class:`~threedq.pipeline.run_layout.RunLayout`'s, which ``parse`` and ``label`` read back)
+
 The stages after view prediction share one :class:`~threedq.pipeline.crop_cache.CropCache` (a process-wide store keyed
 by the encoder's weights, the input views and the boxes): each scene is encoded once per encoder, not once per
 stage. Every stage that reads features does so from each scene's fixed input views (the quantizer with
@@ -77,6 +79,7 @@ from threedq.pipeline.report import (
     precision_label,
     retrieval_markdown,
 )
+from threedq.pipeline.run_layout import RunLayout
 from threedq.stages.checkpoint import require_stage
 
 __all__ = ["run_em"]
@@ -100,7 +103,7 @@ def _config_label(path: Path, work: Path) -> str:
 
 
 def _stage_done(run_dir: Path) -> dict[str, Any] | None:
-    marker = run_dir / "stage.json"
+    marker = RunLayout.stage_marker(run_dir)
     return json.loads(marker.read_text()) if marker.is_file() else None
 
 
@@ -126,9 +129,9 @@ def _fit_stage(
 ) -> dict[str, Any]:
     done = _stage_done(run_dir)
     if done is not None:
-        print(f"[em] {name}: finished earlier ({run_dir / 'stage.json'}), not re-run")
+        print(f"[em] {name}: finished earlier ({RunLayout.stage_marker(run_dir)}), not re-run")
         return done
-    last = run_dir / "checkpoints" / "last.ckpt"
+    last = RunLayout.checkpoint(run_dir)
     if run_dir.exists() and any(run_dir.iterdir()):
         if not resume:
             raise RuntimeError(
@@ -145,7 +148,7 @@ def _fit_stage(
     if not last.is_file():
         raise RuntimeError(f"{name}: training finished without writing {last}")
     info = {"stage": name, "checkpoint": str(last), "seconds": round(time.time() - t0, 1)}
-    atomic_write_json(run_dir / "stage.json", info)
+    atomic_write_json(RunLayout.stage_marker(run_dir), info)
     return info
 
 
@@ -227,7 +230,7 @@ def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
     with fewer than 2 boxes: mining, quantization and the evaluation need at least 2 objects. One line naming
     the file."""
     for split in splits:
-        path = eval_dir / f"detections_{split}.npz"
+        path = RunLayout.detections(eval_dir, split)
         if not path.is_file():
             continue
         n = sum(len(aabb) for aabb, _ in load_boxes_file(path).values())
@@ -530,6 +533,7 @@ def run_em(
         frozen_precision = "bf16-mixed" if _bf16_is_native() else "32-true"
     prec = [f"--trainer.precision={frozen_precision}"]
     work = output_folder("--work_dir", work_dir)
+    layout = RunLayout(work)
     with hold_folder(work, check_below=True):  # one run per work folder (a second one is refused)
         if resume:
             _remove_torn_writes(work)
@@ -546,9 +550,9 @@ def run_em(
         if viewpred_ckpt is not None:
             vp = _given_viewpred(viewpred_ckpt)
         else:
-            vp = _fit_stage("viewpred", vp_configs, work / "00_viewpred", overrides, resume)
+            vp = _fit_stage("viewpred", vp_configs, layout.viewpred, overrides, resume)
         vp_ckpt = Path(vp["checkpoint"])
-        vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, work / "01_viewpred_eval")
+        vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, layout.viewpred_eval)
         # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
         # encoded once per encoder. The warm-start detector's evaluation leaves the grids of every split that round 1's
         # mining pool reads; a round's quantizer encodes the training scenes its evaluation (the final one's banks),
@@ -559,25 +563,25 @@ def run_em(
         box_over: list[str] = []
         if detection:
             d_configs = [resolve_config(detector_config), *extra]
-            det = _fit_stage("detector", d_configs, work / "02_detector", [f"--model.init_args.encoder_ckpt={vp_ckpt}", *prec],
+            det = _fit_stage("detector", d_configs, layout.detector, [f"--model.init_args.encoder_ckpt={vp_ckpt}", *prec],
                              resume, crop_cache)
             # detections of every split only when the rounds take their boxes from the detector
             det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-            det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), work / "03_detector_eval", det_splits, prec,
+            det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), layout.detector_eval, det_splits, prec,
                                           crop_cache=crop_cache)
             print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
                   f"detector {det_eval['detector']['map_50']:.3f}")
             if boxes == "detections" and rounds:
-                _check_handed_on(work / "03_detector_eval", ("train", "test"))
-                box_over = [f"--data.init_args.boxes={work / '03_detector_eval'}/detections_{{split}}.npz"]
+                _check_handed_on(layout.detector_eval, ("train", "test"))
+                box_over = [f"--data.init_args.boxes={layout.detections(layout.detector_eval)}"]
         round0 = None
         if rounds:
             # the paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes (the
             # grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM)
-            q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, work / "r00_quantizer",
+            q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, layout.round(0, "quantizer"),
                             [f"--model.init_args.encoder_ckpt={vp_ckpt}", *_QUANTIZER_FIT, *box_over, *prec], resume,
                             crop_cache)
-            round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), work / "r00_eval", final=False,
+            round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), layout.round(0, "eval"), final=False,
                                      overrides=[*box_over, *prec], crop_cache=crop_cache)
         round_results: list[dict[str, Any]] = []
         mining_results: list[dict[str, Any]] = []
@@ -587,30 +591,30 @@ def run_em(
         encoder = vp_ckpt
         for r in range(1, rounds + 1):
             if mine:
-                m = _fit_stage(f"round {r} mining", m_configs, work / f"r{r:02d}_mining",
+                m = _fit_stage(f"round {r} mining", m_configs, layout.round(r, "mining"),
                                [f"--model.init_args.encoder_ckpt={encoder}", *box_over], resume, crop_cache)
                 encoder = Path(m["checkpoint"])
-                mining_results.append({**m, "refreshes": _mining_diagnostics(work / f"r{r:02d}_mining")})
+                mining_results.append({**m, "refreshes": _mining_diagnostics(layout.round(r, "mining"))})
                 # the encoder is new: the previous one's grids and crops will not be asked for again
                 crop_cache.drop("features")
                 crop_cache.drop("grid")
             q_over = [f"--model.init_args.encoder_ckpt={encoder}", *_QUANTIZER_FIT, *box_over, *prec]
             if prev_bank is not None:
                 q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
-            q = _fit_stage(f"round {r} quantizer", q_configs, work / f"r{r:02d}_quantizer", q_over, resume, crop_cache)
+            q = _fit_stage(f"round {r} quantizer", q_configs, layout.round(r, "quantizer"), q_over, resume, crop_cache)
             prev_bank = Path(q["checkpoint"])
-            round_results.append(_evaluate_round(q_configs, prev_bank, work / f"r{r:02d}_eval", final=r == rounds,
+            round_results.append(_evaluate_round(q_configs, prev_bank, layout.round(r, "eval"), final=r == rounds,
                                                 overrides=[*box_over, *prec], crop_cache=crop_cache))
             if relabel:
                 assert det_ckpt is not None
-                run = work / f"r{r:02d}_self_labelling"
+                run = layout.round(r, "self_labelling")
                 sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}", *prec]
                 sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
                                 [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume, crop_cache)
                 det_ckpt = Path(sl["checkpoint"])
                 # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
                 splits = det_splits if r < rounds else ("test",)
-                sl_eval = _evaluate_detector(sl_configs, det_ckpt, work / f"r{r:02d}_detector_eval", splits,
+                sl_eval = _evaluate_detector(sl_configs, det_ckpt, layout.round(r, "detector_eval"), splits,
                                              [*sl_over, "--model.init_args.detector_ckpt=null"], crop_cache)
                 labels = run / "self_labels" / "labels.json"
                 self_label_results.append({**sl, "labels": json.loads(labels.read_text()) if labels.is_file() else None,
@@ -618,8 +622,8 @@ def run_em(
                 print(f"[em] round {r} self-labelling: detection mAP@0.5 {sl_eval['detector']['map_50']:.3f} "
                       f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
                 if boxes == "detections" and r < rounds:
-                    _check_handed_on(work / f"r{r:02d}_detector_eval", ("train", "test"))
-                    box_over = [f"--data.init_args.boxes={work / f'r{r:02d}_detector_eval'}/detections_{{split}}.npz"]
+                    _check_handed_on(layout.round(r, "detector_eval"), ("train", "test"))
+                    box_over = [f"--data.init_args.boxes={layout.detections(layout.round(r, 'detector_eval'))}"]
             q_res = round_results[-1]["quantization"]["threedq"]
             c = _feature_cells(round_results[-1]["retrieval"])
             print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
@@ -646,7 +650,10 @@ def run_em(
             "boxes": boxes,
             "frozen_precision": frozen_precision,
             "round_results": round_results,
-            "final_eval_dir": str(work / f"r{rounds:02d}_eval") if rounds else None,
+            "final_eval_dir": str(layout.round(rounds, "eval")) if rounds else None,
+            # how much this process's crop cache saved (a resumed run computes again what the killed one had held)
+            "crop_cache": {"reused": crop_cache.hits, "computed": crop_cache.misses,
+                           "gib": round(crop_cache.nbytes / 2**30, 3)},
             "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),
             "torch": torch.__version__,
         }

@@ -33,7 +33,6 @@ from __future__ import annotations
 import inspect
 import json
 import math
-import re
 import sys
 import time
 from dataclasses import dataclass
@@ -52,6 +51,7 @@ from threedq.atomic_io import atomic_write_bytes
 from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
 from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
+from threedq.pipeline.run_layout import RunLayout
 from threedq.quantization.prototypes import PrototypeBank
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
 from threedq.stages.base import EncoderStage
@@ -96,17 +96,6 @@ class RunArtifacts:
         return {k: (None if v is None else str(v)) for k, v in self.__dict__.items()}
 
 
-def _finished(run: Path, pattern: str) -> list[tuple[int, Path]]:
-    """``(round, checkpoint)`` of the finished stage folders of ``run`` whose name matches ``pattern``."""
-    out = []
-    for d in run.iterdir() if run.is_dir() else []:
-        m = re.fullmatch(pattern, d.name)
-        ckpt = d / "checkpoints" / "last.ckpt"
-        if m and (d / "stage.json").is_file() and ckpt.is_file():
-            out.append((int(m.group(1)) if m.groups() else 0, ckpt))
-    return sorted(out)
-
-
 def resolve_run(
     run: str | Path | None = None,
     encoder: str | Path | None = None,
@@ -122,26 +111,28 @@ def resolve_run(
     if r is not None and not r.is_dir():
         raise FileNotFoundError(f"run: no such folder: {r}")
 
-    def need(part: str, given: str | Path | None, found: list[tuple[int, Path]], what: str) -> Path:
+    layout = RunLayout(r) if r is not None else None
+
+    def need(part: str, given: str | Path | None, found: Path | None, what: str) -> Path:
         if given is not None:
             p = Path(given)
             if not p.is_file():
                 raise FileNotFoundError(f"{part}: no such file: {p}")
             return p
-        if not found:
+        if found is None:
             where = f"run {r}" if r is not None else "no --run given"
             raise FileNotFoundError(f"{part}: {where}: no finished {what}; give --{part}")
-        return found[-1][1]
+        return found
 
-    bank = need("prototypes", prototypes, _finished(r, r"r(\d+)_quantizer") if r else [], "quantizer stage (rNN_quantizer)")
-    dets = (_finished(r, r"02_detector") + _finished(r, r"r(\d+)_self_labelling")) if r else []
+    bank = need("prototypes", prototypes, layout.final_quantizer() if layout else None, "quantizer stage (rNN_quantizer)")
     # the warm start counts as round 0; a self-labelled round's detector replaces it
-    det = need("detector", detector, sorted(dets, key=lambda t: t[0]), "detector (02_detector or rNN_self_labelling)")
+    det = need("detector", detector, layout.final_detector() if layout else None,
+               "detector (02_detector or rNN_self_labelling)")
     enc = Path(encoder) if encoder is not None else bank
     if not enc.is_file():
         raise FileNotFoundError(f"encoder: no such file: {enc}")
-    vp = r / "00_viewpred" / "checkpoints" / "last.ckpt" if r else None
-    return RunArtifacts(encoder=enc, detector=det, prototypes=bank, viewpred=vp if vp and vp.is_file() else None, run=r)
+    vp = layout.viewpred_checkpoint() if layout else None
+    return RunArtifacts(encoder=enc, detector=det, prototypes=bank, viewpred=vp, run=r)
 
 
 def names_path(prototypes: str | Path) -> Path:
