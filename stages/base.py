@@ -52,7 +52,25 @@ __all__ = [
     "encoder_state_from_checkpoint",
     "load_encoder_state",
     "resolve_grid",
+    "stage_arguments",
 ]
+
+
+def stage_arguments(cls: type) -> dict[str, Any]:
+    """Every constructor argument of a stage class, its own and its parents' (taken by keyword), at the default of
+    the most derived class that declares it: ``{name: default}``."""
+    out: dict[str, Any] = {}
+    for c in cls.__mro__:
+        if c is L.LightningModule:  # and above: not a stage's argument
+            break
+        init = c.__dict__.get("__init__")
+        if init is None:
+            continue
+        for name, p in inspect.signature(init).parameters.items():
+            if p.default is not p.empty:
+                out.setdefault(name, p.default)
+    return out
+
 
 class EncoderStage(L.LightningModule):
     """Base of every stage: the voxel grid, the shared encoder and multi-view encoding.
@@ -79,6 +97,7 @@ class EncoderStage(L.LightningModule):
 
     def __init__(
         self,
+        *,
         grid_min: tuple[float, float, float] | None = None,
         grid_max: tuple[float, float, float] | None = None,
         grid_resolution: tuple[int, int, int] | None = None,
@@ -130,9 +149,19 @@ class EncoderStage(L.LightningModule):
         return Path(self.trainer.default_root_dir)
 
     def save_hyperparameters(self, *args: Any, **kwargs: Any) -> None:
-        """Lightning's, with the resolved grid in place of the None a stage was given (checkpoints carry the grid)."""
+        """Lightning's, with every argument of the stage's constructors and the resolved grid.
+
+        Stage constructors take their parents' arguments by keyword (``**kwargs``); Lightning records the calling
+        constructor's own arguments and the keywords it was given, so the arguments left at a parent's default are
+        added here, each at the default of the most derived class that declares it (a checkpoint's hyperparameters
+        name every argument). The grid is the resolved one, in place of the None a stage may have been given.
+        """
         kwargs.setdefault("frame", inspect.currentframe().f_back)
         super().save_hyperparameters(*args, **kwargs)
+        ignore = set(kwargs.get("ignore") or ())
+        for name, default in stage_arguments(type(self)).items():
+            if name not in ignore and name not in self.hparams:
+                self.hparams[name] = default
         self.hparams.update({k: list(v) if isinstance(v, tuple) else v for k, v in self.grid_fields.items()})
 
     def train(self, mode: bool = True) -> EncoderStage:

@@ -11,6 +11,8 @@ few-shot labelling accuracy and relative yaw error.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -39,7 +41,9 @@ class Quantizer(SplitEvaluation, EncoderStage):
     """The quantizer stage.
 
     Args:
-        grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
+        freeze_encoder: keep the encoder fixed (here True by default).
+        **kwargs: the encoder's other arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
+            ``encoder_ckpt``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage` (the encoder should come from view prediction, frozen).
         num_prototypes: K (paper: 50).
         crop_size: object crops are ``crop_size^3`` (paper: 16).
@@ -62,13 +66,8 @@ class Quantizer(SplitEvaluation, EncoderStage):
 
     def __init__(
         self,
-        grid_min: tuple[float, float, float] | None = None,
-        grid_max: tuple[float, float, float] | None = None,
-        grid_resolution: tuple[int, int, int] | None = None,
-        feature_dim: int | None = None,
-        encoder_ckpt: str | None = None,
+        *,
         freeze_encoder: bool = True,
-        channels_last: bool = True,
         num_prototypes: int = 50,
         crop_size: int = 16,
         num_angles: int = 36,
@@ -81,8 +80,9 @@ class Quantizer(SplitEvaluation, EncoderStage):
         shots: int = 2,
         seed: int = 0,
         init_bank_ckpt: str | None = None,
+            **kwargs: Any,
     ) -> None:
-        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
+        super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.bank = PrototypeBank(num_prototypes, self.feature_dim, crop_size, num_angles, init_threshold, search_method)

@@ -16,6 +16,8 @@ Labels are used here and nowhere else in threedq's training.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -29,7 +31,8 @@ class SupervisedCeiling(SplitEvaluation, EncoderStage):
     """Encoder + crop + linear classifier trained with category labels (a Table 2 reference row).
 
     Args:
-        grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
+        **kwargs: the encoder's arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
+            ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage` (from scratch by default, the view-prediction grid).
         num_classes: categories of the dataset; ``None``: the count in its ``index.json`` (set when a dataset is
             attached and saved in the checkpoint).
@@ -43,21 +46,16 @@ class SupervisedCeiling(SplitEvaluation, EncoderStage):
 
     def __init__(
         self,
-        grid_min: tuple[float, float, float] | None = None,
-        grid_max: tuple[float, float, float] | None = None,
-        grid_resolution: tuple[int, int, int] | None = None,
-        feature_dim: int | None = None,
-        encoder_ckpt: str | None = None,
-        freeze_encoder: bool = False,
-        channels_last: bool = True,
+        *,
         num_classes: int | None = None,
         crop_size: int = 16,
         lr: float = 1e-3,
         logit_scale: float = 16.0,
         retrieval_k: int = 10,
         num_angles: int = 36,
+            **kwargs: Any,
     ) -> None:
-        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
+        super().__init__(**kwargs)
         if num_classes is not None and num_classes < 2:
             raise ValueError(f"num_classes: expected >= 2 (or null: the dataset's count), got {num_classes}")
         self.save_hyperparameters()

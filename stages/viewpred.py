@@ -14,7 +14,7 @@ L1 on the above-ground pixels (``l1_fg``).
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -48,7 +48,8 @@ class ViewPrediction(EncoderStage):
     """The view-prediction stage.
 
     Args:
-        grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last: see
+        **kwargs: the encoder's arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
+            ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage`.
         num_planes: depth planes of the target frustum.
         depth_range: ``(near, far)`` camera depth of the frustum, metres.
@@ -80,13 +81,7 @@ class ViewPrediction(EncoderStage):
 
     def __init__(
         self,
-        grid_min: tuple[float, float, float] | None = None,
-        grid_max: tuple[float, float, float] | None = None,
-        grid_resolution: tuple[int, int, int] | None = None,
-        feature_dim: int | None = None,
-        encoder_ckpt: str | None = None,
-        freeze_encoder: bool = False,
-        channels_last: bool = True,
+        *,
         num_planes: int = 32,
         depth_range: tuple[float, float] = (1.2, 5.2),
         pool: int = 8,
@@ -98,12 +93,13 @@ class ViewPrediction(EncoderStage):
         image_every_n_steps: int = 200,
         rgb_loss: Literal["balanced", "plain"] = "balanced",
         ground_margin: float = 0.02,
+            **kwargs: Any,
     ) -> None:
         if rgb_loss not in ("balanced", "plain"):
             raise ValueError(f"rgb_loss: expected 'balanced' or 'plain', got {rgb_loss!r}")
         if not ground_margin >= 0:
             raise ValueError(f"ground_margin: expected >= 0 metres, got {ground_margin!r}")
-        super().__init__(grid_min, grid_max, grid_resolution, feature_dim, encoder_ckpt, freeze_encoder, channels_last)
+        super().__init__(**kwargs)
         self.save_hyperparameters()
         self.decoder = ViewDecoder(in_channels=self.feature_dim, num_planes=num_planes, pool=pool)
         self.occ_head = OccupancyHead(in_channels=self.feature_dim)

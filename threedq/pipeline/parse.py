@@ -30,7 +30,6 @@ degrees counter-clockwise about +z looks like the object).
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import sys
@@ -54,7 +53,7 @@ from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, ya
 from threedq.pipeline.run_layout import RunLayout
 from threedq.quantization.prototypes import PrototypeBank
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
-from threedq.stages.base import EncoderStage
+from threedq.stages.base import EncoderStage, stage_arguments
 from threedq.stages.checkpoint import (
     DEFAULT_GRID,
     checkpoint_hparams,
@@ -193,7 +192,7 @@ class SceneParser(torch.nn.Module):
         self.artifacts = artifacts
         det_hp, q_hp = checkpoint_hparams(artifacts.detector), checkpoint_hparams(artifacts.prototypes)
         _checked_grid(q_hp, det_hp, artifacts.prototypes, artifacts.detector)
-        names = set(inspect.signature(Detector.__init__).parameters) - {"self", "encoder_ckpt"}
+        names = set(stage_arguments(Detector)) - {"encoder_ckpt"}
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in det_hp.items() if k in names}
         kw.update(channels_last=channels_last, freeze_encoder=True, image_every_n_steps=0)
         self.detector = Detector(**kw)

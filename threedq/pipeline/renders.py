@@ -16,7 +16,6 @@ Convention: frame R metres, z up; yaw counter-clockwise about +z; cameras OpenCV
 
 from __future__ import annotations
 
-import inspect
 import math
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from threedq.errors import InputError
 from threedq.geometry import paste_boxes, rotate_yaw, yaw_angles
 from threedq.pipeline.parse import SceneParser, prototype_top_view, scene_batch
 from threedq.scene import SceneRecord
+from threedq.stages.base import stage_arguments
 from threedq.stages.checkpoint import checkpoint_hparams, checkpoint_state
 from threedq.stages.viewpred import ViewPrediction
 
@@ -39,7 +39,7 @@ __all__ = ["load_view_decoder", "orbit_poses", "prototype_gallery", "replaced_re
 def load_view_decoder(path: str | Path, channels_last: bool = True) -> ViewPrediction:
     """The view-prediction stage of a checkpoint (decoder weights loaded; its encoder is not used here)."""
     hp = checkpoint_hparams(path)
-    names = set(inspect.signature(ViewPrediction.__init__).parameters) - {"self", "encoder_ckpt"}
+    names = set(stage_arguments(ViewPrediction)) - {"encoder_ckpt"}
     kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in hp.items() if k in names}
     vp = ViewPrediction(**{**kw, "channels_last": channels_last, "image_every_n_steps": 0})
     state = {k: v for k, v in checkpoint_state(path).items() if k.startswith("decoder.")}

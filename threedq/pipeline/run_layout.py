@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-__all__ = ["ROUND_PARTS", "RunLayout", "RoundPart"]
+__all__ = ["ROUND_PARTS", "RoundPart", "RunLayout"]
 
 RoundPart = Literal["mining", "quantizer", "eval", "self_labelling", "detector_eval"]
 #: The folders of a round, in the order the round writes them.
