@@ -57,11 +57,11 @@ __all__ = [
 
 
 def stage_arguments(cls: type) -> dict[str, Any]:
-    """Every constructor argument of a stage class, its own and its parents' (taken by keyword), at the default of
-    the most derived class that declares it: ``{name: default}``."""
+    """Every constructor argument with a default of a stage (or DataModule) class, its own and its parents' (taken by
+    keyword), at the default of the most derived class that declares it: ``{name: default}``."""
     out: dict[str, Any] = {}
     for c in cls.__mro__:
-        if c is L.LightningModule:  # and above: not a stage's argument
+        if c.__module__.startswith("lightning"):  # LightningModule / LightningDataModule and above
             break
         init = c.__dict__.get("__init__")
         if init is None:

@@ -70,6 +70,14 @@ class TestEm:
         assert 0 <= det["pseudo_boxes"]["map_50"] <= det["pseudo_boxes"]["map_25"] <= 1
         assert 0 <= det["detector"]["map_50"] <= 1 and det["detector"]["num_gt"] > 0
         assert (work / "03_detector_eval" / "detections.png").is_file()
+        # the fair reference (pseudo-boxes from the detector's own input view) and the objects found per size band
+        single = det["pseudo_boxes_single_view"]
+        assert 0 <= single["map_50"] <= single["map_25"] <= 1 and single["num_gt"] == det["detector"]["num_gt"]
+        assert [t["boxes"] for t in det["by_size"]][:2] == ["pseudo-boxes (all views)", "pseudo-boxes (input view)"]
+        for rows in (t["rows"] for t in det["by_size"]):
+            assert rows[-1]["band"] == "all" and rows[-1]["objects"] == det["detector"]["num_gt"]
+            assert sum(r["objects"] for r in rows[:-1]) == rows[-1]["objects"]
+        assert (work / "03_detector_eval" / "detection_by_size.png").is_file() and "Objects found per size" in report
         assert "3D detection" in report
         run = work / "00_viewpred"
         assert (run / "config.yaml").is_file() and (run / "checkpoints" / "last.ckpt").is_file()

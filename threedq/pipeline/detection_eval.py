@@ -3,7 +3,10 @@
 :func:`evaluate_detection` is the ``detector_eval`` step of ``threedq em``: on the held-out split it scores
 (a) the label-free pseudo-boxes of :mod:`threedq.proposals` and (b) the detector, at IoU 0.25 and 0.5
 (:class:`~threedq.metrics.DetectionMAP`, accumulated over the whole split); it draws detections beside GT
-on held-out scenes and writes the detector's boxes of the requested splits as ``detections_<split>.npz``
+on held-out scenes; it measures, per object size band, the share of objects each box set finds at IoU 0.25 and
+0.5 and how the best box misses (centre, height, size; :mod:`threedq.metrics.localisation`), beside the fair
+reference of pseudo-boxes computed from only the views the detector sees; and it writes the detector's boxes of the
+requested splits as ``detections_<split>.npz``
 (``threedq em``: the test split, or every split with ``--boxes detections``; the
 layout of :func:`threedq.data.box_files.save_boxes_file`), which later stages read through the DataModule's
 ``boxes`` option.
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,11 +36,22 @@ from threedq.data.proposal_cache import propose_dataset
 from threedq.datamodules.scene_folder import SceneDataset
 from threedq.metrics import DetectionMAP
 from threedq.metrics.detection import assign_detections
-from threedq.proposals import ProposalParams
+from threedq.metrics.localisation import by_size_band, localisation_errors
+from threedq.proposals import ProposalParams, propose_boxes
 from threedq.scene import load_scene
 from threedq.stages.detector import detection_figure
 
-__all__ = ["box_sets_map", "detect_split", "evaluate_detection", "precision_recall"]
+__all__ = [
+    "box_sets_map", "detect_split", "evaluate_detection", "gt_hulls", "precision_recall", "single_view_pseudo_boxes",
+    "size_band_figure", "size_band_table",
+]
+
+
+def _png(rgb: np.ndarray) -> bytes:
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return png.tobytes()
 
 
 def box_sets_map(
@@ -67,9 +82,12 @@ def box_sets_map(
 @torch.no_grad()
 def detect_split(
     stage: torch.nn.Module, loader: torch.utils.data.DataLoader, score_threshold: float | None = None,
-    progress: bool = True,
+    progress: bool = True, input_views: dict[str, list[int]] | None = None,
 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[tuple[dict[str, Tensor], list[dict[str, Tensor]]]]]:
     """Run a :class:`~threedq.stages.detector.Detector` over a deterministic loader.
+
+    Args:
+        input_views: when given, filled with ``{scene file -> the view indices the detector saw}``.
 
     Returns:
         ``{scene file -> (aabb [P,6], scores [P])}`` at ``score_threshold`` (default: the stage's) and the
@@ -85,8 +103,10 @@ def detect_split(
         with stage.precision_context():  # as the stage's test_step runs (and keys the crop cache)
             logits, box = stage(batch)
         dets = stage.detect(logits, box, score_threshold)
-        for i, d in zip(batch["scene_index"].tolist(), dets):
+        for j, (i, d) in enumerate(zip(batch["scene_index"].tolist(), dets)):
             out[files[i]] = (d["boxes"].cpu().numpy(), d["scores"].cpu().numpy())
+            if input_views is not None:
+                input_views[files[i]] = batch["view_ids"][j, : int(batch["num_input_views"][j])].tolist()
         if not first:
             first.append((batch, dets))
     stage.train(was_training)
@@ -117,6 +137,81 @@ def precision_recall(
             "boxes": boxes, "matched": matched, "gt": gt_total}  # fmt: skip
 
 
+#: Single-view pseudo-boxes of a split, per dataset and views (``threedq em`` scores them once per run, not per round).
+_SINGLE_VIEW_CACHE: dict[tuple[str, tuple[tuple[str, tuple[int, ...]], ...]], dict] = {}
+
+
+def single_view_pseudo_boxes(data_dir: str | Path, views: dict[str, list[int]], bounds: Any = None,
+                             progress: bool = True) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The label-free pseudo-boxes of each scene from only the views a detector sees (``{file -> view indices}``).
+
+    The detector's fair reference: the pseudo-boxes it is trained on fuse every view of a training scene, while
+    at test time it sees one. Same parameters as the training pseudo-boxes except that a voxel seen by one view
+    counts (``min_views=1``). Kept in memory per process for the same scenes and views.
+    """
+    key = (str(Path(data_dir).resolve()), tuple(sorted((f, tuple(v)) for f, v in views.items())))
+    if key not in _SINGLE_VIEW_CACHE:
+        kwargs = {**asdict(ProposalParams(view_stride=2)), "view_stride": 1, "min_views": 1}
+        out = {}
+        for f, v in tqdm(sorted(views.items()), desc="single-view pseudo-boxes", disable=not progress, leave=False):
+            rec = load_scene(Path(data_dir) / f, validate=False)
+            idx = np.asarray(v, dtype=np.int64)
+            sub = replace(rec, rgb=rec.rgb[idx], depth=rec.depth[idx], K=rec.K[idx], world_T_cam=rec.world_T_cam[idx],
+                          instance=None if rec.instance is None else rec.instance[idx])
+            out[f] = propose_boxes(sub, bounds=bounds, **kwargs)
+        _SINGLE_VIEW_CACHE[key] = out
+    return _SINGLE_VIEW_CACHE[key]
+
+
+def gt_hulls(data_dir: str | Path, files: list[str]) -> dict[str, np.ndarray]:
+    """``{file -> [G, 6]}`` the axis-aligned hulls of each scene's GT boxes (float64)."""
+    return {f: boxes_to_aabb(load_scene(Path(data_dir) / f, validate=False).boxes.astype(np.float64)).reshape(-1, 6)
+            for f in files}
+
+
+def size_band_table(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[dict[str, Any]]:
+    """:func:`~threedq.metrics.localisation.by_size_band` of per-scene boxes against the GT hulls (:func:`gt_hulls`)."""
+    per_scene = []
+    for f, (aabb, scores) in box_sets.items():
+        per_scene.append(localisation_errors(torch.as_tensor(aabb, dtype=torch.float64).reshape(-1, 6),
+                                             torch.as_tensor(scores, dtype=torch.float64).reshape(-1),
+                                             torch.from_numpy(gt[f])))
+    return by_size_band(per_scene)
+
+
+def size_band_figure(tables: dict[str, list[dict[str, Any]]]) -> np.ndarray:
+    """Bars: per size band, the share of objects each box set finds at IoU 0.25 (light) and 0.5 (dark).
+
+    Returns an RGB uint8 image ``[H, W, 3]``.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    names = list(tables)
+    bands = [r["band"] for r in tables[names[0]]]
+    fig = Figure(figsize=(2.2 + 1.6 * len(bands), 3.6), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    width = 0.8 / len(names)
+    colours = ["#4c72b0", "#dd8452", "#55a868", "#c44e52"]
+    for i, name in enumerate(names):
+        x = np.arange(len(bands)) + (i - (len(names) - 1) / 2) * width
+        f25 = [r["found_25"] for r in tables[name]]
+        f50 = [r["found_50"] for r in tables[name]]
+        c = colours[i % len(colours)]
+        ax.bar(x, np.nan_to_num(f25), width * 0.95, color=c, alpha=0.35)
+        ax.bar(x, np.nan_to_num(f50), width * 0.95, color=c, label=name)
+    ax.set_xticks(np.arange(len(bands)))
+    ax.set_xticklabels([f"{b}\n({r['objects']} obj.)" for b, r in zip(bands, tables[names[0]])], fontsize=8)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("objects found (dark: IoU 0.5, light: 0.25)", fontsize=8)
+    ax.set_title("objects found per size (largest extent of the GT box), test split", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy()
+
+
 def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[str, float],
                        splits: tuple[str, ...] = ("train", "val", "test"), progress: bool = True) -> dict[str, Any]:  # fmt: skip
     """mAP of the pseudo-boxes on the test split beside the detector's, a detections picture, and detection files.
@@ -129,8 +224,11 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
             :class:`~threedq.metrics.DetectionMAP`.
 
     Returns:
-        ``{"pseudo_boxes": {...}, "detector": {...}, "detections": {split: path}, "handed_on": {split: precision,
-        recall and counts of the boxes above the stage's score threshold at IoU 0.5}, "seconds"}``.
+        ``{"pseudo_boxes": {...}, "pseudo_boxes_single_view": {...} (the mAP of pseudo-boxes from only the views the
+        detector sees), "detector": {...}, "by_size": [{"boxes": box set, "rows": objects found at IoU 0.25 / 0.5
+        and the best box's centre, height and size errors per size band}] (also ``detection_by_size.png``), "detections":
+        {split: path}, "handed_on": {split: precision, recall and counts of the boxes above the stage's score
+        threshold at IoU 0.5}, "seconds"}``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -151,7 +249,8 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
         ds = SceneDataset(dm.data_dir, dm.index, split, num_input_views=dm.num_input_views,
                           num_target_views=0, max_objects=dm.max_objects, random_views=False, seed=dm.seed)  # fmt: skip
         loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=False, num_workers=0)
-        dets, first = detect_split(stage, loader, progress=progress)
+        views: dict[str, list[int]] = {}
+        dets, first = detect_split(stage, loader, progress=progress, input_views=views)
         path = out / f"detections_{split}.npz"
         save_boxes_file(path, dets, json.dumps({"score_threshold": stage.hparams.score_threshold}))
         files[split] = str(path)
@@ -160,11 +259,17 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
         if split == "test":
             kept = sum(len(s) for _, s in dets.values())
             result["detector"]["boxes_kept_at_score_threshold"] = kept
+            # the fair reference: pseudo-boxes from only the views the detector saw; and where IoU is lost, per size
+            single = single_view_pseudo_boxes(dm.data_dir, views, dm.index.scene_bounds, progress=progress)
+            result["pseudo_boxes_single_view"] = box_sets_map(dm.data_dir, test_files, single, progress=progress)
+            gt = gt_hulls(dm.data_dir, test_files)
+            tables = {"pseudo-boxes (all views)": size_band_table(gt, pseudo),
+                      "pseudo-boxes (input view)": size_band_table(gt, single),
+                      f"detector (score >= {stage.hparams.score_threshold:g})": size_band_table(gt, dets)}
+            result["by_size"] = [{"boxes": name, "rows": rows} for name, rows in tables.items()]  # a list: ordered
+            atomic_write_bytes(out / "detection_by_size.png", _png(size_band_figure(tables)))
             batch, d = first[0]
-            img = detection_figure(batch, d, max_scenes=4)
-            ok, png = cv2.imencode(".png", img[:, :, ::-1])
-            if ok:
-                atomic_write_bytes(out / "detections.png", png.tobytes())
+            atomic_write_bytes(out / "detections.png", _png(detection_figure(batch, d, max_scenes=4)))
     result["detections"] = files
     result["handed_on"] = handed_on
     result["seconds"] = round(time.time() - t0, 1)

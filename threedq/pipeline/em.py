@@ -71,6 +71,7 @@ from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.evaluation import SEARCH_LABELS
 from threedq.metrics.retrieval import PROTOCOL_LABELS
 from threedq.pipeline.lightning_cli import ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint
+from threedq.pipeline.overrides import stage_overrides
 from threedq.pipeline.report import (
     METHOD_LABELS,
     evaluate_quantizer,
@@ -87,7 +88,7 @@ __all__ = ["run_em"]
 ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer", "self_labelling")
 #: How a round fits its quantizer: one epoch over the training boxes, no validation pass (the round's evaluation
 #: scores the bank on the test split; the val split's numbers were read by nothing).
-_QUANTIZER_FIT = ("--trainer.max_steps=-1", "--trainer.max_epochs=1", "--trainer.limit_val_batches=0")
+_QUANTIZER_FIT = {"max_steps": -1, "max_epochs": 1, "limit_val_batches": 0}
 
 
 def _config_label(path: Path, work: Path) -> str:
@@ -312,6 +313,27 @@ def _fmt(v: float | None, digits: int = 3) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
+def _size_band_lines(det: dict[str, Any], work_dir: str) -> list[str]:
+    """Objects found per size band by each box set of a detector evaluation (``by_size``), as a markdown table."""
+    if not det.get("by_size"):
+        return []
+    tables = {t["boxes"]: t["rows"] for t in det["by_size"]}
+    names = list(tables)
+    bands = [r["band"] for r in tables[names[0]]]
+    lines = ["### Objects found per size (largest extent of the GT box; share found at IoU 0.25 / 0.5; median "
+             "centre error of the best box in the plane / in height, metres)", "",
+             "| boxes | " + " | ".join(f"{b} ({r['objects']})" for b, r in zip(bands, tables[names[0]])) + " |",
+             "|---|" + "---|" * len(bands)]
+    for name in names:
+        cells = [("-" if not r["objects"] else f"{r['found_25']:.2f} / {r['found_50']:.2f}"
+                  + ("" if r["median_centre_error_xy"] != r["median_centre_error_xy"]  # NaN: no box overlaps any
+                     else f"; {r['median_centre_error_xy']:.3f} / {r['median_centre_error_z']:+.3f}"))
+                 for r in tables[name]]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", f"Picture: `{work_dir}/03_detector_eval/detection_by_size.png`.", ""]
+    return lines
+
+
 def _report(summary: dict[str, Any]) -> str:
     vp = summary["viewpred_eval"]["view_prediction"]
     lines = [
@@ -349,12 +371,17 @@ def _report(summary: dict[str, Any]) -> str:
             "",
             "| boxes | mAP@0.25 | mAP@0.5 |",
             "|---|---|---|",
-            f"| label-free pseudo-boxes (depth, ground plane, 3D components) | {pb['map_25']:.3f} | {pb['map_50']:.3f} |",
+            f"| label-free pseudo-boxes (depth, ground plane, 3D components; every view) | {pb['map_25']:.3f} | "
+            f"{pb['map_50']:.3f} |",
+            *([f"| the same from only the view(s) the detector sees (its fair reference) | "
+               f"{det['pseudo_boxes_single_view']['map_25']:.3f} | {det['pseudo_boxes_single_view']['map_50']:.3f} |"]
+              if det.get("pseudo_boxes_single_view") else []),
             f"| detector trained on the pseudo-boxes | {dd['map_25']:.3f} | {dd['map_50']:.3f} |",
             "",
             f"Detections beside GT: `{summary['work_dir']}/03_detector_eval/detections.png`. "
             f"Rounds use {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes.",
             "",
+            *_size_band_lines(det, summary["work_dir"]),
         ]
     rounds = summary.get("round_results", [])
     r0 = summary.get("round0_result")
@@ -531,7 +558,7 @@ def run_em(
         raise InputError(f"--frozen_precision: expected 'auto', 'bf16-mixed' or '32-true', got {frozen_precision!r}")
     if frozen_precision == "auto":
         frozen_precision = "bf16-mixed" if _bf16_is_native() else "32-true"
-    prec = [f"--trainer.precision={frozen_precision}"]
+    prec = {"precision": frozen_precision}  # the trainer of every stage reading a frozen encoder
     work = output_folder("--work_dir", work_dir)
     layout = RunLayout(work)
     with hold_folder(work, check_below=True):  # one run per work folder (a second one is refused)
@@ -546,7 +573,15 @@ def run_em(
         m_configs = [resolve_config(mining_config), *extra] if mine else []
         relabel = detection and self_labelling_config not in (None, "", "none")
         sl_configs = [resolve_config(self_labelling_config), *extra] if relabel else []
-        overrides = [f"--trainer.max_steps={max_steps}"] if max_steps is not None else []
+        overrides = stage_overrides(vp_configs, trainer={"max_steps": max_steps} if max_steps is not None else None)
+        d_configs = [resolve_config(detector_config), *extra] if detection else []
+        # every argument the rounds hand a stage is checked against the stage's class now, not when the stage starts
+        for cfgs, model_args, data_args in ((d_configs, ("encoder_ckpt",), ()),
+                                            (q_configs, ("encoder_ckpt", "init_bank_ckpt"), ("boxes",)),
+                                            (m_configs, ("encoder_ckpt",), ("boxes",)),
+                                            (sl_configs, ("encoder_ckpt", "bank_ckpt", "detector_ckpt"), ())):
+            if cfgs:
+                stage_overrides(cfgs, model=dict.fromkeys(model_args), data=dict.fromkeys(data_args))
         if viewpred_ckpt is not None:
             vp = _given_viewpred(viewpred_ckpt)
         else:
@@ -560,29 +595,31 @@ def run_em(
         # encoder is new, and the older grids and crops are dropped.
         crop_cache = CropCache()
         det, det_eval = None, None
-        box_over: list[str] = []
+        boxes_of_round: dict[str, Any] = {}  # the DataModule's boxes of the round (GT unless detections are handed on)
         if detection:
-            d_configs = [resolve_config(detector_config), *extra]
-            det = _fit_stage("detector", d_configs, layout.detector, [f"--model.init_args.encoder_ckpt={vp_ckpt}", *prec],
-                             resume, crop_cache)
+            det = _fit_stage("detector", d_configs, layout.detector,
+                             stage_overrides(d_configs, model={"encoder_ckpt": vp_ckpt}, trainer=prec), resume, crop_cache)
             # detections of every split only when the rounds take their boxes from the detector
             det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-            det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), layout.detector_eval, det_splits, prec,
+            det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), layout.detector_eval, det_splits,
+                                          stage_overrides(d_configs, trainer=prec),
                                           crop_cache=crop_cache)
             print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
                   f"detector {det_eval['detector']['map_50']:.3f}")
             if boxes == "detections" and rounds:
                 _check_handed_on(layout.detector_eval, ("train", "test"))
-                box_over = [f"--data.init_args.boxes={layout.detections(layout.detector_eval)}"]
+                boxes_of_round = {"boxes": layout.detections(layout.detector_eval)}
         round0 = None
         if rounds:
             # the paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes (the
             # grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM)
             q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, layout.round(0, "quantizer"),
-                            [f"--model.init_args.encoder_ckpt={vp_ckpt}", *_QUANTIZER_FIT, *box_over, *prec], resume,
+                            stage_overrides(q_configs, model={"encoder_ckpt": vp_ckpt}, data=boxes_of_round,
+                                            trainer={**_QUANTIZER_FIT, **prec}), resume,
                             crop_cache)
             round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), layout.round(0, "eval"), final=False,
-                                     overrides=[*box_over, *prec], crop_cache=crop_cache)
+                                     overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
+                                     crop_cache=crop_cache)
         round_results: list[dict[str, Any]] = []
         mining_results: list[dict[str, Any]] = []
         self_label_results: list[dict[str, Any]] = []
@@ -592,30 +629,35 @@ def run_em(
         for r in range(1, rounds + 1):
             if mine:
                 m = _fit_stage(f"round {r} mining", m_configs, layout.round(r, "mining"),
-                               [f"--model.init_args.encoder_ckpt={encoder}", *box_over], resume, crop_cache)
+                               stage_overrides(m_configs, model={"encoder_ckpt": encoder}, data=boxes_of_round), resume,
+                               crop_cache)
                 encoder = Path(m["checkpoint"])
                 mining_results.append({**m, "refreshes": _mining_diagnostics(layout.round(r, "mining"))})
                 # the encoder is new: the previous one's grids and crops will not be asked for again
                 crop_cache.drop("features")
                 crop_cache.drop("grid")
-            q_over = [f"--model.init_args.encoder_ckpt={encoder}", *_QUANTIZER_FIT, *box_over, *prec]
+            q_model: dict[str, Any] = {"encoder_ckpt": encoder}
             if prev_bank is not None:
-                q_over.append(f"--model.init_args.init_bank_ckpt={prev_bank}")
+                q_model["init_bank_ckpt"] = prev_bank
+            q_over = stage_overrides(q_configs, model=q_model, data=boxes_of_round, trainer={**_QUANTIZER_FIT, **prec})
             q = _fit_stage(f"round {r} quantizer", q_configs, layout.round(r, "quantizer"), q_over, resume, crop_cache)
             prev_bank = Path(q["checkpoint"])
             round_results.append(_evaluate_round(q_configs, prev_bank, layout.round(r, "eval"), final=r == rounds,
-                                                overrides=[*box_over, *prec], crop_cache=crop_cache))
+                                                overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
+                                                crop_cache=crop_cache))
             if relabel:
                 assert det_ckpt is not None
                 run = layout.round(r, "self_labelling")
-                sl_over = [f"--model.init_args.encoder_ckpt={encoder}", f"--model.init_args.bank_ckpt={prev_bank}", *prec]
+                sl_model = {"encoder_ckpt": encoder, "bank_ckpt": prev_bank}
                 sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
-                                [*sl_over, f"--model.init_args.detector_ckpt={det_ckpt}"], resume, crop_cache)
+                                stage_overrides(sl_configs, model={**sl_model, "detector_ckpt": det_ckpt}, trainer=prec),
+                                resume, crop_cache)
                 det_ckpt = Path(sl["checkpoint"])
                 # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
                 splits = det_splits if r < rounds else ("test",)
                 sl_eval = _evaluate_detector(sl_configs, det_ckpt, layout.round(r, "detector_eval"), splits,
-                                             [*sl_over, "--model.init_args.detector_ckpt=null"], crop_cache)
+                                             stage_overrides(sl_configs, model={**sl_model, "detector_ckpt": None},
+                                                             trainer=prec), crop_cache)
                 labels = run / "self_labels" / "labels.json"
                 self_label_results.append({**sl, "labels": json.loads(labels.read_text()) if labels.is_file() else None,
                                            "detector_eval": sl_eval})
@@ -623,7 +665,7 @@ def run_em(
                       f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
                 if boxes == "detections" and r < rounds:
                     _check_handed_on(layout.round(r, "detector_eval"), ("train", "test"))
-                    box_over = [f"--data.init_args.boxes={layout.detections(layout.round(r, 'detector_eval'))}"]
+                    boxes_of_round = {"boxes": layout.detections(layout.round(r, "detector_eval"))}
             q_res = round_results[-1]["quantization"]["threedq"]
             c = _feature_cells(round_results[-1]["retrieval"])
             print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "

@@ -1,0 +1,100 @@
+"""Command-line overrides of a stage run, built from keyword arguments checked against what the stage takes.
+
+``threedq em`` hands each stage its inputs (the encoder to start from, the boxes of the round, the precision) as
+LightningCLI overrides. :func:`stage_overrides` builds them from Python values and checks every name first: a model
+argument against the constructors of the stage class its configs name (:func:`~threedq.stages.base.stage_arguments`),
+a data argument against the DataModule's, a trainer argument against :class:`lightning.pytorch.Trainer`'s. A renamed
+argument is refused with one line naming the configs and the name, before anything runs, instead of failing deep
+inside a run.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import yaml
+
+from threedq.errors import InputError
+from threedq.stages.base import stage_arguments
+
+__all__ = ["class_of", "stage_overrides"]
+
+_TRAINER_ARGUMENTS = frozenset(inspect.signature(L.Trainer.__init__).parameters) - {"self"}
+
+
+def class_of(configs: Sequence[str | Path], key: str) -> type | None:
+    """The class a run of ``configs`` builds for ``key`` (``"model"`` or ``"data"``): the last ``class_path`` the
+    configs set (later configs override earlier ones); ``None`` when none sets one or it does not import."""
+    path = None
+    for config in configs:
+        doc = yaml.safe_load(Path(config).read_text()) or {}
+        section = doc.get(key) if isinstance(doc, dict) else None
+        if isinstance(section, dict) and isinstance(section.get("class_path"), str):
+            path = section["class_path"]
+    if path is None or "." not in path:
+        return None
+    module, name = path.rsplit(".", 1)
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):
+        return None
+
+
+def _value(v: Any) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return str(v)
+
+
+def stage_overrides(
+    configs: Sequence[str | Path],
+    *,
+    model: Mapping[str, Any] | None = None,
+    data: Mapping[str, Any] | None = None,
+    trainer: Mapping[str, Any] | None = None,
+) -> list[str]:
+    """``--model.init_args.<k>=<v>``, ``--data.init_args.<k>=<v>`` and ``--trainer.<k>=<v>`` for a run of ``configs``.
+
+    Args:
+        configs: the stage's config files, in the order they are composed.
+        model, data, trainer: the values to set (``None`` becomes ``null``, paths their text).
+
+    Raises:
+        InputError: a name the stage's model, its DataModule or the Trainer does not take (one line).
+    """
+    out: list[str] = []
+    for key, values, allowed in (("model", model, None), ("data", data, None), ("trainer", trainer, _TRAINER_ARGUMENTS)):
+        if not values:
+            continue
+        if allowed is None:
+            cls = class_of(configs, key)
+            allowed = None if cls is None else frozenset(stage_arguments(cls)) | _positional(cls)
+            prefix = f"--{key}.init_args."
+            owner = f"{cls.__name__} ({key} of {', '.join(Path(c).name for c in configs)})" if cls else key
+        else:
+            prefix, owner = "--trainer.", "lightning.Trainer"
+        for name, v in values.items():
+            if allowed is not None and name not in allowed:
+                raise InputError(f"{owner}: takes no argument '{name}' (threedq em passes it: a renamed argument?)")
+            out.append(f"{prefix}{name}={_value(v)}")
+    return out
+
+
+def _positional(cls: type) -> frozenset[str]:
+    """Arguments without a default (a DataModule's ``data_dir``)."""
+    names: set[str] = set()
+    for c in cls.__mro__:
+        if c.__module__.startswith("lightning"):
+            break
+        init = c.__dict__.get("__init__")
+        if init is not None:
+            names |= {n for n, p in inspect.signature(init).parameters.items()
+                      if n != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)}
+    return frozenset(names)
