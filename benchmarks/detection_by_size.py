@@ -12,6 +12,10 @@ before that, on any dataset.
     python benchmarks/detection_by_size.py --data_dir data/shifted runs/shifted/03_detector_eval \\
         --out benchmarks/results/detection_by_size_shifted.json
 
+``--snap IOU ...`` adds, per detector, the same rows after each detected box is replaced by the single-view
+pseudo-box it overlaps most, when that overlap is at least IOU (a probe of refining detections against the observed
+view, not a stage of threedq).
+
 ``--num_input_views`` and ``--seed`` must be the DataModule's (defaults: the packaged configs' 1 and 0), so the
 single view is the one the detector saw.
 """
@@ -27,9 +31,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import numpy as np
+import torch
 from _machine import cpu_name
 from threedq.datamodules.scene_folder import SceneDataset
 
+from threedq.boxes import aabb_iou_3d
 from threedq.data.box_files import load_boxes_file
 from threedq.data.proposal_cache import propose_dataset
 from threedq.pipeline.detection_eval import (
@@ -46,6 +53,21 @@ def _fmt(x: float, spec: str = ".2f") -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
 
 
+def _snapped(dets: dict, reference: dict, min_iou: float) -> dict:
+    """Each box of ``dets`` replaced by the ``reference`` box it overlaps most, where that IoU is >= ``min_iou``."""
+    out = {}
+    for f, (aabb, scores) in dets.items():
+        a = np.asarray(aabb, dtype=np.float64).reshape(-1, 6).copy()
+        p = np.asarray(reference[f][0], dtype=np.float64).reshape(-1, 6)
+        if len(a) and len(p):
+            iou = aabb_iou_3d(torch.from_numpy(a), torch.from_numpy(p)).numpy()
+            j = iou.argmax(1)
+            ok = iou[np.arange(len(a)), j] >= min_iou
+            a[ok] = p[j[ok]]
+        out[f] = (a.astype(np.float32), np.asarray(scores))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("eval_dirs", nargs="*", help="detector evaluation folders holding detections_test.npz")
@@ -53,6 +75,8 @@ def main() -> None:
     ap.add_argument("--num_input_views", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="also write the tables as JSON here")
+    ap.add_argument("--snap", type=float, nargs="*", default=[],
+                    help="also score each detector with its boxes snapped to the single-view pseudo-box of IoU >= this")
     args = ap.parse_args()
     t0 = time.time()
     data = Path(args.data_dir)
@@ -66,8 +90,8 @@ def main() -> None:
     sets = {"pseudo-boxes (all views)": pseudo, "pseudo-boxes (input view)": single}
     for d in args.eval_dirs:
         sets[f"detector {d}"] = load_boxes_file(Path(d) / "detections_test.npz")
-    import torch
-
+        for thr in args.snap:
+            sets[f"detector {d}, snapped at IoU >= {thr:g}"] = _snapped(sets[f"detector {d}"], single, thr)
     result = {"machine": f"{cpu_name()}, {torch.get_num_threads()} threads, torch {torch.__version__}", "date": time.strftime("%Y-%m-%d"), "data_dir": str(data),
               "command": " ".join(sys.argv), "single_view_map": box_sets_map(data, files, single, progress=False),
               "by_size": [{"boxes": name, "rows": size_band_table(gt, boxes)} for name, boxes in sets.items()]}
