@@ -93,7 +93,7 @@ def main() -> None:
         for thr in args.snap:
             sets[f"detector {d}, snapped at IoU >= {thr:g}"] = _snapped(sets[f"detector {d}"], single, thr)
     result = {"machine": f"{cpu_name()}, {torch.get_num_threads()} threads, torch {torch.__version__}", "date": time.strftime("%Y-%m-%d"), "data_dir": str(data),
-              "command": " ".join(sys.argv), "single_view_map": box_sets_map(data, files, single, progress=False),
+              "command": " ".join(sys.argv), "single_view_map": box_sets_map(gt, single, progress=False),
               "by_size": [{"boxes": name, "rows": size_band_table(gt, boxes)} for name, boxes in sets.items()]}
     print(f"# objects found per size band, test split of {data} ({len(files)} scenes); {result['machine']}")
     print(f"single-view pseudo-boxes: mAP@0.25 {result['single_view_map']['map_25']:.3f}, "

@@ -12,6 +12,14 @@ torch.set_num_threads(min(2, torch.get_num_threads()))
 TINY = {"image_size": (32, 32), "num_views": 4, "max_objects": 3}
 
 
+def tiny_data_yaml(data_dir: Path, **extra: object) -> str:
+    """The ``data:`` block of a stage config on the tiny dataset (YAML text, top level), with ``extra`` init_args."""
+    h, w = TINY["image_size"]
+    lines = ["data:", "  init_args:", f"    data_dir: {data_dir}", "    num_scenes: 12", f"    image_size: [{h}, {w}]",
+             f"    num_views: {TINY['num_views']}", "    generator_workers: 1", *(f"    {k}: {v}" for k, v in extra.items())]
+    return "\n".join(lines)
+
+
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """12 scenes (train 8 / val 2 / test 2) of 4 views at 32x32, generated in-process."""

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from conftest import tiny_data_yaml
 
 from threedq.scene import load_index
 
@@ -22,13 +23,7 @@ def _em_config(tmp_path: Path, data_dir: Path) -> str:
 model:
   init_args:
     grid_resolution: [32, 32, 16]
-data:
-  init_args:
-    data_dir: {data_dir}
-    num_scenes: 12
-    image_size: [32, 32]
-    num_views: 4
-    generator_workers: 1
+{tiny_data_yaml(data_dir)}
 trainer:
   max_steps: 2
   log_every_n_steps: 1

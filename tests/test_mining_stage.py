@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 import torch.nn.functional as F
-
+from conftest import tiny_data_yaml
 from threedq.stages.mining import Mining, corner_keys, corner_offsets, implied_yaw_error_deg, mined_pairs_figure
 
 
@@ -121,14 +121,7 @@ model:
     pairs_per_step: 2
     pool_batch_size: 2
     retrieval_k: 1
-data:
-  init_args:
-    data_dir: {data_dir}
-    num_scenes: 12
-    image_size: [32, 32]
-    num_views: 4
-    generator_workers: 1
-    batch_size: 2
+{tiny_data_yaml(data_dir, batch_size=2)}
 trainer:
   max_steps: 3
   precision: 32-true
@@ -144,8 +137,9 @@ trainer:
 
 @pytest.mark.parametrize("source", ["vc", "vc_moco", "mined"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path) -> None:
-    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
+
+    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
 
     torch.manual_seed(0)
     enc = tmp_path / "enc.pt"
@@ -187,6 +181,7 @@ def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatc
     """The pool is cut from each scene's fixed views in float32 (even under bf16 autocast), so under ``threedq em``
     it reads the grids a stage with the same weights left in the crop cache: no encoder pass, equal crops."""
     from threedq.datamodules.scene_folder import SceneDataset
+
     from threedq.pipeline.crop_cache import CropCache
     from threedq.pipeline.report import split_loader
     from threedq.scene import load_index

@@ -8,6 +8,7 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
+from conftest import tiny_data_yaml
 
 from threedq.geometry import rotate_yaw
 from threedq.metrics import cluster_confusion, hungarian_accuracy
@@ -124,13 +125,7 @@ model:
     num_prototypes: 4
     crop_size: 8
     em_iterations: 2
-data:
-  init_args:
-    data_dir: {data_dir}
-    num_scenes: 12
-    image_size: [32, 32]
-    num_views: 4
-    generator_workers: 1
+{tiny_data_yaml(data_dir)}
 trainer:
   enable_progress_bar: false
   enable_model_summary: false
@@ -144,6 +139,7 @@ class TestQuantizerStage:
     def test_fit_validate_and_warm_start(self, tmp_path: Path, tiny_dataset: Path) -> None:
         from threedq.stages.base import EncoderStage
         from threedq.stages.quantizer import Quantizer
+
         from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
 
         torch.manual_seed(0)

@@ -33,6 +33,7 @@ from typing import Any
 
 import pytest
 import torch
+from conftest import tiny_data_yaml
 
 from threedq.locks import FOLDER_LOCK_NAME
 
@@ -45,8 +46,7 @@ def _config(tmp: Path, data_dir: Path) -> Path:
     cfg = tmp / "tiny.yaml"
     cfg.write_text(
         "model:\n  init_args:\n    grid_resolution: [32, 32, 16]\n"
-        f"data:\n  init_args:\n    data_dir: {data_dir}\n    num_scenes: 12\n    image_size: [32, 32]\n"
-        "    num_views: 4\n    generator_workers: 1\n"
+        f"{tiny_data_yaml(data_dir)}\n"
         "trainer:\n  max_steps: 2\n  log_every_n_steps: 1\n  limit_val_batches: 1\n  check_val_every_n_epoch: 1\n"
         "  enable_progress_bar: false\n  enable_model_summary: false\n"
     )

@@ -54,28 +54,32 @@ def _png(rgb: np.ndarray) -> bytes:
     return png.tobytes()
 
 
+def gt_hulls(data_dir: str | Path, files: list[str]) -> dict[str, np.ndarray]:
+    """``{file -> [G, 6]}`` the axis-aligned hulls of each scene's GT boxes (float64), read once per evaluation."""
+    return {f: boxes_to_aabb(load_scene(Path(data_dir) / f, validate=False).boxes.astype(np.float64)).reshape(-1, 6)
+            for f in files}
+
+
 def box_sets_map(
-    data_dir: str | Path, files: list[str], box_sets: dict[str, tuple[np.ndarray, np.ndarray]],
+    gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]],
     iou_thresholds: tuple[float, ...] = (0.25, 0.5), progress: bool = True,
 ) -> dict[str, float]:
     """Dataset-level mAP of per-scene boxes against the GT boxes' axis-aligned hulls.
 
     Args:
-        data_dir: dataset folder; files: scene files (as in ``index.json``) to score;
+        gt: ``{file -> [G, 6]}`` GT hulls of the scenes to score (:func:`gt_hulls`), in order;
         box_sets: ``{file -> (aabb [P,6], scores [P])}``.
 
     Returns:
         ``{"map_25", "map_50", "num_gt", "num_det"}`` (keys follow ``iou_thresholds``).
     """
     metric = DetectionMAP(iou_thresholds=iou_thresholds)
-    for f in tqdm(files, desc="box mAP", disable=not progress, leave=False):
+    for f, hulls in tqdm(gt.items(), desc="box mAP", disable=not progress, leave=False):
         if f not in box_sets:
             raise ValueError(f"box_sets: no boxes for scene {f}")
-        rec = load_scene(Path(data_dir) / f, validate=False)
-        gt = torch.from_numpy(boxes_to_aabb(rec.boxes.astype(np.float64)).astype(np.float32)).reshape(-1, 6)
         aabb, scores = box_sets[f]
         metric.update([{"boxes": torch.as_tensor(aabb).reshape(-1, 6), "scores": torch.as_tensor(scores).reshape(-1)}],
-                      [{"boxes": gt}])  # fmt: skip
+                      [{"boxes": torch.from_numpy(hulls.astype(np.float32))}])  # fmt: skip
     return {k: (float(v) if v.is_floating_point() else int(v)) for k, v in metric.compute().items()}
 
 
@@ -114,9 +118,9 @@ def detect_split(
 
 
 def precision_recall(
-    data_dir: str | Path, box_sets: dict[str, tuple[np.ndarray, np.ndarray]], iou_threshold: float = 0.5
+    gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]], iou_threshold: float = 0.5
 ) -> dict[str, float | int]:
-    """Precision and recall of a set of kept boxes against the GT boxes' axis-aligned hulls.
+    """Precision and recall of a set of kept boxes against the GT hulls (:func:`gt_hulls`) of their scenes.
 
     Matching is :func:`~threedq.metrics.detection.assign_detections` (greedy by score, one GT per box): a second
     box on an already matched object, e.g. a box nested in it, is a false positive.
@@ -126,13 +130,12 @@ def precision_recall(
     """
     boxes = matched = gt_total = 0
     for f, (aabb, scores) in box_sets.items():
-        rec = load_scene(Path(data_dir) / f, validate=False)
-        gt = torch.from_numpy(boxes_to_aabb(rec.boxes.astype(np.float64)).astype(np.float32)).reshape(-1, 6)
+        g = torch.from_numpy(gt[f].astype(np.float32))
         a = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1, 6)
-        gt_total += gt.shape[0]
+        gt_total += g.shape[0]
         boxes += a.shape[0]
-        if a.shape[0] and gt.shape[0]:
-            matched += int((assign_detections(a, torch.as_tensor(scores).reshape(-1), gt, iou_threshold) >= 0).sum())
+        if a.shape[0] and g.shape[0]:
+            matched += int((assign_detections(a, torch.as_tensor(scores).reshape(-1), g, iou_threshold) >= 0).sum())
     return {"precision": matched / boxes if boxes else float("nan"), "recall": matched / max(gt_total, 1),
             "boxes": boxes, "matched": matched, "gt": gt_total}  # fmt: skip
 
@@ -161,12 +164,6 @@ def single_view_pseudo_boxes(data_dir: str | Path, views: dict[str, list[int]], 
             out[f] = propose_boxes(sub, bounds=bounds, **kwargs)
         _SINGLE_VIEW_CACHE[key] = out
     return _SINGLE_VIEW_CACHE[key]
-
-
-def gt_hulls(data_dir: str | Path, files: list[str]) -> dict[str, np.ndarray]:
-    """``{file -> [G, 6]}`` the axis-aligned hulls of each scene's GT boxes (float64)."""
-    return {f: boxes_to_aabb(load_scene(Path(data_dir) / f, validate=False).boxes.astype(np.float64)).reshape(-1, 6)
-            for f in files}
 
 
 def size_band_table(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[dict[str, Any]]:
@@ -233,12 +230,12 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    test_files = dm.index.files("test")
+    gt_test = gt_hulls(dm.data_dir, dm.index.files("test"))
     pseudo = propose_dataset(dm.data_dir, "test", dm.data_dir / "proposals" / "test.npz",
                              params=ProposalParams(view_stride=2), progress=progress)  # fmt: skip
     result: dict[str, Any] = {
         "split": "test",
-        "pseudo_boxes": box_sets_map(dm.data_dir, test_files, pseudo, progress=progress),
+        "pseudo_boxes": box_sets_map(gt_test, pseudo, progress=progress),
         "detector": dict(test_map),
     }
     files: dict[str, str] = {}
@@ -255,14 +252,14 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
         save_boxes_file(path, dets, json.dumps({"score_threshold": stage.hparams.score_threshold}))
         files[split] = str(path)
         # the boxes handed on to mining and quantization (GT used for measuring only)
-        handed_on[split] = {"score_threshold": stage.hparams.score_threshold, **precision_recall(dm.data_dir, dets)}
+        gt = gt_test if split == "test" else gt_hulls(dm.data_dir, ds.files)
+        handed_on[split] = {"score_threshold": stage.hparams.score_threshold, **precision_recall(gt, dets)}
         if split == "test":
             kept = sum(len(s) for _, s in dets.values())
             result["detector"]["boxes_kept_at_score_threshold"] = kept
             # the fair reference: pseudo-boxes from only the views the detector saw; and where IoU is lost, per size
             single = single_view_pseudo_boxes(dm.data_dir, views, dm.index.scene_bounds, progress=progress)
-            result["pseudo_boxes_single_view"] = box_sets_map(dm.data_dir, test_files, single, progress=progress)
-            gt = gt_hulls(dm.data_dir, test_files)
+            result["pseudo_boxes_single_view"] = box_sets_map(gt, single, progress=progress)
             tables = {"pseudo-boxes (all views)": size_band_table(gt, pseudo),
                       "pseudo-boxes (input view)": size_band_table(gt, single),
                       f"detector (score >= {stage.hparams.score_threshold:g})": size_band_table(gt, dets)}

@@ -2,7 +2,7 @@
 
 ``threedq em`` hands each stage its inputs (the encoder to start from, the boxes of the round, the precision) as
 LightningCLI overrides. :func:`stage_overrides` builds them from Python values and checks every name first: a model
-argument against the constructors of the stage class its configs name (:func:`~threedq.stages.base.stage_arguments`),
+argument against the constructors of the stage class its configs name (its own and its bases'),
 a data argument against the DataModule's, a trainer argument against :class:`lightning.pytorch.Trainer`'s. A renamed
 argument is refused with one line naming the configs and the name, before anything runs, instead of failing deep
 inside a run.
@@ -20,7 +20,6 @@ import lightning as L
 import yaml
 
 from threedq.errors import InputError
-from threedq.stages.base import stage_arguments
 
 __all__ = ["class_of", "stage_overrides"]
 
@@ -75,7 +74,7 @@ def stage_overrides(
             continue
         if allowed is None:
             cls = class_of(configs, key)
-            allowed = None if cls is None else frozenset(stage_arguments(cls)) | _positional(cls)
+            allowed = None if cls is None else _argument_names(cls)
             prefix = f"--{key}.init_args."
             owner = f"{cls.__name__} ({key} of {', '.join(Path(c).name for c in configs)})" if cls else key
         else:
@@ -87,8 +86,9 @@ def stage_overrides(
     return out
 
 
-def _positional(cls: type) -> frozenset[str]:
-    """Arguments without a default (a DataModule's ``data_dir``)."""
+def _argument_names(cls: type) -> frozenset[str]:
+    """Every named constructor argument of ``cls`` and its bases below Lightning's classes (with a default or not:
+    a DataModule's ``data_dir`` has none)."""
     names: set[str] = set()
     for c in cls.__mro__:
         if c.__module__.startswith("lightning"):
