@@ -33,6 +33,7 @@ from torch import Tensor, nn
 from threedq.errors import InputError
 from threedq.stages.base import EncoderStage
 from threedq.atomic_io import atomic_write_bytes
+from threedq.box_refinement import observed_boxes, refine_boxes
 from threedq.boxes import nms_3d
 from threedq.data.draw import draw_boxes
 from threedq.metrics import DetectionMAP
@@ -195,6 +196,11 @@ class Detector(EncoderStage):
             below ``nms_iou`` (0.3: on the embedded data's val split the boxes handed on at 0.9 go from 191 to 159,
             mAP the same).
         max_detections: per scene, after NMS.
+        refine_iou: each detection is replaced by the label-free pseudo-box of the detector's own input views
+            (:mod:`threedq.box_refinement`: the same view's depth and ground plane) it overlaps most, when that IoU
+            is at least this, then suppressed again; a detection no observed box supports keeps its regressed box.
+            Applies to everything the stage detects in a batch (validation and test mAP, ``predict``, the boxes
+            ``threedq em`` hands on, ``threedq parse``); 0 = off (the regressed boxes).
         lr: Adam learning rate.
         image_every_n_steps: write a detections PNG at validation when this many steps have passed (0: never).
 
@@ -216,6 +222,7 @@ class Detector(EncoderStage):
         nms_iou: float = 0.1,
         nms_iomin: float = 0.3,
         max_detections: int = 16,
+        refine_iou: float = 0.1,
         lr: float = 1e-3,
         image_every_n_steps: int = 200,
         min_box_height: float | None = None,
@@ -227,7 +234,7 @@ class Detector(EncoderStage):
         if min_box_height is not None and not (math.isfinite(min_box_height) and min_box_height >= 0):
             raise ValueError(f"min_box_height: expected a size >= 0 (metres) or null, got {min_box_height}")
         for name, v in (("score_threshold", score_threshold), ("eval_score_threshold", eval_score_threshold), ("nms_iou", nms_iou),
-                        ("nms_iomin", nms_iomin)):
+                        ("nms_iomin", nms_iomin), ("refine_iou", refine_iou)):
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name}: expected in [0, 1], got {v}")
         if not 0.0 < inner_fraction <= 1.0:
@@ -330,19 +337,36 @@ class Detector(EncoderStage):
         return {"loss": obj + self.hparams.box_weight * reg, "obj_loss": obj, "box_loss": reg, "num_pos": pos.sum(),
                 "num_neg": neg.sum()}
 
+    def input_of(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """The input views of a batch: ``depth [B, V, H, W]``, ``K [B, V, 3, 3]``, ``R_T_cam [B, V, 4, 4]``."""
+        v = self.input_views(batch)
+        return batch["depth"][:, :v], batch["K"][:, :v], batch["R_T_cam"][:, :v]
+
     @torch.no_grad()
-    def detect(self, logits: Tensor, box: Tensor, score_threshold: float | None = None) -> list[dict[str, Tensor]]:
-        """Per scene ``{"boxes": [P, 6], "scores": [P]}`` after thresholding and 3D NMS."""
+    def detect(self, logits: Tensor, box: Tensor, score_threshold: float | None = None,
+               views: tuple[Tensor, Tensor, Tensor] | None = None) -> list[dict[str, Tensor]]:
+        """Per scene ``{"boxes": [P, 6], "scores": [P]}`` after thresholding and 3D NMS.
+
+        ``views``: the input views the logits were computed from (:meth:`input_of`); with ``refine_iou > 0`` each
+        detection is refined against them (see ``refine_iou``). ``None``: the regressed boxes.
+        """
         self._check_anchor()
         thr = self.hparams.score_threshold if score_threshold is None else score_threshold
         scores = torch.sigmoid(logits.float()).flatten(1)
         boxes = decode_boxes(self.centres, box.float(), self.anchor).flatten(1, 3)
+        refine = views is not None and self.hparams.refine_iou > 0
+        fg = self.feature_grid
         out = []
-        for s, b in zip(scores, boxes):
+        for i, (s, b) in enumerate(zip(scores, boxes)):
             keep = s >= thr
             s, b = s[keep], b[keep]
             k = nms_3d(b, s, self.hparams.nms_iou, self.hparams.nms_iomin)[: self.hparams.max_detections]
-            out.append({"boxes": b[k], "scores": s[k]})
+            b, s = b[k], s[k]
+            if refine and b.shape[0]:
+                obs, _ = observed_boxes(views[0][i], views[1][i], views[2][i], (fg.bounds_min, fg.bounds_max))
+                b, s, _ = refine_boxes(b, s, torch.from_numpy(obs), self.hparams.refine_iou, self.hparams.nms_iou,
+                                       self.hparams.nms_iomin)  # fmt: skip
+            out.append({"boxes": b, "scores": s})
         return out
 
     # ------------------------------------------------------------------ Lightning hooks
@@ -359,13 +383,14 @@ class Detector(EncoderStage):
         logits, box = self(batch)
         r = self.loss(logits, box, batch["gt_aabb"], batch["gt_mask"])
         self.log(f"{split}/loss", r["loss"], batch_size=logits.shape[0], sync_dist=True)
-        dets = self.detect(logits, box, self.hparams.eval_score_threshold)
+        views = self.input_of(batch)
+        dets = self.detect(logits, box, self.hparams.eval_score_threshold, views)
         targets = [{"boxes": a[m]} for a, m in zip(batch["gt_aabb"], batch["gt_mask"])]
         metric.update(dets, targets)
         every = self.hparams.image_every_n_steps
         if batch_idx == 0 and every and split == "val" and self.global_step - self._last_image_step >= every:
             self._last_image_step = self.global_step
-            self._write_image(batch, self.detect(logits, box), "val")
+            self._write_image(batch, self.detect(logits, box, views=views), "val")
 
     def _eval_end(self, metric: DetectionMAP, split: str) -> None:
         res = metric.compute()
@@ -387,7 +412,7 @@ class Detector(EncoderStage):
 
     def predict_step(self, batch: dict[str, Tensor], batch_idx: int) -> list[dict[str, Tensor]]:
         logits, box = self(batch)
-        return self.detect(logits, box)
+        return self.detect(logits, box, views=self.input_of(batch))
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         params = [p for p in self.parameters() if p.requires_grad]

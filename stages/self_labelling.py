@@ -164,7 +164,8 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
 
 #: What a self-labelled detector takes from the detector checkpoint it fine-tunes unless given.
 INHERITED_FROM_DETECTOR: tuple[str, ...] = ("anchor_size", "channels", "num_blocks", "score_threshold",
-                                            "eval_score_threshold", "nms_iou", "nms_iomin", "max_detections")
+                                            "eval_score_threshold", "nms_iou", "nms_iomin", "max_detections",
+                                            "refine_iou")
 
 
 class SelfLabelling(Detector):
@@ -173,8 +174,8 @@ class SelfLabelling(Detector):
     Args:
         detector_ckpt: the detector to start from (its head; the warm start or the previous round's). What is not
             given of :data:`INHERITED_FROM_DETECTOR` (its anchor, head width and depth, score thresholds, NMS,
-            detections per scene) is taken from this checkpoint, so a self-labelled detector decodes as the detector
-            it fine-tunes.
+            detections per scene, box refinement) is taken from this checkpoint, so a self-labelled detector decodes
+            as the detector it fine-tunes.
         bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (the round's).
         positive_threshold: best prototype cosine (over all prototypes and yaws) above which a box is positive
             (paper: 0.8).

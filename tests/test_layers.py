@@ -4,7 +4,7 @@ Layers (``docs/architecture.md``), lowest first; a module may import from its ow
 above, and no two modules may import each other through any chain (function-local imports included):
 
     core      threedq.{atomic_io, locks, boxes, scene, geometry, nets, quantization, contrastive, metrics, baselines,
-              proposals, data}
+              proposals, box_refinement, data}
     stages    threedq.stages, threedq.datamodules
     pipeline  threedq.pipeline
     entry     threedq.cli, threedq.__main__

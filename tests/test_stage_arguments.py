@@ -100,7 +100,8 @@ def test_class_defaults_equal_the_tuned_config(config: str) -> None:
 class TestSelfLabellingInheritsTheDetector:
     def _detector_ckpt(self, tmp_path: Path) -> Path:
         det = Detector(anchor_size=(0.4, 0.3, 0.2), channels=16, num_blocks=2, score_threshold=0.7,
-                       eval_score_threshold=0.1, nms_iou=0.2, nms_iomin=0.5, max_detections=5, **SMALL)
+                       eval_score_threshold=0.1, nms_iou=0.2, nms_iomin=0.5, max_detections=5, refine_iou=0.3,
+                       **SMALL)
         path = tmp_path / "det.ckpt"
         torch.save({"state_dict": det.state_dict(), "hyper_parameters": dict(det.hparams)}, path)
         return path
@@ -109,7 +110,8 @@ class TestSelfLabellingInheritsTheDetector:
         ckpt = self._detector_ckpt(tmp_path)
         sl = SelfLabelling(detector_ckpt=str(ckpt), **SMALL)
         want = {"anchor_size": [0.4, 0.3, 0.2], "channels": 16, "num_blocks": 2, "score_threshold": 0.7,
-                "eval_score_threshold": 0.1, "nms_iou": 0.2, "nms_iomin": 0.5, "max_detections": 5}
+                "eval_score_threshold": 0.1, "nms_iou": 0.2, "nms_iomin": 0.5, "max_detections": 5,
+                "refine_iou": 0.3}
         assert set(want) == set(INHERITED_FROM_DETECTOR)
         for k, v in want.items():
             got = sl.hparams[k]

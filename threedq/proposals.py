@@ -364,6 +364,12 @@ def propose_boxes(
             f"voxel_size: a grid of {shape.tolist()} voxels is too large ({cells} > {_MAX_GRID_CELLS}); "
             "pass scene bounds or a larger voxel_size"
         )
+    # work in the occupied sub-box (plus the dilation's margin): components and boxes do not depend on the
+    # empty voxels around it, and dilating and labelling the whole bounds' grid dominated the cost
+    lo_ijk = np.maximum(ijk.min(axis=0) - p.dilation, 0)
+    ijk = ijk - lo_ijk
+    shape = np.minimum(shape - lo_ijk, ijk.max(axis=0) + 1 + p.dilation)
+    cells = int(np.prod(shape))
     flat = np.ravel_multi_index(ijk.T, shape)
     pairs = np.unique(flat * n_views + view)
     vox_of_pair = pairs // n_views

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +29,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json
+from threedq.box_refinement import observed_boxes
 from threedq.boxes import boxes_to_aabb
 from threedq.data.box_files import save_boxes_file
 from threedq.data.proposal_cache import propose_dataset
@@ -37,7 +37,7 @@ from threedq.datamodules.scene_folder import SceneDataset
 from threedq.metrics import DetectionMAP
 from threedq.metrics.detection import assign_detections
 from threedq.metrics.localisation import by_size_band, localisation_errors
-from threedq.proposals import ProposalParams, propose_boxes
+from threedq.proposals import ProposalParams
 from threedq.scene import load_scene
 from threedq.stages.detector import detection_figure
 
@@ -106,7 +106,7 @@ def detect_split(
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
         with stage.precision_context():  # as the stage's test_step runs (and keys the crop cache)
             logits, box = stage(batch)
-        dets = stage.detect(logits, box, score_threshold)
+        dets = stage.detect(logits, box, score_threshold, views=stage.input_of(batch))
         for j, (i, d) in enumerate(zip(batch["scene_index"].tolist(), dets)):
             out[files[i]] = (d["boxes"].cpu().numpy(), d["scores"].cpu().numpy())
             if input_views is not None:
@@ -140,30 +140,20 @@ def precision_recall(
             "boxes": boxes, "matched": matched, "gt": gt_total}  # fmt: skip
 
 
-#: Single-view pseudo-boxes of a split, per dataset and views (``threedq em`` scores them once per run, not per round).
-_SINGLE_VIEW_CACHE: dict[tuple[str, tuple[tuple[str, tuple[int, ...]], ...]], dict] = {}
-
-
 def single_view_pseudo_boxes(data_dir: str | Path, views: dict[str, list[int]], bounds: Any = None,
                              progress: bool = True) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The label-free pseudo-boxes of each scene from only the views a detector sees (``{file -> view indices}``).
 
     The detector's fair reference: the pseudo-boxes it is trained on fuse every view of a training scene, while
-    at test time it sees one. Same parameters as the training pseudo-boxes except that a voxel seen by one view
-    counts (``min_views=1``). Kept in memory per process for the same scenes and views.
+    at test time it sees one. These are :func:`~threedq.box_refinement.observed_boxes` (a voxel seen by one view
+    counts), the boxes the detector's ``refine_iou`` snaps its detections to; cached per process.
     """
-    key = (str(Path(data_dir).resolve()), tuple(sorted((f, tuple(v)) for f, v in views.items())))
-    if key not in _SINGLE_VIEW_CACHE:
-        kwargs = {**asdict(ProposalParams(view_stride=2)), "view_stride": 1, "min_views": 1}
-        out = {}
-        for f, v in tqdm(sorted(views.items()), desc="single-view pseudo-boxes", disable=not progress, leave=False):
-            rec = load_scene(Path(data_dir) / f, validate=False)
-            idx = np.asarray(v, dtype=np.int64)
-            sub = replace(rec, rgb=rec.rgb[idx], depth=rec.depth[idx], K=rec.K[idx], world_T_cam=rec.world_T_cam[idx],
-                          instance=None if rec.instance is None else rec.instance[idx])
-            out[f] = propose_boxes(sub, bounds=bounds, **kwargs)
-        _SINGLE_VIEW_CACHE[key] = out
-    return _SINGLE_VIEW_CACHE[key]
+    out = {}
+    for f, v in tqdm(sorted(views.items()), desc="single-view pseudo-boxes", disable=not progress, leave=False):
+        rec = load_scene(Path(data_dir) / f, validate=False)
+        idx = np.asarray(v, dtype=np.int64)
+        out[f] = observed_boxes(rec.depth[idx], rec.K[idx], rec.world_T_cam[idx], bounds)
+    return out
 
 
 def size_band_table(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[dict[str, Any]]:
@@ -258,7 +248,8 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
             kept = sum(len(s) for _, s in dets.values())
             result["detector"]["boxes_kept_at_score_threshold"] = kept
             # the fair reference: pseudo-boxes from only the views the detector saw; and where IoU is lost, per size
-            single = single_view_pseudo_boxes(dm.data_dir, views, dm.index.scene_bounds, progress=progress)
+            fg = stage.feature_grid  # the bounds the detector's refinement uses, so both are the same boxes
+            single = single_view_pseudo_boxes(dm.data_dir, views, (fg.bounds_min, fg.bounds_max), progress=progress)
             result["pseudo_boxes_single_view"] = box_sets_map(gt, single, progress=progress)
             tables = {"pseudo-boxes (all views)": size_band_table(gt, pseudo),
                       "pseudo-boxes (input view)": size_band_table(gt, single),

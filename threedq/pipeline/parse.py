@@ -269,7 +269,7 @@ class SceneParser(torch.nn.Module):
         if boxes is None:
             with amp:
                 logits, box = det.head(feats)
-            dets = det.detect(logits.float(), box.float(), self.score_threshold)
+            dets = det.detect(logits.float(), box.float(), self.score_threshold, views=(depth, K, pose))
         else:
             dets = [{"boxes": torch.as_tensor(a, dtype=torch.float32).reshape(-1, 6).to(feats.device),
                      "scores": torch.as_tensor(sc, dtype=torch.float32).reshape(-1).to(feats.device)} for a, sc in boxes]  # fmt: skip

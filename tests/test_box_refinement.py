@@ -1,0 +1,175 @@
+"""Detections refined against their own input views (``threedq.box_refinement``): analytic ray-cast scenes, hand
+cases, a naive loop, the detector's decoding path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from threedq.box_refinement import OBSERVED_PARAMS, _CACHE, observed_boxes, refine_boxes
+from threedq.boxes import aabb_iou_3d, nms_3d
+from threedq.proposals import propose_boxes
+
+from analytic_scenes import render  # noqa: E402  (tests/ is on sys.path under pytest)
+
+BOUNDS = ((-1.0, -1.0, -0.5), (1.0, 1.0, 1.0))
+BOXES = np.array([[-0.55, -0.35, 0.0, -0.15, 0.05, 0.3], [0.2, 0.1, 0.0, 0.5, 0.6, 0.2]])  # aabb, on z = 0
+
+
+def _naive_refine(boxes: np.ndarray, scores: np.ndarray, observed: np.ndarray, min_iou: float, nms_iou: float):
+    """Per detection, a loop over the observed boxes for the best IoU (first of equal ones), then greedy NMS."""
+    out = boxes.copy()
+    for i, b in enumerate(boxes):
+        best, arg = -1.0, -1
+        for j, o in enumerate(observed):
+            lo, hi = np.maximum(b[:3], o[:3]), np.minimum(b[3:], o[3:])
+            inter = np.prod(np.clip(hi - lo, 0, None))
+            iou = inter / (np.prod(b[3:] - b[:3]) + np.prod(o[3:] - o[:3]) - inter)
+            if iou > best:
+                best, arg = iou, j
+        if arg >= 0 and best >= min_iou:
+            out[i] = observed[arg]
+    kept: list[int] = []
+    for i in np.argsort(-scores, kind="stable"):
+        ok = True
+        for k in kept:
+            lo, hi = np.maximum(out[i, :3], out[k, :3]), np.minimum(out[i, 3:], out[k, 3:])
+            inter = np.prod(np.clip(hi - lo, 0, None))
+            iou = inter / (np.prod(out[i, 3:] - out[i, :3]) + np.prod(out[k, 3:] - out[k, :3]) - inter)
+            ok &= iou <= nms_iou
+        if ok:
+            kept.append(int(i))
+    return out[kept], scores[kept]
+
+
+class TestObservedBoxes:
+    def test_smoke_one_view_finds_both_boxes(self) -> None:
+        scene = render(BOXES, num_views=1)
+        aabb, scores = observed_boxes(scene.depth, scene.K, scene.world_T_cam, BOUNDS)
+        assert aabb.dtype == np.float32 and aabb.shape == (2, 6) and scores.shape == (2,)
+        iou = aabb_iou_3d(torch.from_numpy(aabb).double(), torch.from_numpy(BOXES)).numpy()
+        # one view sees two faces of each box: its box reaches the ground and spans most of each object
+        assert (iou.max(0) > 0.5).all(), iou
+
+    def test_equals_the_proposals_of_the_same_views(self) -> None:
+        scene = render(BOXES, num_views=2)
+        got = observed_boxes(scene.depth, scene.K, scene.world_T_cam, BOUNDS)
+        want = propose_boxes(scene, bounds=BOUNDS, view_stride=1, min_views=1)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        assert OBSERVED_PARAMS.min_views == 1 and OBSERVED_PARAMS.view_stride == 1
+
+    def test_tensors_and_the_cache(self) -> None:
+        scene = render(BOXES, num_views=1)
+        a = observed_boxes(torch.from_numpy(scene.depth), torch.from_numpy(scene.K), torch.from_numpy(scene.world_T_cam),
+                           BOUNDS)  # fmt: skip
+        n = len(_CACHE)
+        b = observed_boxes(scene.depth, scene.K, scene.world_T_cam, BOUNDS)
+        assert b is a and len(_CACHE) == n  # same bytes: the cached result
+        c = observed_boxes(scene.depth, scene.K, scene.world_T_cam, ((-1.0, -1.0, -0.5), (0.0, 1.0, 1.0)))
+        assert c is not a and len(c[0]) == 1  # other bounds: computed (the box at x > 0 is cut away)
+
+    def test_exceptions(self) -> None:
+        scene = render(BOXES, num_views=1)
+        depth = scene.depth.copy()
+        depth[0, 3, 3] = np.nan
+        with pytest.raises(ValueError, match="depth"):
+            observed_boxes(depth, scene.K, scene.world_T_cam, BOUNDS)
+        with pytest.raises(ValueError, match="world_T_cam"):
+            observed_boxes(scene.depth, scene.K, scene.world_T_cam[:, :3], BOUNDS)
+
+
+class TestRefineBoxes:
+    def test_hand_case(self) -> None:
+        det = torch.tensor([[0.0, 0.0, 0.1, 1.0, 1.0, 1.1],   # IoU 0.82 with observed 0: snapped
+                            [0.1, 0.0, 0.0, 1.1, 1.0, 1.0],   # also observed 0: after snapping a duplicate
+                            [5.0, 5.0, 0.0, 5.5, 5.5, 0.5]])  # nothing observed near: kept as regressed
+        scores = torch.tensor([0.7, 0.9, 0.8])
+        obs = torch.tensor([[0.05, 0.0, 0.0, 1.05, 1.0, 1.0], [3.0, 3.0, 0.0, 3.2, 3.2, 0.2]])
+        boxes, s, snapped = refine_boxes(det, scores, obs, 0.1, 0.1)
+        torch.testing.assert_close(boxes, torch.stack([obs[0], det[2]]))
+        torch.testing.assert_close(s, torch.tensor([0.9, 0.8]))  # the higher-scoring of the two snapped stays
+        assert snapped.tolist() == [True, False]
+
+    def test_min_iou_and_no_observed_box(self) -> None:
+        det = torch.tensor([[0.0, 0.0, 0.0, 1.0, 1.0, 1.0]])
+        obs = torch.tensor([[0.5, 0.0, 0.0, 1.5, 1.0, 1.0]])  # IoU 1/3
+        assert refine_boxes(det, torch.ones(1), obs, 0.3, 0.1)[2].tolist() == [True]
+        boxes, _, snapped = refine_boxes(det, torch.ones(1), obs, 0.4, 0.1)
+        assert snapped.tolist() == [False] and torch.equal(boxes, det)
+        boxes, s, snapped = refine_boxes(det, torch.ones(1), torch.zeros(0, 6), 0.1, 0.1)
+        assert torch.equal(boxes, det) and snapped.tolist() == [False]
+        boxes, s, snapped = refine_boxes(torch.zeros(0, 6), torch.zeros(0), obs, 0.1, 0.1)
+        assert boxes.shape == (0, 6) and s.shape == (0,) and snapped.shape == (0,)
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_against_a_naive_loop(self, seed: int) -> None:
+        g = np.random.default_rng(seed)
+        lo = g.uniform(-1, 1, (12, 3))
+        boxes = np.concatenate([lo, lo + g.uniform(0.1, 0.6, (12, 3))], 1)
+        olo = g.uniform(-1, 1, (5, 3))
+        observed = np.concatenate([olo, olo + g.uniform(0.1, 0.6, (5, 3))], 1)
+        scores = g.permutation(12) / 12.0
+        want = _naive_refine(boxes, scores, observed, 0.1, 0.2)
+        got = refine_boxes(torch.from_numpy(boxes), torch.from_numpy(scores), torch.from_numpy(observed), 0.1, 0.2)
+        np.testing.assert_allclose(got[0].numpy(), want[0])
+        np.testing.assert_allclose(got[1].numpy(), want[1])
+
+    def test_exceptions(self) -> None:
+        det = torch.zeros(1, 6)
+        with pytest.raises(ValueError, match="min_iou"):
+            refine_boxes(det, torch.ones(1), det, 0.0, 0.1)
+        with pytest.raises(ValueError, match="boxes/scores"):
+            refine_boxes(det, torch.ones(2), det, 0.1, 0.1)
+
+
+class TestDetectorRefinement:
+    """The detector's decoding: with its input views, a loose detection is moved onto the observed box."""
+
+    def _stage(self, refine_iou: float):
+        from threedq.stages.detector import Detector
+
+        return Detector(grid_min=(-1.0, -1.0, -0.5), grid_max=(1.0, 1.0, 1.0), grid_resolution=(16, 16, 12),
+                        feature_dim=8, anchor_size=(0.4, 0.4, 0.3), score_threshold=0.5, refine_iou=refine_iou)  # fmt: skip
+
+    def _logits_for(self, stage, target: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Objectness and regression that decode to one box ``target`` (plus nothing else above 0.5)."""
+        centres = stage.centres  # [Z, Y, X, 3]
+        c = torch.tensor((target[:3] + target[3:]) / 2, dtype=torch.float32)
+        idx = int(((centres.reshape(-1, 3) - c) ** 2).sum(1).argmin())
+        Z, Y, X = centres.shape[:3]
+        logits = torch.full((1, Z, Y, X), -10.0)
+        logits.view(1, -1)[0, idx] = 10.0
+        box = torch.zeros(1, 6, Z, Y, X)
+        cell = centres.reshape(-1, 3)[idx]
+        size = torch.tensor(target[3:] - target[:3], dtype=torch.float32)
+        box.view(1, 6, -1)[0, :3, idx] = (c - cell) / stage.anchor
+        box.view(1, 6, -1)[0, 3:, idx] = torch.log(size / stage.anchor)
+        return logits, box
+
+    def test_detection_snaps_onto_its_view_and_off_keeps_the_regression(self) -> None:
+        scene = render(BOXES, num_views=1)
+        views = tuple(torch.from_numpy(a)[None] for a in (scene.depth, scene.K, scene.world_T_cam))
+        loose = BOXES[0] + np.array([0.06, -0.05, 0.08, 0.06, -0.05, 0.0])  # off in the plane, floating
+        on = self._stage(0.1)
+        logits, box = self._logits_for(on, loose)
+        plain = on.detect(logits, box)[0]["boxes"]
+        torch.testing.assert_close(plain[0].double(), torch.from_numpy(loose), atol=1e-5, rtol=0)
+        refined = on.detect(logits, box, views=views)[0]["boxes"]
+        obs, _ = observed_boxes(scene.depth, scene.K, scene.world_T_cam, ((-1.0, -1.0, -0.5), (1.0, 1.0, 1.0)))
+        assert refined.shape == (1, 6)
+        j = int(aabb_iou_3d(refined.double(), torch.from_numpy(obs).double()).argmax())
+        torch.testing.assert_close(refined[0], torch.from_numpy(obs[j]))
+        truth = torch.from_numpy(BOXES[:1])
+        assert float(aabb_iou_3d(refined.double(), truth)) > float(aabb_iou_3d(plain.double(), truth))
+        off = self._stage(0.0)
+        torch.testing.assert_close(off.detect(logits, box, views=views)[0]["boxes"], plain)
+
+    def test_nms_after_snapping(self) -> None:
+        # the refinement's own suppression equals nms_3d on the snapped boxes
+        det = torch.tensor([[0.0, 0.0, 0.0, 1.0, 1.0, 1.0], [0.05, 0.0, 0.0, 1.05, 1.0, 1.0]])
+        obs = torch.tensor([[0.0, 0.0, 0.0, 1.0, 1.0, 0.9]])
+        boxes, s, _ = refine_boxes(det, torch.tensor([0.6, 0.8]), obs, 0.5, 0.5)
+        keep = nms_3d(obs.repeat(2, 1), torch.tensor([0.6, 0.8]), 0.5)
+        assert boxes.shape[0] == keep.numel() == 1 and float(s[0]) == pytest.approx(0.8)
