@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -32,13 +31,13 @@ from torch import Tensor, nn
 
 from threedq.errors import InputError
 from threedq.stages.base import EncoderStage
-from threedq.atomic_io import atomic_write_bytes
 from threedq.box_refinement import observed_boxes, refine_boxes
 from threedq.boxes import nms_3d
-from threedq.data.draw import draw_boxes
 from threedq.metrics import DetectionMAP
+from threedq.viz.detection import detection_figure
+from threedq.viz.png import write_png
 
-__all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes", "detection_figure"]
+__all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes"]
 
 
 class _ResBlock3d(nn.Module):
@@ -421,40 +420,7 @@ class Detector(EncoderStage):
     def _write_image(self, batch: dict[str, Tensor], dets: list[dict[str, Tensor]], tag: str) -> None:
         if self.trainer is None or not self.trainer.is_global_zero or self.trainer.sanity_checking:
             return
-        img = detection_figure(batch, dets, max_scenes=2)
-        log_dir = self.run_dir
-        ok, png = cv2.imencode(".png", img[:, :, ::-1])
-        if ok:
-            atomic_write_bytes(log_dir / "images" / f"{tag}_detections_step{self.global_step:06d}.png", png.tobytes())
+        write_png(self.run_dir / "images" / f"{tag}_detections_step{self.global_step:06d}.png",
+                  detection_figure(batch, dets, max_scenes=2))
 
 
-def _aabb_to_boxes7(aabb: np.ndarray) -> np.ndarray:
-    c, s = (aabb[:, :3] + aabb[:, 3:]) / 2, aabb[:, 3:] - aabb[:, :3]
-    return np.concatenate([c, s, np.zeros((len(aabb), 1))], axis=1)
-
-
-def detection_figure(batch: dict[str, Any], dets: list[dict[str, Tensor]], max_scenes: int = 4, upscale: int = 3) -> np.ndarray:
-    """Rows of (detections with scores | GT boxes) projected onto each scene's first input view.
-
-    Args:
-        batch: a SceneDataset batch (``rgb``, ``K``, ``R_T_cam``, ``gt_aabb``, ``gt_mask``).
-        dets: per scene ``{"boxes": [P, 6], "scores": [P]}``.
-
-    Returns:
-        ``[H', W', 3]`` uint8 RGB.
-    """
-    rows = []
-    for i in range(min(max_scenes, len(dets))):
-        rgb = (batch["rgb"][i, 0].permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
-        K, pose = batch["K"][i, 0].cpu().numpy(), batch["R_T_cam"][i, 0].cpu().numpy()
-        db = dets[i]["boxes"].cpu().numpy().astype(np.float64)
-        ds = dets[i]["scores"].cpu().numpy().tolist()
-        gt = batch["gt_aabb"][i][batch["gt_mask"][i]].cpu().numpy().astype(np.float64)
-        left = draw_boxes(rgb, _aabb_to_boxes7(db), ["det"] * len(db), K, pose, scores=ds, colour=(255, 80, 40),
-                          upscale=upscale, heading=False)  # fmt: skip
-        right = draw_boxes(rgb, _aabb_to_boxes7(gt), ["GT"] * len(gt), K, pose, colour=(40, 220, 80),
-                           upscale=upscale, heading=False)  # fmt: skip
-        sep = np.full((left.shape[0], 4, 3), 255, np.uint8)
-        rows.append(np.concatenate([left, sep, right], axis=1))
-    gap = np.full((4, rows[0].shape[1], 3), 255, np.uint8)
-    return np.concatenate([r for row in rows for r in (row, gap)][:-1], axis=0)

@@ -42,21 +42,20 @@ import math
 import time
 from typing import Any, Literal
 
-import cv2
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import default_collate
 
-from threedq.atomic_io import atomic_write_bytes, atomic_write_text
+from threedq.atomic_io import atomic_write_text
 from threedq.contrastive import MomentumContrast, calibrate_context_cosine, mine_correspondences
-from threedq.data.draw import crop_birds_eye
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
 from threedq.stages.base import EncoderStage, SplitEvaluation
+from threedq.viz.features import mined_pairs_figure
+from threedq.viz.png import write_png
 
-__all__ = ["Mining", "corner_offsets", "corner_keys", "implied_yaw_error_deg", "mined_pairs_figure"]
+__all__ = ["Mining", "corner_offsets", "corner_keys", "implied_yaw_error_deg"]
 
 SOURCES = ("vc", "vc_moco", "mined")
 
@@ -118,44 +117,6 @@ def implied_yaw_error_deg(yaw_index: Tensor, num_angles: int, query_yaw: Tensor,
     d = torch.remainder(d, period)
     return torch.rad2deg(torch.minimum(d, period - d))
 
-
-def _bev(raw: Tensor, scale: int) -> np.ndarray:
-    """:func:`~threedq.data.draw.crop_birds_eye` of a raw crop as uint8, upscaled ``scale`` times (grey background)."""
-    a = (crop_birds_eye(raw, background=0.5) * 255).round().astype(np.uint8)
-    return cv2.resize(a, (a.shape[1] * scale, a.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
-
-
-def mined_pairs_figure(query_raw: Tensor, target_raw_aligned: Tensor, query_pos: Tensor, target_pos_aligned: Tensor,
-                       captions: list[str], patch: int = 2, scale: int = 8) -> np.ndarray:
-    """Rows of mined pairs: query (bird's-eye view) | target rotated onto the query, matched patch boxed in red.
-
-    Args:
-        query_raw, target_raw_aligned: ``[P, 4, S, S, S]`` raw crops (target already rotated by the mined yaw).
-        query_pos, target_pos_aligned: ``[P, 3]`` long patch starts ``(z, y, x)``.
-        captions: one line of text per pair.
-
-    Returns:
-        ``[H, W, 3]`` uint8 RGB.
-    """
-    rows = []
-    for i in range(query_raw.shape[0]):
-        tiles = []
-        for raw, pos in ((query_raw[i], query_pos[i]), (target_raw_aligned[i], target_pos_aligned[i])):
-            img = np.ascontiguousarray(_bev(raw, scale))
-            S = raw.shape[-1]
-            y0 = (S - int(pos[1]) - patch) * scale  # flipped: y up
-            x0 = int(pos[2]) * scale
-            cv2.rectangle(img, (x0, y0), (x0 + patch * scale - 1, y0 + patch * scale - 1), (255, 0, 0), 2)
-            tiles.append(img)
-        h = tiles[0].shape[0]
-        row = np.concatenate([tiles[0], np.full((h, 4, 3), 255, np.uint8), tiles[1]], axis=1)
-        bar = np.full((18, row.shape[1], 3), 255, np.uint8)
-        cv2.putText(bar, captions[i][:40], (2, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        rows.append(np.concatenate([bar, row], axis=0))
-    if not rows:
-        return np.full((18, 18, 3), 255, np.uint8)
-    sep = np.full((4, rows[0].shape[1], 3), 255, np.uint8)
-    return np.concatenate([x for r in rows for x in (r, sep)][:-1], axis=0)
 
 
 class Mining(SplitEvaluation, EncoderStage):
@@ -480,9 +441,7 @@ class Mining(SplitEvaluation, EncoderStage):
                     f"{'same' if int(lab[qi[j]]) == int(lab[ti[j]]) else 'other'} category" for j in range(n)]
         img = mined_pairs_figure(pool["raw"][qi], aligned, mined["query_pos"][:n], mined["target_pos_aligned"][:n],
                                  captions, self.hparams.patch)
-        ok, png = cv2.imencode(".png", img[:, :, ::-1])
-        if ok:
-            atomic_write_bytes(out / f"{name}.png", png.tobytes())
+        write_png(out / f"{name}.png", img)
 
     def _mined_step(self) -> dict[str, Any]:
         hp = self.hparams

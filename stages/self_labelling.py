@@ -39,23 +39,22 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
-from threedq.atomic_io import atomic_write_bytes, atomic_write_text
+from threedq.atomic_io import atomic_write_text
 from threedq.boxes import aabb_iou_3d
-from threedq.data.draw import draw_boxes
 from threedq.geometry import VoxelGridSpec, crop_boxes
 from threedq.metrics.detection import assign_detections
 from threedq.quantization.prototypes import PrototypeBank
 from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
-from threedq.stages.detector import Detector, _aabb_to_boxes7, check_same_anchor, detection_targets
+from threedq.stages.detector import Detector, check_same_anchor, detection_targets
 from threedq.stages.quantizer import load_bank_state
+from threedq.viz.detection import self_labels_figure
+from threedq.viz.png import write_png
 
 __all__ = ["INHERITED_FROM_DETECTOR", "SelfLabelling", "center_surround_similarity", "load_head_state", "self_label_targets"]
 
@@ -410,7 +409,7 @@ class SelfLabelling(Detector):
         out = self.run_dir / "self_labels"
         atomic_write_text(out / "labels.json", json.dumps(info, indent=1) + "\n")
         if first:
-            atomic_write_bytes(out / "labels.png", self_labels_figure(first))
+            write_png(out / "labels.png", self_labels_figure(first))
 
     # ------------------------------------------------------------------ training
     def on_train_start(self) -> None:
@@ -449,27 +448,3 @@ class SelfLabelling(Detector):
         return out[0], out[1], out[2], out[3]
 
 
-def self_labels_figure(scenes: list[tuple[dict[str, Tensor], Tensor]], upscale: int = 3) -> bytes:
-    """PNG of labelled candidates on each scene's first input view: positives green, negatives red.
-
-    Args:
-        scenes: per scene (``{"rgb": [S,3,H,W], "K": [S,3,3], "R_T_cam": [S,4,4]}``, rows ``[L, 7]`` = kind
-            (1 positive, 0 negative) + aabb).
-    """
-    tiles = []
-    for sample, rows in scenes:
-        rgb = (sample["rgb"][0].permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
-        K, pose = sample["K"][0].cpu().numpy(), sample["R_T_cam"][0].cpu().numpy()
-        rows = rows.cpu().numpy().astype(np.float64)
-        pos = rows[:, 0] > 0.5
-        colours = [(40, 220, 80) if p else (230, 40, 40) for p in pos]
-        names = ["kept" if p else "pruned" for p in pos]
-        tiles.append(draw_boxes(rgb, _aabb_to_boxes7(rows[:, 1:]), names, K, pose, colour=colours, upscale=upscale,
-                                heading=False))  # fmt: skip
-    h = max(t.shape[0] for t in tiles)
-    tiles = [np.pad(t, ((0, h - t.shape[0]), (0, 4), (0, 0)), constant_values=255) for t in tiles]
-    img = np.concatenate(tiles, axis=1)
-    ok, png = cv2.imencode(".png", img[:, :, ::-1])
-    if not ok:
-        raise RuntimeError("self_labels_figure: PNG encoding failed")
-    return png.tobytes()

@@ -16,14 +16,13 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-import cv2
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from threedq.stages.base import EncoderStage
-from threedq.atomic_io import atomic_write_bytes
+from threedq.viz.features import view_prediction_figure
+from threedq.viz.png import write_png
 from threedq.geometry import (
     above_ground_mask,
     depth_to_points,
@@ -276,39 +275,9 @@ class ViewPrediction(EncoderStage):
         img = view_prediction_figure(
             batch["rgb"][0, 0], r["pred"][0] + 0.5, r["target"][0] + 0.5, torch.sigmoid(r["occ_logits"][0, 0]), r["occ"][0, 0]
         )
-        log_dir = self.run_dir
-        ok, png = cv2.imencode(".png", img[:, :, ::-1])
-        if ok:
-            atomic_write_bytes(log_dir / "images" / f"{tag}_step{self.global_step:06d}.png", png.tobytes())
+        write_png(self.run_dir / "images" / f"{tag}_step{self.global_step:06d}.png", img)
         experiment = getattr(self.logger, "experiment", None)
         if hasattr(experiment, "add_image"):
             experiment.add_image(f"{tag}/view_prediction", img, self.global_step, dataformats="HWC")
 
 
-def _to_u8(img: Tensor, size: tuple[int, int]) -> np.ndarray:
-    a = (img.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
-    return cv2.resize(a, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
-
-
-def view_prediction_figure(
-    input_rgb: Tensor, pred_rgb: Tensor, true_rgb: Tensor, occ_prob: Tensor, occ_true: Tensor
-) -> np.ndarray:
-    """One row: input view | predicted target | true target | predicted occupancy | true occupancy.
-
-    Args:
-        input_rgb ``[3, H, W]``, pred_rgb and true_rgb ``[3, h, w]`` in [0, 1]; occ_prob, occ_true
-        ``[Z, Y, X]``. Occupancy is shown as a bird's-eye view: the max over the upper 70% of z (above
-        the ground of the embedded scenes, which sits at 25% of the grid height), x to the right, y up.
-
-    Returns:
-        ``[H', W', 3]`` uint8 RGB.
-    """
-    H, W = input_rgb.shape[-2:]
-    tiles = [_to_u8(input_rgb, (H, W)), _to_u8(pred_rgb, (H, W)), _to_u8(true_rgb, (H, W))]
-    lo = int(round(0.3 * occ_prob.shape[0]))  # skip the ground slab
-    for occ in (occ_prob, occ_true):
-        bev = occ[lo:].amax(0).flip(0)  # y up
-        tiles.append(_to_u8(bev[None].expand(3, -1, -1), (H, W)))
-    sep = np.full((H, 2, 3), 255, np.uint8)
-    row = [t for tile in tiles for t in (tile, sep)][:-1]
-    return np.concatenate(row, axis=1)

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from threedq.datamodules.scene_folder import SceneFolderDataModule, detections_as_objects
-from threedq.stages.detector import Detector, DetectorHead, cell_centres, decode_boxes, detection_figure, detection_targets
+from threedq.stages.detector import Detector, DetectorHead, cell_centres, decode_boxes, detection_targets
+from threedq.viz.detection import detection_figure
 from threedq.boxes import aabb_iou_3d
 from threedq.data.box_files import load_boxes_file, save_boxes_file
 

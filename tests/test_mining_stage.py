@@ -11,7 +11,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 from conftest import tiny_data_yaml
-from threedq.stages.mining import Mining, corner_keys, corner_offsets, implied_yaw_error_deg, mined_pairs_figure
+from threedq.stages.mining import Mining, corner_keys, corner_offsets, implied_yaw_error_deg
+from threedq.viz.features import mined_pairs_figure
 
 
 class TestCornerOffsets:

@@ -11,7 +11,8 @@ import torch
 import torch.nn.functional as F
 from threedq.datamodules.scene_folder import SceneFolderDataModule
 from threedq.stages.base import EncoderStage, load_encoder_state
-from threedq.stages.viewpred import ViewPrediction, view_prediction_figure
+from threedq.stages.viewpred import ViewPrediction
+from threedq.viz.features import view_prediction_figure
 
 SMALL = dict(grid_resolution=(32, 32, 16), image_every_n_steps=0)
 

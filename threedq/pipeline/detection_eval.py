@@ -22,13 +22,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from threedq.atomic_io import atomic_write_bytes, atomic_write_json
+from threedq.atomic_io import atomic_write_json
 from threedq.box_refinement import observed_boxes
 from threedq.boxes import boxes_to_aabb
 from threedq.data.box_files import save_boxes_file
@@ -39,19 +38,14 @@ from threedq.metrics.detection import assign_detections
 from threedq.metrics.localisation import by_size_band, localisation_errors
 from threedq.proposals import ProposalParams
 from threedq.scene import load_scene
-from threedq.stages.detector import detection_figure
+from threedq.viz.detection import detection_figure, size_band_figure
+from threedq.viz.png import write_png
 
 __all__ = [
     "box_sets_map", "detect_split", "evaluate_detection", "gt_hulls", "precision_recall", "single_view_pseudo_boxes",
-    "size_band_figure", "size_band_table",
+    "size_band_table",
 ]
 
-
-def _png(rgb: np.ndarray) -> bytes:
-    ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return png.tobytes()
 
 
 def gt_hulls(data_dir: str | Path, files: list[str]) -> dict[str, np.ndarray]:
@@ -166,38 +160,6 @@ def size_band_table(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndar
     return by_size_band(per_scene)
 
 
-def size_band_figure(tables: dict[str, list[dict[str, Any]]]) -> np.ndarray:
-    """Bars: per size band, the share of objects each box set finds at IoU 0.25 (light) and 0.5 (dark).
-
-    Returns an RGB uint8 image ``[H, W, 3]``.
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    names = list(tables)
-    bands = [r["band"] for r in tables[names[0]]]
-    fig = Figure(figsize=(2.2 + 1.6 * len(bands), 3.6), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    width = 0.8 / len(names)
-    colours = ["#4c72b0", "#dd8452", "#55a868", "#c44e52"]
-    for i, name in enumerate(names):
-        x = np.arange(len(bands)) + (i - (len(names) - 1) / 2) * width
-        f25 = [r["found_25"] for r in tables[name]]
-        f50 = [r["found_50"] for r in tables[name]]
-        c = colours[i % len(colours)]
-        ax.bar(x, np.nan_to_num(f25), width * 0.95, color=c, alpha=0.35)
-        ax.bar(x, np.nan_to_num(f50), width * 0.95, color=c, label=name)
-    ax.set_xticks(np.arange(len(bands)))
-    ax.set_xticklabels([f"{b}\n({r['objects']} obj.)" for b, r in zip(bands, tables[names[0]])], fontsize=8)
-    ax.set_ylim(0, 1)
-    ax.set_ylabel("objects found (dark: IoU 0.5, light: 0.25)", fontsize=8)
-    ax.set_title("objects found per size (largest extent of the GT box), test split", fontsize=9)
-    ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.canvas.draw()
-    return np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy()
-
 
 def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[str, float],
                        splits: tuple[str, ...] = ("train", "val", "test"), progress: bool = True) -> dict[str, Any]:  # fmt: skip
@@ -255,9 +217,9 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
                       "pseudo-boxes (input view)": size_band_table(gt, single),
                       f"detector (score >= {stage.hparams.score_threshold:g})": size_band_table(gt, dets)}
             result["by_size"] = [{"boxes": name, "rows": rows} for name, rows in tables.items()]  # a list: ordered
-            atomic_write_bytes(out / "detection_by_size.png", _png(size_band_figure(tables)))
+            write_png(out / "detection_by_size.png", size_band_figure(tables))
             batch, d = first[0]
-            atomic_write_bytes(out / "detections.png", _png(detection_figure(batch, d, max_scenes=4)))
+            write_png(out / "detections.png", detection_figure(batch, d, max_scenes=4))
     result["detections"] = files
     result["handed_on"] = handed_on
     result["seconds"] = round(time.time() - t0, 1)

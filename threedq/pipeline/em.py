@@ -61,7 +61,7 @@ from typing import Any, Literal
 
 import torch
 
-from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text
+from threedq.atomic_io import atomic_write_json, atomic_write_text
 from threedq.data.box_files import load_boxes_file
 from threedq.errors import InputError
 from threedq.locks import hold_folder
@@ -82,6 +82,8 @@ from threedq.pipeline.report import (
 )
 from threedq.pipeline.run_layout import RunLayout
 from threedq.stages.checkpoint import require_stage
+from threedq.viz.curves import table3_figure
+from threedq.viz.png import write_png
 
 __all__ = ["run_em"]
 
@@ -279,34 +281,6 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
                      "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
     return rows
 
-
-def _table3_figure(rows: list[dict[str, Any]], path: Path) -> None:
-    """PNG of the three Table 3 curves against the round."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
-    k = next((r["k"] for r in rows if r.get("k")), 10)
-    for key, label in (("precision_at_10", f"features: precision@{k}, strict"),
-                       ("precision_at_10_paper", f"features: precision@{k}, paper protocol"),
-                       ("hungarian_acc", "quantization: Hungarian acc."), ("map_50", "detection: mAP@0.5")):
-        pts = [(r["round"], r[key]) for r in rows if r.get(key) is not None]
-        if pts:
-            ax.plot(*zip(*pts), marker="o", label=label)
-    ax.set_xlabel("EM round")
-    ax.set_xticks([r["round"] for r in rows])
-    ax.set_ylim(0, 1)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    import io
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
 
 
 def _fmt(v: float | None, digits: int = 3) -> str:
@@ -701,7 +675,7 @@ def run_em(
         }
         atomic_write_json(work / "metrics.json", summary)
         if summary["table3"]:
-            _table3_figure(summary["table3"], work / "table3.png")
+            write_png(work / "table3.png", table3_figure(summary["table3"]))
         atomic_write_text(work / "report.md", _report(summary))
         if round_results:
             p = round_results[-1]["retrieval"]["precision_at_k"]

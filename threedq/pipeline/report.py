@@ -34,24 +34,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from torch import Tensor  # noqa: E402
-from torch.utils.data import DataLoader  # noqa: E402
-
-from threedq.datamodules.scene_folder import SceneDataset  # noqa: E402
-from threedq.atomic_io import atomic_write_bytes, atomic_write_json, atomic_write_text  # noqa: E402
-from threedq.errors import InputError  # noqa: E402
-from threedq.locks import hold_folder  # noqa: E402
-from threedq.scene import SceneValidationError  # noqa: E402
-from threedq.stages.checkpoint import require_stage  # noqa: E402
-from threedq.baselines.pointcloud import PointCloudPrototypes  # noqa: E402
-from threedq.data.draw import crop_birds_eye  # noqa: E402
-from threedq.pipeline.evaluation import (  # noqa: E402
+from threedq.datamodules.scene_folder import SceneDataset
+from threedq.atomic_io import atomic_write_json, atomic_write_text
+from threedq.errors import InputError
+from threedq.locks import hold_folder
+from threedq.scene import SceneValidationError
+from threedq.stages.checkpoint import require_stage
+from threedq.baselines.pointcloud import PointCloudPrototypes
+from threedq.pipeline.evaluation import (
     DESCRIPTOR,
     RETRIEVAL_SEARCH,
     SEARCH_LABELS,
@@ -60,8 +54,8 @@ from threedq.pipeline.evaluation import (  # noqa: E402
     quantization_metrics,
     retrieval_table,
 )
-from threedq.pipeline.crop_cache import CropCache  # noqa: E402
-from threedq.pipeline.baselines2d import (  # noqa: E402
+from threedq.pipeline.crop_cache import CropCache
+from threedq.pipeline.baselines2d import (
     Q25D_HOWTO,
     RESNET_HOWTO,
     collect_q25d_crops,
@@ -71,14 +65,16 @@ from threedq.pipeline.baselines2d import (  # noqa: E402
     q25d_results,
     resnet_results,
 )
-from threedq.pipeline.data_commands import output_folder  # noqa: E402
-from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table  # noqa: E402
-from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
-from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
-from threedq.data.catalog import coarse_category  # noqa: E402
-from threedq.metrics import cluster_confusion, hungarian_accuracy  # noqa: E402
-from threedq.metrics.retrieval import PROTOCOL_LABELS, per_class_precision_at_k, retrieval_confusion  # noqa: E402
-from threedq.quantization.prototypes import fit_prototype_bank  # noqa: E402
+from threedq.pipeline.data_commands import output_folder
+from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table
+from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint
+from threedq.data.catalog import coarse_category
+from threedq.metrics import cluster_confusion, hungarian_accuracy
+from threedq.metrics.retrieval import PROTOCOL_LABELS, per_class_precision_at_k, retrieval_confusion
+from threedq.quantization.prototypes import fit_prototype_bank
+from threedq.viz.curves import accuracy_vs_k_figure
+from threedq.viz.features import alignment_figure, per_category_figure, retrieval_figure
+from threedq.viz.png import figure_png, write_png
 
 __all__ = [
     "coarse_labels",
@@ -219,11 +215,12 @@ def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, l
     return lines
 
 
-def _per_category_figure(test: dict[str, Tensor], sims: dict[str, Tensor], k: int, path: Path,
-                         categories: list[str], top_pairs: int = 12) -> list[dict[str, Any]]:
+
+def _per_category_retrieval(test: dict[str, Tensor], sims: dict[str, Tensor], k: int, path: Path,
+                            categories: list[str], top_pairs: int = 12) -> list[dict[str, Any]]:
     """Per-category precision@k of the learned features (strict and paper protocol) and the most confused category
-    pairs (top-k slots of one category's queries held by another's objects, both directions added); returns the
-    pairs."""
+    pairs (top-k slots of one category's queries held by another's objects, both directions added), drawn to
+    ``path`` (:func:`~threedq.viz.features.per_category_figure`); returns the pairs."""
     labels = test["labels"]
     C = len(categories)
     curves = {}
@@ -239,26 +236,8 @@ def _per_category_figure(test: dict[str, Tensor], sims: dict[str, Tensor], k: in
               "share_of_a_slots": round(float(conf[int(i) // C, int(i) % C]) / max(1, int(conf[int(i) // C].sum())), 4),
               "share_of_b_slots": round(float(conf[int(i) % C, int(i) // C]) / max(1, int(conf[int(i) % C].sum())), 4)}
              for i in order if flat[i] > 0]
-    present = sorted(curves.get("strict", {}))
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 0.18 * len(present) + 1.8), gridspec_kw={"width_ratios": [2, 1]})
-    y = np.arange(len(present))
-    for off, (name, cur) in zip((-0.2, 0.2), curves.items()):
-        ax.barh(y + off, [cur.get(c, 0.0) for c in present], height=0.4, label=f"{name} protocol")
-    n_c = torch.bincount(labels, minlength=C)
-    ax.plot([min(k, int(n_c[c]) - 1) / k for c in present], y - 0.2, "k|", ms=7, label="ceiling, strict (category size)")
-    if "paper" in curves:
-        ax.plot([min(k, int(n_c[c])) / k for c in present], y + 0.2, "r|", ms=7, label="ceiling, paper")
-    ax.set_yticks(y, [categories[c] for c in present], fontsize=6)
-    ax.invert_yaxis()
-    ax.set_xlim(0, 1)
-    ax.set_xlabel(f"precision@{k} (learned features)")
-    ax.legend(fontsize=7, loc="lower right")
-    ax.set_title("Per-category retrieval precision", fontsize=9)
-    ax2.axis("off")
-    text = "\n".join(f"{p['a']} <-> {p['b']}: {p['slots']} slots" for p in pairs) or "none"
-    ax2.text(0, 1, f"Most confused category pairs\n(top-{k} slots of one held by the other,\nstrict protocol, both "
-                   f"directions)\n\n{text}", va="top", fontsize=7, family="monospace")
-    _save(fig, path)
+    fig = per_category_figure(curves, torch.bincount(labels, minlength=C), categories, k, pairs)
+    write_png(path, figure_png(fig, dpi=150))
     return pairs
 
 
@@ -297,65 +276,6 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
     res = bank.assign(test["learned"])
     return res.prototype, res.angle, a
 
-
-def _alignment_figure(test: dict[str, Tensor], clusters: Tensor, angles: Tensor, num_angles: int, path: Path,
-                      categories: list[str], rows: int = 4, cols: int = 6) -> None:
-    """Members of the largest prototypes before (top) and after (bottom) rotation to the canonical yaw."""
-    counts = torch.bincount(clusters)
-    top = counts.argsort(descending=True)[:rows]
-    top = top[counts[top] > 0]
-    rows = max(1, len(top))
-    fig, axes = plt.subplots(2 * rows, cols, figsize=(1.3 * cols, 1.3 * 2 * rows), squeeze=False)
-    yaw = yaw_angles(num_angles)
-    for r, k in enumerate(top.tolist()):
-        members = (clusters == k).nonzero().flatten()[:cols]
-        raw = test["raw"][members]
-        aligned = rotate_yaw(raw, yaw[angles[members]])
-        for c in range(cols):
-            for row, vols, tag in ((2 * r, raw, "as seen"), (2 * r + 1, aligned, "aligned")):
-                ax = axes[row, c]
-                ax.axis("off")
-                if c < len(members):
-                    ax.imshow(crop_birds_eye(vols[c]))
-                    if c == 0:
-                        ax.set_title(f"prototype {k} ({tag})", fontsize=6, loc="left")
-                    else:
-                        ax.set_title(categories[int(test["labels"][members[c]])], fontsize=5)
-    fig.suptitle("Rotational alignment: members of a prototype (bird's-eye view), before and after rotation", fontsize=8)
-    _save(fig, path)
-
-
-def _retrieval_figure(test: dict[str, Tensor], sim: Tensor, path: Path, categories: list[str], queries: int = 6,
-                      k: int = 5) -> None:
-    """Query objects (left) and their top-k rotation-max neighbours (bird's-eye views of raw crops)."""
-    sim = sim.clone()
-    sim.fill_diagonal_(-math.inf)
-    n = sim.shape[0]
-    k = min(k, n - 1)  # a small split: as many neighbours as there are
-    picks = torch.linspace(0, n - 1, steps=min(queries, n)).long()
-    fig, axes = plt.subplots(len(picks), k + 1, figsize=(1.3 * (k + 1), 1.4 * len(picks)))
-    axes = np.atleast_2d(axes)
-    for r, q in enumerate(picks.tolist()):
-        nn_idx = sim[q].topk(k).indices.tolist()
-        for c, i in enumerate([q, *nn_idx]):
-            ax = axes[r, c]
-            ax.axis("off")
-            ax.imshow(crop_birds_eye(test["raw"][i]))
-            same = c == 0 or int(test["labels"][i]) == int(test["labels"][q])
-            ax.set_title(("query: " if c == 0 else "") + categories[int(test["labels"][i])], fontsize=5,
-                         color="black" if same else "red")
-    fig.suptitle(f"Retrieval with learned features: query and top-{k} (red = other category)", fontsize=8)
-    _save(fig, path)
-
-
-def _save(fig: Any, path: Path) -> None:
-    import io
-
-    buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=150)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
 
 
 def _markdown(res: dict[str, Any]) -> str:
@@ -552,17 +472,8 @@ def evaluate_quantizer(
     }
     out.mkdir(parents=True, exist_ok=True)
     if curve:
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        for m, v in curve.items():
-            ks = sorted(int(k) for k in v)
-            ax.plot(ks, [v[str(k)] for k in ks], marker="o", label=METHOD_LABELS.get(m, m))
-        ax.axvline(len(cats), color="grey", lw=0.8, ls="--")
-        ax.set_xlabel("number of prototypes K (dashed: number of categories)")
-        ax.set_ylabel("Hungarian accuracy (test)")
-        ax.set_ylim(0, 1)
-        ax.legend(fontsize=7)
-        ax.set_title("Unsupervised classification accuracy vs K", fontsize=9)
-        _save(fig, out / "fig3a_accuracy_vs_k.png")
+        write_png(out / "fig3a_accuracy_vs_k.png",
+                  figure_png(accuracy_vs_k_figure(curve, METHOD_LABELS, len(cats)), dpi=150))
     p, a, na = assignments["threedq"]
     files = index.files("test")
     atomic_write_json(out / "objects_test.json", {
@@ -576,10 +487,10 @@ def evaluate_quantizer(
             for s, box, k, ai, sc in zip(test["scene"], test["aabb"], p, a, res_bank.score.cpu())
         ],
     })  # fmt: skip
-    _alignment_figure(test, p, a, na, out / "prototype_alignment.png", cats)
-    _retrieval_figure(test, sims["learned"], out / "retrieval.png", cats)
+    write_png(out / "prototype_alignment.png", figure_png(alignment_figure(test, p, a, na, cats), dpi=150))
+    write_png(out / "retrieval.png", figure_png(retrieval_figure(test, sims["learned"], cats), dpi=150))
     if per_category:
-        res["confused_pairs"] = _per_category_figure(test, sims, retrieval["k"], out / "per_category_retrieval.png",
+        res["confused_pairs"] = _per_category_retrieval(test, sims, retrieval["k"], out / "per_category_retrieval.png",
                                                      cats)
     res["seconds"] = round(time.time() - t0, 1)
     atomic_write_json(out / "results.json", res)

@@ -1,0 +1,103 @@
+"""The pictures package (``threedq.viz``): PNG round trips, every figure drawn from a small case, and no pyplot."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from threedq.viz import figure_png, new_figure, rgb_png, write_png
+from threedq.viz.curves import accuracy_vs_k_figure, table3_figure
+from threedq.viz.detection import aabb_to_boxes7, self_labels_figure, size_band_figure
+from threedq.viz.features import alignment_figure, per_category_figure, retrieval_figure
+
+
+def _decode(data: bytes) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None, "not a PNG"
+    return img[:, :, ::-1]
+
+
+class TestPng:
+    def test_rgb_round_trip_keeps_channel_order(self) -> None:
+        img = np.zeros((5, 7, 3), np.uint8)
+        img[..., 0] = 200  # red
+        img[2, 3] = (1, 2, 3)
+        np.testing.assert_array_equal(_decode(rgb_png(img)), img)
+
+    def test_write_png_takes_arrays_figures_and_bytes(self, tmp_path: Path) -> None:
+        img = np.full((4, 6, 3), 9, np.uint8)
+        np.testing.assert_array_equal(_decode(write_png(tmp_path / "a.png", img).read_bytes()), img)
+        fig = new_figure(figsize=(2, 1), dpi=50)
+        fig.add_subplot(1, 1, 1).plot([0, 1], [0, 1])
+        assert _decode(write_png(tmp_path / "b.png", fig).read_bytes()).shape == (50, 100, 3)
+        assert _decode(figure_png(fig, dpi=100, tight=False)).shape == (100, 200, 3)
+        write_png(tmp_path / "c.png", rgb_png(img))
+        assert (tmp_path / "c.png").read_bytes() == rgb_png(img)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png", "c.png"]  # no temporary file left
+
+    def test_exceptions(self) -> None:
+        with pytest.raises(ValueError, match="uint8"):
+            rgb_png(np.zeros((4, 4, 3), np.float32))
+        with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+            rgb_png(np.zeros((4, 4), np.uint8))
+
+
+class TestFigures:
+    def test_curves(self) -> None:
+        rows = [{"round": r, "k": 10, "precision_at_10": 0.4 + r / 20, "precision_at_10_paper": None,
+                 "hungarian_acc": 0.3, "map_50": 0.5} for r in range(3)]  # fmt: skip
+        assert _decode(figure_png(table3_figure(rows))).shape[2] == 3
+        curve = {"threedq": {"10": 0.3, "50": 0.4}, "no_rot": {"10": 0.2, "50": 0.35}}
+        assert _decode(figure_png(accuracy_vs_k_figure(curve, {"threedq": "3DQ"}, 41))).ndim == 3
+
+    def test_features(self) -> None:
+        g = torch.Generator().manual_seed(0)
+        test = {"raw": torch.rand(8, 4, 6, 6, 6, generator=g), "labels": torch.tensor([0, 0, 1, 1, 2, 2, 0, 1])}
+        sim = torch.rand(8, 8, generator=g)
+        assert _decode(figure_png(retrieval_figure(test, sim, ["a", "b", "c"], queries=3, k=2))).ndim == 3
+        clusters, angles = torch.tensor([0, 0, 1, 1, 1, 2, 0, 1]), torch.tensor([0, 3, 1, 0, 2, 5, 4, 1])
+        assert _decode(figure_png(alignment_figure(test, clusters, angles, 8, ["a", "b", "c"], rows=2, cols=3))).ndim == 3
+        curves = {"strict": {0: 0.5, 1: 0.25, 2: 0.0}, "paper": {0: 0.75, 1: 0.5, 2: 0.5}}
+        pairs = [{"a": "a", "b": "b", "slots": 3}]
+        fig = per_category_figure(curves, torch.tensor([3, 3, 2]), ["a", "b", "c"], 2, pairs)
+        assert _decode(figure_png(fig)).ndim == 3
+
+    def test_detection(self) -> None:
+        rows = [{"band": "< 0.2 m", "objects": 3, "found_25": 2 / 3, "found_50": 1 / 3},
+                {"band": ">= 0.2 m", "objects": 0, "found_25": float("nan"), "found_50": float("nan")}]  # fmt: skip
+        assert _decode(figure_png(size_band_figure({"detector": rows, "pseudo-boxes": rows}))).ndim == 3
+        np.testing.assert_allclose(aabb_to_boxes7(np.array([[0.0, 1.0, 2.0, 2.0, 2.0, 5.0]])),
+                                   [[1.0, 1.5, 3.5, 2.0, 1.0, 3.0, 0.0]])  # fmt: skip
+        K = torch.tensor([[50.0, 0, 15.5], [0, 50.0, 15.5], [0, 0, 1]])
+        pose = torch.eye(4)
+        pose[2, 3] = -3.0  # camera 3 m behind the origin, looking along +z
+        sample = {"rgb": torch.zeros(1, 3, 32, 32), "K": K[None], "R_T_cam": pose[None]}
+        labels = torch.tensor([[1.0, -0.2, -0.2, -0.2, 0.2, 0.2, 0.2], [0.0, 0.3, 0.3, 0.0, 0.5, 0.5, 0.2]])
+        img = self_labels_figure([(sample, labels), (sample, labels[:1])], upscale=2)
+        assert img.dtype == np.uint8 and img.shape == (64, 2 * (64 + 4), 3)
+        assert (img[:, :64] != 0).any()  # boxes were drawn on the black view
+
+
+def test_the_backend_is_never_changed() -> None:
+    """A user's matplotlib backend (a notebook's) survives importing every layer of threedq and drawing its
+    figures, and no pyplot figure is left open (threedq draws on its own Agg canvases; report.py once called
+    ``matplotlib.use("Agg")`` at import)."""
+    code = (
+        "import matplotlib\n"
+        "matplotlib.use('svg')\n"
+        "import threedq.cli, threedq.pipeline.em, threedq.pipeline.report, threedq.pipeline.detection_eval\n"
+        "import threedq.stages.viewpred, threedq.stages.mining, threedq.stages.self_labelling\n"
+        "from threedq.viz.curves import table3_figure\n"
+        "from threedq.viz.png import figure_png\n"
+        "figure_png(table3_figure([{'round': 0, 'hungarian_acc': 0.5}]))\n"
+        "import matplotlib.pyplot as plt\n"
+        "assert matplotlib.get_backend() == 'svg', matplotlib.get_backend()\n"
+        "assert plt.get_fignums() == [], plt.get_fignums()\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

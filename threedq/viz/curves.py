@@ -1,0 +1,62 @@
+"""Curves of the evaluation: Table 3 against the EM round, Hungarian accuracy against K (paper Fig. 3a).
+
+| picture | function | written by |
+|---|---|---|
+| ``table3.png`` of a ``threedq em`` run | :func:`table3_figure` | ``threedq.pipeline.em`` |
+| ``fig3a_accuracy_vs_k.png`` | :func:`accuracy_vs_k_figure` | ``threedq eval`` (``threedq.pipeline.report``) |
+
+Convention: matplotlib pictures are ``Figure`` objects for :func:`~threedq.viz.png.write_png`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from threedq.viz.png import new_figure
+
+__all__ = ["accuracy_vs_k_figure", "table3_figure"]
+
+
+def table3_figure(rows: list[dict[str, Any]]) -> Any:
+    """Features (precision@k, both protocols), quantization (Hungarian accuracy) and detection (mAP@0.5) per round.
+
+    Args:
+        rows: Table 3's rows (``round``, ``k``, ``precision_at_10``, ``precision_at_10_paper``, ``hungarian_acc``,
+            ``map_50``; a missing or ``None`` value is left out).
+    """
+    fig = new_figure(figsize=(5, 3.2), dpi=120)
+    ax = fig.add_subplot(1, 1, 1)
+    k = next((r["k"] for r in rows if r.get("k")), 10)
+    for key, label in (("precision_at_10", f"features: precision@{k}, strict"),
+                       ("precision_at_10_paper", f"features: precision@{k}, paper protocol"),
+                       ("hungarian_acc", "quantization: Hungarian acc."), ("map_50", "detection: mAP@0.5")):
+        pts = [(r["round"], r[key]) for r in rows if r.get(key) is not None]
+        if pts:
+            ax.plot(*zip(*pts), marker="o", label=label)
+    ax.set_xlabel("EM round")
+    ax.set_xticks([r["round"] for r in rows])
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return fig
+
+
+def accuracy_vs_k_figure(curve: dict[str, dict[str, float]], labels: dict[str, str], num_categories: int) -> Any:
+    """Hungarian accuracy of each method against the number of prototypes K.
+
+    Args:
+        curve: ``{method: {str(K): accuracy}}``. labels: display name per method (the method's key otherwise).
+        num_categories: drawn as a dashed line.
+    """
+    fig = new_figure(figsize=(5, 3.5))
+    ax = fig.add_subplot(1, 1, 1)
+    for m, v in curve.items():
+        ks = sorted(int(k) for k in v)
+        ax.plot(ks, [v[str(k)] for k in ks], marker="o", label=labels.get(m, m))
+    ax.axvline(num_categories, color="grey", lw=0.8, ls="--")
+    ax.set_xlabel("number of prototypes K (dashed: number of categories)")
+    ax.set_ylabel("Hungarian accuracy (test)")
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=7)
+    ax.set_title("Unsupervised classification accuracy vs K", fontsize=9)
+    return fig
