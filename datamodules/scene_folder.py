@@ -409,9 +409,28 @@ class SceneFolderDataModule(L.LightningDataModule):
         if self.boxes == "gt":
             return None
         if self.boxes == "proposals":
-            cache = self.data_dir / "proposals" / f"{split}.npz"
-            return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2))
+            return self.pseudo_boxes(split)
         return load_boxes_file(self.boxes.format(split=split))
+
+    def pseudo_boxes(self, split: str, progress: bool = False) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The label-free pseudo-boxes of a split per scene file (:mod:`threedq.proposals` over every second view:
+        what the detector's warm start learns from), computed once and cached in ``<data_dir>/proposals/<split>.npz``.
+        """
+        cache = self.data_dir / "proposals" / f"{split}.npz"
+        return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2), progress=progress)
+
+    def fixed_view_dataset(self, split: str, gallery: bool = False, with_boxes: bool = True) -> SceneDataset:
+        """A deterministic dataset over one split: every scene's fixed input views (no random draw).
+
+        ``gallery``: each sample also holds the scene's next fixed view after the input views (the paper retrieval
+        protocol's gallery view). ``with_boxes``: the samples carry this DataModule's ``boxes`` (else the GT boxes).
+        """
+        return SceneDataset(
+            self.data_dir, self.index, split, num_input_views=self.num_input_views,
+            num_target_views=1 if gallery else 0, max_objects=self.max_objects, random_views=False, seed=self.seed,
+            box_sets=self.box_sets(split) if with_boxes else None, match_iou=self.match_iou,
+            keep_unmatched=split == "train", max_boxes=self.max_boxes,
+        )  # fmt: skip
 
     def box_extents(self, split: str = "train") -> np.ndarray:
         """``[N, 3]`` extents (x, y, z; metres) of the object boxes a split's samples carry: the axis-aligned hulls

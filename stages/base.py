@@ -29,6 +29,7 @@ from torch import Tensor
 
 from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
+from threedq.stages.crop_cache import CropCache
 from threedq.stages.checkpoint import (  # noqa: F401 - re-exported: the names' home before stages/checkpoint.py
     DEFAULT_GRID,
     checkpoint_hparams,
@@ -88,9 +89,9 @@ class EncoderStage(L.LightningModule):
             convolutions; numerically the same).
 
     Attributes:
-        crop_cache: an optional :class:`~threedq.pipeline.crop_cache.CropCache` (or any object with its
-            ``fingerprint``/``sample_key``/``get_many``/``put`` interface) that :meth:`object_crops` reads and
-            fills while the encoder is frozen (``threedq em`` hands one to every round); None by default.
+        crop_cache: an optional :class:`~threedq.stages.crop_cache.CropCache` that :meth:`object_crops` and
+            :meth:`encode_views` read and fill while the encoder is frozen (``threedq em`` hands one to every round
+            through :meth:`use_crop_cache`); None by default.
 
     Convention: frame R metres, z up; volumes ``[B, C, Z, Y, X]``.
     """
@@ -126,7 +127,13 @@ class EncoderStage(L.LightningModule):
             # start, so without this a frozen encoder would normalise by batch statistics and drift its
             # running statistics
             self.encoder.requires_grad_(False).eval()
-        self.crop_cache: Any = None  # set by the caller (``threedq em``); not a hyperparameter
+        self.crop_cache: CropCache | None = None  # handed over by the caller (use_crop_cache); not a hyperparameter
+
+    def use_crop_cache(self, cache: CropCache | None) -> None:
+        """Read and fill ``cache`` (shared between stages and rounds) wherever crops cannot depend on the batch."""
+        if cache is not None and not isinstance(cache, CropCache):
+            raise TypeError(f"crop_cache: expected a CropCache or None, got {type(cache).__name__}")
+        self.crop_cache = cache
 
     def setup(self, stage: str) -> None:
         """Fix the run folder on every process (see :attr:`run_dir`)."""
@@ -233,7 +240,7 @@ class EncoderStage(L.LightningModule):
         """:meth:`encode_views`, and the unprojected input ``[B*S, 4, Z, Y, X]`` when it was computed or
         ``need_input`` (else None)."""
         B, S = rgb.shape[:2]
-        cache = self.crop_cache if self.crops_cacheable() and hasattr(self.crop_cache, "views_key") else None
+        cache = self.crop_cache if self.crops_cacheable() else None
         x = None
         if need_input or cache is None:
             x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))

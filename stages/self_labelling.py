@@ -20,7 +20,11 @@ the positive and negative regions (:func:`self_label_targets`): cells of a posit
 the warm start (:func:`~threedq.stages.detector.detection_targets`), cells inside a negative box are negatives,
 every other cell is ignored. Two measured departures, each a switch (off = the paper): positives must overlap a
 label-free pseudo-box and take its box (``snap_to_proposals``), and the shell around each positive box is negative
-(``surround_negatives``). The labels are registered buffers (``labels``, ``labelled``), so a resumed run
+(``surround_negatives``). Two more switches use the label-free pseudo-boxes beside the detections:
+``proposal_candidates`` makes the pseudo-boxes no detection snaps to candidates too (labelled by the same two
+scores, so an object the detector misses can still become a positive), and ``spare_proposals`` keeps every cell
+inside a pseudo-box from being a negative (a negative box or shell cutting into an object the prototypes did not
+vouch for is ignored there, not taught as background). The labels are registered buffers (``labels``, ``labelled``), so a resumed run
 trains on the same labels; the pool's feature grids are computed once (the encoder is frozen) and every step
 draws ``batch_size`` of them, so a step costs a head pass, not an encoding (the loader's batch is not used).
 
@@ -34,6 +38,7 @@ Convention: frame R metres, z up; boxes axis-aligned ``(xmin, ymin, zmin, xmax, 
 
 from __future__ import annotations
 
+import inspect
 import json
 import time
 from pathlib import Path
@@ -106,6 +111,7 @@ def center_surround_similarity(grid: Tensor, aabb: Tensor, spec: VoxelGridSpec, 
 def self_label_targets(
     centres: Tensor, pos_aabb: Tensor, pos_mask: Tensor, neg_aabb: Tensor, neg_mask: Tensor, anchor: Tensor,
     inner_fraction: float = 0.5, negative_margin: float = 0.1, surround: float = 0.0, min_height: float = 0.0,
+    spare_aabb: Tensor | None = None, spare_mask: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Objectness labels and box targets confined to the union of the positive and negative regions.
 
@@ -113,7 +119,8 @@ def self_label_targets(
     positive with box targets, cells within ``negative_margin`` of a positive box ignored); a cell whose centre
     lies inside a negative box and near no positive box is negative, and so is one in the shell around a positive
     box (the box grown by ``surround`` times its extent on each side, minus the box and its ``negative_margin``);
-    every other cell is ignored (-1).
+    a cell inside a spared box is never negative (something geometric stands there that is not labelled
+    positive); every other cell is ignored (-1).
 
     Args:
         centres: ``[Z, Y, X, 3]`` cell centres (x, y, z), metres.
@@ -122,6 +129,7 @@ def self_label_targets(
         surround: width of the negative shell around each positive box, in units of its extent (0: none).
         min_height: positive boxes less tall than this give no positives (their region is ignored), as in
             :func:`~threedq.stages.detector.detection_targets`.
+        spare_aabb: ``[B, S, 6]`` spared boxes, spare_mask ``[B, S]`` (None: none).
 
     Returns:
         ``label`` ``[B, Z, Y, X]`` (1 positive, 0 negative, -1 ignored) and ``target`` ``[B, 6, Z, Y, X]``.
@@ -138,6 +146,9 @@ def self_label_targets(
         lo, hi = pos_aabb[..., None, :3] - ext[..., None, :], pos_aabb[..., None, 3:] + ext[..., None, :]
         shell = ((p >= lo) & (p <= hi)).all(-1) & pos_mask[..., None]
         in_neg = in_neg | shell.any(1).view(B, *label.shape[1:])
+    if spare_aabb is not None and spare_mask is not None and spare_aabb.shape[1]:
+        spared = ((p >= spare_aabb[..., None, :3]) & (p <= spare_aabb[..., None, 3:])).all(-1) & spare_mask[..., None]
+        in_neg = in_neg & ~spared.any(1).view(B, *label.shape[1:])
     label = torch.where((label == 0) & ~in_neg, torch.full_like(label, -1.0), label)
     return label, target
 
@@ -196,12 +207,20 @@ class SelfLabelling(Detector):
         surround_negatives: cells in a shell this many box extents wide around each positive box are negatives
             (see :func:`self_label_targets`; 0, the paper: only the negative boxes' cells; 0.5: round 4 mAP@0.5
             0.565 -> 0.746).
+        proposal_candidates: the pool scenes' label-free pseudo-boxes that no detection snaps to (IoU below
+            ``snap_to_proposals``, or 0.5 when that is 0) are candidates too, labelled like the detections (the
+            paper labels detections only).
+        spare_proposals: no cell inside a label-free pseudo-box is a negative (the paper: negative boxes label all
+            their cells).
         freeze_encoder: must stay True (the encoder is the round's, frozen).
         lr: Adam learning rate of the head (lower than the warm start's: 1e-3 for 300 steps lowered test mAP@0.5
             0.626 -> 0.554, docs/results.md).
         image_every_n_steps: as the detector's (0: no pictures).
-        **kwargs: the :class:`~threedq.stages.detector.Detector`'s other arguments, by keyword (those of
-            :data:`INHERITED_FROM_DETECTOR` default to ``detector_ckpt``'s), and the encoder's.
+        anchor_size, channels, num_blocks, score_threshold, eval_score_threshold, nms_iou, nms_iomin, max_detections,
+            refine_iou: as the :class:`~threedq.stages.detector.Detector`'s; None (the default): the value
+            ``detector_ckpt`` was trained with (the Detector's default without a checkpoint). Given, they override
+            it (an anchor other than the detector's is refused: the head's boxes would decode at another size).
+        **kwargs: the :class:`~threedq.stages.detector.Detector`'s other arguments, by keyword, and the encoder's.
     """
 
     def __init__(
@@ -222,11 +241,28 @@ class SelfLabelling(Detector):
         surround_crop_size: int = 8,
         snap_to_proposals: float = 0.3,
         surround_negatives: float = 0.5,
+        proposal_candidates: bool = False,
+        spare_proposals: bool = False,
         freeze_encoder: bool = True,
         lr: float = 1e-4,
         image_every_n_steps: int = 0,
+        anchor_size: tuple[float, float, float] | None = None,
+        channels: int | None = None,
+        num_blocks: int | None = None,
+        score_threshold: float | None = None,
+        eval_score_threshold: float | None = None,
+        nms_iou: float | None = None,
+        nms_iomin: float | None = None,
+        max_detections: int | None = None,
+        refine_iou: float | None = None,
         **kwargs: Any,
     ) -> None:
+        given = {"anchor_size": anchor_size, "channels": channels, "num_blocks": num_blocks,
+                 "score_threshold": score_threshold, "eval_score_threshold": eval_score_threshold, "nms_iou": nms_iou,
+                 "nms_iomin": nms_iomin, "max_detections": max_detections, "refine_iou": refine_iou}
+        assert set(given) == set(INHERITED_FROM_DETECTOR)
+        kwargs.update({k: v for k, v in given.items() if v is not None})
+        given_decoding = {k for k, v in given.items() if v is not None}
         if not freeze_encoder:
             raise ValueError("freeze_encoder: self-labelling trains the detector head on a frozen encoder")
         asked_anchor = kwargs.get("anchor_size")  # an explicit anchor is checked against the detector's below
@@ -234,8 +270,10 @@ class SelfLabelling(Detector):
             trained = checkpoint_hparams(detector_ckpt, missing_ok=True)
             for name in INHERITED_FROM_DETECTOR:
                 if kwargs.get(name) is None and trained.get(name) is not None:
-                    kwargs[name] = tuple(float(a) for a in trained[name]) if name == "anchor_size" else trained[name]
+                    v = tuple(float(a) for a in trained[name]) if name == "anchor_size" else trained[name]
+                    kwargs[name] = v
         super().__init__(freeze_encoder=freeze_encoder, lr=lr, image_every_n_steps=image_every_n_steps, **kwargs)
+        self._given_decoding = given_decoding
         for name, v in (("positive_threshold", positive_threshold), ("negative_threshold", negative_threshold)):
             if not -1.0 <= v <= 1.0:
                 raise ValueError(f"{name}: expected a cosine in [-1, 1], got {v}")
@@ -244,6 +282,11 @@ class SelfLabelling(Detector):
         if pool_scenes < 1 or batch_size < 1:
             raise ValueError(f"pool_scenes, batch_size: expected >= 1, got {pool_scenes}, {batch_size}")
         self.save_hyperparameters()
+        # save_hyperparameters records the arguments as given (under LightningCLI: the parsed config, where these
+        # are null): record what this detector decodes with, or a fit would take a new anchor from its own training
+        # boxes and decode the fine-tuned head at another size than it was trained for
+        defaults = inspect.signature(Detector.__init__).parameters
+        self.hparams.update({n: kwargs[n] if n in kwargs else defaults[n].default for n in INHERITED_FROM_DETECTOR})
         if detector_ckpt:
             load_head_state(self.head, detector_ckpt, asked_anchor)
         self.bank: PrototypeBank | None = None
@@ -253,7 +296,7 @@ class SelfLabelling(Detector):
                 raise ValueError(f"{bank_ckpt}: field 'state_dict': no 'bank.prototypes' (not a quantizer checkpoint?)")
             self.bank = PrototypeBank(num.shape[0], self.feature_dim, crop_size, num_angles, method=search_method)
             load_bank_state(self.bank, bank_ckpt)
-        # the labels: rows (pool position, kind 1 positive / 0 negative, aabb[6]); resized on load
+        # the labels: rows (pool position, kind 1 positive / 0 negative / 2 spared, aabb[6]); resized on load
         self.register_buffer("labels", torch.zeros(0, 8))
         self.register_buffer("labelled", torch.zeros((), dtype=torch.bool))
         self._pool_grids: Tensor | None = None
@@ -261,20 +304,29 @@ class SelfLabelling(Detector):
 
     # ------------------------------------------------------------------ checkpoint
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """The labels' size, and what was not given of the decoding (thresholds, NMS, detections per scene,
+        refinement) from the checkpoint's hyperparameters (the anchor: :meth:`Detector.on_load_checkpoint`), so a
+        self-labelled checkpoint tested without its ``detector_ckpt`` decodes as it did when it was written."""
         super().on_load_checkpoint(checkpoint)
+        saved = checkpoint.get("hyper_parameters") or {}
+        for name in ("score_threshold", "eval_score_threshold", "nms_iou", "nms_iomin", "max_detections", "refine_iou"):
+            if name not in self._given_decoding and saved.get(name) is not None:
+                self.hparams[name] = saved[name]
         labels = checkpoint.get("state_dict", {}).get("labels")
         if labels is not None:
             self.labels = torch.zeros_like(labels)
 
     # ------------------------------------------------------------------ the pool
-    def _pool_dataset(self) -> Any:
-        from threedq.datamodules.scene_folder import SceneDataset  # a stage reads its datamodule's own dataset
+    @property
+    def _uses_proposals(self) -> bool:
+        h = self.hparams
+        return h.snap_to_proposals > 0 or bool(h.proposal_candidates) or bool(h.spare_proposals)
 
+    def _pool_dataset(self) -> Any:
         dm = getattr(self.trainer, "datamodule", None)
-        if dm is None or not hasattr(dm, "index"):
+        if dm is None or not hasattr(dm, "fixed_view_dataset"):
             raise RuntimeError("self-labelling: needs a scene-folder DataModule (its train split is the pool)")
-        return SceneDataset(dm.data_dir, dm.index, "train", num_input_views=dm.num_input_views, num_target_views=0,
-                            max_objects=dm.max_objects, random_views=False, seed=dm.seed)  # fmt: skip
+        return dm.fixed_view_dataset("train", with_boxes=False)
 
     def _pool_order(self, n: int) -> list[int]:
         g = torch.Generator().manual_seed(self.hparams.seed)
@@ -293,13 +345,8 @@ class SelfLabelling(Detector):
         self.head.eval()
         bar = self.trainer.progress_bar_callback is not None
         proposals = None
-        if self.hparams.snap_to_proposals > 0:
-            from threedq.data.proposal_cache import propose_dataset
-            from threedq.proposals import ProposalParams
-
-            dm = self.trainer.datamodule
-            proposals = propose_dataset(dm.data_dir, "train", dm.data_dir / "proposals" / "train.npz",
-                                        params=ProposalParams(view_stride=2), progress=bar)  # fmt: skip
+        if self._uses_proposals:
+            proposals = self.trainer.datamodule.pseudo_boxes("train", progress=bar)
         for start in tqdm(range(0, len(order), 8), desc="self-labelling pool", disable=not bar, leave=False):
             idx = order[start:start + 8]
             batch = {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in default_collate([ds[j] for j in idx]).items()}
@@ -315,8 +362,8 @@ class SelfLabelling(Detector):
                 for b, (r, d) in enumerate(self._label_batch(g, batch, props)):
                     rows.append(torch.cat([torch.full((len(r), 1), float(start + b)), r], dim=1))
                     diag_rows.append(d)
-                    if len(first) < 4 and len(r):
-                        first.append(({k: batch[k][b] for k in ("rgb", "K", "R_T_cam")}, r))
+                    if len(first) < 4 and len(r):  # the picture shows positives and negatives
+                        first.append(({k: batch[k][b] for k in ("rgb", "K", "R_T_cam")}, r[r[:, 0] < 2]))
         self.head.train(was)
         self._pool_grids = torch.cat(grids)
         self._pool_files = [ds.files[j] for j in order]
@@ -334,12 +381,25 @@ class SelfLabelling(Detector):
                      ) -> list[tuple[Tensor, dict[str, Tensor]]]:
         """Per scene: label rows ``[L, 7]`` (kind, aabb) and the candidates' measurements (for the diagnostics).
 
-        ``proposals``: per scene the label-free pseudo-boxes ``[P, 6]`` that positives snap to (``snap_to_proposals``).
+        ``proposals``: per scene the label-free pseudo-boxes ``[P, 6]`` that positives snap to (``snap_to_proposals``),
+        that join the candidates (``proposal_candidates``) and whose cells are spared (``spare_proposals``).
         """
         if self.bank is None:
             raise RuntimeError("bank_ckpt: self-labelling needs the round's prototype bank")
         logits, box = self.head(grid)
         dets = self.detect(logits, box, self.hparams.candidate_threshold)
+        props = [None] * len(dets) if proposals is None else [
+            torch.as_tensor(p, dtype=grid.dtype, device=grid.device).reshape(-1, 6) for p in proposals]
+        n_det = [d["boxes"].shape[0] for d in dets]
+        if self.hparams.proposal_candidates and proposals is not None:
+            taken_iou = self.hparams.snap_to_proposals or 0.5
+            for d, pr in zip(dets, props):
+                taken = torch.zeros(len(pr), dtype=torch.bool, device=pr.device)
+                if len(pr) and len(d["boxes"]):
+                    best, j = aabb_iou_3d(d["boxes"], pr).max(1)
+                    taken[j[best >= taken_iou]] = True
+                d["boxes"] = torch.cat([d["boxes"], pr[~taken].to(d["boxes"].dtype)])
+                d["scores"] = torch.cat([d["scores"], d["scores"].new_zeros(int((~taken).sum()))])
         counts = [d["boxes"].shape[0] for d in dets]
         m = max(counts) if counts else 0
         proto_all = cs_all = grid.new_zeros(len(dets), 0)
@@ -365,8 +425,8 @@ class SelfLabelling(Detector):
                 neg &= ~pos
             else:
                 pos &= ~neg
-            if proposals is not None and pos.any():
-                pr = torch.as_tensor(proposals[b], dtype=aabb.dtype, device=aabb.device).reshape(-1, 6)
+            if proposals is not None and self.hparams.snap_to_proposals > 0 and pos.any():
+                pr = props[b].to(aabb.dtype)
                 if len(pr):
                     best, j = aabb_iou_3d(aabb, pr).max(1)
                     snap = pos & (best >= self.hparams.snap_to_proposals)
@@ -376,21 +436,28 @@ class SelfLabelling(Detector):
                 pos = snap  # a positive nothing geometric supports (a shadow, a patch of floor) is left unlabelled
             keep = pos | neg
             rows = torch.cat([pos[keep, None].to(aabb.dtype), aabb[keep]], dim=1).cpu()
+            if self.hparams.spare_proposals and proposals is not None and len(props[b]):
+                spare = props[b].to(aabb.dtype)
+                rows = torch.cat([rows, torch.cat([spare.new_full((len(spare), 1), 2.0), spare], dim=1).cpu()])
+            from_prop = torch.arange(n, device=aabb.device) >= n_det[b]
             gt = batch["aabb"][b][batch["box_mask"][b]]
             m50 = assign_detections(aabb, d["scores"], gt, 0.5) >= 0 if n else torch.zeros(0, dtype=torch.bool)
             m25 = assign_detections(aabb, d["scores"], gt, 0.25) >= 0 if n else torch.zeros(0, dtype=torch.bool)
             out.append((rows, {"pos": pos.cpu(), "neg": neg.cpu(), "tp50": m50.cpu(), "tp25": m25.cpu(),
+                               "from_proposal": from_prop.cpu(),
                                "proto": proto.cpu(), "cs": cs.cpu(), "num_gt": torch.tensor(gt.shape[0])}))
         return out
 
     def _diagnostics(self, rows: list[dict[str, Tensor]], seconds: float) -> dict[str, Any]:
-        cat = {k: torch.cat([r[k] for r in rows]) if rows else torch.zeros(0) for k in ("pos", "neg", "tp50", "tp25")}
+        cat = {k: torch.cat([r[k] for r in rows]) if rows else torch.zeros(0)
+               for k in ("pos", "neg", "tp50", "tp25", "from_proposal")}
         pos, neg = cat["pos"].bool(), cat["neg"].bool()
         tp50, tp25 = cat["tp50"].bool(), cat["tp25"].bool()
         n_gt = int(sum(int(r["num_gt"]) for r in rows))
         info: dict[str, Any] = {
             "scenes": len(rows),
             "candidates": int(pos.numel()),
+            "candidates_from_proposals": int(cat["from_proposal"].bool().sum()),
             "candidate_threshold": self.hparams.candidate_threshold,
             "positives": int(pos.sum()),
             "negatives": int(neg.sum()),
@@ -422,21 +489,23 @@ class SelfLabelling(Detector):
         g = torch.Generator().manual_seed(self.hparams.seed * 1_000_003 + int(self.global_step))
         pick = torch.randint(n, (self.hparams.batch_size,), generator=g)
         grids = self._pool_grids[pick].to(self.device)
-        pos_aabb, pos_mask, neg_aabb, neg_mask = self._batch_labels(pick)
+        pos_aabb, pos_mask, neg_aabb, neg_mask, spare_aabb, spare_mask = self._batch_labels(pick)
         logits, box = self.head(grids)
         label, target = self_label_targets(self.centres, pos_aabb, pos_mask, neg_aabb, neg_mask, self.anchor,
                                            self.hparams.inner_fraction, self.hparams.negative_margin,
-                                           self.hparams.surround_negatives, self.min_box_height)  # fmt: skip
+                                           self.hparams.surround_negatives, self.min_box_height,
+                                           spare_aabb, spare_mask)  # fmt: skip
         r = self.loss_from_targets(logits, box, label, target)
         self.log_dict({"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"],
                        "train/num_pos": r["num_pos"].float(), "train/num_neg": r["num_neg"].float()},
                       prog_bar=True, batch_size=len(pick))  # fmt: skip
         return r["loss"]
 
-    def _batch_labels(self, pick: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _batch_labels(self, pick: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Positive, negative and spared boxes (each ``[B, M, 6]`` and mask ``[B, M]``) of the picked pool scenes."""
         lab = self.labels
         out = []
-        for kind in (1.0, 0.0):
+        for kind in (1.0, 0.0, 2.0):
             per = [lab[(lab[:, 0] == float(i)) & (lab[:, 1] == kind), 2:] for i in pick.tolist()]
             m = max(1, max(len(p) for p in per))
             aabb = lab.new_zeros(len(per), m, 6)
@@ -445,6 +514,6 @@ class SelfLabelling(Detector):
                 aabb[j, : len(p)] = p
                 mask[j, : len(p)] = True
             out += [aabb, mask]
-        return out[0], out[1], out[2], out[3]
+        return out[0], out[1], out[2], out[3], out[4], out[5]
 
 

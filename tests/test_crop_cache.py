@@ -9,7 +9,7 @@ import torch
 
 from threedq.datamodules.scene_folder import SceneFolderDataModule
 from threedq.stages.base import EncoderStage
-from threedq.pipeline.crop_cache import CropCache, module_fingerprint, sample_key
+from threedq.stages.crop_cache import CropCache, module_fingerprint, sample_key
 from threedq.pipeline.evaluation import collect_object_crops
 from threedq.nets import UNet3D
 from threedq.pipeline.report import split_loader
@@ -124,7 +124,7 @@ class TestGridsWithCache:
         stage = _stage()
         with torch.no_grad():
             ref = stage.encode_views(*self._views(batch))
-            stage.crop_cache = CropCache()
+            stage.use_crop_cache(CropCache())
             first = stage.encode_views(*self._views(batch))
             other_boxes = {**batch, "aabb": batch["aabb"] + 0.1}
             second = stage.encode_views(*self._views(other_boxes))
@@ -135,7 +135,7 @@ class TestGridsWithCache:
 
     def test_other_views_or_weights_miss(self, batch: dict[str, torch.Tensor]) -> None:
         stage = _stage(0)
-        stage.crop_cache = CropCache()
+        stage.use_crop_cache(CropCache())
         with torch.no_grad():
             stage.encode_views(*self._views(batch))
             rgb, depth, K, pose = self._views(batch)
@@ -144,12 +144,12 @@ class TestGridsWithCache:
             stage.encoder.load_state_dict(_stage(1).encoder.state_dict())
             fresh = stage.encode_views(rgb, depth, K, pose)
             assert stage.crop_cache.hits == 0
-            stage.crop_cache = None
+            stage.use_crop_cache(None)
             assert torch.equal(fresh, stage.encode_views(rgb, depth, K, pose))
 
     def test_not_used_with_gradient(self, batch: dict[str, torch.Tensor]) -> None:
         stage = _stage()
-        stage.crop_cache = CropCache()
+        stage.use_crop_cache(CropCache())
         stage.encode_views(*self._views(batch))
         assert len(stage.crop_cache) == 0
 
@@ -159,7 +159,7 @@ class TestObjectCropsWithCache:
         stage = _stage()
         with torch.no_grad():
             ref = stage.object_crops(batch, 1, 8)
-            stage.crop_cache = CropCache()
+            stage.use_crop_cache(CropCache())
             first = stage.object_crops(batch, 1, 8)
             assert stage.crop_cache.misses > 0 and stage.crop_cache.hits == 0
             second = stage.object_crops(batch, 1, 8)
@@ -176,7 +176,7 @@ class TestObjectCropsWithCache:
             ref_grid = stage.encode_views(*views)
             other = {**batch, "aabb": batch["aabb"] + 0.05}
             ref_other = stage.object_crops(other, 1, 8)
-            stage.crop_cache = CropCache()
+            stage.use_crop_cache(CropCache())
             stage.object_crops(batch, 1, 8)
             B = batch["rgb"].shape[0]
             assert {k[0] for k in stage.crop_cache._store} == {"features", "raw", "grid"}
@@ -193,18 +193,18 @@ class TestObjectCropsWithCache:
 
     def test_new_weights_are_a_miss(self, batch: dict[str, torch.Tensor]) -> None:
         stage = _stage(0)
-        stage.crop_cache = CropCache()
+        stage.use_crop_cache(CropCache())
         with torch.no_grad():
             stage.object_crops(batch, 1, 8)
             stage.encoder.load_state_dict(_stage(1).encoder.state_dict())
             fresh = stage.object_crops(batch, 1, 8)
-            stage.crop_cache = None
+            stage.use_crop_cache(None)
             ref = stage.object_crops(batch, 1, 8)
         assert torch.equal(fresh["features"], ref["features"])
 
     def test_not_used_with_gradient_or_training_encoder(self, batch: dict[str, torch.Tensor]) -> None:
         stage = _stage()
-        stage.crop_cache = CropCache()
+        stage.use_crop_cache(CropCache())
         stage.object_crops(batch, 1, 8)  # grad enabled
         assert len(stage.crop_cache) == 0
         stage.train()
@@ -215,7 +215,7 @@ class TestObjectCropsWithCache:
     def test_collect_with_cache_equals_without(self, dm: SceneFolderDataModule) -> None:
         stage = _stage()
         ref = collect_object_crops(stage, split_loader(dm, "test", batch_size=1), crop_size=8, progress=False)
-        stage.crop_cache = CropCache()
+        stage.use_crop_cache(CropCache())
         for _ in range(2):  # fill, then hit
             got = collect_object_crops(stage, split_loader(dm, "test", batch_size=1), crop_size=8, progress=False)
             for k in ref:

@@ -53,6 +53,38 @@ class TestSceneFolderDataModule:
         b = SceneDataset(tiny_dataset, index, "test", seed=1)[1]["view_ids"]
         assert torch.equal(a, b)
 
+    def test_fixed_view_dataset_and_pseudo_boxes(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        from threedq.data.proposal_cache import propose_dataset
+        from threedq.proposals import ProposalParams
+
+        data = tmp_path / "data"
+        shutil.copytree(tiny_dataset, data)
+        dm = SceneFolderDataModule(str(data), num_input_views=2, num_target_views=1)
+        dm.setup("test")
+        # the fixed-view dataset of a held-out split is the loader's own (held-out splits draw no random views)
+        ref, got = dm.datasets["test"], dm.fixed_view_dataset("test")
+        assert len(ref) == len(got) > 0
+        for i in range(len(ref)):
+            a, b = ref[i], got[i]
+            assert torch.equal(a["rgb"][:2], b["rgb"]) and torch.equal(a["aabb"], b["aabb"])
+            assert b["rgb"].shape[0] == 2  # no target view unless the gallery is asked for
+        gal = dm.fixed_view_dataset("test", gallery=True)[0]
+        assert gal["rgb"].shape[0] == 3 and torch.equal(gal["rgb"][:2], got[0]["rgb"])
+        # the pseudo-boxes: the proposals of every second view, written once to the split's cache
+        boxes = dm.pseudo_boxes("test")
+        assert (data / "proposals" / "test.npz").is_file()
+        direct = propose_dataset(data, "test", tmp_path / "ref.npz", params=ProposalParams(view_stride=2), progress=False)
+        assert sorted(boxes) == sorted(direct) == sorted(dm.index.files("test"))
+        for f in boxes:
+            assert np.allclose(boxes[f][0], direct[f][0]) and np.allclose(boxes[f][1], direct[f][1])
+        # boxes="proposals": the samples carry those boxes (a training split keeps the ones matching no object)
+        dp = SceneFolderDataModule(str(data), num_input_views=2, boxes="proposals")
+        train = dp.pseudo_boxes("train")
+        s0 = dp.fixed_view_dataset("train")[0]
+        n = len(train[dp.index.files("train")[0]][0])
+        assert n > 0 and int(s0["box_mask"].sum()) == min(n, dp.max_boxes)
+        assert torch.equal(dp.fixed_view_dataset("test", with_boxes=False)[0]["aabb"], got[0]["aabb"])
+
     def test_fixed_views_are_read_once_and_again_after_a_rewrite(self, tiny_dataset: Path, tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
         """The fixed views of a scene come from the process-wide view cache the second time (equal samples, no

@@ -10,7 +10,8 @@ import torch
 
 from threedq.datamodules.scene_folder import SceneFolderDataModule
 from threedq.pipeline.evaluation import collect_object_crops, retrieval_table
-from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table
+from threedq.pipeline.feature_table import feature_sets_table
+from threedq.pipeline.tables import feature_sets_markdown
 from threedq.pipeline.report import split_loader
 from threedq.stages.base import EncoderStage
 

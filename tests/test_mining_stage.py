@@ -181,9 +181,8 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
 def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The pool is cut from each scene's fixed views in float32 (even under bf16 autocast), so under ``threedq em``
     it reads the grids a stage with the same weights left in the crop cache: no encoder pass, equal crops."""
-    from threedq.datamodules.scene_folder import SceneDataset
-
-    from threedq.pipeline.crop_cache import CropCache
+    from threedq.datamodules.scene_folder import SceneDataset, SceneFolderDataModule
+    from threedq.stages.crop_cache import CropCache
     from threedq.pipeline.report import split_loader
     from threedq.scene import load_index
 
@@ -196,8 +195,8 @@ def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatc
     assert pool_ds.random_views is False and train.random_views is True  # a copy: the training data is unchanged
     ref = m._cut_pool(pool_ds, torch.Generator().manual_seed(3))
     # another stage (same weights) encodes the training split from the fixed views, as split_loader gives them
-    m.crop_cache = CropCache()
-    dm = type("DM", (), {"data_dir": tiny_dataset, "index": index, "num_input_views": 1, "max_objects": 3, "seed": 0})()
+    m.use_crop_cache(CropCache())
+    dm = SceneFolderDataModule(str(tiny_dataset), num_input_views=1, num_target_views=0, max_objects=3, seed=0)
     m.eval()
     with torch.no_grad():
         for batch in split_loader(dm, "train", batch_size=2):

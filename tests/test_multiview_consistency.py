@@ -7,7 +7,6 @@ A -> B -> A) with a mean error well under half a pixel, on object pixels that B 
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 import torch

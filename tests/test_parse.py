@@ -16,7 +16,7 @@ from test_em import _em_config
 from threedq.cli import main
 from threedq.data.box_files import save_boxes_file
 from threedq.geometry import rotate_yaw, yaw_angles
-from threedq.pipeline.naming import load_labels, propagate_names, run_label
+from threedq.pipeline.naming import load_labels, propagate_names
 from threedq.pipeline.parse import (
     SceneParser,
     find_scenes,

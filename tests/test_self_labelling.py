@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -115,6 +116,28 @@ class TestSelfLabelTargets:
         assert torch.equal(label == 1, plain == 1)
         assert torch.equal(label[0] == -1, ~(grown & ~near) & ~(plain[0] == 1))
 
+    def test_spared_cells_are_never_negative(self) -> None:
+        cell = torch.tensor(SPEC.voxel_size) * 2
+        centres = cell_centres(torch.tensor(SPEC.bounds_min), cell, tuple(n // 2 for n in SPEC.volume_shape))
+        anchor = torch.tensor([0.4, 0.4, 0.4])
+        pos = torch.tensor([[[-0.4, -0.4, 0.2, 0.0, 0.0, 0.6]]])
+        neg = torch.tensor([[[0.2, 0.2, 0.0, 0.8, 0.6, 0.4]]])
+        spare = torch.tensor([[[0.5, 0.1, 0.0, 0.9, 0.5, 0.4],       # cuts into the negative box
+                               [-0.6, -0.6, 0.0, 0.2, 0.2, 0.8]]])   # covers the positive box and its shell  # fmt: skip
+        one = torch.ones(1, 1, dtype=torch.bool)
+        args = (centres, pos, one, neg, one, anchor, 0.5, 0.1, 0.5)
+        plain, plain_target = self_label_targets(*args)
+        label, target = self_label_targets(*args, spare_aabb=spare, spare_mask=torch.ones(1, 2, dtype=torch.bool))
+        p = centres
+        spared = ((p >= spare[0, :, None, None, None, :3]) & (p <= spare[0, :, None, None, None, 3:])).all(-1).any(0)
+        # a negative survives exactly where it is not spared; positives and their targets untouched
+        assert torch.equal(label[0] == 0, (plain[0] == 0) & ~spared)
+        assert ((plain[0] == 0) & spared).any() and (label[0] == 0).any()
+        assert torch.equal(label == 1, plain == 1) and torch.equal(target, plain_target)
+        # a masked-out spared box spares nothing
+        none, _ = self_label_targets(*args, spare_aabb=spare, spare_mask=torch.zeros(1, 2, dtype=torch.bool))
+        assert torch.equal(none, plain)
+
     def test_no_labels_no_loss(self) -> None:
         det = Detector(grid_min=SPEC.bounds_min, grid_max=SPEC.bounds_max, grid_resolution=SPEC.resolution, feature_dim=8)
         z = torch.zeros(1, 0, 6)
@@ -130,11 +153,11 @@ class TestLabellingRule:
     """A planted case: the bank holds the crop of an object; a detection on it is positive, one on the floor
     negative, and one on an object that is also like its surroundings is vetoed (negative) unless positive_wins."""
 
-    def _stage(self, positive_wins: bool = False) -> SelfLabelling:
+    def _stage(self, positive_wins: bool = False, **kwargs: Any) -> SelfLabelling:
         from threedq.quantization.prototypes import PrototypeBank
 
         st = SelfLabelling(grid_min=(-1.28, -1.28, -0.32), grid_max=(1.28, 1.28, 0.96), grid_resolution=(32, 32, 16),
-                           feature_dim=8, crop_size=4, num_angles=4, positive_wins=positive_wins)  # fmt: skip
+                           feature_dim=8, crop_size=4, num_angles=4, positive_wins=positive_wins, **kwargs)  # fmt: skip
         st.bank = PrototypeBank(2, 8, 4, num_angles=4, method="exact")
         return st
 
@@ -151,13 +174,15 @@ class TestLabellingRule:
                               [0.4, 0.4, 0.0, 0.88, 0.88, 0.48]])      # plain floor  # fmt: skip
         return vol, boxes
 
-    def _label(self, st: SelfLabelling, vol: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    def _label(self, st: SelfLabelling, vol: torch.Tensor, boxes: torch.Tensor, detected: torch.Tensor | None = None,
+               proposals: torch.Tensor | None = None) -> torch.Tensor:
         from threedq.geometry import crop_boxes
 
         st.bank.add(crop_boxes(vol, boxes[:1][None], st.feature_grid, 4)[0], threshold=2.0)  # the object's crop
-        st.detect = lambda logits, box, thr=None: [{"boxes": boxes, "scores": torch.ones(len(boxes))}]  # type: ignore
+        det = boxes if detected is None else detected
+        st.detect = lambda logits, box, thr=None: [{"boxes": det.clone(), "scores": torch.ones(len(det))}]  # type: ignore
         gt_batch = {"aabb": boxes[None], "box_mask": torch.ones(1, 2, dtype=torch.bool)}
-        rows, _ = st._label_batch(vol, gt_batch)[0]
+        rows, _ = st._label_batch(vol, gt_batch, None if proposals is None else [proposals])[0]
         return rows
 
     def test_object_positive_floor_negative(self) -> None:
@@ -177,6 +202,28 @@ class TestLabellingRule:
             st.bank.add(crop_boxes(vol, boxes[1:][None], st.feature_grid, 4)[0], threshold=2.0)
             rows = self._label(st, vol, boxes)
             assert rows[1, 0] == kind
+
+    def test_proposal_candidates(self) -> None:
+        vol, boxes = self._scene()
+        floor_only = boxes[1:]  # the detector misses the object; a pseudo-box stands on it
+        plain = self._label(self._stage(), vol, boxes, floor_only, boxes[:1])
+        assert plain.shape == (1, 7) and plain[0, 0] == 0
+        rows = self._label(self._stage(proposal_candidates=True), vol, boxes, floor_only, boxes[:1])
+        assert rows.shape == (2, 7)
+        assert rows[0, 0] == 0 and torch.allclose(rows[0, 1:], boxes[1])
+        assert rows[1, 0] == 1 and torch.allclose(rows[1, 1:], boxes[0])
+        # a pseudo-box a detection snaps to is not a second candidate: one positive, the pseudo-box's own box
+        loose = torch.cat([boxes[:1] + torch.tensor([0.08, 0.0, 0.0, 0.08, 0.0, 0.0]), boxes[1:]])
+        rows = self._label(self._stage(proposal_candidates=True), vol, boxes, loose, boxes[:1])
+        assert rows.shape == (2, 7) and int((rows[:, 0] == 1).sum()) == 1
+        assert torch.allclose(rows[rows[:, 0] == 1][0, 1:], boxes[0])
+
+    def test_spare_proposals_rows(self) -> None:
+        vol, boxes = self._scene()
+        rows = self._label(self._stage(spare_proposals=True), vol, boxes, boxes, boxes[:1])
+        assert rows.shape == (3, 7)
+        assert rows[:2, 0].tolist() == [1.0, 0.0]
+        assert rows[2, 0] == 2 and torch.allclose(rows[2, 1:], boxes[0])
 
     def test_bad_arguments(self) -> None:
         with pytest.raises(ValueError, match="positive_threshold"):
@@ -202,7 +249,8 @@ def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:
     common = (f"--model.init_args.encoder_ckpt={enc}", "--model.init_args.grid_resolution=[32, 32, 16]")
     det = tmp_path / "det"
     ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/detector.yaml")), *common, *data,
-                     "--data.init_args.boxes=gt", "--trainer.max_steps=2", f"--trainer.default_root_dir={det}"])
+                     "--data.init_args.boxes=gt", "--trainer.max_steps=2", f"--trainer.default_root_dir={det}",
+                     "--model.init_args.anchor_size=[0.21, 0.22, 0.23]", "--model.init_args.nms_iou=0.35"])
     q = tmp_path / "q"
     ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), *common, *data,
                      "--model.init_args.num_prototypes=4", "--model.init_args.crop_size=8",
@@ -214,6 +262,10 @@ def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:
             "--model.init_args.num_angles=8", "--model.init_args.candidate_threshold=0.0",
             "--model.init_args.positive_threshold=0.0", "--model.init_args.batch_size=2",
             f"--trainer.default_root_dir={run}"]
+    # what the config leaves null or at the class default is the detector's, in the hyperparameters the stage reads
+    # and saves (LightningCLI records the parsed config: the stage puts the detector's values back over it)
+    parsed = ThreeDQCLI(args=args, run=False).model
+    assert parsed.hparams.anchor_size == (0.21, 0.22, 0.23) and parsed.hparams.nms_iou == 0.35
     cli = ThreeDQCLI(args=["fit", *args, "--trainer.max_steps=2"])
     model = cli.model
     assert isinstance(model, SelfLabelling) and model.trainer.global_step == 2
@@ -235,8 +287,9 @@ def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:
     from threedq.stages.base import checkpoint_hparams
 
     trained = checkpoint_hparams(det / "checkpoints" / "last.ckpt")["anchor_size"]
-    assert trained is not None and model.hparams.anchor_size == tuple(trained)
+    assert trained is not None and model.hparams.anchor_size == tuple(trained) == (0.21, 0.22, 0.23)
     assert torch.allclose(model.anchor.cpu(), torch.tensor(trained, dtype=torch.float32))
+    assert tuple(checkpoint_hparams(ckpt)["anchor_size"]) == (0.21, 0.22, 0.23)  # what the test step decodes with
     # a detector trained with another anchor is refused by name (its boxes would decode at the wrong size)
     with pytest.raises(InputError, match=r"det.*last\.ckpt: field 'anchor_size': the detector was trained with "
                                          r"anchor_size=\[.*\], this stage asks for \[0\.3, 0\.3, 0\.3\]"):
@@ -284,3 +337,22 @@ def test_test_a_checkpoint_from_another_folder(tmp_path: Path, tiny_dataset: Pat
     assert "test/map_50" in cli.trainer.logged_metrics
     head = {k: v for k, v in saved["state_dict"].items() if k.startswith("head.")}
     assert all(torch.equal(cli.model.state_dict()[k].cpu(), v) for k, v in head.items())
+
+
+def test_a_checkpoint_tested_without_its_detector_decodes_as_written(tmp_path: Path) -> None:
+    """``threedq em`` tests a self-labelled checkpoint without its ``detector_ckpt``: the decoding it was written
+    with (anchor, thresholds, NMS, refinement) comes back from the checkpoint, unless given."""
+    st = SelfLabelling(grid_min=(-1.28, -1.28, -0.32), grid_max=(1.28, 1.28, 0.96), grid_resolution=(32, 32, 16),
+                       feature_dim=8, anchor_size=(0.2, 0.3, 0.4), nms_iou=0.42, refine_iou=0.0, max_detections=5)
+    ckpt = {"hyper_parameters": dict(st.hparams), "state_dict": st.state_dict()}
+    fresh = SelfLabelling(grid_min=(-1.28, -1.28, -0.32), grid_max=(1.28, 1.28, 0.96), grid_resolution=(32, 32, 16),
+                          feature_dim=8)
+    assert fresh.hparams.nms_iou == Detector(feature_dim=8).hparams.nms_iou != 0.42
+    fresh.on_load_checkpoint(ckpt)
+    assert (fresh.hparams.nms_iou, fresh.hparams.refine_iou, fresh.hparams.max_detections) == (0.42, 0.0, 5)
+    assert tuple(fresh.hparams.anchor_size) == (0.2, 0.3, 0.4)
+    assert torch.allclose(fresh.anchor, torch.tensor([0.2, 0.3, 0.4]))
+    given = SelfLabelling(grid_min=(-1.28, -1.28, -0.32), grid_max=(1.28, 1.28, 0.96), grid_resolution=(32, 32, 16),
+                          feature_dim=8, nms_iou=0.2)
+    given.on_load_checkpoint(ckpt)
+    assert given.hparams.nms_iou == 0.2 and given.hparams.refine_iou == 0.0

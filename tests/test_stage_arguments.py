@@ -59,6 +59,9 @@ class TestStageArguments:
         stage = cls(**SMALL)
         expected = _declared_defaults(cls)
         assert set(stage.hparams) == set(expected), set(stage.hparams) ^ set(expected)
+        if cls is SelfLabelling:  # None = the detector's; without a detector checkpoint the Detector's defaults
+            detector = _declared_defaults(Detector)
+            expected.update({n: detector[n] for n in INHERITED_FROM_DETECTOR})
         for name, default in expected.items():
             if name in ("grid_min", "grid_max", "grid_resolution", "feature_dim"):
                 continue  # the resolved grid (checked below)

@@ -31,12 +31,9 @@ from threedq.atomic_io import atomic_write_json
 from threedq.box_refinement import observed_boxes
 from threedq.boxes import boxes_to_aabb
 from threedq.data.box_files import save_boxes_file
-from threedq.data.proposal_cache import propose_dataset
-from threedq.datamodules.scene_folder import SceneDataset
 from threedq.metrics import DetectionMAP
 from threedq.metrics.detection import assign_detections
 from threedq.metrics.localisation import by_size_band, localisation_errors
-from threedq.proposals import ProposalParams
 from threedq.scene import load_scene
 from threedq.viz.detection import detection_figure, size_band_figure
 from threedq.viz.png import write_png
@@ -183,8 +180,7 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     gt_test = gt_hulls(dm.data_dir, dm.index.files("test"))
-    pseudo = propose_dataset(dm.data_dir, "test", dm.data_dir / "proposals" / "test.npz",
-                             params=ProposalParams(view_stride=2), progress=progress)  # fmt: skip
+    pseudo = dm.pseudo_boxes("test", progress=progress)
     result: dict[str, Any] = {
         "split": "test",
         "pseudo_boxes": box_sets_map(gt_test, pseudo, progress=progress),
@@ -195,8 +191,7 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
     for split in splits:
         if not dm.index.files(split):
             continue
-        ds = SceneDataset(dm.data_dir, dm.index, split, num_input_views=dm.num_input_views,
-                          num_target_views=0, max_objects=dm.max_objects, random_views=False, seed=dm.seed)  # fmt: skip
+        ds = dm.fixed_view_dataset(split, with_boxes=False)
         loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=False, num_workers=0)
         views: dict[str, list[int]] = {}
         dets, first = detect_split(stage, loader, progress=progress, input_views=views)

@@ -27,7 +27,7 @@ Layout of ``work_dir``::
 
 (the names are :class:`~threedq.pipeline.run_layout.RunLayout`'s, which ``parse`` and ``label`` read back)
 
-The stages after view prediction share one :class:`~threedq.pipeline.crop_cache.CropCache` (a process-wide store keyed
+The stages after view prediction share one :class:`~threedq.stages.crop_cache.CropCache` (a process-wide store keyed
 by the encoder's weights, the input views and the boxes): each scene is encoded once per encoder, not once per
 stage. Every stage that reads features does so from each scene's fixed input views (the quantizer with
 ``train_random_views: false``), so the grids one stage computed serve the next.
@@ -57,6 +57,7 @@ import platform
 import shutil
 import time
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, Literal
 
 import torch
@@ -65,22 +66,14 @@ from threedq.atomic_io import atomic_write_json, atomic_write_text
 from threedq.data.box_files import load_boxes_file
 from threedq.errors import InputError
 from threedq.locks import hold_folder
-from threedq.pipeline.crop_cache import CropCache
+from threedq.stages.crop_cache import CropCache
 from threedq.pipeline.data_commands import output_folder
 from threedq.pipeline.detection_eval import evaluate_detection
-from threedq.pipeline.evaluation import SEARCH_LABELS
-from threedq.metrics.retrieval import PROTOCOL_LABELS
 from threedq.pipeline.lightning_cli import ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint
 from threedq.pipeline.overrides import stage_overrides
-from threedq.pipeline.report import (
-    METHOD_LABELS,
-    evaluate_quantizer,
-    fewshot_cell,
-    method_rows,
-    precision_label,
-    retrieval_markdown,
-)
+from threedq.pipeline.report import evaluate_quantizer
 from threedq.pipeline.run_layout import RunLayout
+from threedq.pipeline.tables import em_markdown, feature_cells, fewshot_cell, fmt, precision_label
 from threedq.stages.checkpoint import require_stage
 from threedq.viz.curves import table3_figure
 from threedq.viz.png import write_png
@@ -119,6 +112,11 @@ def _remove_torn_writes(work: Path) -> None:
             print(f"[em] removed {tmp} (a write cut short by the interruption)")
 
 
+def _crop_cache_setup(cache: CropCache | None) -> Callable[[Any], None] | None:
+    """The ``model_setup`` that hands a stage the run's shared crop cache (None: no cache)."""
+    return None if cache is None else (lambda model: model.use_crop_cache(cache))
+
+
 def _cli_args(configs: list[Path], run_dir: Path, overrides: list[str]) -> list[str]:
     args: list[str] = []
     for c in configs:
@@ -146,7 +144,7 @@ def _fit_stage(
         shutil.rmtree(run_dir)
     print(f"[em] {name}: training in {run_dir}")
     t0 = time.time()
-    setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
+    setup = _crop_cache_setup(crop_cache)
     ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides)], model_setup=setup)
     if not last.is_file():
         raise RuntimeError(f"{name}: training finished without writing {last}")
@@ -155,11 +153,24 @@ def _fit_stage(
     return info
 
 
-def _bf16_is_native() -> bool:
-    """Whether bf16 runs natively here: a GPU that supports it, else a CPU whose oneDNN has bf16 kernels."""
-    if torch.cuda.is_available():
+def _bf16_is_native(cpu: dict[str, Any] | None = None) -> bool:
+    """Whether bf16 runs natively here: a GPU that supports it, else a CPU with bf16 instructions.
+
+    On x86 that means AVX512-BF16 or AMX-BF16: oneDNN also runs bf16 on a CPU with only AVX-512 (it says
+    "supported"), but by converting, and there an encoder pass under bf16 autocast took 2x the float32 time
+    (Intel Xeon without AVX512-BF16, 2026-11-26). ``cpu``: the capabilities to judge (default: this machine's,
+    ``torch.backends.cpu``), for tests.
+    """
+    if cpu is None and torch.cuda.is_available():
         return bool(torch.cuda.is_bf16_supported())
-    try:
+    if cpu is None:
+        try:
+            cpu = dict(torch._C._cpu._get_cpu_capability())
+        except (AttributeError, RuntimeError):
+            cpu = {}
+    if cpu.get("architecture", platform.machine()) in ("x86_64", "AMD64", "i386", "x86"):
+        return bool(cpu.get("avx512_bf16") or cpu.get("amx_bf16"))
+    try:  # other architectures (aarch64 with bf16 kernels): what oneDNN says
         return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
         return False
@@ -207,7 +218,7 @@ def _evaluate_detector(
             print(f"[em] detector_eval: finished earlier ({cached}), not re-run")
             return done
         print(f"[em] detector_eval: {cached} lacks detections of {', '.join(splits)}: evaluating again")
-    setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
+    setup = _crop_cache_setup(crop_cache)
     cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
     test_map = {k.removeprefix("test/"): (int(v) if k.startswith("test/num_") else v) for k, v in res.items()}
     return evaluate_detection(cli.model, cli.datamodule, run_dir, test_map, splits=splits)
@@ -221,7 +232,7 @@ def _evaluate_round(
     if cached.is_file():
         print(f"[em] {run_dir.name}: finished earlier ({cached}), not re-run")
         return json.loads(cached.read_text())
-    setup = None if crop_cache is None else (lambda model: setattr(model, "crop_cache", crop_cache))
+    setup = _crop_cache_setup(crop_cache)
     cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
     # Fig. 3a (accuracy against K) is left to threedq eval, which keeps the main job short
     return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[],
@@ -244,19 +255,6 @@ def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
             )
 
 
-def _feature_cells(retrieval: dict[str, Any] | None) -> dict[str, Any]:
-    """The learned features' Table 3 cells of a round's retrieval table: precision@k under the strict and the paper
-    protocol (with their ceilings on the round's pool) and the same-object top-1 rate."""
-    if not retrieval:
-        return {"precision_at_10": None, "precision_at_10_paper": None, "same_object_top1": None}
-    paper = retrieval.get("protocols", {}).get("paper", {})
-    return {"precision_at_10": retrieval["precision_at_k"]["learned"], "k": retrieval["k"],
-            "precision_at_10_paper": paper.get("precision_at_k", {}).get("learned"),
-            "same_object_top1": paper.get("same_object_top1", {}).get("learned"), "pool": retrieval["num_objects"],
-            "ceiling_strict": retrieval.get("protocols", {}).get("strict", {}).get("ceiling"),
-            "ceiling_paper": paper.get("ceiling")}
-
-
 def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
             self_labels: list[dict[str, Any]], round0: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Paper Table 3 rows: per round 0..R, feature precision@10 (strict and paper protocol, same-object top-1),
@@ -273,204 +271,13 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
             return {"map_50": None, "map_25": None, "handed_on_test": None}
         return {"map_50": d["detector"]["map_50"], "map_25": d["detector"]["map_25"],
                 "handed_on_test": d.get("handed_on", {}).get("test")}
-    rows = [{"round": 0, **_feature_cells(round0["retrieval"] if round0 else None),
+    rows = [{"round": 0, **feature_cells(round0["retrieval"] if round0 else None),
              "hungarian_acc": round0["quantization"]["threedq"]["hungarian_acc"] if round0 else None, **det_row(det_eval)}]
     for i, r in enumerate(rounds):
         d = self_labels[i]["detector_eval"] if i < len(self_labels) else det_eval
-        rows.append({"round": i + 1, **_feature_cells(r["retrieval"]),
+        rows.append({"round": i + 1, **feature_cells(r["retrieval"]),
                      "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
     return rows
-
-
-
-def _fmt(v: float | None, digits: int = 3) -> str:
-    return "-" if v is None else f"{v:.{digits}f}"
-
-
-def _size_band_lines(det: dict[str, Any], work_dir: str) -> list[str]:
-    """Objects found per size band by each box set of a detector evaluation (``by_size``), as a markdown table."""
-    if not det.get("by_size"):
-        return []
-    tables = {t["boxes"]: t["rows"] for t in det["by_size"]}
-    names = list(tables)
-    bands = [r["band"] for r in tables[names[0]]]
-    lines = ["### Objects found per size (largest extent of the GT box; share found at IoU 0.25 / 0.5; median "
-             "centre error of the best box in the plane / in height, metres)", "",
-             "| boxes | " + " | ".join(f"{b} ({r['objects']})" for b, r in zip(bands, tables[names[0]])) + " |",
-             "|---|" + "---|" * len(bands)]
-    for name in names:
-        cells = [("-" if not r["objects"] else f"{r['found_25']:.2f} / {r['found_50']:.2f}"
-                  + ("" if r["median_centre_error_xy"] != r["median_centre_error_xy"]  # NaN: no box overlaps any
-                     else f"; {r['median_centre_error_xy']:.3f} / {r['median_centre_error_z']:+.3f}"))
-                 for r in tables[name]]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines += ["", f"Picture: `{work_dir}/03_detector_eval/detection_by_size.png`.", ""]
-    return lines
-
-
-def _report(summary: dict[str, Any]) -> str:
-    vp = summary["viewpred_eval"]["view_prediction"]
-    lines = [
-        "# threedq em report",
-        "",
-        f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}",
-        f"- machine: {summary['machine']}; torch {summary['torch']}; frozen-encoder stages in "
-        f"{summary.get('frozen_precision', '32-true')}",
-        f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` "
-        + ("(given with --viewpred_ckpt, not trained here)" if summary["viewpred"].get("given")
-           else f"({summary['viewpred'].get('seconds', '?')} s)"),
-        "",
-        f"## View prediction on held-out scenes ({vp['num_scenes']} scenes)",
-        "",
-        "| metric | value |",
-        "|---|---|",
-        f"| RGB L1 (target pixels inside the grid, half resolution) | {vp['l1']:.4f} |",
-        f"| RGB L1 of the mean-colour baseline | {vp['l1_mean_colour']:.4f} |",
-        *(
-            [
-                f"| RGB L1 on the objects (target pixels above the ground plane) | {vp['l1_fg']:.4f} |",
-                f"| the same for the mean-colour baseline | {vp['l1_fg_mean_colour']:.4f} |",
-            ]
-            if "l1_fg" in vp
-            else []
-        ),
-        f"| occupancy balanced accuracy | {vp['occ_bacc']:.3f} |",
-        "",
-    ]
-    det = summary.get("detector_eval")
-    if det:
-        pb, dd = det["pseudo_boxes"], det["detector"]
-        lines += [
-            f"## 3D detection on held-out scenes ({dd['num_gt']} GT objects; dataset-level mAP, axis-aligned IoU)",
-            "",
-            "| boxes | mAP@0.25 | mAP@0.5 |",
-            "|---|---|---|",
-            f"| label-free pseudo-boxes (depth, ground plane, 3D components; every view) | {pb['map_25']:.3f} | "
-            f"{pb['map_50']:.3f} |",
-            *([f"| the same from only the view(s) the detector sees (its fair reference) | "
-               f"{det['pseudo_boxes_single_view']['map_25']:.3f} | {det['pseudo_boxes_single_view']['map_50']:.3f} |"]
-              if det.get("pseudo_boxes_single_view") else []),
-            f"| detector trained on the pseudo-boxes | {dd['map_25']:.3f} | {dd['map_50']:.3f} |",
-            "",
-            f"Detections beside GT: `{summary['work_dir']}/03_detector_eval/detections.png`. "
-            f"Rounds use {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes.",
-            "",
-            *_size_band_lines(det, summary["work_dir"]),
-        ]
-    rounds = summary.get("round_results", [])
-    r0 = summary.get("round0_result")
-    if rounds:
-        pk = precision_label(rounds[0]["retrieval"])
-        lines += [
-            f"## Per EM round (threedq, {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes, "
-            "held-out objects)",
-            "",
-            f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}; strict: {PROTOCOL_LABELS['strict']}; paper: "
-            f"{PROTOCOL_LABELS['paper']}. Round 0 is the view-prediction encoder and a bank fitted on it, on round 1's "
-            "boxes (the paper's iteration 0).",
-            "",
-            f"| round | {pk}, strict | {pk}, paper | same object nearest (paper) | pool (ceiling strict / paper) | "
-            "Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for i, r in ([(0, r0)] if r0 else []) + list(enumerate(rounds, 1)):
-            q = r["quantization"]["threedq"]
-            c = _feature_cells(r["retrieval"])
-            ceil = (f"{c['pool']} ({_fmt(c['ceiling_strict'])} / {_fmt(c['ceiling_paper'])})")
-            lines.append(f"| {i} | {_fmt(c['precision_at_10'])} | {_fmt(c['precision_at_10_paper'])} | "
-                         f"{_fmt(c['same_object_top1'])} | {ceil} | {q['hungarian_acc']:.3f} | "
-                         f"{fewshot_cell(q['fewshot_acc'])} | {q['yaw_median_deg']:.1f} | {q['yaw_acc_10']:.3f} |")
-        last = rounds[-1]
-        r = last["retrieval"]
-        lines += [
-            "",
-            f"## Final round in detail ({last['num_test_objects']} test objects, {last['num_test_categories']} categories, "
-            f"K = {last['num_prototypes']})",
-            "",
-            "Retrieval (paper Table 2):",
-            "",
-            *retrieval_markdown(r, last.get("probe"), learned="threedq features of the final round (learned)"),
-        ]
-        lines += ["", "Clustering and pose (paper Tables 1 and 4; yaw error beyond the paper):", "",
-                  "| method | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 | @20 |",
-                  "|---|---|---|---|---|---|"]
-        for m, v in method_rows(last["quantization"]):
-            lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
-                         f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
-        lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`, "
-                  "`per_category_retrieval.png` (per-category precision@10 under both protocols, the most confused pairs). "
-                  "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
-    mining = summary.get("mining_results") or []
-    if mining:
-        lines += [
-            "",
-            f"## Correspondence mining per round (`{summary.get('mining_config')}`; categories and yaws used for "
-            "measuring only)",
-            "",
-            "| round | refresh | pairs | of them on two GT objects | same category (of those) | yaw median err., "
-            "same-category asymmetric pairs (deg) | context cosine threshold | seconds |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
-        for i, m in enumerate(mining, 1):
-            for f in m["refreshes"]:
-                yaw = f"{f['yaw_median_err_deg']:.1f} ({f['yaw_pairs']} pairs)" if "yaw_median_err_deg" in f else "-"
-                lines.append(f"| {i} | {f['refresh']} | {f['pairs']} | {f.get('labelled_pairs', '-')} | "
-                             f"{f['same_category']:.3f} | {yaw} | {f['min_cosine']:.3f} | {f['seconds']} |")
-        lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
-    table3 = summary.get("table3") or []
-    if table3:
-        lines += [
-            "",
-            f"## Table 3: every module per round (held-out split; rounds on "
-            f"{'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes)",
-            "",
-            "Round 0 is the state before the rounds (the paper's iteration 0): the warm-start detector, and the "
-            "view-prediction encoder's features and prototypes on the boxes round 1 takes. "
-            f"{precision_label(rounds[0]['retrieval']) if rounds else 'precision@10'}: "
-            f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; strict and paper protocol as above "
-            "(pool and ceilings in the per-round table); detection: the round's detector "
-            "(after its self-labelling), dataset-level mAP@0.5; precision / recall: its boxes above the 0.9 "
-            "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false positive).",
-            "",
-            f"| round | features: precision@{rounds[0]['retrieval']['k'] if rounds else 10}, strict | paper protocol | "
-            "same object nearest | quantization: Hungarian acc. | detection: mAP@0.5 | mAP@0.25 | "
-            "handed-on precision | recall |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for t in table3:
-            h = t["handed_on_test"] or {}
-            lines.append(f"| {t['round']} | {_fmt(t['precision_at_10'])} | {_fmt(t.get('precision_at_10_paper'))} | "
-                         f"{_fmt(t.get('same_object_top1'))} | {_fmt(t['hungarian_acc'])} | {_fmt(t['map_50'])} | "
-                         f"{_fmt(t['map_25'])} | {_fmt(h.get('precision'))} | {_fmt(h.get('recall'))} |")
-        lines += ["", f"Curves: `{summary['work_dir']}/table3.png`."]
-    sl = summary.get("self_label_results") or []
-    if sl:
-        lines += [
-            "",
-            f"## Detector self-labelling per round (`{summary.get('self_labelling_config')}`; GT used for measuring only)",
-            "",
-            "| round | pool scenes | candidates | positives | of them true (IoU 0.5) | negatives | of them background "
-            "(no object at IoU 0.25) | mAP@0.5 before | after |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        before = summary["detector_eval"]["detector"]["map_50"] if summary.get("detector_eval") else None
-        for i, r in enumerate(sl, 1):
-            lab = r["labels"] or {}
-            after = r["detector_eval"]["detector"]["map_50"]
-            lines.append(f"| {i} | {lab.get('scenes', '-')} | {lab.get('candidates', '-')} | {lab.get('positives', '-')} | "
-                         f"{_fmt(lab.get('positives_true_at_50'))} | {lab.get('negatives', '-')} | "
-                         f"{_fmt(lab.get('negatives_false_at_25'))} | {_fmt(before)} | {_fmt(after)} |")
-            before = after
-        lines += ["", "Pictures: the labels on training scenes `r<round>_self_labelling/self_labels/labels.png` (kept "
-                  "green, pruned red); the round's detections on test scenes `r<round>_detector_eval/detections.png`."]
-    if not mining or not sl:
-        lines += ["", "## Left out of these rounds", ""]
-        if not mining:
-            lines.append("The encoder is not fine-tuned between rounds (mining is off).")
-        if not sl:
-            lines.append("The detector is not self-labelled (self-labelling is off): it stays the warm start.")
-    lines.append("")
-    return "\n".join(lines)
 
 
 def run_em(
@@ -641,10 +448,10 @@ def run_em(
                     _check_handed_on(layout.round(r, "detector_eval"), ("train", "test"))
                     boxes_of_round = {"boxes": layout.detections(layout.round(r, "detector_eval"))}
             q_res = round_results[-1]["quantization"]["threedq"]
-            c = _feature_cells(round_results[-1]["retrieval"])
+            c = feature_cells(round_results[-1]["retrieval"])
             print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
                   f"{precision_label(round_results[-1]['retrieval'])} {c['precision_at_10']:.3f} (strict), "
-                  f"{_fmt(c['precision_at_10_paper'])} (paper protocol)")
+                  f"{fmt(c['precision_at_10_paper'])} (paper protocol)")
         if rounds:
             print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
                   f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")
@@ -676,7 +483,7 @@ def run_em(
         atomic_write_json(work / "metrics.json", summary)
         if summary["table3"]:
             write_png(work / "table3.png", table3_figure(summary["table3"]))
-        atomic_write_text(work / "report.md", _report(summary))
+        atomic_write_text(work / "report.md", em_markdown(summary))
         if round_results:
             p = round_results[-1]["retrieval"]["precision_at_k"]
             k = round_results[-1]["retrieval"]["k"]

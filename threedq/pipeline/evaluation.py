@@ -24,11 +24,10 @@ from tqdm import tqdm
 
 from threedq.baselines.descriptor import colour_size_descriptor, descriptor_similarity
 from threedq.stages.base import EncoderStage
-from threedq.pipeline.crop_cache import CropCache, sample_key
+from threedq.stages.crop_cache import CropCache, sample_key
 from threedq.geometry import crop_boxes, yaw_angles
 from threedq.metrics import cluster_confusion, few_shot_accuracy, hungarian_accuracy, linear_probe, relative_yaw_error
 from threedq.metrics.retrieval import (
-    PROTOCOLS,
     precision_ceiling,
     retrieval_precision_at_k,
     same_object_top1,

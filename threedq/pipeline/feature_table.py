@@ -15,17 +15,14 @@ the test crops by Hungarian accuracy, few-shot accuracy and relative yaw error
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any
 
 import torch
 
-from threedq.metrics.retrieval import PROTOCOL_LABELS
 from threedq.pipeline.evaluation import (
     DESCRIPTOR,
     RETRIEVAL_SEARCH,
-    SEARCH_LABELS,
     collect_object_crops,
     probe_table,
     quantization_metrics,
@@ -35,7 +32,7 @@ from threedq.quantization.prototypes import fit_prototype_bank
 from threedq.stages.base import EncoderStage
 from threedq.stages.checkpoint import load_encoder_state
 
-__all__ = ["feature_sets_table", "feature_sets_markdown"]
+__all__ = ["feature_sets_table"]
 
 
 def _retrieval_cells(test: dict[str, torch.Tensor], key: str, name: str, num_angles: int, search: str) -> dict[str, Any]:
@@ -153,31 +150,3 @@ def feature_sets_table(
             "num_train_objects": n_train, "K": K, "ceilings": first_row.get("ceilings", {}), "rows": rows}
 
 
-def _cell(v: float | None, digits: int = 3) -> str:
-    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
-
-
-def feature_sets_markdown(table: dict[str, Any]) -> str:
-    """The table as markdown, naming the search, the protocols, their pool and ceilings."""
-    ceil = table.get("ceilings", {})
-    banks = (f"banks of K = {table['K']} fitted on {table['num_train_objects']} training objects"
-             if table["num_train_objects"] else "no training split: retrieval only (no probe, no banks)")
-    lines = [
-        f"## Feature sets (paper Table 2, with clustering): {table['num_test_objects']} test objects, {banks}",
-        "",
-        f"precision@10: {SEARCH_LABELS[table['search']]}.",
-        *(f"- {p}: {PROTOCOL_LABELS[p]}; pool {table['num_test_objects']} objects; perfect features would score "
-          f"{c:.3f}." for p, c in ceil.items()),
-        "- linear probe: a logistic regression on the voxel-averaged frozen crops (the descriptor's six numbers), trained "
-        "with the training objects' labels (they train the probe only), accuracy on the test objects.",
-        "",
-        "| features | precision@10, strict | precision@10, paper | same object nearest (paper) | linear probe acc. | "
-        "Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for name, r in table["rows"].items():
-        lines.append(f"| {name} | {_cell(r['precision_at_10'])} | {_cell(r.get('precision_at_10_paper'))} | "
-                     f"{_cell(r.get('same_object_top1'))} | {_cell(r.get('probe_acc'))} | {_cell(r['hungarian_acc'])} | "
-                     f"{_cell(r['fewshot_acc'])} | {_cell(r['yaw_median_deg'], 1)} | "
-                     f"{_cell(r['yaw_acc_10'])} |")
-    return "\n".join(lines) + "\n"

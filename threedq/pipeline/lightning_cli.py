@@ -232,7 +232,7 @@ class ThreeDQCLI(LightningCLI):
 
         ``--config`` files are looked up in the packaged configs too (:func:`resolve_config_args`).
         ``model_setup`` is called with the instantiated model before anything runs (``threedq em`` uses it
-        to hand every stage the same :class:`~threedq.pipeline.crop_cache.CropCache`).
+        to hand every stage the same :class:`~threedq.stages.crop_cache.CropCache`).
         """
         self._model_setup = model_setup
         self._hold = ExitStack()  # the run's folder, held from before instantiation to the end of the subcommand

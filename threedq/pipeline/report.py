@@ -29,7 +29,6 @@ objects adds nothing to it; when no category has more (every object is a labelle
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -38,7 +37,6 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader
 
-from threedq.datamodules.scene_folder import SceneDataset
 from threedq.atomic_io import atomic_write_json, atomic_write_text
 from threedq.errors import InputError
 from threedq.locks import hold_folder
@@ -46,15 +44,13 @@ from threedq.scene import SceneValidationError
 from threedq.stages.checkpoint import require_stage
 from threedq.baselines.pointcloud import PointCloudPrototypes
 from threedq.pipeline.evaluation import (
-    DESCRIPTOR,
     RETRIEVAL_SEARCH,
-    SEARCH_LABELS,
     collect_object_crops,
     probe_table,
     quantization_metrics,
     retrieval_table,
 )
-from threedq.pipeline.crop_cache import CropCache
+from threedq.stages.crop_cache import CropCache
 from threedq.pipeline.baselines2d import (
     Q25D_HOWTO,
     RESNET_HOWTO,
@@ -66,11 +62,12 @@ from threedq.pipeline.baselines2d import (
     resnet_results,
 )
 from threedq.pipeline.data_commands import output_folder
-from threedq.pipeline.feature_table import feature_sets_markdown, feature_sets_table
+from threedq.pipeline.feature_table import feature_sets_table
 from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint
+from threedq.pipeline.tables import METHOD_LABELS, cluster_search_label, eval_markdown, feature_sets_markdown
 from threedq.data.catalog import coarse_category
 from threedq.metrics import cluster_confusion, hungarian_accuracy
-from threedq.metrics.retrieval import PROTOCOL_LABELS, per_class_precision_at_k, retrieval_confusion
+from threedq.metrics.retrieval import per_class_precision_at_k, retrieval_confusion
 from threedq.quantization.prototypes import fit_prototype_bank
 from threedq.viz.curves import accuracy_vs_k_figure
 from threedq.viz.features import alignment_figure, per_category_figure, retrieval_figure
@@ -78,54 +75,10 @@ from threedq.viz.png import figure_png, write_png
 
 __all__ = [
     "coarse_labels",
-    "fewshot_cell",
-    "precision_label",
     "quantization_metrics",
-    "retrieval_markdown",
     "run_eval",
     "split_loader",
 ]
-
-METHOD_LABELS = {
-    "threedq": "threedq (rotation-aware 3D prototypes)",
-    "no_rot": "no-rot-3DQ (no rotation search)",
-    "pointcloud": "point-cloud registration",
-    "q25d": "2.5DQ-Nets (2D prototypes, in-plane rotation search)",
-}
-
-
-def method_rows(quantization: dict[str, Any]) -> list[tuple[str, Any]]:
-    """``quantization``'s (method, result) pairs in the tables' order (:data:`METHOD_LABELS`, then by name), the same
-    whether the dict was just computed or read back from a key-sorted JSON file."""
-    order = list(METHOD_LABELS)
-    return sorted(quantization.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
-
-
-def cluster_search_label(method: str = "fast") -> str:
-    """How each clustering row searches rotations (every clustering table names it): the stage's bank (threedq)
-    uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search."""
-    own = "exact search over 36 yaw steps (cosine over the full cube)" if method == "exact" else (
-        "fast search over 36 yaw steps (cosine over the inscribed cylinder)")
-    return (f"Prototype assignment: threedq by the {own}; no-rot-3DQ by the same bank EM with 1 yaw step (no search); "
-            "2.5DQ-Nets by the fast search on one-slice crops, i.e. over 36 in-plane angles (cosine over the inscribed "
-            "disc); point-cloud registration by its occupancy-only similarity over 36 yaw steps.")
-
-
-def precision_label(retrieval: dict[str, Any]) -> str:
-    """``precision@k`` of a :func:`~threedq.pipeline.evaluation.retrieval_table`, saying so when k was lowered for
-    a split of too few objects (``precision@5 (k lowered from 10: 6 test objects)``)."""
-    k, asked = retrieval["k"], retrieval.get("k_requested", retrieval["k"])
-    if k < asked:
-        return f"precision@{k} (k lowered from {asked}: {retrieval['num_objects']} test objects)"
-    return f"precision@{k}"
-
-
-def fewshot_cell(value: float | None, shots: int = 2) -> str:
-    """A few-shot accuracy for a table: ``n/a`` with the reason when it is undefined (NaN: every object is one of
-    the ``shots`` labelled ones of its category, so none is left to score)."""
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return f"n/a (no category has more than {shots} objects: all are labelled shots)"
-    return f"{value:.3f}"
 
 
 def split_loader(dm: Any, split: str, batch_size: int = 4, gallery: bool = False) -> DataLoader:
@@ -134,13 +87,7 @@ def split_loader(dm: Any, split: str, batch_size: int = 4, gallery: bool = False
     ``gallery``: each sample also holds the scene's next fixed view after the input views (the paper retrieval
     protocol's gallery view); the input views are the same either way.
     """
-    ds = SceneDataset(
-        dm.data_dir, dm.index, split, num_input_views=dm.num_input_views, num_target_views=1 if gallery else 0,
-        max_objects=dm.max_objects, random_views=False, seed=dm.seed,
-        box_sets=dm.box_sets(split) if hasattr(dm, "box_sets") else None,
-        match_iou=getattr(dm, "match_iou", 0.5), keep_unmatched=split == "train", max_boxes=getattr(dm, "max_boxes", 8),
-    )
-    return DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=0)
+    return DataLoader(dm.fixed_view_dataset(split, gallery=gallery), batch_size=batch_size, shuffle=False, num_workers=0)
 
 
 def coarse_labels(categories: list[str], labels: Tensor) -> Tensor | None:
@@ -152,68 +99,6 @@ def coarse_labels(categories: list[str], labels: Tensor) -> Tensor | None:
     ids = {n: i for i, n in enumerate(dict.fromkeys(names))}
     table = torch.tensor([ids[n] for n in names], dtype=torch.long)
     return table[labels.long().clamp_min(0)]
-
-
-#: Row names of the retrieval table.
-RETRIEVAL_ROWS = {
-    "learned": "threedq learned features",
-    "raw_rgb_occupancy": "(a) raw RGB + occupancy crops, no learning",
-    "random_encoder": "(b) randomly initialised encoder",
-    DESCRIPTOR: "(c) six numbers: mean colour of the occupied voxels + sorted box extents (no learning)",
-}
-
-
-def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, learned: str | None = None,
-                       extra_rows: list[str] | None = None) -> list[str]:
-    """Paper Table 2 as markdown lines: each feature set under both protocols, the same-object top-1 rate and the
-    linear probe, with the protocol, pool, search and perfect-feature ceiling of each column stated."""
-    pk = precision_label(r)
-    prot = r.get("protocols") or {"strict": {"pool": r["num_objects"], "precision_at_k": r["precision_at_k"]}}
-    st, pa = prot.get("strict", {}), prot.get("paper")
-    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}.", ""]
-    for name in ("strict", "paper"):
-        if name in prot:
-            c = prot[name]
-            ceiling = f"; perfect features would score {c['ceiling']:.3f} on this pool" if "ceiling" in c else ""
-            gallery = f" (gallery: {c['gallery']})" if c.get("gallery") else ""
-            lines.append(f"- **{name}**: {PROTOCOL_LABELS[name]}{gallery}; pool {c['pool']} objects{ceiling}.")
-    if probe:
-        lines.append(f"- **linear probe**: a logistic regression on the voxel-averaged frozen crops, trained with the "
-                     f"labels of {probe['train_objects']} training objects (the labels train the probe only), "
-                     f"accuracy on the {probe['test_objects']} test objects.")
-    lines.append("")
-    head = f"| features | {pk}, strict |"
-    sep = "|---|---|"
-    if pa:
-        head += f" {pk}, paper | same object nearest (paper, top-1) |"
-        sep += "---|---|"
-    if probe:
-        head += " linear probe acc. |"
-        sep += "---|"
-    lines += [head, sep]
-    names = dict(RETRIEVAL_ROWS)
-    if learned:
-        names["learned"] = learned
-    for key, label in names.items():
-        if key not in st.get("precision_at_k", {}):
-            continue
-        row = f"| {label} | {st['precision_at_k'][key]:.3f} |"
-        if pa:
-            p = pa["precision_at_k"].get(key)
-            t = pa.get("same_object_top1", {}).get(key)
-            row += f" {'-' if p is None else f'{p:.3f}'} | {'-' if t is None else f'{t:.3f}'} |"
-        if probe:
-            a = probe["accuracy"].get(key)
-            row += f" {'-' if a is None else f'{a:.3f}'} |"
-        lines.append(row)
-    if pa and pa.get("coarse"):
-        c = pa["coarse"]
-        row = (f"| *coarse labels, not the headline*: learned, {c['num_classes']} classes (CLEVR primitives by shape "
-               f"only; ceiling {c['ceiling']:.3f}) | - | {c['precision_at_k']['learned']:.3f} | - |")
-        lines.append(row + (" - |" if probe else ""))
-    lines += extra_rows or []
-    return lines
-
 
 
 def _per_category_retrieval(test: dict[str, Tensor], sims: dict[str, Tensor], k: int, path: Path,
@@ -275,81 +160,6 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
     bank = fit_prototype_bank(train["learned"], K, iterations=em_iterations, num_angles=a, seed=seed)
     res = bank.assign(test["learned"])
     return res.prototype, res.angle, a
-
-
-
-def _markdown(res: dict[str, Any]) -> str:
-    r = res["retrieval"]
-    lines = [
-        "# threedq evaluation",
-        "",
-        f"Held-out split `{res['split']}`: {res['num_test_objects']} objects in {res['num_test_categories']} categories "
-        f"({res.get('box_source', 'GT boxes')}, {res['num_input_views']} input view(s) per scene); K = {res['num_prototypes']}"
-        + (f"; baseline banks fitted on {res['num_train_objects']} training objects." if res["num_train_objects"] else "."),
-        "",
-        "## Retrieval (paper Table 2)",
-        "",
-    ]
-    rn = res.get("resnet")
-    rn_label = "ImageNet ResNet-18 (layer4 pooled in the projected GT box; cosine, no rotation search)"
-    pad = (" - | - |" if "paper" in r.get("protocols", {}) else "") + (" - |" if res.get("probe") else "")
-    if rn is None:
-        rn_row = f"| {rn_label} | {RESNET_HOWTO} |" + pad
-    else:
-        at = f" (at k = {rn['k']})" if rn["k"] != r["k"] else ""
-        rn_row = f"| {rn_label} | {rn['precision_at_k']:.3f}{at} |" + pad
-    lines += retrieval_markdown(r, res.get("probe"), learned="threedq learned features (the evaluated encoder)",
-                                extra_rows=[rn_row])
-    if res.get("paper_protocol_not_run"):
-        lines += ["", f"Not run: {res['paper_protocol_not_run']}."]
-    if res.get("baselines_not_run"):
-        lines += ["", f"Not run: {res['baselines_not_run']}."]
-    if res.get("confused_pairs"):
-        lines += ["", "Most confused category pairs (learned features, strict protocol; top-k slots of one category's "
-                  "queries held by the other's objects, both directions): " + "; ".join(
-                      f"{p['a']} / {p['b']} ({p['slots']})" for p in res["confused_pairs"][:8])
-                  + ". Per category: `per_category_retrieval.png`."]
-    lines += [
-        "",
-        f"## Clustering into K = {res['num_prototypes']} prototypes (paper Tables 1 and 4), and pose",
-        "",
-        res.get("cluster_search", cluster_search_label()),
-        "",
-        "| method | Hungarian acc. | few-shot acc. (2 shots) | yaw median err. (deg) | yaw acc. @10 deg | @20 deg |",
-        "|---|---|---|---|---|---|",
-    ]
-    for m, v in method_rows(res["quantization"]):
-        if m == "q25d":
-            yaw = "n/a (in-plane angle, not a yaw) | n/a | n/a"
-        else:
-            yaw = f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f}"
-        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | {yaw} |")
-    if "q25d" not in res["quantization"]:
-        lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} | | | | |")
-    lines += ["", "## Few-shot labelling, 2 labelled objects per category (paper Table 1)", "",
-              "Prototype rows: labels propagated through the prototypes above (same search); ResNetRet: label of the "
-              "nearest labelled object (cosine, no rotation); ResNetClass: a linear classifier (logistic regression) "
-              "trained on the labelled objects' ResNet-18 features. The same labelled draw (seed) for every row.", "",
-              "| method | few-shot acc. |", "|---|---|"]
-    for m, v in method_rows(res["quantization"]):
-        lines.append(f"| {METHOD_LABELS.get(m, m)} | {fewshot_cell(v['fewshot_acc'])} |")
-    if "q25d" not in res["quantization"]:
-        lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} |")
-    for key, label in (("ret_acc", "ResNetRet (ImageNet ResNet-18, nearest labelled object)"),
-                       ("class_acc", "ResNetClass (ImageNet ResNet-18 + linear classifier on the shots)")):
-        lines.append(f"| {label} | {RESNET_HOWTO if rn is None else fewshot_cell(rn[key])} |")
-    if res.get("curve"):
-        ks = sorted({int(k) for v in res["curve"].values() for k in v})
-        lines += ["", "## Hungarian accuracy vs K (paper Fig. 3a)", "", res.get("cluster_search", cluster_search_label()),
-                  "", "| method | " + " | ".join(f"K={k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
-        for m, v in method_rows(res["curve"]):
-            lines.append(f"| {METHOD_LABELS.get(m, m)} | " + " | ".join(
-                f"{v[str(k)]:.3f}" if str(k) in v else "-" for k in ks) + " |")
-        if "q25d" not in res["curve"]:
-            lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} |" + " |" * (len(ks) - 1))
-    lines += ["", "Yaw error: pairs of objects of one asymmetric category assigned to one prototype; the estimated "
-              "relative yaw (from the rotation search) against the true one.", ""]
-    return "\n".join(lines)
 
 
 @torch.no_grad()
@@ -494,7 +304,7 @@ def evaluate_quantizer(
                                                      cats)
     res["seconds"] = round(time.time() - t0, 1)
     atomic_write_json(out / "results.json", res)
-    atomic_write_text(out / "results.md", _markdown(res))
+    atomic_write_text(out / "results.md", eval_markdown(res))
     return res
 
 
@@ -544,11 +354,11 @@ def run_eval(
     resnet = load_resnet(weights) if weights else None
     with hold_folder(out):  # one run writes this folder at a time
         cache = CropCache()  # the test pass and the crops below encode each test scene once
-        cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: setattr(m, "crop_cache", cache))
+        cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: m.use_crop_cache(cache))
         res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
                                  curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
                                  em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet)
-        print(_markdown(res))
+        print(eval_markdown(res))
         if encoders:
             dm = cli.datamodule
             gallery = not res.get("paper_protocol_not_run")  # every test scene has a view to serve as the gallery

@@ -1,0 +1,56 @@
+"""The markdown tables module: cells, labels and orders written the same wherever a table uses them."""
+
+from __future__ import annotations
+
+import json
+
+from threedq.pipeline.tables import (
+    METHOD_LABELS,
+    feature_cells,
+    fewshot_cell,
+    fmt,
+    method_rows,
+    precision_label,
+    size_band_lines,
+)
+
+
+def test_cells() -> None:
+    assert fmt(None) == "-" and fmt(0.12345) == "0.123" and fmt(2.0, 1) == "2.0"
+    assert fewshot_cell(0.5) == "0.500"
+    assert fewshot_cell(float("nan")).startswith("n/a (no category has more than 2 objects")
+    assert precision_label({"k": 10, "k_requested": 10, "num_objects": 50}) == "precision@10"
+    assert precision_label({"k": 5, "k_requested": 10, "num_objects": 6}) == "precision@5 (k lowered from 10: 6 test objects)"
+
+
+def test_method_rows_keep_the_table_order_after_a_json_round_trip() -> None:
+    q = {"pointcloud": 1, "zeta": 4, "threedq": 2, "alpha": 5, "no_rot": 3}
+    again = json.loads(json.dumps(q, sort_keys=True))
+    order = [m for m, _ in method_rows(q)]
+    assert order == [m for m, _ in method_rows(again)]
+    known = [m for m in METHOD_LABELS if m in q]
+    assert order == known + ["alpha", "zeta"]
+
+
+def test_feature_cells() -> None:
+    assert feature_cells(None) == {"precision_at_10": None, "precision_at_10_paper": None, "same_object_top1": None}
+    r = {"precision_at_k": {"learned": 0.4}, "k": 10, "num_objects": 30,
+         "protocols": {"strict": {"ceiling": 0.9}, "paper": {"precision_at_k": {"learned": 0.5}, "ceiling": 1.0,
+                                                             "same_object_top1": {"learned": 0.7}}}}
+    c = feature_cells(r)
+    assert (c["precision_at_10"], c["precision_at_10_paper"], c["same_object_top1"]) == (0.4, 0.5, 0.7)
+    assert (c["pool"], c["ceiling_strict"], c["ceiling_paper"]) == (30, 0.9, 1.0)
+
+
+def test_size_band_lines_hand_case() -> None:
+    row = {"band": "0.10-0.20 m", "objects": 4, "found_25": 0.75, "found_50": 0.5,
+           "median_centre_error_xy": 0.0123, "median_centre_error_z": -0.002}
+    empty = {"band": ">= 0.40 m", "objects": 0, "found_25": 0.0, "found_50": 0.0,
+             "median_centre_error_xy": float("nan"), "median_centre_error_z": float("nan")}
+    det = {"by_size": [{"boxes": "detector", "rows": [row, empty]}]}
+    lines = size_band_lines(det, "runs/em")
+    assert lines[2] == "| boxes | 0.10-0.20 m (4) | >= 0.40 m (0) |"
+    assert lines[3] == "|---|---|---|"
+    assert lines[4] == "| detector | 0.75 / 0.50; 0.012 / -0.002 | - |"
+    assert lines[-2] == "Picture: `runs/em/03_detector_eval/detection_by_size.png`."
+    assert size_band_lines({}, "runs/em") == []
