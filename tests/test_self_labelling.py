@@ -156,6 +156,7 @@ class TestLabellingRule:
     def _stage(self, positive_wins: bool = False, **kwargs: Any) -> SelfLabelling:
         from threedq.quantization.prototypes import PrototypeBank
 
+        kwargs = {"proposal_positives": False, "spare_proposals": False, **kwargs}  # each switch tested alone
         st = SelfLabelling(grid_min=(-1.28, -1.28, -0.32), grid_max=(1.28, 1.28, 0.96), grid_resolution=(32, 32, 16),
                            feature_dim=8, crop_size=4, num_angles=4, positive_wins=positive_wins, **kwargs)  # fmt: skip
         st.bank = PrototypeBank(2, 8, 4, num_angles=4, method="exact")
@@ -225,6 +226,19 @@ class TestLabellingRule:
         assert rows[:2, 0].tolist() == [1.0, 0.0]
         assert rows[2, 0] == 2 and torch.allclose(rows[2, 1:], boxes[0])
 
+    def test_proposal_positives(self) -> None:
+        vol, boxes = self._scene()
+        other = torch.tensor([[0.0, -0.8, 0.0, 0.3, -0.5, 0.3]])  # a pseudo-box nothing detected, unlike a prototype
+        props = torch.cat([boxes[:1], other])
+        loose = torch.cat([boxes[:1] + torch.tensor([0.08, 0.0, 0.0, 0.08, 0.0, 0.0]), boxes[1:]])
+        rows = self._label(self._stage(proposal_positives=True), vol, boxes, loose, props)
+        # every pseudo-box is a positive once (the snapped detection is not a second one); the floor stays negative
+        assert rows.shape == (3, 7)
+        assert rows[:2, 0].tolist() == [1.0, 1.0] and torch.allclose(rows[:2, 1:], props)
+        assert rows[2, 0] == 0 and torch.allclose(rows[2, 1:], boxes[1])
+        plain = self._label(self._stage(), vol, boxes, loose, props)
+        assert (plain[:, 0] == 1).sum() == 1  # without the switch only the vouched-for object
+
     def test_bad_arguments(self) -> None:
         with pytest.raises(ValueError, match="positive_threshold"):
             SelfLabelling(feature_dim=8, positive_threshold=1.5)
@@ -271,7 +285,12 @@ def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:
     assert isinstance(model, SelfLabelling) and model.trainer.global_step == 2
     assert bool(model.labelled) and model.labels.shape[1] == 8 and len(model.labels) > 0
     info = json.loads((run / "self_labels" / "labels.json").read_text())
-    assert info["scenes"] == len(model._pool_files) and info["positives"] + info["negatives"] == len(model.labels)
+    kinds = model.labels[:, 1]
+    assert info["scenes"] == len(model._pool_files)
+    assert info["positive_boxes"] == int((kinds == 1).sum()) and info["negative_boxes"] == int((kinds == 0).sum())
+    # the packaged config: every pseudo-box a positive (at least the vouched-for ones), every one also spared
+    assert info["negatives"] == info["negative_boxes"] and info["positive_boxes"] >= info["positives"]
+    assert int((kinds == 2).sum()) == info["positive_boxes"] > 0  # positives and spared boxes: the pseudo-boxes
     assert torch.isfinite(cli.trainer.logged_metrics["train/loss"])
     ckpt = run / "checkpoints" / "last.ckpt"
     state = torch.load(ckpt, weights_only=True, map_location="cpu")["state_dict"]

@@ -396,7 +396,10 @@ def em_markdown(summary: dict[str, Any]) -> str:
         for i, r in enumerate(sl, 1):
             lab = r["labels"] or {}
             after = r["detector_eval"]["detector"]["map_50"]
-            lines.append(f"| {i} | {lab.get('scenes', '-')} | {lab.get('candidates', '-')} | {lab.get('positives', '-')} | "
+            pos = f"{lab.get('positives', '-')}"
+            if lab.get("positive_boxes", lab.get("positives")) != lab.get("positives"):  # pseudo-boxes are positives too
+                pos += f" (boxes trained as positives: {lab['positive_boxes']}, the pseudo-boxes)"
+            lines.append(f"| {i} | {lab.get('scenes', '-')} | {lab.get('candidates', '-')} | {pos} | "
                          f"{fmt(lab.get('positives_true_at_50'))} | {lab.get('negatives', '-')} | "
                          f"{fmt(lab.get('negatives_false_at_25'))} | {fmt(before)} | {fmt(after)} |")
             before = after
