@@ -117,16 +117,23 @@ class TestEm:
         assert (run / "checkpoints" / "last.ckpt").stat().st_mtime_ns == stamp
         assert again["table3"][2]["map_50"] is not None
 
-    def test_round_with_mining(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
-        """A round fine-tunes the encoder by mining first; its quantizer runs on that encoder, not view prediction's."""
+    def test_round_with_mining(self, tmp_path: Path, tiny_dataset: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+        """A round fine-tunes the encoder by mining first; its quantizer runs on that encoder, not view prediction's.
+        On a CPU without bf16 instructions (here pretended) mining and the frozen stages run in float32."""
         from threedq.stages.base import encoder_state_from_checkpoint
 
+        from threedq.pipeline import em
         from threedq.pipeline.em import run_em
+
+        monkeypatch.setattr(em, "_bf16_is_native", lambda cpu=None: False)
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
         summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], detection=False, boxes="gt")
         assert summary["round_stages_run"] == ["mining", "quantizer"]
+        assert summary["frozen_precision"] == summary["mining_precision"] == "32-true"
+        for stage in ("r01_mining", "r01_quantizer"):  # the mining config asks for bf16-mixed
+            assert yaml.safe_load((work / stage / "config.yaml").read_text())["trainer"]["precision"] == "32-true"
         mined = work / "r01_mining" / "checkpoints" / "last.ckpt"
         assert summary["mining_results"][0]["checkpoint"] == str(mined)
         refreshes = summary["mining_results"][0]["refreshes"]

@@ -326,8 +326,9 @@ def run_em(
         frozen_precision: Lightning precision of the stages that read a frozen encoder (the detector, the quantizer,
             self-labelling and every evaluation after view prediction): ``bf16-mixed`` (the encoder's forward about
             2x faster on CPUs with bf16 instructions and on GPUs), ``32-true``, or ``auto`` (default: bf16 where the
-            CPU (oneDNN) or the GPU runs it natively, else fp32). View prediction keeps its config's precision,
-            mining its own (``bf16-mixed``).
+            CPU has bf16 instructions (AVX512-BF16 or AMX on x86) or the GPU supports it, else fp32; on a CPU
+            without them mining, whose config asks for ``bf16-mixed``, runs in fp32 too). View prediction keeps its config's
+            precision.
     """
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
         raise InputError(f"--rounds: expected an int >= 0, got {rounds!r}")
@@ -337,8 +338,12 @@ def run_em(
         raise InputError("--boxes: 'detections' needs --detection true")
     if frozen_precision not in ("auto", "bf16-mixed", "32-true"):
         raise InputError(f"--frozen_precision: expected 'auto', 'bf16-mixed' or '32-true', got {frozen_precision!r}")
+    mining_trainer: dict[str, Any] = {}  # mining keeps its config's precision (bf16-mixed) ...
     if frozen_precision == "auto":
-        frozen_precision = "bf16-mixed" if _bf16_is_native() else "32-true"
+        native = _bf16_is_native()
+        frozen_precision = "bf16-mixed" if native else "32-true"
+        if not native:  # ... unless bf16 would be emulated here (about 2x the float32 time)
+            mining_trainer = {"precision": "32-true"}
     prec = {"precision": frozen_precision}  # the trainer of every stage reading a frozen encoder
     work = output_folder("--work_dir", work_dir)
     layout = RunLayout(work)
@@ -410,7 +415,8 @@ def run_em(
         for r in range(1, rounds + 1):
             if mine:
                 m = _fit_stage(f"round {r} mining", m_configs, layout.round(r, "mining"),
-                               stage_overrides(m_configs, model={"encoder_ckpt": encoder}, data=boxes_of_round), resume,
+                               stage_overrides(m_configs, model={"encoder_ckpt": encoder}, data=boxes_of_round,
+                                               trainer=mining_trainer), resume,
                                crop_cache)
                 encoder = Path(m["checkpoint"])
                 mining_results.append({**m, "refreshes": _mining_diagnostics(layout.round(r, "mining"))})
@@ -472,6 +478,7 @@ def run_em(
             "detector_eval": det_eval,
             "boxes": boxes,
             "frozen_precision": frozen_precision,
+            "mining_precision": mining_trainer.get("precision", "its config's"),
             "round_results": round_results,
             "final_eval_dir": str(layout.round(rounds, "eval")) if rounds else None,
             # how much this process's crop cache saved (a resumed run computes again what the killed one had held)

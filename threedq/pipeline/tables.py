@@ -254,7 +254,8 @@ def em_markdown(summary: dict[str, Any]) -> str:
         "",
         f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}",
         f"- machine: {summary['machine']}; torch {summary['torch']}; frozen-encoder stages in "
-        f"{summary.get('frozen_precision', '32-true')}",
+        f"{summary.get('frozen_precision', '32-true')}"
+        + (f"; mining in {summary['mining_precision']}" if summary.get("mining_precision") else ""),
         f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` "
         + ("(given with --viewpred_ckpt, not trained here)" if summary["viewpred"].get("given")
            else f"({summary['viewpred'].get('seconds', '?')} s)"),
