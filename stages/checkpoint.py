@@ -138,6 +138,16 @@ class StageCheckpoint:
         return {k: hp[k] for k in DEFAULT_GRID if hp.get(k) is not None}
 
     @property
+    def anchor(self) -> tuple[float, float, float] | None:
+        """The anchor a detector checkpoint decodes with: its ``anchor`` buffer, or for a checkpoint written before
+        the anchor was a buffer its ``anchor_size`` hyperparameter; None when it holds neither."""
+        buf = self.content["state_dict"].get("anchor") if self.is_lightning else None
+        if isinstance(buf, Tensor) and buf.numel() == 3:
+            return tuple(round(float(a), 6) for a in buf.tolist())  # float32: to the micrometre
+        hp = (self.hparams or {}).get("anchor_size")
+        return None if hp is None else tuple(float(a) for a in hp)
+
+    @property
     def stage(self) -> str | None:
         """Which stage wrote it (``viewpred``, ``detector``, ``quantizer``, ...): from the class path LightningCLI saves
         in the hyperparameters (``threedq.stages.<stage>.<Class>``), else told by the weights it holds; None if

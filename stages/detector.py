@@ -151,9 +151,10 @@ def detection_targets(
 def check_same_anchor(trained: Any, asked: Any, source: str) -> None:
     """Refuse to decode a detector's boxes with another anchor than it was trained with (``InputError`` naming
     ``source``, the field and both anchors)."""
-    if [round(float(a), 6) for a in trained] != [round(float(a), 6) for a in asked]:
-        raise InputError(f"{source}: field 'anchor_size': the detector was trained with anchor_size={list(trained)}, "
-                         f"this stage asks for {list(asked)} (set model.init_args.anchor_size to null or to the "
+    trained, asked = [round(float(a), 6) for a in trained], [round(float(a), 6) for a in asked]
+    if trained != asked:
+        raise InputError(f"{source}: field 'anchor_size': the detector was trained with anchor_size={trained}, "
+                         f"this stage asks for {asked} (set model.init_args.anchor_size to null or to the "
                          "detector's)")  # fmt: skip
 
 
@@ -242,9 +243,11 @@ class Detector(EncoderStage):
         self.head = DetectorHead(self.feature_dim, channels, num_blocks)
         fg = self.feature_grid
         self.min_box_height = fg.voxel_size[2] / 2 if min_box_height is None else float(min_box_height)
-        # None: taken from a loaded checkpoint or the training boxes (ones until then: see _check_anchor)
+        # None: taken from a loaded checkpoint or the training boxes (ones until then: see _check_anchor). A persistent
+        # buffer: the checkpoint carries the anchor its head was trained with (hparams keep anchor_size as given)
         self._anchor_explicit = anchor_size is not None
-        self.register_buffer("anchor", torch.tensor(anchor_size or (1.0, 1.0, 1.0), dtype=torch.float32), persistent=False)
+        self._anchor_known = anchor_size is not None
+        self.register_buffer("anchor", torch.tensor(anchor_size or (1.0, 1.0, 1.0), dtype=torch.float32))
         cell = torch.tensor(fg.voxel_size, dtype=torch.float32) * 2
         shape = tuple(n // 2 for n in fg.volume_shape)  # (Z, Y, X) after the stride-2 layer
         self.register_buffer(
@@ -258,7 +261,7 @@ class Detector(EncoderStage):
         """Take ``anchor_size``, when it is ``None`` and no checkpoint gave one (:meth:`on_load_checkpoint` runs
         first), from the DataModule's training boxes."""
         super().on_fit_start()
-        if self.hparams.anchor_size is None:
+        if not self._anchor_known:
             dm = getattr(self.trainer, "datamodule", None)
             if dm is None or not hasattr(dm, "box_extents"):
                 raise ValueError("anchor_size: null takes the median size of the training boxes, which needs a "
@@ -283,22 +286,32 @@ class Detector(EncoderStage):
         rank_zero_info(f"anchor_size: {list(anchor)} m, the median of {len(ext)} training boxes of {source}")
 
     def _set_anchor(self, anchor: Any) -> None:
-        self.hparams.anchor_size = tuple(float(a) for a in anchor)  # saved with the checkpoint
-        self.anchor.copy_(torch.tensor(self.hparams.anchor_size, dtype=torch.float32))
+        self.anchor.copy_(torch.tensor([float(a) for a in anchor], dtype=torch.float32))  # saved with the checkpoint
+        self._anchor_known = True
+
+    @property
+    def anchor_size(self) -> tuple[float, float, float] | None:
+        """The anchor this detector decodes with (``None`` until it is known: given, loaded or taken from boxes), to the
+        micrometre (the buffer is float32)."""
+        return tuple(round(float(a), 6) for a in self.anchor.tolist()) if self._anchor_known else None
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """A loaded detector decodes with the anchor it was trained with: adopt the checkpoint's when this stage's
         was ``None``; refuse a different explicit one."""
         super().on_load_checkpoint(checkpoint)
-        trained = (checkpoint.get("hyper_parameters") or {}).get("anchor_size")
+        state = checkpoint.get("state_dict")
+        buf = state.get("anchor") if isinstance(state, dict) else None
+        trained = buf.tolist() if isinstance(buf, torch.Tensor) else (checkpoint.get("hyper_parameters") or {}).get("anchor_size")
         if trained is None:
             return
         if self._anchor_explicit:
-            check_same_anchor(trained, self.hparams.anchor_size, "checkpoint")
+            check_same_anchor(trained, self.anchor_size, "checkpoint")
         self._set_anchor(trained)
+        if isinstance(state, dict) and buf is None:  # written before the anchor was a buffer: its hparams held it
+            state["anchor"] = self.anchor.detach().clone()
 
     def _check_anchor(self) -> None:
-        if self.hparams.anchor_size is None:
+        if not self._anchor_known:
             raise RuntimeError("anchor_size is null and was never taken from training boxes: run the stage through "
                                "a Trainer with a scene-folder DataModule, or set anchor_size")  # fmt: skip
 

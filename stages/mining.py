@@ -163,6 +163,8 @@ class Mining(SplitEvaluation, EncoderStage):
         pool_batch_size: scenes encoded at once while cutting the pool.
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
+        symmetry_order: per category, its yaw symmetry order, for the mined pairs' yaw-error diagnostics only (the
+            threedq CLI links it from the dataset's ``index.json``; ``None``: not scored by symmetry).
 
     Convention: see the module docstring.
     """
@@ -197,6 +199,7 @@ class Mining(SplitEvaluation, EncoderStage):
         pool_batch_size: int = 4,
         seed: int = 0,
         retrieval_k: int = 10,
+        symmetry_order: list[int] | None = None,
             **kwargs: Any,
     ) -> None:
         if source not in SOURCES:
@@ -421,10 +424,8 @@ class Mining(SplitEvaluation, EncoderStage):
         return info
 
     def _symmetry(self) -> Tensor | None:
-        index = getattr(getattr(self.trainer, "datamodule", None), "index", None) if self.trainer else None
-        if index is None:
-            return None
-        return torch.tensor(list(index.symmetry_order), dtype=torch.long)
+        sym = self.hparams.symmetry_order
+        return None if sym is None else torch.tensor(list(sym), dtype=torch.long)
 
     def _write_diagnostics(self, info: dict[str, Any], pool: dict[str, Tensor], mined: dict[str, Tensor]) -> None:
         out = self.run_dir / "mining"

@@ -53,9 +53,11 @@ class Quantizer(SplitEvaluation, EncoderStage):
             from the bank.
         em_iterations: E/M rounds at the end of each training epoch.
         search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
-        num_classes: categories of the dataset (metrics only; labels are never used for training); ``None``: the count
-            in the dataset's ``index.json`` (41, the embedded data's, until a dataset is attached).
-        symmetry_order: per category, its yaw symmetry order (``index.json``); for the yaw-error metric.
+        num_classes: categories of the dataset (metrics only; labels are never used for training). The threedq CLI
+            links it, and ``symmetry_order``, from the dataset's ``index.json`` (``ThreeDQCLI``'s
+            ``link_arguments``); ``None``: no evaluation metrics (training needs none).
+        symmetry_order: per category, its yaw symmetry order; for the yaw-error metric (``None``: every category
+            asymmetric).
         shots: labelled examples per category of the few-shot metric (paper: 2).
         seed: seed of the incremental-initialisation order and of the few-shot draw.
         init_bank_ckpt: start from the prototype bank of an earlier quantizer checkpoint (the previous EM
@@ -90,9 +92,12 @@ class Quantizer(SplitEvaluation, EncoderStage):
             load_bank_state(self.bank, init_bank_ckpt)
         self._train_crops: list[Tensor] = []
         self._train_keys: list[Tensor] = []
-        n = num_classes if num_classes is not None else 41
-        sym = symmetry_order if symmetry_order is not None else [1] * n
-        self._make_metrics(n, sym)
+        self.metrics: torch.nn.ModuleDict | None = None
+        if num_classes is not None:
+            sym = list(symmetry_order) if symmetry_order is not None else [1] * num_classes
+            if len(sym) != num_classes:
+                raise ValueError(f"symmetry_order: {len(sym)} orders for num_classes={num_classes} categories")
+            self._make_metrics(num_classes, sym)
 
     def _make_metrics(self, num_classes: int, sym: list[int]) -> None:
         hp = self.hparams
@@ -110,22 +115,11 @@ class Quantizer(SplitEvaluation, EncoderStage):
             }
         )
 
-    def setup(self, stage: str) -> None:
-        """Take the category count and symmetry orders from the dataset's ``index.json`` when there is one."""
-        super().setup(stage)
-        index = getattr(getattr(self.trainer, "datamodule", None), "index", None)
-        if index is None:
-            return
-        if self.hparams.num_classes is None:
-            self._make_metrics(len(index.categories), list(index.symmetry_order))
-            self.metrics.to(self.device)
-        elif len(index.categories) != self.hparams.num_classes:
-            raise ValueError(
-                f"num_classes: the quantizer was configured for {self.hparams.num_classes} categories but the "
-                f"dataset's index.json lists {len(index.categories)}"
-            )
-        for split in self.metrics:
-            self.metrics[split]["yaw"] = RelativeYawError(list(index.symmetry_order)).to(self.device)
+    def _split_metrics(self, split: str) -> torch.nn.ModuleDict:
+        if self.metrics is None:
+            raise ValueError("num_classes: null: the quantizer's evaluation needs the dataset's category count (the "
+                             "threedq CLI takes it, and symmetry_order, from the dataset's index.json)")
+        return self.metrics[split]
 
     # ------------------------------------------------------------------ training: collect, then EM
     def on_train_epoch_start(self) -> None:
@@ -201,7 +195,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         if crops["features"].shape[0] == 0:
             return  # no (matched) boxes in this batch, e.g. detections that hit no GT object
         res = self.bank.assign(crops["features"])
-        m = self.metrics[split]
+        m = self._split_metrics(split)
         m["hungarian"].update(res.prototype, crops["labels"])
         m["fewshot"].update(res.prototype, crops["labels"])
         est_yaw = yaw_angles(self.hparams.num_angles, device=self.device)[res.angle]
@@ -210,7 +204,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
     def _eval_epoch_end(self, split: str) -> None:
         if self.bank.num_active == 0:
             return
-        m = self.metrics[split]
+        m = self._split_metrics(split)
         yaw = m["yaw"].compute()
         self.log_dict(
             {

@@ -159,10 +159,10 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
     """Load the ``head.*`` weights of a detector (or self-labelling) checkpoint into ``head``.
 
     With ``anchor_size``, refuse a detector trained with another anchor (its boxes would decode at the wrong size),
-    naming the checkpoint and the field; a checkpoint without saved hyperparameters is not checked.
+    naming the checkpoint and the field; a checkpoint that holds no anchor (a bare state dict) is not checked.
     """
     if anchor_size is not None:
-        trained = checkpoint_hparams(path, missing_ok=True).get("anchor_size")
+        trained = load_checkpoint(path).anchor
         if trained is not None:
             check_same_anchor(trained, anchor_size, str(path))
     state = load_checkpoint(path).prefixed("head.")
@@ -275,7 +275,8 @@ class SelfLabelling(Detector):
             raise ValueError("freeze_encoder: self-labelling trains the detector head on a frozen encoder")
         asked_anchor = kwargs.get("anchor_size")  # an explicit anchor is checked against the detector's below
         if detector_ckpt:  # what is not given is the detector's: its anchor, head and decoding
-            trained = checkpoint_hparams(detector_ckpt, missing_ok=True)
+            trained = {**checkpoint_hparams(detector_ckpt, missing_ok=True),
+                       "anchor_size": load_checkpoint(detector_ckpt).anchor}  # its buffer (older files: hparams)
             for name in INHERITED_FROM_DETECTOR:
                 if kwargs.get(name) is None and trained.get(name) is not None:
                     v = tuple(float(a) for a in trained[name]) if name == "anchor_size" else trained[name]

@@ -34,8 +34,8 @@ class SupervisedCeiling(SplitEvaluation, EncoderStage):
         **kwargs: the encoder's arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
             ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage` (from scratch by default, the view-prediction grid).
-        num_classes: categories of the dataset; ``None``: the count in its ``index.json`` (set when a dataset is
-            attached and saved in the checkpoint).
+        num_classes: categories of the dataset (the threedq CLI links it from the dataset's ``index.json``:
+            ``ThreeDQCLI``'s ``link_arguments``); needed to train.
         crop_size: object crops are ``crop_size^3`` (as the evaluations crop).
         lr: Adam learning rate of encoder and classifier.
         logit_scale: the cosine classifier's logits are ``logit_scale * cos(pooled crop, class weight)``.
@@ -66,20 +66,10 @@ class SupervisedCeiling(SplitEvaluation, EncoderStage):
             {split: RetrievalPrecisionAtK(k=retrieval_k, num_angles=num_angles) for split in ("val", "test")})
 
     def setup(self, stage: str) -> None:
-        """Take the category count from the dataset's ``index.json`` when none was given."""
         super().setup(stage)
-        index = getattr(getattr(self.trainer, "datamodule", None), "index", None)
-        if index is None:
-            if self.classifier is None:
-                raise ValueError("num_classes: null needs a dataset with an index.json (or give num_classes)")
-            return
-        n = len(index.categories)
         if self.classifier is None:
-            self.hparams.num_classes = n
-            self.classifier = torch.nn.Linear(self.feature_dim, n, bias=False).to(self.device)
-        elif self.classifier.out_features != n:
-            raise ValueError(f"num_classes: the stage was configured for {self.classifier.out_features} categories "
-                             f"but the dataset's index.json lists {n}")
+            raise ValueError("num_classes: null: give the dataset's category count (the threedq CLI takes it from the "
+                             "dataset's index.json)")
 
     def logits(self, features: Tensor) -> Tensor:
         """``[N, num_classes]`` class scores of ``[N, C, s, s, s]`` crops (the cosine classifier on the voxel mean)."""

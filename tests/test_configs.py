@@ -6,7 +6,9 @@ A stage config is the only ``--config`` of its run; a data or trainer config is 
 the grid to it and hand over the checkpoints a stage reads (made by the packaged configs of the stages that write
 them); nothing else of the config is replaced. Trainer configs that need a GPU or several processes
 (``gpu``, ``ddp``, ``ddp_cpu``) are parsed, not run: CI has neither (``tests/test_ddp.py`` runs real DDP).
-A copy of a config with one key misspelt must fail the same check (``TestMutatedConfig``).
+A copy of a config with one key misspelt must fail the same check (``TestMutatedConfig``). Stage configs name no
+dataset: ``TestDataComposition`` checks that a data config of one's own replaces the default one, before or after the
+stage config, and that the stage's loading arguments survive the change of DataModule class.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import torch
 import yaml
 
 from threedq.cli import main
-from threedq.pipeline.lightning_cli import ThreeDQCLI, packaged_configs_dir, resolve_config
+from threedq.pipeline.lightning_cli import ThreeDQCLI, default_data, packaged_configs_dir, resolve_config
 
 CONFIGS = sorted(str(p.relative_to(packaged_configs_dir())) for p in packaged_configs_dir().glob("*/*.yaml"))
 #: Trainer configs parsed but not run here (a GPU, or several processes).
@@ -121,7 +123,9 @@ def test_parses_as_itself(config: str, capsys: pytest.CaptureFixture[str]) -> No
     own, printed = _load(config), _check_parse(config, capsys)
     for section in ("model", "data"):
         if section in own:
-            assert printed[section]["class_path"] == own[section]["class_path"]
+            # a stage config's data block says how it loads data (no class_path: the default dataset's class)
+            want = own[section].get("class_path") or default_data()["class_path"]
+            assert printed[section]["class_path"] == want
             for key, value in (own[section].get("init_args") or {}).items():
                 got = printed[section]["init_args"][key]
                 assert got == value or (isinstance(value, list) and list(got) == value), (section, key)
@@ -162,3 +166,60 @@ class TestMutatedConfig:
         (tmp_path / "stages" / "viewpred.yaml").write_text(yaml.safe_dump(cfg))
         monkeypatch.chdir(tmp_path)  # a local file wins over the packaged one (resolve_config)
         assert _check_parse("stages/viewpred.yaml", capsys)["model"]["init_args"]["rgb_weight"] == 7.5
+
+
+class TestDataComposition:
+    """Stage configs say how a stage loads data, data configs which dataset (``configs/data/*.yaml``)."""
+
+    def test_stage_configs_name_no_dataset(self) -> None:
+        for config in CONFIGS:
+            if config.startswith(("stages/", "paper/")):
+                data = _load(config).get("data") or {}
+                assert "class_path" not in data, config
+                assert not {"data_dir", "num_scenes", "split_fractions"} & set(data.get("init_args") or {}), config
+
+    def test_default_dataset_is_the_data_config(self, capsys: pytest.CaptureFixture[str]) -> None:
+        printed = _check_parse("stages/detector.yaml", capsys)["data"]
+        own = _load("data/clevr_veggie.yaml")["data"]
+        assert printed["class_path"] == own["class_path"]
+        assert printed["init_args"]["data_dir"] == own["init_args"]["data_dir"]
+        assert printed["init_args"]["batch_size"] == 4 and printed["init_args"]["boxes"] == "proposals"
+
+    @pytest.mark.parametrize("own_first", [False, True])
+    def test_own_dataset_is_one_file(self, own_first: bool, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+        mine = tmp_path / "my_data.yaml"
+        mine.write_text(yaml.safe_dump({"data": {"class_path": "threedq.datamodules.scene_folder.SceneFolderDataModule",
+                                                 "init_args": {"data_dir": "data/my_scenes"}}}))
+        stage = ["--config", "stages/detector.yaml"]
+        order = [*(["--config", str(mine)]), *stage] if own_first else [*stage, "--config", str(mine)]
+        assert _exit_code(["fit", *order, "--print_config"]) == 0
+        printed = yaml.safe_load(capsys.readouterr().out)["data"]
+        assert printed["class_path"].endswith("SceneFolderDataModule")
+        args = printed["init_args"]
+        assert args["data_dir"] == "data/my_scenes" and "num_scenes" not in args  # the embedded generator's are gone
+        assert args["batch_size"] == 4 and args["boxes"] == "proposals" and args["train_random_views"] is False
+
+
+class TestLinkedFromData:
+    """``num_classes`` and ``symmetry_order`` come from the dataset's ``index.json`` (``link_arguments``), to the
+    stages that take them; the others are built as before."""
+
+    @pytest.mark.parametrize("config, linked", [("stages/quantizer.yaml", ("num_classes", "symmetry_order")),
+                                                ("stages/mining.yaml", ("symmetry_order",)),
+                                                ("stages/detector.yaml", ())])
+    def test_stage_gets_the_dataset_values(self, config: str, linked: tuple[str, ...], tmp_path: Path,
+                                           tiny_dataset: Path, checkpoints: dict[str, Path]) -> None:
+        from threedq.scene import load_index
+        from threedq.stages.base import stage_arguments
+
+        index = load_index(tiny_dataset)
+        cli = ThreeDQCLI(args=_run_args(config, tiny_dataset, tmp_path, checkpoints)[1:], run=False)
+        want = {"num_classes": len(index.categories), "symmetry_order": list(index.symmetry_order)}
+        for key in linked:
+            assert cli.model.hparams[key] == want[key], key
+        assert not {"num_classes", "symmetry_order"} - set(linked) & set(stage_arguments(type(cli.model)))
+
+    def test_a_config_cannot_set_them(self, capsys: pytest.CaptureFixture[str]) -> None:
+        assert _exit_code(["fit", "--config", "stages/quantizer.yaml", "--model.init_args.num_classes=3",
+                           "--print_config"]) != 0
+        assert "num_classes" in capsys.readouterr().err

@@ -84,7 +84,7 @@ def runs(ddp_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     _run([sys.executable, "-m", "threedq", "fit", "--config", "stages/viewpred.yaml", "--config", str(data),
           "--config", str(vp), "--config", "trainer/ddp_cpu.yaml", f"--trainer.default_root_dir={work / 'vp_ddp'}"],
          cwd=work)
-    q = ["--config", "stages/quantizer.yaml", "--config", str(data), enc, "--model.init_args.num_classes=2",
+    q = ["--config", "stages/quantizer.yaml", "--config", str(data), enc,
          "--model.init_args.num_prototypes=2"]
     # GT boxes: the tiny scenes' pseudo-boxes are too few and too flat for the detector's anchor and positives
     det = ["--config", "stages/detector.yaml", "--config", str(data), enc, "--data.init_args.boxes=gt", "--trainer.max_steps=2",

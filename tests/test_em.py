@@ -246,3 +246,27 @@ def test_bf16_only_where_the_cpu_has_bf16_instructions() -> None:
     assert _bf16_is_native({**avx512, "amx_bf16": True}) is True
     assert _bf16_is_native({"architecture": "x86_64"}) is False
     assert isinstance(_bf16_is_native(), bool)  # this machine, whatever it is
+
+
+def test_em_data_config(tmp_path: Path, tiny_dataset: Path) -> None:
+    """``--data_config``: a user's dataset is one file (a DataModule class and its folder), composed into every stage;
+    the stage configs keep how they load it, and the report names the file."""
+    from threedq.pipeline.em import run_em
+
+    mine = tmp_path / "my_data.yaml"
+    mine.write_text(yaml.safe_dump({"data": {"class_path": "threedq.datamodules.scene_folder.SceneFolderDataModule",
+                                             "init_args": {"data_dir": str(tiny_dataset)}}}))
+    rest = tmp_path / "tiny_model.yaml"
+    rest.write_text(yaml.safe_dump({"model": {"init_args": {"grid_resolution": [32, 32, 16]}},
+                                    "trainer": {"max_steps": 1, "limit_val_batches": 1, "enable_progress_bar": False,
+                                                "enable_model_summary": False}}))
+    work = tmp_path / "em"
+    summary = run_em(rounds=0, work_dir=str(work), data_config=str(mine), extra_configs=[str(rest)], detection=False,
+                     boxes="gt")
+    used = yaml.safe_load((work / "00_viewpred" / "config.yaml").read_text())["data"]
+    assert used["class_path"] == "threedq.datamodules.scene_folder.SceneFolderDataModule"
+    assert used["init_args"]["data_dir"] == str(tiny_dataset)
+    assert used["init_args"]["num_target_views"] == 1  # stages/viewpred.yaml's loading argument, kept
+    assert summary["viewpred_eval"]["view_prediction"]["num_scenes"] == 2
+    # named as the report names configs: relative to the work folder's parent, where threedq em usually runs
+    assert summary["data_config"] == "my_data.yaml" and "data: `my_data.yaml`" in (work / "report.md").read_text()

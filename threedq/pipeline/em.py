@@ -69,7 +69,9 @@ from threedq.locks import hold_folder
 from threedq.stages.crop_cache import CropCache
 from threedq.pipeline.data_commands import output_folder
 from threedq.pipeline.detection_eval import evaluate_detection
-from threedq.pipeline.lightning_cli import ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint
+from threedq.pipeline.lightning_cli import (
+    DEFAULT_DATA_CONFIG, ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint,
+)
 from threedq.pipeline.overrides import stage_overrides
 from threedq.pipeline.report import evaluate_quantizer
 from threedq.pipeline.run_layout import RunLayout
@@ -289,6 +291,7 @@ def run_em(
     detector_config: str = "stages/detector.yaml",
     detection: bool = True,
     boxes: Literal["detections", "gt"] = "detections",
+    data_config: str | None = None,
     extra_configs: list[str] | str | None = None,
     max_steps: int | None = None,
     mining_config: str | None = "stages/mining.yaml",
@@ -310,7 +313,10 @@ def run_em(
         boxes: object boxes of the rounds: ``detections`` (the paper's protocol: the boxes the current detector
             hands on, above its score threshold; needs ``detection``; GT is used only to score, over the detections
             matched to GT at IoU 0.5) or ``gt`` (the oracle boxes, for comparison).
-        extra_configs: more configs composed after each stage's (e.g. ``trainer/gpu.yaml``, a data config); one
+        data_config: the dataset of every stage (a data config, ``configs/data/*.yaml`` or a file of your own naming
+            the DataModule ``class_path`` and its ``data_dir``), composed after each stage's config; default: the
+            embedded data (``data/clevr_veggie.yaml``, the CLI's default dataset).
+        extra_configs: more configs composed after each stage's and the data config (e.g. ``trainer/gpu.yaml``); one
             path or a list (``--extra_configs my.yaml``, ``--extra_configs '[a.yaml, b.yaml]'``, ``--extra_configs+ x``).
         max_steps: override the training steps of the view-prediction stage.
         mining_config: the correspondence-learning stage config run at the start of every round, fine-tuning
@@ -352,7 +358,7 @@ def run_em(
             _remove_torn_writes(work)
         if isinstance(extra_configs, (str, Path)):
             extra_configs = [str(extra_configs)]
-        extra = [resolve_config(c) for c in (extra_configs or [])]
+        extra = [resolve_config(c) for c in ([data_config] if data_config else []) + list(extra_configs or [])]
         vp_configs = [resolve_config(config), *extra]
         q_configs = [resolve_config(quantizer_config), *extra]
         mine = mining_config not in (None, "", "none")
@@ -471,6 +477,7 @@ def run_em(
             "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
             "round0_result": round0,
             "mining_config": _config_label(m_configs[0], work) if mine else None,
+            "data_config": _config_label(resolve_config(data_config or DEFAULT_DATA_CONFIG), work),
             "mining_results": mining_results,
             "viewpred": vp,
             "viewpred_eval": vp_eval,

@@ -33,13 +33,21 @@ from threedq.pipeline.strategy import DDPStrategy
 from threedq.stages.checkpoint import AtomicCheckpointIO, checkpoint_stage
 
 __all__ = [
-    "ThreeDQCLI", "ConfigError", "OldClassPathError", "packaged_configs_dir", "resolve_config", "resolve_config_args",
-    "test_checkpoint",
+    "DEFAULT_DATA_CONFIG", "ThreeDQCLI", "ConfigError", "OldClassPathError", "dataset_num_classes",
+    "dataset_symmetry_order", "default_data", "packaged_configs_dir",
+    "resolve_config", "resolve_config_args", "test_checkpoint",
 ]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 #: Where a run writes when its config names no ``trainer.default_root_dir``.
 DEFAULT_ROOT = "runs/default"
+#: The dataset of a run whose configs name none (a stage config says how it loads data, a data config which data).
+DEFAULT_DATA_CONFIG = "data/clevr_veggie.yaml"
+
+
+def default_data() -> dict[str, Any]:
+    """The ``data`` block of :data:`DEFAULT_DATA_CONFIG` (``class_path`` and ``init_args``)."""
+    return yaml.safe_load(resolve_config(DEFAULT_DATA_CONFIG).read_text(encoding="utf-8"))["data"]
 
 
 def packaged_configs_dir() -> Path:
@@ -66,6 +74,56 @@ def resolve_config(path: str | Path) -> Path:
     if p.is_absolute():
         raise FileNotFoundError(f"config {str(path)!r} not found")
     raise FileNotFoundError(f"config {str(path)!r} not found (tried {p.resolve()} and {packaged})")
+
+
+#: Stage arguments the CLI links from the DataModule (``link_arguments``): a config does not set them.
+LINKED_FROM_DATA = ("num_classes", "symmetry_order")
+
+
+def _refuse_linked(args: Sequence[str]) -> None:
+    """A config file or command line that sets a :data:`LINKED_FROM_DATA` argument to a value is refused (one line):
+    jsonargparse would drop it silently, and the dataset's value would be used. ``null`` (older configs) passes.
+
+    Raises:
+        ConfigError: naming the file (or the command line) and the field.
+    """
+    for where, what in _sources(args):
+        if where == "command line":
+            continue
+        init = ((what or {}).get("model") or {}).get("init_args") if isinstance(what, dict) else None
+        for key in LINKED_FROM_DATA:
+            if isinstance(init, dict) and init.get(key) is not None:
+                raise ConfigError(f"{where}: field 'model.init_args.{key}': taken from the dataset's index.json (linked "
+                                  "from the data); remove it, or use a dataset with those categories")
+    prev = ""
+    for a in args:
+        key, _, value = a.partition("=") if a.startswith("--") else (prev, "", a)
+        name = key.removeprefix("--model.init_args.").removeprefix("--model.")
+        if name in LINKED_FROM_DATA and key.startswith("--model.") and value not in ("", "null", "None"):
+            raise ConfigError(f"--{key.lstrip('-')}: taken from the dataset's index.json (linked from the data); "
+                              "remove it, or use a dataset with those categories")
+        prev = a if a.startswith("--") and "=" not in a else ""
+
+
+def _dataset_index(datamodule: Any) -> Any:
+    """The ``index.json`` of a scene-folder DataModule (``None`` for another kind), made first where the DataModule
+    makes its data (``prepare_data``: the embedded generator on first use; locked, so parallel processes wait)."""
+    if not hasattr(datamodule, "index") or not callable(getattr(datamodule, "prepare_data", None)):
+        return None
+    datamodule.prepare_data()
+    return datamodule.index
+
+
+def dataset_num_classes(datamodule: Any) -> int | None:
+    """The category count of the DataModule's dataset (its ``index.json``), linked to a stage's ``num_classes``."""
+    index = _dataset_index(datamodule)
+    return None if index is None else len(index.categories)
+
+
+def dataset_symmetry_order(datamodule: Any) -> list[int] | None:
+    """Per category, its yaw symmetry order (``index.json``), linked to a stage's ``symmetry_order``."""
+    index = _dataset_index(datamodule)
+    return None if index is None else [int(o) for o in index.symmetry_order]
 
 
 class OldClassPathError(InputError):
@@ -220,7 +278,21 @@ class ThreeDQCLI(LightningCLI):
 
     Each run saves its resolved ``config.yaml`` in the log directory (overwriting a previous one of the
     same directory, so that a resumed run can be restarted from it).
+
+    Data is composed: a stage config's ``data`` block holds how the stage loads a dataset (``init_args`` such as
+    ``batch_size``, ``num_input_views``, ``boxes``; no ``class_path``), a data config (``configs/data/*.yaml``)
+    which dataset (``class_path``, ``data_dir``, its own arguments). The default dataset is
+    :data:`DEFAULT_DATA_CONFIG`'s; ``--config my_data.yaml`` (before or after the stage config) replaces it, and
+    the stage's loading arguments carry over to the new DataModule class.
     """
+
+    def add_arguments_to_parser(self, parser: Any) -> None:
+        """The default dataset, and what a stage takes from the dataset: ``num_classes`` and ``symmetry_order``
+        (read from its ``index.json`` once the DataModule is built; a stage without such an argument is not given
+        it). A config cannot set a linked argument: the dataset decides it."""
+        parser.set_defaults({"data": default_data()})
+        for key, compute in zip(LINKED_FROM_DATA, (dataset_num_classes, dataset_symmetry_order)):
+            parser.link_arguments("data", f"model.init_args.{key}", compute_fn=compute, apply_on="instantiate")
 
     def __init__(
         self,
@@ -262,6 +334,7 @@ class ThreeDQCLI(LightningCLI):
         A ``--ckpt_path`` is checked here, before Lightning reads it: one that cannot be loaded safely, or that
         another stage wrote, is refused with one line naming it.
         """
+        _refuse_linked(self._args)
         try:
             super().parse_arguments(parser, args)
         except ArgumentError as e:
@@ -292,6 +365,12 @@ class ThreeDQCLI(LightningCLI):
         model = cfg.get("model") if cfg is not None else None
         if not ckpt or not Path(str(ckpt)).is_file() or model is None:
             return
+        extra = model.get("dict_kwargs") if hasattr(model, "get") else None
+        if isinstance(extra, dict):
+            # Lightning records the values linked from the data (num_classes, symmetry_order) in every stage's
+            # hyperparameters, also a stage that takes no such argument; the links give them again from the data
+            for key in LINKED_FROM_DATA:
+                extra.pop(key, None)
         for args_key in ("init_args", "dict_kwargs"):
             args = model.get(args_key) if hasattr(model, "get") else None
             if args is None or not hasattr(args, "get"):

@@ -20,6 +20,7 @@ import lightning as L
 import yaml
 
 from threedq.errors import InputError
+from threedq.pipeline.lightning_cli import default_data
 
 __all__ = ["class_of", "stage_overrides"]
 
@@ -28,8 +29,9 @@ _TRAINER_ARGUMENTS = frozenset(inspect.signature(L.Trainer.__init__).parameters)
 
 def class_of(configs: Sequence[str | Path], key: str) -> type | None:
     """The class a run of ``configs`` builds for ``key`` (``"model"`` or ``"data"``): the last ``class_path`` the
-    configs set (later configs override earlier ones); ``None`` when none sets one or it does not import."""
-    path = None
+    configs set (later configs override earlier ones; for ``data`` the CLI's default dataset when none sets one,
+    :data:`~threedq.pipeline.lightning_cli.DEFAULT_DATA_CONFIG`); ``None`` when none sets one or it does not import."""
+    path = default_data()["class_path"] if key == "data" else None
     for config in configs:
         doc = yaml.safe_load(Path(config).read_text()) or {}
         section = doc.get(key) if isinstance(doc, dict) else None

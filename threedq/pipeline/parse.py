@@ -58,6 +58,7 @@ from threedq.stages.checkpoint import (
     DEFAULT_GRID,
     checkpoint_hparams,
     checkpoint_state,
+    load_checkpoint,
     encoder_state_from_checkpoint,
 )
 from threedq.stages.detector import Detector
@@ -194,7 +195,8 @@ class SceneParser(torch.nn.Module):
         _checked_grid(q_hp, det_hp, artifacts.prototypes, artifacts.detector)
         names = set(stage_arguments(Detector)) - {"encoder_ckpt"}
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in det_hp.items() if k in names}
-        kw.update(channels_last=channels_last, freeze_encoder=True, image_every_n_steps=0)
+        kw.update(channels_last=channels_last, freeze_encoder=True, image_every_n_steps=0,
+                  anchor_size=load_checkpoint(artifacts.detector).anchor)  # the anchor buffer (older files: hparams)
         self.detector = Detector(**kw)
         state = checkpoint_state(artifacts.detector)
         part = {k: v for k, v in state.items() if k.startswith(("encoder.", "head."))}

@@ -311,6 +311,7 @@ def evaluate_quantizer(
 def run_eval(
     ckpt: str,
     config: str = "stages/quantizer.yaml",
+    data_config: str | None = None,
     extra_configs: list[str] | str | None = None,
     out: str = "runs/eval",
     baselines: bool = True,
@@ -326,8 +327,10 @@ def run_eval(
 
     Args:
         ckpt: a quantizer checkpoint (encoder weights + prototype bank), e.g. ``runs/quantizer/checkpoints/last.ckpt``.
-        config: the quantizer config that names the data (a path or one inside the packaged configs/).
-        extra_configs: more configs composed after it (one path or a list).
+        config: the quantizer config (a path or one inside the packaged configs/).
+        data_config: the dataset to evaluate on (a data config, e.g. ``data/clevr_veggie_pool.yaml``, or a file of
+            your own); default: the embedded data.
+        extra_configs: more configs composed after those (one path or a list).
         out: output folder.
         baselines: also fit and evaluate no-rot-3DQ and point-cloud registration.
         curve_k: prototype counts of the accuracy-vs-K figure (default 10, 20, 41, 50, 80; [] skips it).
@@ -347,7 +350,7 @@ def run_eval(
 
     if isinstance(extra_configs, (str, Path)):
         extra_configs = [str(extra_configs)]
-    configs = [resolve_config(config), *(resolve_config(c) for c in (extra_configs or []))]
+    configs = [resolve_config(c) for c in [config, *([data_config] if data_config else []), *(extra_configs or [])]]
     output_folder("--out", out)
     require_stage(ckpt, "quantizer", "--ckpt", needs="eval")
     q25d_model = load_q25d(q25d) if q25d else None  # bad files are refused before the long work

@@ -252,7 +252,8 @@ def em_markdown(summary: dict[str, Any]) -> str:
     lines = [
         "# threedq em report",
         "",
-        f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}",
+        f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}"
+        + (f"; data: `{summary['data_config']}`" if summary.get("data_config") else ""),
         f"- machine: {summary['machine']}; torch {summary['torch']}; frozen-encoder stages in "
         f"{summary.get('frozen_precision', '32-true')}"
         + (f"; mining in {summary['mining_precision']}" if summary.get("mining_precision") else ""),
