@@ -161,14 +161,20 @@ class EncoderStage(L.LightningModule):
         Stage constructors take their parents' arguments by keyword (``**kwargs``); Lightning records the calling
         constructor's own arguments and the keywords it was given, so the arguments left at a parent's default are
         added here, each at the default of the most derived class that declares it (a checkpoint's hyperparameters
-        name every argument). The grid is the resolved one, in place of the None a stage may have been given.
+        name every argument, and only those). The grid is the resolved one, in place of the None a stage may have been
+        given.
         """
         kwargs.setdefault("frame", inspect.currentframe().f_back)
         super().save_hyperparameters(*args, **kwargs)
         ignore = set(kwargs.get("ignore") or ())
-        for name, default in stage_arguments(type(self)).items():
+        own = stage_arguments(type(self))
+        for name, default in own.items():
             if name not in ignore and name not in self.hparams:
                 self.hparams[name] = default
+        # LightningCLI also records the values it links from the data (num_classes, symmetry_order) for a stage that
+        # takes no such argument; load_from_checkpoint would pass them to its constructor
+        for name in [k for k in self.hparams if not k.startswith("_") and k not in own]:
+            del self.hparams[name]
         self.hparams.update({k: list(v) if isinstance(v, tuple) else v for k, v in self.grid_fields.items()})
 
     def train(self, mode: bool = True) -> EncoderStage:

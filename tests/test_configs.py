@@ -219,6 +219,19 @@ class TestLinkedFromData:
             assert cli.model.hparams[key] == want[key], key
         assert not {"num_classes", "symmetry_order"} - set(linked) & set(stage_arguments(type(cli.model)))
 
+    def test_checkpoint_rebuilds_through_lightning(self, checkpoints: dict[str, Path]) -> None:
+        """A checkpoint names only its stage's arguments (not the linked values of another stage), so Lightning's
+        ``load_from_checkpoint`` rebuilds the stage, with the detector's anchor from its buffer."""
+        from threedq.stages.base import stage_arguments
+        from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
+        from threedq.stages.detector import Detector
+
+        path = checkpoints["detector_ckpt"]
+        hp = checkpoint_hparams(path)
+        assert {k for k in hp if not k.startswith("_")} <= set(stage_arguments(Detector))
+        det = Detector.load_from_checkpoint(path, weights_only=True)
+        assert det.anchor_size == load_checkpoint(path).anchor and det.anchor_size is not None
+
     def test_a_config_cannot_set_them(self, capsys: pytest.CaptureFixture[str]) -> None:
         assert _exit_code(["fit", "--config", "stages/quantizer.yaml", "--model.init_args.num_classes=3",
                            "--print_config"]) != 0

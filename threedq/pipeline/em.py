@@ -74,6 +74,7 @@ from threedq.pipeline.lightning_cli import (
 )
 from threedq.pipeline.overrides import stage_overrides
 from threedq.pipeline.report import evaluate_quantizer
+from threedq.pipeline.results import MiningResult, SelfLabellingResult, StageRecord
 from threedq.pipeline.run_layout import RunLayout
 from threedq.pipeline.tables import em_markdown, feature_cells, fewshot_cell, fmt, precision_label
 from threedq.stages.checkpoint import require_stage
@@ -100,9 +101,9 @@ def _config_label(path: Path, work: Path) -> str:
     return str(path)
 
 
-def _stage_done(run_dir: Path) -> dict[str, Any] | None:
+def _stage_done(run_dir: Path) -> StageRecord | None:
     marker = RunLayout.stage_marker(run_dir)
-    return json.loads(marker.read_text()) if marker.is_file() else None
+    return StageRecord.from_json(json.loads(marker.read_text())) if marker.is_file() else None
 
 
 def _remove_torn_writes(work: Path) -> None:
@@ -129,7 +130,7 @@ def _cli_args(configs: list[Path], run_dir: Path, overrides: list[str]) -> list[
 def _fit_stage(
     name: str, configs: list[Path], run_dir: Path, overrides: list[str], resume: bool,
     crop_cache: CropCache | None = None,
-) -> dict[str, Any]:
+) -> StageRecord:
     done = _stage_done(run_dir)
     if done is not None:
         print(f"[em] {name}: finished earlier ({RunLayout.stage_marker(run_dir)}), not re-run")
@@ -150,8 +151,8 @@ def _fit_stage(
     ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides)], model_setup=setup)
     if not last.is_file():
         raise RuntimeError(f"{name}: training finished without writing {last}")
-    info = {"stage": name, "checkpoint": str(last), "seconds": round(time.time() - t0, 1)}
-    atomic_write_json(RunLayout.stage_marker(run_dir), info)
+    info = StageRecord(stage=name, checkpoint=str(last), seconds=round(time.time() - t0, 1))
+    atomic_write_json(RunLayout.stage_marker(run_dir), info.to_json())
     return info
 
 
@@ -178,7 +179,7 @@ def _bf16_is_native(cpu: dict[str, Any] | None = None) -> bool:
         return False
 
 
-def _given_viewpred(path: str | Path) -> dict[str, Any]:
+def _given_viewpred(path: str | Path) -> StageRecord:
     """The stage record of a view-prediction checkpoint given with ``--viewpred_ckpt`` (not trained here).
 
     Raises:
@@ -187,7 +188,7 @@ def _given_viewpred(path: str | Path) -> dict[str, Any]:
     ckpt = Path(path)
     require_stage(ckpt, "viewpred", "--viewpred_ckpt")
     print(f"[em] viewpred: given ({ckpt}), not trained here")
-    return {"stage": "viewpred", "checkpoint": str(ckpt.resolve()), "seconds": 0.0, "given": True}
+    return StageRecord(stage="viewpred", checkpoint=str(ckpt.resolve()), seconds=0.0, given=True)
 
 
 def _mining_diagnostics(run_dir: Path) -> list[dict[str, Any]]:
@@ -258,7 +259,7 @@ def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
 
 
 def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
-            self_labels: list[dict[str, Any]], round0: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+            self_labels: list[SelfLabellingResult], round0: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Paper Table 3 rows: per round 0..R, feature precision@10 (strict and paper protocol, same-object top-1),
     Hungarian accuracy and detection mAP@0.5 (test).
 
@@ -276,7 +277,7 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
     rows = [{"round": 0, **feature_cells(round0["retrieval"] if round0 else None),
              "hungarian_acc": round0["quantization"]["threedq"]["hungarian_acc"] if round0 else None, **det_row(det_eval)}]
     for i, r in enumerate(rounds):
-        d = self_labels[i]["detector_eval"] if i < len(self_labels) else det_eval
+        d = self_labels[i].detector_eval if i < len(self_labels) else det_eval
         rows.append({"round": i + 1, **feature_cells(r["retrieval"]),
                      "hungarian_acc": r["quantization"]["threedq"]["hungarian_acc"], **det_row(d)})
     return rows
@@ -378,7 +379,7 @@ def run_em(
             vp = _given_viewpred(viewpred_ckpt)
         else:
             vp = _fit_stage("viewpred", vp_configs, layout.viewpred, overrides, resume)
-        vp_ckpt = Path(vp["checkpoint"])
+        vp_ckpt = vp.path
         vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, layout.viewpred_eval)
         # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
         # encoded once per encoder. The warm-start detector's evaluation leaves the grids of every split that round 1's
@@ -393,7 +394,7 @@ def run_em(
                              stage_overrides(d_configs, model={"encoder_ckpt": vp_ckpt}, trainer=prec), resume, crop_cache)
             # detections of every split only when the rounds take their boxes from the detector
             det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-            det_eval = _evaluate_detector(d_configs, Path(det["checkpoint"]), layout.detector_eval, det_splits,
+            det_eval = _evaluate_detector(d_configs, det.path, layout.detector_eval, det_splits,
                                           stage_overrides(d_configs, trainer=prec),
                                           crop_cache=crop_cache)
             print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
@@ -409,13 +410,13 @@ def run_em(
                             stage_overrides(q_configs, model={"encoder_ckpt": vp_ckpt}, data=boxes_of_round,
                                             trainer={**_QUANTIZER_FIT, **prec}), resume,
                             crop_cache)
-            round0 = _evaluate_round(q_configs, Path(q0["checkpoint"]), layout.round(0, "eval"), final=False,
+            round0 = _evaluate_round(q_configs, q0.path, layout.round(0, "eval"), final=False,
                                      overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
                                      crop_cache=crop_cache)
         round_results: list[dict[str, Any]] = []
-        mining_results: list[dict[str, Any]] = []
-        self_label_results: list[dict[str, Any]] = []
-        det_ckpt = Path(det["checkpoint"]) if det else None
+        mining_results: list[MiningResult] = []
+        self_label_results: list[SelfLabellingResult] = []
+        det_ckpt = det.path if det else None
         prev_bank: Path | None = None
         encoder = vp_ckpt
         for r in range(1, rounds + 1):
@@ -424,8 +425,8 @@ def run_em(
                                stage_overrides(m_configs, model={"encoder_ckpt": encoder}, data=boxes_of_round,
                                                trainer=mining_trainer), resume,
                                crop_cache)
-                encoder = Path(m["checkpoint"])
-                mining_results.append({**m, "refreshes": _mining_diagnostics(layout.round(r, "mining"))})
+                encoder = m.path
+                mining_results.append(MiningResult(m, _mining_diagnostics(layout.round(r, "mining"))))
                 # the encoder is new: the previous one's grids and crops will not be asked for again
                 crop_cache.drop("features")
                 crop_cache.drop("grid")
@@ -434,7 +435,7 @@ def run_em(
                 q_model["init_bank_ckpt"] = prev_bank
             q_over = stage_overrides(q_configs, model=q_model, data=boxes_of_round, trainer={**_QUANTIZER_FIT, **prec})
             q = _fit_stage(f"round {r} quantizer", q_configs, layout.round(r, "quantizer"), q_over, resume, crop_cache)
-            prev_bank = Path(q["checkpoint"])
+            prev_bank = q.path
             round_results.append(_evaluate_round(q_configs, prev_bank, layout.round(r, "eval"), final=r == rounds,
                                                 overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
                                                 crop_cache=crop_cache))
@@ -445,17 +446,18 @@ def run_em(
                 sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
                                 stage_overrides(sl_configs, model={**sl_model, "detector_ckpt": det_ckpt}, trainer=prec),
                                 resume, crop_cache)
-                det_ckpt = Path(sl["checkpoint"])
+                det_ckpt = sl.path
                 # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
                 splits = det_splits if r < rounds else ("test",)
                 sl_eval = _evaluate_detector(sl_configs, det_ckpt, layout.round(r, "detector_eval"), splits,
                                              stage_overrides(sl_configs, model={**sl_model, "detector_ckpt": None},
                                                              trainer=prec), crop_cache)
                 labels = run / "self_labels" / "labels.json"
-                self_label_results.append({**sl, "labels": json.loads(labels.read_text()) if labels.is_file() else None,
-                                           "detector_eval": sl_eval})
-                print(f"[em] round {r} self-labelling: detection mAP@0.5 {sl_eval['detector']['map_50']:.3f} "
-                      f"(before: {(self_label_results[-2]['detector_eval'] if r > 1 else det_eval)['detector']['map_50']:.3f})")
+                self_label_results.append(SelfLabellingResult(
+                    sl, json.loads(labels.read_text()) if labels.is_file() else None, sl_eval))
+                before = self_label_results[-2].map_50 if r > 1 else float(det_eval["detector"]["map_50"])
+                print(f"[em] round {r} self-labelling: detection mAP@0.5 {self_label_results[-1].map_50:.3f} "
+                      f"(before: {before:.3f})")
                 if boxes == "detections" and r < rounds:
                     _check_handed_on(layout.round(r, "detector_eval"), ("train", "test"))
                     boxes_of_round = {"boxes": layout.detections(layout.round(r, "detector_eval"))}
@@ -473,15 +475,15 @@ def run_em(
             "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
             if rounds else [],
             "self_labelling_config": _config_label(sl_configs[0], work) if relabel else None,
-            "self_label_results": self_label_results,
+            "self_label_results": [x.to_json() for x in self_label_results],
             "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
             "round0_result": round0,
             "mining_config": _config_label(m_configs[0], work) if mine else None,
             "data_config": _config_label(resolve_config(data_config or DEFAULT_DATA_CONFIG), work),
-            "mining_results": mining_results,
-            "viewpred": vp,
+            "mining_results": [x.to_json() for x in mining_results],
+            "viewpred": vp.to_json(),
             "viewpred_eval": vp_eval,
-            "detector": det,
+            "detector": det.to_json() if det else None,
             "detector_eval": det_eval,
             "boxes": boxes,
             "frozen_precision": frozen_precision,
