@@ -455,6 +455,10 @@ class SceneFolderDataModule(L.LightningDataModule):
         aabb = np.concatenate(rows) if rows else np.zeros((0, 6))
         return aabb[:, 3:] - aabb[:, :3]
 
+    def describe_boxes(self, split: str = "train") -> str:
+        """Where a split's boxes come from, for messages: ``<data_dir> (split train, boxes='proposals')``."""
+        return f"{self.data_dir} (split {split}, boxes={self.boxes!r})"
+
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         if split not in self.datasets:
             self.setup()

@@ -263,10 +263,10 @@ class Detector(EncoderStage):
         super().on_fit_start()
         if not self._anchor_known:
             dm = getattr(self.trainer, "datamodule", None)
-            if dm is None or not hasattr(dm, "box_extents"):
+            if dm is None or not hasattr(dm, "box_extents") or not hasattr(dm, "describe_boxes"):
                 raise ValueError("anchor_size: null takes the median size of the training boxes, which needs a "
                                  "scene-folder DataModule; set model.init_args.anchor_size")  # fmt: skip
-            self.set_anchor_from_boxes(dm.box_extents("train"), f"{dm.data_dir} (split train, boxes={dm.boxes!r})")
+            self.set_anchor_from_boxes(dm.box_extents("train"), dm.describe_boxes("train"))
 
     def set_anchor_from_boxes(self, extents: np.ndarray, source: str) -> None:
         """Set the anchor to the per-axis median of the boxes at least ``min_box_height`` tall.
