@@ -753,3 +753,30 @@ def test_rounds_refuse_detections_with_too_few_boxes(tmp_path: Path) -> None:
     _check_handed_on(tmp_path, ("train",))
     with pytest.raises(RuntimeError, match=r"detections_test.npz: field 'boxes': the detector hands on 0 box\(es\)"):
         _check_handed_on(tmp_path, ("train", "test"))
+
+
+def test_data_config_is_composed_after_the_stage_config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``threedq eval --data_config d.yaml --extra_configs x.yaml``: the stage config, then the data, then the extras."""
+    from threedq.cli import build_parser
+    from threedq.pipeline import report
+
+    p = build_parser()
+    assert p.parse_args(["em", "--data_config", "d.yaml"]).em.data_config == "d.yaml"
+    assert p.parse_args(["eval", "--ckpt", "q.ckpt", "--data_config", "d.yaml"]).eval.data_config == "d.yaml"
+    seen: list[list[Path]] = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_test_checkpoint(configs, *args, **kwargs):
+        seen.append([Path(c) for c in configs])
+        raise Stop
+
+    d, x = tmp_path / "d.yaml", tmp_path / "x.yaml"
+    for f in (d, x):
+        f.write_text("{}\n")
+    monkeypatch.setattr(report, "require_stage", lambda *a, **k: None)
+    monkeypatch.setattr(report, "test_checkpoint", fake_test_checkpoint)
+    with pytest.raises(Stop):
+        report.run_eval("q.ckpt", data_config=str(d), extra_configs=str(x), out=str(tmp_path / "out"))
+    assert [c.name for c in seen[0]] == ["quantizer.yaml", "d.yaml", "x.yaml"]
