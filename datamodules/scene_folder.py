@@ -384,7 +384,13 @@ class SceneFolderDataModule(L.LightningDataModule):
 
     @property
     def num_classes(self) -> int:
+        """The dataset's category count (``index.json``); the CLI links it to a stage's ``num_classes``."""
         return len(self.index.categories)
+
+    @property
+    def symmetry_order(self) -> list[int]:
+        """Per category, its yaw symmetry order (``index.json``); the CLI links it to a stage's ``symmetry_order``."""
+        return [int(o) for o in self.index.symmetry_order]
 
     def setup(self, stage: str | None = None) -> None:
         for split in SPLITS:

@@ -232,6 +232,24 @@ class TestLinkedFromData:
         det = Detector.load_from_checkpoint(path, weights_only=True)
         assert det.anchor_size == load_checkpoint(path).anchor and det.anchor_size is not None
 
+    def test_a_datamodule_of_ones_own_says_them_by_attribute(self) -> None:
+        import lightning as L
+
+        from threedq.pipeline.lightning_cli import dataset_num_classes, dataset_symmetry_order
+
+        class Mine(L.LightningDataModule):
+            def __init__(self) -> None:
+                super().__init__()
+                self.prepared = False
+                self.num_classes = 3
+
+            def prepare_data(self) -> None:
+                self.prepared = True
+
+        dm = Mine()
+        assert dataset_num_classes(dm) == 3 and dm.prepared and dataset_symmetry_order(dm) is None
+        assert dataset_num_classes(L.LightningDataModule()) is None
+
     def test_a_config_cannot_set_them(self, capsys: pytest.CaptureFixture[str]) -> None:
         assert _exit_code(["fit", "--config", "stages/quantizer.yaml", "--model.init_args.num_classes=3",
                            "--print_config"]) != 0

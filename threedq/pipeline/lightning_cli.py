@@ -105,25 +105,29 @@ def _refuse_linked(args: Sequence[str]) -> None:
         prev = a if a.startswith("--") and "=" not in a else ""
 
 
-def _dataset_index(datamodule: Any) -> Any:
-    """The ``index.json`` of a scene-folder DataModule (``None`` for another kind), made first where the DataModule
-    makes its data (``prepare_data``: the embedded generator on first use; locked, so parallel processes wait)."""
-    if not hasattr(datamodule, "index") or not callable(getattr(datamodule, "prepare_data", None)):
+def _dataset_value(datamodule: Any, name: str) -> Any:
+    """``datamodule.<name>`` (``num_classes``, ``symmetry_order``), or None for a DataModule that does not say. The
+    data is made first where the DataModule makes it (``prepare_data``: the embedded generator on first use; locked,
+    so parallel processes wait), since a scene folder reads these from its ``index.json``."""
+    if not hasattr(type(datamodule), name) and name not in vars(datamodule):
         return None
-    datamodule.prepare_data()
-    return datamodule.index
+    prepare = getattr(datamodule, "prepare_data", None)
+    if callable(prepare):
+        prepare()
+    return getattr(datamodule, name)
 
 
 def dataset_num_classes(datamodule: Any) -> int | None:
-    """The category count of the DataModule's dataset (its ``index.json``), linked to a stage's ``num_classes``."""
-    index = _dataset_index(datamodule)
-    return None if index is None else len(index.categories)
+    """The DataModule's category count (a scene folder's ``index.json``), linked to a stage's ``num_classes``."""
+    n = _dataset_value(datamodule, "num_classes")
+    return None if n is None else int(n)
 
 
 def dataset_symmetry_order(datamodule: Any) -> list[int] | None:
-    """Per category, its yaw symmetry order (``index.json``), linked to a stage's ``symmetry_order``."""
-    index = _dataset_index(datamodule)
-    return None if index is None else [int(o) for o in index.symmetry_order]
+    """Per category, its yaw symmetry order (a scene folder's ``index.json``), linked to a stage's
+    ``symmetry_order``."""
+    sym = _dataset_value(datamodule, "symmetry_order")
+    return None if sym is None else [int(o) for o in sym]
 
 
 class OldClassPathError(InputError):
@@ -287,9 +291,10 @@ class ThreeDQCLI(LightningCLI):
     """
 
     def add_arguments_to_parser(self, parser: Any) -> None:
-        """The default dataset, and what a stage takes from the dataset: ``num_classes`` and ``symmetry_order``
-        (read from its ``index.json`` once the DataModule is built; a stage without such an argument is not given
-        it). A config cannot set a linked argument: the dataset decides it."""
+        """The default dataset, and what a stage takes from the dataset: ``num_classes`` and ``symmetry_order``, the
+        DataModule's attributes of those names (a scene folder reads them from its ``index.json``; a DataModule of
+        your own may define them), once it is built; a stage without such an argument is not given it. A config
+        cannot set a linked argument: the dataset decides it."""
         parser.set_defaults({"data": default_data()})
         for key, compute in zip(LINKED_FROM_DATA, (dataset_num_classes, dataset_symmetry_order)):
             parser.link_arguments("data", f"model.init_args.{key}", compute_fn=compute, apply_on="instantiate")
