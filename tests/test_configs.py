@@ -233,22 +233,31 @@ class TestLinkedFromData:
         assert det.anchor_size == load_checkpoint(path).anchor and det.anchor_size is not None
 
     def test_a_datamodule_of_ones_own_says_them_by_attribute(self) -> None:
+        """Read from the DataModule's attributes; its data is made first (``prepare_data``) only when they cannot be
+        read yet (no index.json), so building a run does not re-check data that exists."""
         import lightning as L
 
+        from threedq.errors import InputError
         from threedq.pipeline.lightning_cli import dataset_num_classes, dataset_symmetry_order
 
         class Mine(L.LightningDataModule):
-            def __init__(self) -> None:
+            def __init__(self, made: bool) -> None:
                 super().__init__()
-                self.prepared = False
-                self.num_classes = 3
+                self.made, self.prepared = made, 0
 
             def prepare_data(self) -> None:
-                self.prepared = True
+                self.made, self.prepared = True, self.prepared + 1
 
-        dm = Mine()
-        assert dataset_num_classes(dm) == 3 and dm.prepared and dataset_symmetry_order(dm) is None
-        assert dataset_num_classes(L.LightningDataModule()) is None
+            @property
+            def num_classes(self) -> int:
+                if not self.made:
+                    raise InputError("index.json: field '<file>': no such file")
+                return 3
+
+        fresh, made = Mine(made=False), Mine(made=True)
+        assert dataset_num_classes(fresh) == 3 and fresh.prepared == 1
+        assert dataset_num_classes(made) == 3 and made.prepared == 0
+        assert dataset_symmetry_order(made) is None and dataset_num_classes(L.LightningDataModule()) is None
 
     def test_a_config_cannot_set_them(self, capsys: pytest.CaptureFixture[str]) -> None:
         assert _exit_code(["fit", "--config", "stages/quantizer.yaml", "--model.init_args.num_classes=3",

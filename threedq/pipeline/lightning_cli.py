@@ -106,15 +106,20 @@ def _refuse_linked(args: Sequence[str]) -> None:
 
 
 def _dataset_value(datamodule: Any, name: str) -> Any:
-    """``datamodule.<name>`` (``num_classes``, ``symmetry_order``), or None for a DataModule that does not say. The
-    data is made first where the DataModule makes it (``prepare_data``: the embedded generator on first use; locked,
-    so parallel processes wait), since a scene folder reads these from its ``index.json``."""
+    """``datamodule.<name>`` (``num_classes``, ``symmetry_order``), or None for a DataModule that does not say. A
+    scene folder reads these from its ``index.json``: where it is not there yet, the data is made first
+    (``prepare_data``: the embedded generator on first use; locked, so parallel processes wait); the checks of
+    ``prepare_data`` on data that exists stay where Lightning runs them (``fit``, ``test``)."""
     if not hasattr(type(datamodule), name) and name not in vars(datamodule):
         return None
-    prepare = getattr(datamodule, "prepare_data", None)
-    if callable(prepare):
+    try:
+        return getattr(datamodule, name)
+    except InputError:  # e.g. no index.json yet: the DataModule generates its data
+        prepare = getattr(datamodule, "prepare_data", None)
+        if not callable(prepare):
+            raise
         prepare()
-    return getattr(datamodule, name)
+        return getattr(datamodule, name)
 
 
 def dataset_num_classes(datamodule: Any) -> int | None:
