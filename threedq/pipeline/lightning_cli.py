@@ -375,12 +375,6 @@ class ThreeDQCLI(LightningCLI):
         model = cfg.get("model") if cfg is not None else None
         if not ckpt or not Path(str(ckpt)).is_file() or model is None:
             return
-        extra = model.get("dict_kwargs") if hasattr(model, "get") else None
-        if isinstance(extra, dict):
-            # Lightning records the values linked from the data (num_classes, symmetry_order) in every stage's
-            # hyperparameters, also a stage that takes no such argument; the links give them again from the data
-            for key in LINKED_FROM_DATA:
-                extra.pop(key, None)
         for args_key in ("init_args", "dict_kwargs"):
             args = model.get(args_key) if hasattr(model, "get") else None
             if args is None or not hasattr(args, "get"):
