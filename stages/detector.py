@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from threedq.errors import InputError
 from threedq.stages.base import EncoderStage
-from threedq.box_refinement import observed_boxes, refine_boxes
+from threedq.box_refinement import add_flat_boxes, observed_boxes, refine_boxes
 from threedq.boxes import nms_3d
 from threedq.metrics import DetectionMAP
 from threedq.viz.detection import detection_figure
@@ -201,6 +201,11 @@ class Detector(EncoderStage):
             is at least this, then suppressed again; a detection no observed box supports keeps its regressed box.
             Applies to everything the stage detects in a batch (validation and test mAP, ``predict``, the boxes
             ``threedq em`` hands on, ``threedq parse``); 0 = off (the regressed boxes).
+        flat_boxes: with ``refine_iou > 0``, the observed boxes of the input views less tall than ``min_box_height``
+            (which the detector is not trained on: it cannot find them) that no detection overlaps at ``nms_iou`` are
+            added, scored ``score_threshold`` times their geometric score (:func:`~threedq.box_refinement.add_flat_boxes`),
+            so below the boxes handed on: they count in the mAP and the reports, and mining, quantization and parse,
+            whose feature crops cannot describe them, do not get them. False: flat objects are not detected.
         lr: Adam learning rate.
         image_every_n_steps: write a detections PNG at validation when this many steps have passed (0: never).
 
@@ -223,6 +228,7 @@ class Detector(EncoderStage):
         nms_iomin: float = 0.3,
         max_detections: int = 16,
         refine_iou: float = 0.1,
+        flat_boxes: bool = True,
         lr: float = 1e-3,
         image_every_n_steps: int = 200,
         min_box_height: float | None = None,
@@ -374,10 +380,16 @@ class Detector(EncoderStage):
             s, b = s[keep], b[keep]
             k = nms_3d(b, s, self.hparams.nms_iou, self.hparams.nms_iomin)[: self.hparams.max_detections]
             b, s = b[k], s[k]
-            if refine and b.shape[0]:
-                obs, _ = observed_boxes(views[0][i], views[1][i], views[2][i], (fg.bounds_min, fg.bounds_max))
-                b, s, _ = refine_boxes(b, s, torch.from_numpy(obs), self.hparams.refine_iou, self.hparams.nms_iou,
-                                       self.hparams.nms_iomin)  # fmt: skip
+            if refine:
+                obs, obs_s = observed_boxes(views[0][i], views[1][i], views[2][i], (fg.bounds_min, fg.bounds_max))
+                obs, obs_s = torch.from_numpy(obs), torch.from_numpy(obs_s)
+                if b.shape[0]:
+                    b, s, _ = refine_boxes(b, s, obs, self.hparams.refine_iou, self.hparams.nms_iou,
+                                           self.hparams.nms_iomin)  # fmt: skip
+                if self.hparams.flat_boxes:
+                    b, s = add_flat_boxes(b, s, obs, obs_s, self.min_box_height, self.hparams.score_threshold, thr,
+                                          self.hparams.nms_iou)  # fmt: skip
+                    b, s = b[: self.hparams.max_detections], s[: self.hparams.max_detections]
             out.append({"boxes": b, "scores": s})
         return out
 

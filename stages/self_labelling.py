@@ -177,7 +177,7 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
 #: What a self-labelled detector takes from the detector checkpoint it fine-tunes unless given.
 INHERITED_FROM_DETECTOR: tuple[str, ...] = ("anchor_size", "channels", "num_blocks", "score_threshold",
                                             "eval_score_threshold", "nms_iou", "nms_iomin", "max_detections",
-                                            "refine_iou")
+                                            "refine_iou", "flat_boxes")
 
 
 class SelfLabelling(Detector):
@@ -224,7 +224,7 @@ class SelfLabelling(Detector):
             0.626 -> 0.554, docs/results.md).
         image_every_n_steps: as the detector's (0: no pictures).
         anchor_size, channels, num_blocks, score_threshold, eval_score_threshold, nms_iou, nms_iomin, max_detections,
-            refine_iou: as the :class:`~threedq.stages.detector.Detector`'s; None (the default): the value
+            refine_iou, flat_boxes: as the :class:`~threedq.stages.detector.Detector`'s; None (the default): the value
             ``detector_ckpt`` was trained with (the Detector's default without a checkpoint). Given, they override
             it (an anchor other than the detector's is refused: the head's boxes would decode at another size).
         **kwargs: the :class:`~threedq.stages.detector.Detector`'s other arguments, by keyword, and the encoder's.
@@ -263,11 +263,13 @@ class SelfLabelling(Detector):
         nms_iomin: float | None = None,
         max_detections: int | None = None,
         refine_iou: float | None = None,
+        flat_boxes: bool | None = None,
         **kwargs: Any,
     ) -> None:
         given = {"anchor_size": anchor_size, "channels": channels, "num_blocks": num_blocks,
                  "score_threshold": score_threshold, "eval_score_threshold": eval_score_threshold, "nms_iou": nms_iou,
-                 "nms_iomin": nms_iomin, "max_detections": max_detections, "refine_iou": refine_iou}
+                 "nms_iomin": nms_iomin, "max_detections": max_detections, "refine_iou": refine_iou,
+                 "flat_boxes": flat_boxes}
         assert set(given) == set(INHERITED_FROM_DETECTOR)
         kwargs.update({k: v for k, v in given.items() if v is not None})
         given_decoding = {k for k, v in given.items() if v is not None}
@@ -318,7 +320,7 @@ class SelfLabelling(Detector):
         self-labelled checkpoint tested without its ``detector_ckpt`` decodes as it did when it was written."""
         super().on_load_checkpoint(checkpoint)
         saved = checkpoint.get("hyper_parameters") or {}
-        for name in ("score_threshold", "eval_score_threshold", "nms_iou", "nms_iomin", "max_detections", "refine_iou"):
+        for name in INHERITED_FROM_DETECTOR[3:]:  # the decoding (the anchor: Detector.on_load_checkpoint)
             if name not in self._given_decoding and saved.get(name) is not None:
                 self.hparams[name] = saved[name]
         labels = checkpoint.get("state_dict", {}).get("labels")

@@ -36,7 +36,7 @@ from threedq.boxes import aabb_iou_3d, nms_3d
 from threedq.proposals import ProposalParams, propose_boxes
 from threedq.scene import SceneRecord
 
-__all__ = ["OBSERVED_PARAMS", "observed_boxes", "refine_boxes"]
+__all__ = ["OBSERVED_PARAMS", "add_flat_boxes", "observed_boxes", "refine_boxes"]
 
 #: The pseudo-box parameters of the views a detector sees: the packaged defaults, every view used and a voxel seen
 #: by one view counted (the training pseudo-boxes ask for two views of a voxel; one input view cannot give two).
@@ -121,3 +121,48 @@ def refine_boxes(
         out = torch.where(snapped[:, None], obs[j], boxes)
     keep = nms_3d(out, scores, nms_iou, nms_iomin)
     return out[keep], scores[keep], snapped[keep]
+
+
+def add_flat_boxes(
+    boxes: Tensor, scores: Tensor, observed: Tensor, observed_scores: Tensor, max_height: float, score_scale: float,
+    min_score: float, overlap_iou: float,
+) -> tuple[Tensor, Tensor]:
+    """Detections plus the observed boxes too flat for the detector to learn, ranked by the geometry's confidence.
+
+    A detector trained with ``min_box_height`` ignores the boxes below it (their height is under half a feature voxel:
+    the grid cannot tell them from the floor), so it never finds them. The label-free pseudo-boxes of its own input
+    view can: each observed box less tall than ``max_height`` that overlaps no detection at IoU ``overlap_iou`` or
+    more is added, scored ``score_scale * observed score`` (in ``(0, score_scale]``: below every detection the
+    detector is confident of when ``score_scale`` is its score threshold), when that reaches ``min_score``.
+
+    Args:
+        boxes: ``[N, 6]`` detections; scores: ``[N]``.
+        observed: ``[P, 6]`` observed boxes (:func:`observed_boxes`); observed_scores: ``[P]`` their scores in (0, 1].
+        max_height: metres; an observed box is flat when ``zmax - zmin < max_height``.
+        score_scale: factor on the observed scores; min_score: the least score a flat box needs to be added.
+        overlap_iou: a flat box overlapping a detection at this IoU or more is left out (it is found already).
+
+    Returns:
+        ``boxes [K, 6]`` and ``scores [K]``, sorted by decreasing score (detections and added flat boxes).
+
+    Raises:
+        ValueError: for bad shapes, a negative ``max_height`` or ``score_scale`` outside ``[0, 1]``.
+    """
+    if boxes.ndim != 2 or boxes.shape[-1] != 6 or scores.shape != boxes.shape[:1]:
+        raise ValueError(f"boxes/scores: expected [N, 6] and [N], got {list(boxes.shape)} and {list(scores.shape)}")
+    obs = torch.as_tensor(observed).to(boxes).reshape(-1, 6)
+    obs_s = torch.as_tensor(observed_scores).to(scores).reshape(-1)
+    if obs_s.shape[0] != obs.shape[0]:
+        raise ValueError(f"observed_scores: expected [{obs.shape[0]}], got {list(obs_s.shape)}")
+    if not max_height >= 0 or not 0.0 <= score_scale <= 1.0:
+        raise ValueError(f"max_height >= 0 and score_scale in [0, 1] expected, got {max_height}, {score_scale}")
+    flat = (obs[:, 5] - obs[:, 2]) < max_height
+    flat &= obs_s * score_scale >= min_score
+    if flat.any() and boxes.shape[0]:
+        flat &= aabb_iou_3d(obs, boxes).max(1).values < overlap_iou
+    if not flat.any():
+        return boxes, scores
+    b = torch.cat([boxes, obs[flat]])
+    s = torch.cat([scores, obs_s[flat] * score_scale])
+    order = torch.argsort(s, descending=True, stable=True)
+    return b[order], s[order]
