@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from threedq.box_refinement import OBSERVED_PARAMS, _CACHE, observed_boxes, refine_boxes
+from threedq.box_refinement import OBSERVED_PARAMS, _CACHE, add_flat_boxes, observed_boxes, refine_boxes
 from threedq.boxes import aabb_iou_3d, nms_3d
 from threedq.proposals import propose_boxes
 
@@ -55,10 +55,11 @@ class TestObservedBoxes:
     def test_equals_the_proposals_of_the_same_views(self) -> None:
         scene = render(BOXES, num_views=2)
         got = observed_boxes(scene.depth, scene.K, scene.world_T_cam, BOUNDS)
-        want = propose_boxes(scene, bounds=BOUNDS, view_stride=1, min_views=1)
+        want = propose_boxes(scene, bounds=BOUNDS, view_stride=1, min_views=1, ground_margin=None, min_height=None)
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_array_equal(got[1], want[1])
         assert OBSERVED_PARAMS.min_views == 1 and OBSERVED_PARAMS.view_stride == 1
+        assert OBSERVED_PARAMS.ground_margin is None and OBSERVED_PARAMS.min_height is None  # measured per scene
 
     def test_tensors_and_the_cache(self) -> None:
         scene = render(BOXES, num_views=1)
@@ -124,14 +125,74 @@ class TestRefineBoxes:
             refine_boxes(det, torch.ones(2), det, 0.1, 0.1)
 
 
+def _naive_add_flat(boxes, scores, observed, observed_scores, max_height, scale, min_score, overlap):
+    """A loop over the observed boxes: flat, scored high enough, overlapping no detection at ``overlap``."""
+    out_b, out_s = list(boxes), list(scores)
+    for o, os_ in zip(observed, observed_scores):
+        if o[5] - o[2] >= max_height or os_ * scale < min_score:
+            continue
+        ious = []
+        for b in boxes:
+            lo, hi = np.maximum(b[:3], o[:3]), np.minimum(b[3:], o[3:])
+            inter = np.prod(np.clip(hi - lo, 0, None))
+            ious.append(inter / (np.prod(b[3:] - b[:3]) + np.prod(o[3:] - o[:3]) - inter))
+        if not ious or max(ious) < overlap:
+            out_b.append(o)
+            out_s.append(os_ * scale)
+    order = np.argsort(-np.asarray(out_s), kind="stable")
+    return np.asarray(out_b).reshape(-1, 6)[order], np.asarray(out_s)[order]
+
+
+class TestAddFlatBoxes:
+    def test_hand_case(self) -> None:
+        det = torch.tensor([[0.0, 0.0, 0.0, 1.0, 1.0, 0.5]])
+        obs = torch.tensor([[0.0, 0.0, 0.0, 1.0, 1.0, 0.03],    # flat but under the detection (IoU 0.06 >= 0.05)
+                            [2.0, 2.0, 0.0, 2.5, 2.2, 0.03],    # flat, alone: added at 0.9 * 0.5
+                            [3.0, 3.0, 0.0, 3.5, 3.5, 0.3],     # tall: the detector's business
+                            [4.0, 4.0, 0.0, 4.2, 4.2, 0.02]])   # flat, alone, scored too low: 0.9 * 0.04 < 0.05
+        boxes, s = add_flat_boxes(det, torch.tensor([0.95]), obs, torch.tensor([1.0, 0.5, 1.0, 0.04]), 0.04, 0.9,
+                                  0.05, 0.05)  # fmt: skip
+        torch.testing.assert_close(boxes, torch.stack([det[0], obs[1]]))
+        torch.testing.assert_close(s, torch.tensor([0.95, 0.45]))
+        # no detections: every flat box scored high enough; none observed: the detections as they are
+        boxes, s = add_flat_boxes(torch.zeros(0, 6), torch.zeros(0), obs, torch.tensor([1.0, 0.5, 1.0, 0.04]), 0.04,
+                                  0.9, 0.05, 0.05)  # fmt: skip
+        torch.testing.assert_close(boxes, obs[:2])
+        boxes, s = add_flat_boxes(det, torch.tensor([0.95]), torch.zeros(0, 6), torch.zeros(0), 0.04, 0.9, 0.05, 0.05)
+        assert torch.equal(boxes, det) and s.tolist() == [pytest.approx(0.95)]
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_against_a_naive_loop(self, seed: int) -> None:
+        g = np.random.default_rng(seed)
+        lo = g.uniform(-1, 1, (6, 3))
+        boxes = np.concatenate([lo, lo + g.uniform(0.1, 0.6, (6, 3))], 1)
+        olo = g.uniform(-1, 1, (10, 3))
+        observed = np.concatenate([olo, olo + g.uniform(0.02, 0.3, (10, 3))], 1)
+        scores, obs_scores = g.uniform(0.5, 1.0, 6), g.uniform(0.0, 1.0, 10)
+        want = _naive_add_flat(boxes, scores, observed, obs_scores, 0.15, 0.9, 0.2, 0.1)
+        got = add_flat_boxes(*(torch.from_numpy(a) for a in (boxes, scores, observed, obs_scores)), 0.15, 0.9, 0.2, 0.1)
+        np.testing.assert_allclose(got[0].numpy(), want[0])
+        np.testing.assert_allclose(got[1].numpy(), want[1])
+
+    def test_exceptions(self) -> None:
+        det = torch.zeros(1, 6)
+        with pytest.raises(ValueError, match="boxes/scores"):
+            add_flat_boxes(det, torch.ones(2), det, torch.ones(1), 0.04, 0.9, 0.05, 0.1)
+        with pytest.raises(ValueError, match="observed_scores"):
+            add_flat_boxes(det, torch.ones(1), det, torch.ones(3), 0.04, 0.9, 0.05, 0.1)
+        with pytest.raises(ValueError, match="score_scale"):
+            add_flat_boxes(det, torch.ones(1), det, torch.ones(1), 0.04, 1.5, 0.05, 0.1)
+
+
 class TestDetectorRefinement:
     """The detector's decoding: with its input views, a loose detection is moved onto the observed box."""
 
-    def _stage(self, refine_iou: float):
+    def _stage(self, refine_iou: float, flat_boxes: bool = True):
         from threedq.stages.detector import Detector
 
         return Detector(grid_min=(-1.0, -1.0, -0.5), grid_max=(1.0, 1.0, 1.0), grid_resolution=(16, 16, 12),
-                        feature_dim=8, anchor_size=(0.4, 0.4, 0.3), score_threshold=0.5, refine_iou=refine_iou)  # fmt: skip
+                        feature_dim=8, anchor_size=(0.4, 0.4, 0.3), score_threshold=0.5, refine_iou=refine_iou,
+                        flat_boxes=flat_boxes)  # fmt: skip
 
     def _logits_for(self, stage, target: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """Objectness and regression that decode to one box ``target`` (plus nothing else above 0.5)."""
@@ -173,3 +234,22 @@ class TestDetectorRefinement:
         boxes, s, _ = refine_boxes(det, torch.tensor([0.6, 0.8]), obs, 0.5, 0.5)
         keep = nms_3d(obs.repeat(2, 1), torch.tensor([0.6, 0.8]), 0.5)
         assert boxes.shape[0] == keep.numel() == 1 and float(s[0]) == pytest.approx(0.8)
+
+    def test_flat_objects_come_from_the_view_below_the_hand_on_threshold(self) -> None:
+        # a 5 cm tall box (under min_box_height: half the 12.5 cm voxel) beside a tall one the detector finds
+        flat = np.array([0.1, -0.7, 0.0, 0.6, -0.3, 0.05])
+        scene = render(np.stack([BOXES[0], flat]), num_views=1)
+        views = tuple(torch.from_numpy(a)[None] for a in (scene.depth, scene.K, scene.world_T_cam))
+        obs, obs_s = observed_boxes(scene.depth, scene.K, scene.world_T_cam, BOUNDS)
+        j = int(aabb_iou_3d(torch.from_numpy(flat[None]), torch.from_numpy(obs).double()).argmax())
+        assert obs[j, 5] - obs[j, 2] < 0.0625 and float(aabb_iou_3d(torch.from_numpy(flat[None]), torch.from_numpy(obs[j:j + 1]).double())) > 0.5
+        on = self._stage(0.1)
+        logits, box = self._logits_for(on, BOXES[0])
+        handed_on = on.detect(logits, box, views=views)[0]  # at the stage's score threshold (0.5): the tall one only
+        assert handed_on["boxes"].shape == (1, 6)
+        ranked = on.detect(logits, box, 0.01, views=views)[0]
+        assert ranked["boxes"].shape == (2, 6)
+        torch.testing.assert_close(ranked["boxes"][1], torch.from_numpy(obs[j]))
+        assert float(ranked["scores"][1]) == pytest.approx(0.5 * float(obs_s[j]))
+        off = self._stage(0.1, flat_boxes=False).detect(logits, box, 0.01, views=views)[0]
+        assert off["boxes"].shape == (1, 6)

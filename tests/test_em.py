@@ -71,7 +71,8 @@ class TestEm:
         assert [t["boxes"] for t in det["by_size"]][:2] == ["pseudo-boxes (all views)", "pseudo-boxes (input view)"]
         for rows in (t["rows"] for t in det["by_size"]):
             assert rows[-1]["band"] == "all" and rows[-1]["objects"] == det["detector"]["num_gt"]
-            assert sum(r["objects"] for r in rows[:-1]) == rows[-1]["objects"]
+            assert sum(r["objects"] for r in rows[:-2]) == rows[-1]["objects"]  # the size bands; then "flat", "all"
+            assert rows[-2]["band"].startswith("flat: < ") and rows[-2]["objects"] <= rows[-1]["objects"]
         assert (work / "03_detector_eval" / "detection_by_size.png").is_file() and "Objects found per size" in report
         assert "3D detection" in report
         run = work / "00_viewpred"

@@ -85,6 +85,17 @@ class TestBySizeBand:
         assert big["median_abs_log_size_ratio"][2] == pytest.approx(math.log(0.7 / 0.3))
         assert everything["objects"] == 3 and everything["found_25"] == pytest.approx(2 / 3)
 
+    def test_flat_row(self) -> None:
+        # a 0.5 m wide, 3 cm tall object (found) and a 0.3 m cube (missed): the flat row holds the first only
+        gt = torch.tensor([[0.0, 0, 0, 0.5, 0.2, 0.03], [1, 1, 0, 1.3, 1.3, 0.3]])
+        pred = torch.tensor([[0.0, 0, 0, 0.5, 0.2, 0.03]])
+        rows = by_size_band([localisation_errors(pred, torch.ones(1), gt)], flat_height=0.04)
+        assert [r["band"] for r in rows][-2:] == ["flat: < 0.040 m tall", "all"]
+        flat = rows[-2]
+        assert (flat["objects"], flat["found_25"], flat["found_50"]) == (1, 1.0, 1.0)
+        assert rows[-1]["objects"] == 2 and rows[-1]["found_50"] == 0.5
+        assert by_size_band([], flat_height=0.04)[-2]["objects"] == 0
+
     def test_pools_scenes_and_empty(self) -> None:
         one = localisation_errors(torch.tensor([[0.0, 0, 0, 1, 1, 1]]), torch.tensor([1.0]),
                                   torch.tensor([[0.0, 0, 0, 1, 1, 1]]))

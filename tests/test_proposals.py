@@ -66,6 +66,49 @@ def test_tilted_offset_ground_plane() -> None:
     assert np.degrees(np.arccos(np.clip(n @ normal, -1, 1))) < 0.5 and abs(-d - offset) < 5e-3
 
 
+class TestGroundMargin:
+    """The ground margin measured from the ground's own spread (``ground_margin=None``, the observed boxes')."""
+
+    FLAT = np.array([[-0.2, -0.8, 0.0, 0.3, -0.5, 0.014]])  # 50 x 30 cm, 1.4 cm tall: under the old fixed 1.5 cm
+
+    def test_exact_depth_keeps_a_flat_object(self) -> None:
+        rec = render(np.concatenate([BOXES, self.FLAT]))
+        aabb, _ = propose_boxes(rec, bounds=BOUNDS, ground_margin=None, min_height=None)
+        assert aabb.shape == (3, 6)
+        j = int(np.argmin(np.abs(aabb - self.FLAT[0]).sum(1)))
+        assert np.abs(aabb[j] - self.FLAT[0]).max() <= VOXEL and aabb[j, 5] == pytest.approx(0.014, abs=1e-3)
+        fixed = propose_boxes(rec, bounds=BOUNDS)[0]  # the fixed 1.5 cm (the training pseudo-boxes')
+        assert fixed.shape == (2, 6)
+
+    def test_noisy_depth_keeps_its_floor_as_ground(self) -> None:
+        rec = render(BOXES)
+        g = np.random.default_rng(0)
+        noisy = rec.depth * (1 + g.normal(0, 0.002, rec.depth.shape)).astype(np.float32)  # ~4 mm at 2 m
+        rec = type(rec)(**{**rec.__dict__, "depth": np.where(rec.depth > 0, noisy, 0).astype(np.float32)})
+        fixed = propose_boxes(rec, bounds=BOUNDS, ground_margin=0.005, min_height=0.01)[0]
+        measured = propose_boxes(rec, bounds=BOUNDS, ground_margin=None, min_height=None)[0]
+        assert measured.shape == (2, 6)  # the two boxes, no floor speckle
+        _match(measured.astype(np.float64), BOXES, tol=2 * VOXEL)
+        assert fixed.shape[0] > 2  # the same floor under a fixed 5 mm margin: speckle proposed as objects
+
+    def test_ground_spread_against_numpy(self) -> None:
+        from threedq.geometry.ground import ground_spread
+
+        g = np.random.default_rng(1)
+        h = np.concatenate([g.normal(0, 0.003, 20000), g.uniform(0.05, 0.3, 5000)])  # ground + objects
+        assert ground_spread(h, 0.01) == pytest.approx(0.003, rel=0.1)  # truncation at 3.3 sigma moves it little
+        inl = h[np.abs(h) <= 0.01]
+        assert ground_spread(h, 0.01) == pytest.approx(1.4826 * np.median(np.abs(inl - np.median(inl))))
+        assert ground_spread(np.zeros(10), 0.01) == 0.0 and ground_spread(np.array([1.0]), 0.01) == 0.0
+
+    def test_explicit_values_and_bad_ones(self) -> None:
+        assert ProposalParams(ground_margin=0.01, min_height=0.02).ground_margin == 0.01
+        with pytest.raises(ValueError, match="min_ground_margin"):
+            ProposalParams(min_ground_margin=-1.0)
+        with pytest.raises(ValueError, match="ground_margin"):
+            ProposalParams(ground_margin=float("nan"))
+
+
 def test_empty_scene_and_no_depth_give_no_proposals() -> None:
     rec = render(np.zeros((0, 6)), num_views=4)
     aabb, scores = propose_boxes(rec, bounds=BOUNDS)

@@ -54,3 +54,15 @@ def test_size_band_lines_hand_case() -> None:
     assert lines[4] == "| detector | 0.75 / 0.50; 0.012 / -0.002 | - |"
     assert lines[-2] == "Picture: `runs/em/03_detector_eval/detection_by_size.png`."
     assert size_band_lines({}, "runs/em") == []
+
+
+def test_size_band_lines_say_which_objects_the_grid_cannot_resolve() -> None:
+    row = {"band": "all", "objects": 4, "found_25": 0.75, "found_50": 0.5,
+           "median_centre_error_xy": 0.0123, "median_centre_error_z": -0.002}
+    det = {"by_size": [{"boxes": "detector", "rows": [row]}],
+           "flat_objects": {"min_box_height": 0.04, "objects": 1, "of": 4, "flat_boxes": True}}
+    last = size_band_lines(det, "runs/em")[-2]
+    assert last.startswith("1 of 4 test objects (25%) are less tall than 0.040 m, the detector's `min_box_height`")
+    assert "`flat_boxes` adds the input view's observed boxes" in last
+    det["flat_objects"]["flat_boxes"] = False
+    assert "`flat_boxes` is off: they are not detected" in size_band_lines(det, "runs/em")[-2]

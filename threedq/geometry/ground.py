@@ -16,7 +16,7 @@ from torch import Tensor
 
 from .camera import depth_to_points
 
-__all__ = ["above_ground_mask", "fit_ground_plane"]
+__all__ = ["above_ground_mask", "fit_ground_plane", "ground_spread"]
 
 
 def fit_ground_plane(
@@ -92,6 +92,26 @@ def fit_ground_plane(
         if np.count_nonzero(side < 0) > np.count_nonzero(side > 0):
             nb, db = -nb, -db
     return nb, db, int(counts[best])
+
+
+def ground_spread(heights: np.ndarray, threshold: float) -> float:
+    """Robust standard deviation of the ground points' heights about a fitted plane (the depth maps' noise there).
+
+    Args:
+        heights: ``[N]`` signed heights of points above the plane (``n . p + d``), metres.
+        threshold: the points within this of the plane are the ground (the RANSAC inlier distance).
+
+    Returns:
+        ``1.4826 * median(|h - median(h)|)`` over the ground points (the normal distribution's sigma from the
+        median absolute deviation; objects on the plane do not move it); 0.0 when there are none.
+
+    Convention: metres, heights along the plane's upward normal.
+    """
+    h = np.asarray(heights, dtype=np.float64).reshape(-1)
+    h = h[np.abs(h) <= threshold]
+    if h.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(h - np.median(h))))
 
 
 @torch.no_grad()

@@ -83,8 +83,11 @@ def localisation_errors(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tenso
 
 
 def by_size_band(per_scene: Sequence[dict[str, np.ndarray]], iou_thresholds: Sequence[float] = (0.25, 0.5),
-                 bands: Sequence[float] = SIZE_BANDS) -> list[dict[str, Any]]:
+                 bands: Sequence[float] = SIZE_BANDS, flat_height: float | None = None) -> list[dict[str, Any]]:
     """Pool :func:`localisation_errors` of many scenes into one row per size band (and a last row, all objects).
+
+    ``flat_height``: also a row, before the last, of the objects less tall than this (band ``"flat: < H m tall"``,
+    whatever their largest extent: a detector's ``min_box_height``, under which it is not trained).
 
     Returns:
         rows ``{"band": "0.10-0.20 m" | "all", "objects", "found_25", "found_50", ... (share of the band's objects
@@ -100,6 +103,9 @@ def by_size_band(per_scene: Sequence[dict[str, np.ndarray]], iou_thresholds: Seq
     masks = [(f"{lo:.2f}-{hi:.2f} m" if math.isfinite(hi) else f">= {lo:.2f} m", (largest >= lo) & (largest < hi))
              for lo, hi in itertools.pairwise(bands)]
     rows = []
+    if flat_height is not None:
+        height = cat["extent"][:, 2] if len(cat["extent"]) else np.zeros(0)
+        masks.append((f"flat: < {flat_height:.3f} m tall", height < flat_height))
     for name, m in [*masks, ("all", np.ones(len(largest), bool))]:
         n = int(m.sum())
         hit = m & (cat["best_iou"] > 0)

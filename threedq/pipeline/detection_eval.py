@@ -147,14 +147,16 @@ def single_view_pseudo_boxes(data_dir: str | Path, views: dict[str, list[int]], 
     return out
 
 
-def size_band_table(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[dict[str, Any]]:
-    """:func:`~threedq.metrics.localisation.by_size_band` of per-scene boxes against the GT hulls (:func:`gt_hulls`)."""
+def size_band_table(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]],
+                    flat_height: float | None = None) -> list[dict[str, Any]]:
+    """:func:`~threedq.metrics.localisation.by_size_band` of per-scene boxes against the GT hulls (:func:`gt_hulls`);
+    ``flat_height``: also the row of the objects less tall than this."""
     per_scene = []
     for f, (aabb, scores) in box_sets.items():
         per_scene.append(localisation_errors(torch.as_tensor(aabb, dtype=torch.float64).reshape(-1, 6),
                                              torch.as_tensor(scores, dtype=torch.float64).reshape(-1),
                                              torch.from_numpy(gt[f])))
-    return by_size_band(per_scene)
+    return by_size_band(per_scene, flat_height=flat_height)
 
 
 
@@ -208,10 +210,15 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
             fg = stage.feature_grid  # the bounds the detector's refinement uses, so both are the same boxes
             single = single_view_pseudo_boxes(dm.data_dir, views, (fg.bounds_min, fg.bounds_max), progress=progress)
             result["pseudo_boxes_single_view"] = box_sets_map(gt, single, progress=progress)
-            tables = {"pseudo-boxes (all views)": size_band_table(gt, pseudo),
-                      "pseudo-boxes (input view)": size_band_table(gt, single),
-                      f"detector (score >= {stage.hparams.score_threshold:g})": size_band_table(gt, dets)}
+            # objects under the detector's min_box_height: it is not trained on them (the grid cannot resolve them)
+            flat = float(stage.min_box_height) if stage.min_box_height > 0 else None
+            tables = {"pseudo-boxes (all views)": size_band_table(gt, pseudo, flat),
+                      "pseudo-boxes (input view)": size_band_table(gt, single, flat),
+                      f"detector (score >= {stage.hparams.score_threshold:g})": size_band_table(gt, dets, flat)}
             result["by_size"] = [{"boxes": name, "rows": rows} for name, rows in tables.items()]  # a list: ordered
+            heights = np.concatenate([g[:, 5] - g[:, 2] for g in gt.values()]) if gt else np.zeros(0)
+            result["flat_objects"] = {"min_box_height": stage.min_box_height, "objects": int((heights < stage.min_box_height).sum()),
+                                      "of": int(len(heights)), "flat_boxes": bool(stage.hparams.flat_boxes)}  # fmt: skip
             write_png(out / "detection_by_size.png", size_band_figure(tables))
             batch, d = first[0]
             write_png(out / "detections.png", detection_figure(batch, d, max_scenes=4))

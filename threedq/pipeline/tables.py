@@ -244,6 +244,15 @@ def size_band_lines(det: dict[str, Any], work_dir: str) -> list[str]:
                  for r in tables[name]]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", f"Picture: `{work_dir}/03_detector_eval/detection_by_size.png`.", ""]
+    flat = det.get("flat_objects")
+    if flat and flat["of"]:
+        how = ("`flat_boxes` adds the input view's observed boxes of such objects to the ranked boxes of the mAP, below "
+               "the boxes handed on" if flat["flat_boxes"] else "`flat_boxes` is off: they are not detected")
+        lines += [f"{flat['objects']} of {flat['of']} test objects ({flat['objects'] / flat['of']:.0%}) are less tall "
+                  f"than {flat['min_box_height']:.3f} m, the detector's `min_box_height` (half a voxel of the feature "
+                  "grid, which cannot tell them from the floor): the detector is not trained on them and does not "
+                  f"hand them on (row \"flat\" above); {how}. A finer `grid_resolution` (view prediction retrained) "
+                  "is what would let it learn them.", ""]
     return lines
 
 
