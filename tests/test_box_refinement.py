@@ -17,15 +17,25 @@ BOUNDS = ((-1.0, -1.0, -0.5), (1.0, 1.0, 1.0))
 BOXES = np.array([[-0.55, -0.35, 0.0, -0.15, 0.05, 0.3], [0.2, 0.1, 0.0, 0.5, 0.6, 0.2]])  # aabb, on z = 0
 
 
+def _iou(b: np.ndarray, o: np.ndarray) -> float:
+    """IoU of two axis-aligned boxes, written out."""
+    lo, hi = np.maximum(b[:3], o[:3]), np.minimum(b[3:], o[3:])
+    inter = np.prod(np.clip(hi - lo, 0, None))
+    return float(inter / (np.prod(b[3:] - b[:3]) + np.prod(o[3:] - o[:3]) - inter))
+
+
+def _random_boxes(g: np.random.Generator, n: int, smallest: float, largest: float) -> np.ndarray:
+    lo = g.uniform(-1, 1, (n, 3))
+    return np.concatenate([lo, lo + g.uniform(smallest, largest, (n, 3))], 1)
+
+
 def _naive_refine(boxes: np.ndarray, scores: np.ndarray, observed: np.ndarray, min_iou: float, nms_iou: float):
     """Per detection, a loop over the observed boxes for the best IoU (first of equal ones), then greedy NMS."""
     out = boxes.copy()
     for i, b in enumerate(boxes):
         best, arg = -1.0, -1
         for j, o in enumerate(observed):
-            lo, hi = np.maximum(b[:3], o[:3]), np.minimum(b[3:], o[3:])
-            inter = np.prod(np.clip(hi - lo, 0, None))
-            iou = inter / (np.prod(b[3:] - b[:3]) + np.prod(o[3:] - o[:3]) - inter)
+            iou = _iou(b, o)
             if iou > best:
                 best, arg = iou, j
         if arg >= 0 and best >= min_iou:
@@ -34,10 +44,7 @@ def _naive_refine(boxes: np.ndarray, scores: np.ndarray, observed: np.ndarray, m
     for i in np.argsort(-scores, kind="stable"):
         ok = True
         for k in kept:
-            lo, hi = np.maximum(out[i, :3], out[k, :3]), np.minimum(out[i, 3:], out[k, 3:])
-            inter = np.prod(np.clip(hi - lo, 0, None))
-            iou = inter / (np.prod(out[i, 3:] - out[i, :3]) + np.prod(out[k, 3:] - out[k, :3]) - inter)
-            ok &= iou <= nms_iou
+            ok &= _iou(out[i], out[k]) <= nms_iou
         if ok:
             kept.append(int(i))
     return out[kept], scores[kept]
@@ -107,10 +114,7 @@ class TestRefineBoxes:
     @pytest.mark.parametrize("seed", [0, 1, 2])
     def test_against_a_naive_loop(self, seed: int) -> None:
         g = np.random.default_rng(seed)
-        lo = g.uniform(-1, 1, (12, 3))
-        boxes = np.concatenate([lo, lo + g.uniform(0.1, 0.6, (12, 3))], 1)
-        olo = g.uniform(-1, 1, (5, 3))
-        observed = np.concatenate([olo, olo + g.uniform(0.1, 0.6, (5, 3))], 1)
+        boxes, observed = _random_boxes(g, 12, 0.1, 0.6), _random_boxes(g, 5, 0.1, 0.6)
         scores = g.permutation(12) / 12.0
         want = _naive_refine(boxes, scores, observed, 0.1, 0.2)
         got = refine_boxes(torch.from_numpy(boxes), torch.from_numpy(scores), torch.from_numpy(observed), 0.1, 0.2)
@@ -131,11 +135,7 @@ def _naive_add_flat(boxes, scores, observed, observed_scores, max_height, scale,
     for o, os_ in zip(observed, observed_scores):
         if o[5] - o[2] >= max_height or os_ * scale < min_score:
             continue
-        ious = []
-        for b in boxes:
-            lo, hi = np.maximum(b[:3], o[:3]), np.minimum(b[3:], o[3:])
-            inter = np.prod(np.clip(hi - lo, 0, None))
-            ious.append(inter / (np.prod(b[3:] - b[:3]) + np.prod(o[3:] - o[:3]) - inter))
+        ious = [_iou(b, o) for b in boxes]
         if not ious or max(ious) < overlap:
             out_b.append(o)
             out_s.append(os_ * scale)
@@ -164,10 +164,7 @@ class TestAddFlatBoxes:
     @pytest.mark.parametrize("seed", [0, 1, 2])
     def test_against_a_naive_loop(self, seed: int) -> None:
         g = np.random.default_rng(seed)
-        lo = g.uniform(-1, 1, (6, 3))
-        boxes = np.concatenate([lo, lo + g.uniform(0.1, 0.6, (6, 3))], 1)
-        olo = g.uniform(-1, 1, (10, 3))
-        observed = np.concatenate([olo, olo + g.uniform(0.02, 0.3, (10, 3))], 1)
+        boxes, observed = _random_boxes(g, 6, 0.1, 0.6), _random_boxes(g, 10, 0.02, 0.3)
         scores, obs_scores = g.uniform(0.5, 1.0, 6), g.uniform(0.0, 1.0, 10)
         want = _naive_add_flat(boxes, scores, observed, obs_scores, 0.15, 0.9, 0.2, 0.1)
         got = add_flat_boxes(*(torch.from_numpy(a) for a in (boxes, scores, observed, obs_scores)), 0.15, 0.9, 0.2, 0.1)
