@@ -81,8 +81,9 @@ def main() -> None:
             r, v = records[f], views[f]
             boxes[f] = observed_boxes(r.depth[v], r.K[v], r.world_T_cam[v], index.scene_bounds, params=p)
         m = box_sets_map(gt, boxes, progress=False)
-        print(f"| {spec} | {m['map_25']:.3f} | {m['map_50']:.3f} | {_found(flat, boxes, 0.25):.2f} / "
-              f"{_found(flat, boxes, 0.5):.2f} |", flush=True)
+        found = [_found(flat, boxes, t) for t in (0.25, 0.5)]
+        cell = " / ".join("-" if np.isnan(x) else f"{x:.2f}" for x in found)  # "-": no flat object
+        print(f"| {spec} | {m['map_25']:.3f} | {m['map_50']:.3f} | {cell} |", flush=True)
 
 
 if __name__ == "__main__":
