@@ -104,7 +104,7 @@ class TestSelfLabellingInheritsTheDetector:
     def _detector_ckpt(self, tmp_path: Path) -> Path:
         det = Detector(anchor_size=(0.4, 0.3, 0.2), channels=16, num_blocks=2, score_threshold=0.7,
                        eval_score_threshold=0.1, nms_iou=0.2, nms_iomin=0.5, max_detections=5, refine_iou=0.3,
-                       **SMALL)
+                       flat_boxes=False, **SMALL)
         path = tmp_path / "det.ckpt"
         torch.save({"state_dict": det.state_dict(), "hyper_parameters": dict(det.hparams)}, path)
         return path
@@ -114,7 +114,7 @@ class TestSelfLabellingInheritsTheDetector:
         sl = SelfLabelling(detector_ckpt=str(ckpt), **SMALL)
         want = {"anchor_size": [0.4, 0.3, 0.2], "channels": 16, "num_blocks": 2, "score_threshold": 0.7,
                 "eval_score_threshold": 0.1, "nms_iou": 0.2, "nms_iomin": 0.5, "max_detections": 5,
-                "refine_iou": 0.3}
+                "refine_iou": 0.3, "flat_boxes": False}
         assert set(want) == set(INHERITED_FROM_DETECTOR)
         for k, v in want.items():
             got = sl.hparams[k]
