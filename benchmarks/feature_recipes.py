@@ -21,6 +21,9 @@ its rows; ``--table_only`` prints the table of an existing file). The table give
 mean and the range over the seeds. ``--jobs N`` trains N (recipe, seed) pairs at once in subprocesses (on a GPU;
 on a 2-core CPU keep 1: two trainings halve each other's speed and spoil ``s/step``). Run it from a folder holding
 the embedded data (``data/clevr_veggie``, made by ``threedq em`` or ``threedq fit``) or pass ``--data_dir``.
+A ``{seed}`` in a recipe's overrides becomes the run's seed. The mining stage (issue #30's fine-tuning levers)
+is a recipe too: ``--variant "mined=--config stages/mining.yaml --model.init_args.encoder_ckpt=VP.ckpt
+--model.init_args.seed={seed}"`` fine-tunes a given view-prediction encoder per seed (its steps count from 0).
 ``--score NAME=CKPT`` scores existing checkpoints the same way instead of training (e.g. the main job's encoders on
 another dataset: ``--data_dir data/shifted --score rgbocc=runs/em/00_viewpred/checkpoints/last.ckpt``).
 
@@ -115,6 +118,7 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
     config, quiet = configs / "stages" / "viewpred.yaml", ["--model.init_args.image_every_n_steps=0"]
     if overrides[:1] == ["--config"]:  # another stage's config (e.g. stages/supervised.yaml, the label ceiling)
         config, quiet, overrides = configs / overrides[1], [], overrides[2:]
+    overrides = [o.replace("{seed}", str(seed)) for o in overrides]  # e.g. the mining stage's pool seed
     steps = sorted(set(eval_steps))
     extra = [f"--data.init_args.data_dir={data_dir}"] if data_dir else []
     cli = ThreeDQCLI(

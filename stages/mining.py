@@ -20,6 +20,13 @@ One stage, three sources of positive pairs (``source``), all trained with InfoNC
   their query scenes with the encoder being trained (the loader's batch is not used) and takes InfoNCE of
   the query corners against their keys, with the queue as negatives. The queue is primed at the first refresh
   with random voxels of the pool, so the first steps do not contrast against random vectors.
+  With ``view_positives > 0`` (issue #30's object-level multi-view positive, not in the paper) every kept pair
+  also carries ``view_positives`` random voxels of its query object's pool crop, whose features (the refresh's
+  keys) come from the scene's fixed input views; the training step re-encodes that scene from other, random
+  views (the training loader's draw), and each of those voxels (the same world point: the poses are known) is a
+  positive of its pool key, in the same queue, weighted by ``view_weight``: the same object seen from elsewhere
+  must keep its features. The keys cost nothing (the pool is cut anyway) and the step gathers them from the crop
+  it already computed. It is ``vc_moco``'s positive, restricted to the mined objects and added to their pairs.
 
 Mining diagnostics (GT categories and yaws are used for measuring only): each refresh logs the number of
 pairs, the fraction whose two objects share a category, and the median error of the implied relative yaw on
@@ -55,7 +62,7 @@ from threedq.stages.base import EncoderStage, SplitEvaluation
 from threedq.viz.features import mined_pairs_figure
 from threedq.viz.png import write_png
 
-__all__ = ["Mining", "corner_offsets", "corner_keys", "implied_yaw_error_deg"]
+__all__ = ["Mining", "corner_offsets", "corner_keys", "crop_voxels", "implied_yaw_error_deg"]
 
 SOURCES = ("vc", "vc_moco", "mined")
 
@@ -98,6 +105,13 @@ def corner_keys(
     tf = F.normalize(target_aligned[:, cand[..., 0], cand[..., 1], cand[..., 2]].permute(1, 2, 0), dim=2)  # [P, G, C]
     best = torch.einsum("pc,pgc->pg", qf, tf).argmax(dim=1)
     return qv, tf[torch.arange(tf.shape[0]), best]
+
+
+def crop_voxels(crops: Tensor, idx: Tensor) -> Tensor:
+    """The L2-normalised features ``[N, V, C]`` of crops ``[N, C, s, s, s]`` at flat cell indices ``idx`` ``[N, V]``
+    (row-major over ``(z, y, x)``, i.e. ``z * s * s + y * s + x``)."""
+    flat = crops.flatten(2)  # [N, C, s^3]
+    return F.normalize(flat.gather(2, idx[:, None].expand(-1, flat.shape[1], -1)).transpose(1, 2), dim=2)
 
 
 def implied_yaw_error_deg(yaw_index: Tensor, num_angles: int, query_yaw: Tensor, target_yaw: Tensor,
@@ -160,6 +174,10 @@ class Mining(SplitEvaluation, EncoderStage):
             category 0.43 -> 0.69, ``configs/stages/mining.yaml``).
         refresh_every: steps between pool refreshes (the first is at step 0; lineage: 200).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
+        view_positives: ``mined``: per kept pair, voxels of its query object whose feature from the step's random
+            input views is contrasted with the same voxel of the pool crop (the scene's fixed views) (0: off, the
+            paper's mined source alone).
+        view_weight: ``mined``: weight of that multi-view term in the loss.
         pool_batch_size: scenes encoded at once while cutting the pool.
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
@@ -196,6 +214,8 @@ class Mining(SplitEvaluation, EncoderStage):
         rank_by: Literal["score", "retrieval"] = "retrieval",
         refresh_every: int = 100,
         pairs_per_step: int = 4,
+        view_positives: int = 0,
+        view_weight: float = 1.0,
         pool_batch_size: int = 4,
         seed: int = 0,
         retrieval_k: int = 10,
@@ -212,6 +232,13 @@ class Mining(SplitEvaluation, EncoderStage):
                         ("top_k", top_k), ("crop_size", crop_size)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        if isinstance(view_positives, bool) or not isinstance(view_positives, int) or view_positives < 0:
+            raise ValueError(f"view_positives: expected an int >= 0, got {view_positives!r}")
+        if view_positives and source != "mined":
+            raise ValueError(f"view_positives: the multi-view positive is a term of the mined source; source "
+                             f"{source!r} has its own view pairs (voxels_per_object)")
+        if isinstance(view_weight, bool) or not isinstance(view_weight, (int, float)) or not view_weight > 0:
+            raise ValueError(f"view_weight: expected a number > 0, got {view_weight!r}")
         if query_pool > target_pool:
             raise ValueError(f"query_pool: the queries are the first query_pool of the target_pool crops, so "
                              f"query_pool ({query_pool}) must be <= target_pool ({target_pool})")
@@ -384,6 +411,11 @@ class Mining(SplitEvaluation, EncoderStage):
             "query_voxels": torch.stack(q_vox) if P else offsets.new_zeros(0, 8, 3),
             "keys": torch.stack(keys) if P else feats.new_zeros(0, 8, C),
         }
+        if hp.view_positives:
+            s3 = feats[0, 0].numel() if n_t else 1
+            idx = torch.randint(0, s3, (P, min(hp.view_positives, s3)), generator=g).to(feats.device)
+            self._pairs["view_voxels"] = idx
+            self._pairs["view_keys"] = crop_voxels(feats[qi], idx) if P else feats.new_zeros(0, idx.shape[1], C)
         self._refreshed_at = self.global_step
         self.refreshes += 1
         info = self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0)
@@ -469,8 +501,15 @@ class Mining(SplitEvaluation, EncoderStage):
         with torch.no_grad():
             self.moco._momentum_update_key_encoder()
         loss = self.moco.loss(q, k)
+        out = {"positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
+        if hp.view_positives:
+            qv_ = crop_voxels(sel, pairs["view_voxels"][pick]).flatten(0, 1)  # [n * V, C], this step's views
+            kv_ = pairs["view_keys"][pick].flatten(0, 1).to(qv_.dtype)  # the pool's fixed views
+            loss = loss + hp.view_weight * self.moco.loss(qv_, kv_)
+            out.update(view_positives=qv_.shape[0], view_pos_cos=(qv_ * kv_).sum(1).mean())
+            k = torch.cat([k, kv_.to(k.dtype)])
         self._enqueue(k)
-        return {"loss": loss, "positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
+        return {"loss": loss, **out}
 
     # ------------------------------------------------------------------ Lightning hooks
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor | None:
@@ -479,6 +518,9 @@ class Mining(SplitEvaluation, EncoderStage):
             return None  # no objects / no verified pairs: skip the step
         self.log_dict({"train/loss": r["loss"], "train/pos_cos": r["pos_cos"],
                        "train/positives": float(r["positives"])}, prog_bar=True, batch_size=1)
+        if "view_pos_cos" in r:
+            self.log_dict({"train/view_pos_cos": r["view_pos_cos"],
+                           "train/view_positives": float(r["view_positives"])}, batch_size=1)
         return r["loss"]
 
     def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:

@@ -11,7 +11,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from conftest import tiny_data_yaml
-from threedq.stages.mining import Mining, corner_keys, corner_offsets, implied_yaw_error_deg
+from threedq.stages.mining import Mining, corner_keys, corner_offsets, crop_voxels, implied_yaw_error_deg
 from threedq.viz.features import mined_pairs_figure
 
 
@@ -90,6 +90,12 @@ class TestMiningStageErrors:
             Mining(crop_size=8, corner_offset=5, **kw)
         with pytest.raises(ValueError, match="min_cosine"):
             Mining(min_cosine=2.0, **kw)
+        with pytest.raises(ValueError, match="view_positives"):
+            Mining(view_positives=-1, **kw)
+        with pytest.raises(ValueError, match="view_positives"):
+            Mining(source="vc_moco", view_positives=4, **kw)
+        with pytest.raises(ValueError, match="view_weight"):
+            Mining(view_positives=4, view_weight=0.0, **kw)
 
     def test_vc_needs_two_view_sets(self) -> None:
         m = Mining(grid_resolution=(32, 32, 16), queue_size=64, source="vc")
@@ -98,7 +104,29 @@ class TestMiningStageErrors:
             m._two_view_sets(batch)
 
 
+class TestCropVoxels:
+    """``crop_voxels``: the features at flat cell indices of each crop (the multi-view positives' keys and queries)."""
+
+    def test_against_a_naive_loop(self) -> None:
+        torch.manual_seed(0)
+        crops = torch.randn(3, 5, 4, 4, 4)
+        idx = torch.randint(0, 64, (3, 7))
+        got = crop_voxels(crops, idx)
+        assert got.shape == (3, 7, 5)
+        for n in range(3):
+            for v in range(7):
+                z, y, x = int(idx[n, v]) // 16, int(idx[n, v]) // 4 % 4, int(idx[n, v]) % 4
+                ref = crops[n, :, z, y, x]
+                assert torch.allclose(got[n, v], ref / ref.norm(), atol=1e-6)
+
+    def test_gradcheck(self) -> None:
+        crops = torch.randn(2, 3, 2, 2, 2, dtype=torch.float64, requires_grad=True)
+        idx = torch.tensor([[0, 7], [3, 3]])
+        assert torch.autograd.gradcheck(lambda c: crop_voxels(c, idx), (crops,))
+
+
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
+    views = source == "mined_views"
     cfg = tmp_path / f"tiny_{source}.yaml"
     cfg.write_text(
         f"""
@@ -122,6 +150,7 @@ model:
     pairs_per_step: 2
     pool_batch_size: 2
     retrieval_k: 1
+    view_positives: {4 if views else 0}
 {tiny_data_yaml(data_dir, batch_size=2)}
 trainer:
   max_steps: 3
@@ -136,7 +165,7 @@ trainer:
     return cfg
 
 
-@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined"])
+@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
 
@@ -147,12 +176,12 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     start = EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict()
     torch.save(start, enc)
     run = tmp_path / source
-    name = "mining" if source == "mined" else source
+    name = "mining" if source.startswith("mined") else source
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),
                            "--config", str(_config(tmp_path, tiny_dataset, enc, source)),
                            f"--trainer.default_root_dir={run}"])
     model = cli.model
-    assert isinstance(model, Mining) and model.hparams.source == source
+    assert isinstance(model, Mining) and model.hparams.source == source.removesuffix("_views")
     assert model.trainer.global_step == 3
     logged = cli.trainer.logged_metrics
     assert "train/loss" in logged and torch.isfinite(logged["train/loss"])
@@ -169,7 +198,11 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         # the key encoder moved towards the query encoder but lags it (momentum 0.999)
         k0 = next(k for k in start if k.endswith("weight"))
         assert not torch.equal(state[f"moco.encoder_k.{k0}"], tuned[k0])
-    if source == "mined":
+    if source == "mined_views":
+        # every step draws 2 pairs: 8 mined positives and 4 multi-view positives each, all enqueued
+        assert float(logged["train/view_positives"]) == 2 * 4 and -1.0 <= float(logged["train/view_pos_cos"]) <= 1.0
+        assert int(state["moco.queue_ptr"]) == 3 * 2 * (8 + 4)
+    if source.startswith("mined"):
         assert bool(state["queue_primed"]) and int(state["refreshes"]) == 2  # steps 0 and 2
         logs = sorted((run / "mining").glob("refresh_*.json"))
         assert [p.name for p in logs] == ["refresh_000000.json", "refresh_000002.json"]
