@@ -20,13 +20,14 @@ One stage, three sources of positive pairs (``source``), all trained with InfoNC
   their query scenes with the encoder being trained (the loader's batch is not used) and takes InfoNCE of
   the query corners against their keys, with the queue as negatives. The queue is primed at the first refresh
   with random voxels of the pool, so the first steps do not contrast against random vectors.
-  With ``view_positives > 0`` (issue #30's object-level multi-view positive, not in the paper) every kept pair
-  also carries ``view_positives`` random voxels of its query object's pool crop, whose features (the refresh's
-  keys) come from the scene's fixed input views; the training step re-encodes that scene from other, random
-  views (the training loader's draw), and each of those voxels (the same world point: the poses are known) is a
-  positive of its pool key, in the same queue, weighted by ``view_weight``: the same object seen from elsewhere
-  must keep its features. The keys cost nothing (the pool is cut anyway) and the step gathers them from the crop
-  it already computed. It is ``vc_moco``'s positive, restricted to the mined objects and added to their pairs.
+  With ``view_positives > 0`` (issue #30's object-level multi-view positive, not in the paper) the step also
+  takes, for every object box of its query scenes, ``view_positives`` random voxels of the object's crop: each
+  voxel's feature from the input views is paired with the same voxel (the same world point: the poses are known)
+  of the crop encoded from a second, disjoint view set of that scene (the data's ``num_target_views`` views after
+  the input ones, drawn at random like them) by the momentum key encoder (``moco.encoder_k``, which the mined
+  source otherwise leaves unused), in the same queue, weighted by ``view_weight``: the same object seen from
+  elsewhere must keep its features. It is ``vc_moco``'s positive, restricted to the mined scenes and added to the
+  mined pairs; the key encoder's pass costs about a third more per step.
 
 Mining diagnostics (GT categories and yaws are used for measuring only): each refresh logs the number of
 pairs, the fraction whose two objects share a category, and the median error of the implied relative yaw on
@@ -109,7 +110,7 @@ def corner_keys(
 
 def crop_voxels(crops: Tensor, idx: Tensor) -> Tensor:
     """The L2-normalised features ``[N, V, C]`` of crops ``[N, C, s, s, s]`` at flat cell indices ``idx`` ``[N, V]``
-    (row-major over ``(z, y, x)``, i.e. ``z * s * s + y * s + x``)."""
+    (row-major over ``(z, y, x)``, i.e. ``z * s * s + y * s + x``): the view-contrastive positives' queries and keys."""
     flat = crops.flatten(2)  # [N, C, s^3]
     return F.normalize(flat.gather(2, idx[:, None].expand(-1, flat.shape[1], -1)).transpose(1, 2), dim=2)
 
@@ -174,9 +175,9 @@ class Mining(SplitEvaluation, EncoderStage):
             category 0.43 -> 0.69, ``configs/stages/mining.yaml``).
         refresh_every: steps between pool refreshes (the first is at step 0; lineage: 200).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
-        view_positives: ``mined``: per kept pair, voxels of its query object whose feature from the step's random
-            input views is contrasted with the same voxel of the pool crop (the scene's fixed views) (0: off, the
-            paper's mined source alone).
+        view_positives: ``mined``: per object box of the step's query scenes, voxels whose input-view feature is
+            contrasted with the same voxel seen from a second view set by the key encoder (0: off, the paper's
+            mined source alone; needs the data's ``num_target_views >= num_input_views``).
         view_weight: ``mined``: weight of that multi-view term in the loss.
         pool_batch_size: scenes encoded at once while cutting the pool.
         seed: seed of the pool draws (offset by the refresh count and the process rank).
@@ -278,9 +279,7 @@ class Mining(SplitEvaluation, EncoderStage):
         """Features ``[P, C]`` at the sampled cells ``idx`` ``[N, V]`` of every valid box's ``crop_size^3`` crop."""
         s = self.hparams.crop_size
         crops = crop_boxes(feats, aabb, self.feature_grid, s)[mask]  # [N, C, s, s, s]
-        flat = crops.flatten(2)  # [N, C, s^3]
-        pts = flat.gather(2, idx[:, None].expand(-1, flat.shape[1], -1))  # [N, C, V]
-        return F.normalize(pts.permute(0, 2, 1).reshape(-1, flat.shape[1]), dim=1)
+        return crop_voxels(crops, idx).flatten(0, 1)
 
     def _vc_step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         a, b = self._two_view_sets(batch)
@@ -411,11 +410,6 @@ class Mining(SplitEvaluation, EncoderStage):
             "query_voxels": torch.stack(q_vox) if P else offsets.new_zeros(0, 8, 3),
             "keys": torch.stack(keys) if P else feats.new_zeros(0, 8, C),
         }
-        if hp.view_positives:
-            s3 = feats[0, 0].numel() if n_t else 1
-            idx = torch.randint(0, s3, (P, min(hp.view_positives, s3)), generator=g).to(feats.device)
-            self._pairs["view_voxels"] = idx
-            self._pairs["view_keys"] = crop_voxels(feats[qi], idx) if P else feats.new_zeros(0, idx.shape[1], C)
         self._refreshed_at = self.global_step
         self.refreshes += 1
         info = self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0)
@@ -489,8 +483,12 @@ class Mining(SplitEvaluation, EncoderStage):
         uniq, inv = scenes.unique(return_inverse=True)
         ds = self._train_dataset()
         batch = self._to_device(default_collate([ds[int(s)] for s in uniq.tolist()]))
-        v = self.input_views(batch)
-        feats = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+        if hp.view_positives:
+            (a, b), v = self._two_view_sets(batch), self.input_views(batch)
+            feats = self.encode_views(*a)
+        else:
+            v = self.input_views(batch)
+            feats = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
         crops = crop_boxes(feats, batch["aabb"], self.feature_grid, hp.crop_size)  # [B, M, C, s, s, s]
         qv = pairs["query_voxels"][pick]  # [n, 8, 3]
         sel = crops[inv, pairs["slot"][pick]]  # [n, C, s, s, s]
@@ -503,13 +501,28 @@ class Mining(SplitEvaluation, EncoderStage):
         loss = self.moco.loss(q, k)
         out = {"positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
         if hp.view_positives:
-            qv_ = crop_voxels(sel, pairs["view_voxels"][pick]).flatten(0, 1)  # [n * V, C], this step's views
-            kv_ = pairs["view_keys"][pick].flatten(0, 1).to(qv_.dtype)  # the pool's fixed views
-            loss = loss + hp.view_weight * self.moco.loss(qv_, kv_)
-            out.update(view_positives=qv_.shape[0], view_pos_cos=(qv_ * kv_).sum(1).mean())
-            k = torch.cat([k, kv_.to(k.dtype)])
+            qv_, kv_ = self._view_positives(feats, b, batch)
+            if qv_.shape[0]:
+                loss = loss + hp.view_weight * self.moco.loss(qv_, kv_)
+                out.update(view_positives=qv_.shape[0], view_pos_cos=(qv_ * kv_).sum(1).mean())
+                k = torch.cat([k, kv_.to(k.dtype)])
         self._enqueue(k)
         return {"loss": loss, **out}
+
+    def _view_positives(self, feats: Tensor, second: tuple[Tensor, ...], batch: dict[str, Tensor]
+                        ) -> tuple[Tensor, Tensor]:
+        """The multi-view positives of one mined step: queries ``[P, C]`` (``feats``, the input views, with
+        gradient) and keys ``[P, C]`` (the same voxels of the same boxes encoded from the ``second`` view set by the
+        momentum encoder, no gradient); ``P = view_positives`` x the valid boxes of the step's scenes."""
+        mask = batch["box_mask"]
+        n_obj, s = int(mask.sum()), self.hparams.crop_size
+        if n_obj == 0:
+            return feats.new_zeros(0, feats.shape[1]), feats.new_zeros(0, feats.shape[1])
+        idx = torch.randint(0, s ** 3, (n_obj, min(self.hparams.view_positives, s ** 3)), device=self.device)
+        q = self._object_points(feats, batch["aabb"], mask, idx)
+        with torch.no_grad():
+            k = self._encode_keys(*second, batch["aabb"], mask, idx)
+        return q, k
 
     # ------------------------------------------------------------------ Lightning hooks
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor | None:

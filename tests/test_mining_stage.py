@@ -125,6 +125,57 @@ class TestCropVoxels:
         assert torch.autograd.gradcheck(lambda c: crop_voxels(c, idx), (crops,))
 
 
+class TestViewPositives:
+    """The mined source's multi-view term: the same voxels of the same boxes from a second view set."""
+
+    def _stage_and_batch(self, data_dir: Path) -> tuple[Mining, dict[str, torch.Tensor]]:
+        from threedq.datamodules.scene_folder import SceneDataset
+        from threedq.scene import load_index
+
+        torch.manual_seed(0)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=8, view_positives=5).eval()
+        ds = SceneDataset(data_dir, load_index(data_dir), "train", num_input_views=1, num_target_views=1,
+                          random_views=False)
+        j = next(i for i in range(len(ds)) if int(ds[i]["box_mask"].sum()) >= 2)
+        return m, {k: v[None] if isinstance(v, torch.Tensor) else v for k, v in ds[j].items()}
+
+    def test_shapes_and_identical_views(self, tiny_dataset: Path) -> None:
+        m, batch = self._stage_and_batch(tiny_dataset)
+        n = int(batch["box_mask"].sum())
+        a, b = m._two_view_sets(batch)
+        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        assert q.shape == k.shape == (n * 5, 32)
+        assert torch.allclose(q.norm(dim=1), torch.ones(n * 5), atol=1e-5) and not k.requires_grad
+        # a round trip: the second "view set" = the input one, and the key encoder still a copy of the query
+        # encoder (no momentum step yet): every key is its query
+        q, k = m._view_positives(m.encode_views(*a), a, batch)
+        assert torch.allclose((q * k).sum(1), torch.ones(n * 5), atol=1e-5)
+        # from the other view the same voxels differ
+        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        assert (q * k).sum(1).min() < 0.999
+
+    def test_gradient_reaches_the_encoder_only_through_the_queries(self, tiny_dataset: Path) -> None:
+        m, batch = self._stage_and_batch(tiny_dataset)
+        m.train()
+        a, b = m._two_view_sets(batch)
+        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        m.moco.loss(q, k).backward()
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in m.encoder.parameters())
+        assert all(p.grad is None for p in m.moco.encoder_k.parameters())
+
+    def test_no_boxes(self, tiny_dataset: Path) -> None:
+        m, batch = self._stage_and_batch(tiny_dataset)
+        batch["box_mask"][:] = False
+        a, b = m._two_view_sets(batch)
+        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        assert q.shape == k.shape == (0, 32)
+
+    def test_needs_a_second_view_set(self) -> None:
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, view_positives=4)
+        with pytest.raises(ValueError, match="two disjoint sets"):
+            m._two_view_sets({"rgb": torch.rand(1, 1, 3, 32, 32), "num_input_views": torch.tensor([1])})
+
+
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
     views = source == "mined_views"
     cfg = tmp_path / f"tiny_{source}.yaml"
@@ -151,7 +202,7 @@ model:
     pool_batch_size: 2
     retrieval_k: 1
     view_positives: {4 if views else 0}
-{tiny_data_yaml(data_dir, batch_size=2)}
+{tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views else {}))}
 trainer:
   max_steps: 3
   precision: 32-true
@@ -199,9 +250,10 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         k0 = next(k for k in start if k.endswith("weight"))
         assert not torch.equal(state[f"moco.encoder_k.{k0}"], tuned[k0])
     if source == "mined_views":
-        # every step draws 2 pairs: 8 mined positives and 4 multi-view positives each, all enqueued
-        assert float(logged["train/view_positives"]) == 2 * 4 and -1.0 <= float(logged["train/view_pos_cos"]) <= 1.0
-        assert int(state["moco.queue_ptr"]) == 3 * 2 * (8 + 4)
+        # every step enqueues its 2 pairs' 8 mined keys each and 4 view keys per box of its query scenes
+        assert float(logged["train/view_positives"]) % 4 == 0 and float(logged["train/view_positives"]) >= 4
+        assert -1.0 <= float(logged["train/view_pos_cos"]) <= 1.0
+        assert int(state["moco.queue_ptr"]) > 3 * 2 * 8
     if source.startswith("mined"):
         assert bool(state["queue_primed"]) and int(state["refreshes"]) == 2  # steps 0 and 2
         logs = sorted((run / "mining").glob("refresh_*.json"))
