@@ -288,9 +288,9 @@ class Mining(SplitEvaluation, EncoderStage):
         if n_obj == 0:
             return {"loss": None}
         s, V = self.hparams.crop_size, self.hparams.voxels_per_object
-        idx = torch.randint(0, s ** 3, (n_obj, min(V, s ** 3)), device=self.device)
-        q = self._object_points(self.encode_views(*a), batch["aabb"], mask, idx)
         if self.hparams.source == "vc":
+            idx = torch.randint(0, s ** 3, (n_obj, min(V, s ** 3)), device=self.device)
+            q = self._object_points(self.encode_views(*a), batch["aabb"], mask, idx)
             k = self._object_points(self.encode_views(*b), batch["aabb"], mask, idx)
             logits_neg = q @ k.T  # in-batch: the other points' keys are the negatives
             pos = (q * k).sum(1, keepdim=True)
@@ -300,7 +300,7 @@ class Mining(SplitEvaluation, EncoderStage):
             return {"loss": loss, "positives": q.shape[0], "pos_cos": pos.mean()}
         with torch.no_grad():
             self.moco._momentum_update_key_encoder()
-            k = self._encode_keys(*b, batch["aabb"], mask, idx)
+        q, k = self._view_positives(self.encode_views(*a), b, batch, V)
         loss = self.moco.loss(q, k)
         self._enqueue(k)
         return {"loss": loss, "positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
@@ -483,12 +483,8 @@ class Mining(SplitEvaluation, EncoderStage):
         uniq, inv = scenes.unique(return_inverse=True)
         ds = self._train_dataset()
         batch = self._to_device(default_collate([ds[int(s)] for s in uniq.tolist()]))
-        if hp.view_positives:
-            (a, b), v = self._two_view_sets(batch), self.input_views(batch)
-            feats = self.encode_views(*a)
-        else:
-            v = self.input_views(batch)
-            feats = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+        v = self.input_views(batch)
+        feats = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
         crops = crop_boxes(feats, batch["aabb"], self.feature_grid, hp.crop_size)  # [B, M, C, s, s, s]
         qv = pairs["query_voxels"][pick]  # [n, 8, 3]
         sel = crops[inv, pairs["slot"][pick]]  # [n, C, s, s, s]
@@ -501,7 +497,7 @@ class Mining(SplitEvaluation, EncoderStage):
         loss = self.moco.loss(q, k)
         out = {"positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
         if hp.view_positives:
-            qv_, kv_ = self._view_positives(feats, b, batch)
+            qv_, kv_ = self._view_positives(feats, self._two_view_sets(batch)[1], batch, hp.view_positives)
             if qv_.shape[0]:
                 loss = loss + hp.view_weight * self.moco.loss(qv_, kv_)
                 out.update(view_positives=qv_.shape[0], view_pos_cos=(qv_ * kv_).sum(1).mean())
@@ -509,16 +505,16 @@ class Mining(SplitEvaluation, EncoderStage):
         self._enqueue(k)
         return {"loss": loss, **out}
 
-    def _view_positives(self, feats: Tensor, second: tuple[Tensor, ...], batch: dict[str, Tensor]
+    def _view_positives(self, feats: Tensor, second: tuple[Tensor, ...], batch: dict[str, Tensor], count: int
                         ) -> tuple[Tensor, Tensor]:
-        """The multi-view positives of one mined step: queries ``[P, C]`` (``feats``, the input views, with
-        gradient) and keys ``[P, C]`` (the same voxels of the same boxes encoded from the ``second`` view set by the
-        momentum encoder, no gradient); ``P = view_positives`` x the valid boxes of the step's scenes."""
+        """View-contrastive positives (``vc_moco``, and the mined source's ``view_positives``): queries ``[P, C]``
+        (``feats``, the input views, with gradient) and keys ``[P, C]`` (the same voxels of the same boxes encoded
+        from the ``second`` view set by the momentum encoder, no gradient); ``P = count`` x the valid boxes."""
         mask = batch["box_mask"]
         n_obj, s = int(mask.sum()), self.hparams.crop_size
         if n_obj == 0:
             return feats.new_zeros(0, feats.shape[1]), feats.new_zeros(0, feats.shape[1])
-        idx = torch.randint(0, s ** 3, (n_obj, min(self.hparams.view_positives, s ** 3)), device=self.device)
+        idx = torch.randint(0, s ** 3, (n_obj, min(count, s ** 3)), device=self.device)
         q = self._object_points(feats, batch["aabb"], mask, idx)
         with torch.no_grad():
             k = self._encode_keys(*second, batch["aabb"], mask, idx)

@@ -143,22 +143,22 @@ class TestViewPositives:
         m, batch = self._stage_and_batch(tiny_dataset)
         n = int(batch["box_mask"].sum())
         a, b = m._two_view_sets(batch)
-        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        q, k = m._view_positives(m.encode_views(*a), b, batch, 5)
         assert q.shape == k.shape == (n * 5, 32)
         assert torch.allclose(q.norm(dim=1), torch.ones(n * 5), atol=1e-5) and not k.requires_grad
         # a round trip: the second "view set" = the input one, and the key encoder still a copy of the query
         # encoder (no momentum step yet): every key is its query
-        q, k = m._view_positives(m.encode_views(*a), a, batch)
+        q, k = m._view_positives(m.encode_views(*a), a, batch, 5)
         assert torch.allclose((q * k).sum(1), torch.ones(n * 5), atol=1e-5)
         # from the other view the same voxels differ
-        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        q, k = m._view_positives(m.encode_views(*a), b, batch, 5)
         assert (q * k).sum(1).min() < 0.999
 
     def test_gradient_reaches_the_encoder_only_through_the_queries(self, tiny_dataset: Path) -> None:
         m, batch = self._stage_and_batch(tiny_dataset)
         m.train()
         a, b = m._two_view_sets(batch)
-        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        q, k = m._view_positives(m.encode_views(*a), b, batch, 5)
         m.moco.loss(q, k).backward()
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in m.encoder.parameters())
         assert all(p.grad is None for p in m.moco.encoder_k.parameters())
@@ -167,7 +167,7 @@ class TestViewPositives:
         m, batch = self._stage_and_batch(tiny_dataset)
         batch["box_mask"][:] = False
         a, b = m._two_view_sets(batch)
-        q, k = m._view_positives(m.encode_views(*a), b, batch)
+        q, k = m._view_positives(m.encode_views(*a), b, batch, 5)
         assert q.shape == k.shape == (0, 32)
 
     def test_needs_a_second_view_set(self) -> None:
