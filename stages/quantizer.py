@@ -17,12 +17,18 @@ import torch
 from torch import Tensor
 
 from threedq.stages.base import EncoderStage, SplitEvaluation
-from threedq.stages.checkpoint import load_checkpoint
+from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
 from threedq.geometry import yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
-from threedq.quantization.prototypes import PrototypeBank, assign_chunked, quantization_loss, run_prototype_em
+from threedq.quantization.prototypes import (
+    PrototypeBank,
+    assign_chunked,
+    prototype_crops,
+    quantization_loss,
+    run_prototype_em,
+)
 
-__all__ = ["Quantizer", "load_bank_state"]
+__all__ = ["Quantizer", "bank_occupancy_floor", "load_bank_state"]
 
 
 def load_bank_state(bank: PrototypeBank, path: str) -> None:
@@ -35,6 +41,13 @@ def load_bank_state(bank: PrototypeBank, path: str) -> None:
         if k not in own or own[k].shape != v.shape:
             raise ValueError(f"{path}: field 'bank.{k}': shape {tuple(v.shape)} does not fit this bank")
     bank.load_state_dict(state)
+
+
+def bank_occupancy_floor(path: str) -> float | None:
+    """The ``occupancy_floor`` a quantizer checkpoint's bank was fitted with (None: the plain cosine; so are
+    checkpoints written before the option existed): the crops that bank scores must be weighted the same way."""
+    floor = checkpoint_hparams(path, missing_ok=True).get("occupancy_floor")
+    return None if floor is None else float(floor)
 
 
 class Quantizer(SplitEvaluation, EncoderStage):
@@ -62,6 +75,11 @@ class Quantizer(SplitEvaluation, EncoderStage):
         seed: seed of the incremental-initialisation order and of the few-shot draw.
         init_bank_ckpt: start from the prototype bank of an earlier quantizer checkpoint (the previous EM
             round) instead of an empty one.
+        occupancy_floor: None (the paper): prototypes and objects compare by the plain cosine of the whole crop. A
+            float in [0, 1): every voxel of a crop is weighted by this floor plus its input occupancy dilated over 3^3
+            voxels (:func:`~threedq.quantization.prototypes.prototype_crops`), so the cosine weighs the observed
+            surface over the empty space around it (a departure from the paper; docs/results.md measures both). It
+            is the bank's: self-labelling and ``threedq parse`` read it from this stage's checkpoint.
 
     Convention: crops in frame R, z up; yaw counter-clockwise seen from above.
     """
@@ -82,14 +100,20 @@ class Quantizer(SplitEvaluation, EncoderStage):
         shots: int = 2,
         seed: int = 0,
         init_bank_ckpt: str | None = None,
-            **kwargs: Any,
+        occupancy_floor: float | None = None,
+        **kwargs: Any,
     ) -> None:
+        if occupancy_floor is not None and not 0.0 <= occupancy_floor < 1.0:
+            raise ValueError(f"occupancy_floor: expected null or a float in [0, 1), got {occupancy_floor!r}")
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.bank = PrototypeBank(num_prototypes, self.feature_dim, crop_size, num_angles, init_threshold, search_method)
         if init_bank_ckpt:
             load_bank_state(self.bank, init_bank_ckpt)
+            if bank_occupancy_floor(init_bank_ckpt) != occupancy_floor:
+                raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.occupancy_floor': the bank was fitted with "
+                                 f"{bank_occupancy_floor(init_bank_ckpt)}, this stage has occupancy_floor={occupancy_floor}")
         self._train_crops: list[Tensor] = []
         self._train_keys: list[Tensor] = []
         self.metrics: torch.nn.ModuleDict | None = None
@@ -129,7 +153,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         with torch.no_grad():
             out = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
-        crops = out["features"]
+            crops = prototype_crops(out["features"], out["raw"], self.hparams.occupancy_floor)
         self._train_crops.append(crops.detach())
         self._train_keys.append(out["scene"] * batch["box_mask"].shape[1] + out["slot"])
         self.log("train/objects", float(crops.shape[0]), reduce_fx="sum", on_step=False, on_epoch=True, batch_size=1,
@@ -194,7 +218,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
         if crops["features"].shape[0] == 0:
             return  # no (matched) boxes in this batch, e.g. detections that hit no GT object
-        res = self.bank.assign(crops["features"])
+        res = self.bank.assign(prototype_crops(crops["features"], crops["raw"], self.hparams.occupancy_floor))
         m = self._split_metrics(split)
         m["hungarian"].update(res.prototype, crops["labels"])
         m["fewshot"].update(res.prototype, crops["labels"])

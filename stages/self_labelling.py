@@ -56,10 +56,10 @@ from threedq.atomic_io import atomic_write_text
 from threedq.boxes import aabb_iou_3d
 from threedq.geometry import VoxelGridSpec, crop_boxes
 from threedq.metrics.detection import assign_detections
-from threedq.quantization.prototypes import PrototypeBank
+from threedq.quantization.prototypes import PrototypeBank, prototype_crops
 from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
 from threedq.stages.detector import Detector, check_same_anchor, detection_targets
-from threedq.stages.quantizer import load_bank_state
+from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 from threedq.viz.detection import self_labels_figure
 from threedq.viz.png import write_png
 
@@ -188,7 +188,8 @@ class SelfLabelling(Detector):
             given of :data:`INHERITED_FROM_DETECTOR` (its anchor, head width and depth, score thresholds, NMS,
             detections per scene, box refinement) is taken from this checkpoint, so a self-labelled detector decodes
             as the detector it fine-tunes.
-        bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (the round's).
+        bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (the round's); its crops are
+            weighted as that bank's were (the quantizer's ``occupancy_floor``).
         positive_threshold: best prototype cosine (over all prototypes and yaws) above which a box is positive
             (paper: 0.8).
         negative_threshold: center-surround similarity above which a box is negative (paper: 0.65).
@@ -301,7 +302,10 @@ class SelfLabelling(Detector):
         if detector_ckpt:
             load_head_state(self.head, detector_ckpt, asked_anchor)
         self.bank: PrototypeBank | None = None
+        #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`), from its checkpoint
+        self.occupancy_floor: float | None = None
         if bank_ckpt:
+            self.occupancy_floor = bank_occupancy_floor(bank_ckpt)
             num = load_checkpoint(bank_ckpt).prefixed("bank.").get("prototypes")
             if num is None:
                 raise ValueError(f"{bank_ckpt}: field 'state_dict': no 'bank.prototypes' (not a quantizer checkpoint?)")
@@ -365,13 +369,16 @@ class SelfLabelling(Detector):
             v = self.input_views(batch)
             # encoded under the trainer's precision, as training_step would (Lightning's autocast covers the steps, not
             # this hook): the grids then come from the crop cache the round's quantizer filled; labelled in fp32
+            weighted = label_now and self.occupancy_floor is not None
             with self.precision_context():
-                g = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+                g, x = self._encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")),
+                                          need_input=weighted)
             g = g.float()
+            occ = x.view(g.shape[0], v, *x.shape[1:])[:, :, :1].amax(1).float() if weighted else None
             grids.append(g.to("cpu"))
             if label_now:
                 props = None if proposals is None else [proposals[ds.files[j]][0] for j in idx]
-                for b, (r, d) in enumerate(self._label_batch(g, batch, props)):
+                for b, (r, d) in enumerate(self._label_batch(g, batch, props, occ)):
                     rows.append(torch.cat([torch.full((len(r), 1), float(start + b)), r], dim=1))
                     diag_rows.append(d)
                     if len(first) < 4 and len(r):  # the picture shows positives and negatives
@@ -393,14 +400,19 @@ class SelfLabelling(Detector):
 
     @torch.no_grad()
     def _label_batch(self, grid: Tensor, batch: dict[str, Tensor], proposals: list[Any] | None = None,
-                     ) -> list[tuple[Tensor, dict[str, Tensor]]]:
+                     occupancy: Tensor | None = None) -> list[tuple[Tensor, dict[str, Tensor]]]:
         """Per scene: label rows ``[L, 7]`` (kind, aabb) and the candidates' measurements (for the diagnostics).
 
         ``proposals``: per scene the label-free pseudo-boxes ``[P, 6]`` that positives snap to (``snap_to_proposals``),
         that join the candidates (``proposal_candidates``) and whose cells are spared (``spare_proposals``).
+        ``occupancy``: ``[B, 1, Z, Y, X]`` the input occupancy on the input grid (union over the input views); needed
+        when the bank weights its crops by it (:attr:`occupancy_floor`).
         """
         if self.bank is None:
             raise RuntimeError("bank_ckpt: self-labelling needs the round's prototype bank")
+        if self.occupancy_floor is not None and occupancy is None:
+            raise ValueError("occupancy: the bank weights its crops by the input occupancy (occupancy_floor="
+                             f"{self.occupancy_floor}) and none was given")
         logits, box = self.head(grid)
         dets = self.detect(logits, box, self.hparams.candidate_threshold)
         props = [None] * len(dets) if proposals is None else [
@@ -425,6 +437,9 @@ class SelfLabelling(Detector):
                 aabb_pad[b, : counts[b]] = d["boxes"]
                 valid[b, : counts[b]] = True
             crops = crop_boxes(grid, aabb_pad.to(grid.dtype), self.feature_grid, self.hparams.crop_size)
+            if self.occupancy_floor is not None:
+                occ = crop_boxes(occupancy, aabb_pad.to(occupancy.dtype), self.grid, self.hparams.crop_size)
+                crops = prototype_crops(crops.flatten(0, 1), occ.flatten(0, 1), self.occupancy_floor).view_as(crops)
             proto_all = torch.zeros(len(dets), m, device=grid.device)
             proto_all[valid] = self.bank.assign(crops[valid].float()).score.to(proto_all.dtype)
             cs_all = center_surround_similarity(grid, aabb_pad, self.feature_grid, self.hparams.surround_crop_size)

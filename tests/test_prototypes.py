@@ -11,7 +11,7 @@ from conftest import tiny_data_yaml
 
 from threedq.geometry import rotate_yaw
 from threedq.metrics import cluster_confusion, hungarian_accuracy
-from threedq.quantization.prototypes import PrototypeBank, fit_prototype_bank, quantization_loss
+from threedq.quantization.prototypes import PrototypeBank, fit_prototype_bank, prototype_crops, quantization_loss
 
 S = 12
 
@@ -113,6 +113,52 @@ class TestPrototypeBank:
         assert bank.assign(objs).angle.eq(0).all()
 
 
+class TestPrototypeCrops:
+    """The crops a bank compares: the features as they are (the paper) or weighted by their input occupancy."""
+
+    def test_plain_is_the_features_themselves(self) -> None:
+        f = torch.randn(2, 3, 4, 4, 4)
+        assert prototype_crops(f, None) is f
+        assert prototype_crops(f, torch.rand(2, 4, 4, 4, 4), None) is f
+
+    def test_weighted_is_floor_plus_dilated_occupancy(self) -> None:
+        from threedq.geometry import occupancy_weighted
+
+        g = torch.Generator().manual_seed(0)
+        f = torch.randn(2, 3, 5, 5, 5, generator=g, dtype=torch.float64)
+        raw = torch.rand(2, 4, 5, 5, 5, generator=g, dtype=torch.float64)
+        raw[:, 0] = (raw[:, 0] > 0.8).double()  # channel 0 is the occupancy; the colour channels are not read
+        want = occupancy_weighted(f, raw[:, :1], floor=0.3, dilation=3)
+        torch.testing.assert_close(prototype_crops(f, raw, 0.3), want)
+        torch.testing.assert_close(prototype_crops(f, raw[:, :1], 0.3), want)
+        # hand-computed: one occupied voxel in a corner; its 2^3 neighbourhood weighs 1.3, the rest 0.3
+        one = torch.zeros(1, 1, 3, 3, 3, dtype=torch.float64)
+        one[0, 0, 0, 0, 0] = 1.0
+        w = prototype_crops(torch.ones(1, 1, 3, 3, 3, dtype=torch.float64), one, 0.3)
+        assert torch.allclose(w.sum(), torch.tensor(8 * 1.3 + 19 * 0.3, dtype=torch.float64))
+
+    def test_rotated_copy_found_at_its_angle(self) -> None:
+        # a bank fitted on weighted crops finds an object turned by a known quarter turn (features and occupancy
+        # turned together) at that yaw: the weight goes through the rotation search as it is
+        shapes = base_shapes(3, channels=4)
+        occ = (shapes.sum(1, keepdim=True) > 0).float()
+        bank = fit_prototype_bank(prototype_crops(shapes, occ, 0.2), num_prototypes=3, iterations=2, num_angles=4,
+                                  init_threshold=0.99, method="exact")
+        turned = torch.rot90(shapes, 1, dims=(3, 4)), torch.rot90(occ, 1, dims=(3, 4))
+        res = bank.assign(prototype_crops(*turned, 0.2))
+        ref = bank.assign(prototype_crops(shapes, occ, 0.2))
+        assert torch.equal(res.prototype, ref.prototype)
+        assert (res.angle - ref.angle).remainder(4).unique().numel() == 1  # the same turn for every object
+        assert (res.angle - ref.angle).remainder(4)[0] in (1, 3)  # a quarter turn (its sign: the yaw convention)
+        torch.testing.assert_close(res.score, ref.score, atol=1e-5, rtol=0)
+
+    def test_exception(self) -> None:
+        with pytest.raises(ValueError, match="raw"):
+            prototype_crops(torch.zeros(1, 2, 4, 4, 4), None, 0.2)
+        with pytest.raises(ValueError):
+            prototype_crops(torch.zeros(1, 2, 4, 4, 4), torch.zeros(2, 1, 4, 4, 4), 0.2)
+
+
 def _quantizer_config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path) -> Path:
     cfg = tmp_path / "q.yaml"
     cfg.write_text(
@@ -161,6 +207,38 @@ class TestQuantizerStage:
         assert torch.equal(warm.bank.prototypes, state["bank.prototypes"])
         with pytest.raises(ValueError, match="bank"):
             Quantizer(grid_resolution=(32, 32, 16), num_prototypes=5, crop_size=8, init_bank_ckpt=str(ckpt))
+
+
+    def test_occupancy_floor_travels_with_the_bank(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        from threedq.stages.base import EncoderStage
+        from threedq.stages.quantizer import Quantizer, bank_occupancy_floor
+
+        from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+
+        torch.manual_seed(0)
+        enc = tmp_path / "enc.pt"
+        torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
+        cfg = _quantizer_config(tmp_path, tiny_dataset, enc)
+        banks = {}
+        for floor in (None, 0.2):
+            run = tmp_path / f"q{floor}"
+            extra = [] if floor is None else [f"--model.init_args.occupancy_floor={floor}"]
+            cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
+                                   f"--trainer.default_root_dir={run}", *extra])
+            assert 0.0 <= float(cli.trainer.logged_metrics["val/hungarian_acc"]) <= 1.0
+            ckpt = run / "checkpoints" / "last.ckpt"
+            assert bank_occupancy_floor(str(ckpt)) == floor
+            banks[floor] = (ckpt, cli.model.bank.prototypes.clone())
+        assert not torch.allclose(banks[None][1], banks[0.2][1])  # the weighted crops make other prototypes
+        # a round's warm start must weight as the bank it starts from
+        with pytest.raises(ValueError, match="occupancy_floor"):
+            Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, init_bank_ckpt=str(banks[None][0]),
+                      occupancy_floor=0.2)
+        Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, init_bank_ckpt=str(banks[0.2][0]),
+                  occupancy_floor=0.2)
+        for bad in (-0.1, 1.0):
+            with pytest.raises(ValueError, match="occupancy_floor"):
+                Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, occupancy_floor=bad)
 
 
 class TestSpectrumReuse:

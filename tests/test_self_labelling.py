@@ -239,6 +239,31 @@ class TestLabellingRule:
         plain = self._label(self._stage(), vol, boxes, loose, props)
         assert (plain[:, 0] == 1).sum() == 1  # without the switch only the vouched-for object
 
+    def test_occupancy_weighted_bank(self) -> None:
+        # a bank fitted on occupancy-weighted crops scores the candidates' weighted crops (the quantizer's
+        # occupancy_floor, read from its checkpoint): the object is positive at cosine 1, and every score is the
+        # bank's own assignment of the weighted crop
+        from threedq.geometry import crop_boxes
+        from threedq.quantization.prototypes import prototype_crops
+
+        vol, boxes = self._scene()
+        st = self._stage()
+        st.occupancy_floor = 0.2
+        occ = torch.zeros(1, 1, *st.grid.volume_shape)
+        occ[..., 4:10, 6:10, 6:10] = 1.0  # input-grid cells of the object (z 0-0.48, x and y -0.8..-0.32)
+        weighted = lambda b: prototype_crops(crop_boxes(vol, b[None], st.feature_grid, 4)[0],  # noqa: E731
+                                             crop_boxes(occ, b[None], st.grid, 4)[0], 0.2)
+        st.bank.add(weighted(boxes[:1]), threshold=2.0)
+        det = boxes.clone()
+        st.detect = lambda logits, box, thr=None: [{"boxes": det.clone(), "scores": torch.ones(len(det))}]  # type: ignore
+        gt_batch = {"aabb": boxes[None], "box_mask": torch.ones(1, 2, dtype=torch.bool)}
+        rows, diag = st._label_batch(vol, gt_batch, None, occ)[0]
+        assert rows[0, 0] == 1 and rows[1, 0] == 0
+        torch.testing.assert_close(diag["proto"], st.bank.assign(weighted(boxes)).score)
+        assert diag["proto"][0] > 0.999
+        with pytest.raises(ValueError, match="occupancy"):
+            st._label_batch(vol, gt_batch, None)
+
     def test_bad_arguments(self) -> None:
         with pytest.raises(ValueError, match="positive_threshold"):
             SelfLabelling(feature_dim=8, positive_threshold=1.5)

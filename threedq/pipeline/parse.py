@@ -51,7 +51,7 @@ from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
 from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.pipeline.run_layout import RunLayout
-from threedq.quantization.prototypes import PrototypeBank
+from threedq.quantization.prototypes import PrototypeBank, prototype_crops
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
 from threedq.stages.base import EncoderStage, stage_arguments
 from threedq.stages.checkpoint import (
@@ -229,6 +229,8 @@ class SceneParser(torch.nn.Module):
         self.score_threshold = float(det_hp.get("score_threshold", 0.9) if score_threshold is None else score_threshold)
         self.crop_size = int(q_hp["crop_size"])
         self.num_angles = int(q_hp["num_angles"])
+        #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`; None: plain cosine)
+        self.occupancy_floor = None if q_hp.get("occupancy_floor") is None else float(q_hp["occupancy_floor"])
         self.fingerprint = bank_fingerprint(self.bank)
         self.eval()
 
@@ -292,6 +294,9 @@ class SceneParser(torch.nn.Module):
             n = d["boxes"].shape[0]
             aabb[b, :n], mask[b, :n] = d["boxes"], True
         crops = crop_boxes(q_feats, aabb, det.feature_grid, self.crop_size)[mask]
+        if self.occupancy_floor is not None:  # the input occupancy (union over the views) weights the crops
+            occ = x[:, :1].reshape(B, V, 1, *x.shape[2:]).amax(1)
+            crops = prototype_crops(crops, crop_boxes(occ, aabb, det.grid, self.crop_size)[mask], self.occupancy_floor)
         t["crop"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if crops.shape[0]:

@@ -68,7 +68,7 @@ from threedq.pipeline.tables import METHOD_LABELS, cluster_search_label, eval_ma
 from threedq.data.catalog import coarse_category
 from threedq.metrics import cluster_confusion, hungarian_accuracy
 from threedq.metrics.retrieval import per_class_precision_at_k, retrieval_confusion
-from threedq.quantization.prototypes import fit_prototype_bank
+from threedq.quantization.prototypes import fit_prototype_bank, prototype_crops
 from threedq.viz.curves import accuracy_vs_k_figure
 from threedq.viz.features import alignment_figure, per_category_figure, retrieval_figure
 from threedq.viz.png import figure_png, write_png
@@ -147,8 +147,11 @@ def collect_with_gallery(model: Any, dm: Any, split: str, num_input_views: int, 
 
 
 def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int,
-            em_iterations: int, seed: int) -> tuple[Tensor, Tensor, int]:
-    """Fit a bank of ``method`` on train crops, assign test crops -> (clusters, angle indices, angles used)."""
+            em_iterations: int, seed: int, occupancy_floor: float | None = None) -> tuple[Tensor, Tensor, int]:
+    """Fit a bank of ``method`` on train crops, assign test crops -> (clusters, angle indices, angles used).
+
+    ``occupancy_floor``: the threedq stage's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`),
+    used by the learned-feature banks (threedq, no-rot-3DQ) so that they compare as the stage's bank does."""
     if method == "pointcloud":
         # threshold 0.25: trilinear crops of one-voxel-thick surfaces have low occupancy values (median ~0.34);
         # on the embedded data it clustered better than 0.5 (0.30 vs 0.26 Hungarian accuracy at K = 50)
@@ -157,8 +160,9 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
         proto, angle, _ = pc.assign(test["raw"][:, :1])  # same threshold as the fit
         return proto, angle, num_angles
     a = 1 if method == "no_rot" else num_angles
-    bank = fit_prototype_bank(train["learned"], K, iterations=em_iterations, num_angles=a, seed=seed)
-    res = bank.assign(test["learned"])
+    bank = fit_prototype_bank(prototype_crops(train["learned"], train.get("raw"), occupancy_floor), K,
+                              iterations=em_iterations, num_angles=a, seed=seed)
+    res = bank.assign(prototype_crops(test["learned"], test.get("raw"), occupancy_floor))
     return res.prototype, res.angle, a
 
 
@@ -227,18 +231,19 @@ def evaluate_quantizer(
         "yaw_median_deg": test_metrics["test/yaw_median_deg"], "yaw_acc_10": test_metrics["test/yaw_acc10"],
         "yaw_acc_20": test_metrics["test/yaw_acc20"], "yaw_pairs": int(test_metrics["test/yaw_pairs"]),
     }}
-    res_bank = model.bank.assign(test["learned"].to(model.device))  # for the alignment picture
+    floor = getattr(model.hparams, "occupancy_floor", None)
+    res_bank = model.bank.assign(prototype_crops(test["learned"], test["raw"], floor).to(model.device))  # the picture
     assignments = {"threedq": (res_bank.prototype.cpu(), res_bank.angle.cpu(), A)}
     if baselines:
         for m in ("no_rot", "pointcloud"):
-            proto, angle, a = _assign(m, train, test, K, A, em_iterations, seed)
+            proto, angle, a = _assign(m, train, test, K, A, em_iterations, seed, floor)
             assignments[m] = (proto, angle, a)
             quant[m] = quantization_metrics(proto, angle, a, K, labels, gt_yaw, len(cats), sym, seed=seed)
     curve: dict[str, dict[str, float]] = {}
     n_train = int(train["labels"].shape[0])
     for k in [k for k in (curve_k or []) if k <= n_train]:  # more prototypes than objects is meaningless
         for m in ("threedq", "no_rot", "pointcloud") if baselines else ("threedq",):
-            proto, _, _ = _assign(m, train, test, k, A, em_iterations, seed)
+            proto, _, _ = _assign(m, train, test, k, A, em_iterations, seed, floor)
             conf = cluster_confusion(proto, labels, k, len(cats))
             curve.setdefault(m, {})[str(k)] = float(hungarian_accuracy(conf))
     for extra in (q25d, resnet):

@@ -2,7 +2,14 @@
 crops (2.5DQ-Nets) and the prototype bank."""
 
 from threedq.quantization.inplane import all_pairs_inplane_max, best_prototype_and_angle, rotate_inplane
-from threedq.quantization.prototypes import PrototypeBank, fill_free_slots, fit_prototype_bank, quantization_loss, run_prototype_em
+from threedq.quantization.prototypes import (
+    PrototypeBank,
+    fill_free_slots,
+    fit_prototype_bank,
+    prototype_crops,
+    quantization_loss,
+    run_prototype_em,
+)
 from threedq.quantization.rotation_search import (
     RotationSearchResult,
     all_pairs_rotation_max,
@@ -19,6 +26,7 @@ __all__ = [
     "best_prototype_and_yaw",
     "fill_free_slots",
     "fit_prototype_bank",
+    "prototype_crops",
     "quantization_loss",
     "rotate_inplane",
     "rotation_max_similarity",

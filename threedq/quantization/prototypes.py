@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from threedq.geometry import rotate_yaw, yaw_angles
+from threedq.geometry import occupancy_weighted, rotate_yaw, yaw_angles
 from threedq.quantization.rotation_search import (
     PolarSpectrum,
     RotationSearchResult,
@@ -35,6 +35,7 @@ __all__ = [
     "assign_chunked",
     "fill_free_slots",
     "fit_prototype_bank",
+    "prototype_crops",
     "quantization_loss",
     "run_prototype_em",
 ]
@@ -186,6 +187,30 @@ class PrototypeBank(nn.Module):
         """Objects rotated into their prototypes' canonical pose ``[N, C, S, S, S]`` (for pictures)."""
         angles = yaw_angles(self.num_angles, device=objects.device, dtype=objects.dtype)[result.angle]
         return rotate_yaw(objects, angles)
+
+
+def prototype_crops(features: Tensor, raw: Tensor | None, occupancy_floor: float | None = None) -> Tensor:
+    """The crops a prototype bank is fitted on and scores: the feature crops as they are (``occupancy_floor``
+    None, the paper's plain cosine over the whole crop) or weighted by their input occupancy
+    (:func:`threedq.geometry.occupancy_weighted` with this floor and a 3^3 dilation: voxels at and next to observed
+    surface count ``1 + floor``, empty space ``floor``; a departure from the paper).
+
+    Args:
+        features: ``[N, C, s, s, s]`` feature crops.
+        raw: ``[N, 4, s, s, s]`` crops of the unprojected input ``cat[occ, occ * rgb]`` (or ``[N, 1, s, s, s]``
+            occupancy) of the same boxes; only read with a floor.
+        occupancy_floor: the weight of empty space, or None.
+
+    Returns:
+        ``[N, C, s, s, s]``, ``features`` itself without a floor.
+
+    Convention: the weight does not change with yaw, so weighted crops go through the rotation search as they are.
+    """
+    if occupancy_floor is None:
+        return features
+    if raw is None:
+        raise ValueError("raw: the occupancy-weighted prototype crops need the input occupancy crops")
+    return occupancy_weighted(features, raw[:, :1], floor=occupancy_floor)
 
 
 def quantization_loss(bank: PrototypeBank, objects: Tensor, result: RotationSearchResult) -> Tensor:
