@@ -13,6 +13,9 @@ of a long run is a run of ``s`` steps):
   the occupancy-weighted cosine (:func:`threedq.geometry.occupancy_weighted`, a departure: voxels near observed
   surface count more);
 * with ``--probe``: the linear probe on the voxel-averaged crops (labels train the probe only);
+* with ``--cluster``: the quantizer's K-prototype EM (K = 50, 10 iterations, 36 yaws) fitted on the training split's
+  GT crops with each similarity (the quantizer's ``occupancy_floor`` None / 0.2) and scored on the test split:
+  Hungarian and few-shot accuracy, the mean of EM seeds 0 and 1;
 * the raw ``cat[occ, occ*rgb]`` crops and the six-number colour + size descriptor on the same objects;
 * seconds per training step (the trainer's fit time / steps, evaluation excluded).
 
@@ -80,7 +83,32 @@ def _score(crops: dict, similarity: str) -> dict[str, Any]:
     return out
 
 
-def score_encoder(stage: Any, dm: Any, probe: bool) -> dict[str, Any]:
+#: (name in the rows, the quantizer's ``occupancy_floor``) of the ``--cluster`` banks
+CLUSTER_SIMILARITIES = (("cosine", None), ("occupancy", 0.2))
+
+
+def _cluster(train: dict, test: dict, num_classes: int, em_seeds: tuple[int, ...] = (0, 1)) -> dict[str, float]:
+    """Hungarian and few-shot accuracy of K = 50 banks fitted on ``train``'s learned crops, per similarity (mean over
+    ``em_seeds``); the quantizer stage's EM (:func:`~threedq.quantization.prototypes.fit_prototype_bank`)."""
+    from threedq.pipeline.evaluation import quantization_metrics
+    from threedq.quantization.prototypes import fit_prototype_bank, prototype_crops
+
+    out: dict[str, float] = {}
+    K = min(50, int(train["labels"].shape[0]))
+    for name, floor in CLUSTER_SIMILARITIES:
+        acc: dict[str, list[float]] = {"hungarian": [], "fewshot": []}
+        for seed in em_seeds:
+            bank = fit_prototype_bank(prototype_crops(train["learned"], train["raw"], floor), K, seed=seed)
+            res = bank.assign(prototype_crops(test["learned"], test["raw"], floor))
+            m = quantization_metrics(res.prototype, res.angle, 36, K, test["labels"], None, num_classes, [], seed=seed)
+            acc["hungarian"].append(m["hungarian_acc"])
+            acc["fewshot"].append(m["fewshot_acc"])
+        for k, v in acc.items():
+            out[f"{name}/{k}"] = sum(v) / len(v)
+    return out
+
+
+def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False) -> dict[str, Any]:
     """Every number of one row for ``stage``'s encoder on the test split's GT boxes."""
     import torch
 
@@ -93,11 +121,14 @@ def score_encoder(stage: Any, dm: Any, probe: bool) -> dict[str, Any]:
         row: dict[str, Any] = {}
         for sim in SIMILARITIES:
             row.update(_score(crops, sim))
-        if probe:
+        if probe or cluster:
             train = collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None, progress=False)
+        if probe:
             acc = probe_table(train, crops)["accuracy"]
             row["probe/learned"], row["probe/raw"] = acc["learned"], acc["raw_rgb_occupancy"]
             row["probe/descriptor"] = acc["colour_size_descriptor"]
+        if cluster:
+            row.update(_cluster(train, crops, len(dm.index.categories)))
     return row
 
 
@@ -108,7 +139,7 @@ def _device_name(device: Any) -> str:
 
 
 def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], root: Path, out: Path, probe: bool,
-            data_dir: str | None) -> None:
+            data_dir: str | None, cluster: bool = False) -> None:
     """Train one (recipe, seed) and append a row per evaluation step to ``out``."""
     import lightning as L
 
@@ -137,7 +168,7 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
             timer["train_s"] += time.perf_counter() - timer["t0"]
             t = time.perf_counter()
             row = {"variant": name, "overrides": overrides, "seed": seed, "steps": trainer.global_step,
-                   "s_per_step": timer["train_s"] / trainer.global_step, **score_encoder(stage, cli.datamodule, probe),
+                   "s_per_step": timer["train_s"] / trainer.global_step, **score_encoder(stage, cli.datamodule, probe, cluster),
                    "eval_s": round(time.perf_counter() - t, 1), "device": _device_name(stage.device)}
             with out.open("a") as f:
                 f.write(json.dumps(row) + "\n")
@@ -149,7 +180,7 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
     cli.trainer.fit(cli.model, cli.datamodule)
 
 
-def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool) -> None:
+def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool, cluster: bool = False) -> None:
     """One row per ``NAME=CKPT``: the checkpoint's encoder scored as :func:`score_encoder` does (no training)."""
     from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
     from threedq.datamodules.scene_folder import SceneFolderDataModule
@@ -163,14 +194,16 @@ def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: 
         name, _, ckpt = spec.partition("=")
         stage = ViewPrediction(encoder_ckpt=ckpt).eval()
         row = {"variant": name, "overrides": [ckpt], "seed": None, "steps": 0, "s_per_step": float("nan"),
-               **score_encoder(stage, dm, probe), "device": _device_name(stage.device), "data_dir": data_dir}
+               **score_encoder(stage, dm, probe, cluster), "device": _device_name(stage.device), "data_dir": data_dir}
         with out.open("a") as f:
             f.write(json.dumps(row) + "\n")
 
 
 COLUMNS = [("cosine/strict", "strict"), ("cosine/paper", "paper"), ("cosine/top1", "top-1"),
            ("occupancy/strict", "strict (occ.-weighted)"), ("occupancy/paper", "paper (occ.-weighted)"),
-           ("occupancy/top1", "top-1 (occ.-weighted)"), ("probe/learned", "linear probe")]
+           ("occupancy/top1", "top-1 (occ.-weighted)"), ("probe/learned", "linear probe"),
+           ("cosine/hungarian", "Hungarian K=50"), ("occupancy/hungarian", "Hungarian K=50 (occ.-weighted)"),
+           ("cosine/fewshot", "few-shot"), ("occupancy/fewshot", "few-shot (occ.-weighted)")]
 
 
 def _cell(values: list[float]) -> str:
@@ -210,6 +243,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--eval_steps", type=int, nargs="+", default=[500, 1000, 2000])
     ap.add_argument("--probe", action="store_true", help="also the linear probe (encodes the training split)")
+    ap.add_argument("--cluster", action="store_true",
+                    help="also the K = 50 prototype banks, plain and occupancy-weighted (encodes the training split)")
     ap.add_argument("--jobs", type=int, default=1, help="(recipe, seed) trainings at once, in subprocesses")
     ap.add_argument("--common", default="", help="overrides added to every recipe, e.g. '--trainer.accelerator=gpu'")
     ap.add_argument("--data_dir", default=None, help="default: the stage config's (data/clevr_veggie)")
@@ -225,15 +260,16 @@ def main() -> None:
     if args.one:
         name, _, rest = args.one[0].partition("=")
         run_one(name, rest.split() + args.common.split(), int(args.one[1]), args.eval_steps, args.root, args.out,
-                args.probe, args.data_dir)
+                args.probe, args.data_dir, args.cluster)
         return
     if args.score:
-        score_checkpoints(args.score, args.data_dir, args.out, args.probe)
+        score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster)
     elif not args.table_only:
         jobs = [(spec, seed) for spec in (args.variant or DEFAULT_VARIANTS) for seed in args.seeds]
         common = ["--eval_steps", *map(str, args.eval_steps), "--root", str(args.root), "--out", str(args.out)]
         common += [f"--common={args.common}"] if args.common else []
-        common += (["--probe"] if args.probe else []) + (["--data_dir", args.data_dir] if args.data_dir else [])
+        common += (["--probe"] if args.probe else []) + (["--cluster"] if args.cluster else [])
+        common += ["--data_dir", args.data_dir] if args.data_dir else []
         running: list[subprocess.Popen] = []
         for spec, seed in jobs:
             while len(running) >= args.jobs:
