@@ -6,6 +6,7 @@ import json
 
 from threedq.pipeline.tables import (
     METHOD_LABELS,
+    cluster_search_label,
     feature_cells,
     fewshot_cell,
     fmt,
@@ -66,3 +67,10 @@ def test_size_band_lines_say_which_objects_the_grid_cannot_resolve() -> None:
     assert "`flat_boxes` adds the input view's observed boxes" in last
     det["flat_objects"]["flat_boxes"] = False
     assert "`flat_boxes` is off: they are not detected" in size_band_lines(det, "runs/em")[-2]
+
+
+def test_cluster_search_label_names_the_similarity() -> None:
+    plain, weighted = cluster_search_label("fast"), cluster_search_label("fast", 0.2)
+    assert "weighted" not in plain and "inscribed cylinder" in plain
+    assert "weighted by their input occupancy (empty space 0.2, voxels at or next to observed surface 1.2" in weighted
+    assert "cosine over the full cube" in cluster_search_label("exact", 0.0)

@@ -280,7 +280,7 @@ def evaluate_quantizer(
         "paper_protocol_not_run": no_paper,
         "quantization": quant,
         "curve": curve,
-        "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast")),
+        "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast"), floor),
         "resnet": resnet_res,
         "not_run": {**({} if q25d is not None else {"q25d": Q25D_HOWTO}),
                     **({} if resnet is not None else {"resnet": RESNET_HOWTO})},

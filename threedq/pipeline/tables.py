@@ -47,11 +47,15 @@ def method_rows(quantization: dict[str, Any]) -> list[tuple[str, Any]]:
     return sorted(quantization.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
 
 
-def cluster_search_label(method: str = "fast") -> str:
+def cluster_search_label(method: str = "fast", occupancy_floor: float | None = None) -> str:
     """How each clustering row searches rotations (every clustering table names it): the stage's bank (threedq)
-    uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search."""
+    uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search. ``occupancy_floor``: the
+    quantizer's crop weighting (threedq and no-rot-3DQ compare occupancy-weighted crops; None: plain crops)."""
     own = "exact search over 36 yaw steps (cosine over the full cube)" if method == "exact" else (
         "fast search over 36 yaw steps (cosine over the inscribed cylinder)")
+    if occupancy_floor is not None:
+        own += (f", of crops weighted by their input occupancy (empty space {occupancy_floor:g}, voxels at or next to "
+                f"observed surface {1 + occupancy_floor:g}; not the paper's plain crops)")
     return (f"Prototype assignment: threedq by the {own}; no-rot-3DQ by the same bank EM with 1 yaw step (no search); "
             "2.5DQ-Nets by the fast search on one-slice crops, i.e. over 36 in-plane angles (cosine over the inscribed "
             "disc); point-cloud registration by its occupancy-only similarity over 36 yaw steps.")
