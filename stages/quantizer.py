@@ -75,11 +75,12 @@ class Quantizer(SplitEvaluation, EncoderStage):
         seed: seed of the incremental-initialisation order and of the few-shot draw.
         init_bank_ckpt: start from the prototype bank of an earlier quantizer checkpoint (the previous EM
             round) instead of an empty one.
-        occupancy_floor: None (the paper): prototypes and objects compare by the plain cosine of the whole crop. A
-            float in [0, 1): every voxel of a crop is weighted by this floor plus its input occupancy dilated over 3^3
-            voxels (:func:`~threedq.quantization.prototypes.prototype_crops`), so the cosine weighs the observed
-            surface over the empty space around it (a departure from the paper; docs/results.md measures both). It
-            is the bank's: self-labelling and ``threedq parse`` read it from this stage's checkpoint.
+        occupancy_floor: a float in [0, 1) (default 0.2): every voxel of a crop is weighted by this floor plus its
+            input occupancy dilated over 3^3 voxels (:func:`~threedq.quantization.prototypes.prototype_crops`), so
+            the cosine weighs the observed surface over the empty space around it (a departure from the paper;
+            docs/results.md measures both). None: the paper's plain cosine of the whole crop. It is the bank's:
+            self-labelling and ``threedq parse`` read it from this stage's checkpoint, and a checkpoint loaded
+            into this stage brings its own (checkpoints written before the option: None).
 
     Convention: crops in frame R, z up; yaw counter-clockwise seen from above.
     """
@@ -100,7 +101,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         shots: int = 2,
         seed: int = 0,
         init_bank_ckpt: str | None = None,
-        occupancy_floor: float | None = None,
+        occupancy_floor: float | None = 0.2,
         **kwargs: Any,
     ) -> None:
         if occupancy_floor is not None and not 0.0 <= occupancy_floor < 1.0:
@@ -122,6 +123,13 @@ class Quantizer(SplitEvaluation, EncoderStage):
             if len(sym) != num_classes:
                 raise ValueError(f"symmetry_order: {len(sym)} orders for num_classes={num_classes} categories")
             self._make_metrics(num_classes, sym)
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """The crop weighting of the checkpoint's bank (:func:`bank_occupancy_floor`'s rule: a checkpoint written
+        before the option holds a plain bank), whatever this stage was built with: the bank is scored as it was
+        fitted."""
+        saved = (checkpoint.get("hyper_parameters") or {}).get("occupancy_floor")
+        self.hparams.occupancy_floor = None if saved is None else float(saved)
 
     def _make_metrics(self, num_classes: int, sym: list[int]) -> None:
         hp = self.hparams

@@ -222,7 +222,7 @@ class TestQuantizerStage:
         banks = {}
         for floor in (None, 0.2):
             run = tmp_path / f"q{floor}"
-            extra = [] if floor is None else [f"--model.init_args.occupancy_floor={floor}"]
+            extra = [f"--model.init_args.occupancy_floor={'null' if floor is None else floor}"]
             cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
                                    f"--trainer.default_root_dir={run}", *extra])
             assert 0.0 <= float(cli.trainer.logged_metrics["val/hungarian_acc"]) <= 1.0
@@ -239,6 +239,17 @@ class TestQuantizerStage:
         for bad in (-0.1, 1.0):
             with pytest.raises(ValueError, match="occupancy_floor"):
                 Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, occupancy_floor=bad)
+        # a checkpoint brings its bank's weighting into a stage built with another (one written before the option,
+        # without the field, holds a plain bank)
+        ck = torch.load(banks[None][0], weights_only=True, map_location="cpu")
+        q = Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8)
+        assert q.hparams.occupancy_floor == 0.2
+        q.on_load_checkpoint(ck)
+        assert q.hparams.occupancy_floor is None
+        q.on_load_checkpoint({"hyper_parameters": {k: v for k, v in ck["hyper_parameters"].items() if k != "occupancy_floor"}})
+        assert q.hparams.occupancy_floor is None
+        q.on_load_checkpoint(torch.load(banks[0.2][0], weights_only=True, map_location="cpu"))
+        assert q.hparams.occupancy_floor == 0.2
 
 
 class TestSpectrumReuse:
