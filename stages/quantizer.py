@@ -11,6 +11,7 @@ few-shot labelling accuracy and relative yaw error.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -43,11 +44,17 @@ def load_bank_state(bank: PrototypeBank, path: str) -> None:
     bank.load_state_dict(state)
 
 
-def bank_occupancy_floor(path: str) -> float | None:
-    """The ``occupancy_floor`` a quantizer checkpoint's bank was fitted with (None: the plain cosine; so are
-    checkpoints written before the option existed): the crops that bank scores must be weighted the same way."""
-    floor = checkpoint_hparams(path, missing_ok=True).get("occupancy_floor")
+def _saved_floor(hparams: dict[str, Any] | None) -> float | None:
+    """``occupancy_floor`` of a quantizer checkpoint's hyperparameters (None: the plain cosine; so are checkpoints
+    written before the option existed)."""
+    floor = (hparams or {}).get("occupancy_floor")
     return None if floor is None else float(floor)
+
+
+def bank_occupancy_floor(path: str | Path) -> float | None:
+    """The ``occupancy_floor`` a quantizer checkpoint's bank was fitted with: the crops that bank scores must be
+    weighted the same way."""
+    return _saved_floor(checkpoint_hparams(path, missing_ok=True))
 
 
 class Quantizer(SplitEvaluation, EncoderStage):
@@ -112,9 +119,10 @@ class Quantizer(SplitEvaluation, EncoderStage):
         self.bank = PrototypeBank(num_prototypes, self.feature_dim, crop_size, num_angles, init_threshold, search_method)
         if init_bank_ckpt:
             load_bank_state(self.bank, init_bank_ckpt)
-            if bank_occupancy_floor(init_bank_ckpt) != occupancy_floor:
+            fitted = bank_occupancy_floor(init_bank_ckpt)
+            if fitted != occupancy_floor:
                 raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.occupancy_floor': the bank was fitted with "
-                                 f"{bank_occupancy_floor(init_bank_ckpt)}, this stage has occupancy_floor={occupancy_floor}")
+                                 f"{fitted}, this stage has occupancy_floor={occupancy_floor}")
         self._train_crops: list[Tensor] = []
         self._train_keys: list[Tensor] = []
         self.metrics: torch.nn.ModuleDict | None = None
@@ -128,8 +136,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         """The crop weighting of the checkpoint's bank (:func:`bank_occupancy_floor`'s rule: a checkpoint written
         before the option holds a plain bank), whatever this stage was built with: the bank is scored as it was
         fitted."""
-        saved = (checkpoint.get("hyper_parameters") or {}).get("occupancy_floor")
-        self.hparams.occupancy_floor = None if saved is None else float(saved)
+        self.hparams.occupancy_floor = _saved_floor(checkpoint.get("hyper_parameters"))
 
     def _make_metrics(self, num_classes: int, sym: list[int]) -> None:
         hp = self.hparams

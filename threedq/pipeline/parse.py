@@ -62,7 +62,7 @@ from threedq.stages.checkpoint import (
     encoder_state_from_checkpoint,
 )
 from threedq.stages.detector import Detector
-from threedq.stages.quantizer import load_bank_state
+from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 
 __all__ = [
     "RunArtifacts",
@@ -230,7 +230,7 @@ class SceneParser(torch.nn.Module):
         self.crop_size = int(q_hp["crop_size"])
         self.num_angles = int(q_hp["num_angles"])
         #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`; None: plain cosine)
-        self.occupancy_floor = None if q_hp.get("occupancy_floor") is None else float(q_hp["occupancy_floor"])
+        self.occupancy_floor = bank_occupancy_floor(artifacts.prototypes)
         self.fingerprint = bank_fingerprint(self.bank)
         self.eval()
 
