@@ -93,8 +93,9 @@ def _torch_reason(e: Exception) -> str:
 
 
 #: The stage of a checkpoint without a saved class path, by the weights it holds (first match wins).
+# mining before viewpred: a mining checkpoint trained with view_prediction_weight > 0 carries the decoder too
 _STAGE_BY_WEIGHTS = (("self_labelling", ("bank.", "head.")), ("quantizer", ("bank.",)), ("detector", ("head.",)),
-                     ("viewpred", ("decoder.",)), ("mining", ("moco.",)))
+                     ("mining", ("moco.",)), ("viewpred", ("decoder.",)))
 
 
 @dataclass(frozen=True)

@@ -34,9 +34,14 @@ pairs, the fraction whose two objects share a category, and the median error of 
 same-category pairs of asymmetric categories, and writes ``mining/refresh_<step>.json`` and a picture of the
 best pairs (``mining/refresh_<step>.png``) under the run's log folder.
 
-Whether view prediction stays on as a regulariser: it does not, for cost (a decoder pass and target views per
-step). The stage trains the encoder alone; ``docs/results.md`` measures the drift this allows (the
-view-prediction decoder's RGB L1 on the mined encoder: 0.0415 -> 0.0938 after 100 steps).
+View prediction as a regulariser (``view_prediction_weight > 0``, issue #30's lever, not in the paper): the step
+adds ``view_prediction_weight`` x the view-prediction loss (:class:`~threedq.stages.viewpred.ViewPredictionObjective`:
+RGB of a target view decoded from the grid, and occupancy with raycast free space) on the first of its query
+scenes, so the fine-tuning cannot forget what view prediction taught (off, the mined encoder's decoder RGB L1 goes
+0.0415 -> 0.0938 in 100 steps, ``docs/results.md``). The decoder, the occupancy head and their settings come from
+``encoder_ckpt`` (view prediction's, or an earlier round's mining checkpoint trained with the term, which carries
+them on) and train along; the data must give target views (``num_target_views >= 1``). Off by default: the
+measurement is in ``docs/results.md``.
 
 Convention: frame R metres, z up; crops ``[N, C, Z, Y, X]``; yaw counter-clockwise seen from above, index
 ``b`` meaning ``2 pi b / num_angles``; the mined yaw rotates the TARGET crop onto the query.
@@ -57,9 +62,12 @@ from torch.utils.data import default_collate
 
 from threedq.atomic_io import atomic_write_text
 from threedq.contrastive import MomentumContrast, calibrate_context_cosine, mine_correspondences
+from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
+from threedq.nets import OccupancyHead, ViewDecoder
 from threedq.stages.base import EncoderStage, SplitEvaluation
+from threedq.stages.viewpred import ViewPredictionObjective, view_prediction_checkpoint
 from threedq.viz.features import mined_pairs_figure
 from threedq.viz.png import write_png
 
@@ -134,7 +142,7 @@ def implied_yaw_error_deg(yaw_index: Tensor, num_angles: int, query_yaw: Tensor,
 
 
 
-class Mining(SplitEvaluation, EncoderStage):
+class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
     """The correspondence-learning stage (``vc``, ``vc_moco`` or ``mined``; see the module docstring).
 
     Args:
@@ -179,6 +187,8 @@ class Mining(SplitEvaluation, EncoderStage):
             contrasted with the same voxel seen from a second view set by the key encoder (0: off, the paper's
             mined source alone; needs the data's ``num_target_views >= num_input_views``).
         view_weight: ``mined``: weight of that multi-view term in the loss.
+        view_prediction_weight: ``mined``: weight of the view-prediction loss kept as a regulariser (0: off; see the
+            module docstring; needs an ``encoder_ckpt`` that carries the decoder, and ``num_target_views >= 1``).
         pool_batch_size: scenes encoded at once while cutting the pool.
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
@@ -217,6 +227,7 @@ class Mining(SplitEvaluation, EncoderStage):
         pairs_per_step: int = 4,
         view_positives: int = 0,
         view_weight: float = 1.0,
+        view_prediction_weight: float = 0.0,
         pool_batch_size: int = 4,
         seed: int = 0,
         retrieval_k: int = 10,
@@ -240,6 +251,14 @@ class Mining(SplitEvaluation, EncoderStage):
                              f"{source!r} has its own view pairs (voxels_per_object)")
         if isinstance(view_weight, bool) or not isinstance(view_weight, (int, float)) or not view_weight > 0:
             raise ValueError(f"view_weight: expected a number > 0, got {view_weight!r}")
+        if isinstance(view_prediction_weight, bool) or not isinstance(view_prediction_weight, (int, float)) \
+                or not view_prediction_weight >= 0:
+            raise ValueError(f"view_prediction_weight: expected a number >= 0, got {view_prediction_weight!r}")
+        if view_prediction_weight and source != "mined":
+            raise ValueError(f"view_prediction_weight: the view-prediction regulariser is a term of the mined source, "
+                             f"not of source {source!r}")
+        if view_prediction_weight and not kwargs.get("encoder_ckpt"):
+            raise ValueError("view_prediction_weight: the regulariser's decoder comes from encoder_ckpt; none given")
         if query_pool > target_pool:
             raise ValueError(f"query_pool: the queries are the first query_pool of the target_pool crops, so "
                              f"query_pool ({query_pool}) must be <= target_pool ({target_pool})")
@@ -260,8 +279,42 @@ class Mining(SplitEvaluation, EncoderStage):
         })
         self._pairs: dict[str, Tensor] | None = None
         self._refreshed_at = -1
+        self._vp: dict[str, Any] | None = None  # the regulariser's settings (VIEW_PREDICTION_SETTINGS)
+        if view_prediction_weight:
+            settings, dec, occ = view_prediction_checkpoint(kwargs["encoder_ckpt"])
+            self._vp = settings
+            self.decoder = ViewDecoder(in_channels=self.feature_dim, num_planes=settings["num_planes"],
+                                       pool=settings["pool"])
+            self.occ_head = OccupancyHead(in_channels=self.feature_dim)
+            for name, module, state in (("decoder", self.decoder, dec), ("occ_head", self.occ_head, occ)):
+                try:
+                    module.load_state_dict(state)
+                except RuntimeError as e:
+                    raise InputError(f"{kwargs['encoder_ckpt']}: field '{name}.*': does not fit this "
+                                     f"{name}: {str(e).splitlines()[0]}") from e
         #: per refresh, the diagnostics written to ``mining/refresh_<step>.json``
         self.mining_history: list[dict[str, Any]] = []
+
+    @property
+    def vp_settings(self) -> dict[str, Any]:
+        if self._vp is None:
+            raise RuntimeError("vp_settings: view_prediction_weight is 0; the stage has no view-prediction objective")
+        return self._vp
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """With the regulariser on, the checkpoint carries its settings beside the decoder, for the next round."""
+        super().on_save_checkpoint(checkpoint)
+        if self._vp is not None:
+            checkpoint["view_prediction_settings"] = dict(self._vp)
+
+    def _view_prediction_term(self, feats: Tensor, batch: dict[str, Tensor], n_in: int) -> dict[str, Tensor]:
+        """The view-prediction loss of the first scene of ``batch`` (its grid ``feats[:1]``, from the first ``n_in``
+        views) at predicting its other views."""
+        if batch["rgb"].shape[1] <= n_in:
+            raise ValueError(f"num_target_views: view_prediction_weight > 0 needs target views beside the {n_in} "
+                             f"input view(s) of each scene (set the data's num_target_views >= 1)")
+        one = {k: batch[k][:1] for k in ("rgb", "depth", "K", "R_T_cam")}
+        return self.view_prediction_loss(feats[:1], self.occ_head(feats[:1]), one, n_in)
 
     # ------------------------------------------------------------------ view-contrastive sources
     def _two_view_sets(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -502,6 +555,10 @@ class Mining(SplitEvaluation, EncoderStage):
                 loss = loss + hp.view_weight * self.moco.loss(qv_, kv_)
                 out.update(view_positives=qv_.shape[0], view_pos_cos=(qv_ * kv_).sum(1).mean())
                 k = torch.cat([k, kv_.to(k.dtype)])
+        if hp.view_prediction_weight:
+            vp = self._view_prediction_term(feats, batch, v)
+            loss = loss + hp.view_prediction_weight * vp["loss"]
+            out.update(vp_loss=vp["loss"].detach(), vp_l1=vp["l1"].detach())
         self._enqueue(k)
         return {"loss": loss, **out}
 
@@ -527,6 +584,8 @@ class Mining(SplitEvaluation, EncoderStage):
             return None  # no objects / no verified pairs: skip the step
         self.log_dict({"train/loss": r["loss"], "train/pos_cos": r["pos_cos"],
                        "train/positives": float(r["positives"])}, prog_bar=True, batch_size=1)
+        if "vp_l1" in r:
+            self.log_dict({"train/vp_loss": r["vp_loss"], "train/vp_l1": r["vp_l1"]}, batch_size=1)
         if "view_pos_cos" in r:
             self.log_dict({"train/view_pos_cos": r["view_pos_cos"],
                            "train/view_positives": float(r["view_positives"])}, batch_size=1)
@@ -548,5 +607,7 @@ class Mining(SplitEvaluation, EncoderStage):
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         params = [p for p in self.encoder.parameters() if p.requires_grad]
+        if self._vp is not None:  # the regulariser's decoder and occupancy head train along
+            params += [*self.decoder.parameters(), *self.occ_head.parameters()]
         return torch.optim.Adam(params, lr=self.hparams.lr)
 

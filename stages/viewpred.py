@@ -14,13 +14,17 @@ L1 on the above-ground pixels (``l1_fg``).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from threedq.stages.base import EncoderStage
+from threedq.errors import InputError
+from threedq.stages.base import EncoderStage, stage_arguments
+from threedq.stages.checkpoint import load_checkpoint
 from threedq.viz.features import view_prediction_figure
 from threedq.viz.png import write_png
 from threedq.geometry import (
@@ -40,10 +44,150 @@ from threedq.nets import (
     occupancy_balanced_accuracy,
 )
 
-__all__ = ["ViewPrediction"]
+__all__ = ["VIEW_PREDICTION_SETTINGS", "ViewPrediction", "ViewPredictionObjective", "view_prediction_checkpoint"]
 
 
-class ViewPrediction(EncoderStage):
+#: the view-prediction settings the objective reads (:attr:`ViewPredictionObjective.vp_settings`); a stage that keeps
+#: the objective as a regulariser (the mining stage's ``view_prediction_weight``) takes them from the checkpoint it
+#: loads the decoder from
+VIEW_PREDICTION_SETTINGS = ("num_planes", "depth_range", "pool", "free_samples_per_ray", "free_pixel_stride",
+                            "rgb_weight", "occ_weight", "rgb_loss", "ground_margin")
+
+
+def view_prediction_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Tensor], dict[str, Tensor]]:
+    """The view-prediction objective a checkpoint carries: its settings (:data:`VIEW_PREDICTION_SETTINGS`), the
+    decoder's and the occupancy head's weights.
+
+    A view-prediction checkpoint has them (its hyperparameters; a setting it predates at :class:`ViewPrediction`'s
+    default), and so has a mining checkpoint trained with ``view_prediction_weight > 0`` (the settings under
+    ``view_prediction_settings``).
+
+    Raises:
+        InputError: the file carries no decoder (one line naming the file and the field).
+    """
+    ck = load_checkpoint(path)
+    settings = ck.content.get("view_prediction_settings") if ck.is_lightning else None
+    if settings is None and ck.stage == "viewpred":
+        defaults = stage_arguments(ViewPrediction)
+        hp = ck.hparams or {}
+        settings = {k: hp.get(k, defaults[k]) for k in VIEW_PREDICTION_SETTINGS}
+    decoder, occ_head = (ck.prefixed("decoder."), ck.prefixed("occ_head.")) if ck.is_lightning else ({}, {})
+    if settings is None or not decoder or not occ_head:
+        raise InputError(
+            f"{path}: field 'state_dict': no view-prediction decoder ('decoder.*', 'occ_head.*'): keeping view "
+            f"prediction as a regulariser needs a view-prediction checkpoint, or a mining one trained with "
+            f"view_prediction_weight > 0"
+        )
+    missing = [k for k in VIEW_PREDICTION_SETTINGS if k not in settings]
+    if missing:
+        raise InputError(f"{path}: field 'view_prediction_settings': missing {missing}")
+    return dict(settings), decoder, occ_head
+
+
+class ViewPredictionObjective:
+    """The view-prediction loss, for an :class:`~threedq.stages.base.EncoderStage` with a ``decoder``
+    (:class:`~threedq.nets.ViewDecoder`), an ``occ_head`` (:class:`~threedq.nets.OccupancyHead`) and
+    :attr:`vp_settings`: :class:`ViewPrediction` trains with it, the mining stage keeps it as a regulariser.
+
+    Convention: see :class:`ViewPrediction`.
+    """
+
+    @property
+    def vp_settings(self) -> Mapping[str, Any]:
+        """The :data:`VIEW_PREDICTION_SETTINGS` of the objective, by name."""
+        raise NotImplementedError
+
+    def occupancy_labels(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> tuple[Tensor, Tensor]:
+        """Occupied and free voxels of the feature grid from ``S`` views per scene, aggregated in R.
+
+        Args:
+            depth ``[B, S, H, W]``, K ``[B, S, 3, 3]``, R_T_cam ``[B, S, 4, 4]``.
+
+        Returns:
+            ``occupied``, ``free``: ``[B, 1, Z', Y', X']`` float 0/1, disjoint (occupied wins).
+        """
+        B, S = depth.shape[:2]
+        d, k, p = depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1)
+        occ = occupancy_from_depth(d, k, p, self.feature_grid).view(B, S, 1, *self.feature_grid.volume_shape)
+        s = self.vp_settings["free_pixel_stride"]
+        # Pixel (s*i, s*j) of the full image is pixel (i, j) of the strided one: u' = u / s.
+        k_strided = k * torch.tensor([1.0 / s, 1.0 / s, 1.0], dtype=k.dtype, device=k.device)[:, None]
+        free = free_space_from_depth(
+            d[:, ::s, ::s], k_strided, p, self.feature_grid, samples_per_ray=self.vp_settings["free_samples_per_ray"]
+        )
+        free = free.view(B, S, 1, *self.feature_grid.volume_shape)
+        occ = occ.amax(1)
+        return occ, free.amax(1) * (1 - occ)
+
+    def target_valid(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
+        """Target pixels whose observed surface lies inside the grid, at half resolution ``[B, 1, H/2, W/2]``.
+
+        Only those can be predicted from the grid: a ray that leaves the grid before it hits anything (far
+        ground, sky) carries no information, so it is left out of the loss and of every RGB metric.
+        """
+        B, H, W = depth.shape
+        points, ok = depth_to_points(depth, K, R_T_cam)
+        inside = (ok & self.grid.contains(points)).view(B, 1, H, W).to(depth.dtype)
+        return (F.avg_pool2d(inside, 2) > 0.5).to(depth.dtype)
+
+    def target_foreground(self, batch: dict[str, Tensor], n_in: int) -> Tensor:
+        """Target pixels whose surface lies above the ground plane, at half resolution ``[B*T, 1, H/2, W/2]``.
+
+        The plane is fitted label-free to the depth of every view of the sample
+        (:func:`~threedq.geometry.above_ground_mask`); a half-resolution pixel is foreground when most of its
+        four full-resolution pixels are.
+        """
+        fg = above_ground_mask(batch["depth"], batch["K"], batch["R_T_cam"], margin=self.vp_settings["ground_margin"])
+        fg = fg[:, n_in:].flatten(0, 1)[:, None].to(batch["depth"].dtype)  # [B*T, 1, H, W]
+        return (F.avg_pool2d(fg, 2) > 0.5).to(fg.dtype)
+
+    def predict_view(self, feats: Tensor, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int]) -> Tensor:
+        """Decode the feature grid ``[B, C, Z', Y', X']`` to the RGB of a camera ``[B, 3, H/2, W/2]`` in [-0.5, 0.5]."""
+        H, W = image_size
+        k_half = scale_intrinsics(K, 0.5, 0.5)
+        frustum = resample_to_frustum(
+            feats, self.feature_grid, k_half, R_T_cam, (H // 2, W // 2), tuple(self.vp_settings["depth_range"]),
+            self.vp_settings["num_planes"],
+        )
+        return self.decoder(frustum)
+
+    def view_prediction_loss(self, feats: Tensor, occ_logits: Tensor, batch: dict[str, Tensor], n_in: int,
+                             foreground: bool = False) -> dict[str, Tensor]:
+        """The loss of predicting the target views of ``batch`` from the feature grid of its input views.
+
+        Args:
+            feats: ``[B, C, Z', Y', X']`` the grid encoded from the first ``n_in`` views of each sample;
+                occ_logits: ``[B, 1, Z', Y', X']`` the occupancy head's output on it.
+            batch: ``rgb [B, S, 3, H, W]``, ``depth [B, S, H, W]``, ``K``, ``R_T_cam``; views ``n_in..S-1`` are the
+                targets.
+            foreground: compute the above-ground mask even when the RGB loss does not need it (for ``l1_fg``).
+
+        Returns:
+            ``loss`` (``rgb_weight`` x the RGB loss + ``occ_weight`` x the balanced occupancy loss), ``l1`` (the plain
+            masked L1), ``occ_loss``, ``pred`` / ``target`` ``[B*T, 3, H/2, W/2]`` in [-0.5, 0.5], ``valid``, ``fg``
+            (or None) ``[B*T, 1, H/2, W/2]``, ``occ`` / ``free`` ``[B, 1, Z', Y', X']``.
+        """
+        st = self.vp_settings
+        T = batch["rgb"].shape[1] - n_in
+        rgb_t, depth_t = batch["rgb"][:, n_in:].flatten(0, 1), batch["depth"][:, n_in:].flatten(0, 1)
+        K_t, pose_t = batch["K"][:, n_in:].flatten(0, 1), batch["R_T_cam"][:, n_in:].flatten(0, 1)
+        H, W = rgb_t.shape[-2:]
+        feats_t = feats.repeat_interleave(T, dim=0) if T > 1 else feats
+        pred = self.predict_view(feats_t, K_t, pose_t, (H, W))  # [B*T, 3, H/2, W/2]
+        target = F.avg_pool2d(rgb_t, 2) - 0.5
+        valid = self.target_valid(depth_t, K_t, pose_t)
+        occ, free = self.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
+        l1 = masked_l1(pred, target, valid)
+        balanced = st["rgb_loss"] == "balanced"
+        fg = self.target_foreground(batch, n_in) if balanced or foreground else None
+        rgb_loss = balanced_l1(pred, target, valid, fg) if balanced else l1
+        occ_loss = balanced_occupancy_loss(occ_logits, occ, free)
+        loss = st["rgb_weight"] * rgb_loss + st["occ_weight"] * occ_loss
+        return {"loss": loss, "l1": l1, "occ_loss": occ_loss, "pred": pred, "target": target, "valid": valid,
+                "fg": fg, "occ": occ, "free": free}
+
+
+class ViewPrediction(ViewPredictionObjective, EncoderStage):
     """The view-prediction stage.
 
     Args:
@@ -103,60 +247,9 @@ class ViewPrediction(EncoderStage):
         self.decoder = ViewDecoder(in_channels=self.feature_dim, num_planes=num_planes, pool=pool)
         self.occ_head = OccupancyHead(in_channels=self.feature_dim)
 
-    # ------------------------------------------------------------------ pieces
-    def occupancy_labels(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> tuple[Tensor, Tensor]:
-        """Occupied and free voxels of the feature grid from ``S`` views per scene, aggregated in R.
-
-        Args:
-            depth ``[B, S, H, W]``, K ``[B, S, 3, 3]``, R_T_cam ``[B, S, 4, 4]``.
-
-        Returns:
-            ``occupied``, ``free``: ``[B, 1, Z', Y', X']`` float 0/1, disjoint (occupied wins).
-        """
-        B, S = depth.shape[:2]
-        d, k, p = depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1)
-        occ = occupancy_from_depth(d, k, p, self.feature_grid).view(B, S, 1, *self.feature_grid.volume_shape)
-        s = self.hparams.free_pixel_stride
-        # Pixel (s*i, s*j) of the full image is pixel (i, j) of the strided one: u' = u / s.
-        k_strided = k * torch.tensor([1.0 / s, 1.0 / s, 1.0], dtype=k.dtype, device=k.device)[:, None]
-        free = free_space_from_depth(
-            d[:, ::s, ::s], k_strided, p, self.feature_grid, samples_per_ray=self.hparams.free_samples_per_ray
-        )
-        free = free.view(B, S, 1, *self.feature_grid.volume_shape)
-        occ = occ.amax(1)
-        return occ, free.amax(1) * (1 - occ)
-
-    def target_valid(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
-        """Target pixels whose observed surface lies inside the grid, at half resolution ``[B, 1, H/2, W/2]``.
-
-        Only those can be predicted from the grid: a ray that leaves the grid before it hits anything (far
-        ground, sky) carries no information, so it is left out of the loss and of every RGB metric.
-        """
-        B, H, W = depth.shape
-        points, ok = depth_to_points(depth, K, R_T_cam)
-        inside = (ok & self.grid.contains(points)).view(B, 1, H, W).to(depth.dtype)
-        return (F.avg_pool2d(inside, 2) > 0.5).to(depth.dtype)
-
-    def target_foreground(self, batch: dict[str, Tensor], n_in: int) -> Tensor:
-        """Target pixels whose surface lies above the ground plane, at half resolution ``[B*T, 1, H/2, W/2]``.
-
-        The plane is fitted label-free to the depth of every view of the sample
-        (:func:`~threedq.geometry.above_ground_mask`); a half-resolution pixel is foreground when most of its
-        four full-resolution pixels are.
-        """
-        fg = above_ground_mask(batch["depth"], batch["K"], batch["R_T_cam"], margin=self.hparams.ground_margin)
-        fg = fg[:, n_in:].flatten(0, 1)[:, None].to(batch["depth"].dtype)  # [B*T, 1, H, W]
-        return (F.avg_pool2d(fg, 2) > 0.5).to(fg.dtype)
-
-    def predict_view(self, feats: Tensor, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int]) -> Tensor:
-        """Decode the feature grid ``[B, C, Z', Y', X']`` to the RGB of a camera ``[B, 3, H/2, W/2]`` in [-0.5, 0.5]."""
-        H, W = image_size
-        k_half = scale_intrinsics(K, 0.5, 0.5)
-        frustum = resample_to_frustum(
-            feats, self.feature_grid, k_half, R_T_cam, (H // 2, W // 2), tuple(self.hparams.depth_range),
-            self.hparams.num_planes,
-        )
-        return self.decoder(frustum)
+    @property
+    def vp_settings(self) -> Mapping[str, Any]:
+        return self.hparams
 
     def forward(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         n_in = self._num_inputs(batch)
@@ -180,32 +273,20 @@ class ViewPrediction(EncoderStage):
     def _step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         out = self(batch)
         n_in = self._num_inputs(batch)
-        B, S = batch["rgb"].shape[:2]
-        T = S - n_in
-        rgb_t, depth_t = batch["rgb"][:, n_in:].flatten(0, 1), batch["depth"][:, n_in:].flatten(0, 1)
-        K_t, pose_t = batch["K"][:, n_in:].flatten(0, 1), batch["R_T_cam"][:, n_in:].flatten(0, 1)
-        H, W = rgb_t.shape[-2:]
-        feats_t = out["features"].repeat_interleave(T, dim=0) if T > 1 else out["features"]
-        pred = self.predict_view(feats_t, K_t, pose_t, (H, W))  # [B*T, 3, H/2, W/2]
-        target = F.avg_pool2d(rgb_t, 2) - 0.5
-        valid = self.target_valid(depth_t, K_t, pose_t)
-        occ, free = self.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
-        l1 = masked_l1(pred, target, valid)
-        balanced = self.hparams.rgb_loss == "balanced"
-        fg = self.target_foreground(batch, n_in) if balanced or not self.training else None
-        rgb_loss = balanced_l1(pred, target, valid, fg) if balanced else l1
-        occ_loss = balanced_occupancy_loss(out["occ_logits"], occ, free)
-        loss = self.hparams.rgb_weight * rgb_loss + self.hparams.occ_weight * occ_loss
+        T = batch["rgb"].shape[1] - n_in
+        r = self.view_prediction_loss(out["features"], out["occ_logits"], batch, n_in, foreground=not self.training)
+        pred, target, valid, fg, occ, free = r["pred"], r["target"], r["valid"], r["fg"], r["occ"], r["free"]
+        rgb_t = batch["rgb"][:, n_in:].flatten(0, 1)
         # Baseline: every valid target pixel predicted as the mean colour of the input views' valid pixels.
         in_valid = (batch["depth"][:, :n_in] > 0).to(rgb_t.dtype)[:, :, None]
         mean_col = (batch["rgb"][:, :n_in] * in_valid).sum((1, 3, 4)) / in_valid.sum((1, 3, 4)).clamp_min(1)
         mean_col = mean_col.repeat_interleave(T, dim=0) if T > 1 else mean_col
         mean_img = mean_col[:, :, None, None].expand_as(pred) - 0.5
         out = {
-            "loss": loss,
-            "l1": l1,
+            "loss": r["loss"],
+            "l1": r["l1"],
             "l1_mean_colour": masked_l1(mean_img, target, valid),
-            "occ_loss": occ_loss,
+            "occ_loss": r["occ_loss"],
             "occ_bacc": occupancy_balanced_accuracy(out["occ_logits"], occ, free),
             "pred": pred,
             "target": target,

@@ -176,8 +176,94 @@ class TestViewPositives:
             m._two_view_sets({"rgb": torch.rand(1, 1, 3, 32, 32), "num_input_views": torch.tensor([1])})
 
 
+class TestViewPredictionRegulariser:
+    """``view_prediction_weight``: the view-prediction loss, with the decoder and settings of the checkpoint."""
+
+    SETTINGS = dict(num_planes=16, pool=4, rgb_weight=7.0, occ_weight=0.5, free_samples_per_ray=8)
+
+    def _vp_checkpoint(self, tmp_path: Path) -> tuple[Path, "ViewPrediction"]:
+        from threedq.stages.viewpred import ViewPrediction
+
+        torch.manual_seed(4)
+        vp = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0, **self.SETTINGS)
+        with torch.no_grad():  # not the decoder's initial weights, so that loading them is seen
+            for prm in vp.decoder.parameters():
+                prm.add_(0.01 * torch.randn_like(prm))
+        ckpt = tmp_path / "vp.ckpt"
+        torch.save({"state_dict": vp.state_dict(), "hyper_parameters": dict(vp.hparams)}, ckpt)
+        return ckpt, vp
+
+    def _batch(self, data_dir: Path, targets: int = 1) -> dict[str, torch.Tensor]:
+        from threedq.datamodules.scene_folder import SceneFolderDataModule
+
+        dm = SceneFolderDataModule(str(data_dir), batch_size=1, num_input_views=1, num_target_views=targets)
+        dm.setup()
+        return next(iter(dm.val_dataloader()))
+
+    def test_equals_the_view_prediction_stages_loss(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        ckpt, vp = self._vp_checkpoint(tmp_path)
+        m = Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=2.0).eval()
+        assert m.vp_settings["rgb_weight"] == 7.0 and m.vp_settings["num_planes"] == 16
+        for a, b in zip(vp.decoder.state_dict().values(), m.decoder.state_dict().values()):
+            assert torch.equal(a, b)
+        batch = self._batch(tiny_dataset)
+        with torch.no_grad():
+            want = vp.eval()._step(batch)
+            feats = m.encode_views(*(batch[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam")))
+            got = m._view_prediction_term(feats, batch, 1)
+        assert torch.allclose(got["loss"], want["loss"], rtol=1e-5) and torch.allclose(got["l1"], want["l1"])
+        # the settings weigh the two terms: 7 x the balanced RGB L1 + 0.5 x the occupancy loss
+        from threedq.nets import balanced_l1
+
+        rgb = balanced_l1(got["pred"], got["target"], got["valid"], got["fg"])
+        assert torch.allclose(got["loss"], 7.0 * rgb + 0.5 * got["occ_loss"], rtol=1e-5)
+
+    def test_only_the_first_scene(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        ckpt, _ = self._vp_checkpoint(tmp_path)
+        m = Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=1.0).eval()
+        one = self._batch(tiny_dataset)
+        two = {k: torch.cat([v, v.flip(0) if k == "rgb" else v]) if isinstance(v, torch.Tensor) else v
+               for k, v in one.items()}
+        two["rgb"][1] = torch.rand_like(two["rgb"][1])  # another second scene changes nothing
+        with torch.no_grad():
+            f1 = m.encode_views(*(one[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam")))
+            f2 = m.encode_views(*(two[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam")))
+            a, b = m._view_prediction_term(f1, one, 1)["loss"], m._view_prediction_term(f2, two, 1)["loss"]
+        assert torch.allclose(a, b, rtol=1e-5)
+
+    def test_errors(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        from threedq.errors import InputError
+        from threedq.stages.base import EncoderStage
+
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
+        with pytest.raises(ValueError, match="view_prediction_weight"):
+            Mining(view_prediction_weight=-1.0, **kw)
+        with pytest.raises(ValueError, match="view_prediction_weight.*encoder_ckpt"):
+            Mining(view_prediction_weight=1.0, **kw)
+        ckpt, _ = self._vp_checkpoint(tmp_path)
+        with pytest.raises(ValueError, match="view_prediction_weight.*source 'vc'"):
+            Mining(source="vc", encoder_ckpt=str(ckpt), view_prediction_weight=1.0, queue_size=64)
+        enc = tmp_path / "enc.ckpt"  # a checkpoint with an encoder and no decoder
+        torch.save({"state_dict": {f"encoder.{k}": v for k, v in
+                                   EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict().items()},
+                    "hyper_parameters": {"grid_resolution": [32, 32, 16]}}, enc)
+        with pytest.raises(InputError, match=r"enc\.ckpt.*'state_dict'.*no view-prediction decoder"):
+            Mining(encoder_ckpt=str(enc), view_prediction_weight=1.0, queue_size=64)
+        m = Mining(encoder_ckpt=str(ckpt), view_prediction_weight=1.0, queue_size=64)
+        batch = self._batch(tiny_dataset, targets=0)
+        feats = m.encode_views(*(batch[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam")))
+        with pytest.raises(ValueError, match="num_target_views"):
+            m._view_prediction_term(feats, batch, 1)
+        # off (the default): no decoder, and nothing asks for its settings
+        plain = Mining(encoder_ckpt=str(ckpt), queue_size=64)
+        assert not hasattr(plain, "decoder") and not any(k.startswith("decoder.") for k in plain.state_dict())
+        with pytest.raises(RuntimeError, match="view_prediction_weight is 0"):
+            plain.vp_settings
+
+
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
     views = source == "mined_views"
+    vp = source == "mined_vp"
     cfg = tmp_path / f"tiny_{source}.yaml"
     cfg.write_text(
         f"""
@@ -202,7 +288,8 @@ model:
     pool_batch_size: 2
     retrieval_k: 1
     view_positives: {4 if views else 0}
-{tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views else {}))}
+    view_prediction_weight: {1.0 if vp else 0.0}
+{tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
 trainer:
   max_steps: 3
   precision: 32-true
@@ -216,7 +303,7 @@ trainer:
     return cfg
 
 
-@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views"])
+@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
 
@@ -226,13 +313,20 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     enc = tmp_path / "enc.pt"
     start = EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict()
     torch.save(start, enc)
+    if source == "mined_vp":  # the regulariser's decoder comes from a view-prediction checkpoint
+        from threedq.stages.viewpred import ViewPrediction
+
+        vp = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0)
+        vp.encoder.load_state_dict(start)
+        enc = tmp_path / "vp.ckpt"
+        torch.save({"state_dict": vp.state_dict(), "hyper_parameters": dict(vp.hparams)}, enc)
     run = tmp_path / source
     name = "mining" if source.startswith("mined") else source
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),
                            "--config", str(_config(tmp_path, tiny_dataset, enc, source)),
                            f"--trainer.default_root_dir={run}"])
     model = cli.model
-    assert isinstance(model, Mining) and model.hparams.source == source.removesuffix("_views")
+    assert isinstance(model, Mining) and model.hparams.source == source.removesuffix("_views").removesuffix("_vp")
     assert model.trainer.global_step == 3
     logged = cli.trainer.logged_metrics
     assert "train/loss" in logged and torch.isfinite(logged["train/loss"])
@@ -254,6 +348,17 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert float(logged["train/view_positives"]) % 4 == 0 and float(logged["train/view_positives"]) >= 4
         assert -1.0 <= float(logged["train/view_pos_cos"]) <= 1.0
         assert int(state["moco.queue_ptr"]) > 3 * 2 * 8
+    if source == "mined_vp":
+        assert float(logged["train/vp_l1"]) > 0 and torch.isfinite(logged["train/vp_loss"])
+        # the decoder trained along, and the checkpoint carries it and its settings on to the next round's mining
+        before = vp.decoder.state_dict()
+        assert any(not torch.equal(state[f"decoder.{k}"], v) for k, v in before.items() if v.is_floating_point())
+        saved = torch.load(ckpt, weights_only=True, map_location="cpu")
+        assert saved["view_prediction_settings"]["rgb_weight"] == 30.0
+        nxt = Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=1.0)
+        assert all(torch.equal(state[f"decoder.{k}"], v) for k, v in nxt.decoder.state_dict().items())
+    elif source.startswith("mined"):
+        assert not any(k.startswith("decoder.") for k in state)
     if source.startswith("mined"):
         assert bool(state["queue_primed"]) and int(state["refreshes"]) == 2  # steps 0 and 2
         logs = sorted((run / "mining").glob("refresh_*.json"))
