@@ -236,19 +236,6 @@ def test_em_given_viewpred_checkpoint(tmp_path: Path, tiny_dataset: Path, capsys
         run_em(rounds=0, work_dir=str(tmp_path / "x"), extra_configs=[cfg], viewpred_ckpt=str(tmp_path / "nope.ckpt"))
 
 
-def test_bf16_only_where_the_cpu_has_bf16_instructions() -> None:
-    """``--frozen_precision auto`` picks bf16 on a CPU only with bf16 instructions: oneDNN also 'supports' bf16 on
-    a plain AVX-512 CPU, by converting, and there it is slower than float32."""
-    from threedq.pipeline.em import _bf16_is_native
-
-    avx512 = {"architecture": "x86_64", "avx512_f": True, "avx512_bw": True, "avx512_bf16": False, "amx_bf16": False}
-    assert _bf16_is_native(avx512) is False
-    assert _bf16_is_native({**avx512, "avx512_bf16": True}) is True
-    assert _bf16_is_native({**avx512, "amx_bf16": True}) is True
-    assert _bf16_is_native({"architecture": "x86_64"}) is False
-    assert isinstance(_bf16_is_native(), bool)  # this machine, whatever it is
-
-
 def test_em_data_config(tmp_path: Path, tiny_dataset: Path) -> None:
     """``--data_config``: a user's dataset is one file (a DataModule class and its folder), composed into every stage;
     the stage configs keep how they load it, and the report names the file."""

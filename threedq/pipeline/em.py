@@ -73,6 +73,7 @@ from threedq.pipeline.lightning_cli import (
     DEFAULT_DATA_CONFIG, ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint,
 )
 from threedq.pipeline.overrides import stage_overrides
+from threedq.pipeline.precision import bf16_is_native as _bf16_is_native
 from threedq.pipeline.report import evaluate_quantizer
 from threedq.pipeline.results import MiningResult, SelfLabellingResult, StageRecord
 from threedq.pipeline.run_layout import RunLayout
@@ -154,29 +155,6 @@ def _fit_stage(
     info = StageRecord(stage=name, checkpoint=str(last), seconds=round(time.time() - t0, 1))
     atomic_write_json(RunLayout.stage_marker(run_dir), info.to_json())
     return info
-
-
-def _bf16_is_native(cpu: dict[str, Any] | None = None) -> bool:
-    """Whether bf16 runs natively here: a GPU that supports it, else a CPU with bf16 instructions.
-
-    On x86 that means AVX512-BF16 or AMX-BF16: oneDNN also runs bf16 on a CPU with only AVX-512 (it says
-    "supported"), but by converting, and there an encoder pass under bf16 autocast took 2x the float32 time
-    (Intel Xeon without AVX512-BF16, 2026-11-26). ``cpu``: the capabilities to judge (default: this machine's,
-    ``torch.backends.cpu``), for tests.
-    """
-    if cpu is None and torch.cuda.is_available():
-        return bool(torch.cuda.is_bf16_supported())
-    if cpu is None:
-        try:
-            cpu = dict(torch._C._cpu._get_cpu_capability())
-        except (AttributeError, RuntimeError):
-            cpu = {}
-    if cpu.get("architecture", platform.machine()) in ("x86_64", "AMD64", "i386", "x86"):
-        return bool(cpu.get("avx512_bf16") or cpu.get("amx_bf16"))
-    try:  # other architectures (aarch64 with bf16 kernels): what oneDNN says
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
 
 
 def _given_viewpred(path: str | Path) -> StageRecord:
@@ -335,7 +313,8 @@ def run_em(
             2x faster on CPUs with bf16 instructions and on GPUs), ``32-true``, or ``auto`` (default: bf16 where the
             CPU has bf16 instructions (AVX512-BF16 or AMX on x86) or the GPU supports it, else fp32; on a CPU
             without them mining, whose config asks for ``bf16-mixed``, runs in fp32 too). View prediction keeps its config's
-            precision.
+            precision. Whatever is asked, a stage on a CPU without bf16 instructions runs bf16 as fp32 (the CLI's
+            rule, :func:`~threedq.pipeline.precision.cpu_precision`: emulated bf16 costs 2x to 60x).
     """
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
         raise InputError(f"--rounds: expected an int >= 0, got {rounds!r}")

@@ -29,6 +29,7 @@ from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
 from threedq.errors import InputError, flatten_message, user_error_in_chain
 from threedq.locks import hold_folder
+from threedq.pipeline.precision import cpu_precision
 from threedq.pipeline.strategy import DDPStrategy
 from threedq.stages.checkpoint import AtomicCheckpointIO, checkpoint_stage
 
@@ -388,7 +389,19 @@ class ThreeDQCLI(LightningCLI):
     def before_instantiate_classes(self) -> None:
         """A run of a subcommand holds its ``trainer.default_root_dir`` (:func:`~threedq.locks.hold_folder`): a
         second run writing into it, or into a folder inside one that another run holds (a ``threedq em`` work
-        folder), is refused before anything is built or written."""
+        folder), is refused before anything is built or written.
+
+        A bf16 ``trainer.precision`` on a CPU without bf16 instructions becomes ``32-true``, with one line saying so
+        (:func:`~threedq.pipeline.precision.cpu_precision`: there bf16 is emulated at 2x to 60x the float32 time);
+        the saved ``config.yaml`` names the precision the run used."""
+        trainer = self._get(self.config, "trainer", default=None)
+        if trainer is not None:
+            accelerator = str(trainer.get("accelerator") or "auto")
+            on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
+            precision, note = cpu_precision(trainer.get("precision"), on_cpu)
+            if note is not None:
+                trainer["precision"] = precision
+                print(f"[threedq] {note}", flush=True)
         if self.subcommand is not None:
             root = self._get(self.config, "trainer", default={}).get("default_root_dir") or DEFAULT_ROOT
             self._hold.enter_context(hold_folder(root))
