@@ -1,0 +1,159 @@
+"""Several ``threedq em`` runs per arm (one per seed) side by side: Table 3 per round, the mean and range over seeds.
+
+A change to the loop is a claim only where its difference is larger than the seeds' spread (issue #30: round-4
+precision@10 moves by 0.03-0.04 between seeds of one recipe). This script reads the ``metrics.json`` that every
+``threedq em`` run writes (Table 3's rows; few-shot accuracy from the round results; the mining stage's seconds from
+``rNN_mining/stage.json``), so it measures nothing itself and repeats no evaluation. Per arm and round it prints the
+mean (range) over the arm's runs, then for each run whether every round's strict and paper-protocol precision@10
+stayed at or above its round 0 (the view-prediction encoder on the same boxes), and with ``--png`` draws the
+per-seed curves.
+
+    python benchmarks/em_seeds.py --arm "base=runs/em_s0 runs/em_s1" --arm "vp reg.=runs/vp_s0 runs/vp_s1" \\
+        --png docs/img/em_seeds.png
+
+Convention: rounds as in Table 3 (0 = the view-prediction encoder, 1..R = after each EM round); a value a run
+does not have (a round it did not reach, few-shot with too few categories) is left out of the mean.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import cpu_name
+
+#: (column, name in the table)
+METRICS = (
+    ("precision_at_10", "strict p@10"),
+    ("precision_at_10_paper", "paper p@10"),
+    ("same_object_top1", "same-object top-1"),
+    ("hungarian_acc", "Hungarian"),
+    ("fewshot_acc", "few-shot"),
+    ("map_50", "mAP@0.5"),
+    ("mining_seconds", "mining s"),
+)
+
+
+def read_run(work_dir: str | Path) -> dict[int, dict[str, float | None]]:
+    """``{round: {metric: value}}`` of one ``threedq em`` work dir (its ``metrics.json``)."""
+    path = Path(work_dir) / "metrics.json"
+    if not path.is_file():
+        raise SystemExit(f"em_seeds: {path}: no metrics.json (a run writes it when its last round ends)")
+    try:
+        m = json.loads(path.read_text())
+        rows = m["table3"]
+    except (json.JSONDecodeError, KeyError) as e:
+        raise SystemExit(f"em_seeds: {path}: not a threedq em metrics.json ({type(e).__name__}: {e})") from e
+    results = [m.get("round0_result")] + list(m.get("round_results") or [])
+    out: dict[int, dict[str, float | None]] = {}
+    for row in rows:
+        r = int(row["round"])
+        cells = {k: row.get(k) for k, _ in METRICS[:4] + METRICS[5:6]}
+        res = results[r] if r < len(results) and results[r] else {}
+        cells["fewshot_acc"] = res.get("quantization", {}).get("threedq", {}).get("fewshot_acc")
+        stage = Path(work_dir) / f"r{r:02d}_mining" / "stage.json"
+        cells["mining_seconds"] = json.loads(stage.read_text()).get("seconds") if r and stage.is_file() else None
+        out[r] = cells
+    return out
+
+
+def mean_range(values: list[float | None]) -> tuple[float, float, int] | None:
+    """(mean, max - min, count) of the values that are not ``None``; ``None`` if there are none."""
+    v = [float(x) for x in values if x is not None]
+    if not v:
+        return None
+    return sum(v) / len(v), max(v) - min(v), len(v)
+
+
+def holds_round0(run: dict[int, dict[str, float | None]], metric: str) -> bool | None:
+    """Whether every round after 0 has ``metric`` >= round 0's (``None`` without round 0 or later rounds)."""
+    base = run.get(0, {}).get(metric)
+    later = [c.get(metric) for r, c in run.items() if r > 0 and c.get(metric) is not None]
+    if base is None or not later:
+        return None
+    return all(v >= base for v in later)
+
+
+def summary_markdown(arms: dict[str, list[str]], runs: dict[str, list[dict[int, dict[str, float | None]]]]) -> str:
+    """Per round and arm the mean (range) over its runs; then each run's round-0 check."""
+    lines = ["| round | arm | runs | " + " | ".join(name for _, name in METRICS) + " |",
+             "|---|---|---|" + "---|" * len(METRICS)]
+    rounds = sorted({r for rs in runs.values() for run in rs for r in run})
+    for r in rounds:
+        for arm, rs in runs.items():
+            cells, n = [], 0
+            for key, _ in METRICS:
+                mr = mean_range([run.get(r, {}).get(key) for run in rs])
+                if mr is None:
+                    cells.append("-")
+                    continue
+                n = max(n, mr[2])
+                digits = 1 if key == "mining_seconds" else 3
+                cells.append(f"{mr[0]:.{digits}f} ({mr[1]:.{digits}f})" if mr[2] > 1 else f"{mr[0]:.{digits}f}")
+            if n:
+                lines.append(f"| {r} | {arm} | {n} | " + " | ".join(cells) + " |")
+    lines += ["", "| arm | run | every round >= round 0, strict | paper protocol |", "|---|---|---|---|"]
+    for arm, rs in runs.items():
+        for d, run in zip(arms[arm], rs):
+            marks = ["-" if (h := holds_round0(run, k)) is None else ("yes" if h else "no")
+                     for k in ("precision_at_10", "precision_at_10_paper")]
+            lines.append(f"| {arm} | {d} | " + " | ".join(marks) + " |")
+    return "\n".join(lines)
+
+
+def figure(arms: dict[str, list[str]], runs: dict[str, list[dict[int, dict[str, float | None]]]]) -> Any:
+    """Per-seed curves of strict and paper precision@10, same-object top-1 and Hungarian accuracy, one colour an arm."""
+    from threedq.viz.png import new_figure
+
+    panels = METRICS[:4]
+    fig = new_figure(figsize=(3.2 * len(panels), 3.0), dpi=110)
+    colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]
+    for p, (key, name) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), p + 1)
+        for a, (arm, rs) in enumerate(runs.items()):
+            for i, run in enumerate(rs):
+                pts = sorted((r, c[key]) for r, c in run.items() if c.get(key) is not None)
+                if pts:
+                    ax.plot(*zip(*pts), marker="o", ms=3, lw=1, color=colours[a % len(colours)],
+                            label=arm if i == 0 else None)
+        ax.set_xticks(sorted({r for rs in runs.values() for run in rs for r in run}))
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("EM round", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+        if p == 0:
+            ax.legend(fontsize=7)
+    return fig
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--arm", action="append", required=True, metavar="NAME=DIR [DIR ...]",
+                    help="an arm: its name and its runs' work dirs, separated by spaces (repeatable)")
+    ap.add_argument("--png", type=Path, default=None, help="write the per-seed curves here")
+    args = ap.parse_args(argv)
+    arms: dict[str, list[str]] = {}
+    for spec in args.arm:
+        name, sep, dirs = spec.partition("=")
+        if not sep or not name.strip() or not dirs.split():
+            raise SystemExit(f"em_seeds: --arm {spec!r}: expected NAME=DIR [DIR ...]")
+        arms[name.strip()] = dirs.split()
+    runs = {arm: [read_run(d) for d in dirs] for arm, dirs in arms.items()}
+    print(f"# threedq em runs per arm: mean (range) over runs; {cpu_name()} (where this table was printed, "
+          "not necessarily where the runs ran)")
+    print(summary_markdown(arms, runs))
+    if args.png is not None:
+        from threedq.viz.png import write_png
+
+        write_png(args.png, figure(arms, runs))
+        print(f"wrote {args.png}")
+
+
+if __name__ == "__main__":
+    main()
