@@ -283,6 +283,12 @@ def resolve_config_args(argv: Sequence[str]) -> list[str]:
     return out
 
 
+def _runs_on_cpu(trainer: Any) -> bool:
+    """Whether a trainer config (``accelerator``: ``cpu``, or ``auto`` on a machine without CUDA) trains on the CPU."""
+    accelerator = str(trainer.get("accelerator") or "auto")
+    return accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
+
+
 class ThreeDQCLI(LightningCLI):
     """LightningCLI for every threedq stage: any LightningModule / LightningDataModule via ``class_path``.
 
@@ -396,9 +402,7 @@ class ThreeDQCLI(LightningCLI):
         the saved ``config.yaml`` names the precision the run used."""
         trainer = self._get(self.config, "trainer", default=None)
         if trainer is not None:
-            accelerator = str(trainer.get("accelerator") or "auto")
-            on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
-            precision, note = cpu_precision(trainer.get("precision"), on_cpu)
+            precision, note = cpu_precision(trainer.get("precision"), _runs_on_cpu(trainer))
             if note is not None:
                 trainer["precision"] = precision
                 print(f"[threedq] {note}", flush=True)
@@ -425,9 +429,7 @@ class ThreeDQCLI(LightningCLI):
         there, refreshed every 100 training steps, so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
         """
         cfg = self._get(self.config_init, "trainer", default={})
-        accelerator = str(cfg.get("accelerator") or "auto")
-        on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
-        if cfg.get("sync_batchnorm") and on_cpu:
+        if cfg.get("sync_batchnorm") and _runs_on_cpu(cfg):
             # torch's SyncBatchNorm has no CPU kernel: without this the processes start, then fail at the first step
             raise ConfigError(
                 "--trainer.sync_batchnorm: SyncBatchNorm runs on GPUs only; on CPU use --config trainer/ddp_cpu.yaml "
