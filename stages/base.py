@@ -10,7 +10,7 @@ View prediction trains it; later stages load it:
 * ``freeze_encoder``: keep those weights fixed (no gradient, BatchNorm in eval mode) or fine-tune them.
 
 The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``,
-``grid_resolution`` and ``feature_dim`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
+``grid_resolution``, ``feature_dim`` and ``encoder_channels`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
 them from there unless it names them itself; a stage that names a different grid than its encoder was
 trained on is refused with one line naming the checkpoint and the field. Only view prediction (which
 trains the encoder from scratch) needs them in its config.
@@ -83,6 +83,8 @@ class EncoderStage(L.LightningModule):
         grid_resolution: ``(nx, ny, nz)`` voxels of the input grid (each divisible by 8); features come
             out at half this resolution (None: the encoder checkpoint's).
         feature_dim: channels of the feature grid (None: the encoder checkpoint's).
+        encoder_channels: widths ``(c1, c2, c3)`` of the encoder's three levels (None: the encoder checkpoint's,
+            else the paper's ``(64, 128, 256)``); narrower is cheaper per step (see :class:`~threedq.nets.UNet3D`).
         encoder_ckpt: optional checkpoint to load the encoder from (see the module docstring).
         freeze_encoder: keep the encoder fixed.
         channels_last: run the encoder in ``channels_last_3d`` memory format (faster oneDNN / cuDNN
@@ -103,19 +105,21 @@ class EncoderStage(L.LightningModule):
         grid_max: tuple[float, float, float] | None = None,
         grid_resolution: tuple[int, int, int] | None = None,
         feature_dim: int | None = None,
+        encoder_channels: tuple[int, int, int] | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = False,
         channels_last: bool = True,
     ) -> None:
         super().__init__()
-        given = {"grid_min": grid_min, "grid_max": grid_max, "grid_resolution": grid_resolution, "feature_dim": feature_dim}
+        given = {"grid_min": grid_min, "grid_max": grid_max, "grid_resolution": grid_resolution, "feature_dim": feature_dim,
+                 "encoder_channels": encoder_channels}
         #: the resolved grid fields, written into every checkpoint's hyperparameters (see the module docstring)
         self.grid_fields = resolve_grid(given, encoder_ckpt)
         g = self.grid_fields
         self.grid = VoxelGridSpec(g["grid_min"], g["grid_max"], g["grid_resolution"])
         self.feature_grid = self.grid.half()
         self.feature_dim = g["feature_dim"]
-        self.encoder = UNet3D(in_channels=4, out_channels=self.feature_dim)
+        self.encoder = UNet3D(in_channels=4, out_channels=self.feature_dim, channels=g["encoder_channels"])
         self.freeze_encoder = freeze_encoder
         self.channels_last = channels_last
         if channels_last:

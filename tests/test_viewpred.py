@@ -226,13 +226,34 @@ class TestGridTravelsWithEncoder:
         assert EncoderStage(grid_resolution=[32, 32, 16], encoder_ckpt=str(ckpt)).grid.resolution == (32, 32, 16)
 
     @pytest.mark.parametrize(
-        "field, value", [("grid_resolution", (64, 64, 32)), ("feature_dim", 8), ("grid_max", (1.28, 1.28, 1.0))]
+        "field, value",
+        [("grid_resolution", (64, 64, 32)), ("feature_dim", 8), ("grid_max", (1.28, 1.28, 1.0)),
+         ("encoder_channels", (16, 32, 64))],
     )
     def test_another_grid_is_refused(self, tmp_path: Path, field: str, value) -> None:
         ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16))
         with pytest.raises(ValueError, match=rf"vp\.ckpt: field '{field}': the encoder was trained with") as e:
             EncoderStage(encoder_ckpt=str(ckpt), **{field: value})
         assert "\n" not in str(e.value)
+
+    def test_encoder_widths_come_from_the_checkpoint(self, tmp_path: Path) -> None:
+        from threedq.stages.detector import Detector
+
+        ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16), encoder_channels=(8, 16, 32))
+        src = torch.load(ckpt, weights_only=True)["state_dict"]
+        assert src["encoder.enc1.0.weight"].shape[0] == 8 and src["encoder.enc3.0.weight"].shape[0] == 32
+        det = Detector(encoder_ckpt=str(ckpt))
+        assert det.encoder.channels == (8, 16, 32) and det.hparams["encoder_channels"] == [8, 16, 32]
+        # the weights were loaded, not only the shapes matched
+        assert torch.equal(det.encoder.state_dict()["enc2.0.weight"], src["encoder.enc2.0.weight"])
+
+    def test_a_checkpoint_without_widths_has_the_papers(self, tmp_path: Path) -> None:
+        """Checkpoints written before ``encoder_channels`` existed hold the paper's (64, 128, 256) encoder."""
+        ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16))
+        obj = torch.load(ckpt, weights_only=True)
+        del obj["hyper_parameters"]["encoder_channels"]
+        torch.save(obj, ckpt)
+        assert EncoderStage(encoder_ckpt=str(ckpt)).encoder.channels == (64, 128, 256)
 
     def test_no_checkpoint_no_grid_gives_the_default(self) -> None:
         from threedq.stages.base import DEFAULT_GRID

@@ -85,6 +85,7 @@ class UNet3D(nn.Module):
         c1, c2, c3 = (int(c) for c in channels)
         self.in_channels = in_channels
         self.out_channels = out_channels
+        self.channels = (c1, c2, c3)
         self.normalize = normalize
         self.enc1 = _down(in_channels, c1, negative_slope)  # 1/2
         self.enc2 = _down(c1, c2, negative_slope)  # 1/4

@@ -127,7 +127,8 @@ def collect_object_crops(
     if random_encoder_seed is not None:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(random_encoder_seed)
-            random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels).to(stage.device).eval()
+            random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels,
+                                channels=stage.encoder.channels).to(stage.device).eval()
     keys = ("learned", "raw", "random", "labels", "boxes", "aabb", "scene", "gallery_learned", "gallery_raw",
             "gallery_random")
     out: dict[str, list[Tensor]] = {k: [] for k in keys}
