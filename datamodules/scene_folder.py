@@ -36,7 +36,7 @@ from threedq.metrics.detection import assign_detections
 from threedq.proposals import ProposalParams
 from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_scene
 
-__all__ = ["SceneDataset", "SceneFolderDataModule", "detections_as_objects"]
+__all__ = ["SceneDataset", "SceneFolderDataModule", "detections_as_objects", "fixed_views"]
 
 SPLITS = ("train", "val", "test")
 
@@ -95,6 +95,13 @@ class _ViewCache:
 
 
 _VIEW_CACHE = _ViewCache()
+
+
+def fixed_views(seed: int, i: int, num_views: int, need: int) -> np.ndarray:
+    """The views a fixed-view :class:`SceneDataset` (``random_views=False``) reads for its ``i``-th scene: ``need``
+    distinct views of ``num_views`` drawn from ``(seed, i)``, inputs first (the retrieval protocols' query view, then
+    the paper protocol's gallery view)."""
+    return np.random.default_rng([seed, i]).permutation(num_views)[:need]
 
 
 class SceneDataset(Dataset):
@@ -172,8 +179,7 @@ class SceneDataset(Dataset):
                 return np.random.default_rng([self.seed, i, epoch, 1]).permutation(num_views)[:need]
             # torch's global generator: seeded by seed_everything (and per worker by Lightning).
             return torch.randperm(num_views)[:need].numpy()
-        rng = np.random.default_rng([self.seed, i])
-        return rng.permutation(num_views)[:need]
+        return fixed_views(self.seed, i, num_views, need)
 
     def __getitem__(self, i: int | tuple[int, int]) -> dict[str, Any]:
         """One scene: ``i`` is its index, or ``(index, epoch)`` as an :class:`~threedq.data.samplers.EpochShuffleSampler`
