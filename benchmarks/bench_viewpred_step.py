@@ -5,7 +5,8 @@ of a whole step and of its parts (unprojection + occupancy input, encoder forwar
 labels, frustum resampling + decoder, backward + Adam) on synthetic scenes rendered by the embedded
 generator at the default config (batch 2, 1 input + 1 target view, 128x128, 64x64x32 grid).
 
-    python benchmarks/bench_viewpred_step.py [--repeats 5] [--grid 64 64 32] [--device cpu]
+    python benchmarks/bench_viewpred_step.py [--repeats 5] [--grid 64 64 32] [--device cpu] [--channels 64 128 256]
+        [--fp32_only]
 """
 
 from __future__ import annotations
@@ -84,6 +85,10 @@ def main() -> None:
     ap.add_argument("--grid", type=int, nargs=3, default=(64, 64, 32), help="nx ny nz of the input grid")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--channels", type=int, nargs=3, action="append",
+                    help="the encoder's widths (repeatable: one row each; default the paper's 64 128 256)")
+    ap.add_argument("--fp32_only", action="store_true", help="skip bf16 autocast (emulated, very slow, on CPUs without "
+                    "bf16 instructions)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
@@ -96,17 +101,19 @@ def main() -> None:
           f"({cpu_name() if args.device == 'cpu' else torch.cuda.get_device_name()}), "
           f"torch {torch.__version__}, median of {args.repeats} after 2 warm-ups\n")
     cols = ["unproject", "encoder", "occ/free labels", "frustum+decoder", "backward+adam", "step"]
-    print("| precision | layout | " + " | ".join(f"{c} ms" for c in cols) + " |")
-    print("|---|---|" + "---|" * len(cols))
-    for bf16 in (False, True):
-        for cl in (False, True):
-            torch.manual_seed(0)
-            model = ViewPrediction(grid_resolution=tuple(args.grid), channels_last=cl, image_every_n_steps=0).to(args.device)
-            opt = torch.optim.Adam(model.parameters(), 1e-3)
-            runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats + 2)][2:]
-            med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
-            print(f"| {'bf16 autocast' if bf16 else 'fp32'} | {'channels_last_3d' if cl else 'contiguous'} | "
-                  + " | ".join(f"{med[c]:.0f}" for c in cols) + " |")
+    print("| encoder widths | precision | layout | " + " | ".join(f"{c} ms" for c in cols) + " |")
+    print("|---|---|---|" + "---|" * len(cols))
+    for channels in args.channels or [(64, 128, 256)]:
+        for bf16 in (False,) if args.fp32_only else (False, True):
+            for cl in (False, True):
+                torch.manual_seed(0)
+                model = ViewPrediction(grid_resolution=tuple(args.grid), encoder_channels=tuple(channels), channels_last=cl,
+                                       image_every_n_steps=0).to(args.device)
+                opt = torch.optim.Adam(model.parameters(), 1e-3)
+                runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats + 2)][2:]
+                med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
+                print(f"| {'-'.join(map(str, channels))} | {'bf16 autocast' if bf16 else 'fp32'} | "
+                      f"{'channels_last_3d' if cl else 'contiguous'} | " + " | ".join(f"{med[c]:.0f}" for c in cols) + " |")
 
 
 if __name__ == "__main__":
