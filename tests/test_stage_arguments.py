@@ -63,12 +63,13 @@ class TestStageArguments:
             detector = _declared_defaults(Detector)
             expected.update({n: detector[n] for n in INHERITED_FROM_DETECTOR})
         for name, default in expected.items():
-            if name in ("grid_min", "grid_max", "grid_resolution", "feature_dim"):
-                continue  # the resolved grid (checked below)
+            if name in ("grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels"):
+                continue  # the resolved grid and widths (checked below)
             got = stage.hparams[name]
             assert (list(got) if isinstance(got, tuple) else got) == \
                 (list(default) if isinstance(default, tuple) else default), name
         assert stage.hparams["grid_resolution"] == [16, 16, 8] and stage.hparams["feature_dim"] == 8
+        assert stage.hparams["encoder_channels"] == [64, 128, 256]  # none given, no checkpoint: the paper's
         assert stage.hparams["grid_min"] == list(stage.grid.bounds_min)
 
     def test_a_parents_argument_by_keyword_reaches_the_parent(self, cls: type) -> None:
@@ -84,9 +85,10 @@ def _stage_configs() -> list[str]:
     return sorted(str(p.relative_to(packaged_configs_dir())) for p in (packaged_configs_dir() / "stages").glob("*.yaml"))
 
 
-#: What a stage config sets on purpose to other than its class's default: the grid view prediction trains (the
-#: other stages take it from their encoder) and which correspondence source a mining config runs.
-CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "source"}
+#: What a stage config sets on purpose to other than its class's default: the grid and the encoder's widths view
+#: prediction trains (the other stages take them from their encoder) and which correspondence source a mining config
+#: runs.
+CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
