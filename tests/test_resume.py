@@ -9,8 +9,8 @@ The run is a real subprocess (``python -m threedq em --rounds 2`` on the tiny fi
 4. during round 2's self-labelling (its labels file half-written).
 
 Each time ``--resume true`` goes on. The finished run equals an uninterrupted run of the same seed: the same
-``metrics.json`` (timings and the work folder's own path aside), bit-identical checkpoints of every stage (encoder,
-detector, prototype bank), the same files, no temporary file left. The uninterrupted run is itself a separate
+``metrics.json`` (timings, the work folder's own path and the last bits of evaluation losses aside), bit-identical
+checkpoints of every stage (encoder, detector, prototype bank), the same files, no temporary file left. The uninterrupted run is itself a separate
 process from each part of the resumed one, so this also shows that a seed reproduces a CPU run bit for bit.
 
 While the uninterrupted run holds its work folder, a second ``threedq em`` on the same folder is refused with one line
