@@ -215,6 +215,10 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         ground_margin: a target pixel is foreground when its surface lies more than this many metres above
             the ground plane fitted (RANSAC, label-free) to the depth of the sample's views.
         lr: Adam learning rate (paper: 1e-3).
+        lr_schedule: ``"constant"`` (the paper's): ``lr`` throughout; ``"cosine"``: ``lr`` annealed to 0 along a
+            half cosine over the run's optimizer steps (``trainer.max_steps``, else its epochs), stepped every
+            optimizer step (``torch.optim.lr_scheduler.CosineAnnealingLR``; the trainer's checkpoints carry its
+            state, so a resumed fit goes on along the same curve). A departure from the paper.
         image_every_n_steps: write a PNG of (input, predicted, true target, occupancy slices) this often;
             0 disables.
 
@@ -233,6 +237,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         rgb_weight: float = 30.0,
         occ_weight: float = 1.0,
         lr: float = 1e-3,
+        lr_schedule: Literal["constant", "cosine"] = "constant",
         image_every_n_steps: int = 200,
         rgb_loss: Literal["balanced", "plain"] = "balanced",
         ground_margin: float = 0.02,
@@ -240,6 +245,8 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
     ) -> None:
         if rgb_loss not in ("balanced", "plain"):
             raise ValueError(f"rgb_loss: expected 'balanced' or 'plain', got {rgb_loss!r}")
+        if lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule: expected 'constant' or 'cosine', got {lr_schedule!r}")
         if not ground_margin >= 0:
             raise ValueError(f"ground_margin: expected >= 0 metres, got {ground_margin!r}")
         super().__init__(**kwargs)
@@ -345,9 +352,16 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             sync_dist=True,
         )
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
+    def configure_optimizers(self) -> torch.optim.Optimizer | dict[str, Any]:
         params = [p for p in self.parameters() if p.requires_grad]
-        return torch.optim.Adam(params, lr=self.hparams.lr, betas=(0.9, 0.999))
+        opt = torch.optim.Adam(params, lr=self.hparams.lr, betas=(0.9, 0.999))
+        if self.hparams.get("lr_schedule", "constant") == "constant":
+            return opt
+        total = int(self.trainer.estimated_stepping_batches)
+        if not 0 < total < 2**31:
+            raise ValueError(f"lr_schedule: 'cosine' needs a finite run (trainer.max_steps or max_epochs), got {total} steps")
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total, eta_min=0.0)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
 
     # ------------------------------------------------------------------ pictures
     def _write_image(self, batch: dict[str, Tensor], r: dict[str, Tensor], tag: str) -> None:

@@ -260,3 +260,49 @@ class TestGridTravelsWithEncoder:
 
         s = EncoderStage()
         assert s.grid.resolution == DEFAULT_GRID["grid_resolution"] and s.feature_dim == DEFAULT_GRID["feature_dim"]
+
+
+class TestLrSchedule:
+    """``lr_schedule``: the learning rate of every optimizer step of a real fit, against the half cosine by hand."""
+
+    class _Record(L.Callback):
+        def __init__(self) -> None:
+            self.lrs: list[float] = []
+
+        def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
+            self.lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    def _fit(self, tiny_dataset: Path, root: Path, schedule: str, max_steps: int, ckpt_path: str | None = None,
+             callbacks_extra: tuple = (), **trainer) -> list[float]:
+        L.seed_everything(0, verbose=False)
+        m = ViewPrediction(lr=2e-3, lr_schedule=schedule, **SMALL)
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=1, num_input_views=1, num_target_views=1)
+        rec = self._Record()
+        t = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,
+                      enable_model_summary=False, limit_val_batches=0, callbacks=[rec, *callbacks_extra], default_root_dir=root,
+                      **trainer)
+        t.fit(m, dm, ckpt_path=ckpt_path)
+        return rec.lrs
+
+    def test_constant_is_the_default(self) -> None:
+        m = ViewPrediction(**SMALL)
+        assert m.hparams.lr_schedule == "constant"
+        assert isinstance(m.configure_optimizers(), torch.optim.Adam)  # no scheduler, nothing reads the trainer
+
+    def test_cosine_against_hand_computed(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        lrs = self._fit(tiny_dataset, tmp_path, "cosine", 4, enable_checkpointing=False)
+        # step s of T = 4: 2e-3 * (1 + cos(pi s / 4)) / 2
+        assert lrs == pytest.approx([2e-3, 2e-3 * (1 + 0.5**0.5) / 2, 1e-3, 2e-3 * (1 - 0.5**0.5) / 2], rel=1e-6)
+
+    def test_resumed_fit_goes_on_along_the_curve(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        """A fit resumed from the checkpoint of its step 2 of 4 takes the uninterrupted run's rates from there on."""
+        every2 = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ck", every_n_train_steps=2, save_top_k=-1)
+        full = self._fit(tiny_dataset, tmp_path / "full", "cosine", 4, callbacks_extra=[every2])
+        ckpt = next(p for p in (tmp_path / "ck").glob("*.ckpt") if "step=2" in p.name)
+        rest = self._fit(tiny_dataset, tmp_path / "resumed", "cosine", 4, ckpt_path=str(ckpt),
+                         enable_checkpointing=False)
+        assert len(full) == 4 and rest == pytest.approx(full[2:], rel=1e-9)
+
+    def test_unknown_schedule_refused(self) -> None:
+        with pytest.raises(ValueError, match="lr_schedule: expected 'constant' or 'cosine', got 'step'"):
+            ViewPrediction(lr_schedule="step", **SMALL)
