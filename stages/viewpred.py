@@ -356,12 +356,12 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
     def configure_optimizers(self) -> torch.optim.Optimizer | dict[str, Any]:
         params = [p for p in self.parameters() if p.requires_grad]
         opt = torch.optim.Adam(params, lr=self.hparams.lr, betas=(0.9, 0.999))
-        if self.hparams.get("lr_schedule", "constant") == "constant":
+        if self.hparams.lr_schedule == "constant":
             return opt
-        total = int(self.trainer.estimated_stepping_batches)
-        if not 0 < total < 2**31:
+        total = self.trainer.estimated_stepping_batches  # float("inf") for a run without max_steps or max_epochs
+        if not 0 < total < float("inf"):
             raise ValueError(f"lr_schedule: 'cosine' needs a finite run (trainer.max_steps or max_epochs), got {total} steps")
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total, eta_min=0.0)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(total), eta_min=0.0)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
 
     # ------------------------------------------------------------------ pictures
