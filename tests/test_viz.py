@@ -60,13 +60,59 @@ class TestFigures:
         g = torch.Generator().manual_seed(0)
         test = {"raw": torch.rand(8, 4, 6, 6, 6, generator=g), "labels": torch.tensor([0, 0, 1, 1, 2, 2, 0, 1])}
         sim = torch.rand(8, 8, generator=g)
-        assert _decode(figure_png(retrieval_figure(test, sim, ["a", "b", "c"], queries=3, k=2))).ndim == 3
+        assert _decode(rgb_png(retrieval_figure(test, sim, ["a", "b", "c"], queries=3, k=2))).ndim == 3
         clusters, angles = torch.tensor([0, 0, 1, 1, 1, 2, 0, 1]), torch.tensor([0, 3, 1, 0, 2, 5, 4, 1])
-        assert _decode(figure_png(alignment_figure(test, clusters, angles, 8, ["a", "b", "c"], rows=2, cols=3))).ndim == 3
+        assert _decode(rgb_png(alignment_figure(test, clusters, angles, 8, ["a", "b", "c"], rows=2, cols=3))).ndim == 3
         curves = {"strict": {0: 0.5, 1: 0.25, 2: 0.0}, "paper": {0: 0.75, 1: 0.5, 2: 0.5}}
         pairs = [{"a": "a", "b": "b", "slots": 3}]
         fig = per_category_figure(curves, torch.tensor([3, 3, 2]), ["a", "b", "c"], 2, pairs)
         assert _decode(figure_png(fig)).ndim == 3
+
+    def test_retrieval_mosaic_against_hand_placed_tiles(self) -> None:
+        """Each tile is the crop's bird's-eye view, scaled, where the layout puts it (20-pixel title; rows of a 16-pixel
+        caption over the picture, 4 pixels apart); a neighbour of another category has a red caption, the query's
+        own category a black one."""
+        from threedq.data.draw import crop_birds_eye
+
+        g = torch.Generator().manual_seed(1)
+        raw = (torch.rand(4, 4, 5, 5, 5, generator=g) > 0.5).float()
+        test = {"raw": raw, "labels": torch.tensor([0, 0, 1, 1])}
+        sim = torch.tensor([[0, 0.9, 0.5, 0.1], [0.9, 0, 0.2, 0.8], [0.5, 0.2, 0, 0.3], [0.1, 0.8, 0.3, 0]])
+        img = retrieval_figure(test, sim, ["a", "b"], queries=2, k=2, scale=3)
+        tile, gap = 15, 4
+        assert img.shape == (20 + 2 * (16 + tile) + gap, 3 * tile + 2 * gap, 3) and img.dtype == np.uint8
+        # queries 0 and 3 (linspace over 4 objects); their neighbours by similarity: 1, 2 and 1, 2
+        for r, order in enumerate(([0, 1, 2], [3, 1, 2])):
+            y = 20 + r * (16 + tile + gap)
+            for c, i in enumerate(order):
+                x = c * (tile + gap)
+                want = np.kron((crop_birds_eye(raw[i], background=0.5) * 255).round().astype(np.uint8),
+                               np.ones((3, 3, 1), np.uint8))
+                np.testing.assert_array_equal(img[y + 16:y + 16 + tile, x:x + tile], want)
+                caption = img[y:y + 16, x:x + tile].astype(int)
+                red = ((caption[..., 0] > 150) & (caption[..., 1] < 80)).any()
+                assert red == (test["labels"][i] != test["labels"][order[0]]), (r, c)
+
+    def test_alignment_mosaic_rows_are_the_members_turned(self) -> None:
+        """The aligned row shows each member rotated by its own yaw (a quarter turn: exact on the voxel grid)."""
+        from threedq.data.draw import crop_birds_eye
+        from threedq.geometry import rotate_yaw, yaw_angles
+
+        g = torch.Generator().manual_seed(2)
+        raw = (torch.rand(2, 4, 6, 6, 6, generator=g) > 0.5).float()
+        test = {"raw": raw, "labels": torch.tensor([0, 1])}
+        img = alignment_figure(test, torch.tensor([0, 0]), torch.tensor([0, 2]), 8, ["a", "b"], rows=1, cols=2, scale=2)
+        tile, gap = 12, 4
+        assert img.shape == (20 + 2 * (16 + 16 + tile) + gap, 2 * tile + gap, 3)
+        turned = rotate_yaw(raw, yaw_angles(8)[torch.tensor([0, 2])])
+        for r, vols in enumerate((raw, turned)):
+            y = 20 + r * (16 + 16 + tile + gap) + 32
+            for c in range(2):
+                want = np.kron((crop_birds_eye(vols[c], background=0.5) * 255).round().astype(np.uint8),
+                               np.ones((2, 2, 1), np.uint8))
+                np.testing.assert_array_equal(img[y:y + tile, c * (tile + gap):c * (tile + gap) + tile], want)
+        seen, aligned = (img[y:y + tile, tile + gap:] for y in (20 + 32, 20 + 48 + 32))
+        assert seen.shape == aligned.shape == (tile, tile, 3) and not np.array_equal(seen, aligned)  # really turned
 
     def test_detection(self) -> None:
         rows = [{"band": "< 0.2 m", "objects": 3, "found_25": 2 / 3, "found_50": 1 / 3},

@@ -302,8 +302,8 @@ def evaluate_quantizer(
             for s, box, k, ai, sc in zip(test["scene"], test["aabb"], p, a, res_bank.score.cpu())
         ],
     })  # fmt: skip
-    write_png(out / "prototype_alignment.png", figure_png(alignment_figure(test, p, a, na, cats), dpi=150))
-    write_png(out / "retrieval.png", figure_png(retrieval_figure(test, sims["learned"], cats), dpi=150))
+    write_png(out / "prototype_alignment.png", alignment_figure(test, p, a, na, cats))
+    write_png(out / "retrieval.png", retrieval_figure(test, sims["learned"], cats))
     if per_category:
         res["confused_pairs"] = _per_category_retrieval(test, sims, retrieval["k"], out / "per_category_retrieval.png",
                                                      cats)

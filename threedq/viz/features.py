@@ -9,7 +9,9 @@
 | ``per_category_retrieval.png`` | :func:`per_category_figure` | ``threedq eval`` |
 
 Convention: crops are ``[4, S, S, S]`` raw ``(occ, occ * rgb)`` volumes, drawn as bird's-eye views (x right, y up);
-images ``[H, W, 3]`` uint8 RGB; matplotlib pictures are ``Figure`` objects for :func:`~threedq.viz.png.write_png`.
+images ``[H, W, 3]`` uint8 RGB (picture grids are drawn
+with OpenCV: a matplotlib axes per tile cost about 1 s a figure); the one plot, :func:`per_category_figure`, is a
+matplotlib ``Figure``; both go to :func:`~threedq.viz.png.write_png`.
 """
 
 from __future__ import annotations
@@ -97,63 +99,105 @@ def mined_pairs_figure(query_raw: Tensor, target_raw_aligned: Tensor, query_pos:
     return np.concatenate([x for r in rows for x in (r, sep)][:-1], axis=0)
 
 
-def retrieval_figure(test: dict[str, Tensor], sim: Tensor, categories: list[str], queries: int = 6, k: int = 5) -> Any:
-    """Query objects (left) and their top-k rotation-max neighbours (bird's-eye views of raw crops).
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_RED, _BLACK, _WHITE = (200, 0, 0), (0, 0, 0), 255
+
+
+def _text_bar(text: str, width: int, height: int = 16, scale: float = 0.35, color: tuple[int, int, int] = _BLACK
+              ) -> np.ndarray:
+    """A white ``[height, width, 3]`` bar with ``text`` drawn left-aligned, cut to the width (uint8 RGB)."""
+    bar = np.full((height, width, 3), _WHITE, np.uint8)
+    while text and cv2.getTextSize(text, _FONT, scale, 1)[0][0] > width - 4:
+        text = text[:-1]
+    cv2.putText(bar, text, (2, height - 5), _FONT, scale, color, 1, cv2.LINE_AA)
+    return bar
+
+
+def _mosaic(rows: list[tuple[str | None, list[tuple[Tensor, str, tuple[int, int, int]]]]], cols: int, side: int,
+            scale: int, title: str) -> np.ndarray:
+    """Rows of captioned bird's-eye views under a title; a row may have its own heading and fewer than ``cols``
+    tiles (the rest left blank).
+
+    Args:
+        rows: ``(heading or None, [(raw crop [4, S, S, S], caption, RGB colour of the caption)])``.
+        cols: tiles per row. side: ``S``. scale: pixels per voxel.
+
+    Returns:
+        ``[H, W, 3]`` uint8 RGB.
+    """
+    gap, tile = 4, side * scale
+    width = cols * tile + (cols - 1) * gap
+    parts = [_text_bar(title, width, height=20, scale=0.4)]
+    for heading, cells in rows:
+        if heading is not None:
+            parts.append(_text_bar(heading, width, scale=0.38))
+        row = np.full((16 + tile, width, 3), _WHITE, np.uint8)
+        for c, (raw, caption, color) in enumerate(cells[:cols]):
+            x = c * (tile + gap)
+            row[:16, x:x + tile] = _text_bar(caption, tile, color=color)
+            row[16:, x:x + tile] = _bev(raw, scale)
+        parts += [row, np.full((gap, width, 3), _WHITE, np.uint8)]
+    return np.concatenate(parts[:-1] if len(parts) > 1 else parts, axis=0)
+
+
+def retrieval_figure(test: dict[str, Tensor], sim: Tensor, categories: list[str], queries: int = 6, k: int = 5,
+                     scale: int = 6) -> np.ndarray:
+    """Query objects (left) and their top-k rotation-max neighbours (bird's-eye views of raw crops), each captioned
+    with its category, red where it differs from the query's.
 
     Args:
         test: ``{"raw": [N, 4, S, S, S], "labels": [N]}``. sim: ``[N, N]`` rotation-max similarities.
+        scale: pixels per voxel of the pictures.
+
+    Returns:
+        ``[H, W, 3]`` uint8 RGB: a title bar, then one row per query: ``k + 1`` tiles of a 16-pixel caption over the
+        ``S * scale`` square picture, 4 pixels apart.
     """
     sim = sim.clone()
     sim.fill_diagonal_(-math.inf)
     n = sim.shape[0]
     k = min(k, n - 1)  # a small split: as many neighbours as there are
     picks = torch.linspace(0, n - 1, steps=min(queries, n)).long()
-    fig = new_figure(figsize=(1.3 * (k + 1), 1.4 * len(picks)))
-    axes = fig.subplots(len(picks), k + 1, squeeze=False)
-    for r, q in enumerate(picks.tolist()):
+    rows = []
+    for q in picks.tolist():
         nn_idx = sim[q].topk(k).indices.tolist()
+        cells = []
         for c, i in enumerate([q, *nn_idx]):
-            ax = axes[r, c]
-            ax.axis("off")
-            ax.imshow(crop_birds_eye(test["raw"][i]))
             same = c == 0 or int(test["labels"][i]) == int(test["labels"][q])
-            ax.set_title(("query: " if c == 0 else "") + categories[int(test["labels"][i])], fontsize=5,
-                         color="black" if same else "red")
-    fig.suptitle(f"Retrieval with learned features: query and top-{k} (red = other category)", fontsize=8)
-    return fig
+            cells.append((test["raw"][i], ("query: " if c == 0 else "") + categories[int(test["labels"][i])],
+                          _BLACK if same else _RED))
+        rows.append((None, cells))
+    return _mosaic(rows, k + 1, test["raw"].shape[-1], scale,
+                   f"Retrieval with learned features: query and top-{k} (red = other category)")
 
 
 def alignment_figure(test: dict[str, Tensor], clusters: Tensor, angles: Tensor, num_angles: int, categories: list[str],
-                     rows: int = 4, cols: int = 6) -> Any:
-    """Members of the largest prototypes before (top) and after (bottom) rotation to the canonical yaw.
+                     rows: int = 4, cols: int = 6, scale: int = 6) -> np.ndarray:
+    """Members of the largest prototypes before (as seen) and after rotation to the canonical yaw, bird's-eye views
+    captioned with their categories.
 
     Args:
         test: ``{"raw": [N, 4, S, S, S], "labels": [N]}``. clusters, angles: ``[N]`` prototype and yaw index of each
-            object. num_angles: yaw steps of the search. categories: label names.
+            object. num_angles: yaw steps of the search. categories: label names. scale: pixels per voxel.
+
+    Returns:
+        ``[H, W, 3]`` uint8 RGB: a title bar, then per prototype two headed rows (as seen, aligned) of up to
+        ``cols`` members.
     """
     counts = torch.bincount(clusters)
     top = counts.argsort(descending=True)[:rows]
     top = top[counts[top] > 0]
-    rows = max(1, len(top))
-    fig = new_figure(figsize=(1.3 * cols, 1.3 * 2 * rows))
-    axes = fig.subplots(2 * rows, cols, squeeze=False)
     yaw = yaw_angles(num_angles)
-    for r, k in enumerate(top.tolist()):
+    out = []
+    for k in top.tolist():
         members = (clusters == k).nonzero().flatten()[:cols]
         raw = test["raw"][members]
         aligned = rotate_yaw(raw, yaw[angles[members]])
-        for c in range(cols):
-            for row, vols, tag in ((2 * r, raw, "as seen"), (2 * r + 1, aligned, "aligned")):
-                ax = axes[row, c]
-                ax.axis("off")
-                if c < len(members):
-                    ax.imshow(crop_birds_eye(vols[c]))
-                    if c == 0:
-                        ax.set_title(f"prototype {k} ({tag})", fontsize=6, loc="left")
-                    else:
-                        ax.set_title(categories[int(test["labels"][members[c]])], fontsize=5)
-    fig.suptitle("Rotational alignment: members of a prototype (bird's-eye view), before and after rotation", fontsize=8)
-    return fig
+        names = [categories[int(test["labels"][m])] for m in members]
+        for vols, tag in ((raw, "as seen"), (aligned, "aligned")):
+            out.append((f"prototype {k} ({tag})", [(v, name, _BLACK) for v, name in zip(vols, names)]))
+    return _mosaic(out, cols, test["raw"].shape[-1], scale,
+                   "Rotational alignment: members of a prototype (bird's-eye view), before and after rotation")
 
 
 def per_category_figure(curves: dict[str, dict[int, float]], category_sizes: Tensor, categories: list[str], k: int,
