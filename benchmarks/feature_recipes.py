@@ -109,8 +109,18 @@ def _cluster(train: dict, test: dict, num_classes: int, em_seeds: tuple[int, ...
 
 
 def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False) -> dict[str, Any]:
-    """Every number of one row for ``stage``'s encoder on the test split's GT boxes."""
+    """Every number of one row for ``stage``'s encoder on the test split's GT boxes.
+
+    Scored on one input view per scene, the protocols' view, whatever a recipe trains on (a recipe with
+    ``--data.init_args.num_input_views=2`` trains on two, is scored on one).
+    """
+    import copy
+
     import torch
+
+    if getattr(dm, "num_input_views", 1) != 1:
+        dm = copy.copy(dm)  # the loaders are built per call from these attributes (fixed_view_dataset)
+        dm.num_input_views = 1
 
     from threedq.pipeline.evaluation import collect_object_crops, probe_table
     from threedq.pipeline.report import split_loader

@@ -130,3 +130,29 @@ class TestOldClassPaths:
     def test_packaged_configs_use_new_paths(self) -> None:
         for f in packaged_configs_dir().rglob("*.yaml"):
             assert "class_path: stages." not in f.read_text() and "class_path: datamodules." not in f.read_text(), f
+
+
+class TestSubcommandParsers:
+    """``ThreeDQCLI`` builds the parser of the Lightning subcommand its command line names, not all four."""
+
+    def test_the_named_one_or_all(self) -> None:
+        from types import SimpleNamespace
+
+        from lightning.pytorch.cli import LightningCLI
+
+        from threedq.pipeline.lightning_cli import ThreeDQCLI
+
+        every = LightningCLI.subcommands()
+        for name in ("fit", "validate", "test", "predict"):
+            assert ThreeDQCLI.subcommands(SimpleNamespace(_args=[name, "--config", "x.yaml"])) == {name: every[name]}
+        for args in ([], ["--config", "x.yaml", "fit"], ["--help"]):  # no subcommand first: every parser, as Lightning
+            assert ThreeDQCLI.subcommands(SimpleNamespace(_args=args)) == every
+
+    @pytest.mark.parametrize("sub", ["fit", "test"])
+    def test_help_of_a_subcommand(self, sub: str, capsys: pytest.CaptureFixture[str]) -> None:
+        with pytest.raises(SystemExit) as e:
+            main([sub, "--config", "stages/viewpred.yaml", "--help"])
+        assert e.value.code == 0
+        out = capsys.readouterr().out
+        assert ("Runs the full optimization routine" if sub == "fit" else "Perform one evaluation epoch") in out
+        assert "--ckpt_path" in out and "--trainer.max_steps" in out
