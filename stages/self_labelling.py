@@ -428,25 +428,29 @@ class SelfLabelling(Detector):
                 d["boxes"] = torch.cat([d["boxes"], pr[~taken].to(d["boxes"].dtype)])
                 d["scores"] = torch.cat([d["scores"], d["scores"].new_zeros(int((~taken).sum()))])
         counts = [d["boxes"].shape[0] for d in dets]
-        m = max(counts) if counts else 0
-        proto_all = cs_all = grid.new_zeros(len(dets), 0)
-        if m:
-            aabb_pad = grid.new_zeros(len(dets), m, 6)
-            valid = torch.zeros(len(dets), m, dtype=torch.bool, device=grid.device)
+        proto_all: list[Tensor] = [grid.new_zeros(n) for n in counts]
+        cs_all: list[Tensor] = [grid.new_zeros(n) for n in counts]
+        if sum(counts):
+            # each scene's boxes cropped on their own: a padded [B, most boxes] batch would crop the padding too
+            # (the crops of the padding are work thrown away); every crop is the same either way
+            crops: list[Tensor] = []
             for b, d in enumerate(dets):
-                aabb_pad[b, : counts[b]] = d["boxes"]
-                valid[b, : counts[b]] = True
-            crops = crop_boxes(grid, aabb_pad.to(grid.dtype), self.feature_grid, self.hparams.crop_size)
-            if self.occupancy_floor is not None:
-                occ = crop_boxes(occupancy, aabb_pad.to(occupancy.dtype), self.grid, self.hparams.crop_size)
-                crops = prototype_crops(crops.flatten(0, 1), occ.flatten(0, 1), self.occupancy_floor).view_as(crops)
-            proto_all = torch.zeros(len(dets), m, device=grid.device)
-            proto_all[valid] = self.bank.assign(crops[valid].float()).score.to(proto_all.dtype)
-            cs_all = center_surround_similarity(grid, aabb_pad, self.feature_grid, self.hparams.surround_crop_size)
+                if not counts[b]:
+                    continue
+                aabb = d["boxes"].to(grid.dtype)[None]
+                c = crop_boxes(grid[b : b + 1], aabb, self.feature_grid, self.hparams.crop_size)[0]
+                if self.occupancy_floor is not None:
+                    occ = crop_boxes(occupancy[b : b + 1], aabb.to(occupancy.dtype), self.grid, self.hparams.crop_size)[0]
+                    c = prototype_crops(c, occ, self.occupancy_floor)
+                crops.append(c)
+                cs_all[b] = center_surround_similarity(grid[b : b + 1], aabb, self.feature_grid,
+                                                       self.hparams.surround_crop_size)[0]
+            scores = self.bank.assign(torch.cat(crops).float()).score.to(torch.float32)
+            proto_all = list(torch.split(scores, counts))
         out = []
         for b, d in enumerate(dets):
             aabb, n = d["boxes"], counts[b]
-            proto, cs = proto_all[b, :n], cs_all[b, :n]
+            proto, cs = proto_all[b], cs_all[b]
             # a box both like a prototype and like its surroundings: the center-surround score decides (measured:
             # docs/results.md), unless positive_wins
             neg = cs > self.hparams.negative_threshold  # NaN compares False: never negative

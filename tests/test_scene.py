@@ -17,6 +17,7 @@ from threedq.scene import (
     SceneValidationError,
     load_index,
     load_scene,
+    load_scene_boxes,
     save_index,
     save_scene,
     validate_scene,
@@ -182,6 +183,47 @@ class TestLoadErrors:
                 zf.writestr(n, b)
         with pytest.raises(SceneValidationError, match="field 'depth'"):
             load_scene(path)
+
+
+class TestLoadSceneBoxes:
+    """The boxes of a scene file alone: what :func:`load_scene` reads, and its errors, without the views."""
+
+    def test_equals_load_scene(self, tmp_path: Path) -> None:
+        rec = make_record(M=3)
+        path = save_scene(tmp_path / "s.npz", rec)
+        boxes = load_scene_boxes(path)
+        assert boxes.dtype == np.float32 and boxes.shape == (3, 7)
+        np.testing.assert_array_equal(boxes, load_scene(path).boxes)
+
+    def test_empty_scene(self, tmp_path: Path) -> None:
+        path = tmp_path / "s.npz"
+        path.write_bytes(npz_bytes({**make_record().arrays(), "boxes": np.zeros((0, 7), np.float32),
+                                    "categories": np.zeros(0, np.int64)}))
+        assert load_scene_boxes(path).shape == (0, 7)
+
+    def test_reads_no_view(self, tmp_path: Path) -> None:
+        """A cut-short depth member does not matter to the boxes (only the ``boxes`` member is decompressed)."""
+        path = save_scene(tmp_path / "s.npz", make_record())
+        with zipfile.ZipFile(path) as zf:
+            members = {n: zf.read(n) for n in zf.namelist()}
+        members["depth.npy"] = members["depth.npy"][:200]
+        with zipfile.ZipFile(path, "w") as zf:
+            for n, b in members.items():
+                zf.writestr(n, b)
+        np.testing.assert_array_equal(load_scene_boxes(path), make_record().arrays()["boxes"])
+
+    def test_errors_name_file_and_field(self, tmp_path: Path) -> None:
+        with pytest.raises(SceneValidationError, match=r"nope\.npz: field '<file>': no such file"):
+            load_scene_boxes(tmp_path / "nope.npz")
+        arrays = make_record().arrays()
+        del arrays["boxes"]
+        path = tmp_path / "s.npz"
+        path.write_bytes(npz_bytes(arrays))
+        with pytest.raises(SceneValidationError, match=r"s\.npz: field 'boxes': missing key"):
+            load_scene_boxes(path)
+        path.write_bytes(b"not a zip")
+        with pytest.raises(SceneValidationError, match=r"s\.npz: field '<file>': not a \.npz"):
+            load_scene_boxes(path)
 
 
 class TestIndex:

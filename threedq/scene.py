@@ -51,6 +51,7 @@ __all__ = [
     "validate_scene",
     "save_scene",
     "load_scene",
+    "load_scene_boxes",
     "load_index",
     "save_index",
     "INDEX_NAME",
@@ -229,6 +230,45 @@ def save_scene(path: str | Path, record: SceneRecord, validate: bool = True) -> 
     return atomic_write_bytes(path, npz_bytes(record.arrays()))
 
 
+def _read_npz(path: Path, keys: tuple[str, ...], optional: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The arrays ``keys`` (each required) and ``optional`` (where present) of a scene ``.npz``, and no other (a
+    ``.npz`` member is decompressed only when read); :class:`SceneValidationError` naming the file and field on any
+    fault (missing, truncated or corrupt file, missing key, unreadable member)."""
+    source = str(path)
+    if not path.is_file():
+        raise SceneValidationError(source, "<file>", "no such file")
+    if not zipfile.is_zipfile(path):  # np.load would take other bytes for a pickle or a .npy and say so
+        raise SceneValidationError(source, "<file>", "not a .npz (zip) archive: truncated, or another kind of file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            present = set(npz.files)
+            missing = [k for k in keys if k not in present]
+            if missing:
+                raise SceneValidationError(source, missing[0], "missing key")
+            arrays: dict[str, Any] = {}
+            for k in (*keys, *optional):
+                if k in present:
+                    try:
+                        arrays[k] = npz[k]
+                    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
+                        raise SceneValidationError(source, k, f"cannot be read (corrupt data: {e})") from e
+    except SceneValidationError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
+        raise SceneValidationError(source, "<file>", f"not a readable .npz archive (truncated or corrupt: {e})") from e
+    return arrays
+
+
+def load_scene_boxes(path: str | Path) -> np.ndarray:
+    """The ``boxes`` array of a scene ``.npz`` as stored (``[G, 7]`` ``(cx, cy, cz, sx, sy, sz, yaw)``), reading
+    nothing else (0.26 ms a scene of the embedded data here, where :func:`load_scene` takes 14 ms to decompress its
+    28 views). Not validated; errors as :func:`load_scene`'s.
+
+    Convention: world frame in metres, z up; yaw counter-clockwise about +z.
+    """
+    return _read_npz(Path(path), ("boxes",))["boxes"]
+
+
 def load_scene(
     path: str | Path,
     validate: bool = True,
@@ -241,27 +281,7 @@ def load_scene(
     """
     path = Path(path)
     source = str(path)
-    if not path.is_file():
-        raise SceneValidationError(source, "<file>", "no such file")
-    if not zipfile.is_zipfile(path):  # np.load would take other bytes for a pickle or a .npy and say so
-        raise SceneValidationError(source, "<file>", "not a .npz (zip) archive: truncated, or another kind of file")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            keys = set(npz.files)
-            missing = [k for k in REQUIRED_KEYS if k not in keys]
-            if missing:
-                raise SceneValidationError(source, missing[0], "missing key")
-            arrays: dict[str, Any] = {}
-            for k in (*REQUIRED_KEYS, "instance", "meta"):
-                if k in keys:
-                    try:
-                        arrays[k] = npz[k]
-                    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
-                        raise SceneValidationError(source, k, f"cannot be read (corrupt data: {e})") from e
-    except SceneValidationError:
-        raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
-        raise SceneValidationError(source, "<file>", f"not a readable .npz archive (truncated or corrupt: {e})") from e
+    arrays = _read_npz(path, REQUIRED_KEYS, ("instance", "meta"))
     meta: dict[str, Any] = {}
     if "meta" in arrays:
         try:

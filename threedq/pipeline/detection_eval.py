@@ -34,7 +34,7 @@ from threedq.data.box_files import save_boxes_file
 from threedq.metrics import DetectionMAP
 from threedq.metrics.detection import assign_detections
 from threedq.metrics.localisation import by_size_band, localisation_errors
-from threedq.scene import load_scene
+from threedq.scene import load_scene, load_scene_boxes
 from threedq.viz.detection import detection_figure, size_band_figure
 from threedq.viz.png import write_png
 
@@ -46,9 +46,9 @@ __all__ = [
 
 
 def gt_hulls(data_dir: str | Path, files: list[str]) -> dict[str, np.ndarray]:
-    """``{file -> [G, 6]}`` the axis-aligned hulls of each scene's GT boxes (float64), read once per evaluation."""
-    return {f: boxes_to_aabb(load_scene(Path(data_dir) / f, validate=False).boxes.astype(np.float64)).reshape(-1, 6)
-            for f in files}
+    """``{file -> [G, 6]}`` the axis-aligned hulls of each scene's GT boxes (float64), read once per evaluation (the
+    ``boxes`` array only: :func:`~threedq.scene.load_scene_boxes`)."""
+    return {f: boxes_to_aabb(load_scene_boxes(Path(data_dir) / f).astype(np.float64)).reshape(-1, 6) for f in files}
 
 
 def box_sets_map(

@@ -52,6 +52,8 @@ used only to score, matched to the detections by IoU.
 
 from __future__ import annotations
 
+import functools
+import gc
 import json
 import platform
 import shutil
@@ -116,6 +118,26 @@ def _remove_torn_writes(work: Path) -> None:
             print(f"[em] removed {tmp} (a write cut short by the interruption)")
 
 
+def _frees_its_stage(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Run ``fn`` (one stage or evaluation through a ``ThreeDQCLI``), then free what it built.
+
+    A stage's LightningModule, Trainer, DataModule and CLI reference one another, so when ``fn`` returns they are
+    garbage only the cyclic collector frees, and it runs on counts of Python objects, not on bytes: a module holding
+    large tensors (a self-labelling stage's pool grids, 1.4 GiB on the embedded data) outlived its stage by several
+    stages, and a four-round run's memory grew by 1-2 GiB a round (peak 16.3-19.1 GiB where one round needs about
+    10; ``docs/results.md``). Collecting after every stage keeps one stage's memory at a time (plus the crop cache).
+    """
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            gc.collect()
+
+    return run
+
+
 def _crop_cache_setup(cache: CropCache | None) -> Callable[[Any], None] | None:
     """The ``model_setup`` that hands a stage the run's shared crop cache (None: no cache)."""
     return None if cache is None else (lambda model: model.use_crop_cache(cache))
@@ -128,6 +150,7 @@ def _cli_args(configs: list[Path], run_dir: Path, overrides: list[str]) -> list[
     return [*args, f"--trainer.default_root_dir={run_dir}", *overrides]
 
 
+@_frees_its_stage
 def _fit_stage(
     name: str, configs: list[Path], run_dir: Path, overrides: list[str], resume: bool,
     crop_cache: CropCache | None = None,
@@ -174,6 +197,7 @@ def _mining_diagnostics(run_dir: Path) -> list[dict[str, Any]]:
     return [json.loads(p.read_text()) for p in sorted((run_dir / "mining").glob("refresh_*.json"))]
 
 
+@_frees_its_stage
 def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[str, Any]:
     cached = run_dir / "metrics.json"
     if cached.is_file():
@@ -188,6 +212,7 @@ def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
     return metrics
 
 
+@_frees_its_stage
 def _evaluate_detector(
     configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...], overrides: list[str] | None = None,
     crop_cache: CropCache | None = None,
@@ -205,6 +230,7 @@ def _evaluate_detector(
     return evaluate_detection(cli.model, cli.datamodule, run_dir, test_map, splits=splits)
 
 
+@_frees_its_stage
 def _evaluate_round(
     configs: list[Path], ckpt: Path, run_dir: Path, final: bool, overrides: list[str] | None = None,
     crop_cache: CropCache | None = None,
