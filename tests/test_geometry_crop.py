@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from threedq.geometry import VoxelGridSpec, box_mask, crop_boxes, occupancy_weighted, paste_boxes
-from threedq.geometry.crop import _box_sample_points
 
 GRID = VoxelGridSpec((-1.0, -0.5, 0.0), (1.0, 0.5, 0.75), (8, 4, 3))  # 0.25 m voxels, volume (3, 4, 8)
 
@@ -139,24 +138,6 @@ class TestCropBoxes:
         volume = torch.rand(1, 2, *GRID.volume_shape, dtype=torch.float64, requires_grad=True)
         boxes = random_boxes(1, 2)
         assert torch.autograd.gradcheck(lambda v: crop_boxes(v, boxes, GRID, size=3), (volume,))
-
-    @pytest.mark.parametrize("channels", [1, 4, 32])
-    def test_channels_last_sampling_is_bitwise_the_default_layouts(self, channels: int) -> None:
-        """crop_boxes samples a channels_last_3d copy of the volume: crops and gradients equal, bit for bit, a
-        ``grid_sample`` of the volume as given (float32, where a different summation order would show)."""
-        torch.manual_seed(5)
-        volume = torch.randn(2, channels, *GRID.volume_shape, requires_grad=True)
-        boxes = random_boxes(2, 5, torch.float32)
-        out = crop_boxes(volume, boxes, GRID, size=(4, 5, 6))
-        points = _box_sample_points(boxes, (4, 5, 6))  # the op's own sample points: only the layout differs
-        coords = GRID.world_to_normalized(points).reshape(2, 5 * 4, 5, 6, 3)
-        ref = torch.nn.functional.grid_sample(volume, coords, align_corners=False)
-        ref = ref.view(2, channels, 5, 4, 5, 6).transpose(1, 2)
-        assert torch.equal(out, ref)
-        w = torch.randn_like(out)
-        (g,) = torch.autograd.grad((out * w).sum(), volume)
-        (g_ref,) = torch.autograd.grad((ref * w).sum(), volume)
-        assert torch.equal(g, g_ref)
 
 
 class TestPasteBoxes:

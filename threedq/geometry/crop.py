@@ -45,9 +45,7 @@ def _box_sample_points(boxes: Tensor, size: tuple[int, int, int]) -> Tensor:
 def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | tuple[int, int, int] = 16) -> Tensor:
     """Crop boxes out of a volume and resize each to a fixed size (trilinear, aspect not kept).
 
-    One ``grid_sample`` call handles all boxes of all batch elements, on the volume in ``channels_last_3d`` (bitwise
-    the same crops and gradients as the default layout; 869 against 1080 ms for 120 boxes of 16^3 from a
-    ``[8, 32, 16, 32, 32]`` volume on 2 CPU cores, the conversion included). Output cell ``(c, b, a)`` of a box
+    One ``grid_sample`` call handles all boxes of all batch elements. Output cell ``(c, b, a)`` of a box
     samples the volume at the centre of that cell of the box, e.g. ``x = xmin + (a + 0.5) * (xmax - xmin) / sx``.
 
     A local op: kornia's ``crop_by_boxes3d`` wants integer voxel boxes of one size per batch, and
@@ -85,8 +83,6 @@ def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | t
     n_boxes = boxes.shape[1]
     points = _box_sample_points(boxes.to(volume.dtype), (sz, sy, sx))  # [B, N, sz, sy, sx, 3]
     coords = grid.world_to_normalized(points).reshape(batch, n_boxes * sz, sy, sx, 3)
-    if channels > 1:  # each sample reads its 8 corners' channels contiguously: the same numbers, 20% faster here
-        volume = volume.contiguous(memory_format=torch.channels_last_3d)
     crops = F.grid_sample(volume, coords, mode="bilinear", padding_mode="zeros", align_corners=False)
     return crops.view(batch, channels, n_boxes, sz, sy, sx).transpose(1, 2).contiguous()
 

@@ -52,6 +52,7 @@ used only to score, matched to the detections by IoU.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import gc
 import json
@@ -59,7 +60,7 @@ import platform
 import shutil
 import time
 from pathlib import Path
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import torch
@@ -136,6 +137,22 @@ def _frees_its_stage(fn: Callable[..., Any]) -> Callable[..., Any]:
             gc.collect()
 
     return run
+
+
+@contextlib.contextmanager
+def _old_objects_frozen() -> Iterator[None]:
+    """Leave the objects that exist before the run (imported modules and their data: about 430k objects) out of the
+    collections :func:`_frees_its_stage` runs, and hand them back to the collector when the run ends.
+
+    A full collection then walks the run's own objects only: 14 collections of a tiny ``run_em(rounds=2)`` took 3.2 s
+    of its 13.4 with everything walked, 0.2 s frozen (``gc.freeze``; the tests run dozens of such runs).
+    """
+    gc.collect()  # garbage from before the run is freed now, not frozen with the rest
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 def _crop_cache_setup(cache: CropCache | None) -> Callable[[Any], None] | None:
@@ -359,7 +376,7 @@ def run_em(
     prec = {"precision": frozen_precision}  # the trainer of every stage reading a frozen encoder
     work = output_folder("--work_dir", work_dir)
     layout = RunLayout(work)
-    with hold_folder(work, check_below=True):  # one run per work folder (a second one is refused)
+    with hold_folder(work, check_below=True), _old_objects_frozen():  # one run per work folder (a second is refused)
         if resume:
             _remove_torn_writes(work)
         if isinstance(extra_configs, (str, Path)):
