@@ -45,15 +45,19 @@ class TestEm:
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
+        def modules() -> list[LightningModule]:
+            return [o for o in gc.get_objects() if isinstance(o, LightningModule) and not isinstance(o, weakref.ProxyTypes)]
+
         gc.collect()
+        before = modules()  # what earlier tests keep alive is not the run's (held here, so no new module takes an id)
+        ids = {id(o) for o in before}
         gc.disable()  # only em's own collections run: a stage's module must not wait for the next automatic one
         try:
             summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt")
             # 12 stages and evaluations ran; their modules (a stage's module, trainer and datamodule reference one
             # another) are freed as each ends. jsonargparse keeps the last parser in a context variable, and through
             # it the last CLI and its module: at most one stays
-            alive = [type(o).__name__ for o in gc.get_objects()
-                     if isinstance(o, LightningModule) and not isinstance(o, weakref.ProxyTypes)]
+            alive = [type(o).__name__ for o in modules() if id(o) not in ids]
         finally:
             gc.enable()
         assert len(alive) <= 1, alive
