@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 import torch
@@ -18,6 +20,15 @@ def tiny_data_yaml(data_dir: Path, **extra: object) -> str:
     lines = ["data:", "  init_args:", f"    data_dir: {data_dir}", "    num_scenes: 12", f"    image_size: [{h}, {w}]",
              f"    num_views: {TINY['num_views']}", "    generator_workers: 1", *(f"    {k}: {v}" for k, v in extra.items())]
     return "\n".join(lines)
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """``benchmarks/<name>.py`` imported as a module (the scripts are not a package)."""
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 @pytest.fixture(scope="session")

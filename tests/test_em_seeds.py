@@ -6,23 +6,13 @@ ranges and checks.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from conftest import load_benchmark
 
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("em_seeds", ROOT / "benchmarks" / "em_seeds.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-em_seeds = _load()
+em_seeds = load_benchmark("em_seeds")
 
 
 def _run(tmp_path: Path, name: str, strict: list[float], paper: list[float], fewshot: list[float | None],
