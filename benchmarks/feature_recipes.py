@@ -29,6 +29,8 @@ is a recipe too: ``--variant "mined=--config stages/mining.yaml --model.init_arg
 --model.init_args.seed={seed}"`` fine-tunes a given view-prediction encoder per seed (its steps count from 0).
 ``--score NAME=CKPT`` scores existing checkpoints the same way instead of training (e.g. the main job's encoders on
 another dataset: ``--data_dir data/shifted --score rgbocc=runs/em/00_viewpred/checkpoints/last.ckpt``).
+``--crop_shapes hull square cube`` (with ``--score``) scores each checkpoint once per region cut around each box
+(:func:`threedq.geometry.crop_region`: the paper's hull, a horizontal square, a cube), a row each, from one encoding.
 
     python benchmarks/feature_recipes.py --seeds 0 1 --eval_steps 500 1000 2000 \\
         --variant default= --variant "3 targets=--data.init_args.num_target_views=3"
@@ -37,6 +39,7 @@ another dataset: ``--data_dir data/shifted --score rgbocc=runs/em/00_viewpred/ch
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import subprocess
@@ -108,11 +111,12 @@ def _cluster(train: dict, test: dict, num_classes: int, em_seeds: tuple[int, ...
     return out
 
 
-def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False) -> dict[str, Any]:
+def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_shape: str = "hull") -> dict[str, Any]:
     """Every number of one row for ``stage``'s encoder on the test split's GT boxes.
 
     Scored on one input view per scene, the protocols' view, whatever a recipe trains on (a recipe with
-    ``--data.init_args.num_input_views=2`` trains on two, is scored on one).
+    ``--data.init_args.num_input_views=2`` trains on two, is scored on one). ``crop_shape``: the region cropped
+    around each box (:func:`threedq.geometry.crop_region`), for the learned and the raw crops alike.
     """
     import copy
 
@@ -127,12 +131,13 @@ def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False) -> di
 
     with torch.no_grad():
         crops = collect_object_crops(stage, split_loader(dm, "test", gallery=True), random_encoder_seed=None,
-                                     progress=False, gallery=True)
-        row: dict[str, Any] = {}
+                                     progress=False, gallery=True, crop_shape=crop_shape)
+        row: dict[str, Any] = {"crop": crop_shape}
         for sim in SIMILARITIES:
             row.update(_score(crops, sim))
         if probe or cluster:
-            train = collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None, progress=False)
+            train = collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None, progress=False,
+                                         crop_shape=crop_shape)
         if probe:
             acc = probe_table(train, crops)["accuracy"]
             row["probe/learned"], row["probe/raw"] = acc["learned"], acc["raw_rgb_occupancy"]
@@ -190,10 +195,17 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
     cli.trainer.fit(cli.model, cli.datamodule)
 
 
-def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool, cluster: bool = False) -> None:
-    """One row per ``NAME=CKPT``: the checkpoint's encoder scored as :func:`score_encoder` does (no training)."""
+def _variant_name(name: str, crop_shape: str) -> str:
+    return name if crop_shape == "hull" else f"{name}, {crop_shape} crop"
+
+
+def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool, cluster: bool = False,
+                      crop_shapes: tuple[str, ...] = ("hull",)) -> None:
+    """One row per ``NAME=CKPT`` and crop shape: the checkpoint's encoder scored as :func:`score_encoder` does (no
+    training). The shapes share one encoding of each scene (a crop cache holds the grids: about 2 MiB a scene)."""
     from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
     from threedq.datamodules.scene_folder import SceneFolderDataModule
+    from threedq.stages.crop_cache import CropCache
     from threedq.stages.viewpred import ViewPrediction
 
     dm = SceneFolderDataModule(data_dir=data_dir) if data_dir else ClevrVeggieDataModule()
@@ -203,10 +215,19 @@ def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: 
     for spec in specs:
         name, _, ckpt = spec.partition("=")
         stage = ViewPrediction(encoder_ckpt=ckpt).eval()
-        row = {"variant": name, "overrides": [ckpt], "seed": None, "steps": 0, "s_per_step": float("nan"),
-               **score_encoder(stage, dm, probe, cluster), "device": _device_name(stage.device), "data_dir": data_dir}
-        with out.open("a") as f:
-            f.write(json.dumps(row) + "\n")
+        if len(crop_shapes) > 1:
+            stage.use_crop_cache(CropCache())
+        for shape in crop_shapes:
+            row = {"variant": _variant_name(name, shape), "overrides": [ckpt], "seed": None, "steps": 0,
+                   "s_per_step": float("nan"), **score_encoder(stage, dm, probe, cluster, shape),
+                   "device": _device_name(stage.device), "data_dir": data_dir}
+            with out.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(f"{row['variant']}: paper {row['cosine/paper']:.3f} (occupancy {row['occupancy/paper']:.3f}) "
+                  f"top-1 {row['cosine/top1']:.3f}", flush=True)
+        stage.use_crop_cache(None)  # the next checkpoint's grids replace these (about 2 MiB a scene)
+        del stage
+        gc.collect()
 
 
 COLUMNS = [("cosine/strict", "strict"), ("cosine/paper", "paper"), ("cosine/top1", "top-1"),
@@ -234,11 +255,14 @@ def table(rows: list[dict[str, Any]]) -> str:
         cells = [_cell([r[k] for r in rs if k in r]) for k, _ in COLUMNS]
         sps = [r["s_per_step"] for r in rs if r["s_per_step"] == r["s_per_step"]]  # NaN: a scored checkpoint
         lines.append(f"| {name} | {steps or '-'} | {len(rs)} | {_cell(sps)} | " + " | ".join(cells) + " |")
-    refs = [("raw", "raw crops"), ("descriptor", "colour + size descriptor")]
     lines += ["", "| reference (same objects) | strict | paper | top-1 | linear probe |", "|---|---|---|---|---|"]
-    for key, label in refs:
-        cells = [_cell([r[f"{key}/{m}"] for r in rows if f"{key}/{m}" in r][:1]) for m in ("strict", "paper", "top1")]
-        probe = _cell([r[f"probe/{key}"] for r in rows if f"probe/{key}" in r][:1])
+    shapes = list(dict.fromkeys(r.get("crop", "hull") for r in rows)) or ["hull"]
+    refs = [("raw", f"raw crops{'' if s == 'hull' else f', {s} crop'}", s) for s in shapes]
+    refs.append(("descriptor", "colour + size descriptor (of the hull crops)", "hull"))
+    for key, label, shape in refs:
+        own = [r for r in rows if r.get("crop", "hull") == shape]
+        cells = [_cell([r[f"{key}/{m}"] for r in own if f"{key}/{m}" in r][:1]) for m in ("strict", "paper", "top1")]
+        probe = _cell([r[f"probe/{key}"] for r in own if f"probe/{key}" in r][:1])
         lines.append(f"| {label} | " + " | ".join(cells) + f" | {probe} |")
     if rows:
         r = rows[0]
@@ -264,6 +288,9 @@ def main() -> None:
     ap.add_argument("--score", action="append", metavar="NAME=CKPT",
                     help="score an existing encoder checkpoint instead of training (repeatable; any stage's "
                          "checkpoint); with --data_dir any scene folder (threedq data generate / index)")
+    ap.add_argument("--crop_shapes", nargs="+", default=["hull"], choices=["hull", "square", "cube"],
+                    help="regions cropped around each box (threedq.geometry.crop_region), a row each: hull (the "
+                         "paper's), square (aspect kept in the ground plane), cube (aspect kept); with --score")
     ap.add_argument("--one", nargs=2, metavar=("SPEC", "SEED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -273,7 +300,7 @@ def main() -> None:
                 args.probe, args.data_dir, args.cluster)
         return
     if args.score:
-        score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster)
+        score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster, tuple(args.crop_shapes))
     elif not args.table_only:
         jobs = [(spec, seed) for spec in (args.variant or DEFAULT_VARIANTS) for seed in args.seeds]
         common = ["--eval_steps", *map(str, args.eval_steps), "--root", str(args.root), "--out", str(args.out)]

@@ -27,7 +27,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
+from threedq.geometry import VoxelGridSpec, crop_boxes, crop_region, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 from threedq.stages.crop_cache import CropCache
 from threedq.stages.checkpoint import (  # noqa: F401 - re-exported: the names' home before stages/checkpoint.py
@@ -294,7 +294,9 @@ class EncoderStage(L.LightningModule):
         agg = torch.where(none, feats.mean(1), agg)  # voxels no view sees: plain mean
         return torch.nn.functional.normalize(agg, dim=1, eps=1e-6)
 
-    def object_crops(self, batch: dict[str, Tensor], num_input_views: int = 1, size: int = 16) -> dict[str, Tensor]:
+    def object_crops(
+        self, batch: dict[str, Tensor], num_input_views: int = 1, size: int = 16, shape: str = "hull"
+    ) -> dict[str, Tensor]:
         """Encode the first ``num_input_views`` views of each scene and crop every (valid) object box.
 
         With a :attr:`crop_cache` and :meth:`crops_cacheable`, samples whose crops were computed before by
@@ -305,6 +307,8 @@ class EncoderStage(L.LightningModule):
                 ``box_mask`` [B,M], ``categories``, ``boxes``, ``scene_index``).
             num_input_views: views aggregated per scene.
             size: crops are ``size^3``.
+            shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull`` (the
+                paper's), ``square`` or ``cube``.
 
         Returns:
             ``features`` ``[N, C, s, s, s]`` crops of the feature grid, ``raw`` ``[N, 4, s, s, s]`` crops of the
@@ -312,7 +316,8 @@ class EncoderStage(L.LightningModule):
             ``[N, 7]`` (oriented GT), ``aabb`` ``[N, 6]``, ``scene`` ``[N]`` (the scene's index in its split), ``slot``
             ``[N]`` (the box's row in the scene) — N = valid boxes of the batch.
 
-        Convention: boxes axis-aligned in R, cropped as their hull and resized to a cube (aspect not kept).
+        Convention: boxes axis-aligned in R, the region of ``shape`` around each resized to a cube (``hull``: aspect
+        not kept).
         """
         v = num_input_views
         rgb, depth, K, pose = (batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam"))
@@ -328,7 +333,7 @@ class EncoderStage(L.LightningModule):
         cache = self.crop_cache if self.crops_cacheable() else None
         if cache is not None:
             prefix = self.crop_cache_prefix()
-            keys = [cache.sample_key(batch, b, v, size) for b in range(B)]
+            keys = [cache.sample_key(batch, b, v, size, shape) for b in range(B)]
             f_keys = [("features", prefix, cache.fingerprint(self.encoder), k) for k in keys]
             r_keys = [("raw", prefix, k) for k in keys]
             feats, raw = cache.get_many(f_keys), cache.get_many(r_keys)
@@ -337,8 +342,9 @@ class EncoderStage(L.LightningModule):
         # the whole grids go through the cache too (encode_views), so a stage that needs grids (self-labelling, the
         # detector's evaluation, the mining pool) reads the scenes another stage already encoded with these weights
         grid, x = self._encode_views(rgb, depth, K, pose, need_input=True)
-        feats = crop_boxes(grid, batch["aabb"], self.feature_grid, size)  # [B, M, ...]
-        raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"], self.grid, size)
+        region = crop_region(batch["aabb"], shape)
+        feats = crop_boxes(grid, region, self.feature_grid, size)  # [B, M, ...]
+        raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), region, self.grid, size)
         if cache is not None:
             for b in range(B):
                 cache.put(f_keys[b], feats[b][mask[b]])

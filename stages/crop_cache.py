@@ -52,14 +52,14 @@ def views_key(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> str:
     return h.hexdigest()
 
 
-def sample_key(batch: dict[str, Tensor], b: int, num_input_views: int, crop_size: int) -> str:
+def sample_key(batch: dict[str, Tensor], b: int, num_input_views: int, crop_size: int, crop_shape: str = "hull") -> str:
     """Hex digest of what sample ``b``'s object crops depend on besides the encoder.
 
     Hashes the first ``num_input_views`` views (``rgb``, ``depth``, ``K``, ``R_T_cam``), the boxes
-    (``aabb``, ``box_mask``) and ``crop_size``.
+    (``aabb``, ``box_mask``), ``crop_size`` and ``crop_shape`` (:func:`threedq.geometry.crop_region`).
     """
     h = hashlib.blake2b(digest_size=16)
-    h.update(f"v{num_input_views}s{crop_size}".encode())
+    h.update(f"v{num_input_views}s{crop_size}".encode() + (b"" if crop_shape == "hull" else crop_shape.encode()))
     for k in ("rgb", "depth", "K", "R_T_cam"):
         _update(h, batch[k][b, :num_input_views])
     for k in ("aabb", "box_mask"):

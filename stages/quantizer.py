@@ -12,14 +12,14 @@ few-shot labelling accuracy and relative yaw error.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 
 from threedq.stages.base import EncoderStage, SplitEvaluation
 from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
-from threedq.geometry import yaw_angles
+from threedq.geometry import CROP_SHAPES, yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
 from threedq.quantization.prototypes import (
     PrototypeBank,
@@ -29,7 +29,7 @@ from threedq.quantization.prototypes import (
     run_prototype_em,
 )
 
-__all__ = ["Quantizer", "bank_occupancy_floor", "load_bank_state"]
+__all__ = ["Quantizer", "bank_crop_shape", "bank_occupancy_floor", "load_bank_state"]
 
 
 def load_bank_state(bank: PrototypeBank, path: str) -> None:
@@ -55,6 +55,23 @@ def bank_occupancy_floor(path: str | Path) -> float | None:
     """The ``occupancy_floor`` a quantizer checkpoint's bank was fitted with: the crops that bank scores must be
     weighted the same way."""
     return _saved_floor(checkpoint_hparams(path, missing_ok=True))
+
+
+def _saved_crop_shape(hparams: dict[str, Any] | None) -> str:
+    """``crop_shape`` of a quantizer checkpoint's hyperparameters (``hull`` for checkpoints written before it)."""
+    shape = (hparams or {}).get("crop_shape") or "hull"
+    if shape not in CROP_SHAPES:
+        raise ValueError(f"field 'hyper_parameters.crop_shape': expected one of {CROP_SHAPES}, got {shape!r}")
+    return shape
+
+
+def bank_crop_shape(path: str | Path) -> str:
+    """The ``crop_shape`` a quantizer checkpoint's bank was fitted with: the crops that bank scores must be cut the
+    same way (:func:`threedq.geometry.crop_region`)."""
+    try:
+        return _saved_crop_shape(checkpoint_hparams(path, missing_ok=True))
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
 
 
 class Quantizer(SplitEvaluation, EncoderStage):
@@ -88,6 +105,12 @@ class Quantizer(SplitEvaluation, EncoderStage):
             docs/results.md measures both). None: the paper's plain cosine of the whole crop. It is the bank's:
             self-labelling and ``threedq parse`` read it from this stage's checkpoint, and a checkpoint loaded
             into this stage brings its own (checkpoints written before the option: None).
+        crop_shape: the region cut around each box (:func:`threedq.geometry.crop_region`) before it is resized to
+            ``crop_size^3``: ``hull`` (the paper's: the box itself, aspect not kept), ``square`` (a horizontal square
+            of the larger horizontal extent: aspect kept in the ground plane) or ``cube`` (a cube of the largest
+            extent: aspect kept; a departure from the paper, docs/results.md measures all three). Like
+            ``occupancy_floor`` it is the bank's: self-labelling, ``threedq parse`` and the evaluation cut crops as
+            the checkpoint says (checkpoints written before the option: ``hull``).
 
     Convention: crops in frame R, z up; yaw counter-clockwise seen from above.
     """
@@ -109,10 +132,13 @@ class Quantizer(SplitEvaluation, EncoderStage):
         seed: int = 0,
         init_bank_ckpt: str | None = None,
         occupancy_floor: float | None = 0.2,
+        crop_shape: Literal["hull", "square", "cube"] = "hull",
         **kwargs: Any,
     ) -> None:
         if occupancy_floor is not None and not 0.0 <= occupancy_floor < 1.0:
             raise ValueError(f"occupancy_floor: expected null or a float in [0, 1), got {occupancy_floor!r}")
+        if crop_shape not in CROP_SHAPES:
+            raise ValueError(f"crop_shape: expected one of {CROP_SHAPES}, got {crop_shape!r}")
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         self.save_hyperparameters()
         self.automatic_optimization = False
@@ -123,6 +149,10 @@ class Quantizer(SplitEvaluation, EncoderStage):
             if fitted != occupancy_floor:
                 raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.occupancy_floor': the bank was fitted with "
                                  f"{fitted}, this stage has occupancy_floor={occupancy_floor}")
+            cut = bank_crop_shape(init_bank_ckpt)
+            if cut != crop_shape:
+                raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.crop_shape': the bank was fitted on "
+                                 f"{cut!r} crops, this stage has crop_shape={crop_shape!r}")
         self._train_crops: list[Tensor] = []
         self._train_keys: list[Tensor] = []
         self.metrics: torch.nn.ModuleDict | None = None
@@ -133,10 +163,11 @@ class Quantizer(SplitEvaluation, EncoderStage):
             self._make_metrics(num_classes, sym)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """The crop weighting of the checkpoint's bank (:func:`bank_occupancy_floor`'s rule: a checkpoint written
-        before the option holds a plain bank), whatever this stage was built with: the bank is scored as it was
-        fitted."""
+        """The crop weighting and crop shape of the checkpoint's bank (:func:`bank_occupancy_floor`'s rule: a
+        checkpoint written before the options holds a plain bank of hull crops), whatever this stage was built with:
+        the bank is scored as it was fitted."""
         self.hparams.occupancy_floor = _saved_floor(checkpoint.get("hyper_parameters"))
+        self.hparams.crop_shape = _saved_crop_shape(checkpoint.get("hyper_parameters"))
 
     def _make_metrics(self, num_classes: int, sym: list[int]) -> None:
         hp = self.hparams
@@ -167,7 +198,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         with torch.no_grad():
-            out = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
+            out = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size, self.hparams.crop_shape)
             crops = prototype_crops(out["features"], out["raw"], self.hparams.occupancy_floor)
         self._train_crops.append(crops.detach())
         self._train_keys.append(out["scene"] * batch["box_mask"].shape[1] + out["slot"])
@@ -230,7 +261,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
     def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:
         if self.bank.num_active == 0:
             return  # sanity check before any training
-        crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
+        crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size, self.hparams.crop_shape)
         if crops["features"].shape[0] == 0:
             return  # no (matched) boxes in this batch, e.g. detections that hit no GT object
         res = self.bank.assign(prototype_crops(crops["features"], crops["raw"], self.hparams.occupancy_floor))

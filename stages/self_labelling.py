@@ -54,12 +54,12 @@ from tqdm import tqdm
 
 from threedq.atomic_io import atomic_write_text
 from threedq.boxes import aabb_iou_3d
-from threedq.geometry import VoxelGridSpec, crop_boxes
+from threedq.geometry import VoxelGridSpec, crop_boxes, crop_region
 from threedq.metrics.detection import assign_detections
 from threedq.quantization.prototypes import PrototypeBank, prototype_crops
 from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
 from threedq.stages.detector import Detector, check_same_anchor, detection_targets
-from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
+from threedq.stages.quantizer import bank_crop_shape, bank_occupancy_floor, load_bank_state
 from threedq.viz.detection import self_labels_figure
 from threedq.viz.png import write_png
 
@@ -189,7 +189,7 @@ class SelfLabelling(Detector):
             detections per scene, box refinement) is taken from this checkpoint, so a self-labelled detector decodes
             as the detector it fine-tunes.
         bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (the round's); its crops are
-            weighted as that bank's were (the quantizer's ``occupancy_floor``).
+            cut and weighted as that bank's were (the quantizer's ``crop_shape`` and ``occupancy_floor``).
         positive_threshold: best prototype cosine (over all prototypes and yaws) above which a box is positive
             (paper: 0.8).
         negative_threshold: center-surround similarity above which a box is negative (paper: 0.65).
@@ -304,8 +304,11 @@ class SelfLabelling(Detector):
         self.bank: PrototypeBank | None = None
         #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`), from its checkpoint
         self.occupancy_floor: float | None = None
+        #: the region the bank's crops are cut from around each box (:func:`~threedq.geometry.crop_region`)
+        self.crop_shape = "hull"
         if bank_ckpt:
             self.occupancy_floor = bank_occupancy_floor(bank_ckpt)
+            self.crop_shape = bank_crop_shape(bank_ckpt)
             num = load_checkpoint(bank_ckpt).prefixed("bank.").get("prototypes")
             if num is None:
                 raise ValueError(f"{bank_ckpt}: field 'state_dict': no 'bank.prototypes' (not a quantizer checkpoint?)")
@@ -438,9 +441,11 @@ class SelfLabelling(Detector):
                 if not counts[b]:
                     continue
                 aabb = d["boxes"].to(grid.dtype)[None]
-                c = crop_boxes(grid[b : b + 1], aabb, self.feature_grid, self.hparams.crop_size)[0]
+                region = crop_region(aabb, self.crop_shape)
+                c = crop_boxes(grid[b : b + 1], region, self.feature_grid, self.hparams.crop_size)[0]
                 if self.occupancy_floor is not None:
-                    occ = crop_boxes(occupancy[b : b + 1], aabb.to(occupancy.dtype), self.grid, self.hparams.crop_size)[0]
+                    occ = crop_boxes(occupancy[b : b + 1], region.to(occupancy.dtype), self.grid,
+                                     self.hparams.crop_size)[0]
                     c = prototype_crops(c, occ, self.occupancy_floor)
                 crops.append(c)
                 cs_all[b] = center_surround_similarity(grid[b : b + 1], aabb, self.feature_grid,

@@ -252,6 +252,47 @@ class TestQuantizerStage:
         assert q.hparams.occupancy_floor == 0.2
 
 
+    def test_crop_shape_travels_with_the_bank(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        from threedq.stages.base import EncoderStage
+        from threedq.stages.quantizer import Quantizer, bank_crop_shape
+
+        from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+
+        torch.manual_seed(0)
+        enc = tmp_path / "enc.pt"
+        torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
+        cfg = _quantizer_config(tmp_path, tiny_dataset, enc)
+        banks = {}
+        for shape in ("hull", "cube"):
+            run = tmp_path / f"q_{shape}"
+            cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
+                                   f"--trainer.default_root_dir={run}", f"--model.init_args.crop_shape={shape}"])
+            ckpt = run / "checkpoints" / "last.ckpt"
+            assert bank_crop_shape(str(ckpt)) == shape
+            banks[shape] = (ckpt, cli.model.bank.prototypes.clone())
+        assert not torch.allclose(banks["hull"][1], banks["cube"][1])  # other crops, other prototypes
+        with pytest.raises(ValueError, match="crop_shape"):  # a round's warm start must cut as its bank was cut
+            Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, init_bank_ckpt=str(banks["hull"][0]),
+                      crop_shape="cube")
+        Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, init_bank_ckpt=str(banks["cube"][0]),
+                  crop_shape="cube")
+        with pytest.raises(ValueError, match="crop_shape: expected one of"):
+            Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, crop_shape="ball")
+        from threedq.pipeline.lightning_cli import ConfigError
+
+        with pytest.raises(ConfigError, match=r"crop_shape.*'hull', 'square', 'cube'.*ball"):  # the CLI names the choices
+            ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
+                             f"--trainer.default_root_dir={tmp_path / 'bad'}", "--model.init_args.crop_shape=ball"])
+        # a checkpoint brings its bank's crop shape (one written before the option, without the field: hull)
+        ck = torch.load(banks["cube"][0], weights_only=True, map_location="cpu")
+        q = Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8)
+        assert q.hparams.crop_shape == "hull"
+        q.on_load_checkpoint(ck)
+        assert q.hparams.crop_shape == "cube"
+        q.on_load_checkpoint({"hyper_parameters": {k: v for k, v in ck["hyper_parameters"].items() if k != "crop_shape"}})
+        assert q.hparams.crop_shape == "hull"
+
+
 class TestSpectrumReuse:
     """The EM computes each chunk's polar spectrum once: one test body against the recomputing reference path."""
 

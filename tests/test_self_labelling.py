@@ -264,6 +264,24 @@ class TestLabellingRule:
         with pytest.raises(ValueError, match="occupancy"):
             st._label_batch(vol, gt_batch, None)
 
+    def test_cube_bank(self) -> None:
+        # a bank fitted on cube crops (the quantizer's crop_shape, read from its checkpoint) scores the candidates'
+        # cube crops: a flat candidate's score is the bank's assignment of its cube region, not of its hull
+        from threedq.geometry import crop_boxes, crop_region
+
+        vol, boxes = self._scene()
+        st = self._stage()
+        st.crop_shape = "cube"
+        st.bank.add(crop_boxes(vol, boxes[:1][None], st.feature_grid, 4)[0], threshold=2.0)  # a cube box: hull = cube
+        det = torch.cat([boxes[:1], torch.tensor([[-0.8, -0.8, 0.0, -0.32, -0.32, 0.16]])])  # the object, its lower third
+        st.detect = lambda logits, box, thr=None: [{"boxes": det.clone(), "scores": torch.ones(len(det))}]  # type: ignore
+        gt_batch = {"aabb": boxes[None], "box_mask": torch.ones(1, 2, dtype=torch.bool)}
+        _, diag = st._label_batch(vol, gt_batch, None)[0]
+        cut = lambda shape: st.bank.assign(  # noqa: E731
+            crop_boxes(vol, crop_region(det, shape)[None], st.feature_grid, 4)[0]).score
+        torch.testing.assert_close(diag["proto"], cut("cube"))
+        assert diag["proto"][0] > 0.999 and abs(float(diag["proto"][1] - cut("hull")[1])) > 0.05
+
     def test_bad_arguments(self) -> None:
         with pytest.raises(ValueError, match="positive_threshold"):
             SelfLabelling(feature_dim=8, positive_threshold=1.5)

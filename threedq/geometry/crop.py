@@ -14,7 +14,12 @@ from torch import Tensor
 
 from .grid import VoxelGridSpec
 
-__all__ = ["box_mask", "crop_boxes", "occupancy_weighted", "paste_boxes"]
+__all__ = ["CROP_SHAPES", "box_mask", "crop_boxes", "crop_region", "occupancy_weighted", "paste_boxes"]
+
+#: The regions :func:`crop_region` crops around a box: ``hull`` the box itself (the paper's; aspect not kept once
+#: resized to a cube), ``square`` a horizontal square of the larger horizontal extent with the height as is (aspect
+#: kept in the ground plane, where the rotation search turns crops), ``cube`` a cube of the largest extent (aspect kept).
+CROP_SHAPES = ("hull", "square", "cube")
 
 
 def _check_boxes(boxes: Tensor) -> None:
@@ -85,6 +90,41 @@ def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | t
     coords = grid.world_to_normalized(points).reshape(batch, n_boxes * sz, sy, sx, 3)
     crops = F.grid_sample(volume, coords, mode="bilinear", padding_mode="zeros", align_corners=False)
     return crops.view(batch, channels, n_boxes, sz, sy, sx).transpose(1, 2).contiguous()
+
+
+def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
+    """The region cropped around each box: the box, or a square or cube about its centre.
+
+    A crop resized to a fixed ``s^3`` keeps the object's aspect only if the region it samples is a cube: the hull
+    of a 0.2 x 0.6 m box stretches the object 3x along x, and a hull rotated by a yaw no longer matches the hull of
+    the same object seen at another yaw. ``square`` makes the horizontal extent square (the rotation search turns crops
+    about z, so a rotated crop is the same object rotated); ``cube`` makes all three equal. A departure from the paper,
+    which crops the hull (``hull``, the default everywhere).
+
+    Args:
+        boxes: ``[..., 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
+        shape: one of :data:`CROP_SHAPES`.
+
+    Returns:
+        ``[..., 6]`` regions, same dtype: ``hull`` the boxes unchanged; ``square`` each box's x and y intervals widened
+        about its centre to ``max(dx, dy)``, z as is; ``cube`` all three widened to ``max(dx, dy, dz)``.
+
+    Convention:
+        Axis-aligned boxes in R (metres, z up); a region contains its box and shares its centre.
+    """
+    if shape not in CROP_SHAPES:
+        raise ValueError(f"crop shape must be one of {CROP_SHAPES}, got {shape!r}")
+    if not isinstance(boxes, Tensor) or boxes.ndim < 1 or boxes.shape[-1] != 6:
+        got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
+        raise ValueError(f"boxes must have shape [..., 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {got}")
+    if shape == "hull":
+        return boxes
+    lo, hi = boxes[..., :3], boxes[..., 3:]
+    centre, extent = (lo + hi) / 2, hi - lo
+    axes = 2 if shape == "square" else 3
+    side = extent[..., :axes].amax(-1, keepdim=True)
+    half = torch.cat([side.expand(*side.shape[:-1], axes), extent[..., axes:]], dim=-1) / 2
+    return torch.cat([centre - half, centre + half], dim=-1)
 
 
 def box_mask(boxes: Tensor, grid: VoxelGridSpec) -> Tensor:

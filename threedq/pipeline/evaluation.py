@@ -25,7 +25,7 @@ from tqdm import tqdm
 from threedq.baselines.descriptor import colour_size_descriptor, descriptor_similarity
 from threedq.stages.base import EncoderStage
 from threedq.stages.crop_cache import CropCache, sample_key
-from threedq.geometry import crop_boxes, yaw_angles
+from threedq.geometry import CROP_SHAPES, crop_boxes, crop_region, yaw_angles
 from threedq.metrics import cluster_confusion, few_shot_accuracy, hungarian_accuracy, linear_probe, relative_yaw_error
 from threedq.metrics.retrieval import (
     precision_ceiling,
@@ -39,6 +39,7 @@ __all__ = [
     "RETRIEVAL_SEARCH",
     "SEARCH_LABELS",
     "collect_object_crops",
+    "stage_crop_shape",
     "evaluate_features",
     "probe_table",
     "quantization_metrics",
@@ -60,22 +61,30 @@ DESCRIPTOR = "colour_size_descriptor"
 GALLERY_VIEW = "each scene's second fixed view (the first view after the input views)"
 
 
+def stage_crop_shape(stage: Any) -> str:
+    """The region a stage cuts its object crops from (a quantizer's ``crop_shape`` hyperparameter; ``hull``, the
+    paper's, for a stage without one)."""
+    hp = getattr(stage, "hparams", None)
+    return (hp.get("crop_shape") if hp is not None else None) or "hull"
+
+
 def _random_encoder_crops(
-    stage: EncoderStage, random_enc: UNet3D, batch: dict[str, Tensor], v: int, crop_size: int, cache: CropCache | None
+    stage: EncoderStage, random_enc: UNet3D, batch: dict[str, Tensor], v: int, crop_size: int, cache: CropCache | None,
+    crop_shape: str = "hull",
 ) -> Tensor:
     """Crops of ``batch``'s valid boxes from ``random_enc``'s features (view mean, L2-normalised), on the CPU."""
     mask = batch["box_mask"]
     B = mask.shape[0]
     if cache is not None:
         prefix, fp = stage.crop_cache_prefix(), cache.fingerprint(random_enc)
-        keys = [("random", prefix, fp, sample_key(batch, b, v, crop_size)) for b in range(B)]
+        keys = [("random", prefix, fp, sample_key(batch, b, v, crop_size, crop_shape)) for b in range(B)]
         hit = cache.get_many(keys)
         if hit is not None:
             return torch.cat(hit)
     rgb, depth, K, pose = (batch[k][:, :v].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
     x, _ = stage.encoder_input(rgb, depth, K, pose)
     rf = random_enc(x).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
-    rand = crop_boxes(F.normalize(rf, dim=1), batch["aabb"], stage.feature_grid, crop_size)
+    rand = crop_boxes(F.normalize(rf, dim=1), crop_region(batch["aabb"], crop_shape), stage.feature_grid, crop_size)
     if cache is not None:
         for b in range(B):
             cache.put(keys[b], rand[b][mask[b]])
@@ -100,6 +109,7 @@ def collect_object_crops(
     random_encoder_seed: int | None = 0,
     progress: bool = True,
     gallery: bool = False,
+    crop_shape: str | None = None,
 ) -> dict[str, Tensor]:
     """Crop every GT object of every scene of ``loader`` out of three volumes.
 
@@ -112,6 +122,9 @@ def collect_object_crops(
         gallery: also crop the same boxes out of the grid of each scene's next view alone (view
             ``num_input_views``, which the loader must hold: :func:`~threedq.pipeline.report.split_loader` with
             ``gallery=True``): the paper protocol's gallery, row ``i`` the twin of query ``i``.
+        crop_shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull`` (the
+            paper's), ``square`` or ``cube``; None: the stage's own (a quantizer's ``crop_shape``; else ``hull``).
+            ``aabb`` is returned as given either way.
 
     Returns:
         ``learned`` ``[N, C, s, s, s]``, ``raw`` ``[N, 4, s, s, s]``, ``random`` ``[N, C, s, s, s]`` (if
@@ -119,8 +132,11 @@ def collect_object_crops(
         boxes (GT hulls, or the given boxes), ``scene`` ``[N]`` (index in the split); with ``gallery`` also
         ``gallery_learned``, ``gallery_raw`` and ``gallery_random`` (if requested) of the second view.
 
-    Convention: boxes axis-aligned in R (z up), cropped as their tight hull.
+    Convention: boxes axis-aligned in R (z up), cropped as their tight hull (or the ``crop_shape`` region about it).
     """
+    crop_shape = stage_crop_shape(stage) if crop_shape is None else crop_shape
+    if crop_shape not in CROP_SHAPES:
+        raise ValueError(f"crop_shape must be one of {CROP_SHAPES}, got {crop_shape!r}")
     was_training = stage.training
     stage.eval()
     random_enc = None
@@ -137,13 +153,13 @@ def collect_object_crops(
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
         batch = {k: t.to(stage.device) if isinstance(t, Tensor) else t for k, t in batch.items()}
         with stage.precision_context():  # as the stage's test_step encodes (and keys the crop cache)
-            crops = stage.object_crops(batch, v, crop_size)
+            crops = stage.object_crops(batch, v, crop_size, crop_shape)
             if gallery:
                 if batch["rgb"].shape[1] <= v:
                     raise ValueError(f"gallery: the loader's samples hold {batch['rgb'].shape[1]} view(s), the paper "
                                      f"protocol needs a view after the {v} input view(s) (split_loader(gallery=True))")
                 other = _single_view(batch, v)
-                g = stage.object_crops(other, 1, crop_size)
+                g = stage.object_crops(other, 1, crop_size, crop_shape)
                 out["gallery_learned"].append(g["features"].float().cpu())
                 out["gallery_raw"].append(g["raw"].cpu())
         out["learned"].append(crops["features"].float().cpu())
@@ -151,9 +167,11 @@ def collect_object_crops(
         for k in ("labels", "boxes", "aabb", "scene"):
             out[k].append(crops[k].cpu())
         if random_enc is not None:
-            out["random"].append(_random_encoder_crops(stage, random_enc, batch, v, crop_size, cache))
+            out["random"].append(_random_encoder_crops(stage, random_enc, batch, v, crop_size, cache, crop_shape))
             if gallery:
-                out["gallery_random"].append(_random_encoder_crops(stage, random_enc, other, 1, crop_size, cache))
+                out["gallery_random"].append(
+                    _random_encoder_crops(stage, random_enc, other, 1, crop_size, cache, crop_shape)
+                )
     stage.train(was_training)
     return {k: torch.cat(v) for k, v in out.items() if v}
 

@@ -49,7 +49,7 @@ from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_bytes
 from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
-from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
+from threedq.geometry import crop_boxes, crop_region, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.pipeline.run_layout import RunLayout
 from threedq.quantization.prototypes import PrototypeBank, prototype_crops
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
@@ -62,7 +62,7 @@ from threedq.stages.checkpoint import (
     encoder_state_from_checkpoint,
 )
 from threedq.stages.detector import Detector
-from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
+from threedq.stages.quantizer import bank_crop_shape, bank_occupancy_floor, load_bank_state
 
 __all__ = [
     "RunArtifacts",
@@ -231,6 +231,11 @@ class SceneParser(torch.nn.Module):
         self.num_angles = int(q_hp["num_angles"])
         #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`; None: plain cosine)
         self.occupancy_floor = bank_occupancy_floor(artifacts.prototypes)
+        #: the region the bank's crops were cut from around each box (:func:`~threedq.geometry.crop_region`)
+        try:
+            self.crop_shape = bank_crop_shape(artifacts.prototypes)
+        except ValueError as e:
+            raise InputError(str(e)) from None
         self.fingerprint = bank_fingerprint(self.bank)
         self.eval()
 
@@ -293,10 +298,11 @@ class SceneParser(torch.nn.Module):
         for b, d in enumerate(dets):
             n = d["boxes"].shape[0]
             aabb[b, :n], mask[b, :n] = d["boxes"], True
-        crops = crop_boxes(q_feats, aabb, det.feature_grid, self.crop_size)[mask]
+        region = crop_region(aabb, self.crop_shape)
+        crops = crop_boxes(q_feats, region, det.feature_grid, self.crop_size)[mask]
         if self.occupancy_floor is not None:  # the input occupancy (union over the views) weights the crops
             occ = x[:, :1].reshape(B, V, 1, *x.shape[2:]).amax(1)
-            crops = prototype_crops(crops, crop_boxes(occ, aabb, det.grid, self.crop_size)[mask], self.occupancy_floor)
+            crops = prototype_crops(crops, crop_boxes(occ, region, det.grid, self.crop_size)[mask], self.occupancy_floor)
         t["crop"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if crops.shape[0]:
@@ -547,7 +553,8 @@ def prototype_appearance(parser: SceneParser, root: Path, files: list[str], view
             for j in range(B):
                 if res["aabb"][j].shape[0] == 0:
                     continue
-                raw = crop_boxes(raw_grid[j : j + 1], res["aabb"][j][None].to(raw_grid), det.grid, s)[0].cpu()
+                region = crop_region(res["aabb"][j][None].to(raw_grid), parser.crop_shape)
+                raw = crop_boxes(raw_grid[j : j + 1], region, det.grid, s)[0].cpu()
                 aligned = rotate_yaw(raw, yaw[res["angle"][j]])
                 for n, k in enumerate(res["prototype"][j].tolist()):
                     acc[k] += aligned[n]

@@ -45,6 +45,7 @@ from threedq.stages.checkpoint import require_stage
 from threedq.baselines.pointcloud import PointCloudPrototypes
 from threedq.pipeline.evaluation import (
     RETRIEVAL_SEARCH,
+    stage_crop_shape,
     collect_object_crops,
     probe_table,
     quantization_metrics,
@@ -221,6 +222,8 @@ def evaluate_quantizer(
         raise InputError(f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': the test split holds {labels.shape[0]} "
                          "object(s); the evaluation (retrieval, clustering) needs at least 2")
     retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search, coarse_labels=coarse_labels(cats, labels))
+    shape = stage_crop_shape(model)
+    retrieval["crop_shape"] = shape
     probe = probe_table(train, test) if baselines and int((train["labels"] >= 0).sum()) > 0 else None
     # the threedq row is what the stage's own test_step measured (trainer.test); the baselines below are fitted here
     n_scored = int(test_metrics.get("test/objects", -1))
@@ -280,7 +283,7 @@ def evaluate_quantizer(
         "paper_protocol_not_run": no_paper,
         "quantization": quant,
         "curve": curve,
-        "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast"), floor),
+        "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast"), floor, shape),
         "resnet": resnet_res,
         "not_run": {**({} if q25d is not None else {"q25d": Q25D_HOWTO}),
                     **({} if resnet is not None else {"resnet": RESNET_HOWTO})},

@@ -18,6 +18,7 @@ from threedq.pipeline.evaluation import DESCRIPTOR, SEARCH_LABELS
 __all__ = [
     "METHOD_LABELS",
     "RETRIEVAL_ROWS",
+    "CROP_LABELS",
     "cluster_search_label",
     "em_markdown",
     "eval_markdown",
@@ -47,15 +48,26 @@ def method_rows(quantization: dict[str, Any]) -> list[tuple[str, Any]]:
     return sorted(quantization.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
 
 
-def cluster_search_label(method: str = "fast", occupancy_floor: float | None = None) -> str:
+#: How a table names a crop region other than the paper's hull (:func:`threedq.geometry.crop_region`).
+CROP_LABELS = {
+    "square": "crops of a horizontal square of each box's larger horizontal extent, height as is (aspect kept in the "
+              "ground plane; the paper crops the box's hull)",
+    "cube": "crops of a cube of each box's largest extent (aspect kept; the paper crops the box's hull)",
+}
+
+
+def cluster_search_label(method: str = "fast", occupancy_floor: float | None = None, crop_shape: str = "hull") -> str:
     """How each clustering row searches rotations (every clustering table names it): the stage's bank (threedq)
     uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search. ``occupancy_floor``: the
-    quantizer's crop weighting (threedq and no-rot-3DQ compare occupancy-weighted crops; None: plain crops)."""
+    quantizer's crop weighting (threedq and no-rot-3DQ compare occupancy-weighted crops; None: plain crops);
+    ``crop_shape``: the region its crops are cut from (named unless the paper's ``hull``)."""
     own = "exact search over 36 yaw steps (cosine over the full cube)" if method == "exact" else (
         "fast search over 36 yaw steps (cosine over the inscribed cylinder)")
     if occupancy_floor is not None:
         own += (f", of crops weighted by their input occupancy (empty space {occupancy_floor:g}, voxels at or next to "
                 f"observed surface {1 + occupancy_floor:g}; not the paper's plain crops)")
+    if crop_shape in CROP_LABELS:
+        own += f", on {CROP_LABELS[crop_shape]}"
     return (f"Prototype assignment: threedq by the {own}; no-rot-3DQ by the same bank EM with 1 yaw step (no search); "
             "2.5DQ-Nets by the fast search on one-slice crops, i.e. over 36 in-plane angles (cosine over the inscribed "
             "disc); point-cloud registration by its occupancy-only similarity over 36 yaw steps.")
@@ -94,7 +106,9 @@ def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, l
     pk = precision_label(r)
     prot = r.get("protocols") or {"strict": {"pool": r["num_objects"], "precision_at_k": r["precision_at_k"]}}
     st, pa = prot.get("strict", {}), prot.get("paper")
-    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}.", ""]
+    crop = f"; {CROP_LABELS[r['crop_shape']]}" if r.get("crop_shape") in CROP_LABELS else ""
+    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}{crop}.",
+             ""]
     for name in ("strict", "paper"):
         if name in prot:
             c = prot[name]

@@ -1,0 +1,53 @@
+"""benchmarks/feature_recipes.py: the table of its rows (hand-made rows), and scoring a checkpoint per crop shape."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from conftest import load_benchmark
+
+feature_recipes = load_benchmark("feature_recipes")
+
+
+def _row(variant: str, crop: str, paper: float, raw_paper: float, seed: int | None = None) -> dict:
+    refs = {f"{k}/{m}": v for k, v in (("raw", raw_paper), ("descriptor", 0.3)) for m in ("strict", "paper", "top1")}
+    return {"variant": variant, "seed": seed, "steps": 0, "s_per_step": float("nan"), "crop": crop,
+            "cosine/strict": paper - 0.05, "cosine/paper": paper, "cosine/top1": 0.5, "ceiling/strict": 0.9,
+            "ceiling/paper": 0.95, "pool": 7, **refs}
+
+
+class TestTable:
+    def test_mean_and_range_over_runs_and_references_per_crop(self) -> None:
+        rows = [_row("vp", "hull", 0.40, 0.35, 0), _row("vp", "hull", 0.50, 0.35, 1),
+                _row("vp, cube crop", "cube", 0.60, 0.37, 0), _row("vp, cube crop", "cube", 0.62, 0.37, 1)]
+        lines = feature_recipes.table(rows).splitlines()
+        vp = next(line for line in lines if line.startswith("| vp |"))
+        assert "| 2 |" in vp and "0.450 (0.400-0.500)" in vp
+        cube = next(line for line in lines if line.startswith("| vp, cube crop |"))
+        assert "0.610 (0.600-0.620)" in cube
+        assert any(line.startswith("| raw crops | 0.350 | 0.350 |") for line in lines)
+        assert any(line.startswith("| raw crops, cube crop | 0.370 | 0.370 |") for line in lines)
+        assert sum("descriptor" in line for line in lines) == 1  # of the hull crops only
+
+    def test_rows_written_before_the_crop_field_are_hull(self) -> None:
+        row = _row("old", "hull", 0.4, 0.3)
+        del row["crop"]
+        assert "| raw crops | 0.300 |" in feature_recipes.table([row])
+
+
+class TestScoreCheckpoints:
+    def test_one_row_per_crop_shape(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        from threedq.stages.base import EncoderStage
+
+        torch.manual_seed(0)
+        ckpt = tmp_path / "enc.pt"
+        torch.save(EncoderStage().encoder.state_dict(), ckpt)  # an encoder state dict is a checkpoint too
+        out = tmp_path / "rows.jsonl"
+        feature_recipes.score_checkpoints([f"enc={ckpt}"], str(tiny_dataset), out, probe=False,
+                                          crop_shapes=("hull", "cube"))
+        rows = [json.loads(line) for line in out.read_text().splitlines()]
+        assert [(r["variant"], r["crop"]) for r in rows] == [("enc", "hull"), ("enc, cube crop", "cube")]
+        assert rows[0]["cosine/paper"] != rows[1]["cosine/paper"] or rows[0]["raw/top1"] != rows[1]["raw/top1"]
