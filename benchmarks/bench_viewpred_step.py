@@ -6,10 +6,11 @@ labels, frustum resampling + decoder, backward + Adam) on synthetic scenes rende
 generator at the default config (batch 2, 1 input + 1 target view, 128x128, 64x64x32 grid).
 
     python benchmarks/bench_viewpred_step.py [--repeats 5] [--grid 64 64 32] [--device cpu] [--channels 64 128 256]
-        [--fp32_only] [--decoder 32 8] [--channels_last_only]
+        [--fp32_only] [--decoder 32 8] [--channels_last_only] [--compile]
 
 ``--decoder PLANES POOL`` (repeatable) sets the frustum's depth planes and the decoder's depth max-pool
-(``num_planes``, ``pool``; default 32 8, the main job's).
+(``num_planes``, ``pool``; default 32 8, the main job's). ``--compile`` adds, per configuration, a row whose encoder
+is wrapped in ``torch.compile`` (inductor; its compile time printed beside it, paid in the warm-ups).
 """
 
 from __future__ import annotations
@@ -93,6 +94,7 @@ def main() -> None:
     ap.add_argument("--decoder", type=int, nargs=2, action="append", metavar=("PLANES", "POOL"),
                     help="the frustum's depth planes and the decoder's depth pool (repeatable; default 32 8)")
     ap.add_argument("--channels_last_only", action="store_true", help="only the channels_last_3d layout")
+    ap.add_argument("--compile", action="store_true", help="also each configuration with a torch.compile'd encoder")
     ap.add_argument("--fp32_only", action="store_true", help="skip bf16 autocast (emulated, very slow, on CPUs without "
                     "bf16 instructions)")
     args = ap.parse_args()
@@ -107,22 +109,31 @@ def main() -> None:
           f"({cpu_name() if args.device == 'cpu' else torch.cuda.get_device_name()}), "
           f"torch {torch.__version__}, median of {args.repeats} after 2 warm-ups\n")
     cols = ["unproject", "encoder", "occ/free labels", "frustum+decoder", "backward+adam", "step"]
-    print("| encoder widths | planes / pool | precision | layout | " + " | ".join(f"{c} ms" for c in cols) + " |")
-    print("|---|---|---|---|" + "---|" * len(cols))
+    print("| encoder widths | planes / pool | precision | layout | encoder | " + " | ".join(f"{c} ms" for c in cols)
+          + " |")
+    print("|---|---|---|---|---|" + "---|" * len(cols))
     for channels in args.channels or [(64, 128, 256)]:
         for planes, pool in args.decoder or [(32, 8)]:
             for bf16 in (False,) if args.fp32_only else (False, True):
                 for cl in (True,) if args.channels_last_only else (False, True):
-                    torch.manual_seed(0)
-                    model = ViewPrediction(grid_resolution=tuple(args.grid), encoder_channels=tuple(channels),
-                                           channels_last=cl, num_planes=planes, pool=pool,
-                                           image_every_n_steps=0).to(args.device)
-                    opt = torch.optim.Adam(model.parameters(), 1e-3)
-                    runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats + 2)][2:]
-                    med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
-                    print(f"| {'-'.join(map(str, channels))} | {planes} / {pool} | {'bf16 autocast' if bf16 else 'fp32'} | "
-                          f"{'channels_last_3d' if cl else 'contiguous'} | " + " | ".join(f"{med[c]:.0f}" for c in cols)
-                          + " |")
+                    for compiled in (False, True) if args.compile else (False,):
+                        torch.manual_seed(0)
+                        model = ViewPrediction(grid_resolution=tuple(args.grid), encoder_channels=tuple(channels),
+                                               channels_last=cl, num_planes=planes, pool=pool,
+                                               image_every_n_steps=0).to(args.device)
+                        if compiled:
+                            model.encoder = torch.compile(model.encoder, dynamic=False)
+                        opt = torch.optim.Adam(model.parameters(), 1e-3)
+                        t0 = time.perf_counter()
+                        for _ in range(2):
+                            time_step(model, batch, opt, bf16, args.device)
+                        warm_s = time.perf_counter() - t0
+                        runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats)]
+                        med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
+                        enc = f"torch.compile (warm-ups {warm_s:.0f} s)" if compiled else "eager"
+                        print(f"| {'-'.join(map(str, channels))} | {planes} / {pool} | "
+                              f"{'bf16 autocast' if bf16 else 'fp32'} | {'channels_last_3d' if cl else 'contiguous'} | "
+                              f"{enc} | " + " | ".join(f"{med[c]:.0f}" for c in cols) + " |")
 
 
 if __name__ == "__main__":

@@ -233,6 +233,8 @@ class TestObjectCropsWithCache:
                for s in ("hull", "cube")}
         assert not torch.equal(ref["hull"]["learned"], ref["cube"]["learned"])
         assert torch.equal(ref["hull"]["aabb"], ref["cube"]["aabb"])
+        # the colour + size descriptor reads the hulls' raw crops whatever the shape (its colour is the box's)
+        assert torch.equal(ref["cube"]["descriptor_raw"], ref["hull"]["raw"]) and "descriptor_raw" not in ref["hull"]
         stage.use_crop_cache(CropCache())
         calls = []
         for shape in ("hull", "cube", "hull"):

@@ -91,6 +91,23 @@ def _random_encoder_crops(
     return rand[mask].cpu()
 
 
+def _hull_raw_crops(stage: EncoderStage, batch: dict[str, Tensor], v: int, crop_size: int) -> Tensor:
+    """Raw input crops of ``batch``'s valid boxes cut as their hulls, on the CPU: the colour + size descriptor's,
+    whatever region the features are cut from (no encoder pass: the unprojected input only)."""
+    rgb, depth, K, pose = (batch[k][:, :v].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
+    x, _ = stage.encoder_input(rgb, depth, K, pose)
+    B = batch["box_mask"].shape[0]
+    raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"].to(x.dtype), stage.grid, crop_size)
+    return raw[batch["box_mask"]].cpu()
+
+
+def _descriptor(crops: dict[str, Tensor], prefix: str = "") -> Tensor:
+    """The colour + size descriptor of ``crops``' objects (of ``gallery_`` ones with that ``prefix``), from the hull
+    crops of their raw input (``descriptor_raw``, which crops of another region carry) and the boxes."""
+    raw = crops.get(f"{prefix}descriptor_raw", crops[f"{prefix}raw"])
+    return colour_size_descriptor(raw, crops["aabb"])
+
+
 def _single_view(batch: dict[str, Tensor], view: int) -> dict[str, Tensor]:
     """``batch`` with view ``view`` of every sample as its only view (the boxes, in frame R, are the same)."""
     out = dict(batch)
@@ -146,7 +163,8 @@ def collect_object_crops(
             random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels,
                                 channels=stage.encoder.channels).to(stage.device).eval()
     keys = ("learned", "raw", "random", "labels", "boxes", "aabb", "scene", "gallery_learned", "gallery_raw",
-            "gallery_random")
+            "gallery_random", "descriptor_raw", "gallery_descriptor_raw")
+    hull = crop_shape == "hull"
     out: dict[str, list[Tensor]] = {k: [] for k in keys}
     cache = stage.crop_cache if random_enc is not None and stage.crops_cacheable() else None
     v = num_input_views
@@ -162,6 +180,10 @@ def collect_object_crops(
                 g = stage.object_crops(other, 1, crop_size, crop_shape)
                 out["gallery_learned"].append(g["features"].float().cpu())
                 out["gallery_raw"].append(g["raw"].cpu())
+                if not hull:
+                    out["gallery_descriptor_raw"].append(_hull_raw_crops(stage, other, 1, crop_size))
+            if not hull:
+                out["descriptor_raw"].append(_hull_raw_crops(stage, batch, v, crop_size))
         out["learned"].append(crops["features"].float().cpu())
         out["raw"].append(crops["raw"].cpu())
         for k in ("labels", "boxes", "aabb", "scene"):
@@ -233,10 +255,10 @@ def retrieval_table(
             score(name, "paper", all_pairs_rotation_max(crops[key], crops[f"gallery_{key}"], num_angles,
                                                         method=search)[0])
     if "raw" in crops and "aabb" in crops:
-        d = colour_size_descriptor(crops["raw"], crops["aabb"])
+        d = _descriptor(crops)
         score(DESCRIPTOR, "strict", descriptor_similarity(d, d))
         if "gallery_raw" in crops:
-            score(DESCRIPTOR, "paper", descriptor_similarity(d, colour_size_descriptor(crops["gallery_raw"], crops["aabb"])))
+            score(DESCRIPTOR, "paper", descriptor_similarity(d, _descriptor(crops, "gallery_")))
     if paper and coarse_labels is not None and "paper/learned" in sims:
         if coarse_labels.shape != labels.shape:
             raise ValueError(f"coarse_labels: expected [{n}], got {tuple(coarse_labels.shape)}")
@@ -259,7 +281,7 @@ def pooled_features(crops: dict[str, Tensor]) -> dict[str, Tensor]:
     not change with yaw) and the six-number descriptor."""
     out = {name: crops[key].flatten(2).mean(2) for name, key in FEATURE_SETS if key in crops}
     if "raw" in crops and "aabb" in crops:
-        out[DESCRIPTOR] = colour_size_descriptor(crops["raw"], crops["aabb"])
+        out[DESCRIPTOR] = _descriptor(crops)
     return out
 
 
