@@ -56,6 +56,12 @@ CROP_LABELS = {
 }
 
 
+def _crop_note(retrieval: dict[str, Any]) -> str:
+    """``; <the crop region>`` for a retrieval table whose crops are not the paper's hulls, else empty."""
+    shape = retrieval.get("crop_shape")
+    return f"; {CROP_LABELS[shape]}" if shape in CROP_LABELS else ""
+
+
 def cluster_search_label(method: str = "fast", occupancy_floor: float | None = None, crop_shape: str = "hull") -> str:
     """How each clustering row searches rotations (every clustering table names it): the stage's bank (threedq)
     uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search. ``occupancy_floor``: the
@@ -106,9 +112,8 @@ def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, l
     pk = precision_label(r)
     prot = r.get("protocols") or {"strict": {"pool": r["num_objects"], "precision_at_k": r["precision_at_k"]}}
     st, pa = prot.get("strict", {}), prot.get("paper")
-    crop = f"; {CROP_LABELS[r['crop_shape']]}" if r.get("crop_shape") in CROP_LABELS else ""
-    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}{crop}.",
-             ""]
+    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}"
+             f"{_crop_note(r)}.", ""]
     for name in ("strict", "paper"):
         if name in prot:
             c = prot[name]
@@ -333,9 +338,9 @@ def em_markdown(summary: dict[str, Any]) -> str:
             f"## Per EM round (threedq, {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes, "
             "held-out objects)",
             "",
-            f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}; strict: {PROTOCOL_LABELS['strict']}; paper: "
-            f"{PROTOCOL_LABELS['paper']}. Round 0 is the view-prediction encoder and a bank fitted on it, on round 1's "
-            "boxes (the paper's iteration 0).",
+            f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}{_crop_note(rounds[0]['retrieval'])}; strict: "
+            f"{PROTOCOL_LABELS['strict']}; paper: {PROTOCOL_LABELS['paper']}. Round 0 is the view-prediction encoder "
+            "and a bank fitted on it, on round 1's boxes (the paper's iteration 0).",
             "",
             f"| round | {pk}, strict | {pk}, paper | same object nearest (paper) | pool (ceiling strict / paper) | "
             "Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
