@@ -15,7 +15,7 @@ of a long run is a run of ``s`` steps):
 * with ``--probe``: the linear probe on the voxel-averaged crops (labels train the probe only);
 * with ``--cluster``: the quantizer's K-prototype EM (K = 50, 10 iterations, 36 yaws) fitted on the training split's
   GT crops with each similarity (the quantizer's ``occupancy_floor`` None / 0.2) and scored on the test split:
-  Hungarian and few-shot accuracy, the mean of EM seeds 0 and 1;
+  Hungarian and few-shot accuracy and the median relative yaw error, the mean of EM seeds 0 and 1;
 * the raw ``cat[occ, occ*rgb]`` crops and the six-number colour + size descriptor on the same objects;
 * seconds per training step (the trainer's fit time / steps, evaluation excluded).
 
@@ -90,22 +90,28 @@ def _score(crops: dict, similarity: str) -> dict[str, Any]:
 CLUSTER_SIMILARITIES = (("cosine", None), ("occupancy", 0.2))
 
 
-def _cluster(train: dict, test: dict, num_classes: int, em_seeds: tuple[int, ...] = (0, 1)) -> dict[str, float]:
-    """Hungarian and few-shot accuracy of K = 50 banks fitted on ``train``'s learned crops, per similarity (mean over
-    ``em_seeds``); the quantizer stage's EM (:func:`~threedq.quantization.prototypes.fit_prototype_bank`)."""
+def _cluster(train: dict, test: dict, num_classes: int, em_seeds: tuple[int, ...] = (0, 1),
+             symmetry_order: list[int] | None = None) -> dict[str, float]:
+    """Hungarian and few-shot accuracy and the median relative yaw error of K = 50 banks fitted on ``train``'s learned
+    crops, per similarity (mean over ``em_seeds``); the quantizer stage's EM
+    (:func:`~threedq.quantization.prototypes.fit_prototype_bank`) and its metrics. ``symmetry_order``: per category
+    (None: every category asymmetric)."""
     from threedq.pipeline.evaluation import quantization_metrics
     from threedq.quantization.prototypes import fit_prototype_bank, prototype_crops
 
     out: dict[str, float] = {}
     K = min(50, int(train["labels"].shape[0]))
     for name, floor in CLUSTER_SIMILARITIES:
-        acc: dict[str, list[float]] = {"hungarian": [], "fewshot": []}
+        acc: dict[str, list[float]] = {"hungarian": [], "fewshot": [], "yaw_median_deg": []}
         for seed in em_seeds:
             bank = fit_prototype_bank(prototype_crops(train["learned"], train["raw"], floor), K, seed=seed)
             res = bank.assign(prototype_crops(test["learned"], test["raw"], floor))
-            m = quantization_metrics(res.prototype, res.angle, 36, K, test["labels"], None, num_classes, [], seed=seed)
+            sym = list(symmetry_order) if symmetry_order is not None else [1] * num_classes
+            m = quantization_metrics(res.prototype, res.angle, 36, K, test["labels"], test["boxes"][:, 6], num_classes,
+                                     sym, seed=seed)
             acc["hungarian"].append(m["hungarian_acc"])
             acc["fewshot"].append(m["fewshot_acc"])
+            acc["yaw_median_deg"].append(m["yaw_median_deg"])
         for k, v in acc.items():
             out[f"{name}/{k}"] = sum(v) / len(v)
     return out
@@ -143,7 +149,7 @@ def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_
             row["probe/learned"], row["probe/raw"] = acc["learned"], acc["raw_rgb_occupancy"]
             row["probe/descriptor"] = acc["colour_size_descriptor"]
         if cluster:
-            row.update(_cluster(train, crops, len(dm.index.categories)))
+            row.update(_cluster(train, crops, len(dm.index.categories), symmetry_order=list(dm.index.symmetry_order)))
     return row
 
 
@@ -234,7 +240,9 @@ COLUMNS = [("cosine/strict", "strict"), ("cosine/paper", "paper"), ("cosine/top1
            ("occupancy/strict", "strict (occ.-weighted)"), ("occupancy/paper", "paper (occ.-weighted)"),
            ("occupancy/top1", "top-1 (occ.-weighted)"), ("probe/learned", "linear probe"),
            ("cosine/hungarian", "Hungarian K=50"), ("occupancy/hungarian", "Hungarian K=50 (occ.-weighted)"),
-           ("cosine/fewshot", "few-shot"), ("occupancy/fewshot", "few-shot (occ.-weighted)")]
+           ("cosine/fewshot", "few-shot"), ("occupancy/fewshot", "few-shot (occ.-weighted)"),
+           ("cosine/yaw_median_deg", "yaw median err. (deg)"),
+           ("occupancy/yaw_median_deg", "yaw median err. (deg, occ.-weighted)")]
 
 
 def _cell(values: list[float]) -> str:

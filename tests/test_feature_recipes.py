@@ -50,4 +50,27 @@ class TestScoreCheckpoints:
                                           crop_shapes=("hull", "cube"))
         rows = [json.loads(line) for line in out.read_text().splitlines()]
         assert [(r["variant"], r["crop"]) for r in rows] == [("enc", "hull"), ("enc, cube crop", "cube")]
+
         assert rows[0]["cosine/paper"] != rows[1]["cosine/paper"] or rows[0]["raw/top1"] != rows[1]["raw/top1"]
+
+
+class TestCluster:
+    def test_quarter_turned_copies_are_posed_exactly(self) -> None:
+        """Three random shapes, 20 copies each turned by quarter turns (exact on the voxel grid): every bank groups
+        copies of one shape and poses them against each other without error (the relative yaw of two copies)."""
+        from threedq.geometry import rotate_yaw
+
+        g = torch.Generator().manual_seed(0)
+        shapes = torch.rand(3, 4, 8, 8, 8, generator=g)
+        labels = torch.arange(3).repeat_interleave(20)
+        quarter = torch.randint(0, 4, (60,), generator=g)
+        yaw = quarter.double() * torch.pi / 2
+        crops = torch.stack([rotate_yaw(shapes[c][None], yaw[i : i + 1].float())[0] for i, c in enumerate(labels)])
+        boxes = torch.zeros(60, 7, dtype=torch.float64)
+        boxes[:, 6] = yaw
+        objects = {"learned": crops, "raw": torch.ones(60, 4, 8, 8, 8), "labels": labels, "boxes": boxes}
+        out = feature_recipes._cluster(objects, objects, num_classes=3)
+        for sim in ("cosine", "occupancy"):
+            assert out[f"{sim}/yaw_median_deg"] == 0.0
+            assert 0.0 < out[f"{sim}/hungarian"] <= 1.0
+
