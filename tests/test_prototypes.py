@@ -180,6 +180,26 @@ trainer:
     return cfg
 
 
+def _banks_fitted_with(tmp_path: Path, tiny_dataset: Path, option: str, values: dict) -> dict:
+    """``{value: (checkpoint, prototypes)}`` of quantizer stages fitted through the CLI on one random encoder, each
+    with ``--model.init_args.<option>=<its command-line text>`` (every fit's metrics checked)."""
+    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+    from threedq.stages.base import EncoderStage
+
+    torch.manual_seed(0)
+    enc = tmp_path / "enc.pt"
+    torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
+    cfg = _quantizer_config(tmp_path, tiny_dataset, enc)
+    banks = {}
+    for value, text in values.items():
+        run = tmp_path / f"q_{option}_{text}"
+        cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
+                               f"--trainer.default_root_dir={run}", f"--model.init_args.{option}={text}"])
+        assert 0.0 <= float(cli.trainer.logged_metrics["val/hungarian_acc"]) <= 1.0
+        banks[value] = (run / "checkpoints" / "last.ckpt", cli.model.bank.prototypes.clone())
+    return banks
+
+
 class TestQuantizerStage:
     def test_fit_validate_and_warm_start(self, tmp_path: Path, tiny_dataset: Path) -> None:
         from threedq.stages.base import EncoderStage
@@ -210,25 +230,11 @@ class TestQuantizerStage:
 
 
     def test_occupancy_floor_travels_with_the_bank(self, tmp_path: Path, tiny_dataset: Path) -> None:
-        from threedq.stages.base import EncoderStage
         from threedq.stages.quantizer import Quantizer, bank_occupancy_floor
 
-        from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
-
-        torch.manual_seed(0)
-        enc = tmp_path / "enc.pt"
-        torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
-        cfg = _quantizer_config(tmp_path, tiny_dataset, enc)
-        banks = {}
-        for floor in (None, 0.2):
-            run = tmp_path / f"q{floor}"
-            extra = [f"--model.init_args.occupancy_floor={'null' if floor is None else floor}"]
-            cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
-                                   f"--trainer.default_root_dir={run}", *extra])
-            assert 0.0 <= float(cli.trainer.logged_metrics["val/hungarian_acc"]) <= 1.0
-            ckpt = run / "checkpoints" / "last.ckpt"
+        banks = _banks_fitted_with(tmp_path, tiny_dataset, "occupancy_floor", {None: "null", 0.2: "0.2"})
+        for floor, (ckpt, _) in banks.items():
             assert bank_occupancy_floor(str(ckpt)) == floor
-            banks[floor] = (ckpt, cli.model.bank.prototypes.clone())
         assert not torch.allclose(banks[None][1], banks[0.2][1])  # the weighted crops make other prototypes
         # a round's warm start must weight as the bank it starts from
         with pytest.raises(ValueError, match="occupancy_floor"):
@@ -253,23 +259,12 @@ class TestQuantizerStage:
 
 
     def test_crop_shape_travels_with_the_bank(self, tmp_path: Path, tiny_dataset: Path) -> None:
-        from threedq.stages.base import EncoderStage
+        from threedq.pipeline.lightning_cli import ConfigError, ThreeDQCLI, resolve_config
         from threedq.stages.quantizer import Quantizer, bank_crop_shape
 
-        from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
-
-        torch.manual_seed(0)
-        enc = tmp_path / "enc.pt"
-        torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
-        cfg = _quantizer_config(tmp_path, tiny_dataset, enc)
-        banks = {}
-        for shape in ("hull", "cube"):
-            run = tmp_path / f"q_{shape}"
-            cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
-                                   f"--trainer.default_root_dir={run}", f"--model.init_args.crop_shape={shape}"])
-            ckpt = run / "checkpoints" / "last.ckpt"
+        banks = _banks_fitted_with(tmp_path, tiny_dataset, "crop_shape", {"hull": "hull", "cube": "cube"})
+        for shape, (ckpt, _) in banks.items():
             assert bank_crop_shape(str(ckpt)) == shape
-            banks[shape] = (ckpt, cli.model.bank.prototypes.clone())
         assert not torch.allclose(banks["hull"][1], banks["cube"][1])  # other crops, other prototypes
         with pytest.raises(ValueError, match="crop_shape"):  # a round's warm start must cut as its bank was cut
             Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, init_bank_ckpt=str(banks["hull"][0]),
@@ -278,8 +273,7 @@ class TestQuantizerStage:
                   crop_shape="cube")
         with pytest.raises(ValueError, match="crop_shape: expected one of"):
             Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, crop_shape="ball")
-        from threedq.pipeline.lightning_cli import ConfigError
-
+        cfg = tmp_path / "q.yaml"  # the stage config _banks_fitted_with wrote
         with pytest.raises(ConfigError, match=r"crop_shape.*'hull', 'square', 'cube'.*ball"):  # the CLI names the choices
             ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/quantizer.yaml")), "--config", str(cfg),
                              f"--trainer.default_root_dir={tmp_path / 'bad'}", "--model.init_args.crop_shape=ball"])
