@@ -1,0 +1,181 @@
+"""The relative yaw error of two ``threedq em`` runs on the object pairs both of them put in one prototype.
+
+The evaluation's yaw error (:func:`threedq.metrics.relative_yaw_error`) is the median over the pairs of objects of
+one (asymmetric) category that the run assigned to one prototype: a run that gathers more of a category into one
+prototype is scored on more pairs, and on harder ones (objects a coarser clustering would have split by pose), so
+two runs' medians compare pair sets as much as poses. This script reads each run's per-object assignments
+(``rNN_eval/objects_test.json``: box, prototype, yaw index of the search) and the scenes' GT boxes, and per round
+prints the yaw error of each run on all its pairs (the evaluation's number, checked against its ``results.json``),
+on the pairs **common** to both runs (the same two objects in one prototype in each run: each run's own yaws), and
+on the pairs only one run has. It measures nothing new and reruns no evaluation.
+
+    python benchmarks/yaw_common_pairs.py --data_dir data/clevr_veggie --run hull=runs/em --run cube=runs/em_cube \\
+        [--rounds 0 4] [--out table.md]
+
+Convention: the evaluation's: yaws counter-clockwise about +z, frame R (the record's world frame); errors in
+degrees in ``[0, 180]``; only categories of symmetry order 1 give pairs (``mode="exclude_symmetric"``); a detected
+box is the GT object of highest axis-aligned IoU (the objects listed are those the round's boxes matched at IoU
+>= 0.5, so that object is the one the evaluation used).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from threedq.boxes import boxes_to_aabb  # noqa: E402
+from threedq.metrics import relative_yaw_error  # noqa: E402
+from threedq.scene import load_scene_boxes  # noqa: E402
+
+
+def _read_npz_categories(path: Path) -> np.ndarray:
+    with np.load(path) as z:
+        return np.asarray(z["categories"], np.int64)
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Axis-aligned IoU of one box ``a [6]`` with boxes ``b [G, 6]`` (``xmin, ymin, zmin, xmax, ymax, zmax``)."""
+    inter = np.prod(np.clip(np.minimum(a[3:], b[:, 3:]) - np.maximum(a[:3], b[:, :3]), 0, None), axis=1)
+    union = np.prod(a[3:] - a[:3]) + np.prod(b[:, 3:] - b[:, :3], axis=1) - inter
+    return inter / np.maximum(union, 1e-12)
+
+
+def read_objects(path: Path, data_dir: Path, min_iou: float = 0.5) -> dict[tuple[str, int], dict[str, Any]]:
+    """``{(scene, GT index): {prototype, est (rad), gt (rad), category}}`` of one evaluation's ``objects_test.json``."""
+    try:
+        d = json.loads(path.read_text())
+        objects, num_angles = d["objects"], int(d["num_angles"])
+    except (OSError, json.JSONDecodeError, KeyError) as e:
+        raise SystemExit(f"yaw_common_pairs: {path}: not an evaluation's objects file ({type(e).__name__}: {e})") from e
+    out: dict[tuple[str, int], dict[str, Any]] = {}
+    for o in objects:
+        scene = data_dir / o["scene"]
+        boxes = load_scene_boxes(scene).astype(np.float64)
+        iou = _iou(np.asarray(o["box"], np.float64), boxes_to_aabb(boxes))
+        j = int(iou.argmax())
+        if iou[j] < min_iou:
+            raise SystemExit(f"yaw_common_pairs: {path}: a box of {o['scene']} overlaps no GT object at IoU >= {min_iou} "
+                             f"(best {iou[j]:.2f}): is --data_dir the run's data?")
+        out[(o["scene"], j)] = {"prototype": int(o["prototype"]), "est": 2 * math.pi * int(o["angle_index"]) / num_angles,
+                                "gt": float(boxes[j, 6]), "category": int(_read_npz_categories(scene)[j])}
+    return out
+
+
+def _median(x: list[float] | np.ndarray) -> float:
+    return float(np.median(x)) if len(x) else float("nan")
+
+
+def pair_errors(objs: dict, symmetry_order: list[int]) -> dict[tuple, float]:
+    """Every same-prototype pair of one asymmetric category and its error in degrees: a naive loop over the pairs."""
+    groups: dict[tuple[int, int], list] = {}
+    for k, o in objs.items():
+        if symmetry_order[o["category"]] == 1:
+            groups.setdefault((o["prototype"], o["category"]), []).append(k)
+    out = {}
+    for members in groups.values():
+        for a, b in itertools.combinations(sorted(members), 2):
+            # alignment convention: y_o + g_o is the same for every object of one prototype when posed perfectly
+            d = (objs[a]["est"] + objs[a]["gt"]) - (objs[b]["est"] + objs[b]["gt"])
+            out[(a, b)] = math.degrees(abs((d + math.pi) % (2 * math.pi) - math.pi))
+    return out
+
+
+def _library_median(objs: dict, keys: list, clusters: list[int], symmetry_order: list[int]) -> tuple[float, int]:
+    t = lambda f, dt: torch.tensor([f(objs[k]) for k in keys], dtype=dt)  # noqa: E731
+    r = relative_yaw_error(t(lambda o: o["est"], torch.float64), t(lambda o: o["gt"], torch.float64),
+                           t(lambda o: o["category"], torch.long), torch.tensor(clusters), symmetry_order,
+                           max_pairs_per_group=10**9)
+    return float(r["median_deg"]), int(r["num_pairs"])
+
+
+def compare(a: dict, b: dict, symmetry_order: list[int]) -> dict[str, Any]:
+    """The yaw error of runs ``a`` and ``b`` (objects of :func:`read_objects`) on all, common and own pairs."""
+    pa, pb = pair_errors(a, symmetry_order), pair_errors(b, symmetry_order)
+    common = sorted(set(pa) & set(pb))
+    shared = sorted(set(a) & set(b))  # objects both runs matched
+    # the library on the common pairs: one cluster per (prototype in a, prototype in b)
+    ids = {k: i for i, k in enumerate(sorted({(a[o]["prototype"], b[o]["prototype"]) for o in shared}))}
+    both = [ids[(a[o]["prototype"], b[o]["prototype"])] for o in shared]
+    row = {"pairs_a": len(pa), "pairs_b": len(pb), "common": len(common),
+           "all_a": _median(list(pa.values())), "all_b": _median(list(pb.values())),
+           "common_a": _median([pa[k] for k in common]), "common_b": _median([pb[k] for k in common]),
+           "only_a": sorted(set(pa) - set(pb)), "only_b": sorted(set(pb) - set(pa))}
+    row["only_a_median"] = _median([pa[k] for k in row["only_a"]])
+    row["only_b_median"] = _median([pb[k] for k in row["only_b"]])
+    row["only_a"], row["only_b"] = len(row["only_a"]), len(row["only_b"])
+    for name, objs, own in (("a", a, pa), ("b", b, pb)):
+        keys = sorted(objs)
+        lib, n = _library_median(objs, keys, [objs[k]["prototype"] for k in keys], symmetry_order)
+        if n != len(own) or not math.isclose(lib, row[f"all_{name}"], abs_tol=1e-6):
+            raise RuntimeError(f"run {name}: the naive pairs ({len(own)}, median {row[f'all_{name}']:.3f}) differ from "
+                               f"the library's ({n}, {lib:.3f})")
+        if common:
+            lib, n = _library_median(objs, shared, both, symmetry_order)
+            if n != len(common) or not math.isclose(lib, row[f"common_{name}"], abs_tol=1e-6):
+                raise RuntimeError(f"run {name}: common pairs differ from the library's ({n}, {lib:.3f})")
+    return row
+
+
+def _reported(run: Path, r: int) -> float | None:
+    p = run / f"r{r:02d}_eval" / "results.json"
+    try:
+        return float(json.loads(p.read_text())["quantization"]["threedq"]["yaw_median_deg"])
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def main(argv: list[str] | None = None) -> str:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data_dir", required=True, type=Path, help="the runs' data (index.json and the scene files)")
+    ap.add_argument("--run", action="append", required=True, help="NAME=WORK_DIR of a threedq em run (twice)")
+    ap.add_argument("--rounds", type=int, nargs="+", help="rounds to compare (default: every round both runs have)")
+    ap.add_argument("--out", type=Path, help="also write the table to this markdown file")
+    args = ap.parse_args(argv)
+    if len(args.run) != 2 or any("=" not in r for r in args.run):
+        ap.error("--run NAME=WORK_DIR, exactly twice")
+    (na, ra), (nb, rb) = (r.split("=", 1) for r in args.run)
+    ra, rb = Path(ra), Path(rb)
+    try:
+        sym = list(json.loads((args.data_dir / "index.json").read_text())["symmetry_order"])
+    except (OSError, json.JSONDecodeError, KeyError) as e:
+        raise SystemExit(f"yaw_common_pairs: {args.data_dir / 'index.json'}: no symmetry_order ({e})") from e
+    rounds = args.rounds or [r for r in range(100) if (ra / f"r{r:02d}_eval/objects_test.json").is_file()
+                             and (rb / f"r{r:02d}_eval/objects_test.json").is_file()]
+    if not rounds:
+        raise SystemExit(f"yaw_common_pairs: no round with rNN_eval/objects_test.json in both {ra} and {rb}")
+    lines = [f"Relative yaw error (median, deg), same-prototype pairs of asymmetric categories: {na} ({ra}) vs {nb} ({rb})",
+             "",
+             f"| round | {na}: all pairs | {nb}: all pairs | common pairs | {na} on them | {nb} on them "
+             f"| only {na}: pairs, median | only {nb}: pairs, median |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rounds:
+        a = read_objects(ra / f"r{r:02d}_eval" / "objects_test.json", args.data_dir)
+        b = read_objects(rb / f"r{r:02d}_eval" / "objects_test.json", args.data_dir)
+        row = compare(a, b, sym)
+        for name, run in (("a", ra), ("b", rb)):
+            rep = _reported(run, r)
+            if rep is not None and not math.isclose(rep, row[f"all_{name}"], abs_tol=1e-3):
+                print(f"yaw_common_pairs: note: {run}, round {r}: results.json reports {rep:.3f} deg, the objects give "
+                      f"{row[f'all_{name}']:.3f} (pairs capped per group there?)", file=sys.stderr)
+        lines.append(f"| {r} | {row['all_a']:.1f} ({row['pairs_a']}) | {row['all_b']:.1f} ({row['pairs_b']}) | "
+                     f"{row['common']} | {row['common_a']:.1f} | {row['common_b']:.1f} | {row['only_a']}, "
+                     f"{row['only_a_median']:.1f} | {row['only_b']}, {row['only_b_median']:.1f} |")
+    table = "\n".join(lines)
+    print(table)
+    if args.out:
+        args.out.write_text(table + "\n")
+    return table
+
+
+if __name__ == "__main__":
+    main()
