@@ -6,11 +6,13 @@ labels, frustum resampling + decoder, backward + Adam) on synthetic scenes rende
 generator at the default config (batch 2, 1 input + 1 target view, 128x128, 64x64x32 grid).
 
     python benchmarks/bench_viewpred_step.py [--repeats 5] [--grid 64 64 32] [--device cpu] [--channels 64 128 256]
-        [--fp32_only] [--decoder 32 8] [--channels_last_only] [--compile]
+        [--fp32_only] [--decoder 32 8] [--channels_last_only] [--compile] [--feature_stride 2 1]
 
 ``--decoder PLANES POOL`` (repeatable) sets the frustum's depth planes and the decoder's depth max-pool
 (``num_planes``, ``pool``; default 32 8, the main job's). ``--compile`` adds, per configuration, a row whose encoder
 is wrapped in ``torch.compile`` (inductor; its compile time printed beside it, paid in the warm-ups).
+``--feature_stride`` (one row each) sets the encoder's output stride: 2, the paper's features at half the grid's
+resolution, or 1, features on the input grid (``feature_stride`` of every stage).
 """
 
 from __future__ import annotations
@@ -94,6 +96,8 @@ def main() -> None:
     ap.add_argument("--decoder", type=int, nargs=2, action="append", metavar=("PLANES", "POOL"),
                     help="the frustum's depth planes and the decoder's depth pool (repeatable; default 32 8)")
     ap.add_argument("--channels_last_only", action="store_true", help="only the channels_last_3d layout")
+    ap.add_argument("--feature_stride", type=int, nargs="+", default=[2], choices=(1, 2),
+                    help="the encoder's output stride(s): 2 (the paper's) and/or 1 (features on the input grid)")
     ap.add_argument("--compile", action="store_true", help="also each configuration with a torch.compile'd encoder")
     ap.add_argument("--fp32_only", action="store_true", help="skip bf16 autocast (emulated, very slow, on CPUs without "
                     "bf16 instructions)")
@@ -109,17 +113,17 @@ def main() -> None:
           f"({cpu_name() if args.device == 'cpu' else torch.cuda.get_device_name()}), "
           f"torch {torch.__version__}, median of {args.repeats} after 2 warm-ups\n")
     cols = ["unproject", "encoder", "occ/free labels", "frustum+decoder", "backward+adam", "step"]
-    print("| encoder widths | planes / pool | precision | layout | encoder | " + " | ".join(f"{c} ms" for c in cols)
-          + " |")
-    print("|---|---|---|---|---|" + "---|" * len(cols))
-    for channels in args.channels or [(64, 128, 256)]:
+    print("| encoder widths | feature stride | planes / pool | precision | layout | encoder | "
+          + " | ".join(f"{c} ms" for c in cols) + " |")
+    print("|---|---|---|---|---|---|" + "---|" * len(cols))
+    for channels, stride in ((c, s) for c in args.channels or [(64, 128, 256)] for s in args.feature_stride):
         for planes, pool in args.decoder or [(32, 8)]:
             for bf16 in (False,) if args.fp32_only else (False, True):
                 for cl in (True,) if args.channels_last_only else (False, True):
                     for compiled in (False, True) if args.compile else (False,):
                         torch.manual_seed(0)
                         model = ViewPrediction(grid_resolution=tuple(args.grid), encoder_channels=tuple(channels),
-                                               channels_last=cl, num_planes=planes, pool=pool,
+                                               feature_stride=stride, channels_last=cl, num_planes=planes, pool=pool,
                                                image_every_n_steps=0).to(args.device)
                         if compiled:
                             model.encoder = torch.compile(model.encoder, dynamic=False)
@@ -131,7 +135,7 @@ def main() -> None:
                         runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats)]
                         med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
                         enc = f"torch.compile (warm-ups {warm_s:.0f} s)" if compiled else "eager"
-                        print(f"| {'-'.join(map(str, channels))} | {planes} / {pool} | "
+                        print(f"| {'-'.join(map(str, channels))} | {stride} | {planes} / {pool} | "
                               f"{'bf16 autocast' if bf16 else 'fp32'} | {'channels_last_3d' if cl else 'contiguous'} | "
                               f"{enc} | " + " | ".join(f"{med[c]:.0f}" for c in cols) + " |")
 

@@ -1,7 +1,8 @@
 """The shared 3D encoder, common to every stage (its checkpoint contract: :mod:`threedq.stages.checkpoint`).
 
 Every stage is a LightningModule that owns ``self.encoder`` (a :class:`~threedq.nets.UNet3D` over
-``cat[occ, occ * rgb]`` of the input grid, producing L2-normalised features at half resolution).
+``cat[occ, occ * rgb]`` of the input grid, producing L2-normalised features at half resolution, or at the input's
+with ``feature_stride=1``).
 View prediction trains it; later stages load it:
 
 * ``encoder_ckpt``: a Lightning checkpoint of any stage (its ``encoder.*`` weights are used) or a plain
@@ -10,7 +11,7 @@ View prediction trains it; later stages load it:
 * ``freeze_encoder``: keep those weights fixed (no gradient, BatchNorm in eval mode) or fine-tune them.
 
 The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``,
-``grid_resolution``, ``feature_dim`` and ``encoder_channels`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
+``grid_resolution``, ``feature_dim``, ``encoder_channels`` and ``feature_stride`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
 them from there unless it names them itself; a stage that names a different grid than its encoder was
 trained on is refused with one line naming the checkpoint and the field. Only view prediction (which
 trains the encoder from scratch) needs them in its config.
@@ -85,6 +86,8 @@ class EncoderStage(L.LightningModule):
         feature_dim: channels of the feature grid (None: the encoder checkpoint's).
         encoder_channels: widths ``(c1, c2, c3)`` of the encoder's three levels (None: the encoder checkpoint's,
             else the paper's ``(64, 128, 256)``); narrower is cheaper per step (see :class:`~threedq.nets.UNet3D`).
+        feature_stride: input voxels per feature voxel along each axis (None: the encoder checkpoint's, else the
+            paper's 2); 1 gives features on the input grid itself (not the paper's; see :class:`~threedq.nets.UNet3D`).
         encoder_ckpt: optional checkpoint to load the encoder from (see the module docstring).
         freeze_encoder: keep the encoder fixed.
         channels_last: run the encoder in ``channels_last_3d`` memory format (faster oneDNN / cuDNN
@@ -106,20 +109,24 @@ class EncoderStage(L.LightningModule):
         grid_resolution: tuple[int, int, int] | None = None,
         feature_dim: int | None = None,
         encoder_channels: tuple[int, int, int] | None = None,
+        feature_stride: int | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = False,
         channels_last: bool = True,
     ) -> None:
         super().__init__()
         given = {"grid_min": grid_min, "grid_max": grid_max, "grid_resolution": grid_resolution, "feature_dim": feature_dim,
-                 "encoder_channels": encoder_channels}
+                 "encoder_channels": encoder_channels, "feature_stride": feature_stride}
         #: the resolved grid fields, written into every checkpoint's hyperparameters (see the module docstring)
         self.grid_fields = resolve_grid(given, encoder_ckpt)
         g = self.grid_fields
         self.grid = VoxelGridSpec(g["grid_min"], g["grid_max"], g["grid_resolution"])
-        self.feature_grid = self.grid.half()
+        if g["feature_stride"] not in (1, 2):
+            raise ValueError(f"feature_stride: expected 1 or 2, got {g['feature_stride']!r}")
+        self.feature_grid = self.grid.half() if g["feature_stride"] == 2 else self.grid
         self.feature_dim = g["feature_dim"]
-        self.encoder = UNet3D(in_channels=4, out_channels=self.feature_dim, channels=g["encoder_channels"])
+        self.encoder = UNet3D(in_channels=4, out_channels=self.feature_dim, channels=g["encoder_channels"],
+                              output_stride=g["feature_stride"])
         self.freeze_encoder = freeze_encoder
         self.channels_last = channels_last
         if channels_last:

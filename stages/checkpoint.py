@@ -14,8 +14,8 @@ used) or a plain ``state_dict`` of the encoder saved with ``torch.save``. Shapes
 mismatch is an error naming the file and the parameter.
 
 The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``, ``grid_resolution``,
-``feature_dim`` and ``encoder_channels`` in its hyperparameters (a checkpoint written before ``encoder_channels``
-existed holds the paper's widths, the default), and a stage given an ``encoder_ckpt`` takes them from there unless it names
+``feature_dim``, ``encoder_channels`` and ``feature_stride`` in its hyperparameters (a checkpoint written before
+``encoder_channels`` or ``feature_stride`` existed holds the paper's widths and stride, the defaults), and a stage given an ``encoder_ckpt`` takes them from there unless it names
 them itself (:func:`resolve_grid`); a stage that names a different grid than its encoder was trained on is refused
 with one line naming the checkpoint and the field. Only view prediction (which trains the encoder from scratch) needs
 them in its config.
@@ -58,13 +58,15 @@ __all__ = [
 ]
 
 #: The grid of a stage that is given none and whose encoder checkpoint carries none (the embedded data's), and the
-#: encoder's widths (the paper's U-Net: 64, 128, 256 channels at its three levels).
+#: encoder's widths (the paper's U-Net: 64, 128, 256 channels at its three levels) and its output stride (the paper's
+#: features at half the input grid's resolution).
 DEFAULT_GRID: dict[str, Any] = {
     "grid_min": (-1.28, -1.28, -0.32),
     "grid_max": (1.28, 1.28, 0.96),
     "grid_resolution": (64, 64, 32),
     "feature_dim": 32,
     "encoder_channels": (64, 128, 256),
+    "feature_stride": 2,
 }
 
 
@@ -301,7 +303,8 @@ def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict
                 f"for {_plain(mine)} (drop {k} from the stage config to use the encoder's)"
             )
         value = mine if mine is not None else theirs if theirs is not None else default
-        out[k] = int(value) if k == "feature_dim" else tuple(int(v) for v in value) if k == "encoder_channels" else tuple(value)
+        out[k] = (int(value) if k in ("feature_dim", "feature_stride") else tuple(int(v) for v in value)
+                  if k == "encoder_channels" else tuple(value))
     return out
 
 

@@ -172,7 +172,7 @@ class Detector(EncoderStage):
     Args:
         freeze_encoder: keep the encoder fixed (here True by default).
         **kwargs: the encoder's other arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``encoder_ckpt``, ``channels_last``), by keyword: see
+            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage` (the detector expects a trained, frozen encoder).
         anchor_size: ``(sx, sy, sz)`` metres, the one anchor of every cell; ``None``: the per-axis median extent of
             the training boxes at least ``min_box_height`` tall (the DataModule's ``boxes``: pseudo-boxes, GT or

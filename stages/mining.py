@@ -147,7 +147,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
 
     Args:
         **kwargs: the encoder's arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
+            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage` (the encoder comes from view prediction or an earlier
             round, and is fine-tuned).
         source: ``"vc"``, ``"vc_moco"`` or ``"mined"``.

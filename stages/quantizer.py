@@ -80,7 +80,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
     Args:
         freeze_encoder: keep the encoder fixed (here True by default).
         **kwargs: the encoder's other arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``encoder_ckpt``, ``channels_last``), by keyword: see
+            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage` (the encoder should come from view prediction, frozen).
         num_prototypes: K (paper: 50).
         crop_size: object crops are ``crop_size^3`` (paper: 16).

@@ -32,7 +32,7 @@ class SupervisedCeiling(SplitEvaluation, EncoderStage):
 
     Args:
         **kwargs: the encoder's arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
+            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage` (from scratch by default, the view-prediction grid).
         num_classes: categories of the dataset (the threedq CLI links it from the dataset's ``index.json``:
             ``ThreeDQCLI``'s ``link_arguments``); needed to train.

@@ -192,7 +192,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
 
     Args:
         **kwargs: the encoder's arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
+            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``freeze_encoder``, ``channels_last``), by keyword: see
             :class:`~threedq.stages.base.EncoderStage`.
         num_planes: depth planes of the target frustum.
         depth_range: ``(near, far)`` camera depth of the frustum, metres.

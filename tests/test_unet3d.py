@@ -122,3 +122,64 @@ class TestUNet3D:
         torch.testing.assert_close(out.float().norm(dim=1), torch.ones(1, 8, 8, 8), rtol=0, atol=1e-2)
         cosine = (out.float() * expected).sum(dim=1)
         assert cosine.min() > 0.95
+
+
+class TestUNet3DFullResolution:
+    """``output_stride=1``: one more transposed convolution and the input volume concatenated before the head."""
+
+    def test_smoke(self) -> None:
+        out = small_net(output_stride=1)(torch.rand(1, 4, 16, 8, 8))
+        assert out.shape == (1, 32, 16, 8, 8)
+
+    def test_exception(self) -> None:
+        with pytest.raises(ValueError, match="output_stride must be 1 or 2, got 4"):
+            UNet3D(output_stride=4)
+
+    @pytest.mark.parametrize("batch", [1, 2])
+    @pytest.mark.parametrize("zyx", [(8, 16, 8), (16, 24, 8)])
+    def test_cardinality(self, batch: int, zyx: tuple[int, int, int]) -> None:
+        out = small_net(output_stride=1)(torch.rand(batch, 4, *zyx))
+        assert out.shape == (batch, 32, *zyx)
+        torch.testing.assert_close(out.norm(dim=1), torch.ones(batch, *zyx))
+
+    def test_parameter_count(self) -> None:
+        # the paper's net plus ConvTranspose3d(128 -> 32, k4, no bias) + BatchNorm3d(32), and a head over 32 + 4
+        # channels instead of 128: 128*32*64 + 2*32 + (36 - 128) * 32
+        extra = 128 * 32 * 64 + 2 * 32 + (36 - 128) * 32
+        assert sum(p.numel() for p in UNet3D(output_stride=1).parameters()) == 5_788_960 + extra
+
+    def test_against_the_layers_by_hand(self) -> None:
+        """The forward pass is the stride-2 net's layers, then dec3, the input concatenated and the head."""
+        net = small_net(output_stride=1).eval()
+        x = torch.rand(1, 4, 8, 16, 8)
+        with torch.no_grad():
+            e1 = net.enc1(x)
+            e2 = net.enc2(e1)
+            d1 = torch.cat((net.dec1(net.enc3(e2)), e2), 1)
+            d2 = torch.cat((net.dec2(d1), e1), 1)
+            expected = torch.nn.functional.normalize(net.head(torch.cat((net.dec3(d2), x), 1)), dim=1)
+            torch.testing.assert_close(net(x), expected)
+
+    def test_the_input_reaches_every_voxel(self) -> None:
+        """A change of one input voxel changes the output voxel at the same place (the skip from the input)."""
+        net = small_net(output_stride=1).eval()
+        x = torch.rand(1, 4, 8, 8, 8)
+        y = x.clone()
+        y[0, :, 5, 2, 3] += 1.0
+        with torch.no_grad():
+            diff = (net(x) - net(y)).abs().sum(1)[0]
+        assert diff[5, 2, 3] > 0
+
+    def test_channels_last_3d(self) -> None:
+        net = small_net(output_stride=1).eval()
+        x = torch.randn(1, 4, 8, 16, 8)
+        with torch.no_grad():
+            expected = net(x)
+            out = net.to(memory_format=torch.channels_last_3d)(x.to(memory_format=torch.channels_last_3d))
+        torch.testing.assert_close(out, expected, rtol=1e-4, atol=1e-5)
+
+    def test_gradcheck(self) -> None:
+        # unnormalised: the L2 norm is computed in float32 by design, which a float64 gradcheck cannot see through
+        net = UNet3D(in_channels=2, out_channels=3, channels=(2, 2, 2), output_stride=1, normalize=False).double().eval()
+        x = torch.rand(1, 2, 8, 8, 8, dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(net, (x,), eps=1e-6, atol=1e-4)

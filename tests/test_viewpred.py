@@ -228,7 +228,7 @@ class TestGridTravelsWithEncoder:
     @pytest.mark.parametrize(
         "field, value",
         [("grid_resolution", (64, 64, 32)), ("feature_dim", 8), ("grid_max", (1.28, 1.28, 1.0)),
-         ("encoder_channels", (16, 32, 64))],
+         ("encoder_channels", (16, 32, 64)), ("feature_stride", 1)],
     )
     def test_another_grid_is_refused(self, tmp_path: Path, field: str, value) -> None:
         ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16))
@@ -254,6 +254,34 @@ class TestGridTravelsWithEncoder:
         del obj["hyper_parameters"]["encoder_channels"]
         torch.save(obj, ckpt)
         assert EncoderStage(encoder_ckpt=str(ckpt)).encoder.channels == (64, 128, 256)
+
+    def test_feature_stride_comes_from_the_checkpoint(self, tmp_path: Path) -> None:
+        """Features on the input grid (``feature_stride=1``): the stage's feature grid is the input grid, and a later
+        stage takes the stride and the weights of the extra layer from the encoder checkpoint."""
+        from threedq.stages.quantizer import Quantizer
+
+        ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16), encoder_channels=(8, 16, 32),
+                                   feature_stride=1)
+        src = torch.load(ckpt, weights_only=True)
+        assert src["hyper_parameters"]["feature_stride"] == 1
+        q = Quantizer(encoder_ckpt=str(ckpt), num_prototypes=2, crop_size=8)
+        assert q.encoder.output_stride == 1 and q.hparams["feature_stride"] == 1
+        assert q.feature_grid.resolution == q.grid.resolution == (32, 32, 16)
+        assert torch.equal(q.encoder.state_dict()["dec3.0.weight"], src["state_dict"]["encoder.dec3.0.weight"])
+        with torch.no_grad():
+            assert q.encoder(torch.rand(1, 4, 16, 32, 32)).shape == (1, 32, 16, 32, 32)
+
+    def test_a_checkpoint_without_a_stride_has_the_papers(self, tmp_path: Path) -> None:
+        ckpt = self._viewpred_ckpt(tmp_path, grid_resolution=(32, 32, 16), encoder_channels=(8, 16, 32))
+        obj = torch.load(ckpt, weights_only=True)
+        del obj["hyper_parameters"]["feature_stride"]
+        torch.save(obj, ckpt)
+        s = EncoderStage(encoder_ckpt=str(ckpt))
+        assert s.encoder.output_stride == 2 and s.feature_grid.resolution == (16, 16, 8)
+
+    def test_a_stride_other_than_1_or_2_is_refused(self) -> None:
+        with pytest.raises(ValueError, match="feature_stride: expected 1 or 2, got 4"):
+            EncoderStage(feature_stride=4)
 
     def test_no_checkpoint_no_grid_gives_the_default(self) -> None:
         from threedq.stages.base import DEFAULT_GRID

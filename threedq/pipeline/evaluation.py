@@ -161,7 +161,8 @@ def collect_object_crops(
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(random_encoder_seed)
             random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels,
-                                channels=stage.encoder.channels).to(stage.device).eval()
+                                channels=stage.encoder.channels,
+                                output_stride=stage.encoder.output_stride).to(stage.device).eval()
     keys = ("learned", "raw", "random", "labels", "boxes", "aabb", "scene", "gallery_learned", "gallery_raw",
             "gallery_random", "descriptor_raw", "gallery_descriptor_raw")
     hull = crop_shape == "hull"
