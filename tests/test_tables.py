@@ -14,6 +14,7 @@ from threedq.pipeline.tables import (
     precision_label,
     retrieval_markdown,
     size_band_lines,
+    yaw_cell,
 )
 
 
@@ -21,6 +22,8 @@ def test_cells() -> None:
     assert fmt(None) == "-" and fmt(0.12345) == "0.123" and fmt(2.0, 1) == "2.0"
     assert fewshot_cell(0.5) == "0.500"
     assert fewshot_cell(float("nan")).startswith("n/a (no category has more than 2 objects")
+    assert yaw_cell({"yaw_median_deg": 10.06, "yaw_pairs": 449}) == "10.1 (449 pairs)"
+    assert yaw_cell({"yaw_median_deg": 7.0}) == "7.0"  # a result written before the pair count was kept
     assert precision_label({"k": 10, "k_requested": 10, "num_objects": 50}) == "precision@10"
     assert precision_label({"k": 5, "k_requested": 10, "num_objects": 6}) == "precision@5 (k lowered from 10: 6 test objects)"
 

@@ -96,6 +96,14 @@ def fewshot_cell(value: float | None, shots: int = 2) -> str:
     return f"{value:.3f}"
 
 
+def yaw_cell(v: dict[str, Any]) -> str:
+    """A median relative yaw error for a table, with the number of pairs it is the median of when known: a run that
+    groups more of a category into one prototype is scored on more, and other, pairs (compare two runs on their
+    common pairs with ``benchmarks/yaw_common_pairs.py``)."""
+    pairs = v.get("yaw_pairs")
+    return f"{v['yaw_median_deg']:.1f}" + (f" ({int(pairs)} pairs)" if pairs is not None else "")
+
+
 #: Row names of the retrieval table.
 RETRIEVAL_ROWS = {
     "learned": "threedq learned features",
@@ -202,7 +210,7 @@ def eval_markdown(res: dict[str, Any]) -> str:
         if m == "q25d":
             yaw = "n/a (in-plane angle, not a yaw) | n/a | n/a"
         else:
-            yaw = f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f}"
+            yaw = f"{yaw_cell(v)} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f}"
         lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | {yaw} |")
     if "q25d" not in res["quantization"]:
         lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} | | | | |")
@@ -228,7 +236,9 @@ def eval_markdown(res: dict[str, Any]) -> str:
         if "q25d" not in res["curve"]:
             lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} |" + " |" * (len(ks) - 1))
     lines += ["", "Yaw error: pairs of objects of one asymmetric category assigned to one prototype; the estimated "
-              "relative yaw (from the rotation search) against the true one.", ""]
+              "relative yaw (from the rotation search) against the true one. A method that groups more of a category "
+              "into one prototype is scored on more, and other, pairs: compare two runs on the pairs both group with "
+              "`benchmarks/yaw_common_pairs.py`.", ""]
     return "\n".join(lines)
 
 
@@ -352,7 +362,7 @@ def em_markdown(summary: dict[str, Any]) -> str:
             ceil = (f"{c['pool']} ({fmt(c['ceiling_strict'])} / {fmt(c['ceiling_paper'])})")
             lines.append(f"| {i} | {fmt(c['precision_at_10'])} | {fmt(c['precision_at_10_paper'])} | "
                          f"{fmt(c['same_object_top1'])} | {ceil} | {q['hungarian_acc']:.3f} | "
-                         f"{fewshot_cell(q['fewshot_acc'])} | {q['yaw_median_deg']:.1f} | {q['yaw_acc_10']:.3f} |")
+                         f"{fewshot_cell(q['fewshot_acc'])} | {yaw_cell(q)} | {q['yaw_acc_10']:.3f} |")
         last = rounds[-1]
         r = last["retrieval"]
         lines += [
@@ -369,7 +379,7 @@ def em_markdown(summary: dict[str, Any]) -> str:
                   "|---|---|---|---|---|---|"]
         for m, v in method_rows(last["quantization"]):
             lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
-                         f"{v['yaw_median_deg']:.1f} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
+                         f"{yaw_cell(v)} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
         lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`, "
                   "`per_category_retrieval.png` (per-category precision@10 under both protocols, the most confused pairs). "
                   "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
@@ -453,6 +463,11 @@ def _cell(v: float | None, digits: int = 3) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
+def _yaw_or_dash(r: dict[str, Any]) -> str:
+    v = r.get("yaw_median_deg")
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else yaw_cell(r)
+
+
 def feature_sets_markdown(table: dict[str, Any]) -> str:
     """The table as markdown, naming the search, the protocols, their pool and ceilings."""
     ceil = table.get("ceilings", {})
@@ -474,6 +489,6 @@ def feature_sets_markdown(table: dict[str, Any]) -> str:
     for name, r in table["rows"].items():
         lines.append(f"| {name} | {_cell(r['precision_at_10'])} | {_cell(r.get('precision_at_10_paper'))} | "
                      f"{_cell(r.get('same_object_top1'))} | {_cell(r.get('probe_acc'))} | {_cell(r['hungarian_acc'])} | "
-                     f"{_cell(r['fewshot_acc'])} | {_cell(r['yaw_median_deg'], 1)} | "
+                     f"{_cell(r['fewshot_acc'])} | {_yaw_or_dash(r)} | "
                      f"{_cell(r['yaw_acc_10'])} |")
     return "\n".join(lines) + "\n"
