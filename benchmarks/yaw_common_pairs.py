@@ -33,21 +33,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from threedq.boxes import boxes_to_aabb  # noqa: E402
+from threedq.boxes import aabb_iou_3d, boxes_to_aabb  # noqa: E402
 from threedq.metrics import relative_yaw_error  # noqa: E402
-from threedq.scene import load_scene_boxes  # noqa: E402
 
 
-def _read_npz_categories(path: Path) -> np.ndarray:
+def _scene_gt(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A scene file's GT boxes ``[G, 7]`` and categories ``[G]``, reading nothing else."""
     with np.load(path) as z:
-        return np.asarray(z["categories"], np.int64)
-
-
-def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Axis-aligned IoU of one box ``a [6]`` with boxes ``b [G, 6]`` (``xmin, ymin, zmin, xmax, ymax, zmax``)."""
-    inter = np.prod(np.clip(np.minimum(a[3:], b[:, 3:]) - np.maximum(a[:3], b[:, :3]), 0, None), axis=1)
-    union = np.prod(a[3:] - a[:3]) + np.prod(b[:, 3:] - b[:, :3], axis=1) - inter
-    return inter / np.maximum(union, 1e-12)
+        return np.asarray(z["boxes"], np.float64), np.asarray(z["categories"], np.int64)
 
 
 def read_objects(path: Path, data_dir: Path, min_iou: float = 0.5) -> dict[tuple[str, int], dict[str, Any]]:
@@ -58,16 +51,19 @@ def read_objects(path: Path, data_dir: Path, min_iou: float = 0.5) -> dict[tuple
     except (OSError, json.JSONDecodeError, KeyError) as e:
         raise SystemExit(f"yaw_common_pairs: {path}: not an evaluation's objects file ({type(e).__name__}: {e})") from e
     out: dict[tuple[str, int], dict[str, Any]] = {}
+    scenes: dict[str, tuple[np.ndarray, np.ndarray, torch.Tensor]] = {}  # each scene's GT, read once
     for o in objects:
-        scene = data_dir / o["scene"]
-        boxes = load_scene_boxes(scene).astype(np.float64)
-        iou = _iou(np.asarray(o["box"], np.float64), boxes_to_aabb(boxes))
+        if o["scene"] not in scenes:
+            boxes, cats = _scene_gt(data_dir / o["scene"])
+            scenes[o["scene"]] = (boxes, cats, torch.from_numpy(boxes_to_aabb(boxes)))
+        boxes, cats, gt_aabb = scenes[o["scene"]]
+        iou = aabb_iou_3d(torch.tensor([o["box"]], dtype=torch.float64), gt_aabb)[0].numpy()
         j = int(iou.argmax())
         if iou[j] < min_iou:
             raise SystemExit(f"yaw_common_pairs: {path}: a box of {o['scene']} overlaps no GT object at IoU >= {min_iou} "
                              f"(best {iou[j]:.2f}): is --data_dir the run's data?")
         out[(o["scene"], j)] = {"prototype": int(o["prototype"]), "est": 2 * math.pi * int(o["angle_index"]) / num_angles,
-                                "gt": float(boxes[j, 6]), "category": int(_read_npz_categories(scene)[j])}
+                                "gt": float(boxes[j, 6]), "category": int(cats[j])}
     return out
 
 
