@@ -6,7 +6,8 @@ For every op of ``threedq.geometry`` that kornia could take over, this times
   swap, or the local op it keeps);
 * ``kornia``: the kornia route (the ``kornia.geometry`` function named in the table; for the composite hot paths,
   the same body with every sub-op that kornia has swapped in);
-* ``threedq``: what ``threedq.geometry`` ships now;
+* ``threedq``: what ``threedq.geometry`` ships now (``crop_boxes``: the local ``grid_sample`` with one volume's
+  points spread over the threads, :func:`threedq.geometry.sample_volume`, bitwise the local route);
 
 and checks first that the routes agree (``max |diff|``). An op moves to kornia only where kornia reproduces our
 convention and is at most 10% slower on the hot path. K has zero skew here so the zero-skew kornia pinhole
@@ -425,6 +426,10 @@ def main() -> None:
         ("crop_boxes", "[8, 32, 16, 32, 32], 15 boxes, 16^3", lambda: _local_crop_boxes(feats8, boxes15, fgrid, 16),
          lambda: _kornia_crop_boxes(feats8, boxes15, fgrid, 16), lambda: G.crop_boxes(feats8, boxes15, fgrid, 16),
          "transform.warp_affine3d", "local", 1, rounds),
+        ("crop_boxes", "[1, 32, 16, 32, 32], 15 boxes, 16^3 (one scene)",
+         lambda: _local_crop_boxes(feats8[:1], boxes15[:1], fgrid, 16),
+         lambda: _kornia_crop_boxes(feats8[:1], boxes15[:1], fgrid, 16),
+         lambda: G.crop_boxes(feats8[:1], boxes15[:1], fgrid, 16), "transform.warp_affine3d", "local", 1, rounds),
         ("crop_boxes", "[4, 4, 32, 64, 64], 3 boxes, 16^3", lambda: _local_crop_boxes(raw4, boxes, grid, 16),
          lambda: _kornia_crop_boxes(raw4, boxes, grid, 16), lambda: G.crop_boxes(raw4, boxes, grid, 16),
          "transform.warp_affine3d", "local", 1, rounds),

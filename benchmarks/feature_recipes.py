@@ -53,6 +53,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import cpu_name  # noqa: E402
 
+from threedq.geometry import CROP_SHAPES  # noqa: E402
+
 DEFAULT_VARIANTS = [
     "default=",
     "3 targets=--data.init_args.num_target_views=3",
@@ -296,7 +298,7 @@ def main() -> None:
     ap.add_argument("--score", action="append", metavar="NAME=CKPT",
                     help="score an existing encoder checkpoint instead of training (repeatable; any stage's "
                          "checkpoint); with --data_dir any scene folder (threedq data generate / index)")
-    ap.add_argument("--crop_shapes", nargs="+", default=["hull"], choices=["hull", "square", "cube"],
+    ap.add_argument("--crop_shapes", nargs="+", default=["hull"], choices=list(CROP_SHAPES),
                     help="regions cropped around each box (threedq.geometry.crop_region), a row each: hull (the "
                          "paper's), square (aspect kept in the ground plane), cube (aspect kept); with --score")
     ap.add_argument("--one", nargs=2, metavar=("SPEC", "SEED"), help=argparse.SUPPRESS)

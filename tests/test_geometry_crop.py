@@ -6,8 +6,10 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from threedq.geometry import CROP_SHAPES, VoxelGridSpec, box_mask, crop_boxes, crop_region, occupancy_weighted, paste_boxes
+from threedq.geometry import (CROP_SHAPES, VoxelGridSpec, box_mask, crop_boxes, crop_region, occupancy_weighted, paste_boxes,
+                              sample_volume)
 
 GRID = VoxelGridSpec((-1.0, -0.5, 0.0), (1.0, 0.5, 0.75), (8, 4, 3))  # 0.25 m voxels, volume (3, 4, 8)
 
@@ -144,8 +146,11 @@ def crop_region_naive(box: list[float], shape: str) -> list[float]:
     """One box's region, axis by axis in plain Python floats."""
     lo, hi = box[:3], box[3:]
     ext = [h - l for l, h in zip(lo, hi)]
-    sides = {"hull": ext, "square": [max(ext[:2])] * 2 + ext[2:], "cube": [max(ext)] * 3}[shape]
+    sides = {"hull": ext, "square": [max(ext[:2])] * 2 + ext[2:], "cube": [max(ext)] * 3,
+             "grounded_cube": [max(ext)] * 3}[shape]
     centre = [(l + h) / 2 for l, h in zip(lo, hi)]
+    if shape == "grounded_cube":  # standing on the box's base: z from zmin up
+        centre[2] = lo[2] + sides[2] / 2
     return [c - s / 2 for c, s in zip(centre, sides)] + [c + s / 2 for c, s in zip(centre, sides)]
 
 
@@ -172,6 +177,7 @@ class TestCropRegion:
         assert crop_region(box, "hull") is box
         torch.testing.assert_close(crop_region(box, "square"), torch.tensor([-0.2, 0.0, 0.0, 0.4, 0.6, 0.4]))
         torch.testing.assert_close(crop_region(box, "cube"), torch.tensor([-0.2, 0.0, -0.1, 0.4, 0.6, 0.5]))
+        torch.testing.assert_close(crop_region(box, "grounded_cube"), torch.tensor([-0.2, 0.0, 0.0, 0.4, 0.6, 0.6]))
 
     @pytest.mark.parametrize("shape", CROP_SHAPES)
     def test_feature_matches_naive_and_contains_the_box(self, shape: str) -> None:
@@ -180,7 +186,26 @@ class TestCropRegion:
         want = torch.tensor([[crop_region_naive(b.tolist(), shape) for b in row] for row in boxes], dtype=boxes.dtype)
         torch.testing.assert_close(out, want)
         assert (out[..., :3] <= boxes[..., :3] + 1e-12).all() and (out[..., 3:] >= boxes[..., 3:] - 1e-12).all()
-        torch.testing.assert_close(out[..., :3] + out[..., 3:], boxes[..., :3] + boxes[..., 3:])  # same centre
+        centred = 2 if shape == "grounded_cube" else 3  # the same centre (the grounded cube's: horizontal)
+        torch.testing.assert_close((out[..., :3] + out[..., 3:])[..., :centred],
+                                   (boxes[..., :3] + boxes[..., 3:])[..., :centred])
+        if shape == "grounded_cube":
+            torch.testing.assert_close(out[..., 2], boxes[..., 2])  # on the box's base
+
+    def test_feature_grounded_cube_holds_no_floor_below_a_flat_object(self) -> None:
+        """A flat object on a floor: the centred cube's lower half is the floor and what lies under it, the grounded
+        cube's lowest cells are the object's base (the floor plane is its bottom boundary, as for the hull)."""
+        grid = VoxelGridSpec((-1.0, -1.0, -0.5), (1.0, 1.0, 0.5), (40, 40, 20))
+        x, y, z = grid.voxel_centres(dtype=torch.float64).unbind(-1)
+        floor = (z > -0.05) & (z < 0.0)  # a 5 cm slab under z = 0
+        obj = (x.abs() < 0.3) & (y.abs() < 0.3) & (z > 0.0) & (z < 0.1)  # 0.6 x 0.6 x 0.1 m on it
+        volume = torch.stack([floor, obj]).to(torch.float64)[None]  # channel 0 floor, 1 object
+        box = torch.tensor([[[-0.3, -0.3, 0.0, 0.3, 0.3, 0.1]]], dtype=torch.float64)
+        cube = crop_boxes(volume, crop_region(box, "cube"), grid, 12)[0, 0]
+        grounded = crop_boxes(volume, crop_region(box, "grounded_cube"), grid, 12)[0, 0]
+        assert cube[0].sum() > 0.5 * 12 * 12  # the centred cube holds the floor slab
+        assert grounded[0].sum() == 0  # the grounded one none of it
+        assert grounded[1, :2].mean() > 0.9 and grounded[1, 3:].max() == 0  # the object fills its lowest cells
 
     def test_feature_square_crop_keeps_the_ground_aspect(self) -> None:
         """An object twice as long in x as in y fills a hull crop's whole footprint (stretched to a square) but
@@ -357,3 +382,58 @@ class TestOccupancyWeighted:
         f = torch.randn(1, 2, 3, 3, 3, dtype=torch.float64, requires_grad=True)
         occ = (torch.rand(1, 1, 3, 3, 3, dtype=torch.float64) > 0.5).double()
         assert torch.autograd.gradcheck(lambda t: occupancy_weighted(t, occ), (f,))
+
+
+class TestSampleVolume:
+    """``sample_volume`` against one ``F.grid_sample`` call: bitwise, at any thread count and batch size."""
+
+    @staticmethod
+    def reference(volume: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+        return F.grid_sample(volume, coords, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+    @staticmethod
+    def data(batch: int, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+        g = torch.Generator().manual_seed(batch)
+        volume = torch.randn(batch, 3, 5, 6, 7, generator=g).to(dtype)
+        coords = (torch.rand(batch, 7, 3, 5, 3, generator=g) * 2.4 - 1.2).to(dtype)  # some outside: zero padding
+        return volume, coords
+
+    def test_smoke(self) -> None:
+        volume, coords = self.data(1)
+        assert sample_volume(volume, coords).shape == (1, 3, 7, 3, 5)
+
+    def test_exception(self) -> None:
+        with pytest.raises(RuntimeError):
+            sample_volume(torch.zeros(2, 1, 2, 2, 2), torch.zeros(3, 1, 1, 1, 3))  # batch sizes differ
+
+    @pytest.mark.parametrize("threads", [1, 2, 3, 4])
+    @pytest.mark.parametrize("batch", [1, 2, 3])
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+    def test_feature_bitwise_grid_sample(self, threads: int, batch: int, dtype: torch.dtype) -> None:
+        volume, coords = self.data(batch, dtype)  # 105 points: not a multiple of any chunk count above 1
+        was = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            out = sample_volume(volume, coords)
+        finally:
+            torch.set_num_threads(was)
+        assert out.dtype == dtype
+        assert torch.equal(out, self.reference(volume, coords))
+
+    def test_feature_crop_boxes_same_on_one_and_many_threads(self) -> None:
+        volume = torch.randn(1, 4, *GRID.volume_shape)
+        boxes = random_boxes(1, 5, torch.float32)
+        was = torch.get_num_threads()
+        try:
+            torch.set_num_threads(1)
+            one = crop_boxes(volume, boxes, GRID, 8)
+            torch.set_num_threads(4)
+            many = crop_boxes(volume, boxes, GRID, 8)
+        finally:
+            torch.set_num_threads(was)
+        assert torch.equal(one, many)
+
+    def test_gradcheck(self) -> None:
+        volume, coords = self.data(1, torch.float64)
+        volume.requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda v: sample_volume(v, coords), (volume,))
