@@ -107,9 +107,8 @@ class Quantizer(SplitEvaluation, EncoderStage):
             into this stage brings its own (checkpoints written before the option: None).
         crop_shape: the region cut around each box (:func:`threedq.geometry.crop_region`) before it is resized to
             ``crop_size^3``: ``hull`` (the paper's: the box itself, aspect not kept), ``square`` (a horizontal square
-            of the larger horizontal extent: aspect kept in the ground plane), ``cube`` (a cube of the largest
-            extent: aspect kept) or ``grounded_cube`` (that cube standing on the box's base: nothing below the
-            object's support); departures from the paper, measured in docs/results.md. Like
+            of the larger horizontal extent: aspect kept in the ground plane) or ``cube`` (a cube of the largest
+            extent: aspect kept; a departure from the paper, docs/results.md measures all three). Like
             ``occupancy_floor`` it is the bank's: self-labelling, ``threedq parse`` and the evaluation cut crops as
             the checkpoint says (checkpoints written before the option: ``hull``).
 
@@ -133,7 +132,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         seed: int = 0,
         init_bank_ckpt: str | None = None,
         occupancy_floor: float | None = 0.2,
-        crop_shape: Literal["hull", "square", "cube", "grounded_cube"] = "hull",
+        crop_shape: Literal["hull", "square", "cube"] = "hull",
         **kwargs: Any,
     ) -> None:
         if occupancy_floor is not None and not 0.0 <= occupancy_floor < 1.0:

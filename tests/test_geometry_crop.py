@@ -146,11 +146,8 @@ def crop_region_naive(box: list[float], shape: str) -> list[float]:
     """One box's region, axis by axis in plain Python floats."""
     lo, hi = box[:3], box[3:]
     ext = [h - l for l, h in zip(lo, hi)]
-    sides = {"hull": ext, "square": [max(ext[:2])] * 2 + ext[2:], "cube": [max(ext)] * 3,
-             "grounded_cube": [max(ext)] * 3}[shape]
+    sides = {"hull": ext, "square": [max(ext[:2])] * 2 + ext[2:], "cube": [max(ext)] * 3}[shape]
     centre = [(l + h) / 2 for l, h in zip(lo, hi)]
-    if shape == "grounded_cube":  # standing on the box's base: z from zmin up
-        centre[2] = lo[2] + sides[2] / 2
     return [c - s / 2 for c, s in zip(centre, sides)] + [c + s / 2 for c, s in zip(centre, sides)]
 
 
@@ -177,7 +174,6 @@ class TestCropRegion:
         assert crop_region(box, "hull") is box
         torch.testing.assert_close(crop_region(box, "square"), torch.tensor([-0.2, 0.0, 0.0, 0.4, 0.6, 0.4]))
         torch.testing.assert_close(crop_region(box, "cube"), torch.tensor([-0.2, 0.0, -0.1, 0.4, 0.6, 0.5]))
-        torch.testing.assert_close(crop_region(box, "grounded_cube"), torch.tensor([-0.2, 0.0, 0.0, 0.4, 0.6, 0.6]))
 
     @pytest.mark.parametrize("shape", CROP_SHAPES)
     def test_feature_matches_naive_and_contains_the_box(self, shape: str) -> None:
@@ -186,26 +182,7 @@ class TestCropRegion:
         want = torch.tensor([[crop_region_naive(b.tolist(), shape) for b in row] for row in boxes], dtype=boxes.dtype)
         torch.testing.assert_close(out, want)
         assert (out[..., :3] <= boxes[..., :3] + 1e-12).all() and (out[..., 3:] >= boxes[..., 3:] - 1e-12).all()
-        centred = 2 if shape == "grounded_cube" else 3  # the same centre (the grounded cube's: horizontal)
-        torch.testing.assert_close((out[..., :3] + out[..., 3:])[..., :centred],
-                                   (boxes[..., :3] + boxes[..., 3:])[..., :centred])
-        if shape == "grounded_cube":
-            torch.testing.assert_close(out[..., 2], boxes[..., 2])  # on the box's base
-
-    def test_feature_grounded_cube_holds_no_floor_below_a_flat_object(self) -> None:
-        """A flat object on a floor: the centred cube's lower half is the floor and what lies under it, the grounded
-        cube's lowest cells are the object's base (the floor plane is its bottom boundary, as for the hull)."""
-        grid = VoxelGridSpec((-1.0, -1.0, -0.5), (1.0, 1.0, 0.5), (40, 40, 20))
-        x, y, z = grid.voxel_centres(dtype=torch.float64).unbind(-1)
-        floor = (z > -0.05) & (z < 0.0)  # a 5 cm slab under z = 0
-        obj = (x.abs() < 0.3) & (y.abs() < 0.3) & (z > 0.0) & (z < 0.1)  # 0.6 x 0.6 x 0.1 m on it
-        volume = torch.stack([floor, obj]).to(torch.float64)[None]  # channel 0 floor, 1 object
-        box = torch.tensor([[[-0.3, -0.3, 0.0, 0.3, 0.3, 0.1]]], dtype=torch.float64)
-        cube = crop_boxes(volume, crop_region(box, "cube"), grid, 12)[0, 0]
-        grounded = crop_boxes(volume, crop_region(box, "grounded_cube"), grid, 12)[0, 0]
-        assert cube[0].sum() > 0.5 * 12 * 12  # the centred cube holds the floor slab
-        assert grounded[0].sum() == 0  # the grounded one none of it
-        assert grounded[1, :2].mean() > 0.9 and grounded[1, 3:].max() == 0  # the object fills its lowest cells
+        torch.testing.assert_close(out[..., :3] + out[..., 3:], boxes[..., :3] + boxes[..., 3:])  # same centre
 
     def test_feature_square_crop_keeps_the_ground_aspect(self) -> None:
         """An object twice as long in x as in y fills a hull crop's whole footprint (stretched to a square) but

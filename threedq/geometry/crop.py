@@ -18,9 +18,8 @@ __all__ = ["CROP_SHAPES", "box_mask", "crop_boxes", "crop_region", "occupancy_we
 
 #: The regions :func:`crop_region` crops around a box: ``hull`` the box itself (the paper's; aspect not kept once
 #: resized to a cube), ``square`` a horizontal square of the larger horizontal extent with the height as is (aspect
-#: kept in the ground plane, where the rotation search turns crops), ``cube`` a cube of the largest extent (aspect kept),
-#: ``grounded_cube`` that cube standing on the box's base (aspect kept, nothing below the object's support).
-CROP_SHAPES = ("hull", "square", "cube", "grounded_cube")
+#: kept in the ground plane, where the rotation search turns crops), ``cube`` a cube of the largest extent (aspect kept).
+CROP_SHAPES = ("hull", "square", "cube")
 
 
 def _check_boxes(boxes: Tensor) -> None:
@@ -142,10 +141,9 @@ def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
     A crop resized to a fixed ``s^3`` keeps the object's aspect only if the region it samples is a cube: the hull
     of a 0.2 x 0.6 m box stretches the object 3x along x, and a hull rotated by a yaw no longer matches the hull of
     the same object seen at another yaw. ``square`` makes the horizontal extent square (the rotation search turns crops
-    about z, so a rotated crop is the same object rotated); ``cube`` makes all three equal. ``cube`` grows a flat box
-    downwards as much as upwards, so the lower part of a flat object's crop is the floor it stands on and the
-    unobserved space under it; ``grounded_cube`` is the same cube standing on the box's base (its ``zmin`` kept,
-    grown upwards only). A departure from the paper, which crops the hull (``hull``, the default everywhere).
+    about z, so a rotated crop is the same object rotated); ``cube`` makes all three equal. A departure from the paper,
+    which crops the hull (``hull``, the default everywhere). (A cube standing on the box's base instead of about its
+    centre was measured and dropped: docs/results.md, "A cube standing on the box's base".)
 
     Args:
         boxes: ``[..., 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
@@ -153,12 +151,10 @@ def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
 
     Returns:
         ``[..., 6]`` regions, same dtype: ``hull`` the boxes unchanged; ``square`` each box's x and y intervals widened
-        about its centre to ``max(dx, dy)``, z as is; ``cube`` all three widened to ``max(dx, dy, dz)``;
-        ``grounded_cube`` x and y as ``cube``, z from the box's ``zmin`` to ``zmin + max(dx, dy, dz)``.
+        about its centre to ``max(dx, dy)``, z as is; ``cube`` all three widened to ``max(dx, dy, dz)``.
 
     Convention:
-        Axis-aligned boxes in R (metres, z up); a region contains its box and shares its horizontal centre (and, but
-        for ``grounded_cube``, its centre).
+        Axis-aligned boxes in R (metres, z up); a region contains its box and shares its centre.
     """
     if shape not in CROP_SHAPES:
         raise ValueError(f"crop shape must be one of {CROP_SHAPES}, got {shape!r}")
@@ -172,9 +168,6 @@ def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
     axes = 2 if shape == "square" else 3
     side = extent[..., :axes].amax(-1, keepdim=True)
     half = torch.cat([side.expand(*side.shape[:-1], axes), extent[..., axes:]], dim=-1) / 2
-    if shape == "grounded_cube":
-        return torch.cat([centre[..., :2] - half[..., :2], lo[..., 2:], centre[..., :2] + half[..., :2], lo[..., 2:] + side],
-                         dim=-1)
     return torch.cat([centre - half, centre + half], dim=-1)
 
 

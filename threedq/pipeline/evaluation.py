@@ -140,7 +140,7 @@ def collect_object_crops(
             ``num_input_views``, which the loader must hold: :func:`~threedq.pipeline.report.split_loader` with
             ``gallery=True``): the paper protocol's gallery, row ``i`` the twin of query ``i``.
         crop_shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull`` (the
-            paper's), ``square``, ``cube`` or ``grounded_cube``; None: the stage's own (a quantizer's ``crop_shape``; else ``hull``).
+            paper's), ``square`` or ``cube``; None: the stage's own (a quantizer's ``crop_shape``; else ``hull``).
             ``aabb`` is returned as given either way.
 
     Returns:

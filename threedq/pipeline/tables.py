@@ -53,8 +53,6 @@ CROP_LABELS = {
     "square": "crops of a horizontal square of each box's larger horizontal extent, height as is (aspect kept in the "
               "ground plane; the paper crops the box's hull)",
     "cube": "crops of a cube of each box's largest extent (aspect kept; the paper crops the box's hull)",
-    "grounded_cube": "crops of a cube of each box's largest extent standing on the box's base (aspect kept; the paper "
-                     "crops the box's hull)",
 }
 
 
