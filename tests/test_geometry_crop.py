@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from threedq.geometry import (CROP_SHAPES, VoxelGridSpec, box_mask, crop_boxes, crop_region, occupancy_weighted, paste_boxes,
-                              sample_volume)
+from threedq.geometry import (CROP_SHAPES, VoxelGridSpec, box_mask, crop_boxes, crop_region, occupancy_weighted,
+                              paste_boxes, sample_volume)
 
 GRID = VoxelGridSpec((-1.0, -0.5, 0.0), (1.0, 0.5, 0.75), (8, 4, 3))  # 0.25 m voxels, volume (3, 4, 8)
 

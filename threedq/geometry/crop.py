@@ -56,8 +56,9 @@ def sample_volume(volume: Tensor, coords: Tensor) -> Tensor:
     chunks as it takes to give every thread one, each chunk sampling the same volume (a view for one volume, a copy
     per chunk for several): every output value is computed by the same arithmetic as in one call, so the result is
     bitwise ``F.grid_sample``'s (``tests/test_geometry_crop.py``); one scene's fifteen 16^3 crops of a
-    ``[1, 32, 16, 32, 32]`` grid take 26 instead of 42 ms on 2 cores (``benchmarks/bench_geometry_kornia.py``). With autograd (a volume or
-    points that require a gradient) it is one ``F.grid_sample`` call, whose backward accumulates in its own order.
+    ``[1, 32, 16, 32, 32]`` grid take 26 instead of 42 ms on 2 cores (``benchmarks/bench_geometry_kornia.py``).
+    With autograd (a volume or points that require a gradient) it is one ``F.grid_sample`` call, whose backward
+    accumulates in its own order.
 
     Args:
         volume: ``[B, C, Z, Y, X]``.
@@ -93,8 +94,8 @@ def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | t
     """Crop boxes out of a volume and resize each to a fixed size (trilinear, aspect not kept).
 
     One :func:`sample_volume` call (``grid_sample``, its points spread over the threads) handles all boxes of all
-    batch elements. Output cell ``(c, b, a)`` of a box
-    samples the volume at the centre of that cell of the box, e.g. ``x = xmin + (a + 0.5) * (xmax - xmin) / sx``.
+    batch elements. Output cell ``(c, b, a)`` of a box samples the volume at the centre of that cell of the box,
+    e.g. ``x = xmin + (a + 0.5) * (xmax - xmin) / sx``.
 
     A local op: kornia's ``crop_by_boxes3d`` wants integer voxel boxes of one size per batch, and
     ``crop_by_transform_mat3d`` / ``warp_affine3d`` (which sample our cell-centred points only with
