@@ -35,12 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from threedq.boxes import aabb_iou_3d, boxes_to_aabb  # noqa: E402
 from threedq.metrics import relative_yaw_error  # noqa: E402
-
-
-def _scene_gt(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """A scene file's GT boxes ``[G, 7]`` and categories ``[G]``, reading nothing else."""
-    with np.load(path) as z:
-        return np.asarray(z["boxes"], np.float64), np.asarray(z["categories"], np.int64)
+from threedq.scene import load_scene_gt  # noqa: E402
 
 
 def read_objects(path: Path, data_dir: Path, min_iou: float = 0.5) -> dict[tuple[str, int], dict[str, Any]]:
@@ -54,7 +49,8 @@ def read_objects(path: Path, data_dir: Path, min_iou: float = 0.5) -> dict[tuple
     scenes: dict[str, tuple[np.ndarray, np.ndarray, torch.Tensor]] = {}  # each scene's GT, read once
     for o in objects:
         if o["scene"] not in scenes:
-            boxes, cats = _scene_gt(data_dir / o["scene"])
+            boxes, cats = load_scene_gt(data_dir / o["scene"])
+            boxes, cats = np.asarray(boxes, np.float64), np.asarray(cats, np.int64)
             scenes[o["scene"]] = (boxes, cats, torch.from_numpy(boxes_to_aabb(boxes)))
         boxes, cats, gt_aabb = scenes[o["scene"]]
         iou = aabb_iou_3d(torch.tensor([o["box"]], dtype=torch.float64), gt_aabb)[0].numpy()

@@ -18,6 +18,7 @@ from threedq.scene import (
     load_index,
     load_scene,
     load_scene_boxes,
+    load_scene_gt,
     save_index,
     save_scene,
     validate_scene,
@@ -183,6 +184,25 @@ class TestLoadErrors:
                 zf.writestr(n, b)
         with pytest.raises(SceneValidationError, match="field 'depth'"):
             load_scene(path)
+
+
+class TestLoadSceneGt:
+    """The boxes and categories of a scene file alone, as :func:`load_scene` reads them."""
+
+    def test_equals_load_scene(self, tmp_path: Path) -> None:
+        path = save_scene(tmp_path / "s.npz", make_record(M=3))
+        boxes, categories = load_scene_gt(path)
+        rec = load_scene(path)
+        np.testing.assert_array_equal(boxes, rec.boxes)
+        np.testing.assert_array_equal(categories, rec.categories)
+
+    def test_errors_name_file_and_field(self, tmp_path: Path) -> None:
+        arrays = make_record().arrays()
+        del arrays["categories"]
+        path = tmp_path / "s.npz"
+        path.write_bytes(npz_bytes(arrays))
+        with pytest.raises(SceneValidationError, match=r"s\.npz: field 'categories': missing key"):
+            load_scene_gt(path)
 
 
 class TestLoadSceneBoxes:

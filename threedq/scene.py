@@ -51,6 +51,7 @@ __all__ = [
     "validate_scene",
     "save_scene",
     "load_scene",
+    "load_scene_gt",
     "load_scene_boxes",
     "load_index",
     "save_index",
@@ -267,6 +268,16 @@ def load_scene_boxes(path: str | Path) -> np.ndarray:
     Convention: world frame in metres, z up; yaw counter-clockwise about +z.
     """
     return _read_npz(Path(path), ("boxes",))["boxes"]
+
+
+def load_scene_gt(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The ``boxes`` ``[G, 7]`` and ``categories`` ``[G]`` arrays of a scene ``.npz`` as stored, reading nothing else.
+    Not validated; errors as :func:`load_scene`'s (naming the file and the field).
+
+    Convention: as :func:`load_scene_boxes`.
+    """
+    arrays = _read_npz(Path(path), ("boxes", "categories"))
+    return arrays["boxes"], arrays["categories"]
 
 
 def load_scene(
