@@ -18,6 +18,19 @@ def test_help_lists_subcommands() -> None:
     out = subprocess.run([sys.executable, "-m", "threedq", "--help"], capture_output=True, text=True, check=True).stdout
     for sub in ("fit", "validate", "test", "predict", "data", "em"):
         assert sub in out
+    for sub in ("eval", "parse", "label"):
+        assert sub in out
+
+
+def test_a_subcommand_imports_its_own_modules_only() -> None:
+    """``threedq data ...`` parses without importing Lightning (a fresh interpreter: this one has imported it)."""
+    code = ("import sys; from threedq.cli import build_parser; p = build_parser('data'); "
+            "p.parse_args(['data', 'check', 'x']); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'lightning', 'torchmetrics'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+    code = "import sys; from threedq.cli import build_parser; build_parser('em'); print('lightning' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "True"
 
 
 class TestResolveConfig:

@@ -66,6 +66,74 @@ def test_tilted_offset_ground_plane() -> None:
     assert np.degrees(np.arccos(np.clip(n @ normal, -1, 1))) < 0.5 and abs(-d - offset) < 5e-3
 
 
+class TestWorldPoints:
+    """``_world_points``: the valid pixels of every view back-projected into the world, one view at a time."""
+
+    @staticmethod
+    def naive(depth: np.ndarray, K: np.ndarray, T: np.ndarray, stride: int) -> tuple[np.ndarray, ...]:
+        """One pixel at a time, in float64 (view-major, then row, then column)."""
+        world, view, foot = [], [], []
+        for i in range(depth.shape[0]):
+            k = K[i].astype(np.float64)
+            for v in range(0, depth.shape[1], stride):
+                for u in range(0, depth.shape[2], stride):
+                    z = float(depth[i, v, u])
+                    if z > 0:
+                        y = (v - k[1, 2]) / k[1, 1]
+                        x = (u - k[0, 2] - k[0, 1] * y) / k[0, 0]
+                        world.append(T[i].astype(np.float64) @ np.array([x * z, y * z, z, 1.0]))
+                        view.append(i)
+                        foot.append(z / math.sqrt(k[0, 0] * k[1, 1]))
+        return np.array(world)[:, :3], np.array(view), np.array(foot)
+
+    @pytest.mark.parametrize("stride", [1, 2])
+    def test_feature_against_a_pixel_loop(self, stride: int) -> None:
+        from threedq.proposals import _world_points
+
+        rng = np.random.default_rng(3)
+        depth = rng.uniform(0.5, 3.0, size=(3, 7, 9)).astype(np.float32)
+        depth[rng.random(depth.shape) < 0.3] = 0  # invalid pixels
+        depth[1] = 0  # a view without one valid pixel
+        K = np.tile(np.array([[8.0, 0.3, 4.2], [0.0, 7.5, 3.1], [0.0, 0.0, 1.0]], np.float32), (3, 1, 1))
+        K[2, 0, 0] = 11.0
+        T = np.tile(np.eye(4, dtype=np.float32), (3, 1, 1))
+        for i, a in enumerate((0.3, -1.1, 2.0)):  # yaw about z, then a pitch about x, and a translation
+            c, s = math.cos(a), math.sin(a)
+            rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+            rx = np.array([[1, 0, 0], [0, math.cos(0.7), -math.sin(0.7)], [0, math.sin(0.7), math.cos(0.7)]])
+            T[i, :3, :3], T[i, :3, 3] = rz @ rx, (0.5 * i, -0.2, 1.0 + i)
+        got, ref = _world_points(depth, K, T, stride), self.naive(depth, K, T, stride)
+        assert got[0].dtype == np.float64 and got[0].shape == ref[0].shape and got[0].shape[0] > 10
+        np.testing.assert_allclose(got[0], ref[0], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(got[1], ref[1])
+        np.testing.assert_allclose(got[2], ref[2], rtol=1e-14, atol=0)
+
+    def test_no_valid_pixel(self) -> None:
+        from threedq.proposals import _world_points
+
+        pts, view, foot = _world_points(np.zeros((2, 4, 4), np.float32), np.tile(np.eye(3), (2, 1, 1)),
+                                        np.tile(np.eye(4), (2, 1, 1)), 1)
+        assert pts.shape == (0, 3) and view.shape == (0,) and foot.shape == (0,)
+
+
+class TestFitGroundPlaneRefinement:
+    """The least-squares refinement of the RANSAC plane against the last right singular vector of the inliers."""
+
+    def test_feature_against_svd(self) -> None:
+        rng = np.random.default_rng(0)
+        normal = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+        xy = rng.uniform(-2, 2, size=(5000, 2)) + 7.0  # far from the origin: the centring matters
+        z = (0.3 - normal[0] * xy[:, 0] - normal[1] * xy[:, 1]) / normal[2] + rng.normal(0, 2e-3, 5000)
+        pts = np.column_stack([xy, z])
+        n, d, _ = fit_ground_plane(pts, threshold=0.01)
+        # the reference: two rounds of SVD refinement from the same RANSAC start, done here
+        inl = pts[np.abs(pts @ n + d) <= 0.01]
+        vt = np.linalg.svd(inl - inl.mean(axis=0), full_matrices=False)[2]
+        ref = vt[-1] if vt[-1][2] > 0 else -vt[-1]
+        assert np.abs(n - ref).max() < 1e-12 and abs(d + ref @ inl.mean(axis=0)) < 1e-12
+        assert np.degrees(np.arccos(min(1.0, n @ normal))) < 0.1
+
+
 class TestGroundMargin:
     """The ground margin measured from the ground's own spread (``ground_margin=None``, the observed boxes')."""
 

@@ -18,10 +18,14 @@ naming the folder and the first run (:mod:`threedq.locks`). And a full disk: one
 (``ENOSPC``, once ``EACCES``: a checkpoint, a stage marker, the detections handed on, a prototype bank, a round's
 results, self-labels, ``metrics.json``, ``report.md``), each run stops with one line naming the file, and the run
 resumed once the space is back equals the uninterrupted one; a failed rewrite of ``metrics.json`` keeps the old file.
+
+The full-disk chain runs in a thread beside the uninterrupted run and the kill chain (separate processes and work
+folders, each mostly on one core): on two cores the module takes about the longer chain's time, not the sum.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import fnmatch
 import json
 import os
@@ -108,11 +112,29 @@ KILLS = [
 
 
 @pytest.fixture(scope="module")
-def reference(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+def workspace(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(folder of this module's runs, their tiny config)."""
+    tmp = tmp_path_factory.mktemp("resume")
+    return tmp, _config(tmp, tiny_dataset)
+
+
+@pytest.fixture(scope="module")
+def background(request: pytest.FixtureRequest, workspace: tuple[Path, Path]):
+    """The full-disk chain (:data:`FULL_DISK`), started in a thread before the uninterrupted run when a test of
+    :class:`TestFullDisk` is selected: its runs are separate processes in their own work folder, each mostly on one
+    core, so on two cores it overlaps the uninterrupted run and the kill chain (the two chains' runs take ~100 s
+    each). Yields ``{"full_disk": future}`` (empty when not selected)."""
+    wanted = any(item.module is request.module and item.cls is TestFullDisk for item in request.session.items)
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        futures = {"full_disk": pool.submit(_full_disk_chain, *workspace)} if wanted else {}
+        yield futures  # leaving the pool waits for the chain, whatever happened meanwhile
+
+
+@pytest.fixture(scope="module")
+def reference(workspace: tuple[Path, Path], background: dict) -> dict:
     """The uninterrupted run; while it runs (paused once the detector has finished), a second ``threedq em`` on the
     same work folder is started and must be refused."""
-    tmp = tmp_path_factory.mktemp("resume")
-    cfg = _config(tmp, tiny_dataset)
+    tmp, cfg = workspace
     ref = tmp / "uninterrupted"
     cmd, env = _em_command(ref, cfg, pause_at="*/02_detector/stage.json")
     first = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -222,9 +244,7 @@ FULL_DISK = [
 ]
 
 
-@pytest.fixture(scope="module")
-def full_disk(reference: dict) -> dict:
-    ref, cfg, tmp = reference["ref"], reference["cfg"], reference["tmp"]
+def _full_disk_chain(tmp: Path, cfg: Path) -> dict:
     work = tmp / "full_disk"
     log = []
     for errno_name, what, glob in FULL_DISK:
@@ -233,7 +253,13 @@ def full_disk(reference: dict) -> dict:
     assert final.returncode == 0, final.stderr[-3000:]
     before = (work / "metrics.json").read_bytes()
     rewrite = _em(work, cfg, "--resume", "true", fault=("ENOSPC", str(work), "*/full_disk/metrics.json"))
-    return {"ref": ref, "work": work, "log": log, "before": before, "rewrite": rewrite}
+    return {"work": work, "log": log, "before": before, "rewrite": rewrite}
+
+
+@pytest.fixture(scope="module")
+def full_disk(reference: dict, background: dict, workspace: tuple[Path, Path]) -> dict:
+    chain = background["full_disk"].result() if "full_disk" in background else _full_disk_chain(*workspace)
+    return {"ref": reference["ref"], **chain}
 
 
 class TestFullDisk:

@@ -209,17 +209,24 @@ def _world_points(
     vs = np.arange(0, H, pixel_stride)
     us = np.arange(0, W, pixel_stride)
     sub = depth[:, vs][:, :, us]
-    view, iv, iu = np.nonzero(sub > 0)
-    z = sub[view, iv, iu].astype(np.float64)
-    u, v = us[iu].astype(np.float64), vs[iv].astype(np.float64)
-    Kd = K.astype(np.float64)
-    fx, fy, skew, cx, cy = Kd[view, 0, 0], Kd[view, 1, 1], Kd[view, 0, 1], Kd[view, 0, 2], Kd[view, 1, 2]
-    y = (v - cy) / fy
-    x = (u - cx - skew * y) / fx
-    cam = np.stack([x * z, y * z, z], axis=1)
-    T = world_T_cam.astype(np.float64)
-    world = np.einsum("nij,nj->ni", T[view, :3, :3], cam) + T[view, :3, 3]
-    return world, view, z / np.sqrt(fx * fy)
+    Kd, T = K.astype(np.float64), world_T_cam.astype(np.float64)
+    world, views, foot = [], [], []
+    for i in range(sub.shape[0]):  # one view at a time: its intrinsics and pose are scalars, not gathered per point
+        iv, iu = np.nonzero(sub[i] > 0)
+        z = sub[i][iv, iu].astype(np.float64)
+        fx, fy, skew, cx, cy = Kd[i, 0, 0], Kd[i, 1, 1], Kd[i, 0, 1], Kd[i, 0, 2], Kd[i, 1, 2]
+        y = (vs[iv] - cy) / fy
+        x = (us[iu] - cx - skew * y) / fx
+        cam = (x * z, y * z, z)
+        w = np.empty((z.size, 3))
+        for r in range(3):
+            w[:, r] = T[i, r, 0] * cam[0] + T[i, r, 1] * cam[1] + T[i, r, 2] * cam[2] + T[i, r, 3]
+        world.append(w)
+        views.append(np.full(z.size, i, dtype=np.int64))
+        foot.append(z / np.sqrt(fx * fy))
+    if not world:
+        return np.zeros((0, 3)), np.zeros((0,), np.int64), np.zeros((0,))
+    return np.concatenate(world), np.concatenate(views), np.concatenate(foot)
 
 
 def _plane_z(n: np.ndarray, d: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:

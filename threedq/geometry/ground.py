@@ -80,8 +80,10 @@ def fit_ground_plane(
         if inl.shape[0] < 3:
             break
         centroid = inl.mean(axis=0)
-        _, _, vt = np.linalg.svd(inl - centroid, full_matrices=False)
-        cand = vt[-1]
+        centred = inl - centroid
+        # the normal: the scatter matrix's eigenvector of the least eigenvalue (the last right singular vector of
+        # the centred points, from a 3 x 3 problem instead of an SVD of all inliers)
+        cand = np.linalg.eigh(centred.T @ centred)[1][:, 0]
         if cand[2] < 0:
             cand = -cand
         if cand[2] < math.cos(math.radians(max_tilt_deg)) - 1e-12:
