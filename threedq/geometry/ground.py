@@ -70,8 +70,10 @@ def fit_ground_plane(
     counts = np.zeros(n.shape[0], dtype=np.int64)
     chunk = max(1, 4_000_000 // max(eval_pts.shape[0], 1))
     for s in range(0, n.shape[0], chunk):
-        dist = np.abs(eval_pts @ n[s : s + chunk].T + d[s : s + chunk])
-        counts[s : s + chunk] = np.count_nonzero(dist <= threshold, axis=0)
+        dist = n[s : s + chunk] @ eval_pts.T  # [hypotheses, points]: each hypothesis's count is a contiguous row
+        dist += d[s : s + chunk, None]
+        np.abs(dist, out=dist)
+        counts[s : s + chunk] = np.count_nonzero(dist <= threshold, axis=1)
     best = int(np.argmax(counts))  # first maximum: deterministic
     nb, db = n[best], float(d[best])
     # least-squares refinement on the inliers of all points (two rounds)
