@@ -9,8 +9,10 @@
 
 from __future__ import annotations
 
+import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from jsonargparse import ArgumentError, ArgumentParser
 
@@ -21,51 +23,30 @@ __all__ = ["build_parser", "main"]
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
 
-def _function_parser(module: str, name: str) -> ArgumentParser:
-    """A parser of the arguments of ``module.name`` (imported now: only the subcommand being run pays for it)."""
-    import importlib
-
-    fn = getattr(importlib.import_module(module), name)
-    p = ArgumentParser(description=(fn.__doc__ or "").split("\n")[0])
-    p.add_function_arguments(fn)
-    return p
-
-
-def _data_parser() -> ArgumentParser:
-    return ArgumentParser(description="Dataset tools: generate, show, check, import, index.")
-
-
-def _add_data_actions(data: ArgumentParser) -> None:
-    """``data``'s own subcommands (jsonargparse takes them once ``data`` is a subcommand itself)."""
-    from threedq.pipeline.data_commands import data_parsers
-
-    data_sub = data.add_subcommands(dest="action")
-    for name, p, help_text in data_parsers():
-        data_sub.add_subcommand(name, p, help=help_text)
-
-
-#: name -> (help, the parser's builder, the function that runs it as ``(module, name)``); builders import their
-#: module when called, so ``threedq data ...`` starts without importing Lightning (about 3 s against 7 s)
+#: name -> (help, module, function that runs it). A subcommand's module is imported only when its parser is built, so
+#: ``threedq data ...`` starts without importing Lightning (about 3 s against 7 s on 2 vCPUs).
 _COMMANDS = {
-    "data": ("generate, show, check, import or index a dataset", _data_parser,
-             ("threedq.pipeline.data_commands", "run_data")),
-    "em": ("run the stages in order (view prediction, EM rounds, evaluation)",
-           lambda: _function_parser("threedq.pipeline.em", "run_em"), ("threedq.pipeline.em", "run_em")),
-    "eval": ("the paper's tables and figures for a quantizer checkpoint",
-             lambda: _function_parser("threedq.pipeline.report", "run_eval"), ("threedq.pipeline.report", "run_eval")),
-    "parse": ("parse scenes with a trained run: boxes, prototype (C), yaw (R), name",
-              lambda: _function_parser("threedq.pipeline.parse_command", "run_parse"),
-              ("threedq.pipeline.parse_command", "run_parse")),
-    "label": ("name a few objects (labels.yaml); names propagate to the prototypes",
-              lambda: _function_parser("threedq.pipeline.naming", "run_label"), ("threedq.pipeline.naming", "run_label")),
+    "data": ("generate, show, check, import or index a dataset", "threedq.pipeline.data_commands", "run_data"),
+    "em": ("run the stages in order (view prediction, EM rounds, evaluation)", "threedq.pipeline.em", "run_em"),
+    "eval": ("the paper's tables and figures for a quantizer checkpoint", "threedq.pipeline.report", "run_eval"),
+    "parse": ("parse scenes with a trained run: boxes, prototype (C), yaw (R), name", "threedq.pipeline.parse_command",
+              "run_parse"),
+    "label": ("name a few objects (labels.yaml); names propagate to the prototypes", "threedq.pipeline.naming",
+              "run_label"),
 }
+
+
+def _command_function(name: str) -> Callable[..., Any]:
+    """The function that runs subcommand ``name`` (its module imported now)."""
+    _, module, function = _COMMANDS[name]
+    return getattr(importlib.import_module(module), function)
 
 
 def build_parser(command: str | None = None) -> ArgumentParser:
     """The top-level parser (``fit``/``validate``/``test``/``predict`` are handed to :class:`ThreeDQCLI`).
 
-    ``command``: build the parser of that subcommand only (the others' modules are not imported); ``None`` or a
-    name that is no subcommand: all of them (so ``--help`` and an unknown command list every choice).
+    ``command``: build the parser of that subcommand only (the other subcommands' modules are not imported); ``None``
+    or a name that is no subcommand: all of them (so ``--help`` and an unknown command list every choice).
     """
     parser = ArgumentParser(prog="threedq", description=__doc__.split("\n\n")[0] if __doc__ else None,
                             exit_on_error=False)  # a parse error is one line (main), not the usage
@@ -73,21 +54,23 @@ def build_parser(command: str | None = None) -> ArgumentParser:
     for name in LIGHTNING_SUBCOMMANDS:
         p = ArgumentParser(description=f"Lightning '{name}' of a stage; see 'threedq {name} --help'.")
         sub.add_subcommand(name, p, help=f"LightningCLI {name} (threedq {name} --config stages/<stage>.yaml)")
-    only = command if command in _COMMANDS else None
-    for name, (help_text, make, _) in _COMMANDS.items():
-        if only is None or name == only:
-            p = make()
+    for name, (help_text, _, _) in _COMMANDS.items():
+        if command in _COMMANDS and name != command:
+            continue
+        if name == "data":
+            p = ArgumentParser(description="Dataset tools: generate, show, check, import, index.")
             sub.add_subcommand(name, p, help=help_text)
-            if name == "data":
-                _add_data_actions(p)
+            from threedq.pipeline.data_commands import data_parsers
+
+            actions = p.add_subcommands(dest="action")  # jsonargparse takes them once 'data' is a subcommand
+            for action, ap, action_help in data_parsers():
+                actions.add_subcommand(action, ap, help=action_help)
+        else:
+            fn = _command_function(name)
+            p = ArgumentParser(description=(fn.__doc__ or "").split("\n")[0])
+            p.add_function_arguments(fn)
+            sub.add_subcommand(name, p, help=help_text)
     return parser
-
-
-def _run(command: str):
-    import importlib
-
-    module, name = _COMMANDS[command][2]
-    return getattr(importlib.import_module(module), name)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -101,18 +84,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         cfg = build_parser(argv[0] if argv else None).parse_args(argv)
         if cfg.command == "data":
-            return _run("data")(cfg.data)
+            return _command_function("data")(cfg.data)
         if cfg.command == "em":
-            _run("em")(**{k: v for k, v in cfg.em.items() if k != "config" or v is not None})
+            _command_function("em")(**{k: v for k, v in cfg.em.items() if k != "config" or v is not None})
             return 0
         if cfg.command == "eval":
-            _run("eval")(**dict(cfg.eval.items()))
+            _command_function("eval")(**dict(cfg.eval.items()))
             return 0
         if cfg.command == "parse":
-            summary = _run("parse")(**dict(cfg.parse.items()))
+            summary = _command_function("parse")(**dict(cfg.parse.items()))
             return 0 if summary["parsed"] or not summary["scenes"] else 1
         if cfg.command == "label":
-            _run("label")(**dict(cfg.label.items()))
+            _command_function("label")(**dict(cfg.label.items()))
             return 0
         build_parser().print_help()
         return 2

@@ -47,7 +47,8 @@ against ``boxes_to_aabb`` of the ground truth; AP: greedy VOC matching over the 
 whole test split (250 scenes, 487 objects): recall@0.25 1.000, recall@0.5 0.994, recall@0.7 0.953, mean
 best IoU 0.853, 1.95 proposals per scene, AP@0.25 1.000, AP@0.5 0.994, AP@0.7 0.941; on test scenes
 100-249, not used for tuning: recall@0.5 0.990, AP@0.5 0.990. About 0.2 s per scene on one CPU core
-(``view_stride=2``: the same AP@0.5 at about 0.1 s). Plain point extents without ``dilation``,
+when measured (``view_stride=2``, the data module's: the same AP@0.5 at about 0.1 s, now 0.08 s on a 2 vCPU Xeon,
+``benchmarks/bench_proposals.py``). Plain point extents without ``dilation``,
 ``footprint="min_area_rect"`` or ``round_inflate`` reach only recall@0.5 0.94 and AP@0.5 0.90 (test
 scenes 0-99): round objects and toy airplanes (split into parts) are the failures they fix.
 
