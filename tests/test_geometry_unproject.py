@@ -213,6 +213,54 @@ def ray_scene() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, VoxelGridSpec
     return depth, K, pose(LOOK_ALONG_X, (-1.2, 0.0, 0.0)), grid
 
 
+class TestVoxelize:
+    """The scatter behind the occupancy and free-space labels, against a per-point loop of the same float32 ops."""
+
+    @staticmethod
+    def _naive(points: torch.Tensor, keep: torch.Tensor, grid: VoxelGridSpec) -> torch.Tensor:
+        lo = torch.tensor(grid.bounds_min, dtype=points.dtype)
+        size = torch.tensor(grid.voxel_size, dtype=points.dtype)
+        nx, ny, nz = grid.resolution
+        out = torch.zeros(points.shape[0], 1, nz, ny, nx, dtype=points.dtype)
+        for b in range(points.shape[0]):
+            for n in range(points.shape[1]):
+                if not bool(keep[b, n]):
+                    continue
+                cell = [float(torch.floor((points[b, n, a] - lo[a]) / size[a])) for a in range(3)]
+                if all(math.isfinite(c) and 0 <= c < r for c, r in zip(cell, grid.resolution)):
+                    i, j, k = (int(c) for c in cell)
+                    out[b, 0, k, j, i] = 1.0
+        return out
+
+    def test_feature_matches_naive(self) -> None:
+        from threedq.geometry.unproject import _voxelize
+
+        grid = VoxelGridSpec((-1.28, -1.28, -0.32), (1.28, 1.28, 0.96), (16, 16, 8))
+        g = torch.Generator().manual_seed(0)
+        points = torch.rand(2, 600, 3, generator=g) * 3.2 - 1.6  # inside and outside the grid
+        lo, hi = torch.tensor(grid.bounds_min), torch.tensor(grid.bounds_max)
+        points[:, :40] = lo  # on the lower faces: inside
+        points[:, 40:80] = hi  # on the upper faces: outside (half-open)
+        points[:, 80:120] = lo + torch.tensor(grid.voxel_size) * torch.randint(0, 8, (40, 3), generator=g)  # cell edges
+        points[0, 120] = float("nan")
+        points[0, 121, 1] = float("inf")
+        points[1, 122, 2] = -float("inf")
+        points[1, 123] = 1e30
+        keep = torch.rand(2, 600, generator=g) > 0.2
+        keep[:, 120:124] = True
+        got = _voxelize(points, keep, grid)
+        assert got.shape == (2, 1, 8, 16, 16) and got.dtype == points.dtype
+        assert torch.equal(got, self._naive(points, keep, grid))
+        assert got.sum() > 0 and not torch.equal(got[0], got[1])
+
+    def test_empty(self) -> None:
+        from threedq.geometry.unproject import _voxelize
+
+        grid = VoxelGridSpec((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (4, 4, 4))
+        assert torch.equal(_voxelize(torch.zeros(3, 0, 3), torch.zeros(3, 0, dtype=torch.bool), grid),
+                           torch.zeros(3, 1, 4, 4, 4))
+
+
 class TestFreeSpaceFromDepth:
     def test_smoke(self) -> None:
         depth, K, R_T_cam, grid = ray_scene()
