@@ -15,14 +15,17 @@ eval mode (BatchNorm running statistics).
 from __future__ import annotations
 
 import hashlib
+import math
 import weakref
 from collections import OrderedDict
 from collections.abc import Iterable
 
+import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["CropCache", "module_fingerprint", "sample_key", "views_key"]
+__all__ = ["CropCache", "module_fingerprint", "pack_bits", "pack_sparse", "sample_key", "unpack_bits", "unpack_sparse",
+           "views_key"]
 
 
 def _update(h: "hashlib._Hash", t: Tensor) -> None:
@@ -50,6 +53,49 @@ def views_key(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> str:
     for t in (rgb, depth, K, R_T_cam):
         _update(h, t)
     return h.hexdigest()
+
+
+def pack_sparse(t: Tensor) -> tuple[Tensor, Tensor]:
+    """A tensor as its entries that are not ``+0.0``: flat positions and values, for :func:`unpack_sparse`.
+
+    The unprojected encoder input ``cat[occ, occ * rgb]`` is zero wherever no depth point fell, about 97% of a
+    scene's voxels, so its entries are kept at a tenth of the dense tensor's bytes.
+
+    Args:
+        t: any tensor (floating, integer or bool).
+
+    Returns:
+        ``index`` ``[N]`` int32 (int64 beyond 2^31 elements) positions in ``t.reshape(-1)``, and ``values`` ``[N]``
+        (dtype of ``t``) there: every entry but ``+0.0`` (``-0.0`` and NaN included), so the round trip is bitwise.
+    """
+    flat = t.detach().reshape(-1)
+    keep = flat != 0
+    if flat.is_floating_point():
+        keep |= torch.signbit(flat)
+    index = keep.nonzero().squeeze(1)
+    values = flat[index]
+    return (index.to(torch.int32) if flat.numel() < 2**31 else index), values
+
+
+def unpack_sparse(index: Tensor, values: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """The tensor of shape ``shape`` that :func:`pack_sparse` gave ``index`` and ``values`` for (bitwise).
+
+    Convention: ``+0.0`` (``False``, 0) everywhere else; device and dtype of ``values``.
+    """
+    out = values.new_zeros(shape)
+    out.view(-1)[index.to(device=values.device, dtype=torch.long)] = values
+    return out
+
+
+def pack_bits(mask: Tensor) -> Tensor:
+    """A bool tensor as ``uint8`` bytes of 8 entries each (``numpy.packbits``, big-endian bit order), on the CPU."""
+    return torch.from_numpy(np.packbits(mask.detach().to("cpu", torch.bool).reshape(-1).numpy()))
+
+
+def unpack_bits(bits: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """The bool tensor of shape ``shape`` that :func:`pack_bits` gave ``bits`` for (on the CPU)."""
+    count = math.prod(shape)
+    return torch.from_numpy(np.unpackbits(bits.numpy(), count=count).view(np.bool_)).reshape(shape)
 
 
 def sample_key(batch: dict[str, Tensor], b: int, num_input_views: int, crop_size: int, crop_shape: str = "hull") -> str:

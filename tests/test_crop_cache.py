@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -9,7 +10,9 @@ import torch
 
 from threedq.datamodules.scene_folder import SceneFolderDataModule
 from threedq.stages.base import EncoderStage
-from threedq.stages.crop_cache import CropCache, module_fingerprint, sample_key
+from threedq.stages.crop_cache import (
+    CropCache, module_fingerprint, pack_bits, pack_sparse, sample_key, unpack_bits, unpack_sparse,
+)
 from threedq.pipeline.evaluation import collect_object_crops
 from threedq.nets import UNet3D
 from threedq.pipeline.report import split_loader
@@ -53,6 +56,97 @@ class TestModuleFingerprint:
         assert cache.fingerprint(a) == first
         a.load_state_dict(b.state_dict())  # copy_ into the same tensors bumps their version counters
         assert cache.fingerprint(a) == module_fingerprint(b) != first
+
+
+class TestPackSparse:
+    """The compact form of the cached encoder inputs: a round trip must be bitwise, signed zeros and NaN included."""
+
+    def test_round_trip_is_bitwise(self) -> None:
+        t = torch.zeros(2, 4, 3, 5)
+        t[0, 1, 2, 3], t[1, 0, 0, 0], t[1, 3, 2, 4] = 0.25, -0.0, float("nan")
+        t[0, 2] = torch.rand(3, 5)
+        index, values = pack_sparse(t)
+        assert index.dtype == torch.int32 and values.dtype == t.dtype
+        # a naive loop: every flat position whose value is not +0.0 (the non-zeros, the NaN, the -0.0), in order
+        naive = [i for i, v in enumerate(t.reshape(-1).tolist()) if not (v == 0 and math.copysign(1.0, v) > 0)]
+        assert index.tolist() == naive
+        back = unpack_sparse(index, values, tuple(t.shape))
+        assert back.view(torch.int32).equal(t.view(torch.int32))  # bit for bit: -0.0 and NaN come back as they were
+
+    def test_other_dtypes_and_empty(self) -> None:
+        for t in (torch.tensor([[True, False], [False, True]]), torch.tensor([0, 3, 0, -2]),
+                  torch.zeros(3, 3, dtype=torch.bfloat16).index_fill_(0, torch.tensor([1]), 1.5), torch.zeros(0, 4)):
+            index, values = pack_sparse(t)
+            back = unpack_sparse(index, values, tuple(t.shape))
+            assert back.dtype == t.dtype and torch.equal(back, t)
+        index, values = pack_sparse(torch.zeros(6))
+        assert index.numel() == 0 and torch.equal(unpack_sparse(index, values, (2, 3)), torch.zeros(2, 3))
+
+    def test_a_hand_made_case(self) -> None:
+        index, values = pack_sparse(torch.tensor([[0.0, 2.0], [0.0, -1.0]]))
+        assert index.tolist() == [1, 3] and values.tolist() == [2.0, -1.0]
+
+
+class TestPackBits:
+    def test_round_trip(self) -> None:
+        g = torch.Generator().manual_seed(0)
+        for shape in ((2, 1, 4, 8, 8), (3, 5), (7,), (0, 3)):
+            mask = torch.rand(shape, generator=g) > 0.5
+            bits = pack_bits(mask)
+            assert bits.dtype == torch.uint8 and bits.numel() == -(-mask.numel() // 8)
+            assert torch.equal(unpack_bits(bits, shape), mask)
+
+    def test_a_hand_made_case(self) -> None:
+        bits = pack_bits(torch.tensor([True, False, False, False, False, False, False, True, True]))
+        assert bits.tolist() == [0b10000001, 0b10000000]  # first entry in the highest bit
+
+
+class TestInputWithCache:
+    """The unprojected input (``views_input``), kept per scene under the ``input`` kind: it depends on the views and
+    the grid, not on the encoder, so a new encoder reads the inputs an earlier one's stage computed."""
+
+    def _views(self, batch: dict[str, torch.Tensor], n: int = 1) -> tuple[torch.Tensor, ...]:
+        return tuple(batch[k][:, :n] for k in ("rgb", "depth", "K", "R_T_cam"))
+
+    def test_hit_is_bitwise_encoder_input_and_survives_new_weights(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage(0)
+        views = self._views(batch, 2)  # two views per scene: scene-major like encoder_input's flattening
+        ref_x, ref_seen = stage.encoder_input(*(v.flatten(0, 1) for v in views))
+        stage.use_crop_cache(CropCache())
+        with torch.no_grad():
+            first = stage.views_input(*views)
+            stage.encoder.load_state_dict(_stage(1).encoder.state_dict())  # another encoder: same inputs
+            stage.crop_cache.drop("grid")
+            second = stage.views_input(*views)
+        B = batch["rgb"].shape[0]
+        assert stage.crop_cache.hits == 3 * B and stage.crop_cache.misses == 3 * B
+        for x, seen in (first, second):
+            assert x.dtype == ref_x.dtype and seen.dtype == ref_seen.dtype
+            assert x.view(torch.int32).equal(ref_x.view(torch.int32)) and torch.equal(seen, ref_seen)
+        # kept compact: fewer bytes than the dense input
+        stored = sum(v.numel() * v.element_size() for k, v in stage.crop_cache._store.items() if k[0] == "input")
+        assert stored < (ref_x.numel() * ref_x.element_size()) / 2
+
+    def test_other_views_miss(self, batch: dict[str, torch.Tensor]) -> None:
+        stage = _stage()
+        stage.use_crop_cache(CropCache())
+        rgb, depth, K, pose = self._views(batch)
+        with torch.no_grad():
+            stage.views_input(rgb, depth, K, pose)
+            x, _ = stage.views_input(rgb, depth * 1.01, K, pose)
+        assert stage.crop_cache.hits == 0
+        assert torch.equal(x, stage.encoder_input(rgb.flatten(0, 1), (depth * 1.01).flatten(0, 1), K.flatten(0, 1),
+                                                  pose.flatten(0, 1))[0])
+
+    def test_not_used_with_gradient_or_training_encoder(self, batch: dict[str, torch.Tensor]) -> None:
+        """A training step's views may be drawn at random: its inputs are not kept."""
+        stage = _stage()
+        stage.use_crop_cache(CropCache())
+        stage.views_input(*self._views(batch))
+        stage.train()
+        with torch.no_grad():
+            stage.views_input(*self._views(batch))
+        assert len(stage.crop_cache) == 0
 
 
 class TestSampleKey:
@@ -130,10 +224,12 @@ class TestGridsWithCache:
             first = stage.encode_views(*self._views(batch))
             other_boxes = {**batch, "aabb": batch["aabb"] + 0.1}
             second = stage.encode_views(*self._views(other_boxes))
-        assert stage.crop_cache.misses == 2 and stage.crop_cache.hits == 2
+        # 2 scenes: grid misses, then the 3 parts of each scene's unprojected input; then 2 grid hits
+        assert stage.crop_cache.misses == 2 + 2 * 3 and stage.crop_cache.hits == 2
         assert torch.equal(first, ref) and torch.equal(second, ref)
-        assert {k[0] for k in stage.crop_cache._store} == {"grid"}
-        assert stage.crop_cache.drop("grid") == 2 and len(stage.crop_cache) == 0
+        assert {k[0] for k in stage.crop_cache._store} == {"grid", "input"}
+        assert stage.crop_cache.drop("grid") == 2 and stage.crop_cache.drop("input") == 2 * 3
+        assert len(stage.crop_cache) == 0
 
     def test_other_views_or_weights_miss(self, batch: dict[str, torch.Tensor]) -> None:
         stage = _stage(0)
@@ -145,7 +241,7 @@ class TestGridsWithCache:
             assert stage.crop_cache.hits == 0
             stage.encoder.load_state_dict(_stage(1).encoder.state_dict())
             fresh = stage.encode_views(rgb, depth, K, pose)
-            assert stage.crop_cache.hits == 0
+            assert stage.crop_cache.hits == 3 * rgb.shape[0]  # the grids of new weights miss; the inputs are the same
             stage.use_crop_cache(None)
             assert torch.equal(fresh, stage.encode_views(rgb, depth, K, pose))
 
@@ -165,7 +261,7 @@ class TestObjectCropsWithCache:
             first = stage.object_crops(batch, 1, 8)
             assert stage.crop_cache.misses > 0 and stage.crop_cache.hits == 0
             second = stage.object_crops(batch, 1, 8)
-        assert stage.crop_cache.hits == 2 * batch["rgb"].shape[0]  # features + raw per sample
+        assert stage.crop_cache.hits == 2 * batch["rgb"].shape[0]  # features + raw per sample (no input asked)
         for k in ref:
             assert torch.equal(first[k], ref[k]) and torch.equal(second[k], ref[k]), k
 
@@ -181,7 +277,7 @@ class TestObjectCropsWithCache:
             stage.use_crop_cache(CropCache())
             stage.object_crops(batch, 1, 8)
             B = batch["rgb"].shape[0]
-            assert {k[0] for k in stage.crop_cache._store} == {"features", "raw", "grid"}
+            assert {k[0] for k in stage.crop_cache._store} == {"features", "raw", "grid", "input"}
             hits = stage.crop_cache.hits
             grid = stage.encode_views(*views)
             assert stage.crop_cache.hits == hits + B

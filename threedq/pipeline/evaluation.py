@@ -81,8 +81,7 @@ def _random_encoder_crops(
         hit = cache.get_many(keys)
         if hit is not None:
             return torch.cat(hit)
-    rgb, depth, K, pose = (batch[k][:, :v].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
-    x, _ = stage.encoder_input(rgb, depth, K, pose)
+    x, _ = stage.views_input(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
     rf = random_enc(x).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
     rand = crop_boxes(F.normalize(rf, dim=1), crop_region(batch["aabb"], crop_shape), stage.feature_grid, crop_size)
     if cache is not None:
@@ -94,8 +93,7 @@ def _random_encoder_crops(
 def _hull_raw_crops(stage: EncoderStage, batch: dict[str, Tensor], v: int, crop_size: int) -> Tensor:
     """Raw input crops of ``batch``'s valid boxes cut as their hulls, on the CPU: the colour + size descriptor's,
     whatever region the features are cut from (no encoder pass: the unprojected input only)."""
-    rgb, depth, K, pose = (batch[k][:, :v].flatten(0, 1) for k in ("rgb", "depth", "K", "R_T_cam"))
-    x, _ = stage.encoder_input(rgb, depth, K, pose)
+    x, _ = stage.views_input(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
     B = batch["box_mask"].shape[0]
     raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"].to(x.dtype), stage.grid, crop_size)
     return raw[batch["box_mask"]].cpu()
