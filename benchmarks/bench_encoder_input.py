@@ -19,12 +19,8 @@ folder with the embedded generator's defaults (seed 0).
 
 from __future__ import annotations
 
-import argparse
 import datetime
-import statistics
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 import torch
@@ -32,47 +28,27 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import cpu_name
+from _scenes import bench_scenes, median_ms, scene_arguments
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data_dir", type=Path, default=None)
-    ap.add_argument("--scenes", type=int, default=30)
-    args = ap.parse_args()
+    args = scene_arguments(__doc__)
 
-    from threedq.scene import load_index, load_scene
     from threedq.stages.base import EncoderStage
     from threedq.stages.crop_cache import CropCache
 
-    with tempfile.TemporaryDirectory() as tmp:
-        data = args.data_dir
-        if data is None:
-            from threedq.data.generate import generate_dataset
-
-            data = Path(tmp) / "scenes"
-            generate_dataset(data, num_scenes=args.scenes + 1, seed=0, split_fractions=(0.0, 0.0, 1.0), progress=False)
-        files = load_index(data).files("test")[: args.scenes + 1]
-        records = [load_scene(data / f, validate=False) for f in files]
+    data, _, records = bench_scenes(args.data_dir, args.scenes, "test")
     stage = EncoderStage(grid_min=(-1.28, -1.28, -0.32), grid_max=(1.28, 1.28, 0.96), grid_resolution=(64, 64, 32),
                          feature_dim=32, encoder_channels=(32, 64, 128)).eval()
     views = [(torch.from_numpy(r.rgb[:1]).permute(0, 3, 1, 2).float().div(255)[None],
               torch.from_numpy(r.depth[:1]).float()[None], torch.from_numpy(r.K[:1]).float()[None],
               torch.from_numpy(r.world_T_cam[:1]).float()[None]) for r in records]
 
-    def timed(fn) -> float:
-        fn(views[0])  # warm-up
-        times = []
-        for v in views[1:]:
-            t0 = time.perf_counter()
-            fn(v)
-            times.append((time.perf_counter() - t0) * 1e3)
-        return statistics.median(times)
-
     with torch.no_grad():
-        compute = timed(lambda v: stage.encoder_input(*(t.flatten(0, 1) for t in v)))
+        compute = median_ms(lambda v: stage.encoder_input(*(t.flatten(0, 1) for t in v)), views)
         stage.use_crop_cache(CropCache())
-        miss = timed(lambda v: stage.views_input(*v))
-        hit = timed(lambda v: stage.views_input(*v))
+        miss = median_ms(lambda v: stage.views_input(*v), views)
+        hit = median_ms(lambda v: stage.views_input(*v), views)
         kept = stage.crop_cache.nbytes / len(views)
         dense = sum(t.numel() * t.element_size() for t in stage.encoder_input(*(t.flatten(0, 1) for t in views[0])))
     print(f"# encoder input, {len(views) - 1} scenes ({data}), view 0, grid {stage.grid.resolution}; "

@@ -9,19 +9,16 @@ Rows (median milliseconds per scene over the scenes, after one warm-up scene):
 
 Scenes: ``--data_dir`` (a dataset folder; its first ``--scenes`` training scenes), else that many scenes generated
 into a temporary folder with the embedded generator's defaults (seed 0). The script runs on older commits too (copy
-it into a worktree) to price a change there.
+it, `_machine.py` and `_scenes.py` into a worktree) to price a change there.
 
     python benchmarks/bench_proposals.py [--data_dir data/clevr_veggie] [--scenes 30]
 """
 
 from __future__ import annotations
 
-import argparse
 import datetime
 import statistics
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,38 +26,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import cpu_name
-
-
-def _ms(fn, records: list) -> float:
-    fn(records[0])  # warm-up
-    times = []
-    for r in records[1:]:
-        t0 = time.perf_counter()
-        fn(r)
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
+from _scenes import bench_scenes, median_ms, scene_arguments
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data_dir", type=Path, default=None)
-    ap.add_argument("--scenes", type=int, default=30)
-    args = ap.parse_args()
+    args = scene_arguments(__doc__)
 
     from threedq.geometry.ground import fit_ground_plane
     from threedq.proposals import ProposalParams, _world_points, propose_boxes
-    from threedq.scene import load_index, load_scene
 
-    with tempfile.TemporaryDirectory() as tmp:
-        data = args.data_dir
-        if data is None:
-            from threedq.data.generate import generate_dataset
-
-            data = Path(tmp) / "scenes"
-            generate_dataset(data, num_scenes=args.scenes + 1, seed=0, split_fractions=(1.0, 0.0, 0.0), progress=False)
-        index = load_index(data)
-        files = index.files("train")[: args.scenes + 1]
-        records = [load_scene(data / f, validate=False) for f in files]
+    data, index, records = bench_scenes(args.data_dir, args.scenes, "train")
     params = ProposalParams(view_stride=2)  # the pseudo-boxes' (datamodules/scene_folder.py)
     bounds = index.scene_bounds
     views = slice(0, None, params.view_stride)
@@ -85,7 +60,7 @@ def main() -> None:
     print("|---|---|")
     for name, fn in (("back-projection (`_world_points`)", back_project), ("ground plane (`fit_ground_plane`)", ground),
                      ("whole `propose_boxes`", whole)):
-        print(f"| {name} | {_ms(fn, records):.1f} |")
+        print(f"| {name} | {median_ms(fn, records):.1f} |")
 
 
 if __name__ == "__main__":
