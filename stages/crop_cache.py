@@ -59,7 +59,7 @@ def pack_sparse(t: Tensor) -> tuple[Tensor, Tensor]:
     """A tensor as its entries that are not ``+0.0``: flat positions and values, for :func:`unpack_sparse`.
 
     The unprojected encoder input ``cat[occ, occ * rgb]`` is zero wherever no depth point fell, about 97% of a
-    scene's voxels, so its entries are kept at a tenth of the dense tensor's bytes.
+    scene's voxels, so its entries are kept in about a twentieth of the dense tensor's bytes.
 
     Args:
         t: any tensor (floating, integer or bool).

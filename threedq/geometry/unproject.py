@@ -48,8 +48,8 @@ def _voxelize(points: Tensor, keep: Tensor, grid: VoxelGridSpec) -> Tensor:
     One axis at a time: each coordinate's cell ``floor((p - bounds_min) / voxel_size)`` (the same float operations
     as on the ``[B, N, 3]`` points at once, so the same cells), tested against the grid and folded into a flat int32
     index (int64 beyond 2^31 cells): a third of the memory traffic of the ``[B, N, 3]`` int64 cells, which the
-    free-space labels' half a million ray samples a step made the cost of the labels
-    (``benchmarks/bench_geometry_kornia.py``). Non-finite points fail the range test and are dropped.
+    free-space labels' half a million ray samples a step made the cost of the labels (the labels' column of
+    ``benchmarks/bench_viewpred_step.py``). Non-finite points fail the range test and are dropped.
 
     Args:
         points: ``[B, N, 3]`` points in R.
@@ -71,7 +71,7 @@ def _voxelize(points: Tensor, keep: Tensor, grid: VoxelGridSpec) -> Tensor:
         cell = torch.floor((points[..., axis] - lo[axis]) / size[axis])  # [B, N]
         keep = keep & (cell >= 0) & (cell < n)  # NaN compares false: dropped
         cell = cell.clamp_(0, n - 1).to(index_dtype)  # finite and in range wherever kept
-        flat = flat + (cell * stride if stride > 1 else cell)
+        flat = flat + cell * stride
     flat = torch.where(keep, flat, torch.full_like(flat, dump))
     out = torch.zeros(dump + 1, device=points.device, dtype=points.dtype)
     out[flat.flatten()] = 1.0
