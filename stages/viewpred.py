@@ -137,8 +137,9 @@ class ViewPredictionObjective:
         (:func:`~threedq.geometry.above_ground_mask`); a half-resolution pixel is foreground when most of its
         four full-resolution pixels are.
         """
-        fg = above_ground_mask(batch["depth"], batch["K"], batch["R_T_cam"], margin=self.vp_settings["ground_margin"])
-        fg = fg[:, n_in:].flatten(0, 1)[:, None].to(batch["depth"].dtype)  # [B*T, 1, H, W]
+        fg = above_ground_mask(batch["depth"], batch["K"], batch["R_T_cam"], margin=self.vp_settings["ground_margin"],
+                               views=slice(n_in, None))  # the plane from every view, the mask of the targets
+        fg = fg.flatten(0, 1)[:, None].to(batch["depth"].dtype)  # [B*T, 1, H, W]
         return (F.avg_pool2d(fg, 2) > 0.5).to(fg.dtype)
 
     def predict_view(self, feats: Tensor, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int]) -> Tensor:

@@ -70,6 +70,16 @@ class TestAboveGroundMask:
         assert not both[0].any()  # an empty scene: nothing above the ground
         torch.testing.assert_close(both[1], above_ground_mask(*_tensors(scene))[0])
 
+    @pytest.mark.parametrize("views", [slice(1, None), slice(2, 4), slice(0, 1), slice(3, None)])
+    def test_views_are_the_slice_of_all(self, views: slice) -> None:
+        # the plane is fitted to every view (and oriented by every camera) whichever views are tested
+        ground = render(np.zeros((0, 6)), num_views=4)
+        scene = render(BOXES, num_views=4)
+        depth, K, pose = (torch.cat(t) for t in zip(_tensors(scene), _tensors(ground)))
+        some = above_ground_mask(depth, K, pose, views=views)
+        assert torch.equal(some, above_ground_mask(depth, K, pose)[:, views])
+        assert some.shape == depth[:, views].shape and some[0].any()
+
     def test_no_plane_means_every_valid_pixel(self) -> None:
         depth, K, pose = _tensors(render(BOXES, num_views=2))
         sparse = torch.zeros_like(depth)

@@ -15,11 +15,72 @@ from threedq.nets import (
     ViewDecoder,
     balanced_l1,
     balanced_occupancy_loss,
+    depth_max_pool,
     masked_l1,
     occupancy_balanced_accuracy,
 )
 
 LN2 = math.log(2.0)
+
+
+class TestDepthMaxPool:
+    """``depth_max_pool`` against ``F.max_pool3d`` over ``(pool, 1, 1)`` windows, the op it stands in for."""
+
+    @staticmethod
+    def reference(x: torch.Tensor, pool: int) -> torch.Tensor:
+        return torch.nn.functional.max_pool3d(x, (pool, 1, 1), (pool, 1, 1))
+
+    def test_smoke(self) -> None:
+        assert depth_max_pool(torch.randn(1, 2, 8, 3, 3), 4).shape == (1, 2, 2, 3, 3)
+
+    def test_exception(self) -> None:
+        with pytest.raises(ValueError, match="D divisible by pool=3"):
+            depth_max_pool(torch.randn(1, 2, 8, 3, 3), 3)
+        with pytest.raises(ValueError, match=r"\[B, C, D, h, w\]"):
+            depth_max_pool(torch.randn(2, 8, 3, 3), 4)
+        with pytest.raises(ValueError, match="pool=0"):
+            depth_max_pool(torch.randn(1, 2, 8, 3, 3), 0)
+
+    @pytest.mark.parametrize(("depth", "pool", "hw"), [(16, 8, (5, 4)), (32, 8, (64, 64)), (6, 2, (1, 3)), (4, 4, (2, 2)),
+                                                         (5, 1, (3, 2))])
+    def test_shapes(self, depth: int, pool: int, hw: tuple[int, int]) -> None:
+        assert depth_max_pool(torch.randn(2, 3, depth, *hw), pool).shape == (2, 3, depth // pool, *hw)
+
+    @pytest.mark.parametrize("memory_format", [torch.contiguous_format, torch.channels_last_3d])
+    @pytest.mark.parametrize("case", ["random", "ties", "zero planes"])
+    def test_bitwise_max_pool3d(self, case: str, memory_format: torch.memory_format) -> None:
+        # values and gradients bit for bit, ties included: a tied group's first maximum takes the gradient
+        torch.manual_seed(0)
+        x = torch.randn(2, 3, 16, 5, 4)
+        if case == "ties":
+            x = x.round()
+        if case == "zero planes":  # the frustum's samples outside the grid are exact zeros
+            x[:, :, :11] = 0.0
+            x[0, 1, 12:] = -1.0
+        a = x.to(memory_format=memory_format).requires_grad_(True)
+        b = x.to(memory_format=memory_format).requires_grad_(True)
+        ya, yb = self.reference(a, 8), depth_max_pool(b, 8)
+        g = torch.randn_like(ya)
+        ya.backward(g)
+        yb.backward(g)
+        assert torch.equal(ya, yb)
+        assert torch.equal(a.grad, b.grad)
+
+    def test_nan_propagates(self) -> None:
+        x = torch.zeros(1, 1, 8, 2, 2)
+        x[0, 0, 5, 1, 0] = float("nan")
+        out = depth_max_pool(x, 4)
+        assert out.isnan().sum() == 1 and out[0, 0, 1, 1, 0].isnan()
+        torch.testing.assert_close(out, self.reference(x, 4), equal_nan=True, rtol=0, atol=0)
+
+    def test_hand_computed(self) -> None:
+        x = torch.tensor([1.0, 5.0, -2.0, 3.0, -1.0, -4.0]).view(1, 1, 6, 1, 1)
+        assert depth_max_pool(x, 3).flatten().tolist() == [5.0, 3.0]
+        assert depth_max_pool(x, 2).flatten().tolist() == [5.0, 3.0, -1.0]
+
+    def test_gradcheck(self) -> None:
+        x = torch.randn(1, 2, 6, 2, 3, dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(lambda t: depth_max_pool(t, 3), (x,))
 
 
 class TestViewDecoder:

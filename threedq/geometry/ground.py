@@ -130,6 +130,7 @@ def above_ground_mask(
     sample: int = 2000,
     max_tilt_deg: float = 30.0,
     seed: int = 0,
+    views: slice = slice(None),
 ) -> Tensor:
     """Pixels whose observed surface lies more than ``margin`` above the scene's ground plane.
 
@@ -145,9 +146,12 @@ def above_ground_mask(
         margin: minimum height above the plane, metres.
         fit_stride: pixel stride of the points the plane is fitted to.
         iters, sample, max_tilt_deg, seed: RANSAC settings (see :func:`fit_ground_plane`).
+        views: the views whose pixels are tested (the plane is fitted to all ``S`` either way): the same masks as
+            ``above_ground_mask(...)[:, views]``, bit for bit, without back-projecting the other views' pixels.
 
     Returns:
-        ``[B, S, H, W]`` bool: valid depth and height above the fitted plane ``> margin``.
+        ``[B, S', H, W]`` bool for the ``S'`` views of ``views`` (all ``S`` by default): valid depth and height
+        above the fitted plane ``> margin``.
 
     Raises:
         ValueError: if the shapes do not agree.
@@ -169,8 +173,9 @@ def above_ground_mask(
     fit_pts, fit_ok = depth_to_points(depth[:, :, ::s, ::s].flatten(0, 1).contiguous(), k_strided.flatten(0, 1),
                                       R_T_cam.flatten(0, 1))
     fit_pts, fit_ok = fit_pts.view(B, -1, 3), fit_ok.view(B, -1)
-    points, ok = depth_to_points(depth.flatten(0, 1), K.flatten(0, 1), R_T_cam.flatten(0, 1))
-    points, ok = points.view(B, S, H, W, 3), ok.view(B, S, H, W)
+    tested = depth[:, views]
+    points, ok = depth_to_points(tested.flatten(0, 1), K[:, views].flatten(0, 1), R_T_cam[:, views].flatten(0, 1))
+    points, ok = points.view(*tested.shape, 3), ok.view(tested.shape)
     masks = []
     for b in range(B):
         plane = fit_ground_plane(

@@ -17,10 +17,37 @@ __all__ = [
     "OccupancyHead",
     "ViewDecoder",
     "balanced_l1",
+    "depth_max_pool",
     "balanced_occupancy_loss",
     "masked_l1",
     "occupancy_balanced_accuracy",
 ]
+
+
+def depth_max_pool(frustum: Tensor, pool: int) -> Tensor:
+    """Max of a frustum tensor over each group of ``pool`` consecutive depth planes.
+
+    Forward and gradient are those of ``F.max_pool3d(frustum, (pool, 1, 1), (pool, 1, 1))`` bit for bit (the first
+    maximum of a group takes its gradient; NaN counts as the maximum, and of a group with several NaN another one may
+    take it), as a reduction over a view of the planes, which is faster on a CPU (``docs/benchmarks.md``, "The view
+    decoder's depth max-pool").
+
+    Args:
+        frustum: ``[B, C, D, h, w]``, any memory format.
+        pool: planes a group; must divide ``D``.
+
+    Returns:
+        ``[B, C, D / pool, h, w]``.
+
+    Raises:
+        ValueError: if ``frustum`` is not 5-D or ``pool`` does not divide its depth.
+
+    Convention:
+        Planes ordered near to far; group ``g`` covers planes ``g * pool .. (g + 1) * pool - 1``.
+    """
+    if frustum.ndim != 5 or pool < 1 or frustum.shape[2] % pool:
+        raise ValueError(f"frustum must be [B, C, D, h, w] with D divisible by pool={pool}, got {tuple(frustum.shape)}")
+    return frustum.unflatten(2, (frustum.shape[2] // pool, pool)).max(dim=3).values
 
 
 class ViewDecoder(nn.Module):
@@ -66,7 +93,6 @@ class ViewDecoder(nn.Module):
         self.num_planes = num_planes
         self.pool = pool
         self.hidden = hidden
-        self.depth_pool = nn.MaxPool3d(kernel_size=(pool, 1, 1), stride=(pool, 1, 1))
         self.conv3d = nn.Conv3d(in_channels, hidden, kernel_size=3, padding=1)
         self.conv2d = nn.Conv2d(hidden * (num_planes // pool), hidden, kernel_size=3, padding=1)
         self.to_rgb = nn.Conv2d(hidden, out_channels, kernel_size=1)
@@ -94,7 +120,7 @@ class ViewDecoder(nn.Module):
         # the first 3D conv in float32 even under autocast: its bf16 weight gradient comes out NaN on oneDNN CPU
         # (torch 2.13; seen on the first backward of view prediction with trainer.precision=bf16-mixed)
         with torch.autocast(frustum.device.type, enabled=False):
-            x = self.act(self.conv3d(self.depth_pool(frustum).float()))  # [B, hidden, D / pool, h, w]
+            x = self.act(self.conv3d(depth_max_pool(frustum, self.pool).float()))  # [B, hidden, D / pool, h, w]
         x = x.reshape(x.shape[0], -1, x.shape[-2], x.shape[-1])  # [B, hidden * D / pool, h, w], channel-major
         x = self.act(self.conv2d(x))
         return 0.5 * torch.tanh(self.to_rgb(x))
