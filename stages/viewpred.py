@@ -31,8 +31,8 @@ from threedq.geometry import (
     above_ground_mask,
     depth_to_points,
     free_space_from_depth,
+    frustum_depth_max,
     occupancy_from_depth,
-    resample_to_frustum,
     scale_intrinsics,
 )
 from threedq.nets import (
@@ -146,11 +146,11 @@ class ViewPredictionObjective:
         """Decode the feature grid ``[B, C, Z', Y', X']`` to the RGB of a camera ``[B, 3, H/2, W/2]`` in [-0.5, 0.5]."""
         H, W = image_size
         k_half = scale_intrinsics(K, 0.5, 0.5)
-        frustum = resample_to_frustum(
+        pooled = frustum_depth_max(  # the decoder's depth max-pool of the frustum, without the frustum (bitwise)
             feats, self.feature_grid, k_half, R_T_cam, (H // 2, W // 2), tuple(self.vp_settings["depth_range"]),
-            self.vp_settings["num_planes"],
+            self.vp_settings["num_planes"], self.decoder.pool,
         )
-        return self.decoder(frustum)
+        return self.decoder.decode_pooled(pooled)
 
     def view_prediction_loss(self, feats: Tensor, occ_logits: Tensor, batch: dict[str, Tensor], n_in: int,
                              foreground: bool = False) -> dict[str, Tensor]:

@@ -7,8 +7,9 @@ import math
 import pytest
 import torch
 
-from threedq.geometry.frustum import frustum_points, resample_to_frustum, scale_intrinsics
+from threedq.geometry.frustum import frustum_depth_max, frustum_points, resample_to_frustum, scale_intrinsics
 from threedq.geometry.grid import VoxelGridSpec
+from threedq.nets import depth_max_pool
 
 GRID = VoxelGridSpec((-1.0, -0.8, -0.6), (1.0, 0.8, 0.6), (6, 5, 4))  # volume_shape (4, 5, 6)
 
@@ -240,3 +241,92 @@ class TestResampleToFrustum:
         ref = resample_to_frustum(volume, GRID, K, pose, (3, 4), (1.0, 4.0), 4)
         out = resample_to_frustum(volume.to(memory_format=torch.channels_last_3d), GRID, K, pose, (3, 4), (1.0, 4.0), 4)
         torch.testing.assert_close(out, ref)
+
+
+class TestFrustumDepthMax:
+    """``frustum_depth_max`` against the two steps it fuses: ``depth_max_pool(resample_to_frustum(...))``."""
+
+    @staticmethod
+    def both(volume: torch.Tensor, grid: VoxelGridSpec, K: torch.Tensor, pose: torch.Tensor, hw: tuple[int, int],
+             depth_range: tuple[float, float], planes: int, pool: int) -> tuple[torch.Tensor, torch.Tensor]:
+        ref = depth_max_pool(resample_to_frustum(volume, grid, K, pose, hw, depth_range, planes), pool)
+        return ref, frustum_depth_max(volume, grid, K, pose, hw, depth_range, planes, pool)
+
+    def test_smoke(self) -> None:
+        volume = torch.rand(1, 3, *GRID.volume_shape)
+        out = frustum_depth_max(volume, GRID, make_K(1).float(), poses(1).float(), (3, 4), (1.0, 4.0), 8, 4)
+        assert out.shape == (1, 3, 2, 3, 4) and out.dtype == torch.float32
+
+    def test_exception(self) -> None:
+        volume = torch.rand(1, 3, *GRID.volume_shape)
+        K, pose = make_K(1), poses(1)
+        for pool in (3, 0, 2.5, True):
+            with pytest.raises(ValueError, match="pool must be a positive int dividing num_planes=8"):
+                frustum_depth_max(volume, GRID, K, pose, (3, 4), (1.0, 4.0), 8, pool)  # type: ignore[arg-type]
+        with pytest.raises(ValueError, match="does not match grid.volume_shape"):
+            frustum_depth_max(volume[:, :, :2], GRID, K, pose, (3, 4), (1.0, 4.0), 8, 4)
+        with pytest.raises(ValueError, match=r"K must have shape \[B, 3, 3\] with B=1"):
+            frustum_depth_max(volume, GRID, make_K(2), pose, (3, 4), (1.0, 4.0), 8, 4)
+        with pytest.raises(ValueError, match="floating"):
+            frustum_depth_max(volume.long(), GRID, K, pose, (3, 4), (1.0, 4.0), 8, 4)
+
+    @pytest.mark.parametrize(("batch", "hw", "planes", "pool"), [(1, (1, 1), 1, 1), (2, (3, 5), 8, 4), (3, (6, 2), 6, 2),
+                                                                 (2, (4, 4), 4, 4)])
+    def test_shapes(self, batch: int, hw: tuple[int, int], planes: int, pool: int) -> None:
+        volume = torch.rand(batch, 2, *GRID.volume_shape, dtype=torch.float64)
+        out = frustum_depth_max(volume, GRID, make_K(batch), poses(batch), hw, (1.0, 4.0), planes, pool)
+        assert out.shape == (batch, 2, planes // pool, *hw)
+
+    @pytest.mark.parametrize("memory_format", [torch.contiguous_format, torch.channels_last_3d])
+    @pytest.mark.parametrize(("depth_range", "planes", "pool"), [((1.0, 4.0), 16, 8), ((0.5, 6.0), 24, 4),
+                                                                 ((1.0, 4.0), 16, 1), ((2.0, 2.6), 8, 8)])
+    def test_bitwise_two_steps(self, depth_range: tuple[float, float], planes: int, pool: int,
+                               memory_format: torch.memory_format) -> None:
+        # values and the volume's gradient bit for bit: the same samples, summed into the gradient in the same order
+        torch.manual_seed(0)
+        batch = 3
+        volume = torch.randn(batch, 5, *GRID.volume_shape).contiguous(memory_format=memory_format)
+        volume[:, :, :, :2] = 0.0  # exact zeros inside the grid tie with the zeros outside it
+        K, pose = make_K(batch, fx=4.0, fy=3.5, cx=4.5, cy=3.0).float(), poses(batch).float()
+        a, b = volume.clone().requires_grad_(True), volume.clone().requires_grad_(True)
+        ref = self.both(a, GRID, K, pose, (7, 9), depth_range, planes, pool)[0]
+        out = self.both(b, GRID, K, pose, (7, 9), depth_range, planes, pool)[1]
+        some = frustum_points(K, pose, (7, 9), depth_range, planes)
+        index = GRID.world_to_index(some)
+        upper = torch.tensor([n - 1 for n in GRID.resolution], dtype=some.dtype)
+        inside = ((index >= -0.5) & (index <= upper + 0.5)).all(-1)
+        assert 0 < inside.float().mean() < 1  # windows of both kinds
+        assert torch.equal(ref, out)
+        grad = torch.randn_like(ref)
+        ref.backward(grad)
+        out.backward(grad)
+        assert torch.equal(a.grad, b.grad) and a.grad.abs().sum() > 0
+
+    def test_views_outside_the_grid(self) -> None:
+        # a camera looking away from the grid samples nothing: zeros, and a zero gradient, as the two steps give
+        K = make_K(2).float()
+        away = torch.stack([look_at((3.0, 0.0, 0.0), (6.0, 0.0, 0.0)), look_at((-2.5, 0.4, 0.9))]).float()
+        for pose in (away, away[:1]):
+            volume = torch.rand(pose.shape[0], 2, *GRID.volume_shape, requires_grad=True)
+            ref, out = self.both(volume, GRID, K[: pose.shape[0]], pose, (3, 4), (1.0, 4.0), 8, 4)
+            assert torch.equal(ref, out) and not out[0].any()
+            (grad,) = torch.autograd.grad(out.sum(), volume)
+            (grad_ref,) = torch.autograd.grad(ref.sum(), volume)
+            assert torch.equal(grad, grad_ref) and not grad[0].any()
+
+    def test_low_precision_volume(self) -> None:
+        torch.manual_seed(0)
+        volume = torch.rand(2, 4, *GRID.volume_shape).bfloat16()
+        ref, out = self.both(volume, GRID, make_K(2).float(), poses(2).float(), (6, 8), (1.0, 4.0), 8, 4)
+        assert out.dtype == torch.bfloat16 and torch.equal(ref, out)
+
+    def test_gradcheck(self) -> None:
+        torch.manual_seed(0)
+        grid = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (3, 4, 2))
+        volume = torch.rand(2, 2, *grid.volume_shape, dtype=torch.float64, requires_grad=True)
+        K, pose = make_K(2, fx=2.0, fy=2.0, cx=1.0, cy=0.5), poses(2)
+
+        def fn(vol: torch.Tensor) -> torch.Tensor:
+            return frustum_depth_max(vol, grid, K, pose, (2, 3), (1.5, 3.5), 4, 2)
+
+        assert torch.autograd.gradcheck(fn, (volume,))

@@ -122,6 +122,15 @@ class TestViewDecoder:
         swapped = torch.cat((x[:, :, 8:], x[:, :, :8]), dim=2)  # groups are ordered near -> far
         assert not torch.allclose(dec(swapped), dec(x))
 
+    def test_decode_pooled(self) -> None:
+        # forward is the depth max-pool, then decode_pooled: a pooled frustum from elsewhere decodes the same
+        torch.manual_seed(0)
+        dec = ViewDecoder(in_channels=4, num_planes=16, pool=4, hidden=8)
+        x = torch.randn(2, 4, 16, 5, 6)
+        assert torch.equal(dec.decode_pooled(depth_max_pool(x, 4)), dec(x))
+        with pytest.raises(ValueError, match=r"pooled frustum must have shape \[B, 4, 4, h, w\]"):
+            dec.decode_pooled(x)
+
     def test_gradient_flows(self) -> None:
         dec = ViewDecoder(in_channels=4, num_planes=16, hidden=8)
         x = torch.randn(2, 4, 16, 6, 6, requires_grad=True)

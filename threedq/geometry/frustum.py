@@ -16,7 +16,7 @@ from torch import Tensor
 
 from .grid import VoxelGridSpec
 
-__all__ = ["frustum_points", "resample_to_frustum", "scale_intrinsics"]
+__all__ = ["frustum_depth_max", "frustum_points", "resample_to_frustum", "scale_intrinsics"]
 
 
 def _check_camera(K: Tensor, R_T_cam: Tensor, batch: int) -> None:
@@ -167,6 +167,14 @@ def resample_to_frustum(
         >>> resample_to_frustum(torch.rand(1, 5, 8, 8, 8), grid, K, R_T_cam, (8, 8), (1.0, 3.0), 16).shape
         torch.Size([1, 5, 16, 8, 8])
     """
+    coords, sample_dtype = _frustum_coords(volume, grid, K, R_T_cam, image_size, depth_range, num_planes)
+    out = F.grid_sample(
+        volume.to(sample_dtype), coords.to(sample_dtype), mode="bilinear", padding_mode="zeros", align_corners=False
+    )
+    return out.to(volume.dtype)
+
+
+def _check_volume(volume: Tensor, grid: VoxelGridSpec) -> None:
     if not isinstance(grid, VoxelGridSpec):
         raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
     if volume.ndim != 5:
@@ -176,6 +184,19 @@ def resample_to_frustum(
             f"volume spatial shape {tuple(volume.shape[2:])} does not match grid.volume_shape {grid.volume_shape}"
             " (features of the encoder live on grid.half())"
         )
+
+
+def _frustum_coords(
+    volume: Tensor,
+    grid: VoxelGridSpec,
+    K: Tensor,
+    R_T_cam: Tensor,
+    image_size: tuple[int, int],
+    depth_range: tuple[float, float],
+    num_planes: int,
+) -> tuple[Tensor, torch.dtype]:
+    """The frustum's ``grid_sample`` coordinates ``[B, D, H, W, 3]`` and the dtype to sample in, after the checks."""
+    _check_volume(volume, grid)
     _check_camera(K, R_T_cam, volume.shape[0])
     points = frustum_points(K, R_T_cam, image_size, depth_range, num_planes)  # [B, D, H, W, 3]
     coords = grid.world_to_normalized(points)
@@ -183,8 +204,84 @@ def resample_to_frustum(
         raise ValueError(f"volume must be a floating tensor, got {volume.dtype}")
     # Sampling positions need more precision than fp16/bf16 offer (bf16 resolves ~1/128 of the grid), so low
     # precision volumes are sampled in float32 and the result is cast back.
-    sample_dtype = torch.promote_types(volume.dtype, torch.float32)
-    out = F.grid_sample(
-        volume.to(sample_dtype), coords.to(sample_dtype), mode="bilinear", padding_mode="zeros", align_corners=False
-    )
-    return out.to(volume.dtype)
+    return coords, torch.promote_types(volume.dtype, torch.float32)
+
+
+def frustum_depth_max(
+    volume: Tensor,
+    grid: VoxelGridSpec,
+    K: Tensor,
+    R_T_cam: Tensor,
+    image_size: tuple[int, int],
+    depth_range: tuple[float, float],
+    num_planes: int,
+    pool: int,
+) -> Tensor:
+    """The max of :func:`resample_to_frustum` over each group of ``pool`` depth planes, without the whole frustum.
+
+    Bit for bit, values and gradient, ``depth_max_pool(resample_to_frustum(...), pool)``
+    (:func:`threedq.nets.depth_max_pool`, itself ``F.max_pool3d`` over ``(pool, 1, 1)`` windows). Most of a camera's
+    frustum lies outside the grid (about three quarters of the view decoder's samples on the embedded data), where
+    every sample is an exact zero; a window of ``pool`` samples (one pixel, one group of planes) with no sample within
+    half a voxel of the grid is zero, and is neither sampled nor stored. The other windows' samples are taken by one
+    ``grid_sample`` in the order the whole frustum's would be (plane, then pixel), so the volume's gradient sums the
+    same terms in the same order. About 1.4x faster than the two steps on a CPU at the view decoder's
+    ``[2, 32, 16, 32, 32]`` features to ``32 x 64 x 64`` samples (``docs/benchmarks.md``, "The view decoder's depth
+    max-pool").
+
+    Args:
+        volume, grid, K, R_T_cam, image_size, depth_range, num_planes: as for :func:`resample_to_frustum`.
+        pool: planes a group; must divide ``num_planes``.
+
+    Returns:
+        ``[B, C, num_planes / pool, H, W]`` in the dtype of ``volume``.
+
+    Raises:
+        ValueError: as :func:`resample_to_frustum`, and if ``pool`` does not divide ``num_planes``.
+
+    Convention:
+        As :func:`resample_to_frustum`; group ``g`` covers planes ``g * pool .. (g + 1) * pool - 1`` (near to far).
+    """
+    if isinstance(pool, bool) or int(pool) != pool or pool < 1 or int(num_planes) % int(pool):
+        raise ValueError(f"pool must be a positive int dividing num_planes={num_planes}, got {pool!r}")
+    coords, sample_dtype = _frustum_coords(volume, grid, K, R_T_cam, image_size, depth_range, num_planes)
+    pool = int(pool)
+    B, D, H, W, _ = coords.shape
+    C, G, n = volume.shape[1], D // pool, H * W
+    dev = coords.device
+    # A sample is non-zero only with a corner inside the volume: within half a voxel of the grid (1/size in
+    # normalised units); a full voxel is kept, and NaN (never "outside") is sampled as grid_sample would.
+    size = torch.tensor(volume.shape[2:][::-1], dtype=coords.dtype, device=dev)  # X, Y, Z for x, y, z
+    near = ~(coords.abs() > 1.0 + 2.0 / size).any(-1)  # [B, D, H, W]
+    windows = near.view(B, G, pool, n).any(2)  # [B, G, n]
+    counts = windows.sum(-1)  # [B, G] windows of each group
+    per_sample = counts.sum(-1)  # [B]
+    W_max = max(int(per_sample.max()), 1)  # one empty window keeps the graph when nothing is near
+    L = W_max * pool
+    b, g, p = windows.nonzero(as_tuple=True)  # sample-major, then group, then pixel
+    k = torch.arange(b.numel(), device=dev) - (torch.cumsum(per_sample, 0) - per_sample)[b]  # window within its sample
+    group_start = torch.cumsum(counts, 1) - counts  # [B, G] first window of each group
+    rank = k - group_start[b, g]
+    j = torch.arange(pool, device=dev)
+    # sample j of a window goes to slot (group's first window) * pool + j * (group's windows) + rank: plane-major
+    slot = (group_start[b, g] * pool + rank)[:, None] + j * counts[b, g][:, None]  # [N, pool]
+    source = (g[:, None] * pool + j) * n + p[:, None]  # the frustum sample (plane, pixel), flattened
+    bb = b[:, None].expand_as(slot)
+    taken = torch.zeros(B, L, dtype=torch.long, device=dev)
+    taken[bb, slot] = source
+    used = torch.zeros(B, L, dtype=torch.bool, device=dev)
+    used[bb, slot] = True
+    window_slots = torch.zeros(B, W_max, pool, dtype=torch.long, device=dev)
+    window_slots[b, k] = slot
+    target = torch.full((B, W_max), G * n, dtype=torch.long, device=dev)  # G * n: a slot for the padding windows
+    target[b, k] = g * n + p
+    pts = torch.gather(coords.reshape(B, D * n, 3), 1, taken[..., None].expand(B, L, 3))
+    pts = torch.where(used[..., None], pts, pts.new_tensor(4.0))  # unused slots: far outside, zero, no gradient
+    samples = F.grid_sample(
+        volume.to(sample_dtype), pts.to(sample_dtype).view(B, 1, 1, L, 3), mode="bilinear", padding_mode="zeros",
+        align_corners=False,
+    ).to(volume.dtype).view(B, C, L)
+    per_window = torch.gather(samples, 2, window_slots.view(B, 1, L).expand(B, C, L)).view(B, C, W_max, pool)
+    best = per_window.max(dim=3).values  # [B, C, W_max]
+    out = best.new_zeros(B, C, G * n + 1).scatter(2, target[:, None].expand(B, C, W_max), best)
+    return out[..., : G * n].view(B, C, G, H, W)

@@ -117,10 +117,33 @@ class ViewDecoder(nn.Module):
             raise ValueError(
                 f"frustum must have shape [B, {self.in_channels}, {self.num_planes}, h, w], got {tuple(frustum.shape)}"
             )
+        return self.decode_pooled(depth_max_pool(frustum, self.pool))
+
+    def decode_pooled(self, pooled: Tensor) -> Tensor:
+        """Decode an image from the frustum's depth max, what :meth:`forward` computes after its pooling.
+
+        Args:
+            pooled: ``[B, in_channels, num_planes / pool, h, w]``, :func:`depth_max_pool` of a frustum, or
+                :func:`threedq.geometry.frustum_depth_max` straight from the feature grid.
+
+        Returns:
+            ``[B, out_channels, h, w]`` prediction in ``[-0.5, 0.5]``.
+
+        Raises:
+            ValueError: if ``pooled`` does not have shape ``[B, in_channels, num_planes / pool, h, w]``.
+
+        Convention:
+            Depth groups near to far; output is ``rgb - 0.5``.
+        """
+        groups = self.num_planes // self.pool
+        if pooled.ndim != 5 or pooled.shape[1:3] != (self.in_channels, groups):
+            raise ValueError(
+                f"pooled frustum must have shape [B, {self.in_channels}, {groups}, h, w], got {tuple(pooled.shape)}"
+            )
         # the first 3D conv in float32 even under autocast: its bf16 weight gradient comes out NaN on oneDNN CPU
         # (torch 2.13; seen on the first backward of view prediction with trainer.precision=bf16-mixed)
-        with torch.autocast(frustum.device.type, enabled=False):
-            x = self.act(self.conv3d(depth_max_pool(frustum, self.pool).float()))  # [B, hidden, D / pool, h, w]
+        with torch.autocast(pooled.device.type, enabled=False):
+            x = self.act(self.conv3d(pooled.float()))  # [B, hidden, D / pool, h, w]
         x = x.reshape(x.shape[0], -1, x.shape[-2], x.shape[-1])  # [B, hidden * D / pool, h, w], channel-major
         x = self.act(self.conv2d(x))
         return 0.5 * torch.tanh(self.to_rgb(x))
