@@ -22,6 +22,24 @@ def test_help_lists_subcommands() -> None:
         assert sub in out
 
 
+@pytest.mark.parametrize("user_setting", [None, "2"])
+def test_one_blas_thread(user_setting: str | None) -> None:
+    """The command runs numpy's BLAS on one thread (already loaded or loaded later), unless the user set
+    ``OPENBLAS_NUM_THREADS``; torch's threads are untouched. A fresh interpreter whose BLAS starts with 2 threads."""
+    import os
+
+    code = ("import numpy, torch; from threadpoolctl import threadpool_info, threadpool_limits; "
+            "threadpool_limits(limits=2, user_api='blas'); torch.set_num_threads(2); "
+            "from threedq.cli import one_blas_thread; one_blas_thread(); import scipy.linalg; "
+            "print(sorted({i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas'}), "
+            "torch.get_num_threads())")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if user_setting is not None:
+        env["OPENBLAS_NUM_THREADS"] = user_setting
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
+    assert out.split() == (["[1]", "2"] if user_setting is None else ["[2]", "2"])
+
+
 def test_a_subcommand_imports_its_own_modules_only() -> None:
     """``threedq data ...`` parses without importing Lightning (a fresh interpreter: this one has imported it)."""
     code = ("import sys; from threedq.cli import build_parser; p = build_parser('data'); "

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -18,7 +19,7 @@ from jsonargparse import ArgumentError, ArgumentParser
 
 from threedq.errors import InputError, error_line
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "main", "one_blas_thread"]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -73,9 +74,28 @@ def build_parser(command: str | None = None) -> ArgumentParser:
     return parser
 
 
+def one_blas_thread() -> None:
+    """Run numpy's and scipy's BLAS on one thread from now on in this process, unless ``OPENBLAS_NUM_THREADS`` is set.
+
+    threedq's BLAS calls through numpy are small (RANSAC ground planes, 3 x 3 fits) and come between torch
+    operations, whose OpenMP threads are still spinning when OpenBLAS wakes its own: on 2 cores the two pools fight.
+    ``above_ground_mask`` of a view-prediction step (the balanced loss's foreground) took 21.7 ms against 6.1 ms with
+    one BLAS thread, the same masks bit for bit (``docs/benchmarks.md``, "numpy's BLAS on one thread"). torch's own
+    threads are untouched. threadpoolctl (what scikit-learn uses for this) sets the limit on the BLAS libraries
+    loaded; a process that imports threedq as a library can call this too.
+    """
+    if os.environ.get("OPENBLAS_NUM_THREADS"):
+        return
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"  # the BLAS libraries loaded from now on, and child processes (DDP)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")  # those loaded already; the limit stays after the object is gone
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``threedq`` command."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    one_blas_thread()
     try:
         if argv and argv[0] in LIGHTNING_SUBCOMMANDS:
             from threedq.pipeline.lightning_cli import ThreeDQCLI
