@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import pytest
 import torch
@@ -130,6 +131,15 @@ class TestFrustumPoints:
         torch.testing.assert_close(pts[0, 0, 1, 2], naive_point(K[0], poses(1)[0], 2, 1, 1.0))
 
 
+def gradcheck_small(op: Callable[[torch.Tensor, VoxelGridSpec, torch.Tensor, torch.Tensor], torch.Tensor]) -> bool:
+    """float64 gradcheck of ``op(volume, grid, K, pose)`` w.r.t. the volume: 2 cameras on a 3 x 4 x 2 grid."""
+    torch.manual_seed(0)
+    grid = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (3, 4, 2))
+    volume = torch.rand(2, 2, *grid.volume_shape, dtype=torch.float64, requires_grad=True)
+    K, pose = make_K(2, fx=2.0, fy=2.0, cx=1.0, cy=0.5), poses(2)
+    return torch.autograd.gradcheck(lambda vol: op(vol, grid, K, pose), (volume,))
+
+
 class TestResampleToFrustum:
     def test_smoke(self) -> None:
         volume = torch.rand(1, 3, *GRID.volume_shape)
@@ -216,15 +226,7 @@ class TestResampleToFrustum:
         torch.testing.assert_close(half, pooled)
 
     def test_gradcheck(self) -> None:
-        torch.manual_seed(0)
-        grid = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (3, 4, 2))
-        volume = torch.rand(2, 2, *grid.volume_shape, dtype=torch.float64, requires_grad=True)
-        K, pose = make_K(2, fx=2.0, fy=2.0, cx=1.0, cy=0.5), poses(2)
-
-        def fn(vol: torch.Tensor) -> torch.Tensor:
-            return resample_to_frustum(vol, grid, K, pose, (2, 3), (1.5, 3.5), 3)
-
-        assert torch.autograd.gradcheck(fn, (volume,))
+        assert gradcheck_small(lambda vol, grid, K, T: resample_to_frustum(vol, grid, K, T, (2, 3), (1.5, 3.5), 3))
 
     def test_low_precision_volume(self) -> None:
         torch.manual_seed(0)
@@ -270,8 +272,8 @@ class TestFrustumDepthMax:
         with pytest.raises(ValueError, match="floating"):
             frustum_depth_max(volume.long(), GRID, K, pose, (3, 4), (1.0, 4.0), 8, 4)
 
-    @pytest.mark.parametrize(("batch", "hw", "planes", "pool"), [(1, (1, 1), 1, 1), (2, (3, 5), 8, 4), (3, (6, 2), 6, 2),
-                                                                 (2, (4, 4), 4, 4)])
+    @pytest.mark.parametrize(("batch", "hw", "planes", "pool"),
+                             [(1, (1, 1), 1, 1), (2, (3, 5), 8, 4), (3, (6, 2), 6, 2), (2, (4, 4), 4, 4)])
     def test_shapes(self, batch: int, hw: tuple[int, int], planes: int, pool: int) -> None:
         volume = torch.rand(batch, 2, *GRID.volume_shape, dtype=torch.float64)
         out = frustum_depth_max(volume, GRID, make_K(batch), poses(batch), hw, (1.0, 4.0), planes, pool)
@@ -321,12 +323,4 @@ class TestFrustumDepthMax:
         assert out.dtype == torch.bfloat16 and torch.equal(ref, out)
 
     def test_gradcheck(self) -> None:
-        torch.manual_seed(0)
-        grid = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (3, 4, 2))
-        volume = torch.rand(2, 2, *grid.volume_shape, dtype=torch.float64, requires_grad=True)
-        K, pose = make_K(2, fx=2.0, fy=2.0, cx=1.0, cy=0.5), poses(2)
-
-        def fn(vol: torch.Tensor) -> torch.Tensor:
-            return frustum_depth_max(vol, grid, K, pose, (2, 3), (1.5, 3.5), 4, 2)
-
-        assert torch.autograd.gradcheck(fn, (volume,))
+        assert gradcheck_small(lambda vol, grid, K, T: frustum_depth_max(vol, grid, K, T, (2, 3), (1.5, 3.5), 4, 2))

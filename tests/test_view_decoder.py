@@ -41,8 +41,8 @@ class TestDepthMaxPool:
         with pytest.raises(ValueError, match="pool=0"):
             depth_max_pool(torch.randn(1, 2, 8, 3, 3), 0)
 
-    @pytest.mark.parametrize(("depth", "pool", "hw"), [(16, 8, (5, 4)), (32, 8, (64, 64)), (6, 2, (1, 3)), (4, 4, (2, 2)),
-                                                         (5, 1, (3, 2))])
+    @pytest.mark.parametrize(("depth", "pool", "hw"),
+                             [(16, 8, (5, 4)), (32, 8, (64, 64)), (6, 2, (1, 3)), (4, 4, (2, 2)), (5, 1, (3, 2))])
     def test_shapes(self, depth: int, pool: int, hw: tuple[int, int]) -> None:
         assert depth_max_pool(torch.randn(2, 3, depth, *hw), pool).shape == (2, 3, depth // pool, *hw)
 
