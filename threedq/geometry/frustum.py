@@ -225,7 +225,7 @@ def frustum_depth_max(
     every sample is an exact zero; a window of ``pool`` samples (one pixel, one group of planes) with no sample within
     half a voxel of the grid is zero, and is neither sampled nor stored. The other windows' samples are taken by one
     ``grid_sample`` in the order the whole frustum's would be (plane, then pixel), so the volume's gradient sums the
-    same terms in the same order. About 1.4x faster than the two steps on a CPU at the view decoder's
+    same terms in the same order. About 1.3x faster than the two steps on a CPU (forward and backward) at the decoder's
     ``[2, 32, 16, 32, 32]`` features to ``32 x 64 x 64`` samples (``docs/benchmarks.md``, "The view decoder's depth
     max-pool").
 
