@@ -266,17 +266,14 @@ def frustum_depth_max(
     # sample j of a window goes to slot (group's first window) * pool + j * (group's windows) + rank: plane-major
     slot = (group_start[b, g] * pool + rank)[:, None] + j * counts[b, g][:, None]  # [N, pool]
     source = (g[:, None] * pool + j) * n + p[:, None]  # the frustum sample (plane, pixel), flattened
-    bb = b[:, None].expand_as(slot)
-    taken = torch.zeros(B, L, dtype=torch.long, device=dev)
-    taken[bb, slot] = source
-    used = torch.zeros(B, L, dtype=torch.bool, device=dev)
-    used[bb, slot] = True
+    taken = torch.full((B, L), D * n, dtype=torch.long, device=dev)  # unused slots: the point appended below
+    taken[b[:, None].expand_as(slot), slot] = source
     window_slots = torch.zeros(B, W_max, pool, dtype=torch.long, device=dev)
     window_slots[b, k] = slot
     target = torch.full((B, W_max), G * n, dtype=torch.long, device=dev)  # G * n: a slot for the padding windows
     target[b, k] = g * n + p
-    pts = torch.gather(coords.reshape(B, D * n, 3), 1, taken[..., None].expand(B, L, 3))
-    pts = torch.where(used[..., None], pts, pts.new_tensor(4.0))  # unused slots: far outside, zero, no gradient
+    far = coords.new_full((B, 1, 3), 4.0)  # far outside the grid: a zero sample that takes no gradient
+    pts = torch.gather(torch.cat([coords.reshape(B, D * n, 3), far], 1), 1, taken[..., None].expand(B, L, 3))
     samples = F.grid_sample(
         volume.to(sample_dtype), pts.to(sample_dtype).view(B, 1, 1, L, 3), mode="bilinear", padding_mode="zeros",
         align_corners=False,
