@@ -392,13 +392,14 @@ class EncoderStage(L.LightningModule):
         # detector's evaluation, the mining pool) reads the scenes another stage already encoded with these weights
         grid, x = self._encode_views(rgb, depth, K, pose, need_input=True)
         region = crop_region(batch["aabb"], shape)
-        feats = crop_boxes(grid, region, self.feature_grid, size)  # [B, M, ...]
-        raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), region, self.grid, size)
+        feats = crop_boxes(grid, region, self.feature_grid, size, mask=mask)  # [N, ...], the valid boxes only
+        raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), region, self.grid, size, mask=mask)
         if cache is not None:
-            for b in range(B):
-                cache.put(f_keys[b], feats[b][mask[b]])
-                cache.put(r_keys[b], raw[b][mask[b]])
-        return {"features": feats[mask], "raw": raw[mask], **out}
+            counts = mask.sum(1).tolist()
+            for b, (f, r) in enumerate(zip(feats.split(counts), raw.split(counts), strict=True)):
+                cache.put(f_keys[b], f)
+                cache.put(r_keys[b], r)
+        return {"features": feats, "raw": raw, **out}
 
 
 class SplitEvaluation:

@@ -331,7 +331,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
     def _object_points(self, feats: Tensor, aabb: Tensor, mask: Tensor, idx: Tensor) -> Tensor:
         """Features ``[P, C]`` at the sampled cells ``idx`` ``[N, V]`` of every valid box's ``crop_size^3`` crop."""
         s = self.hparams.crop_size
-        crops = crop_boxes(feats, aabb, self.feature_grid, s)[mask]  # [N, C, s, s, s]
+        crops = crop_boxes(feats, aabb, self.feature_grid, s, mask=mask)  # [N, C, s, s, s]
         return crop_voxels(crops, idx).flatten(0, 1)
 
     def _vc_step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:

@@ -10,6 +10,7 @@ import torch.nn.functional as F
 
 from threedq.geometry import (CROP_SHAPES, VoxelGridSpec, box_mask, crop_boxes, crop_region, occupancy_weighted,
                               paste_boxes, sample_volume)
+from threedq.geometry.crop import _gather_crops, _sampled_crops
 
 GRID = VoxelGridSpec((-1.0, -0.5, 0.0), (1.0, 0.5, 0.75), (8, 4, 3))  # 0.25 m voxels, volume (3, 4, 8)
 
@@ -140,6 +141,108 @@ class TestCropBoxes:
         volume = torch.rand(1, 2, *GRID.volume_shape, dtype=torch.float64, requires_grad=True)
         boxes = random_boxes(1, 2)
         assert torch.autograd.gradcheck(lambda v: crop_boxes(v, boxes, GRID, size=3), (volume,))
+
+
+def gathered(volume: torch.Tensor, boxes: torch.Tensor, grid: VoxelGridSpec, size: tuple[int, int, int]) -> torch.Tensor:
+    """``_gather_crops`` on ``[B, N, 6]`` boxes, shaped as ``crop_boxes``' ``[B, N, C, sz, sy, sx]``."""
+    batch, n = boxes.shape[:2]
+    out = _gather_crops(volume, boxes.reshape(-1, 6).to(volume.dtype), torch.arange(batch).repeat_interleave(n), grid, size)
+    assert out is not None
+    return out.view(batch, n, *out.shape[1:])
+
+
+def sampled(volume: torch.Tensor, boxes: torch.Tensor, grid: VoxelGridSpec, size: tuple[int, int, int]) -> torch.Tensor:
+    return _sampled_crops(volume, boxes.to(volume.dtype), grid, size)
+
+
+class TestCropBoxesImplementations:
+    """The two implementations behind ``crop_boxes`` (``grid_sample`` and the row gather): each against the naive
+    loop, a linear ramp and slices; the gather against ``grid_sample`` bitwise."""
+
+    @pytest.mark.parametrize("impl", [sampled, gathered])
+    def test_feature_matches_naive(self, impl) -> None:
+        torch.manual_seed(12)
+        volume = torch.rand(2, 3, *GRID.volume_shape, dtype=torch.float64)
+        boxes = random_boxes(2, 3)
+        size = (2, 3, 4)
+        out = impl(volume, boxes, GRID, size)
+        for b in range(2):
+            for n in range(3):
+                points = sample_points(boxes[b, n], size)
+                for idx in torch.cartesian_prod(*(torch.arange(s) for s in size)).tolist():
+                    expected = trilinear_naive(volume[b], GRID, points[tuple(idx)])
+                    torch.testing.assert_close(out[b, n, :, idx[0], idx[1], idx[2]], expected)
+
+    @pytest.mark.parametrize("impl", [sampled, gathered])
+    def test_feature_ramp_and_slice(self, impl) -> None:
+        boxes = torch.tensor([[[-0.8, -0.3, 0.13, 0.7, 0.35, 0.6], [0.5, 0.3, 0.5, 0.6, -0.3, 0.2]]], dtype=torch.float64)
+        out = impl(ramp_volume(GRID), boxes, GRID, (3, 5, 7))
+        for n in range(2):
+            torch.testing.assert_close(out[0, n, 0], ramp(*sample_points(boxes[0, n], (3, 5, 7)).unbind(-1)))
+        volume = torch.rand(1, 2, *GRID.volume_shape, dtype=torch.float64)
+        aligned = torch.tensor([[[-0.5, -0.25, 0.0, 0.5, 0.25, 0.5]]], dtype=torch.float64)
+        torch.testing.assert_close(impl(volume, aligned, GRID, (2, 2, 4))[:, 0], volume[:, :, 0:2, 1:3, 2:6])
+
+    @pytest.mark.parametrize("impl", [sampled, gathered])
+    def test_feature_outside_is_zero(self, impl) -> None:
+        boxes = torch.tensor([[[2.0, 2.0, 2.0, 3.0, 3.0, 3.0], [-9.0, -9.0, -9.0, -8.0, -8.0, -8.0]]])
+        assert (impl(torch.rand(1, 2, *GRID.volume_shape) + 1.0, boxes, GRID, (4, 4, 4)) == 0).all()
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.float64])
+    @pytest.mark.parametrize("threads", [1, 2, 3])
+    def test_feature_gather_is_bitwise_grid_sample(self, dtype: torch.dtype, threads: int) -> None:
+        g = torch.Generator().manual_seed(threads)
+        volume = torch.randn(3, 5, *GRID.volume_shape, generator=g).to(dtype)
+        boxes = torch.cat([random_boxes(3, 4, torch.float32),  # partly outside, an inverted box, one far outside
+                           torch.tensor([[[0.6, 0.4, 0.7, -0.6, -0.4, 0.1], [5.0, 5.0, 5.0, 9.0, 9.0, 9.0]]]).expand(3, 2, 6)], 1)
+        was = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            for size in ((16, 16, 16), (3, 5, 7)):
+                ref = sampled(volume, boxes, GRID, size)
+                assert torch.equal(gathered(volume, boxes, GRID, size), ref)
+        finally:
+            torch.set_num_threads(was)
+
+    def test_feature_gather_under_autocast_is_grid_sample_under_autocast(self) -> None:
+        volume = torch.randn(2, 4, *GRID.volume_shape).bfloat16()
+        boxes = random_boxes(2, 3, torch.float32)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            ref, out = sampled(volume, boxes, GRID, (6, 6, 6)), gathered(volume, boxes, GRID, (6, 6, 6))
+        assert ref.dtype == out.dtype == torch.float32
+        assert torch.equal(out, ref)
+
+    def test_feature_gather_not_finite_defers(self) -> None:
+        boxes = torch.tensor([[[float("nan"), 0.0, 0.0, 0.5, 0.2, 0.3]]])
+        assert _gather_crops(torch.rand(1, 2, *GRID.volume_shape), boxes[0], torch.zeros(1, dtype=torch.long), GRID,
+                             (2, 2, 2)) is None
+
+    @pytest.mark.parametrize("channels", [4, 32])  # the grid_sample path and the gather
+    def test_crop_boxes_is_grid_sample_and_mask_selects(self, channels: int) -> None:
+        torch.manual_seed(13)
+        volume = torch.randn(3, channels, *GRID.volume_shape)
+        boxes = random_boxes(3, 3, torch.float32)
+        ref = sampled(volume, boxes, GRID, (16, 16, 16))
+        assert torch.equal(crop_boxes(volume, boxes, GRID), ref)
+        mask = torch.tensor([[True, False, True], [False, False, False], [False, True, True]])
+        out = crop_boxes(volume, boxes, GRID, mask=mask)
+        assert out.shape == (4, channels, 16, 16, 16) and torch.equal(out, ref[mask])
+        empty = crop_boxes(volume, boxes, GRID, 4, mask=torch.zeros(3, 3, dtype=torch.bool))
+        assert empty.shape == (0, channels, 4, 4, 4)
+
+    def test_crop_boxes_mask_exception(self) -> None:
+        volume, boxes = torch.rand(2, 2, *GRID.volume_shape), random_boxes(2, 3, torch.float32)
+        with pytest.raises(ValueError, match=r"mask must be a bool tensor of shape \[B, N\] = \(2, 3\)"):
+            crop_boxes(volume, boxes, GRID, mask=torch.ones(2, 2, dtype=torch.bool))
+        with pytest.raises(ValueError, match="mask must be a bool tensor"):
+            crop_boxes(volume, boxes, GRID, mask=torch.ones(2, 3))
+
+    def test_crop_boxes_with_grad_is_differentiable_with_many_channels(self) -> None:
+        volume = torch.rand(1, 16, *GRID.volume_shape, dtype=torch.float64, requires_grad=True)
+        boxes = random_boxes(1, 2)
+        out = crop_boxes(volume, boxes, GRID, size=3)
+        assert out.requires_grad
+        assert torch.autograd.gradcheck(lambda v: crop_boxes(v, boxes, GRID, size=2), (volume,))
 
 
 def crop_region_naive(box: list[float], shape: str) -> list[float]:

@@ -90,12 +90,24 @@ def sample_volume(volume: Tensor, coords: Tensor) -> Tensor:
     return out.reshape(batch, channels, *out_shape)
 
 
-def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | tuple[int, int, int] = 16) -> Tensor:
+def crop_boxes(
+    volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | tuple[int, int, int] = 16, mask: Tensor | None = None
+) -> Tensor:
     """Crop boxes out of a volume and resize each to a fixed size (trilinear, aspect not kept).
 
-    One :func:`sample_volume` call (``grid_sample``, its points spread over the threads) handles all boxes of all
-    batch elements. Output cell ``(c, b, a)`` of a box samples the volume at the centre of that cell of the box,
-    e.g. ``x = xmin + (a + 0.5) * (xmax - xmin) / sx``.
+    Output cell ``(c, b, a)`` of a box samples the volume at the centre of that cell of the box, e.g.
+    ``x = xmin + (a + 0.5) * (xmax - xmin) / sx``: ``F.grid_sample`` (trilinear, zero padding,
+    ``align_corners=False``) at those points. Two implementations give bitwise the same values:
+
+    * with autograd, on a GPU, for volumes of fewer than 16 channels or far more cells than sample points: one
+      :func:`sample_volume` call (``grid_sample``, its points spread over the threads);
+    * otherwise :func:`_gather_crops`, which evaluates ``grid_sample``'s CPU arithmetic (the same weights, the
+      eight corners added in its order) with each corner a gather of whole channel rows: a box's sample points
+      lie on a lattice, so each axis's indices and weights are computed once per box, and the channels are
+      read as vectors where ATen's kernel loops over them one voxel at a time. On the main job's
+      ``[4, 32, 16, 32, 32]`` features 1.6x faster in float32 and 3.2x in bf16, 2.2x and 4.4x when ``mask`` leaves
+      the padding slots out (``benchmarks/bench_crop_boxes.py``; ``tests/test_geometry_crop.py`` checks the two
+      bitwise against each other).
 
     A local op: kornia's ``crop_by_boxes3d`` wants integer voxel boxes of one size per batch, and
     ``crop_by_transform_mat3d`` / ``warp_affine3d`` (which sample our cell-centred points only with
@@ -108,11 +120,14 @@ def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | t
         boxes: ``[B, N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
         grid: the grid of ``volume``.
         size: output size, an int or ``(sz, sy, sx)`` in output-dimension (z, y, x) order.
+        mask: ``[B, N]`` bool: return only these boxes' crops (the row gather samples no other box).
 
     Returns:
-        ``[B, N, C, sz, sy, sx]`` crops (dtype of ``volume``), zero where a sample falls outside the grid
-        (trilinear with zero padding, so samples within half a voxel of the border blend towards zero).
-        Differentiable w.r.t. ``volume``.
+        ``[B, N, C, sz, sy, sx]`` crops, or with ``mask`` the ``[K, C, sz, sy, sx]`` crops of its ``K`` true boxes
+        in ``(b, n)`` order (``crop_boxes(volume, boxes, grid, size)[mask]``, bitwise); zero where a sample falls
+        outside the grid (trilinear with zero padding, so samples within half a voxel of the border blend towards
+        zero). The dtype of ``volume`` (float32 under CPU autocast, as ``grid_sample``). Differentiable w.r.t.
+        ``volume``.
 
     Convention:
         Axis-aligned boxes in R; cell-centred voxels, ``align_corners=False``. Boxes are not validated:
@@ -127,13 +142,125 @@ def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | t
     _check_boxes(boxes)
     if boxes.shape[0] != volume.shape[0]:
         raise ValueError(f"boxes must have shape [B, N, 6] with B={volume.shape[0]}, got {tuple(boxes.shape)}")
+    if mask is not None and (not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.shape != boxes.shape[:2]):
+        got = (str(mask.dtype), tuple(mask.shape)) if isinstance(mask, Tensor) else type(mask).__name__
+        raise ValueError(f"mask must be a bool tensor of shape [B, N] = {tuple(boxes.shape[:2])}, got {got}")
     sz, sy, sx = _as_size(size)
     batch, channels = volume.shape[:2]
     n_boxes = boxes.shape[1]
-    points = _box_sample_points(boxes.to(volume.dtype), (sz, sy, sx))  # [B, N, sz, sy, sx, 3]
-    coords = grid.world_to_normalized(points).reshape(batch, n_boxes * sz, sy, sx, 3)
+    boxes = boxes.to(volume.dtype)
+    grad = torch.is_grad_enabled() and (volume.requires_grad or boxes.requires_grad)
+    n_crops = n_boxes * batch if mask is None else int(mask.sum())
+    cells = batch * (grid.volume_shape[0] + 2) * (grid.volume_shape[1] + 2) * (grid.volume_shape[2] + 2)
+    if (volume.device.type == "cpu" and not grad and channels >= _GATHER_MIN_CHANNELS
+            and cells <= _GATHER_MAX_CELLS_PER_POINT * n_crops * sz * sy * sx):  # fmt: skip
+        if mask is None:
+            flat, index = boxes.reshape(-1, 6), torch.arange(batch).repeat_interleave(n_boxes)
+        else:
+            flat, index = boxes[mask], mask.nonzero()[:, 0]
+        crops = _gather_crops(volume, flat, index, grid, (sz, sy, sx))
+        if crops is not None:
+            return crops if mask is not None else crops.view(batch, n_boxes, *crops.shape[1:])
+    # (grid_sample crops every slot: one call over the whole batch beats a call per scene of its own boxes)
+    crops = _sampled_crops(volume, boxes, grid, (sz, sy, sx))
+    return crops if mask is None else crops[mask]
+
+
+def _sampled_crops(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: tuple[int, int, int]) -> Tensor:
+    """:func:`crop_boxes` as one :func:`sample_volume` call: ``[B, N, C, sz, sy, sx]`` (``boxes`` ``[B, N, 6]`` in
+    ``volume``'s dtype)."""
+    batch, n_boxes = boxes.shape[:2]
+    points = _box_sample_points(boxes, size)  # [B, N, sz, sy, sx, 3]
+    coords = grid.world_to_normalized(points).reshape(batch, n_boxes * size[0], size[1], size[2], 3)
     crops = sample_volume(volume, coords)
-    return crops.view(batch, channels, n_boxes, sz, sy, sx).transpose(1, 2).contiguous()
+    return crops.view(batch, crops.shape[1], n_boxes, *size).transpose(1, 2).contiguous()
+
+
+#: when :func:`_gather_crops` beats ``grid_sample`` (``benchmarks/bench_crop_boxes.py``): volumes of at least this many
+#: channels, whose table (the volume with its border) has at most this many cells per sample point (the table is
+#: built whole, the samples read only the boxes' part of it)
+_GATHER_MIN_CHANNELS = 16
+_GATHER_MAX_CELLS_PER_POINT = 4
+#: sample points per gather round of :func:`_gather_crops` (a float32 round of 32 channels: 2 MB)
+_GATHER_CHUNK = 16384
+
+
+def _gather_crops(
+    volume: Tensor, boxes: Tensor, index: Tensor, grid: VoxelGridSpec, size: tuple[int, int, int]
+) -> Tensor | None:
+    """:func:`crop_boxes` without ``grid_sample``: bitwise its values, the channels gathered as rows.
+
+    ATen's CPU ``grid_sample`` (5-D, trilinear, zero padding, ``align_corners=False``) computes for each point
+    ``i = ((g + 1) * n - 1) / 2`` per axis, corner weights ``(wx * wy) * wz`` with ``w0 = (floor(i) + 1) - i`` and
+    ``w1 = i - floor(i)``, and adds ``value * weight`` of the eight corners in the order x fastest, then y, then z,
+    skipping corners outside the volume, each operation rounded to the compute dtype. This does the same
+    operations in the same order on tensors: the points of a box lie on a lattice, so ``i`` and the weights are
+    computed per axis; the volume becomes a ``[B * (Z+2) * (Y+2) * (X+2), C]`` table of channel rows with a zero
+    border (a corner outside the volume reads a zero row, adding ``+0``), and each corner is one ``index_select``.
+
+    Args:
+        volume: ``[B, C, Z, Y, X]``. boxes: ``[K, 6]`` in ``volume``'s dtype. index: ``[K]`` the volume of each box.
+        grid: the grid of ``volume``. size: ``(sz, sy, sx)``.
+
+    Returns:
+        ``[K, C, sz, sy, sx]``, or None when a sample point is not finite (``grid_sample`` then decides).
+
+    Convention: as :func:`crop_boxes`.
+    """
+    n_crops, channels = boxes.shape[0], volume.shape[1]
+    sizes = (size[2], size[1], size[0])  # x, y, z
+    if torch.is_autocast_enabled("cpu") and volume.dtype != torch.float64:
+        compute = torch.float32  # CPU autocast runs grid_sample in float32 (the points are still made in bf16)
+    else:
+        compute = volume.dtype
+    # each axis's sample positions, made by the operations of _box_sample_points and world_to_normalized
+    lo, hi = boxes[:, :3], boxes[:, 3:]
+    s_max = max(sizes)
+    frac = torch.stack(
+        [((torch.arange(n, dtype=boxes.dtype) + 0.5) / n).expand(s_max) if n == s_max else
+         F.pad((torch.arange(n, dtype=boxes.dtype) + 0.5) / n, (0, s_max - n), value=0.5) for n in sizes], dim=-1
+    )  # [s_max, 3]
+    norm = grid.world_to_normalized(lo[:, None, :] + frac * (hi - lo)[:, None, :]).to(compute)  # [K, s_max, 3]
+    if not bool(torch.isfinite(norm).all()):
+        return None
+    zyx = volume.shape[2:]
+    pad = [n + 2 for n in zyx]  # (Z+2, Y+2, X+2)
+    strides = (pad[1] * pad[2], pad[2], 1)  # z, y, x rows in the table
+    idx, wts = [], []
+    for axis, n in enumerate(sizes):  # x, y, z
+        i = ((norm[:, :n, axis] + 1) * zyx[2 - axis] - 1) / 2
+        f0 = torch.floor(i)
+        # a corner outside the volume reads the zero border (index -1 or n, shifted by the border's 1)
+        first = f0.clamp(-2, zyx[2 - axis]).long() + 1
+        idx.append([first.clamp(0, zyx[2 - axis] + 1) * strides[2 - axis],
+                    (first + 1).clamp(0, zyx[2 - axis] + 1) * strides[2 - axis]])
+        wts.append([(f0 + 1) - i, i - f0])
+    table = volume.new_zeros(volume.shape[0], *pad, channels, dtype=compute)
+    table[:, 1:-1, 1:-1, 1:-1] = volume.permute(0, 2, 3, 4, 1)
+    table = table.view(-1, channels)
+    base = (index.to(volume.device) * (pad[0] * pad[1] * pad[2]))[:, None, None, None]  # [K, 1, 1, 1]
+    (x0, x1), (y0, y1), (z0, z1) = idx
+    (wx0, wx1), (wy0, wy1), (wz0, wz1) = wts
+    terms = []
+    for zi, wz in ((z0, wz0), (z1, wz1)):  # grid_sample's corner order: x fastest, then y, then z
+        for yi, wy in ((y0, wy0), (y1, wy1)):
+            zy = base + zi[:, :, None, None] + yi[:, None, :, None]  # [K, sz, sy, 1]
+            for xi, wx in ((x0, wx0), (x1, wx1)):
+                rows = (zy + xi[:, None, None, :]).view(-1)
+                w = ((wx[:, None, None, :] * wy[:, None, :, None]) * wz[:, :, None, None]).view(-1, 1)
+                terms.append((rows, w))
+    n_points = n_crops * size[0] * size[1] * size[2]
+    out = torch.empty(n_points, channels, dtype=compute, device=volume.device)
+    for start in range(0, n_points, _GATHER_CHUNK):
+        end = min(n_points, start + _GATHER_CHUNK)
+        acc = out[start:end]
+        for k, (rows, w) in enumerate(terms):
+            v = table.index_select(0, rows[start:end])
+            if k == 0:
+                torch.mul(v, w[start:end], out=acc)
+            else:
+                acc += v.mul_(w[start:end])  # two roundings, as grid_sample (not a fused multiply-add)
+    return out.view(n_crops, *size, channels).permute(0, 4, 1, 2, 3).contiguous()
 
 
 def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:

@@ -83,11 +83,12 @@ def _random_encoder_crops(
             return torch.cat(hit)
     x, _ = stage.views_input(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
     rf = random_enc(x).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
-    rand = crop_boxes(F.normalize(rf, dim=1), crop_region(batch["aabb"], crop_shape), stage.feature_grid, crop_size)
+    rand = crop_boxes(F.normalize(rf, dim=1), crop_region(batch["aabb"], crop_shape), stage.feature_grid, crop_size,
+                      mask=mask)
     if cache is not None:
-        for b in range(B):
-            cache.put(keys[b], rand[b][mask[b]])
-    return rand[mask].cpu()
+        for b, r in enumerate(rand.split(mask.sum(1).tolist())):
+            cache.put(keys[b], r)
+    return rand.cpu()
 
 
 def _hull_raw_crops(stage: EncoderStage, batch: dict[str, Tensor], v: int, crop_size: int) -> Tensor:
@@ -95,8 +96,9 @@ def _hull_raw_crops(stage: EncoderStage, batch: dict[str, Tensor], v: int, crop_
     whatever region the features are cut from (no encoder pass: the unprojected input only)."""
     x, _ = stage.views_input(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
     B = batch["box_mask"].shape[0]
-    raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"].to(x.dtype), stage.grid, crop_size)
-    return raw[batch["box_mask"]].cpu()
+    raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"].to(x.dtype), stage.grid, crop_size,
+                     mask=batch["box_mask"])
+    return raw.cpu()
 
 
 def _descriptor(crops: dict[str, Tensor], prefix: str = "") -> Tensor:

@@ -299,10 +299,10 @@ class SceneParser(torch.nn.Module):
             n = d["boxes"].shape[0]
             aabb[b, :n], mask[b, :n] = d["boxes"], True
         region = crop_region(aabb, self.crop_shape)
-        crops = crop_boxes(q_feats, region, det.feature_grid, self.crop_size)[mask]
+        crops = crop_boxes(q_feats, region, det.feature_grid, self.crop_size, mask=mask)
         if self.occupancy_floor is not None:  # the input occupancy (union over the views) weights the crops
             occ = x[:, :1].reshape(B, V, 1, *x.shape[2:]).amax(1)
-            crops = prototype_crops(crops, crop_boxes(occ, region, det.grid, self.crop_size)[mask], self.occupancy_floor)
+            crops = prototype_crops(crops, crop_boxes(occ, region, det.grid, self.crop_size, mask=mask), self.occupancy_floor)
         t["crop"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if crops.shape[0]:
