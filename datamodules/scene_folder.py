@@ -97,6 +97,15 @@ class _ViewCache:
 _VIEW_CACHE = _ViewCache()
 
 
+def _cores(most: int) -> int:
+    """The CPU cores this process may run on (its affinity where the OS says), at most ``most``."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    return max(1, min(n, most))
+
+
 def fixed_views(seed: int, i: int, num_views: int, need: int) -> np.ndarray:
     """The views a fixed-view :class:`SceneDataset` (``random_views=False``) reads for its ``i``-th scene: ``need``
     distinct views of ``num_views`` drawn from ``(seed, i)``, inputs first (the retrieval protocols' query view, then
@@ -339,6 +348,9 @@ class SceneFolderDataModule(L.LightningDataModule):
             ``False``: each training scene keeps the fixed per-scene choice that val and test use, so a stage that
             only reads features (the quantizer) sees the views the other stages of an EM round encoded and shares
             their feature grids (``threedq em``'s crop cache).
+        proposal_workers: processes computing the pseudo-boxes of a split (:func:`~threedq.data.proposal_cache.
+            propose_dataset`'s ``workers``; the boxes do not depend on it); ``None``: one per CPU core this process
+            may use, at most 8.
 
     With boxes other than GT, the train split keeps every box; val and test keep only the boxes matched
     to a GT object, so that the label-based metrics are defined (the unmatched ones are counted by the
@@ -358,6 +370,7 @@ class SceneFolderDataModule(L.LightningDataModule):
         match_iou: float = 0.5,
         max_boxes: int = 8,
         train_random_views: bool = True,
+        proposal_workers: int | None = None,
     ) -> None:
         super().__init__()
         if boxes not in ("gt", "proposals") and "{split}" not in boxes:
@@ -372,6 +385,10 @@ class SceneFolderDataModule(L.LightningDataModule):
             raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
         if num_workers < 0:
             raise ValueError(f"num_workers: expected >= 0, got {num_workers}")
+        if proposal_workers is not None and (isinstance(proposal_workers, bool) or not isinstance(proposal_workers, int)
+                                             or proposal_workers < 1):
+            raise ValueError(f"proposal_workers: expected an int >= 1 or null, got {proposal_workers!r}")
+        self.proposal_workers = proposal_workers if proposal_workers is not None else _cores(8)
         self.data_dir = Path(data_dir)
         self.batch_size = batch_size
         self.num_workers = num_workers
@@ -429,7 +446,8 @@ class SceneFolderDataModule(L.LightningDataModule):
         what the detector's warm start learns from), computed once and cached in ``<data_dir>/proposals/<split>.npz``.
         """
         cache = self.data_dir / "proposals" / f"{split}.npz"
-        return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2), progress=progress)
+        return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2), progress=progress,
+                               workers=self.proposal_workers)
 
     def fixed_view_dataset(self, split: str, gallery: bool = False, with_boxes: bool = True) -> SceneDataset:
         """A deterministic dataset over one split: every scene's fixed input views (no random draw).

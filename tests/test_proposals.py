@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import warnings
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from threedq.data import proposal_cache
 from threedq.data.box_files import load_boxes_file_with_params
 from threedq.data.proposal_cache import propose_dataset
 from threedq.proposals import PROPOSALS_VERSION, ProposalParams, fit_ground_plane, propose_boxes
-from threedq.scene import load_index, load_scene
+from threedq.scene import SceneValidationError, load_index, load_scene
 
 from analytic_scenes import render  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -289,3 +290,30 @@ def test_full_disk_while_caching_keeps_the_cache_and_resumes_equal(tiny_dataset:
     for f in clean:
         np.testing.assert_array_equal(resumed[f][0], clean[f][0])
         np.testing.assert_array_equal(resumed[f][1], clean[f][1])
+
+
+def test_pool_of_workers_gives_the_same_boxes_and_cache(tiny_dataset: Path, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(proposal_cache, "MIN_POOL_SCENES", 1)  # the tiny split is below the real threshold
+    serial = propose_dataset(tiny_dataset, "train", tmp_path / "one.npz", progress=False, save_every=3)
+    pooled = propose_dataset(tiny_dataset, "train", tmp_path / "two.npz", progress=False, save_every=3, workers=2)
+    assert list(pooled) == list(serial)
+    for f in serial:
+        np.testing.assert_array_equal(pooled[f][0], serial[f][0])
+        np.testing.assert_array_equal(pooled[f][1], serial[f][1])
+    assert (tmp_path / "one.npz").read_bytes() == (tmp_path / "two.npz").read_bytes()
+    with pytest.raises(ValueError, match="workers"):
+        propose_dataset(tiny_dataset, "train", tmp_path / "x.npz", progress=False, workers=0)
+
+
+def test_pool_worker_error_is_the_scenes_own(tiny_dataset: Path, tmp_path: Path, monkeypatch) -> None:
+    # a corrupt scene among the pool's: the parent raises the error computing it in-process gives, naming the file
+    data = tmp_path / "data"
+    shutil.copytree(tiny_dataset, data)
+    bad = data / load_index(data).files("train")[2]
+    bad.write_bytes(bad.read_bytes()[:100])
+    monkeypatch.setattr(proposal_cache, "MIN_POOL_SCENES", 1)
+    with pytest.raises(SceneValidationError, match=bad.name) as serial:
+        propose_dataset(data, "train", tmp_path / "one.npz", progress=False)
+    with pytest.raises(SceneValidationError, match=bad.name) as pooled:
+        propose_dataset(data, "train", tmp_path / "two.npz", progress=False, workers=2)
+    assert str(pooled.value) == str(serial.value)

@@ -10,6 +10,9 @@ Convention: world frame in metres, z up; boxes ``(xmin, ymin, zmin, xmax, ymax, 
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
+import sys
 import warnings
 from dataclasses import asdict
 from pathlib import Path
@@ -43,6 +46,7 @@ def propose_dataset(
     save_every: int = 50,
     recompute_corrupt: bool = False,
     progress: bool = True,
+    workers: int = 1,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Proposals for every scene of a split, cached in one ``.npz``.
 
@@ -60,6 +64,10 @@ def propose_dataset(
         recompute_corrupt: a corrupt cache raises ``ValueError`` naming the file (default), or with
             ``True`` is recomputed with a warning.
         progress: show a tqdm progress bar.
+        workers: processes computing scenes at once ("spawn" pool, one thread each; 1 = in this process, as for
+            fewer than :data:`MIN_POOL_SCENES` missing scenes or a main script that is not a file). The boxes and
+            the cache file do not depend on it: every scene's RANSAC is seeded by the parameters alone, and the
+            results are collected in order.
 
     Returns:
         ``{scene file as listed in index.json (e.g. "test/scene_000000.npz") -> (aabb [P,6] float32,
@@ -75,6 +83,8 @@ def propose_dataset(
         raise ValueError(f"params: expected a ProposalParams or None, got {type(params).__name__}")  # noqa: TRY004 - ValueError naming the argument
     if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 1:
         raise ValueError(f"save_every: expected an int >= 1, got {save_every!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
     data_dir, cache_path = Path(data_dir), Path(cache_path)
     index = load_index(data_dir)
     files = index.files(split)
@@ -111,31 +121,79 @@ def propose_dataset(
     # Another process may be computing the same cache: the first computes, the others wait and read its file.
     with exclusive(cache_path, what="computing proposals into"):
         results = read_cache(warn=True)
-        _complete(results, files, data_dir, cache_path, pjson, bounds, params, save_every, progress)
+        _complete(results, files, data_dir, cache_path, pjson, bounds, params, save_every, progress, workers)
     return {f: results[f] for f in files}
 
 
+#: the fewest missing scenes for which :func:`propose_dataset` starts a process pool (starting one costs seconds)
+MIN_POOL_SCENES = 32
+
+
+def _propose_scene(path: Path, bounds: Bounds | None, kwargs: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """One scene's proposals; a ``ValueError`` of the proposer names the file."""
+    record = load_scene(path, validate=False)
+    try:
+        return propose_boxes(record, bounds=bounds, **kwargs)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from e
+
+
+def _init_pool_worker() -> None:
+    # one thread per worker process: the pool has a process per core
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(1)
+    threadpool_limits(1)
+
+
+def _pool_task(args: tuple[Path, Bounds | None, dict[str, Any]]) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`_propose_scene` in a pool worker; None on any error, which the parent then raises itself by
+    computing that scene (so the error keeps its type and message, which a pickled exception may not)."""
+    try:
+        return _propose_scene(*args)
+    except Exception:  # noqa: BLE001 - re-raised by the parent, see above
+        return None
+
+
+def _pool_size(workers: int, todo: int) -> int:
+    """How many processes compute ``todo`` scenes: ``workers``, or 1 where a pool would not pay or cannot start."""
+    if workers <= 1 or todo < MIN_POOL_SCENES:
+        return 1
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    if main_file is not None and not os.path.isfile(main_file):
+        return 1  # "spawn" re-runs the main script in each worker: one read from stdin cannot be re-run
+    return min(workers, todo)
+
+
 def _complete(results: dict[str, tuple[np.ndarray, np.ndarray]], files: list[str], data_dir: Path, cache_path: Path,
-              pjson: str, bounds: Bounds | None, params: ProposalParams, save_every: int, progress: bool) -> None:
-    """Compute the scenes of ``files`` missing from ``results`` into it, saving the cache every ``save_every``."""
+              pjson: str, bounds: Bounds | None, params: ProposalParams, save_every: int, progress: bool,
+              workers: int = 1) -> None:  # fmt: skip
+    """Compute the scenes of ``files`` missing from ``results`` into it, in order, saving the cache every
+    ``save_every``; ``workers`` processes at once (see :func:`propose_dataset`)."""
     from tqdm import tqdm
 
     all_names = list(dict.fromkeys([*results.keys(), *files]))
     todo = [f for f in files if f not in results]
     kwargs = asdict(params)
+    tasks = [(data_dir / f, bounds, kwargs) for f in todo]
+    n_proc = _pool_size(workers, len(todo))
     dirty = 0
     with tqdm(total=len(files), initial=len(files) - len(todo), disable=not progress, desc="proposals",
               unit="scene", dynamic_ncols=True) as bar:  # fmt: skip
-        for f in todo:
-            record = load_scene(data_dir / f, validate=False)
-            try:
-                results[f] = propose_boxes(record, bounds=bounds, **kwargs)
-            except ValueError as e:
-                raise ValueError(f"{data_dir / f}: {e}") from e
-            dirty += 1
-            bar.update(1)
-            if dirty >= save_every:
-                save_boxes_file(cache_path, {k: results[k] for k in all_names if k in results}, pjson)
-                dirty = 0
+        pool = multiprocessing.get_context("spawn").Pool(n_proc, _init_pool_worker) if n_proc > 1 else None
+        try:
+            done = pool.imap(_pool_task, tasks, chunksize=4) if pool is not None else (_propose_scene(*t) for t in tasks)
+            for f, task, out in zip(todo, tasks, done, strict=True):
+                results[f] = out if out is not None else _propose_scene(*task)
+                dirty += 1
+                bar.update(1)
+                if dirty >= save_every:
+                    save_boxes_file(cache_path, {k: results[k] for k in all_names if k in results}, pjson)
+                    dirty = 0
+        finally:
+            if pool is not None:
+                pool.terminate()
+                pool.join()
     if dirty or not cache_path.exists():
         save_boxes_file(cache_path, {k: results[k] for k in all_names if k in results}, pjson)
