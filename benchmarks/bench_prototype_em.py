@@ -1,5 +1,7 @@
 """The prototype EM (what every quantizer stage and every bank of ``threedq eval`` runs) with each chunk's polar
-spectrum computed once vs recomputed at every comparison: seconds, and whether the two banks are bit-identical.
+spectrum computed once vs recomputed at every comparison, and with each object's rotation into its prototype's pose
+kept between M-steps (redone when its yaw changes) vs redone at every M-step: seconds, and whether the banks are
+bit-identical.
 
 The crops are clustered smooth volumes (60 base shapes, noise added, L2-normalised over channels), 32 x 16^3 like the
 learned crops; K = 50, 36 yaw steps, 10 E/M iterations, fast search; optionally under bf16 autocast, as
@@ -40,22 +42,29 @@ def main() -> None:
     crops = torch.nn.functional.normalize(crops, dim=1)
     ctx = torch.autocast("cpu", dtype=torch.bfloat16) if args.bf16 else contextlib.nullcontext()
     rows, banks = [], []
-    for reuse in (False, True):
+    ways = [("spectra recomputed at every comparison, every object rotated at every M-step (before 2026-11-23)",
+             {"reuse_spectra": False, "reuse_aligned": False}),
+            ("spectra computed once per chunk, every object rotated at every M-step (until 2026-11-28)",
+             {"reuse_spectra": True, "reuse_aligned": False}),
+            ("spectra once, rotations kept until an object's yaw changes (`reuse_aligned`, default)",
+             {"reuse_spectra": True, "reuse_aligned": True})]
+    for _, kw in ways:
         bank = PrototypeBank(args.k, 32, 16, 36, 0.8)
         with ctx:
             t0 = time.perf_counter()
-            run_prototype_em(bank, crops, args.iterations, seed=0, reuse_spectra=reuse)
+            run_prototype_em(bank, crops, args.iterations, seed=0, **kw)
             rows.append(time.perf_counter() - t0)
         banks.append(bank)
-    same = torch.equal(banks[0].prototypes, banks[1].prototypes) and torch.equal(banks[0].active, banks[1].active)
+    same = all(torch.equal(banks[0].prototypes, b.prototypes) and torch.equal(banks[0].active, b.active)
+               for b in banks[1:])
     print(f"# prototype EM, {args.n} crops 32 x 16^3, K = {args.k}, {args.iterations} iterations, fast search"
           f"{', bf16 autocast' if args.bf16 else ''}; {cpu_name()}, {torch.get_num_threads()} threads, torch "
           f"{torch.__version__}, {datetime.date.today()}")
-    print("| spectra | seconds |")
+    print("| way | seconds |")
     print("|---|---|")
-    print(f"| recomputed at every comparison (before) | {rows[0]:.1f} |")
-    print(f"| computed once per chunk (`reuse_spectra`, default) | {rows[1]:.1f} |")
-    print(f"speed-up {rows[0] / rows[1]:.2f}x; banks bit-identical: {same}")
+    for (name, _), t in zip(ways, rows, strict=True):
+        print(f"| {name} | {t:.1f} |")
+    print(f"banks bit-identical: {same}")
 
 
 if __name__ == "__main__":

@@ -307,6 +307,43 @@ class TestSpectrumReuse:
         assert torch.equal(banks[0].active, banks[1].active)
         assert torch.equal(banks[0].prototypes, banks[1].prototypes)
 
+    @pytest.mark.parametrize("chunk", [7, 256])
+    def test_em_keeping_the_rotated_objects_equals_rotating_them_all(self, chunk: int) -> None:
+        from threedq.quantization.prototypes import run_prototype_em
+
+        crops = self._crops()
+        banks = []
+        for reuse in (False, True):
+            bank = PrototypeBank(10, crops.shape[1], crops.shape[-1], 36, 0.8)
+            banks.append(run_prototype_em(bank, crops, iterations=4, seed=0, chunk=chunk, reuse_aligned=reuse))
+        assert torch.equal(banks[0].active, banks[1].active)
+        assert torch.equal(banks[0].prototypes, banks[1].prototypes)
+
+    def test_accumulate_rotates_only_the_objects_whose_yaw_moved(self, monkeypatch) -> None:
+        from threedq.quantization import prototypes as P
+        from threedq.quantization.rotation_search import RotationSearchResult
+
+        crops = self._crops()[:20]
+        bank = PrototypeBank(3, crops.shape[1], crops.shape[-1], 36, 0.8)
+        g = torch.Generator().manual_seed(4)
+        first = RotationSearchResult(prototype=torch.randint(0, 3, (20,), generator=g),
+                                     angle=torch.randint(0, 36, (20,), generator=g), score=torch.zeros(20),
+                                     scores=torch.zeros(20, 3, 36))  # fmt: skip
+        kept = bank.accumulate(crops, first)
+        bank.update()
+        second = RotationSearchResult(prototype=first.prototype.roll(1), angle=first.angle.clone(),
+                                      score=first.score, scores=first.scores)  # fmt: skip
+        second.angle[[2, 5, 11]] = (second.angle[[2, 5, 11]] + 7) % 36
+        rotated: list[int] = []
+        real = P.rotate_yaw
+        monkeypatch.setattr(P, "rotate_yaw", lambda v, a: rotated.append(v.shape[0]) or real(v, a))
+        angle, aligned = bank.accumulate(crops, second, kept)
+        assert rotated == [3] and torch.equal(angle, second.angle)
+        ref = PrototypeBank(3, crops.shape[1], crops.shape[-1], 36, 0.8)
+        ref.accumulate(crops, second)  # every object rotated afresh
+        assert torch.equal(aligned, real(crops, P.yaw_angles(36)[second.angle]))
+        assert torch.equal(bank.member_sum, ref.member_sum) and torch.equal(bank.member_count, ref.member_count)
+
     def test_add_and_chunked_assign(self) -> None:
         from threedq.quantization.prototypes import assign_chunked
 

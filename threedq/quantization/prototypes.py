@@ -160,13 +160,32 @@ class PrototypeBank(nn.Module):
         return opened
 
     @torch.no_grad()
-    def accumulate(self, objects: Tensor, result: RotationSearchResult) -> None:
-        """Add each object, rotated into its prototype's canonical pose, to that prototype's running sum."""
+    def accumulate(
+        self, objects: Tensor, result: RotationSearchResult, previous: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Add each object, rotated into its prototype's canonical pose, to that prototype's running sum.
+
+        Args:
+            objects: ``[N, C, D, S, S]``; result: their E-step.
+            previous: what this returned for the same objects at an earlier E-step: the objects whose yaw index is
+                unchanged are not rotated again (a rotation depends on its object and angle alone, so the sums are
+                bitwise the same); its ``aligned`` tensor is updated in place and returned.
+
+        Returns:
+            ``(angle [N], aligned [N, C, D, S, S])``: the yaw indices and the rotated objects, for ``previous``.
+        """
         self._check(objects)
-        angles = yaw_angles(self.num_angles, device=objects.device, dtype=objects.dtype)[result.angle]
-        aligned = rotate_yaw(objects, angles)
+        angles = yaw_angles(self.num_angles, device=objects.device, dtype=objects.dtype)
+        if previous is not None and previous[0].shape == result.angle.shape and previous[1].shape == objects.shape:
+            aligned = previous[1]
+            moved = (result.angle != previous[0]).nonzero().flatten()
+            if moved.numel():
+                aligned[moved] = rotate_yaw(objects[moved], angles[result.angle[moved]])
+        else:
+            aligned = rotate_yaw(objects, angles[result.angle])
         self.member_sum.index_add_(0, result.prototype, aligned.to(self.member_sum.dtype))
         self.member_count.index_add_(0, result.prototype, torch.ones_like(result.prototype, dtype=self.member_count.dtype))
+        return result.angle.clone(), aligned
 
     @torch.no_grad()
     def update(self) -> Tensor:
@@ -249,7 +268,7 @@ def fit_prototype_bank(
 @torch.no_grad()
 def run_prototype_em(
     bank: PrototypeBank, crops: Tensor, iterations: int = 10, seed: int = 0, fill_free: bool = True, chunk: int = 256,
-    reuse_spectra: bool = True, spectra: dict[int, PolarSpectrum | None] | None = None,
+    reuse_spectra: bool = True, spectra: dict[int, PolarSpectrum | None] | None = None, reuse_aligned: bool = True,
 ) -> PrototypeBank:
     """The prototype EM of the paper (Sec. 3.2) on ``crops`` ``[N, C, S, S, S]``, in place; returns ``bank``.
 
@@ -263,6 +282,10 @@ def run_prototype_em(
     (the objects do not change, only the prototypes): the same bank, the E-steps about 3x faster; False
     recomputes it every iteration (the reference path of the tests). ``spectra``: the cache to use (a dict the
     caller keeps, e.g. for :func:`assign_chunked` of the same crops afterwards).
+
+    ``reuse_aligned``: each object's rotation into its prototype's pose is kept between the M-steps and redone only
+    when its yaw changes (:meth:`PrototypeBank.accumulate`'s ``previous``): the same bank, about 2x the crops'
+    memory while the EM runs; False rotates every object at every iteration.
     """
     N = crops.shape[0]
     if N == 0:
@@ -278,10 +301,14 @@ def run_prototype_em(
             bank.add(crops[order[start : start + chunk]], reuse_spectrum=reuse_spectra)
         if fill_free:
             fill_free_slots(bank, crops, chunk, spectra)
+    aligned: dict[int, tuple[Tensor, Tensor]] = {}
     for _ in range(iterations):
         for start in range(0, N, chunk):
             part = crops[start : start + chunk]
-            bank.accumulate(part, bank.assign(part, _chunk_spectrum(bank, crops, start, chunk, spectra)))
+            kept = bank.accumulate(part, bank.assign(part, _chunk_spectrum(bank, crops, start, chunk, spectra)),
+                                   aligned.get(start))
+            if reuse_aligned:
+                aligned[start] = kept
         bank.update()
     return bank
 
