@@ -54,6 +54,16 @@ def trilinear_naive(volume: torch.Tensor, grid: VoxelGridSpec, point: torch.Tens
     return out
 
 
+def assert_matches_naive(out: torch.Tensor, volume: torch.Tensor, boxes: torch.Tensor, size: tuple[int, int, int]) -> None:
+    """Every cell of ``[B, N, C, sz, sy, sx]`` crops against :func:`trilinear_naive` at its sample point."""
+    for b in range(boxes.shape[0]):
+        for n in range(boxes.shape[1]):
+            points = sample_points(boxes[b, n], size)
+            for idx in torch.cartesian_prod(*(torch.arange(s) for s in size)).tolist():
+                expected = trilinear_naive(volume[b], GRID, points[tuple(idx)])
+                torch.testing.assert_close(out[b, n, :, idx[0], idx[1], idx[2]], expected)
+
+
 def random_boxes(batch: int, n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     lo = torch.tensor(GRID.bounds_min, dtype=dtype) - 0.2
     span = torch.tensor(GRID.bounds_max, dtype=dtype) - lo + 0.2
@@ -123,14 +133,7 @@ class TestCropBoxes:
         torch.manual_seed(2)
         volume = torch.rand(2, 3, *GRID.volume_shape, dtype=torch.float64)
         boxes = random_boxes(2, 3)
-        size = (2, 3, 3)
-        out = crop_boxes(volume, boxes, GRID, size=size)
-        for b in range(2):
-            for n in range(3):
-                points = sample_points(boxes[b, n], size)
-                for idx in torch.cartesian_prod(*(torch.arange(s) for s in size)).tolist():
-                    expected = trilinear_naive(volume[b], GRID, points[tuple(idx)])
-                    torch.testing.assert_close(out[b, n, :, idx[0], idx[1], idx[2]], expected)
+        assert_matches_naive(crop_boxes(volume, boxes, GRID, size=(2, 3, 3)), volume, boxes, (2, 3, 3))
 
     def test_feature_outside_is_zero(self) -> None:
         boxes = torch.tensor([[[2.0, 2.0, 2.0, 3.0, 3.0, 3.0]]])
@@ -164,14 +167,7 @@ class TestCropBoxesImplementations:
         torch.manual_seed(12)
         volume = torch.rand(2, 3, *GRID.volume_shape, dtype=torch.float64)
         boxes = random_boxes(2, 3)
-        size = (2, 3, 4)
-        out = impl(volume, boxes, GRID, size)
-        for b in range(2):
-            for n in range(3):
-                points = sample_points(boxes[b, n], size)
-                for idx in torch.cartesian_prod(*(torch.arange(s) for s in size)).tolist():
-                    expected = trilinear_naive(volume[b], GRID, points[tuple(idx)])
-                    torch.testing.assert_close(out[b, n, :, idx[0], idx[1], idx[2]], expected)
+        assert_matches_naive(impl(volume, boxes, GRID, (2, 3, 4)), volume, boxes, (2, 3, 4))
 
     @pytest.mark.parametrize("impl", [sampled, gathered])
     def test_feature_ramp_and_slice(self, impl) -> None:

@@ -296,26 +296,15 @@ class TestSpectrumReuse:
         return torch.nn.functional.normalize(crops + 0.05 * torch.randn(crops.shape, generator=torch.Generator().manual_seed(3)), dim=1)
 
     @pytest.mark.parametrize("chunk", [7, 256])
-    def test_em_equals_the_recomputing_path(self, chunk: int) -> None:
+    @pytest.mark.parametrize("reuse", ["reuse_spectra", "reuse_aligned"])  # spectra; rotated objects between M-steps
+    def test_em_equals_the_recomputing_path(self, chunk: int, reuse: str) -> None:
         from threedq.quantization.prototypes import run_prototype_em
 
         crops = self._crops()
         banks = []
-        for reuse in (False, True):
+        for on in (False, True):
             bank = PrototypeBank(10, crops.shape[1], crops.shape[-1], 36, 0.8)
-            banks.append(run_prototype_em(bank, crops, iterations=3, seed=0, chunk=chunk, reuse_spectra=reuse))
-        assert torch.equal(banks[0].active, banks[1].active)
-        assert torch.equal(banks[0].prototypes, banks[1].prototypes)
-
-    @pytest.mark.parametrize("chunk", [7, 256])
-    def test_em_keeping_the_rotated_objects_equals_rotating_them_all(self, chunk: int) -> None:
-        from threedq.quantization.prototypes import run_prototype_em
-
-        crops = self._crops()
-        banks = []
-        for reuse in (False, True):
-            bank = PrototypeBank(10, crops.shape[1], crops.shape[-1], 36, 0.8)
-            banks.append(run_prototype_em(bank, crops, iterations=4, seed=0, chunk=chunk, reuse_aligned=reuse))
+            banks.append(run_prototype_em(bank, crops, iterations=4, seed=0, chunk=chunk, **{reuse: on}))
         assert torch.equal(banks[0].active, banks[1].active)
         assert torch.equal(banks[0].prototypes, banks[1].prototypes)
 

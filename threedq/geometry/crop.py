@@ -216,10 +216,8 @@ def _gather_crops(
     # each axis's sample positions, made by the operations of _box_sample_points and world_to_normalized
     lo, hi = boxes[:, :3], boxes[:, 3:]
     s_max = max(sizes)
-    frac = torch.stack(
-        [((torch.arange(n, dtype=boxes.dtype) + 0.5) / n).expand(s_max) if n == s_max else
-         F.pad((torch.arange(n, dtype=boxes.dtype) + 0.5) / n, (0, s_max - n), value=0.5) for n in sizes], dim=-1
-    )  # [s_max, 3]
+    frac = torch.stack([F.pad((torch.arange(n, dtype=boxes.dtype) + 0.5) / n, (0, s_max - n), value=0.5)
+                        for n in sizes], dim=-1)  # [s_max, 3]; an axis with fewer cells padded (not read)
     norm = grid.world_to_normalized(lo[:, None, :] + frac * (hi - lo)[:, None, :]).to(compute)  # [K, s_max, 3]
     if not bool(torch.isfinite(norm).all()):
         return None
