@@ -317,3 +317,17 @@ def test_pool_worker_error_is_the_scenes_own(tiny_dataset: Path, tmp_path: Path,
     with pytest.raises(SceneValidationError, match=bad.name) as pooled:
         propose_dataset(data, "train", tmp_path / "two.npz", progress=False, workers=2)
     assert str(pooled.value) == str(serial.value)
+
+
+def test_no_pool_when_the_main_script_cannot_be_rerun(monkeypatch) -> None:
+    import sys
+    import types
+
+    main = types.ModuleType("__main__")
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    assert proposal_cache._pool_size(2, 100) == 2  # no main script (python -c, a notebook): spawn is fine
+    main.__file__ = "<stdin>"
+    assert proposal_cache._pool_size(2, 100) == 1
+    main.__file__ = __file__
+    assert proposal_cache._pool_size(2, 100) == 2 and proposal_cache._pool_size(2, 5) == 1
+    assert proposal_cache._pool_size(1, 100) == 1

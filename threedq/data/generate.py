@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
-import sys
 import time
 import warnings
 from collections.abc import Sequence
@@ -29,6 +28,7 @@ from threedq.data.generator_config import GENERATOR_VERSION, GeneratorConfig, _i
 from threedq.data.layout import sample_scene
 from threedq.data.render import Renderer
 from threedq.data.render_scene import make_renderer, render_scene
+from threedq.data.spawn import unspawnable_main
 from threedq.data.splits import SPLIT_CODES, SPLITS, derive_test_seed, scene_file, scene_seed_sequence, split_sizes
 from threedq.locks import exclusive
 from threedq.scene import DatasetIndex, SceneValidationError, load_scene, save_index, save_scene
@@ -198,10 +198,8 @@ def generate_dataset(
         kept = 0
         try:
             n_proc = min(workers, len(tasks))
-            main_file = getattr(sys.modules.get("__main__"), "__file__", None)
-            if n_proc > 1 and main_file is not None and not os.path.isfile(main_file):
-                # "spawn" re-runs the main script in each worker; a script read from stdin cannot be
-                # re-run and the pool would restart its crashing workers forever.
+            main_file = unspawnable_main()
+            if n_proc > 1 and main_file is not None:
                 warnings.warn(
                     f"workers={workers}: the main script {main_file!r} is not a file; rendering in-process", stacklevel=2
                 )

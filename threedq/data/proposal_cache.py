@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import os
-import sys
 import warnings
 from dataclasses import asdict
 from pathlib import Path
@@ -21,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from threedq.data.box_files import load_boxes_file_with_params, save_boxes_file
+from threedq.data.spawn import unspawnable_main
 from threedq.locks import exclusive
 from threedq.proposals import PROPOSALS_VERSION, Bounds, ProposalParams, propose_boxes
 from threedq.scene import load_index, load_scene
@@ -160,10 +159,7 @@ def _pool_size(workers: int, todo: int) -> int:
     """How many processes compute ``todo`` scenes: ``workers``, or 1 where a pool would not pay or cannot start."""
     if workers <= 1 or todo < MIN_POOL_SCENES:
         return 1
-    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
-    if main_file is not None and not os.path.isfile(main_file):
-        return 1  # "spawn" re-runs the main script in each worker: one read from stdin cannot be re-run
-    return min(workers, todo)
+    return 1 if unspawnable_main() is not None else min(workers, todo)
 
 
 def _complete(results: dict[str, tuple[np.ndarray, np.ndarray]], files: list[str], data_dir: Path, cache_path: Path,

@@ -150,17 +150,16 @@ def crop_boxes(
     n_boxes = boxes.shape[1]
     boxes = boxes.to(volume.dtype)
     grad = torch.is_grad_enabled() and (volume.requires_grad or boxes.requires_grad)
-    n_crops = n_boxes * batch if mask is None else int(mask.sum())
-    cells = batch * (grid.volume_shape[0] + 2) * (grid.volume_shape[1] + 2) * (grid.volume_shape[2] + 2)
-    if (volume.device.type == "cpu" and not grad and channels >= _GATHER_MIN_CHANNELS
-            and cells <= _GATHER_MAX_CELLS_PER_POINT * n_crops * sz * sy * sx):  # fmt: skip
+    if volume.device.type == "cpu" and not grad and channels >= _GATHER_MIN_CHANNELS:
         if mask is None:
             flat, index = boxes.reshape(-1, 6), torch.arange(batch).repeat_interleave(n_boxes)
         else:
             flat, index = boxes[mask], mask.nonzero()[:, 0]
-        crops = _gather_crops(volume, flat, index, grid, (sz, sy, sx))
-        if crops is not None:
-            return crops if mask is not None else crops.view(batch, n_boxes, *crops.shape[1:])
+        cells = batch * (grid.volume_shape[0] + 2) * (grid.volume_shape[1] + 2) * (grid.volume_shape[2] + 2)
+        if cells <= _GATHER_MAX_CELLS_PER_POINT * flat.shape[0] * sz * sy * sx:
+            crops = _gather_crops(volume, flat, index, grid, (sz, sy, sx))
+            if crops is not None:
+                return crops if mask is not None else crops.view(batch, n_boxes, *crops.shape[1:])
     # (grid_sample crops every slot: one call over the whole batch beats a call per scene of its own boxes)
     crops = _sampled_crops(volume, boxes, grid, (sz, sy, sx))
     return crops if mask is None else crops[mask]
