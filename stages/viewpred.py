@@ -119,17 +119,16 @@ class ViewPredictionObjective:
         occ = occ.amax(1)
         return occ, free.amax(1) * (1 - occ)
 
-    def target_valid(self, depth: Tensor, K: Tensor, R_T_cam: Tensor, pool: int = 2) -> Tensor:
-        """Target pixels whose observed surface lies inside the grid, at ``1 / pool`` resolution ``[B, 1, H/pool, W/pool]``.
+    def target_valid(self, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
+        """Target pixels whose observed surface lies inside the grid, at half resolution ``[B, 1, H/2, W/2]``.
 
         Only those can be predicted from the grid: a ray that leaves the grid before it hits anything (far
-        ground, sky) carries no information, so it is left out of the loss and of every RGB metric. A pooled
-        pixel is valid when most of its full-resolution pixels are.
+        ground, sky) carries no information, so it is left out of the loss and of every RGB metric.
         """
         B, H, W = depth.shape
         points, ok = depth_to_points(depth, K, R_T_cam)
         inside = (ok & self.grid.contains(points)).view(B, 1, H, W).to(depth.dtype)
-        return inside if pool == 1 else (F.avg_pool2d(inside, pool) > 0.5).to(depth.dtype)
+        return (F.avg_pool2d(inside, 2) > 0.5).to(depth.dtype)
 
     def target_foreground(self, batch: dict[str, Tensor], n_in: int) -> Tensor:
         """Target pixels whose surface lies above the ground plane, at half resolution ``[B*T, 1, H/2, W/2]``.
@@ -146,67 +145,15 @@ class ViewPredictionObjective:
     def predict_view(self, feats: Tensor, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int]) -> Tensor:
         """Decode the feature grid ``[B, C, Z', Y', X']`` to the RGB of a camera ``[B, 3, H/2, W/2]`` in [-0.5, 0.5]."""
         H, W = image_size
-        return self.render_camera(feats, scale_intrinsics(K, 0.5, 0.5), R_T_cam, (H // 2, W // 2))
-
-    def render_camera(self, feats: Tensor, K: Tensor, R_T_cam: Tensor, size: tuple[int, int]) -> Tensor:
-        """Decode the feature grid ``[B, C, Z', Y', X']`` to the RGB ``[B, 3, h, w]`` in [-0.5, 0.5] of a camera
-        whose intrinsics ``K [B, 3, 3]`` are in the pixels of that ``size = (h, w)`` image."""
+        k_half = scale_intrinsics(K, 0.5, 0.5)
         pooled = frustum_depth_max(  # the decoder's depth max-pool of the frustum, without the frustum (bitwise)
-            feats, self.feature_grid, K, R_T_cam, size, tuple(self.vp_settings["depth_range"]),
+            feats, self.feature_grid, k_half, R_T_cam, (H // 2, W // 2), tuple(self.vp_settings["depth_range"]),
             self.vp_settings["num_planes"], self.decoder.pool,
         )
         return self.decoder.decode_pooled(pooled)
 
-    def object_windows(self, batch: dict[str, Tensor], n_in: int, generator: torch.Generator) -> dict[str, Tensor]:
-        """A window of half the target's side at full resolution, around a random above-ground pixel of each target.
-
-        The label-free counterpart of a closer camera: the window's ``H/2 x W/2`` pixels cost the decoder what the
-        whole target at half resolution costs, and an object covers twice as many pixels per side. The pixel is
-        drawn uniformly from the target's pixels above the ground plane (:meth:`target_foreground`'s test, at full
-        resolution) whose surface lies in the grid; a target with none gets the centred window.
-
-        Returns:
-            ``rgb [B*T, 3, H/2, W/2]``, ``depth [B*T, H/2, W/2]``, ``K [B*T, 3, 3]`` (the window's: the principal
-            point shifted by its corner), ``R_T_cam [B*T, 4, 4]``, ``fg [B*T, 1, H/2, W/2]`` float 0/1 and
-            ``corner [B*T, 2]`` (row, column of the window's top-left pixel in the target).
-
-        Convention: pixel centres at integer coordinates (:func:`~threedq.geometry.scale_intrinsics`), so a window
-        whose top-left pixel is ``(y0, x0)`` has ``cx - x0``, ``cy - y0``.
-        """
-        rgb = batch["rgb"][:, n_in:].flatten(0, 1)
-        depth = batch["depth"][:, n_in:].flatten(0, 1)
-        K = batch["K"][:, n_in:].flatten(0, 1)
-        pose = batch["R_T_cam"][:, n_in:].flatten(0, 1)
-        N, _, H, W = rgb.shape
-        h, w = H // 2, W // 2
-        fg = above_ground_mask(batch["depth"], batch["K"], batch["R_T_cam"], margin=self.vp_settings["ground_margin"],
-                               views=slice(n_in, None)).flatten(0, 1)  # [B*T, H, W]
-        candidates = fg & (self.target_valid(depth, K, pose, pool=1)[:, 0] > 0)
-        corners = []
-        for i in range(N):
-            pix = candidates[i].flatten().nonzero()[:, 0]
-            if len(pix):
-                c = int(pix[int(torch.randint(len(pix), (), generator=generator))])
-                cy, cx = divmod(c, W)
-            else:
-                cy, cx = H // 2, W // 2
-            corners.append((min(max(cy - h // 2, 0), H - h), min(max(cx - w // 2, 0), W - w)))
-        corner = torch.tensor(corners, dtype=torch.long)
-        idx = range(N)
-        shift = torch.zeros_like(K)
-        shift[:, 0, 2] = corner[:, 1].to(K.dtype)
-        shift[:, 1, 2] = corner[:, 0].to(K.dtype)
-        return {
-            "rgb": torch.stack([rgb[i, :, y:y + h, x:x + w] for i, (y, x) in zip(idx, corners)]),
-            "depth": torch.stack([depth[i, y:y + h, x:x + w] for i, (y, x) in zip(idx, corners)]),
-            "K": K - shift,
-            "R_T_cam": pose,
-            "fg": torch.stack([fg[i, y:y + h, x:x + w] for i, (y, x) in zip(idx, corners)])[:, None].to(rgb.dtype),
-            "corner": corner,
-        }
-
     def view_prediction_loss(self, feats: Tensor, occ_logits: Tensor, batch: dict[str, Tensor], n_in: int,
-                             foreground: bool = False, windows: torch.Generator | None = None) -> dict[str, Tensor]:
+                             foreground: bool = False) -> dict[str, Tensor]:
         """The loss of predicting the target views of ``batch`` from the feature grid of its input views.
 
         Args:
@@ -215,8 +162,6 @@ class ViewPredictionObjective:
             batch: ``rgb [B, S, 3, H, W]``, ``depth [B, S, H, W]``, ``K``, ``R_T_cam``; views ``n_in..S-1`` are the
                 targets.
             foreground: compute the above-ground mask even when the RGB loss does not need it (for ``l1_fg``).
-            windows: predict :meth:`object_windows` of the targets (drawn with this generator) instead of the whole
-                targets at half resolution.
 
         Returns:
             ``loss`` (``rgb_weight`` x the RGB loss + ``occ_weight`` x the balanced occupancy loss), ``l1`` (the plain
@@ -225,25 +170,17 @@ class ViewPredictionObjective:
         """
         st = self.vp_settings
         T = batch["rgb"].shape[1] - n_in
+        rgb_t, depth_t = batch["rgb"][:, n_in:].flatten(0, 1), batch["depth"][:, n_in:].flatten(0, 1)
+        K_t, pose_t = batch["K"][:, n_in:].flatten(0, 1), batch["R_T_cam"][:, n_in:].flatten(0, 1)
+        H, W = rgb_t.shape[-2:]
         feats_t = feats.repeat_interleave(T, dim=0) if T > 1 else feats
-        balanced = st["rgb_loss"] == "balanced"
-        if windows is not None:  # a full-resolution window of each target around an object
-            win = self.object_windows(batch, n_in, windows)
-            h, w = win["rgb"].shape[-2:]
-            pred = self.render_camera(feats_t, win["K"], win["R_T_cam"], (h, w))  # [B*T, 3, H/2, W/2]
-            target = win["rgb"] - 0.5
-            valid = self.target_valid(win["depth"], win["K"], win["R_T_cam"], pool=1)
-            fg = win["fg"]
-        else:
-            rgb_t, depth_t = batch["rgb"][:, n_in:].flatten(0, 1), batch["depth"][:, n_in:].flatten(0, 1)
-            K_t, pose_t = batch["K"][:, n_in:].flatten(0, 1), batch["R_T_cam"][:, n_in:].flatten(0, 1)
-            H, W = rgb_t.shape[-2:]
-            pred = self.predict_view(feats_t, K_t, pose_t, (H, W))  # [B*T, 3, H/2, W/2]
-            target = F.avg_pool2d(rgb_t, 2) - 0.5
-            valid = self.target_valid(depth_t, K_t, pose_t)
-            fg = self.target_foreground(batch, n_in) if balanced or foreground else None
+        pred = self.predict_view(feats_t, K_t, pose_t, (H, W))  # [B*T, 3, H/2, W/2]
+        target = F.avg_pool2d(rgb_t, 2) - 0.5
+        valid = self.target_valid(depth_t, K_t, pose_t)
         occ, free = self.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
         l1 = masked_l1(pred, target, valid)
+        balanced = st["rgb_loss"] == "balanced"
+        fg = self.target_foreground(batch, n_in) if balanced or foreground else None
         rgb_loss = balanced_l1(pred, target, valid, fg) if balanced else l1
         occ_loss = balanced_occupancy_loss(occ_logits, occ, free)
         loss = st["rgb_weight"] * rgb_loss + st["occ_weight"] * occ_loss
@@ -286,14 +223,9 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             budget it lost 0.05 same-object top-1 and gained 0.01 linear probe (2 seeds, docs/results.md).
         image_every_n_steps: write a PNG of (input, predicted, true target, occupancy slices) this often;
             0 disables.
-        target_region: what a training step predicts of each target view: ``"view"`` (the paper's): the whole
-            view at half resolution; ``"object_window"``: a window of half its side at full resolution around a
-            random pixel above the ground plane (:meth:`object_windows`, label-free), the same number of pixels
-            and decoder cost with objects twice as large, as a closer camera would see them. A departure from the
-            paper; validation and test always predict the whole view, so their L1 stays comparable.
 
     Convention: frame R metres, z up; RGB in [0, 1] (the decoder predicts ``rgb - 0.5``); images at half
-    the input resolution (``target_region="object_window"``: windows at full resolution in training).
+    the input resolution.
     """
 
     def __init__(
@@ -311,13 +243,10 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         image_every_n_steps: int = 200,
         rgb_loss: Literal["balanced", "plain"] = "balanced",
         ground_margin: float = 0.02,
-        target_region: Literal["view", "object_window"] = "view",
-        **kwargs: Any,
+            **kwargs: Any,
     ) -> None:
         if rgb_loss not in ("balanced", "plain"):
             raise ValueError(f"rgb_loss: expected 'balanced' or 'plain', got {rgb_loss!r}")
-        if target_region not in ("view", "object_window"):
-            raise ValueError(f"target_region: expected 'view' or 'object_window', got {target_region!r}")
         if lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule: expected 'constant' or 'cosine', got {lr_schedule!r}")
         if not ground_margin >= 0:
@@ -354,12 +283,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         out = self(batch)
         n_in = self._num_inputs(batch)
         T = batch["rgb"].shape[1] - n_in
-        windows = None
-        if self.training and self.hparams.target_region == "object_window":
-            # the windows of a step are a function of the step (a resumed or repeated run draws the same ones)
-            windows = torch.Generator().manual_seed(int(self.global_step))
-        r = self.view_prediction_loss(out["features"], out["occ_logits"], batch, n_in, foreground=not self.training,
-                                      windows=windows)
+        r = self.view_prediction_loss(out["features"], out["occ_logits"], batch, n_in, foreground=not self.training)
         pred, target, valid, fg, occ, free = r["pred"], r["target"], r["valid"], r["fg"], r["occ"], r["free"]
         rgb_t = batch["rgb"][:, n_in:].flatten(0, 1)
         # Baseline: every valid target pixel predicted as the mean colour of the input views' valid pixels.

@@ -10,7 +10,6 @@ import pytest
 import torch
 import torch.nn.functional as F
 from threedq.datamodules.scene_folder import SceneFolderDataModule
-from threedq.geometry import frustum_depth_max
 from threedq.stages.base import EncoderStage, load_encoder_state
 from threedq.stages.viewpred import ViewPrediction
 from threedq.viz.features import view_prediction_figure
@@ -128,79 +127,6 @@ class TestTargetViews:
         assert torch.allclose(one["l1"], two["l1"], atol=1e-6)
         assert torch.allclose(one["l1_mean_colour"], two["l1_mean_colour"], atol=1e-6)
         assert torch.equal(two["pred"][0], two["pred"][1])
-
-
-class TestObjectWindows:
-    """``target_region="object_window"``: a full-resolution window of each target around an above-ground pixel."""
-
-    @pytest.fixture(scope="class")
-    def many(self, tiny_dataset: Path) -> dict[str, torch.Tensor]:
-        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=4, num_input_views=1, num_target_views=2)
-        dm.setup()
-        return next(iter(dm.train_dataloader()))
-
-    def test_window_camera_sees_the_crop_of_the_full_camera(self, many: dict[str, torch.Tensor]) -> None:
-        """The window's camera is the target's at full resolution, cropped: its frustum is the full one's crop."""
-        m = ViewPrediction(**SMALL, target_region="object_window")
-        win = m.object_windows(many, 1, torch.Generator().manual_seed(0))
-        torch.manual_seed(0)
-        N = win["rgb"].shape[0]
-        feats = torch.randn(N, 32, *m.feature_grid.volume_shape)
-        H, W = many["rgb"].shape[-2:]
-        K_full = many["K"][:, 1:].flatten(0, 1)
-        args = (tuple(m.hparams.depth_range), m.hparams.num_planes, m.hparams.pool)
-        full = frustum_depth_max(feats, m.feature_grid, K_full, win["R_T_cam"], (H, W), *args)
-        h, w = H // 2, W // 2
-        part = frustum_depth_max(feats, m.feature_grid, win["K"], win["R_T_cam"], (h, w), *args)
-        for i, (y, x) in enumerate(win["corner"].tolist()):
-            torch.testing.assert_close(part[i], full[i, ..., y:y + h, x:x + w], atol=1e-6, rtol=1e-5)
-
-    def test_windows_are_crops_around_an_object_pixel(self, many: dict[str, torch.Tensor]) -> None:
-        m = ViewPrediction(**SMALL, target_region="object_window")
-        win = m.object_windows(many, 1, torch.Generator().manual_seed(1))
-        H, W = many["rgb"].shape[-2:]
-        h, w = H // 2, W // 2
-        rgb = many["rgb"][:, 1:].flatten(0, 1)
-        fg = m.target_foreground(many, 1)  # half resolution; the windows' at full
-        assert win["rgb"].shape == (8, 3, h, w) and win["fg"].shape == (8, 1, h, w)
-        for i, (y, x) in enumerate(win["corner"].tolist()):
-            assert 0 <= y <= H - h and 0 <= x <= W - w
-            assert torch.equal(win["rgb"][i], rgb[i, :, y:y + h, x:x + w])
-            assert torch.equal(win["depth"][i], many["depth"][:, 1:].flatten(0, 1)[i, y:y + h, x:x + w])
-            if fg[i].sum() > 0:
-                assert win["fg"][i].sum() > 0  # the window holds the drawn object pixel
-        shift = many["K"][:, 1:].flatten(0, 1) - win["K"]
-        assert torch.equal(shift[:, 0, 2], win["corner"][:, 1].float()) and torch.equal(shift[:, 1, 2], win["corner"][:, 0].float())
-        again = m.object_windows(many, 1, torch.Generator().manual_seed(1))
-        assert torch.equal(again["corner"], win["corner"])
-
-    def test_no_object_gives_the_centred_window(self, many: dict[str, torch.Tensor]) -> None:
-        m = ViewPrediction(**SMALL, target_region="object_window", ground_margin=100.0)  # nothing is 100 m above ground
-        win = m.object_windows(many, 1, torch.Generator().manual_seed(0))
-        H, W = many["rgb"].shape[-2:]
-        assert win["fg"].sum() == 0 and (win["corner"] == torch.tensor([H // 4, W // 4])).all()
-
-    def test_training_predicts_windows_evaluation_the_view(self, many: dict[str, torch.Tensor]) -> None:
-        torch.manual_seed(0)
-        m = ViewPrediction(**SMALL, target_region="object_window")
-        ref = ViewPrediction(**SMALL)
-        ref.load_state_dict(m.state_dict())
-        m.eval(), ref.eval()
-        with torch.no_grad():  # evaluation predicts the whole view whatever the training region
-            a, b = m._step(many), ref._step(many)
-        assert torch.equal(a["l1"], b["l1"]) and torch.equal(a["target"], b["target"])
-        m.train()
-        r = m._step(many)
-        H, W = many["rgb"].shape[-2:]
-        win = m.object_windows(many, 1, torch.Generator().manual_seed(0))  # step 0's windows
-        torch.testing.assert_close(r["target"], win["rgb"] - 0.5)
-        assert r["pred"].shape == (8, 3, H // 2, W // 2) and torch.isfinite(r["loss"])
-        r["loss"].backward()
-        assert all(p.grad is not None for p in m.encoder.parameters())
-
-    def test_bad_region(self) -> None:
-        with pytest.raises(ValueError, match="target_region"):
-            ViewPrediction(**SMALL, target_region="crop")
 
 
 class TestEncoderContract:
