@@ -281,6 +281,49 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+CURVE_PANELS = [("cosine/paper", "precision@10, paper protocol"), ("cosine/strict", "precision@10, strict"),
+                ("cosine/top1", "same-object top-1"), ("probe/learned", "linear probe")]
+
+
+def curve_points(rows: list[dict[str, Any]], key: str) -> dict[str, dict[Any, list[tuple[int, float]]]]:
+    """Per recipe and seed, ``(steps, value)`` of ``key`` sorted by steps (trained recipes only: scored
+    checkpoints have no steps)."""
+    out: dict[str, dict[Any, list[tuple[int, float]]]] = {}
+    for r in rows:
+        if r.get("steps") and key in r:
+            out.setdefault(r["variant"], {}).setdefault(r["seed"], []).append((r["steps"], r[key]))
+    return {v: {s: sorted(pts) for s, pts in seeds.items()} for v, seeds in out.items()}
+
+
+def curves_figure(rows: list[dict[str, Any]]) -> Any:
+    """Each recipe's numbers against its training steps, a line per seed, one colour a recipe; the raw crops'
+    number on the same objects dashed grey, the six-number descriptor's dotted."""
+    from threedq.viz.png import new_figure
+
+    panels = [(k, t) for k, t in CURVE_PANELS if any(k in r for r in rows)]
+    fig = new_figure(figsize=(3.3 * len(panels), 3.1), dpi=110)
+    colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]
+    for p, (key, title) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), p + 1)
+        for c, (variant, seeds) in enumerate(curve_points(rows, key).items()):
+            for i, (seed, pts) in enumerate(seeds.items()):
+                ax.plot(*zip(*pts), marker="o", ms=3, lw=1, color=colours[c % len(colours)],
+                        label=variant if i == 0 else None)
+        ref = key.replace("cosine/", "raw/") if key.startswith("cosine/") else "probe/raw"
+        desc = key.replace("cosine/", "descriptor/") if key.startswith("cosine/") else "probe/descriptor"
+        for k, style, label in ((ref, "--", "raw crops"), (desc, ":", "descriptor")):
+            vals = [r[k] for r in rows if k in r and r.get("crop", "hull") == "hull"]
+            if vals:
+                ax.axhline(vals[0], color="grey", ls=style, lw=1, label=label)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("view-prediction steps", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+        if p == 0:
+            ax.legend(fontsize=7)
+    return fig
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--variant", action="append", help="NAME=OVERRIDE[ OVERRIDE...] (repeatable)")
@@ -295,6 +338,8 @@ def main() -> None:
     ap.add_argument("--root", type=Path, default=Path("runs/feature_recipes"))
     ap.add_argument("--out", type=Path, default=Path("runs/feature_recipes/results.jsonl"))
     ap.add_argument("--table_only", action="store_true", help="print the table of --out and stop")
+    ap.add_argument("--png", type=Path, default=None,
+                    help="also draw each recipe's numbers against its steps, a line per seed, into this PNG")
     ap.add_argument("--score", action="append", metavar="NAME=CKPT",
                     help="score an existing encoder checkpoint instead of training (repeatable; any stage's "
                          "checkpoint); with --data_dir any scene folder (threedq data generate / index)")
@@ -333,6 +378,11 @@ def main() -> None:
     print(f"\nmachine: {rows[0]['device'] if rows else cpu_name()}  date: {time.strftime('%Y-%m-%d')}  "
           f"precision@10 of the test split's GT boxes\n")
     print(table(rows))
+    if args.png is not None:
+        from threedq.viz.png import write_png
+
+        write_png(args.png, curves_figure(rows))
+        print(f"wrote {args.png}")
 
 
 if __name__ == "__main__":

@@ -38,6 +38,22 @@ class TestTable:
         assert "| raw crops | 0.300 |" in feature_recipes.table([row])
 
 
+class TestCurves:
+    def test_points_per_recipe_and_seed_sorted_by_steps(self) -> None:
+        rows = [dict(_row("vp", "hull", p, 0.35, seed), steps=n) for seed, n, p in
+                ((0, 3400, 0.55), (0, 1700, 0.50), (1, 1700, 0.48), (1, 3400, 0.52))]
+        rows.append(_row("scored", "hull", 0.6, 0.35))  # a scored checkpoint: no steps, no curve
+        pts = feature_recipes.curve_points(rows, "cosine/paper")
+        assert pts == {"vp": {0: [(1700, 0.50), (3400, 0.55)], 1: [(1700, 0.48), (3400, 0.52)]}}
+
+    def test_png(self, tmp_path: Path) -> None:
+        from threedq.viz.png import write_png
+
+        rows = [dict(_row("vp", "hull", 0.4 + 0.01 * n, 0.35, 0), steps=n) for n in (1, 2, 3)]
+        path = write_png(tmp_path / "curves.png", feature_recipes.curves_figure(rows))
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 class TestScoreCheckpoints:
     def test_one_row_per_crop_shape(self, tmp_path: Path, tiny_dataset: Path) -> None:
         from threedq.stages.base import EncoderStage
