@@ -109,27 +109,11 @@ def summary_markdown(arms: dict[str, list[str]], runs: dict[str, list[dict[int, 
 
 def figure(arms: dict[str, list[str]], runs: dict[str, list[dict[int, dict[str, float | None]]]]) -> Any:
     """Per-seed curves of strict and paper precision@10, same-object top-1 and Hungarian accuracy, one colour an arm."""
-    from threedq.viz.png import new_figure
+    from threedq.viz.curves import runs_figure
 
-    panels = METRICS[:4]
-    fig = new_figure(figsize=(3.2 * len(panels), 3.0), dpi=110)
-    colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]
-    for p, (key, name) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), p + 1)
-        for a, (arm, rs) in enumerate(runs.items()):
-            for i, run in enumerate(rs):
-                pts = sorted((r, c[key]) for r, c in run.items() if c.get(key) is not None)
-                if pts:
-                    ax.plot(*zip(*pts), marker="o", ms=3, lw=1, color=colours[a % len(colours)],
-                            label=arm if i == 0 else None)
-        ax.set_xticks(sorted({r for rs in runs.values() for run in rs for r in run}))
-        ax.set_title(name, fontsize=9)
-        ax.set_xlabel("EM round", fontsize=8)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
-        if p == 0:
-            ax.legend(fontsize=7)
-    return fig
+    panels = [(name, {arm: [sorted((r, c[key]) for r, c in run.items() if c.get(key) is not None) for run in rs]
+                      for arm, rs in runs.items()}, []) for key, name in METRICS[:4]]
+    return runs_figure(panels, "EM round", xticks=sorted({r for rs in runs.values() for run in rs for r in run}))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -298,30 +298,21 @@ def curve_points(rows: list[dict[str, Any]], key: str) -> dict[str, dict[Any, li
 def curves_figure(rows: list[dict[str, Any]]) -> Any:
     """Each recipe's numbers against its training steps, a line per seed, one colour a recipe; the raw crops'
     number on the same objects dashed grey, the six-number descriptor's dotted."""
-    from threedq.viz.png import new_figure
+    from threedq.viz.curves import runs_figure
 
-    panels = [(k, t) for k, t in CURVE_PANELS if any(k in r for r in rows)]
-    fig = new_figure(figsize=(3.3 * len(panels), 3.1), dpi=110)
-    colours = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]
-    for p, (key, title) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), p + 1)
-        for c, (variant, seeds) in enumerate(curve_points(rows, key).items()):
-            for i, (seed, pts) in enumerate(seeds.items()):
-                ax.plot(*zip(*pts), marker="o", ms=3, lw=1, color=colours[c % len(colours)],
-                        label=variant if i == 0 else None)
-        ref = key.replace("cosine/", "raw/") if key.startswith("cosine/") else "probe/raw"
-        desc = key.replace("cosine/", "descriptor/") if key.startswith("cosine/") else "probe/descriptor"
-        for k, style, label in ((ref, "--", "raw crops"), (desc, ":", "descriptor")):
-            vals = [r[k] for r in rows if k in r and r.get("crop", "hull") == "hull"]
-            if vals:
-                ax.axhline(vals[0], color="grey", ls=style, lw=1, label=label)
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("view-prediction steps", fontsize=8)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
-        if p == 0:
-            ax.legend(fontsize=7)
-    return fig
+    panels = []
+    for key, title in CURVE_PANELS:
+        if not any(key in r for r in rows):
+            continue
+        metric = key.split("/", 1)[1] if key.startswith("cosine/") else None
+        references = []
+        for source, style, label in (("raw", "--", "raw crops"), ("descriptor", ":", "descriptor")):
+            ref = f"{source}/{metric}" if metric else f"probe/{source}"
+            vals = [r[ref] for r in rows if ref in r and r.get("crop", "hull") == "hull"]
+            references += [(vals[0], style, label)] if vals else []
+        curves = {v: list(seeds.values()) for v, seeds in curve_points(rows, key).items()}
+        panels.append((title, curves, references))
+    return runs_figure(panels, "view-prediction steps")
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from threedq.viz import figure_png, new_figure, rgb_png, write_png
-from threedq.viz.curves import accuracy_vs_k_figure, table3_figure
+from threedq.viz.curves import accuracy_vs_k_figure, runs_figure, table3_figure
 from threedq.viz.detection import aabb_to_boxes7, self_labels_figure, size_band_figure
 from threedq.viz.features import alignment_figure, per_category_figure, retrieval_figure
 
@@ -55,6 +55,16 @@ class TestFigures:
         assert _decode(figure_png(table3_figure(rows))).shape[2] == 3
         curve = {"threedq": {"10": 0.3, "50": 0.4}, "no_rot": {"10": 0.2, "50": 0.35}}
         assert _decode(figure_png(accuracy_vs_k_figure(curve, {"threedq": "3DQ"}, 41))).ndim == 3
+
+    def test_runs_figure_draws_a_line_a_run_and_names_each_group_once(self) -> None:
+        runs = {"a": [[(0, 0.1), (1, 0.2)], [(0, 0.15), (1, 0.25)], []], "b": [[(0, 0.3), (1, 0.3)]]}
+        fig = runs_figure([("p", runs, [(0.05, "--", "raw")]), ("q", {"a": runs["a"]}, [])], "step", xticks=[0, 1])
+        first, second = fig.axes
+        assert len(first.lines) == 4 and len(second.lines) == 2  # 3 drawn runs + 1 reference; the empty run skipped
+        assert [t.get_text() for t in first.get_legend().texts] == ["a", "b", "raw"]
+        assert first.lines[0].get_color() == first.lines[1].get_color() != first.lines[2].get_color()
+        assert list(second.get_xticks()) == [0, 1]
+        assert _decode(figure_png(fig)).ndim == 3
 
     def test_features(self) -> None:
         g = torch.Generator().manual_seed(0)

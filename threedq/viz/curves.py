@@ -4,6 +4,7 @@
 |---|---|---|
 | ``table3.png`` of a ``threedq em`` run | :func:`table3_figure` | ``threedq.pipeline.em`` |
 | ``fig3a_accuracy_vs_k.png`` | :func:`accuracy_vs_k_figure` | ``threedq eval`` (``threedq.pipeline.report``) |
+| runs against rounds or steps, a line per run | :func:`runs_figure` | ``benchmarks/em_seeds.py``, ``benchmarks/feature_recipes.py`` |
 
 Convention: matplotlib pictures are ``Figure`` objects for :func:`~threedq.viz.png.write_png`.
 """
@@ -14,7 +15,7 @@ from typing import Any
 
 from threedq.viz.png import new_figure
 
-__all__ = ["accuracy_vs_k_figure", "table3_figure"]
+__all__ = ["accuracy_vs_k_figure", "runs_figure", "table3_figure"]
 
 
 def table3_figure(rows: list[dict[str, Any]]) -> Any:
@@ -59,4 +60,40 @@ def accuracy_vs_k_figure(curve: dict[str, dict[str, float]], labels: dict[str, s
     ax.set_ylim(0, 1)
     ax.legend(fontsize=7)
     ax.set_title("Unsupervised classification accuracy vs K", fontsize=9)
+    return fig
+
+
+#: one colour a group of runs in :func:`runs_figure`
+GROUP_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+
+
+def runs_figure(panels: list[tuple[str, dict[str, list[list[tuple[float, float]]]], list[tuple[float, str, str]]]],
+                xlabel: str, xticks: list[float] | None = None) -> Any:
+    """Several runs of each group (an arm, a recipe) against a common axis (EM round, training steps), side by side.
+
+    Args:
+        panels: per panel ``(title, curves, references)``: ``curves`` maps a group's name to its runs, each a list of
+            ``(x, y)`` points (an empty run is skipped); one colour a group, one line a run, the group named once in
+            the legend; ``references`` are grey horizontal lines ``(y, linestyle, label)``.
+        xlabel: the x axis' name.
+        xticks: the x axis' ticks (default: matplotlib's).
+    """
+    fig = new_figure(figsize=(3.3 * len(panels), 3.1), dpi=110)
+    for p, (title, curves, references) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), p + 1)
+        for g, (group, runs) in enumerate(curves.items()):
+            drawn = [run for run in runs if run]
+            for i, run in enumerate(drawn):
+                ax.plot(*zip(*run), marker="o", ms=3, lw=1, color=GROUP_COLOURS[g % len(GROUP_COLOURS)],
+                        label=group if i == 0 else None)
+        for y, style, label in references:
+            ax.axhline(y, color="grey", ls=style, lw=1, label=label)
+        if xticks is not None:
+            ax.set_xticks(xticks)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+        if p == 0:
+            ax.legend(fontsize=7)
     return fig
