@@ -21,7 +21,8 @@ of a long run is a run of ``s`` steps):
 
 One JSON line per (recipe, seed, step) is appended to ``--out`` as soon as it is measured (a killed study keeps
 its rows; ``--table_only`` prints the table of an existing file). The table gives, per recipe and step, the
-mean and the range over the seeds. ``--jobs N`` trains N (recipe, seed) pairs at once in subprocesses (on a GPU;
+mean and the range over the seeds; ``--png PATH`` also draws each recipe's numbers against its steps, a line per
+seed (e.g. ``docs/img/feature_recipes_long_cpu.png``). ``--jobs N`` trains N (recipe, seed) pairs at once in subprocesses (on a GPU;
 on a 2-core CPU keep 1: two trainings halve each other's speed and spoil ``s/step``). Run it from a folder holding
 the embedded data (``data/clevr_veggie``, made by ``threedq em`` or ``threedq fit``) or pass ``--data_dir``.
 A ``{seed}`` in a recipe's overrides becomes the run's seed. The mining stage (issue #30's fine-tuning levers)
