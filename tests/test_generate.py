@@ -338,3 +338,46 @@ def test_generate_errors_name_the_argument(kwargs, name, tmp_path):
     with pytest.raises(ValueError, match=name):
         generate_dataset(**args)
     assert not (tmp_path / "index.json").exists()
+
+
+def test_a_spawned_worker_rerunning_an_unguarded_script_says_so_instead_of_waiting(tmp_path):
+    """A script generating at its top level (no ``if __name__ == "__main__":``) is re-run by each "spawn" worker;
+    the worker used to wait forever for the folder lock its own parent holds. It now raises, naming the script."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "unguarded.py"
+    script.write_text("from threedq.data import GeneratorConfig, generate_dataset\n"
+                      "generate_dataset('d', 4, config=GeneratorConfig(image_size=(32, 32), num_views=2), workers=2,"
+                      " progress=False)\n")
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    lines: list[str] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            if not line and proc.poll() is not None:
+                break
+            lines.append(line)
+            if line.startswith("RuntimeError"):
+                break
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the pool restarts its failing workers until the run is stopped
+        proc.wait()
+    said = [x for x in lines if x.startswith("RuntimeError")]
+    assert said, "".join(lines[-20:])
+    assert str(script) in said[0] and 'if __name__ == "__main__":' in said[0] and "d:" in said[0]
+
+
+def test_refuse_in_spawned_main_only_while_a_worker_imports_the_main_script(monkeypatch):
+    import multiprocessing
+
+    from threedq.data.spawn import refuse_in_spawned_main
+
+    refuse_in_spawned_main("data/x", "generating the dataset")  # the main process: nothing to refuse
+    monkeypatch.setattr(multiprocessing.current_process(), "_inheriting", True, raising=False)
+    with pytest.raises(RuntimeError, match=r"data/x: .*generating the dataset.*__main__"):
+        refuse_in_spawned_main("data/x", "generating the dataset")

@@ -28,7 +28,7 @@ from threedq.data.generator_config import GENERATOR_VERSION, GeneratorConfig, _i
 from threedq.data.layout import sample_scene
 from threedq.data.render import Renderer
 from threedq.data.render_scene import make_renderer, render_scene
-from threedq.data.spawn import unspawnable_main
+from threedq.data.spawn import refuse_in_spawned_main, unspawnable_main
 from threedq.data.splits import SPLIT_CODES, SPLITS, derive_test_seed, scene_file, scene_seed_sequence, split_sizes
 from threedq.locks import exclusive
 from threedq.scene import DatasetIndex, SceneValidationError, load_scene, save_index, save_scene
@@ -186,6 +186,7 @@ def generate_dataset(
     split_seed = {"train": int(seed), "val": int(seed), "test": eff_test_seed}
     tasks = [_Task(s, i, split_seed[s]) for s in splits for i in range(sizes[s])]
     # One process generates a folder at a time; another one asking for it waits, then finds its scenes kept.
+    refuse_in_spawned_main(out, "generating the dataset")
     with exclusive(out, what="generating"):
         for s in splits:
             (out / s).mkdir(parents=True, exist_ok=True)

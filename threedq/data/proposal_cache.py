@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from threedq.data.box_files import load_boxes_file_with_params, save_boxes_file
-from threedq.data.spawn import unspawnable_main
+from threedq.data.spawn import refuse_in_spawned_main, unspawnable_main
 from threedq.locks import exclusive
 from threedq.proposals import PROPOSALS_VERSION, Bounds, ProposalParams, propose_boxes
 from threedq.scene import load_index, load_scene
@@ -118,6 +118,7 @@ def propose_dataset(
     if cache_path.exists() and all(f in results for f in files):
         return {f: results[f] for f in files}
     # Another process may be computing the same cache: the first computes, the others wait and read its file.
+    refuse_in_spawned_main(cache_path, "computing the pseudo-boxes")
     with exclusive(cache_path, what="computing proposals into"):
         results = read_cache(warn=True)
         _complete(results, files, data_dir, cache_path, pjson, bounds, params, save_every, progress, workers)
