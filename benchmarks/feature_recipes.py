@@ -271,10 +271,19 @@ def table(rows: list[dict[str, Any]]) -> str:
     refs = [("raw", f"raw crops{'' if s == 'hull' else f', {s} crop'}", s) for s in shapes]
     refs.append(("descriptor", "colour + size descriptor (of the hull crops)", "hull"))
     for key, label, shape in refs:
-        own = [r for r in rows if r.get("crop", "hull") == shape]
-        cells = [_cell([r[f"{key}/{m}"] for r in own if f"{key}/{m}" in r][:1]) for m in ("strict", "paper", "top1")]
-        probe = _cell([r[f"probe/{key}"] for r in own if f"probe/{key}" in r][:1])
-        lines.append(f"| {label} | " + " | ".join(cells) + f" | {probe} |")
+        per_recipe: dict[str, list[str]] = {}  # recipes on other data (e.g. another image size) have own references
+        for name in dict.fromkeys(r["variant"] for r in rows):
+            own = [r for r in rows if r.get("crop", "hull") == shape and r["variant"] == name]
+            cells = [_cell([r[f"{key}/{m}"] for r in own if f"{key}/{m}" in r][:1]) for m in ("strict", "paper", "top1")]
+            per_recipe[name] = [*cells, _cell([r[f"probe/{key}"] for r in own if f"probe/{key}" in r][:1])]
+        groups: dict[tuple[str, ...], list[str]] = {}  # equal references, the recipes that have them
+        for name, cells in per_recipe.items():
+            if cells != ["-"] * 4:
+                groups.setdefault(tuple(cells), []).append(name)
+        if len(groups) <= 1:
+            lines.append(f"| {label} | " + " | ".join(next(iter(groups), ("-",) * 4)) + " |")
+        else:
+            lines += [f"| {label}, rows of {', '.join(names)} | " + " | ".join(c) + " |" for c, names in groups.items()]
     if rows:
         r = rows[0]
         lines.append(f"| perfect features (ceiling) | {r['ceiling/strict']:.3f} | {r['ceiling/paper']:.3f} | 1 | 1 |")
@@ -305,15 +314,33 @@ def curves_figure(rows: list[dict[str, Any]]) -> Any:
     for key, title in CURVE_PANELS:
         if not any(key in r for r in rows):
             continue
-        metric = key.split("/", 1)[1] if key.startswith("cosine/") else None
-        references = []
-        for source, style, label in (("raw", "--", "raw crops"), ("descriptor", ":", "descriptor")):
-            ref = f"{source}/{metric}" if metric else f"probe/{source}"
-            vals = [r[ref] for r in rows if ref in r and r.get("crop", "hull") == "hull"]
-            references += [(vals[0], style, label)] if vals else []
         curves = {v: list(seeds.values()) for v, seeds in curve_points(rows, key).items()}
-        panels.append((title, curves, references))
+        panels.append((title, curves, curve_references(rows, key)))
     return runs_figure(panels, "view-prediction steps")
+
+
+def curve_references(rows: list[dict[str, Any]], key: str) -> list[tuple[float, str, str, str | None]]:
+    """The reference lines of ``key``'s panel: the raw crops (dashed) and the descriptor (dotted) on the same objects,
+    ``(y, linestyle, label, recipe)``: one grey line (recipe None) where every recipe's rows share the value, else
+    a line per value (recipes scored on other data, e.g. another image size), in the recipe's colour where only one
+    recipe has it."""
+    metric = key.split("/", 1)[1] if key.startswith("cosine/") else None
+    references: list[tuple[float, str, str, str | None]] = []
+    for source, style, label in (("raw", "--", "raw crops"), ("descriptor", ":", "descriptor")):
+        ref = f"{source}/{metric}" if metric else f"probe/{source}"
+        first: dict[str, float] = {}
+        for r in rows:
+            if ref in r and r.get("crop", "hull") == "hull":
+                first.setdefault(r["variant"], r[ref])
+        by_value: dict[float, list[str]] = {}
+        for name, y in first.items():
+            by_value.setdefault(y, []).append(name)
+        for y, names in by_value.items():
+            if len(by_value) == 1:
+                references.append((y, style, label, None))
+            else:  # a recipe's own value in its colour; one shared by several recipes grey, naming them
+                references.append((y, style, f"{label} ({', '.join(names)})", names[0] if len(names) == 1 else None))
+    return references
 
 
 def main() -> None:

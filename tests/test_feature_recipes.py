@@ -32,6 +32,15 @@ class TestTable:
         assert any(line.startswith("| raw crops, cube crop | 0.370 | 0.370 |") for line in lines)
         assert sum("descriptor" in line for line in lines) == 1  # of the hull crops only
 
+    def test_recipes_on_other_data_get_their_own_references(self) -> None:
+        """Two recipes scored on two renderings of the same scenes (e.g. 128 and 256 px): a raw crops row each."""
+        rows = [_row("128 px", "hull", 0.50, 0.35, 0), _row("256 px", "hull", 0.52, 0.38, 0)]
+        lines = feature_recipes.table(rows).splitlines()
+        assert any(line.startswith("| raw crops, rows of 128 px | 0.350 |") for line in lines)
+        assert any(line.startswith("| raw crops, rows of 256 px | 0.380 |") for line in lines)
+        assert not any(line.startswith("| raw crops |") for line in lines)
+        assert sum(line.startswith("| colour + size descriptor (of the hull crops) |") for line in lines) == 1  # shared
+
     def test_rows_written_before_the_crop_field_are_hull(self) -> None:
         row = _row("old", "hull", 0.4, 0.3)
         del row["crop"]
@@ -45,6 +54,15 @@ class TestCurves:
         rows.append(_row("scored", "hull", 0.6, 0.35))  # a scored checkpoint: no steps, no curve
         pts = feature_recipes.curve_points(rows, "cosine/paper")
         assert pts == {"vp": {0: [(1700, 0.50), (3400, 0.55)], 1: [(1700, 0.48), (3400, 0.52)]}}
+
+    def test_references_shared_grey_else_one_per_recipe(self) -> None:
+        rows = [dict(_row("a", "hull", 0.5, 0.35, 0), steps=10), dict(_row("b", "hull", 0.5, 0.35, 0), steps=10)]
+        assert feature_recipes.curve_references(rows, "cosine/paper") == [(0.35, "--", "raw crops", None),
+                                                                          (0.3, ":", "descriptor", None)]
+        rows.append(dict(_row("c", "hull", 0.5, 0.35, 0), steps=10))
+        rows[1]["raw/paper"] = 0.38
+        assert feature_recipes.curve_references(rows, "cosine/paper")[:2] == [(0.35, "--", "raw crops (a, c)", None),
+                                                                              (0.38, "--", "raw crops (b)", "b")]
 
     def test_png(self, tmp_path: Path) -> None:
         from threedq.viz.png import write_png

@@ -66,6 +66,14 @@ class TestFigures:
         assert list(second.get_xticks()) == [0, 1]
         assert _decode(figure_png(fig)).ndim == 3
 
+    def test_runs_figure_draws_a_groups_own_reference_in_its_colour(self) -> None:
+        runs = {"a": [[(0, 0.1), (1, 0.2)]], "b": [[(0, 0.3), (1, 0.3)]]}
+        fig = runs_figure([("p", runs, [(0.05, "--", "raw (a)", "a"), (0.07, "--", "raw (b)", "b"),
+                                        (0.01, ":", "floor")])], "step")
+        a, b, ref_a, ref_b, floor = fig.axes[0].lines
+        assert ref_a.get_color() == a.get_color() and ref_b.get_color() == b.get_color() != a.get_color()
+        assert floor.get_color() == "grey" and list(ref_b.get_ydata()) == [0.07, 0.07]
+
     def test_features(self) -> None:
         g = torch.Generator().manual_seed(0)
         test = {"raw": torch.rand(8, 4, 6, 6, 6, generator=g), "labels": torch.tensor([0, 0, 1, 1, 2, 2, 0, 1])}

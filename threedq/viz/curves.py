@@ -67,14 +67,15 @@ def accuracy_vs_k_figure(curve: dict[str, dict[str, float]], labels: dict[str, s
 GROUP_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
 
-def runs_figure(panels: list[tuple[str, dict[str, list[list[tuple[float, float]]]], list[tuple[float, str, str]]]],
+def runs_figure(panels: list[tuple[str, dict[str, list[list[tuple[float, float]]]], list[tuple[Any, ...]]]],
                 xlabel: str, xticks: list[float] | None = None) -> Any:
     """Several runs of each group (an arm, a recipe) against a common axis (EM round, training steps), side by side.
 
     Args:
         panels: per panel ``(title, curves, references)``: ``curves`` maps a group's name to its runs, each a list of
             ``(x, y)`` points (an empty run is skipped); one colour a group, one line a run, the group named once in
-            the legend; ``references`` are grey horizontal lines ``(y, linestyle, label)``.
+            the legend; ``references`` are horizontal lines ``(y, linestyle, label)``, grey, or ``(y, linestyle,
+            label, group)`` in that group's colour.
         xlabel: the x axis' name.
         xticks: the x axis' ticks (default: matplotlib's).
     """
@@ -86,8 +87,11 @@ def runs_figure(panels: list[tuple[str, dict[str, list[list[tuple[float, float]]
             for i, run in enumerate(drawn):
                 ax.plot(*zip(*run), marker="o", ms=3, lw=1, color=GROUP_COLOURS[g % len(GROUP_COLOURS)],
                         label=group if i == 0 else None)
-        for y, style, label in references:
-            ax.axhline(y, color="grey", ls=style, lw=1, label=label)
+        for y, style, label, *group in references:
+            colour = "grey"
+            if group and group[0] in curves:  # a group's own reference, in its colour
+                colour = GROUP_COLOURS[list(curves).index(group[0]) % len(GROUP_COLOURS)]
+            ax.axhline(y, color=colour, ls=style, lw=1, label=label)
         if xticks is not None:
             ax.set_xticks(xticks)
         ax.set_title(title, fontsize=9)
