@@ -170,6 +170,25 @@ class TestExclusive:
         assert waiter.returncode == 0, err
         assert out.strip() == "made by the first process"
 
+    def test_before_wait_runs_only_when_another_process_holds_it_and_may_refuse(self, tmp_path: Path) -> None:
+        target = tmp_path / "shared.txt"
+        called: list[str] = []
+        with exclusive(target, what="writing", before_wait=lambda: called.append("free")):
+            pass
+        assert called == []  # nobody held it: nothing to wait for
+
+        def refuse() -> None:
+            called.append("held")
+            raise RuntimeError("would wait forever")
+
+        with Holder(f"exclusive({str(target)!r}, what='writing')"):
+            with pytest.raises(RuntimeError, match="would wait forever"):
+                with exclusive(target, what="reading", before_wait=refuse):
+                    pass
+        assert called == ["held"]
+        with exclusive(target, what="writing"):  # the refused attempt left nothing held
+            pass
+
     def test_holder_killed_does_not_block(self, tmp_path: Path) -> None:
         target = tmp_path / "data"
         with Holder(f"exclusive({str(target)!r}, what='generating')") as other:

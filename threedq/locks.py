@@ -25,7 +25,7 @@ import os
 import socket
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -230,7 +230,8 @@ def _lock_folder(folder: Path, command: str, check_below: bool) -> Path | None:
 
 
 @contextmanager
-def exclusive(path: str | os.PathLike[str], *, what: str, quiet: bool = False) -> Iterator[None]:
+def exclusive(path: str | os.PathLike[str], *, what: str, quiet: bool = False,
+              before_wait: Callable[[], None] | None = None) -> Iterator[None]:
     """Be the only process writing ``path`` until the block ends; wait while another process is.
 
     The lock is :func:`lock_file_for` ``(path)``. Use it around "if ``path`` is not complete, make it": the process
@@ -240,6 +241,7 @@ def exclusive(path: str | os.PathLike[str], *, what: str, quiet: bool = False) -
         path: the shared file or folder.
         what: what this process does to it, for the waiting line of another process (``"generating"``).
         quiet: do not print the line saying whom this process waits for (it goes to stderr).
+        before_wait: called when another process holds the lock, before waiting for it (it may raise instead).
 
     Re-entrant within a process.
     """
@@ -257,6 +259,8 @@ def exclusive(path: str | os.PathLike[str], *, what: str, quiet: bool = False) -
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
+                if before_wait is not None:
+                    before_wait()
                 if not quiet:
                     print(f"[threedq] waiting for {held_by(lock_file)} ({_abs(path)})", file=sys.stderr, flush=True)
                 fcntl.flock(fd, fcntl.LOCK_EX)

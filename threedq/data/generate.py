@@ -186,8 +186,7 @@ def generate_dataset(
     split_seed = {"train": int(seed), "val": int(seed), "test": eff_test_seed}
     tasks = [_Task(s, i, split_seed[s]) for s in splits for i in range(sizes[s])]
     # One process generates a folder at a time; another one asking for it waits, then finds its scenes kept.
-    refuse_in_spawned_main(out, "generating the dataset")
-    with exclusive(out, what="generating"):
+    with exclusive(out, what="generating", before_wait=lambda: refuse_in_spawned_main(out, "generating the dataset")):
         for s in splits:
             (out / s).mkdir(parents=True, exist_ok=True)
             _remove_stale_temporaries(out / s)

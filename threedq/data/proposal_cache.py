@@ -118,8 +118,8 @@ def propose_dataset(
     if cache_path.exists() and all(f in results for f in files):
         return {f: results[f] for f in files}
     # Another process may be computing the same cache: the first computes, the others wait and read its file.
-    refuse_in_spawned_main(cache_path, "computing the pseudo-boxes")
-    with exclusive(cache_path, what="computing proposals into"):
+    with exclusive(cache_path, what="computing proposals into",
+                   before_wait=lambda: refuse_in_spawned_main(cache_path, "computing the pseudo-boxes")):
         results = read_cache(warn=True)
         _complete(results, files, data_dir, cache_path, pjson, bounds, params, save_every, progress, workers)
     return {f: results[f] for f in files}

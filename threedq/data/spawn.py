@@ -21,12 +21,13 @@ def unspawnable_main() -> str | None:
 
 
 def refuse_in_spawned_main(path: str | os.PathLike[str], what: str) -> None:
-    """Raise at once when a "spawn" worker re-running the main script from its top reaches ``what`` of ``path``.
+    """Raise when a "spawn" worker re-running the main script from its top would wait to do ``what`` to ``path``.
 
-    A script that makes data at its top level (no ``if __name__ == "__main__":`` guard) is re-run by each worker
-    of the generator's or the pseudo-boxes' pool; the worker would ask for the lock of the folder its own parent
-    holds and wait for it forever while the parent waits for the worker. Raised instead, naming the script and
-    the fix (the pool starts another worker, which says the same, until the run is stopped).
+    Called before waiting for ``path``'s lock (:func:`threedq.locks.exclusive`'s ``before_wait``). A script that
+    makes data at its top level (no ``if __name__ == "__main__":`` guard) is re-run by each worker of the
+    generator's or the pseudo-boxes' pool; the worker would wait for the lock its own parent holds, forever, while
+    the parent waits for the worker. Raised instead, naming the script and the fix (the pool starts another
+    worker, which says the same, until the run is stopped).
 
     Raises:
         RuntimeError: this process is a "spawn" worker still importing the main script.
