@@ -307,7 +307,7 @@ def curve_points(rows: list[dict[str, Any]], key: str) -> dict[str, dict[Any, li
 
 def curves_figure(rows: list[dict[str, Any]]) -> Any:
     """Each recipe's numbers against its training steps, a line per seed, one colour a recipe; the raw crops'
-    number on the same objects dashed grey, the six-number descriptor's dotted."""
+    number on the same objects dashed, the six-number descriptor's dotted (:func:`curve_references`)."""
     from threedq.viz.curves import runs_figure
 
     panels = []
