@@ -1,10 +1,10 @@
 """The Dockerfile agrees with the README's commands and the package layout.
 
-No container engine runs here, so the image is never built in CI; this parses the Dockerfile instead: the same
-torch pin as the README's two set-up commands and ``.ci/run``, the same extras as the README's test command,
-every folder that ``pyproject.toml`` installs (``threedq/``, and ``stages/``, ``datamodules/``, ``configs/`` mapped
-into the ``threedq`` namespace) copied before the ``pip install``, and the entry point the one ``pyproject.toml``
-declares.
+CI builds no image (``scripts/docker_check.sh`` builds and runs it: a maintainer's check before a release); this
+parses the Dockerfile instead: the same torch pin as the README's two set-up commands and ``.ci/run``, the base image
+and torch index as build arguments, the same extras as the README's test command, every file and folder the wheel is
+built from (``tests/test_packaging.py``'s layout) copied before ``pip wheel``, no package source in the final image
+(the tests there import the installed wheel), and the entry point the one ``pyproject.toml`` declares.
 """
 
 from __future__ import annotations
@@ -85,26 +85,50 @@ class TestDockerfile:
         # and the torch install uses that ARG
         assert any(ins == "RUN" and 'torch==${TORCH_VERSION}' in a for ins, a in docker)
 
+    def test_base_image_and_torch_index_are_build_arguments(self, docker) -> None:
+        args = dict(a.split("=", 1) for ins, a in docker if ins == "ARG" and "=" in a)
+        assert args["BASE_IMAGE"] == "python:3.11-slim"
+        assert args["TORCH_INDEX"] == "https://download.pytorch.org/whl/cpu"
+        froms = [a.split()[0] for ins, a in docker if ins == "FROM"]
+        assert froms and set(froms) == {"${BASE_IMAGE}"}
+        assert any(ins == "RUN" and '--index-url "${TORCH_INDEX}"' in a for ins, a in docker)
+
     def test_same_extras_as_the_test_command(self, docker) -> None:
-        installs = [a for ins, a in docker if ins == "RUN" and "pip install" in a and "torch==" not in a]
+        installs = [a for ins, a in docker if ins == "RUN" and "pip install" in a and "threedq-*.whl" in a]
         assert len(installs) == 1
-        assert extras(installs[0].split("pip install", 1)[1]) == extras(readme_commands()["tests"])
+        spec = re.search(r'"\$\(ls [^)]*threedq-\*\.whl\)(\[[\w,]*\])?"', installs[0])
+        assert spec, installs[0]
+        assert extras("." + (spec.group(1) or "")) == extras(readme_commands()["tests"])
         declared = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"])
         assert extras(readme_commands()["tests"]) <= declared
 
-    def test_installed_folders_copied_before_install(self, docker) -> None:
-        pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
-        setuptools = pyproject["tool"]["setuptools"]
-        needed = {"pyproject.toml", "README.md", "threedq", *setuptools["package-dir"].values()}
-        install_at = next(i for i, (ins, a) in enumerate(docker) if ins == "RUN" and "pip install" in a
-                          and "torch==" not in a)
+    def test_wheel_sources_copied_before_the_wheel_is_built(self, docker) -> None:
+        from test_packaging import BUILD_FILES, LAYOUT
+
+        needed = {*BUILD_FILES, *LAYOUT}
+        build_at = next(i for i, (ins, a) in enumerate(docker) if ins == "RUN" and "pip wheel" in a)
         copied: set[str] = set()
-        for ins, a in docker[:install_at]:
+        for ins, a in docker[:build_at]:
             if ins == "COPY":
                 *sources, _dest = shlex.split(a)
                 copied |= {s.rstrip("/") for s in sources}
         assert needed <= copied, needed - copied
-        assert (ROOT / "configs" / "trainer" / "ddp_cpu.yaml").is_file()  # the configs folder is the one copied
+        from threedq.pipeline.lightning_cli import packaged_configs_dir
+
+        assert (packaged_configs_dir() / "trainer" / "ddp_cpu.yaml").is_file()  # the configs folder is the one copied
+
+    def test_final_image_holds_the_tests_not_the_sources(self, docker) -> None:
+        from test_packaging import LAYOUT
+
+        last_from = max(i for i, (ins, _a) in enumerate(docker) if ins == "FROM")
+        copied = set()
+        for ins, a in docker[last_from:]:
+            if ins == "COPY" and not a.startswith("--from"):
+                *sources, _dest = shlex.split(a)
+                copied |= {s.rstrip("/") for s in sources}
+        assert "tests" in copied and not copied & set(LAYOUT), copied
+        workdirs = [a for ins, a in docker[last_from:] if ins == "WORKDIR"]
+        assert workdirs[-1] == "/work"  # where `pytest` finds the tests and the entry point's runs land
 
     def test_entrypoint_is_the_declared_script(self, docker) -> None:
         scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
