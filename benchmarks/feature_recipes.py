@@ -28,7 +28,8 @@ the embedded data (``data/clevr_veggie``, made by ``threedq em`` or ``threedq fi
 A ``{seed}`` in a recipe's overrides becomes the run's seed. The mining stage (issue #30's fine-tuning levers)
 is a recipe too: ``--variant "mined=--config stages/mining.yaml --model.init_args.encoder_ckpt=VP.ckpt
 --model.init_args.seed={seed}"`` fine-tunes a given view-prediction encoder per seed (its steps count from 0).
-``--score NAME=CKPT`` scores existing checkpoints the same way instead of training (e.g. the main job's encoders on
+``--data_config data/shapes.yaml`` trains and scores on another dataset (the shape-only data of
+``benchmarks/shape_benchmark.py``). ``--score NAME=CKPT`` scores existing checkpoints the same way instead of training (e.g. the main job's encoders on
 another dataset: ``--data_dir data/shifted --score rgbocc=runs/em/00_viewpred/checkpoints/last.ckpt``).
 ``--crop_shapes hull square cube`` (with ``--score``) scores each checkpoint once per region cut around each box
 (:func:`threedq.geometry.crop_region`: the paper's hull, a horizontal square, a cube), a row each, from one encoding.
@@ -163,7 +164,7 @@ def _device_name(device: Any) -> str:
 
 
 def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], root: Path, out: Path, probe: bool,
-            data_dir: str | None, cluster: bool = False) -> None:
+            data_dir: str | None, cluster: bool = False, data_config: str | None = None) -> None:
     """Train one (recipe, seed) and append a row per evaluation step to ``out``."""
     import lightning as L
 
@@ -176,8 +177,14 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
     overrides = [o.replace("{seed}", str(seed)) for o in overrides]  # e.g. the mining stage's pool seed
     steps = sorted(set(eval_steps))
     extra = [f"--data.init_args.data_dir={data_dir}"] if data_dir else []
+    if data_config:  # another dataset, composed after the stage config as `threedq fit --config` composes it
+        from threedq.pipeline.lightning_cli import resolve_config
+
+        config_args = ["--config", str(config), "--config", str(resolve_config(data_config))]
+    else:
+        config_args = ["--config", str(config)]
     cli = ThreeDQCLI(
-        args=["--config", str(config), f"--seed_everything={seed}", f"--trainer.max_steps={steps[-1]}",
+        args=[*config_args, f"--seed_everything={seed}", f"--trainer.max_steps={steps[-1]}",
               f"--trainer.default_root_dir={root / name.replace(' ', '_') / f'seed{seed}'}", *quiet,
               "--trainer.check_val_every_n_epoch=100000", "--trainer.enable_progress_bar=false",
               "--trainer.enable_checkpointing=false", *extra, *overrides],
@@ -354,6 +361,9 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="(recipe, seed) trainings at once, in subprocesses")
     ap.add_argument("--common", default="", help="overrides added to every recipe, e.g. '--trainer.accelerator=gpu'")
     ap.add_argument("--data_dir", default=None, help="default: the stage config's (data/clevr_veggie)")
+    ap.add_argument("--data_config", default=None,
+                    help="train on another dataset: a data config (a path, or one of the packaged configs/, e.g. "
+                         "data/shapes.yaml), composed after the stage config")
     ap.add_argument("--root", type=Path, default=Path("runs/feature_recipes"))
     ap.add_argument("--out", type=Path, default=Path("runs/feature_recipes/results.jsonl"))
     ap.add_argument("--table_only", action="store_true", help="print the table of --out and stop")
@@ -371,7 +381,7 @@ def main() -> None:
     if args.one:
         name, _, rest = args.one[0].partition("=")
         run_one(name, rest.split() + args.common.split(), int(args.one[1]), args.eval_steps, args.root, args.out,
-                args.probe, args.data_dir, args.cluster)
+                args.probe, args.data_dir, args.cluster, args.data_config)
         return
     if args.score:
         score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster, tuple(args.crop_shapes))
@@ -381,6 +391,7 @@ def main() -> None:
         common += [f"--common={args.common}"] if args.common else []
         common += (["--probe"] if args.probe else []) + (["--cluster"] if args.cluster else [])
         common += ["--data_dir", args.data_dir] if args.data_dir else []
+        common += ["--data_config", args.data_config] if args.data_config else []
         running: list[subprocess.Popen] = []
         for spec, seed in jobs:
             while len(running) >= args.jobs:

@@ -40,6 +40,10 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         num_views: cameras per scene.
         max_objects: objects per scene (also the padding size of samples).
         generator_workers: processes used for generation.
+        categories: category names to draw from (``None``: the embedded data's 41; e.g.
+            :data:`threedq.data.catalog.SHAPE_ONLY_NAMES` or the held-out meshes).
+        color_mode: ``"category"`` (catalogue colours) or ``"random"`` (a random palette colour per instance: the
+            category is the shape alone); see :class:`~threedq.data.generator_config.GeneratorConfig`.
         batch_size, num_workers, num_input_views, num_target_views, seed, boxes, match_iou, max_boxes, train_random_views: as in
             :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
@@ -63,6 +67,8 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         match_iou: float = 0.5,
         max_boxes: int = 8,
         train_random_views: bool = True,
+        categories: list[str] | None = None,
+        color_mode: str = "category",
     ) -> None:
         super().__init__(
             data_dir=data_dir,
@@ -82,7 +88,8 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         self.generator_seed = generator_seed
         self.generator_workers = generator_workers
         self.generator_config = GeneratorConfig(
-            image_size=tuple(image_size), num_views=num_views, max_objects=max_objects
+            image_size=tuple(image_size), num_views=num_views, max_objects=max_objects,
+            categories=None if categories is None else tuple(categories), color_mode=color_mode,
         )
 
     def prepare_data(self) -> None:

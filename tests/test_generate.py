@@ -18,7 +18,15 @@ import pytest
 
 from threedq.boxes import box_corners
 from threedq.data import CATEGORIES, GeneratorConfig, generate_dataset
-from threedq.data.catalog import CATEGORY_NAMES, CLEVR_COLORS, HELD_OUT_CATEGORIES, HELD_OUT_NAMES, category_by_name
+from threedq.data.catalog import (
+    CATEGORY_NAMES,
+    CLEVR_COLORS,
+    HELD_OUT_CATEGORIES,
+    HELD_OUT_NAMES,
+    RANDOM_COLOR_PALETTE,
+    SHAPE_ONLY_NAMES,
+    category_by_name,
+)
 from threedq.data.meshes import category_extents
 from threedq.data.generator_config import GENERATOR_VERSION
 from threedq.data.layout import intrinsics, sample_scene
@@ -123,6 +131,73 @@ def test_sample_scene_layout_invariants():
     a = sample_scene(cfg, scene_seed_sequence(7, "train", 3))
     b = sample_scene(cfg, scene_seed_sequence(7, "train", 3))
     assert np.array_equal(a.boxes, b.boxes) and np.array_equal(a.world_T_cam, b.world_T_cam)
+
+
+class TestRandomColours:
+    """``color_mode="random"``: the shape-only data (a category is a shape; each instance a random palette colour)."""
+
+    def test_shape_only_names(self):
+        assert len(SHAPE_ONLY_NAMES) == len(set(SHAPE_ONLY_NAMES)) == 20
+        assert SHAPE_ONLY_NAMES[:3] == ("cube", "sphere", "cylinder")
+        assert set(SHAPE_ONLY_NAMES[3:]) < set(CATEGORY_NAMES)  # the 17 meshes of the embedded data
+        assert not set(SHAPE_ONLY_NAMES[:3]) & set(CATEGORY_NAMES)  # never drawn by the default
+        assert category_by_name("cube").source == "cube" and category_by_name("cube").symmetry_order == 4
+        assert GeneratorConfig(categories=SHAPE_ONLY_NAMES).symmetry_order[:3] == (4, 0, 0)
+
+    def test_palette_is_not_the_catalogue_colours(self):
+        pal = np.array(RANDOM_COLOR_PALETTE)
+        cat = np.array([c.color for c in CATEGORIES + HELD_OUT_CATEGORIES])
+        assert len(pal) >= 12 and np.all((pal >= 0) & (pal <= 1))
+        assert np.linalg.norm(pal[:, None] - cat[None], axis=-1).min() > 0.05
+
+    def test_same_layout_as_category_colours_and_colours_from_the_palette(self):
+        cat_cfg = GeneratorConfig(categories=SHAPE_ONLY_NAMES)
+        rnd_cfg = GeneratorConfig(categories=SHAPE_ONLY_NAMES, color_mode="random")
+        per_category: dict[int, set] = {}
+        for i in range(60):
+            a = sample_scene(cat_cfg, scene_seed_sequence(3, "train", i))
+            b = sample_scene(rnd_cfg, scene_seed_sequence(3, "train", i))
+            assert np.array_equal(a.boxes, b.boxes) and np.array_equal(a.categories, b.categories)
+            assert np.array_equal(a.world_T_cam, b.world_T_cam) and a.lighting == b.lighting
+            assert all(o.color is None for o in a.objects)
+            for o in b.objects:
+                assert o.color in RANDOM_COLOR_PALETTE
+                per_category.setdefault(o.category, set()).add(o.color)
+            again = sample_scene(rnd_cfg, scene_seed_sequence(3, "train", i))
+            assert [o.color for o in again.objects] == [o.color for o in b.objects]  # reproducible
+        # colour says nothing about the category: each seen category in several colours
+        assert sum(len(c) >= 3 for c in per_category.values()) >= 0.8 * len(per_category)
+
+    def test_hash_of_the_default_is_that_of_datasets_made_before_the_option(self):
+        # the literals: GeneratorConfig().hash() and one with categories/image size, at 0b31d44 (before color_mode)
+        assert GeneratorConfig().hash() == "a7db700431f9dd2dee4fc362273da35fac382326"
+        old = GeneratorConfig(categories=("bowl", "scissors"), image_size=(48, 48))
+        assert old.hash() == "e691e0f4987fb6cc916a1fdcbfdf7061b3e09059"
+        assert GeneratorConfig(color_mode="random").hash() != GeneratorConfig().hash()
+        rnd = GeneratorConfig(categories=SHAPE_ONLY_NAMES, color_mode="random")
+        assert GeneratorConfig.from_dict(rnd.to_dict()) == rnd
+
+    def test_rendered_instances_take_their_own_colour(self, tmp_path):
+        cfg = GeneratorConfig(image_size=(48, 48), num_views=3, min_objects=3, max_objects=3,
+                              categories=("cube", "sphere"), color_mode="random", shadows=False)
+        generate_dataset(tmp_path, 3, seed=1, config=cfg, split_fractions=(1, 0, 0), workers=1, progress=False)
+        for f in load_index(tmp_path).files("train"):
+            rec = load_scene(tmp_path / f)
+            colours = rec.meta["object_colors"]
+            assert len(colours) == len(rec.boxes)
+            for i, c in enumerate(colours):
+                pix = rec.rgb[rec.instance == i + 1].astype(np.float64) / 255.0
+                if len(pix) < 20:
+                    continue
+                # shading scales the albedo: the brightest pixels' chromaticity is the instance's colour's
+                top = pix[np.argsort(pix.sum(1))[-len(pix) // 4:]].mean(0)
+                want = np.asarray(c)
+                if want.sum() > 0.3:
+                    assert np.allclose(top / top.sum(), want / want.sum(), atol=0.06), (f, i, top, want)
+
+    def test_bad_mode_names_the_argument(self):
+        with pytest.raises(ValueError, match="color_mode"):
+            GeneratorConfig(color_mode="rainbow")
 
 
 def test_split_sizes():

@@ -5,6 +5,9 @@ CLEVR's 3 primitive shapes x its 8 colours give 24 categories (``cube_red``, ``s
 (``banana``, ``mug``, ...), standing in for the paper's 17 TurboSquid vegetables. As in the paper,
 every (shape, colour) model is its own category; labels are for evaluation only.
 
+:data:`SHAPE_ONLY_NAMES` are 20 categories told apart by shape alone (the 3 primitives without a colour, and the 17
+meshes): generated with ``color_mode="random"`` every instance takes a random colour of one shared palette.
+
 :data:`HELD_OUT_CATEGORIES` are 8 more scanned YCB meshes that the embedded dataset never draws: name them with
 ``threedq data generate --categories`` to make a dataset of categories no model trained on the embedded data has
 seen (symmetry orders measured as below).
@@ -27,6 +30,8 @@ __all__ = [
     "CATEGORY_NAMES",
     "HELD_OUT_CATEGORIES",
     "HELD_OUT_NAMES",
+    "RANDOM_COLOR_PALETTE",
+    "SHAPE_ONLY_NAMES",
     "CLEVR_COLORS",
     "CLEVR_SHAPES",
     "PRIMITIVE_SOURCES",
@@ -94,6 +99,18 @@ _YCB_HELD_OUT: tuple[tuple[str, tuple[int, int, int], int], ...] = (
 )
 
 
+#: The shared palette of ``color_mode="random"`` (:class:`threedq.data.generator_config.GeneratorConfig`): every
+#: object instance, whatever its category, takes one of these uniformly at random, so colour says nothing about the
+#: category. Twelve hues at two lightness levels plus grey, white and black, chosen to be none of the catalogue's
+#: category colours (sRGB, 8 bits).
+_RANDOM_PALETTE_8BIT: tuple[tuple[int, int, int], ...] = (
+    (200, 60, 60), (120, 30, 30), (220, 140, 50), (145, 95, 45), (210, 200, 70), (110, 110, 30),
+    (90, 180, 80), (30, 95, 40), (70, 170, 190), (20, 80, 110), (100, 110, 220), (45, 45, 130),
+    (170, 90, 200), (90, 40, 110), (220, 120, 170), (120, 50, 80), (128, 128, 128), (230, 230, 225),
+    (15, 15, 20),
+)
+
+
 @dataclass(frozen=True)
 class Category:
     """One object category.
@@ -145,8 +162,23 @@ HELD_OUT_CATEGORIES: tuple[Category, ...] = tuple(
 )
 HELD_OUT_NAMES: tuple[str, ...] = tuple(c.name for c in HELD_OUT_CATEGORIES)
 
-_BY_NAME = {c.name: c for c in CATEGORIES + HELD_OUT_CATEGORIES}
-assert len(CATEGORIES) == 41 and len(_BY_NAME) == 41 + len(HELD_OUT_CATEGORIES), "the catalogue's names must be distinct"
+#: CLEVR's primitives as shapes alone (``cube``, ``sphere``, ``cylinder``), never drawn by the embedded dataset:
+#: with ``color_mode="random"`` they and the 17 meshes make the 20 shape-only categories of
+#: ``configs/data/shapes.yaml`` (their catalogue colour, a neutral grey, is used only in ``color_mode="category"``).
+SHAPE_ONLY_CATEGORIES: tuple[Category, ...] = tuple(
+    Category(shape, shape, _rgb((150, 150, 150)), order) for shape, order in CLEVR_SHAPES
+)
+#: The 20 shape-only category names: the 3 primitives, then the 17 scanned meshes of :data:`CATEGORIES`.
+SHAPE_ONLY_NAMES: tuple[str, ...] = tuple(c.name for c in SHAPE_ONLY_CATEGORIES) + tuple(
+    _ycb_name(src) for src, _rgb8, _order in _YCB
+)
+
+RANDOM_COLOR_PALETTE: tuple[tuple[float, float, float], ...] = tuple(_rgb(c) for c in _RANDOM_PALETTE_8BIT)
+
+_BY_NAME = {c.name: c for c in CATEGORIES + HELD_OUT_CATEGORIES + SHAPE_ONLY_CATEGORIES}
+assert len(CATEGORIES) == 41 and len(_BY_NAME) == 41 + len(HELD_OUT_CATEGORIES) + len(SHAPE_ONLY_CATEGORIES), (
+    "the catalogue's names must be distinct"
+)
 
 
 def category_by_name(name: str) -> Category:
@@ -156,7 +188,8 @@ def category_by_name(name: str) -> Category:
     except KeyError:
         raise ValueError(
             f"categories: unknown category name {name!r}; valid names: {', '.join(CATEGORY_NAMES)}; "
-            f"held out of the embedded set: {', '.join(HELD_OUT_NAMES)}"
+            f"held out of the embedded set: {', '.join(HELD_OUT_NAMES)}; "
+            f"shapes alone: {', '.join(c.name for c in SHAPE_ONLY_CATEGORIES)}"
         ) from None
 
 

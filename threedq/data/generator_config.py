@@ -19,12 +19,14 @@ from typing import Any
 from threedq.data.catalog import CATEGORY_NAMES, category_by_name
 from threedq.data.meshes import DEFAULT_MAX_FACES
 
-__all__ = ["DEFAULT_SCENE_BOUNDS", "GENERATOR_VERSION", "GeneratorConfig"]
+__all__ = ["COLOR_MODES", "DEFAULT_SCENE_BOUNDS", "GENERATOR_VERSION", "GeneratorConfig"]
 
 #: Bump whenever equal arguments would produce different files (resumed runs then regenerate).
 #: 1.1.0: primitives from ``trimesh.creation`` and quadric decimation of the scanned meshes
 #: (:mod:`threedq.data.meshes`) instead of hand-made meshes and vertex clustering.
 GENERATOR_VERSION = "1.1.0"
+#: How objects are coloured (see :class:`GeneratorConfig`).
+COLOR_MODES = ("category", "random")
 DEFAULT_SCENE_BOUNDS: tuple[tuple[float, float, float], tuple[float, float, float]] = (
     (-1.28, -1.28, -0.32),
     (1.28, 1.28, 0.96),
@@ -68,6 +70,10 @@ class GeneratorConfig:
         shadows: render cast shadows.
         ground_size: side of the square ground plane, metres.
         mesh_faces: face budget of the scanned meshes (decimated beyond it; 0 = full 16384-face scans).
+        color_mode: ``"category"`` (each object takes its category's catalogue colour: the embedded data, where a
+            category is a shape and a colour) or ``"random"`` (each instance takes a colour drawn uniformly from
+            :data:`threedq.data.catalog.RANDOM_COLOR_PALETTE`, one palette for every category, so that only the
+            shape tells categories apart; the layout is the one ``"category"`` draws from the same seed).
 
     Convention: metres, degrees, world z up; see :mod:`threedq.data.layout`.
     """
@@ -89,6 +95,7 @@ class GeneratorConfig:
     shadows: bool = True
     ground_size: float = 12.0
     mesh_faces: int = DEFAULT_MAX_FACES
+    color_mode: str = "category"
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -160,6 +167,8 @@ class GeneratorConfig:
         if not _is_int(self.mesh_faces) or self.mesh_faces < 0:
             raise ValueError(f"mesh_faces: expected an int >= 0 (0 = full meshes), got {self.mesh_faces!r}")
         put("mesh_faces", int(self.mesh_faces))
+        if self.color_mode not in COLOR_MODES:
+            raise ValueError(f"color_mode: expected one of {', '.join(COLOR_MODES)}, got {self.color_mode!r}")
         if not isinstance(self.shadows, bool):
             raise ValueError(f"shadows: expected a bool, got {self.shadows!r}")  # noqa: TRY004 - the API promises ValueError naming the argument
         # Every box must fit the bounds whatever is drawn: a normalised mesh has extents <= 1, so its
@@ -191,6 +200,8 @@ class GeneratorConfig:
         d = asdict(self)
         d["categories"] = list(self.category_names)
         d["scene_bounds"] = [list(self.scene_bounds[0]), list(self.scene_bounds[1])]
+        if d["color_mode"] == "category":
+            del d["color_mode"]  # the default is left out, so that the datasets made before the option keep their hash
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod

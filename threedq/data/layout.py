@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from threedq.boxes import box_corners
+from threedq.data.catalog import RANDOM_COLOR_PALETTE
 from threedq.data.generator_config import GENERATOR_VERSION, GeneratorConfig
 from threedq.data.meshes import DEFAULT_MAX_FACES, category_extents
 from threedq.data.render import Lighting
@@ -39,6 +40,7 @@ _LOOK_AT_JITTER = np.array([0.1, 0.1, 0.05])  # ... plus U(-j, j) per axis, per 
 _LIGHT_ELEVATION_DEG = (30.0, 75.0)
 _LIGHT_INTENSITY = (0.6, 1.0)
 _AMBIENT = (0.2, 0.4)
+_COLOR_STREAM = 0xC0102  # spawn-key suffix of the colour stream of color_mode="random"
 
 
 @dataclass
@@ -49,6 +51,7 @@ class SceneObject:
         category: id (position in the config's category list).
         name: category name.
         scale: metres per normalised unit (the object's largest extent).
+        color: this instance's sRGB colour in ``[0, 1]`` (``color_mode="random"``), or ``None``: its category's.
         yaw: radians in ``[0, 2 pi)``, counter-clockwise about +z.
         position: ``[3]`` where the object's bounding-box bottom centre sits (z = 0).
         box: ``[7]`` ``(cx, cy, cz, sx, sy, sz, yaw)``.
@@ -62,6 +65,7 @@ class SceneObject:
     yaw: float
     position: np.ndarray
     box: np.ndarray
+    color: tuple[float, float, float] | None = None  # sRGB in [0, 1]; None = the category's catalogue colour
 
     @property
     def world_T_obj(self) -> np.ndarray:
@@ -149,7 +153,8 @@ def sample_scene(config: GeneratorConfig, seed_sequence: np.random.SeedSequence)
 
     Draw order (part of the format, do not change without bumping :data:`GENERATOR_VERSION`): number of
     objects; per object category, scale, yaw, then placement tries; light; look-at jitter; per ring
-    azimuth offset, per view elevation (uniform in the ring's band) and distance.
+    azimuth offset, per view elevation (uniform in the ring's band) and distance. With ``color_mode="random"`` each
+    object's colour comes from a second stream of the same seed, in object order.
 
     Returns:
         :class:`SceneLayout`; ``meta`` holds ``generator_version`` and ``config_hash``.
@@ -212,5 +217,11 @@ def sample_scene(config: GeneratorConfig, seed_sequence: np.random.SeedSequence)
             poses.append(_look_at(target + dist * d, target))
     world_T_cam = _f32(np.stack(poses))
     K = _f32(np.broadcast_to(intrinsics(config), (config.num_views, 3, 3)).copy())
+    if config.color_mode == "random":
+        # a stream of its own, so that the layout above is the one "category" draws from the same seed
+        colors = np.random.default_rng(np.random.SeedSequence(seed_sequence.entropy,
+                                                              spawn_key=(*seed_sequence.spawn_key, _COLOR_STREAM)))
+        for o in objects:
+            o.color = RANDOM_COLOR_PALETTE[int(colors.integers(len(RANDOM_COLOR_PALETTE)))]
     meta = {"generator_version": GENERATOR_VERSION, "config_hash": config.hash()}
     return SceneLayout(objects, K, world_T_cam, lighting, config.image_size, names, config.mesh_faces, meta)

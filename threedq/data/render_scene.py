@@ -40,7 +40,7 @@ def render_scene(layout: SceneLayout, renderer: Renderer) -> SceneRecord:
         RenderObject(
             key=f"{o.name}/{layout.mesh_faces}",
             mesh=category_mesh(o.name, layout.mesh_faces),
-            color=category_by_name(o.name).color,
+            color=o.color if o.color is not None else category_by_name(o.name).color,
             world_T_obj=o.world_T_obj,
             instance_id=i + 1,
         )
@@ -49,6 +49,9 @@ def render_scene(layout: SceneLayout, renderer: Renderer) -> SceneRecord:
     out = renderer.render(objects, layout.K, layout.world_T_cam, layout.image_size, layout.lighting)
     meta = dict(layout.meta)
     meta["object_names"] = [o.name for o in layout.objects]
+    if any(o.color is not None for o in layout.objects):
+        meta["object_colors"] = [[round(float(c), 6) for c in o.color] if o.color is not None else None
+                                 for o in layout.objects]
     meta["light"] = {
         "direction": [round(float(x), 6) for x in layout.lighting.direction],
         "intensity": round(layout.lighting.intensity, 6),

@@ -69,6 +69,8 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     gen.add_argument("--categories", type=list[str] | None, default=None, help="category names to use (default all 41)")
     # the scene knobs of GeneratorConfig (defaults: the embedded data's), to make data unlike it
     d = GeneratorConfig()
+    gen.add_argument("--color_mode", type=Literal["category", "random"], default="category",
+                     help="'category': catalogue colours; 'random': a random palette colour per instance (shape-only)")
     gen.add_argument("--object_size", type=float, default=d.object_size,
                      help="largest extent of an object before its random scale, metres")
     gen.add_argument("--scale_range", type=tuple[float, float], default=d.scale_range, help="random object scale (low, high)")
@@ -136,6 +138,7 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
                 max_objects=args.max_objects,
                 categories=tuple(args.categories) if args.categories else None,
                 object_size=args.object_size,
+                color_mode=args.color_mode,
                 scale_range=tuple(args.scale_range),
                 placement_radius=args.placement_radius,
                 distance_range=tuple(args.distance_range),

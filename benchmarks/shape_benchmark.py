@@ -1,0 +1,305 @@
+"""Shape-only benchmark: do 3D features hold shape when colour says nothing about the category?
+
+Two datasets of the embedded generator with a random palette colour per instance (``color_mode: random``), made on
+first use (about a minute in all on 2 cores):
+
+* ``configs/data/shapes.yaml``: 20 categories told apart by shape alone (CLEVR's cube, sphere, cylinder and the 17
+  scanned meshes), 420 training / 150 test scenes;
+* ``configs/data/shapes_unseen.yaml``: the 8 held-out meshes, shapes no encoder trained on either dataset has seen,
+  200 test scenes (no training split: its banks are fitted on its own test objects, labels unused).
+
+Each encoder (``--encoder NAME=CKPT``, repeatable; a repeated NAME is another seed of that row) and a randomly
+initialised encoder of the main job's architecture per ``--random_seeds`` is scored on both, on GT boxes, one input
+view per scene, with the measurements of ``threedq eval`` and ``benchmarks/feature_recipes.py``:
+
+* retrieval precision@10 under both protocols (``strict``: leave-one-out over one view; ``paper``: the gallery holds
+  the same objects from a second view, twin counted) and the same-object top-1, with the paper's cosine over the
+  rotation-max search (and the occupancy-weighted cosine);
+* the linear shape probe on voxel-averaged crops (labels train the probe only; shapes set only);
+* the quantizer's rotation-aware K = 50 prototype EM (occupancy-weighted, the quantizer's default): Hungarian and
+  few-shot accuracy, median relative yaw error on the asymmetric categories; and the no-rot-3DQ bank (no rotation
+  search) on the same features;
+
+and once per dataset, the references: the raw ``cat[occ, occ * rgb]`` input crops (retrieval, and a K = 50 bank on
+them), their occupancy channel alone (retrieval), the colour + size descriptor, and point-cloud registration (K = 50, rotation-aware, input occupancy).
+
+One JSON line per (dataset, row, seed) is appended to ``--out`` as soon as it is measured; the markdown table (mean
+and range over seeds) is printed and, with ``--md``, written; ``--table_only`` rebuilds it from ``--out``.
+
+    python benchmarks/shape_benchmark.py --random_seeds 0 1 \\
+        --encoder "view prediction=runs/em/00_viewpred/checkpoints/last.ckpt" \\
+        --encoder "round-4 mining=runs/em/r04_mining/checkpoints/last.ckpt"
+
+Training encoders on the shapes data itself, scored at several steps: ``benchmarks/feature_recipes.py
+--data_config data/shapes.yaml --probe --cluster --eval_steps 100 500 1700``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import cpu_name  # noqa: E402
+
+DATASETS = {"shapes": "data/shapes.yaml", "unseen": "data/shapes_unseen.yaml"}
+K = 50
+OCCUPANCY_FLOOR = 0.2  # the quantizer's default crop weighting (configs/stages/quantizer.yaml)
+EM_SEEDS = (0, 1)
+
+
+def load_datamodule(config: str) -> Any:
+    """The DataModule a data config names (a path, or one inside the packaged ``configs/``), prepared and set up."""
+    import importlib
+
+    import yaml
+
+    from threedq.pipeline.lightning_cli import resolve_config
+
+    path = resolve_config(config)
+    spec = yaml.safe_load(Path(path).read_text())["data"]
+    module, _, cls = spec["class_path"].rpartition(".")
+    dm = getattr(importlib.import_module(module), cls)(**spec.get("init_args", {}))
+    dm.prepare_data()
+    dm.setup("fit")
+    dm.setup("test")
+    return dm
+
+
+def random_stage(seed: int) -> Any:
+    """A view-prediction stage of the main job's architecture (``configs/stages/viewpred.yaml``), randomly
+    initialised with ``seed``."""
+    import torch
+    import yaml
+
+    from threedq.pipeline.lightning_cli import resolve_config
+    from threedq.stages.viewpred import ViewPrediction
+
+    args = yaml.safe_load(Path(resolve_config("stages/viewpred.yaml")).read_text())["model"]["init_args"]
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return ViewPrediction(**args).eval()
+
+
+def object_crops(stage: Any, dm: Any) -> tuple[dict, dict | None]:
+    """(test crops with the paper protocol's gallery, training crops or None) on GT boxes, one input view."""
+    import torch
+
+    from threedq.pipeline.evaluation import collect_object_crops
+    from threedq.pipeline.report import split_loader
+
+    with torch.no_grad():
+        test = collect_object_crops(stage, split_loader(dm, "test", gallery=True), random_encoder_seed=None,
+                                    progress=False, gallery=True)
+        train = (collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None, progress=False)
+                 if dm.index.files("train") else None)
+    return test, train
+
+
+def _bank_metrics(method: str, fit: dict, test: dict, num_classes: int, sym: list[int],
+                  floor: float | None) -> dict[str, float]:
+    """Mean over :data:`EM_SEEDS` of one K-prototype bank's Hungarian / few-shot accuracy and yaw error:
+    ``threedq`` (rotation-aware, 36 yaws), ``no_rot`` (1 yaw) on ``learned`` crops, ``pointcloud`` on ``raw``."""
+    from threedq.pipeline.evaluation import quantization_metrics
+    from threedq.pipeline.report import _assign
+
+    acc: dict[str, list[float]] = {}
+    for seed in EM_SEEDS:
+        proto, angle, a = _assign(method, fit, test, min(K, int(fit["labels"].shape[0])), 36, 10, seed, floor)
+        m = quantization_metrics(proto, angle, a, min(K, int(fit["labels"].shape[0])), test["labels"],
+                                 test["boxes"][:, 6], num_classes, sym, seed=seed)
+        for k in ("hungarian_acc", "fewshot_acc", "yaw_median_deg"):
+            acc.setdefault(k, []).append(m[k])
+    return {k: sum(v) / len(v) for k, v in acc.items()}
+
+
+def _retrieval(test: dict) -> dict[str, float]:
+    from feature_recipes import _score
+
+    out = {}
+    for sim in ("cosine", "occupancy"):
+        out.update(_score(test, sim))
+    return out
+
+
+def score_features(test: dict, train: dict | None, num_classes: int, sym: list[int]) -> dict[str, Any]:
+    """Every number of one row from the ``learned`` crops (and the references' from ``raw``)."""
+    from threedq.pipeline.evaluation import probe_table
+
+    row: dict[str, Any] = _retrieval(test)
+    fit = train if train is not None else test  # the unseen set has no training split: the bank fits its objects
+    if train is not None:
+        acc = probe_table(train, test)["accuracy"]
+        row["probe/learned"], row["probe/raw"] = acc["learned"], acc["raw_rgb_occupancy"]
+    for method in ("threedq", "no_rot"):
+        for k, v in _bank_metrics(method, fit, test, num_classes, sym, OCCUPANCY_FLOOR).items():
+            row[f"{method}/{k}"] = v
+    return row
+
+
+def references(test: dict, train: dict | None, num_classes: int, sym: list[int]) -> dict[str, Any]:
+    """The encoder-free rows: raw crops (retrieval and a K = 50 rotation-aware bank on them), point-cloud
+    registration."""
+    from threedq.pipeline.evaluation import retrieval_table
+
+    fit = train if train is not None else test
+    as_learned = lambda c: {**c, "learned": c["raw"]}  # noqa: E731 - the raw crops scored as features
+    row: dict[str, Any] = {}
+    # the input occupancy alone (channel 0 of the raw crops): what shape the encoder is given, without colour
+    occ = {"learned": test["raw"][:, :1], "gallery_learned": test["gallery_raw"][:, :1], "labels": test["labels"]}
+    p = retrieval_table(occ)[0]["protocols"]
+    row["raw_occupancy/strict"] = p["strict"]["precision_at_k"]["learned"]
+    row["raw_occupancy/paper"] = p["paper"]["precision_at_k"]["learned"]
+    row["raw_occupancy/top1"] = p["paper"]["same_object_top1"]["learned"]
+    for k, v in _bank_metrics("threedq", as_learned(fit), as_learned(test), num_classes, sym, None).items():
+        row[f"raw_bank/{k}"] = v
+    for k, v in _bank_metrics("pointcloud", fit, test, num_classes, sym, None).items():
+        row[f"pointcloud/{k}"] = v
+    return row
+
+
+def _append(out: Path, row: dict[str, Any]) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with out.open("a") as f:
+        f.write(json.dumps(row) + "\n")
+
+
+def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: Path) -> None:
+    import torch
+
+    from threedq.stages.viewpred import ViewPrediction
+
+    machine = {"cpu": cpu_name(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+               "date": time.strftime("%Y-%m-%d")}
+    for ds in datasets:
+        dm = load_datamodule(DATASETS[ds])
+        num_classes, sym = len(dm.index.categories), list(dm.index.symmetry_order)
+        rows: list[tuple[str, int | None, Any]] = [("random encoder", s, lambda s=s: random_stage(s))
+                                                   for s in random_seeds]
+        seen: dict[str, int] = {}
+        for spec in encoders:
+            name, _, ckpt = spec.partition("=")
+            seen[name] = seen.get(name, -1) + 1
+            rows.append((name, seen[name], lambda ckpt=ckpt: ViewPrediction(encoder_ckpt=ckpt).eval()))
+        refs_done = False
+        for name, seed, make in rows:
+            t0 = time.perf_counter()
+            stage = make()
+            test, train = object_crops(stage, dm)
+            row = {"dataset": ds, "row": name, "seed": seed, "objects": int(test["labels"].shape[0]),
+                   **score_features(test, train, num_classes, sym), **machine}
+            row["seconds"] = round(time.perf_counter() - t0, 1)
+            _append(out, row)
+            print(f"{ds} / {name} [{seed}]: strict {row['cosine/strict']:.3f} paper {row['cosine/paper']:.3f} "
+                  f"top-1 {row['cosine/top1']:.3f} Hungarian {row['threedq/hungarian_acc']:.3f} "
+                  f"yaw {row['threedq/yaw_median_deg']:.0f} deg ({row['seconds']:.0f} s)", flush=True)
+            if not refs_done:
+                ref = {"dataset": ds, "row": "references", "seed": None, "objects": int(test["labels"].shape[0]),
+                       **references(test, train, num_classes, sym), **machine}
+                _append(out, ref)
+                print(f"{ds} / references: point-cloud Hungarian {ref['pointcloud/hungarian_acc']:.3f}, raw bank "
+                      f"{ref['raw_bank/hungarian_acc']:.3f}", flush=True)
+                refs_done = True
+            del stage, test, train
+            gc.collect()
+
+
+# ---- the table ------------------------------------------------------------------------------------------------
+COLUMNS = [("cosine/strict", "strict P@10"), ("cosine/paper", "paper P@10"), ("cosine/top1", "same-object top-1"),
+           ("probe/learned", "shape probe"), ("threedq/hungarian_acc", "Hungarian K=50"),
+           ("threedq/fewshot_acc", "few-shot"), ("threedq/yaw_median_deg", "yaw median (deg, asym.)"),
+           ("no_rot/hungarian_acc", "no-rot Hungarian")]
+
+
+def _cell(values: list[float], digits: int = 3) -> str:
+    values = [v for v in values if v is not None and v == v]
+    if not values:
+        return "-"
+    m = sum(values) / len(values)
+    f = f"{{:.{digits}f}}"
+    return f.format(m) + (f" ({f.format(min(values))}-{f.format(max(values))})" if len(values) > 1 else "")
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """Markdown, one table per dataset: the reference rows, then each encoder row (mean and range over seeds)."""
+    lines: list[str] = []
+    for ds in dict.fromkeys(r["dataset"] for r in rows):
+        rs = [r for r in rows if r["dataset"] == ds]
+        feats = [r for r in rs if r["row"] != "references"]
+        refs = [r for r in rs if r["row"] == "references"]
+        if not feats:
+            continue
+        machine = feats[0]
+        lines += [f"### {ds} ({DATASETS.get(ds, ds)}; {feats[0]['objects']} test objects; GT boxes, one input view)",
+                  "", f"{machine['cpu']}, torch {machine['torch']}, {machine['threads']} threads, {machine['date']}. "
+                  "Retrieval: rotation-max search over 36 yaws, cosine; banks: K = 50, 36 yaws, occupancy-weighted "
+                  f"crops (floor {OCCUPANCY_FLOOR}), mean of EM seeds {', '.join(map(str, EM_SEEDS))}.", "",
+                  "| features | " + " | ".join(c for _, c in COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
+        digits = lambda k: 0 if "yaw" in k else 3  # noqa: E731
+        first = {"features": feats[:1], "references": refs[:1]}  # the encoder-free numbers, equal in every row
+        reference_rows = {
+            "raw `cat[occ, occ * rgb]` crops": {
+                "cosine/strict": ("features", "raw/strict"), "cosine/paper": ("features", "raw/paper"),
+                "cosine/top1": ("features", "raw/top1"), "probe/learned": ("features", "probe/raw"),
+                "threedq/hungarian_acc": ("references", "raw_bank/hungarian_acc"),
+                "threedq/fewshot_acc": ("references", "raw_bank/fewshot_acc"),
+                "threedq/yaw_median_deg": ("references", "raw_bank/yaw_median_deg")},
+            "raw occupancy channel alone": {
+                "cosine/strict": ("references", "raw_occupancy/strict"),
+                "cosine/paper": ("references", "raw_occupancy/paper"),
+                "cosine/top1": ("references", "raw_occupancy/top1")},
+            "colour + size descriptor": {
+                "cosine/strict": ("features", "descriptor/strict"), "cosine/paper": ("features", "descriptor/paper"),
+                "cosine/top1": ("features", "descriptor/top1")},
+            "point-cloud registration": {
+                "threedq/hungarian_acc": ("references", "pointcloud/hungarian_acc"),
+                "threedq/fewshot_acc": ("references", "pointcloud/fewshot_acc"),
+                "threedq/yaw_median_deg": ("references", "pointcloud/yaw_median_deg")},
+        }
+        for label, where in reference_rows.items():
+            cells = [_cell([r.get(where[k][1]) for r in first[where[k][0]]], digits(k)) if k in where else "-"
+                     for k, _ in COLUMNS]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        for name in dict.fromkeys(r["row"] for r in feats):
+            group = [r for r in feats if r["row"] == name]
+            label = f"{name} ({len(group)} seed{'s' if len(group) > 1 else ''})"
+            lines.append(f"| {label} | " + " | ".join(_cell([r.get(k) for r in group], digits(k)) for k, _ in COLUMNS)
+                         + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--encoder", action="append", default=[], metavar="NAME=CKPT",
+                    help="a checkpoint to score (repeatable; a repeated NAME is another seed of that row)")
+    ap.add_argument("--random_seeds", type=int, nargs="*", default=[0, 1],
+                    help="randomly initialised encoders of the main job's architecture, one row seed each")
+    ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
+    ap.add_argument("--out", type=Path, default=Path("runs/shape_benchmark/results.jsonl"))
+    ap.add_argument("--md", type=Path, default=None, help="also write the table here")
+    ap.add_argument("--table_only", action="store_true", help="print the table of --out and stop")
+    args = ap.parse_args()
+    for spec in args.encoder:
+        name, sep, ckpt = spec.partition("=")
+        if not sep or not name or not Path(ckpt).is_file():
+            ap.error(f"--encoder {spec!r}: expected NAME=CKPT with an existing checkpoint file")
+    if not args.table_only:
+        run(args.encoder, args.random_seeds, args.datasets, args.out)
+    rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()]
+    md = table(rows)
+    print(md)
+    if args.md:
+        args.md.parent.mkdir(parents=True, exist_ok=True)
+        args.md.write_text(md + "\n")
+
+
+if __name__ == "__main__":
+    main()

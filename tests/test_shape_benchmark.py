@@ -1,0 +1,68 @@
+"""``benchmarks/shape_benchmark.py``: its table from rows, its random encoders, its data configs."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import yaml
+
+from conftest import load_benchmark
+
+sb = load_benchmark("shape_benchmark")
+
+
+def _row(ds: str, name: str, seed: int | None, **values: float) -> dict:
+    return {"dataset": ds, "row": name, "seed": seed, "objects": 10, "cpu": "test cpu", "torch": "x", "threads": 2,
+            "date": "2026-11-29", **values}
+
+
+class TestTable:
+    def test_rows_means_ranges_and_references(self) -> None:
+        rows = [
+            _row("shapes", "random encoder", 0, **{"cosine/strict": 0.2, "raw/strict": 0.5, "descriptor/strict": 0.1,
+                                                   "threedq/yaw_median_deg": 80.0}),
+            _row("shapes", "references", None, **{"pointcloud/hungarian_acc": 0.4, "raw_bank/hungarian_acc": 0.3}),
+            _row("shapes", "random encoder", 1, **{"cosine/strict": 0.4, "raw/strict": 0.5, "descriptor/strict": 0.1,
+                                                   "threedq/yaw_median_deg": 100.0}),
+            _row("shapes", "vp", 0, **{"cosine/strict": 0.7, "threedq/hungarian_acc": float("nan")}),
+        ]
+        md = sb.table(rows)
+        lines = {ln.split(" | ")[0].lstrip("| "): ln.strip("|").split(" | ") for ln in md.splitlines()
+                 if ln.startswith("| ") and not ln.startswith("| features")}
+        col = {name: i + 1 for i, (_, name) in enumerate(sb.COLUMNS)}
+        assert lines["random encoder (2 seeds)"][col["strict P@10"]].strip() == "0.300 (0.200-0.400)"
+        assert lines["random encoder (2 seeds)"][col["yaw median (deg, asym.)"]].strip() == "90 (80-100)"
+        assert lines["vp (1 seed)"][col["strict P@10"]].strip() == "0.700"
+        assert lines["vp (1 seed)"][col["Hungarian K=50"]].strip() == "-"  # NaN is no number
+        assert lines["raw `cat[occ, occ * rgb]` crops"][col["strict P@10"]].strip() == "0.500"
+        assert lines["raw `cat[occ, occ * rgb]` crops"][col["Hungarian K=50"]].strip() == "0.300"
+        assert lines["point-cloud registration"][col["Hungarian K=50"]].strip() == "0.400"
+        assert lines["colour + size descriptor"][col["strict P@10"]].strip() == "0.100"
+        assert "test cpu" in md and "### shapes" in md
+
+    def test_no_feature_rows_no_table(self) -> None:
+        assert sb.table([_row("unseen", "references", None)]) == ""
+
+
+class TestRandomStage:
+    def test_seeded_and_of_the_main_jobs_architecture(self) -> None:
+        a, b, c = sb.random_stage(0), sb.random_stage(0), sb.random_stage(1)
+        wa, wb, wc = (torch.cat([p.flatten() for p in s.encoder.parameters()]) for s in (a, b, c))
+        assert torch.equal(wa, wb) and not torch.equal(wa, wc)
+        from threedq.pipeline.lightning_cli import resolve_config
+
+        cfg = yaml.safe_load(resolve_config("stages/viewpred.yaml").read_text())
+        assert list(a.encoder.channels) == cfg["model"]["init_args"]["encoder_channels"]
+
+
+@pytest.mark.parametrize("name", list(sb.DATASETS))
+def test_data_configs_name_the_shape_only_generator(name: str) -> None:
+    from threedq.data.catalog import HELD_OUT_NAMES, SHAPE_ONLY_NAMES
+    from threedq.pipeline.lightning_cli import resolve_config
+
+    args = yaml.safe_load(resolve_config(sb.DATASETS[name]).read_text())["data"]["init_args"]
+    assert args["color_mode"] == "random"
+    assert tuple(args["categories"]) == (SHAPE_ONLY_NAMES if name == "shapes" else HELD_OUT_NAMES)
+    if name == "unseen":
+        assert not set(args["categories"]) & set(SHAPE_ONLY_NAMES)  # shapes never seen in training
+        assert args["split_fractions"][0] == 0
