@@ -18,10 +18,12 @@ view per scene, with the measurements of ``threedq eval`` and ``benchmarks/featu
 * the linear shape probe on voxel-averaged crops (labels train the probe only; shapes set only);
 * the quantizer's rotation-aware K = 50 prototype EM (occupancy-weighted, the quantizer's default): Hungarian and
   few-shot accuracy, median relative yaw error on the asymmetric categories; and the no-rot-3DQ bank (no rotation
-  search) on the same features;
+  search) on the same features; and the same clusters scored against the instances' colours ("Hungarian vs
+  colour": a bank that groups objects by colour rather than shape scores high there);
 
 and once per dataset, the references: the raw ``cat[occ, occ * rgb]`` input crops (retrieval, and a K = 50 bank on
-them), their occupancy channel alone (retrieval), the colour + size descriptor, and point-cloud registration (K = 50, rotation-aware, input occupancy).
+them), their occupancy channel alone (retrieval), the colour + size descriptor, and point-cloud registration
+(K = 50, rotation-aware, input occupancy).
 
 One JSON line per (dataset, row, seed) is appended to ``--out`` as soon as it is measured; the markdown table (mean
 and range over seeds) is printed and, with ``--md``, written; ``--table_only`` rebuilds it from ``--out``.
@@ -106,18 +108,54 @@ def object_crops(stage: Any, dm: Any) -> tuple[dict, dict | None]:
 def _bank_metrics(method: str, fit: dict, test: dict, num_classes: int, sym: list[int],
                   floor: float | None) -> dict[str, float]:
     """Mean over :data:`EM_SEEDS` of one K-prototype bank's Hungarian / few-shot accuracy and yaw error:
-    ``threedq`` (rotation-aware, 36 yaws), ``no_rot`` (1 yaw) on ``learned`` crops, ``pointcloud`` on ``raw``."""
+    ``threedq`` (rotation-aware, 36 yaws), ``no_rot`` (1 yaw) on ``learned`` crops, ``pointcloud`` on ``raw``.
+    Where ``test`` holds ``colours`` (palette index per object), also ``colour_hungarian_acc``: the same clusters
+    scored against the instances' colours instead of their shapes (a bank that groups by colour scores high)."""
+    from threedq.metrics import cluster_confusion, hungarian_accuracy
     from threedq.pipeline.evaluation import quantization_metrics
     from threedq.pipeline.report import _assign
 
     acc: dict[str, list[float]] = {}
+    k = min(K, int(fit["labels"].shape[0]))
     for seed in EM_SEEDS:
-        proto, angle, a = _assign(method, fit, test, min(K, int(fit["labels"].shape[0])), 36, 10, seed, floor)
-        m = quantization_metrics(proto, angle, a, min(K, int(fit["labels"].shape[0])), test["labels"],
-                                 test["boxes"][:, 6], num_classes, sym, seed=seed)
-        for k in ("hungarian_acc", "fewshot_acc", "yaw_median_deg"):
-            acc.setdefault(k, []).append(m[k])
-    return {k: sum(v) / len(v) for k, v in acc.items()}
+        proto, angle, a = _assign(method, fit, test, k, 36, 10, seed, floor)
+        m = quantization_metrics(proto, angle, a, k, test["labels"], test["boxes"][:, 6], num_classes, sym, seed=seed)
+        if "colours" in test:
+            colours = test["colours"]
+            conf = cluster_confusion(proto, colours, k, int(colours.max()) + 1)
+            m["colour_hungarian_acc"] = float(hungarian_accuracy(conf))
+        for key in ("hungarian_acc", "fewshot_acc", "yaw_median_deg", "colour_hungarian_acc"):
+            if key in m:
+                acc.setdefault(key, []).append(m[key])
+    return {key: sum(v) / len(v) for key, v in acc.items()}
+
+
+def instance_colours(dm: Any, split: str, crops: dict) -> Any:
+    """``[N]`` long: each cropped object's colour as an index into
+    :data:`threedq.data.catalog.RANDOM_COLOR_PALETTE` (``color_mode: random`` data), or None where the scenes record
+    no colours. Objects are matched to their scene's rows by their box."""
+    import numpy as np
+    import torch
+
+    from threedq.data.catalog import RANDOM_COLOR_PALETTE
+    from threedq.scene import load_scene
+
+    palette = np.asarray(RANDOM_COLOR_PALETTE)
+    files = dm.index.files(split)
+    out = torch.full((crops["labels"].shape[0],), -1, dtype=torch.long)
+    records: dict[int, Any] = {}
+    for i, (s, box) in enumerate(zip(crops["scene"].tolist(), crops["boxes"].numpy())):
+        if s not in records:
+            records[s] = load_scene(Path(dm.data_dir) / files[s], validate=False)
+        rec = records[s]
+        colours = rec.meta.get("object_colors")
+        if colours is None:
+            return None
+        row = np.flatnonzero(np.all(np.abs(rec.boxes - box[None]) < 1e-4, axis=1))
+        if len(row) != 1:
+            raise RuntimeError(f"{files[s]}: object {i}'s box matches {len(row)} rows of the scene's boxes")
+        out[i] = int(np.argmin(np.abs(palette - np.asarray(colours[row[0]])[None]).sum(1)))
+    return out
 
 
 def _retrieval(test: dict) -> dict[str, float]:
@@ -193,6 +231,9 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
             t0 = time.perf_counter()
             stage = make()
             test, train = object_crops(stage, dm)
+            colours = instance_colours(dm, "test", test)
+            if colours is not None:
+                test["colours"] = colours
             row = {"dataset": ds, "row": name, "seed": seed, "objects": int(test["labels"].shape[0]),
                    **score_features(test, train, num_classes, sym), **machine}
             row["seconds"] = round(time.perf_counter() - t0, 1)
@@ -215,7 +256,7 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
 COLUMNS = [("cosine/strict", "strict P@10"), ("cosine/paper", "paper P@10"), ("cosine/top1", "same-object top-1"),
            ("probe/learned", "shape probe"), ("threedq/hungarian_acc", "Hungarian K=50"),
            ("threedq/fewshot_acc", "few-shot"), ("threedq/yaw_median_deg", "yaw median (deg, asym.)"),
-           ("no_rot/hungarian_acc", "no-rot Hungarian")]
+           ("no_rot/hungarian_acc", "no-rot Hungarian"), ("threedq/colour_hungarian_acc", "Hungarian vs colour")]
 
 
 def _cell(values: list[float], digits: int = 3) -> str:
@@ -250,7 +291,8 @@ def table(rows: list[dict[str, Any]]) -> str:
                 "cosine/top1": ("features", "raw/top1"), "probe/learned": ("features", "probe/raw"),
                 "threedq/hungarian_acc": ("references", "raw_bank/hungarian_acc"),
                 "threedq/fewshot_acc": ("references", "raw_bank/fewshot_acc"),
-                "threedq/yaw_median_deg": ("references", "raw_bank/yaw_median_deg")},
+                "threedq/yaw_median_deg": ("references", "raw_bank/yaw_median_deg"),
+                "threedq/colour_hungarian_acc": ("references", "raw_bank/colour_hungarian_acc")},
             "raw occupancy channel alone": {
                 "cosine/strict": ("references", "raw_occupancy/strict"),
                 "cosine/paper": ("references", "raw_occupancy/paper"),
@@ -261,7 +303,8 @@ def table(rows: list[dict[str, Any]]) -> str:
             "point-cloud registration": {
                 "threedq/hungarian_acc": ("references", "pointcloud/hungarian_acc"),
                 "threedq/fewshot_acc": ("references", "pointcloud/fewshot_acc"),
-                "threedq/yaw_median_deg": ("references", "pointcloud/yaw_median_deg")},
+                "threedq/yaw_median_deg": ("references", "pointcloud/yaw_median_deg"),
+                "threedq/colour_hungarian_acc": ("references", "pointcloud/colour_hungarian_acc")},
         }
         for label, where in reference_rows.items():
             cells = [_cell([r.get(where[k][1]) for r in first[where[k][0]]], digits(k)) if k in where else "-"

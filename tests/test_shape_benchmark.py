@@ -66,3 +66,46 @@ def test_data_configs_name_the_shape_only_generator(name: str) -> None:
     if name == "unseen":
         assert not set(args["categories"]) & set(SHAPE_ONLY_NAMES)  # shapes never seen in training
         assert args["split_fractions"][0] == 0
+
+
+class TestInstanceColours:
+    def test_each_object_gets_its_own_palette_colour_in_any_order(self, tmp_path) -> None:
+        """The colour of each cropped object, found by its box in its scene (objects given out of order)."""
+        from types import SimpleNamespace
+
+        import numpy as np
+
+        from threedq.data import GeneratorConfig, generate_dataset
+        from threedq.data.catalog import RANDOM_COLOR_PALETTE
+        from threedq.scene import load_index, load_scene
+
+        cfg = GeneratorConfig(image_size=(16, 16), num_views=2, min_objects=2, max_objects=3,
+                              categories=("cube", "mug"), color_mode="random", shadows=False)
+        generate_dataset(tmp_path, 4, seed=2, config=cfg, split_fractions=(0, 0, 1), workers=1, progress=False)
+        index = load_index(tmp_path)
+        dm = SimpleNamespace(index=index, data_dir=str(tmp_path))
+        scenes, boxes, want = [], [], []
+        for s, f in enumerate(index.files("test")):
+            rec = load_scene(tmp_path / f)
+            for j in range(len(rec.boxes)):
+                scenes.append(s)
+                boxes.append(rec.boxes[j])
+                want.append(RANDOM_COLOR_PALETTE.index(tuple(
+                    min(RANDOM_COLOR_PALETTE, key=lambda c: np.abs(np.subtract(c, rec.meta["object_colors"][j])).sum()))))
+        order = torch.randperm(len(scenes), generator=torch.Generator().manual_seed(0))
+        crops = {"scene": torch.tensor(scenes)[order], "boxes": torch.tensor(np.stack(boxes))[order],
+                 "labels": torch.zeros(len(scenes), dtype=torch.long)}
+        got = sb.instance_colours(dm, "test", crops)
+        assert got.tolist() == torch.tensor(want)[order].tolist()
+        assert len(set(want)) > 1
+
+    def test_category_coloured_data_has_none(self, tiny_dataset) -> None:
+        from types import SimpleNamespace
+
+        from threedq.scene import load_index, load_scene
+
+        index = load_index(tiny_dataset)
+        rec = load_scene(tiny_dataset / index.files("test")[0])
+        crops = {"scene": torch.zeros(1, dtype=torch.long), "boxes": torch.tensor(rec.boxes[:1]),
+                 "labels": torch.zeros(1, dtype=torch.long)}
+        assert sb.instance_colours(SimpleNamespace(index=index, data_dir=str(tiny_dataset)), "test", crops) is None
