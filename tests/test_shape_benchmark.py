@@ -109,3 +109,23 @@ class TestInstanceColours:
         crops = {"scene": torch.zeros(1, dtype=torch.long), "boxes": torch.tensor(rec.boxes[:1]),
                  "labels": torch.zeros(1, dtype=torch.long)}
         assert sb.instance_colours(SimpleNamespace(index=index, data_dir=str(tiny_dataset)), "test", crops) is None
+
+
+class TestWithInputOccupancy:
+    def test_cosine_is_the_mean_of_the_parts(self) -> None:
+        g = torch.Generator().manual_seed(0)
+        crops = {"learned": torch.randn(3, 5, 4, 4, 4, generator=g), "raw": torch.rand(3, 4, 4, 4, 4, generator=g),
+                 "gallery_learned": torch.randn(3, 5, 4, 4, 4, generator=g),
+                 "gallery_raw": torch.rand(3, 4, 4, 4, 4, generator=g), "labels": torch.arange(3)}
+        out = sb.with_input_occupancy(crops)
+        assert out["learned"].shape == (3, 6, 4, 4, 4) and out["gallery_learned"].shape == (3, 6, 4, 4, 4)
+        assert out["labels"] is crops["labels"] and torch.equal(out["raw"], crops["raw"])
+        cos = torch.nn.functional.cosine_similarity
+        a, b = out["learned"].flatten(1), out["gallery_learned"].flatten(1)
+        want = 0.5 * (cos(crops["learned"].flatten(1), crops["gallery_learned"].flatten(1))
+                      + cos(crops["raw"][:, :1].flatten(1), crops["gallery_raw"][:, :1].flatten(1)))
+        assert torch.allclose(cos(a, b), want, atol=1e-5)
+
+    def test_an_empty_occupancy_crop_stays_finite(self) -> None:
+        crops = {"learned": torch.randn(1, 2, 2, 2, 2), "raw": torch.zeros(1, 4, 2, 2, 2)}
+        assert torch.isfinite(sb.with_input_occupancy(crops)["learned"]).all()
