@@ -250,11 +250,13 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
             seen[name] = seen.get(name, -1) + 1
             rows.append((name, seen[name], lambda ckpt=ckpt: ViewPrediction(encoder_ckpt=ckpt).eval()))
         refs_done = False
+        colours = None  # the test objects are the same for every row: their colours are read once per dataset
         for name, seed, make in rows:
             t0 = time.perf_counter()
             stage = make()
             test, train = object_crops(stage, dm)
-            colours = instance_colours(dm, "test", test)
+            if colours is None:
+                colours = instance_colours(dm, "test", test)
             if colours is not None:
                 test["colours"] = colours
             row = {"dataset": ds, "row": name, "seed": seed, "objects": int(test["labels"].shape[0]),

@@ -101,7 +101,7 @@ _YCB_HELD_OUT: tuple[tuple[str, tuple[int, int, int], int], ...] = (
 
 #: The shared palette of ``color_mode="random"`` (:class:`threedq.data.generator_config.GeneratorConfig`): every
 #: object instance, whatever its category, takes one of these uniformly at random, so colour says nothing about the
-#: category. Twelve hues at two lightness levels plus grey, white and black, chosen to be none of the catalogue's
+#: category. Eight hues at two lightness levels plus grey, white and black, chosen to be none of the catalogue's
 #: category colours (sRGB, 8 bits).
 _RANDOM_PALETTE_8BIT: tuple[tuple[int, int, int], ...] = (
     (200, 60, 60), (120, 30, 30), (220, 140, 50), (145, 95, 45), (210, 200, 70), (110, 110, 30),
