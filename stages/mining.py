@@ -61,6 +61,8 @@ from torch import Tensor
 from torch.utils.data import default_collate
 
 from threedq.atomic_io import atomic_write_text
+from threedq.box_refinement import observed_boxes
+from threedq.boxes import aabb_iou_3d
 from threedq.contrastive import MomentumContrast, calibrate_context_cosine, mine_correspondences
 from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw
@@ -190,6 +192,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_prediction_weight: ``mined``: weight of the view-prediction loss kept as a regulariser (0: off; see the
             module docstring; needs an ``encoder_ckpt`` that carries the decoder, and ``num_target_views >= 1``).
         pool_batch_size: scenes encoded at once while cutting the pool.
+        pool_min_observed_iou: ``mined``: a box enters the pool only when the geometry of its scene's input views
+            vouches for it: its 3D IoU with one of those views' label-free pseudo-boxes
+            (:func:`~threedq.box_refinement.observed_boxes`, observed surface above the fitted ground, the boxes the
+            detector snaps to) reaches this value. ``None``: every box of the split (the paper's pool, which on
+            detected boxes also holds boxes on empty floor, whose crops are the most alike). Label-free.
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
         symmetry_order: per category, its yaw symmetry order, for the mined pairs' yaw-error diagnostics only (the
@@ -229,6 +236,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_weight: float = 1.0,
         view_prediction_weight: float = 0.0,
         pool_batch_size: int = 4,
+        pool_min_observed_iou: float | None = None,
         seed: int = 0,
         retrieval_k: int = 10,
         symmetry_order: list[int] | None = None,
@@ -262,6 +270,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if query_pool > target_pool:
             raise ValueError(f"query_pool: the queries are the first query_pool of the target_pool crops, so "
                              f"query_pool ({query_pool}) must be <= target_pool ({target_pool})")
+        if pool_min_observed_iou is not None and (isinstance(pool_min_observed_iou, bool) or not isinstance(
+                pool_min_observed_iou, (int, float)) or not 0.0 < pool_min_observed_iou <= 1.0):
+            raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
         if min_cosine is not None and not -1.0 <= min_cosine <= 1.0:
             raise ValueError(f"min_cosine: expected None or a number in [-1, 1], got {min_cosine!r}")
         if not 0.0 < context_quantile < 1.0:
@@ -278,6 +289,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             split: RetrievalPrecisionAtK(k=retrieval_k, num_angles=num_angles) for split in ("val", "test")
         })
         self._pairs: dict[str, Tensor] | None = None
+        self._pool_stats = {"boxes": 0, "vouched": 0}
         self._refreshed_at = -1
         self._vp: dict[str, Any] | None = None  # the regulariser's settings (VIEW_PREDICTION_SETTINGS)
         if view_prediction_weight:
@@ -409,14 +421,36 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                 c = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
                 mask = batch["box_mask"]
                 slot = torch.arange(mask.shape[1], device=self.device)[None].expand_as(mask)[mask]
+                keep = torch.ones_like(slot, dtype=torch.bool)
+                if self.hparams.pool_min_observed_iou is not None:
+                    keep = self._observed_iou(batch) >= self.hparams.pool_min_observed_iou
+                    self._pool_stats["boxes"] += int(keep.numel())
+                    self._pool_stats["vouched"] += int(keep.sum())
                 for k, v in (("features", c["features"]), ("raw", c["raw"]), ("labels", c["labels"]),
                              ("yaw", c["boxes"][:, 6]), ("scene", c["scene"]), ("slot", slot)):
-                    parts[k].append(v)
-                got += int(mask.sum())
+                    parts[k].append(v[keep])
+                got += int(keep.sum())
         finally:
             self.encoder.train(was_training)
         out = {k: torch.cat(v)[:want] for k, v in parts.items()}
         return out
+
+    def _observed_iou(self, batch: dict[str, Any]) -> Tensor:
+        """``[N]`` for the batch's valid boxes (``box_mask`` order): the highest 3D IoU with a label-free pseudo-box
+        of its scene's input views (:func:`~threedq.box_refinement.observed_boxes`, with the feature grid's bounds
+        as the detector uses them, so the detector's refinement has usually cached them); 0 where there is none."""
+        v = self.input_views(batch)
+        fg = self.feature_grid
+        out = []
+        for i in range(batch["box_mask"].shape[0]):
+            boxes = batch["aabb"][i][batch["box_mask"][i]].float().cpu()
+            obs, _ = observed_boxes(batch["depth"][i, :v], batch["K"][i, :v], batch["R_T_cam"][i, :v],
+                                    (fg.bounds_min, fg.bounds_max))
+            if boxes.shape[0] == 0 or obs.shape[0] == 0:
+                out.append(torch.zeros(boxes.shape[0]))
+            else:
+                out.append(aabb_iou_3d(boxes, torch.from_numpy(obs)).amax(dim=1))
+        return torch.cat(out).to(self.device)
 
     def _to_device(self, batch: dict[str, Any]) -> dict[str, Any]:
         return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
@@ -428,6 +462,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         t0 = time.time()
         rank = self.trainer.global_rank if self.trainer is not None else 0
         g = torch.Generator().manual_seed(hp.seed + 1009 * int(self.refreshes) + 7919 * rank)
+        self._pool_stats = {"boxes": 0, "vouched": 0}
         pool = self._cut_pool(self._pool_dataset(), g)
         feats = pool["features"]
         n_t = feats.shape[0]
@@ -482,8 +517,13 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             "same_category": float(same.sum() / labelled.sum()) if labelled.any() else float("nan"),
             # the pairs same_category is measured on: both boxes match a GT object (detected boxes may not)
             "labelled_pairs": int(labelled.sum()),
+            # the pool's boxes that match a GT object (measuring only)
+            "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
         }
+        if hp.pool_min_observed_iou is not None:  # boxes looked at, and those the input views' geometry vouched for
+            info["pool_boxes_seen"] = self._pool_stats["boxes"]
+            info["pool_vouched"] = self._pool_stats["vouched"]
         sym = self._symmetry()
         if sym is not None and same.any():
             s = sym.to(qi.device)[lq.clamp_min(0)]
@@ -510,16 +550,26 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         out = self.run_dir / "mining"
         name = f"refresh_{info['step']:06d}"
         atomic_write_text(out / f"{name}.json", json.dumps(info, indent=1) + "\n")
-        n = min(8, mined["query_index"].numel())
-        if n == 0:
+        P = mined["query_index"].numel()
+        if P == 0:
             return
-        qi, ti, yaw = mined["query_index"][:n], mined["target_index"][:n], mined["yaw"][:n]
+        # the best 6 pairs of the refresh and its worst 4 (the kept pairs are in rank order)
+        pick = torch.cat([torch.arange(min(6, P)), torch.arange(min(max(6, P - 4), P), P)])
+        pick = pick.to(mined["query_index"].device)
+        qi, ti, yaw = mined["query_index"][pick], mined["target_index"][pick], mined["yaw"][pick]
         angle = yaw.to(pool["raw"].dtype) * (2 * math.pi / self.hparams.num_angles)
         aligned = rotate_yaw(pool["raw"][ti], angle)
         lab = pool["labels"]
-        captions = [f"score {float(mined['score'][j]):.2f} yaw {int(yaw[j]) * 360 // self.hparams.num_angles} deg "
-                    f"{'same' if int(lab[qi[j]]) == int(lab[ti[j]]) else 'other'} category" for j in range(n)]
-        img = mined_pairs_figure(pool["raw"][qi], aligned, mined["query_pos"][:n], mined["target_pos_aligned"][:n],
+
+        def verdict(q: int, t: int) -> str:  # GT, for measuring only
+            if q < 0 or t < 0:
+                return "off an object" if (q < 0) != (t < 0) else "off objects"
+            return "same category" if q == t else "other category"
+
+        captions = [f"{'best' if int(j) < 6 else 'worst'} {int(j) + 1}: {float(mined['score'][j]):.2f}, "
+                    f"{int(yaw[n]) * 360 // self.hparams.num_angles} deg, {verdict(int(lab[qi[n]]), int(lab[ti[n]]))}"
+                    for n, j in enumerate(pick.tolist())]  # at most 40 characters (the figure's caption bar)
+        img = mined_pairs_figure(pool["raw"][qi], aligned, mined["query_pos"][pick], mined["target_pos_aligned"][pick],
                                  captions, self.hparams.patch)
         write_png(out / f"{name}.png", img)
 

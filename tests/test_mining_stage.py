@@ -400,3 +400,73 @@ def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatc
     assert got["features"].dtype == torch.float32
     for k in ref:
         assert torch.equal(got[k], ref[k]), k
+
+
+class TestPoolObjectCheck:
+    """``pool_min_observed_iou``: the pool keeps the boxes the input views' label-free pseudo-boxes vouch for."""
+
+    def _stage_and_batch(self, data_dir: Path, **kw: object) -> tuple[Mining, dict[str, torch.Tensor]]:
+        from threedq.datamodules.scene_folder import SceneDataset
+        from threedq.scene import load_index
+
+        torch.manual_seed(0)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=8, **kw).eval()
+        ds = SceneDataset(data_dir, load_index(data_dir), "train", num_input_views=1, num_target_views=0,
+                          random_views=False)
+        j = next(i for i in range(len(ds)) if int(ds[i]["box_mask"].sum()) >= 2)
+        return m, {k: v[None] if isinstance(v, torch.Tensor) else v for k, v in ds[j].items()}
+
+    def test_against_a_naive_loop_and_a_box_on_the_floor(self, tiny_dataset: Path) -> None:
+        from threedq.box_refinement import observed_boxes
+        from threedq.boxes import aabb_iou_3d
+
+        m, batch = self._stage_and_batch(tiny_dataset)
+        fg = m.feature_grid
+        # a 20 cm box standing on the floor in the grid corner farthest from every object
+        lo, hi = torch.tensor(fg.bounds_min), torch.tensor(fg.bounds_max)
+        objs = batch["aabb"][0][batch["box_mask"][0]]
+        corners = [(lo[0] + 0.05, lo[1] + 0.05), (hi[0] - 0.25, lo[1] + 0.05), (lo[0] + 0.05, hi[1] - 0.25),
+                   (hi[0] - 0.25, hi[1] - 0.25)]
+        cands = [torch.tensor([x, y, float(objs[:, 2].min()), x + 0.2, y + 0.2, float(objs[:, 2].min()) + 0.2])
+                 for x, y in corners]
+        floor = max(cands, key=lambda b: -float(aabb_iou_3d(b[None], objs).max()))
+        assert float(aabb_iou_3d(floor[None], objs).max()) == 0.0
+        batch["aabb"] = torch.cat([batch["aabb"], floor[None, None].to(batch["aabb"].dtype)], dim=1)  # a new last slot
+        batch["box_mask"] = torch.cat([batch["box_mask"], torch.ones(1, 1, dtype=torch.bool)], dim=1)
+        got = m._observed_iou(batch)
+        obs, _ = observed_boxes(batch["depth"][0, :1], batch["K"][0, :1], batch["R_T_cam"][0, :1],
+                                (fg.bounds_min, fg.bounds_max))
+        boxes = batch["aabb"][0][batch["box_mask"][0]]
+        assert got.shape == (boxes.shape[0],)
+        for n, b in enumerate(boxes):  # naive: one box at a time, every observed box
+            best = max((float(aabb_iou_3d(b[None].float(), torch.from_numpy(o)[None])[0, 0]) for o in obs), default=0.0)
+            assert abs(float(got[n]) - best) < 1e-6
+        assert float(got[-1]) < 0.1  # the floor box: nothing observed there
+        assert float(got.max()) > 0.5  # some object is seen
+
+    def test_the_pool_keeps_only_vouched_boxes(self, tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        from threedq.datamodules.scene_folder import SceneDataset
+        from threedq.scene import load_index
+
+        index = load_index(tiny_dataset)
+        train = SceneDataset(tiny_dataset, index, "train", num_input_views=1, num_target_views=0, random_views=False)
+        pools = {}
+        for thr in (None, 0.5):
+            torch.manual_seed(0)  # the same encoder
+            m = Mining(grid_resolution=(32, 32, 16), target_pool=1000, query_pool=2, crop_size=8, queue_size=64,
+                       pool_min_observed_iou=thr).eval()
+            monkeypatch.setattr(m, "_train_dataset", lambda: train)
+            m._pool_stats = {"boxes": 0, "vouched": 0}
+            pools[thr] = (m._cut_pool(m._pool_dataset(), torch.Generator().manual_seed(3)), dict(m._pool_stats))
+        (every, _), (vouched, stats) = pools[None], pools[0.5]
+        assert stats["boxes"] == every["scene"].numel() and stats["vouched"] == vouched["scene"].numel()
+        assert 0 < vouched["scene"].numel() <= every["scene"].numel()
+        # the kept boxes are the same boxes with the same crops (keyed by scene and slot)
+        ref = {(int(s), int(t)): n for n, (s, t) in enumerate(zip(every["scene"], every["slot"]))}
+        for n, (s, t) in enumerate(zip(vouched["scene"], vouched["slot"])):
+            assert torch.equal(vouched["features"][n], every["features"][ref[(int(s), int(t))]])
+
+    def test_bad_threshold(self) -> None:
+        for bad in (0.0, 1.5, True, "0.5"):
+            with pytest.raises(ValueError, match="pool_min_observed_iou"):
+                Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_observed_iou=bad)
