@@ -11,7 +11,8 @@ user supplies.
 Object features (paper Sec. 4.3, "average-pool features within the projected (ground-truth) 2D object
 boxes"): the image is resized to ``input_size`` (224 by default, ImageNet's scale), normalised with ImageNet's
 mean and std, run to the last stage (``layer4``, 512 channels, stride 32) and averaged inside each projected
-box with :func:`~threedq.geometry.boxes2d.roi_average_pool`.
+box with :func:`~threedq.geometry.boxes2d.roi_average_pool` (:func:`~threedq.baselines.imagenet.object_features`, shared
+with the MobileNetV2 stand-in of :mod:`threedq.baselines.mobilenet`; re-exported here).
 
 Convention: images ``[B, 3, H, W]`` RGB in [0, 1]; boxes in image pixels (see :mod:`threedq.geometry.boxes2d`).
 """
@@ -21,16 +22,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
-from threedq.errors import InputError
-from threedq.geometry.boxes2d import roi_average_pool
+from threedq.baselines.imagenet import IMAGENET_MEAN, IMAGENET_STD, check_state_dict, object_features, read_state_dict
 
 __all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "RESNET18_PARAMETERS", "ResNet18", "load_resnet18_weights", "object_features"]
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 #: Parameters of torchvision's ``resnet18`` (1000 classes), the figure torchvision's model card gives.
 RESNET18_PARAMETERS = 11_689_512
 
@@ -70,6 +67,11 @@ class ResNet18(nn.Module):
     Convention: torchvision's ``resnet18`` (zero-padded convolutions, max-pool 3x3 stride 2 padding 1).
     """
 
+    #: the backbone as the tables name it, its pooled stage and that stage's channels
+    label = "ImageNet ResNet-18"
+    feature_stage = "layer4"
+    feature_dim = 512
+
     def __init__(self, num_classes: int = 1000) -> None:
         super().__init__()
         self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
@@ -99,61 +101,24 @@ class ResNet18(nn.Module):
         return self.fc(torch.flatten(self.avgpool(self.features(x)), 1))
 
 
-def load_resnet18_weights(path: str | Path, model: ResNet18 | None = None) -> ResNet18:
+def load_resnet18_weights(path: str | Path, model: ResNet18 | None = None,
+                          state: dict[str, Tensor] | None = None) -> ResNet18:
     """A :class:`ResNet18` (eval mode) with the weights of ``path``, a torchvision ``resnet18`` state dict.
 
-    Loaded with ``torch.load(weights_only=True)``; every key and shape must match (a checkpoint dict with a
-    ``state_dict`` entry is accepted too).
+    Loaded with ``torch.load(weights_only=True)`` (:func:`~threedq.baselines.imagenet.read_state_dict`); every key and
+    shape must match (a checkpoint dict with a ``state_dict`` entry is accepted too).
+
+    Args:
+        path: the file.
+        model: load into this network (default: a new :class:`ResNet18`).
+        state: the file's tensors, when the caller has read them already (``path`` is then only named in errors).
 
     Raises:
         InputError: one line naming the file and the first missing / unexpected / mis-shaped key.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"--weights {path}: no such file")
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt or unsafe files
-        first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), type(e).__name__)
-        raise InputError(f"{path}: field '<file>': not a tensor file torch.load(weights_only=True) reads ({first[:160]})") from e
-    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
-        obj = obj["state_dict"]
-    if not isinstance(obj, dict) or not all(isinstance(v, Tensor) for v in obj.values()):
-        raise InputError(f"{path}: field '<file>': expected a state dict of tensors (torchvision resnet18 weights)")
+    obj = read_state_dict(path, "torchvision resnet18 weights") if state is None else state
     model = model or ResNet18()
-    own = model.state_dict()
-    missing = [k for k in own if k not in obj]
-    if missing:
-        raise InputError(f"{path}: field '{missing[0]}': missing ({len(missing)} ResNet-18 key(s) missing; not "
-                         "torchvision resnet18 weights?)")
-    unexpected = [k for k in obj if k not in own]
-    if unexpected:
-        raise InputError(f"{path}: field '{unexpected[0]}': unexpected key ({len(unexpected)} not in ResNet-18)")
-    for k, v in own.items():
-        if obj[k].shape != v.shape:
-            raise InputError(f"{path}: field '{k}': shape {tuple(obj[k].shape)}, ResNet-18 has {tuple(v.shape)}")
+    check_state_dict(path, obj, model.state_dict(), "ResNet-18")
     model.load_state_dict(obj, strict=True)
     return model.eval()
-
-
-@torch.no_grad()
-def object_features(model: ResNet18, rgb: Tensor, boxes2d: Tensor, input_size: int = 224) -> Tensor:
-    """ResNet-18 ``layer4`` features average-pooled inside each box.
-
-    Args:
-        model: the network (used in its current mode; :func:`load_resnet18_weights` returns it in eval mode).
-        rgb: ``[B, 3, H, W]`` in [0, 1].
-        boxes2d: ``[B, M, 4]`` image-pixel boxes of ``rgb`` (``(u0, v0, u1, v1)``).
-        input_size: the image is resized (bilinear) to ``input_size x input_size`` before the network.
-
-    Returns:
-        ``[B, M, 512]`` features.
-
-    Convention: boxes stay in the original image's pixels; the resize is accounted for by
-    :func:`~threedq.geometry.boxes2d.roi_average_pool` (both cover the same continuous image extent).
-    """
-    H, W = rgb.shape[-2:]
-    x = F.interpolate(rgb, size=(input_size, input_size), mode="bilinear", align_corners=False, antialias=True)
-    mean, std = x.new_tensor(IMAGENET_MEAN).view(1, 3, 1, 1), x.new_tensor(IMAGENET_STD).view(1, 3, 1, 1)
-    feats = model.features((x - mean) / std)
-    return roi_average_pool(feats, boxes2d, (H, W))
