@@ -68,7 +68,10 @@ from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
 from threedq.nets import OccupancyHead, ViewDecoder
+from threedq.quantization.prototypes import PrototypeBank, assign_chunked, prototype_crops
 from threedq.stages.base import EncoderStage, SplitEvaluation
+from threedq.stages.checkpoint import checkpoint_hparams, require_stage
+from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 from threedq.stages.viewpred import ViewPredictionObjective, view_prediction_checkpoint
 from threedq.viz.features import mined_pairs_figure
 from threedq.viz.png import write_png
@@ -197,6 +200,16 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             (:func:`~threedq.box_refinement.observed_boxes`, observed surface above the fitted ground, the boxes the
             detector snaps to) reaches this value. ``None``: every box of the split (the paper's pool, which on
             detected boxes also holds boxes on empty floor, whose crops are the most alike). Label-free.
+        bank_ckpt: ``mined``: the prototype bank the pool's encoder was last quantized with (a quantizer
+            checkpoint; ``threedq em`` passes the previous round's, round 1 gets round 0's), for ``verify_by_prototypes``.
+        verify_by_prototypes: ``mined``: keep only mined pairs whose two objects the bank assigns to one prototype
+            at yaws that agree with the pair's mined yaw (within ``prototype_yaw_window`` steps): the quantizer
+            vouches for the pair's category and pose (a departure from the paper, whose pairs are verified by
+            context patches alone). The miner is asked for ``prototype_oversample`` x ``keep`` pairs and the best
+            ``keep`` that pass are kept. Needs ``bank_ckpt``; label-free.
+        prototype_yaw_window: the largest disagreement, in yaw steps, between the mined yaw and the one the two
+            prototype assignments imply.
+        prototype_oversample: see ``verify_by_prototypes``.
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
         symmetry_order: per category, its yaw symmetry order, for the mined pairs' yaw-error diagnostics only (the
@@ -237,6 +250,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_prediction_weight: float = 0.0,
         pool_batch_size: int = 4,
         pool_min_observed_iou: float | None = None,
+        bank_ckpt: str | None = None,
+        verify_by_prototypes: bool = False,
+        prototype_yaw_window: int = 2,
+        prototype_oversample: int = 4,
         seed: int = 0,
         retrieval_k: int = 10,
         symmetry_order: list[int] | None = None,
@@ -273,6 +290,13 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if pool_min_observed_iou is not None and (isinstance(pool_min_observed_iou, bool) or not isinstance(
                 pool_min_observed_iou, (int, float)) or not 0.0 < pool_min_observed_iou <= 1.0):
             raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
+        if verify_by_prototypes and not bank_ckpt:
+            raise ValueError("verify_by_prototypes: the pairs are verified by a prototype bank; no bank_ckpt given "
+                             "(threedq em passes the previous round's)")
+        for name, v, lo in (("prototype_yaw_window", prototype_yaw_window, 0),
+                            ("prototype_oversample", prototype_oversample, 1)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f"{name}: expected an int >= {lo}, got {v!r}")
         if min_cosine is not None and not -1.0 <= min_cosine <= 1.0:
             raise ValueError(f"min_cosine: expected None or a number in [-1, 1], got {min_cosine!r}")
         if not 0.0 < context_quantile < 1.0:
@@ -290,6 +314,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         })
         self._pairs: dict[str, Tensor] | None = None
         self._pool_stats = {"boxes": 0, "vouched": 0}
+        self._candidates = 0
         self._refreshed_at = -1
         self._vp: dict[str, Any] | None = None  # the regulariser's settings (VIEW_PREDICTION_SETTINGS)
         if view_prediction_weight:
@@ -304,8 +329,51 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                 except RuntimeError as e:
                     raise InputError(f"{kwargs['encoder_ckpt']}: field '{name}.*': does not fit this "
                                      f"{name}: {str(e).splitlines()[0]}") from e
+        # the verifying bank is bank_ckpt's, not this stage's state: kept out of the module tree (so out of the
+        # state_dict, the optimizer and device moves; prototype_agreement moves it)
+        self.__dict__["verify_bank"] = None
+        self._bank_floor: float | None = None
+        if verify_by_prototypes:
+            self.__dict__["verify_bank"], self._bank_floor = self._load_bank(bank_ckpt, num_angles, crop_size)
         #: per refresh, the diagnostics written to ``mining/refresh_<step>.json``
         self.mining_history: list[dict[str, Any]] = []
+
+    def _load_bank(self, path: str, num_angles: int, crop_size: int) -> tuple[PrototypeBank, float | None]:
+        """The prototype bank of quantizer checkpoint ``path`` and its crops' occupancy floor (one-line errors
+        naming the file and field)."""
+        require_stage(path, "quantizer", "bank_ckpt", "verify_by_prototypes")
+        hp = checkpoint_hparams(path)
+        for name, want in (("num_angles", num_angles), ("crop_size", crop_size)):
+            if int(hp.get(name, want)) != want:
+                raise InputError(f"{path}: field 'hyper_parameters.{name}': the bank has {hp.get(name)}, the "
+                                 f"mining stage {want}")
+        if (hp.get("crop_shape") or "hull") != "hull":
+            raise InputError(f"{path}: field 'hyper_parameters.crop_shape': the mining pool's crops are 'hull' crops; "
+                             f"the bank's are {hp.get('crop_shape')!r}")
+        bank = PrototypeBank(int(hp["num_prototypes"]), self.feature_dim, crop_size, num_angles)
+        try:
+            load_bank_state(bank, path)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+        if bank.num_active == 0:
+            raise InputError(f"{path}: field 'bank.active': the bank has no prototype")
+        return bank, bank_occupancy_floor(path)
+
+    @torch.no_grad()
+    def prototype_agreement(self, pool: dict[str, Tensor], mined: dict[str, Tensor]) -> Tensor:
+        """``[P]`` bool: the bank puts both objects of each mined pair in one prototype, at yaws whose difference is
+        the pair's mined yaw within ``prototype_yaw_window`` steps.
+
+        Convention: "object o has yaw a" rotates o by ``a`` onto its prototype (the bank's); the mined yaw ``b``
+        rotates the target onto the query; so ``rot(q, a_q) ~ rot(t, a_t)`` gives ``b ~ a_t - a_q`` (mod A).
+        """
+        assert self.verify_bank is not None
+        A = self.hparams.num_angles
+        bank = self.verify_bank.to(pool["features"].device)
+        res = assign_chunked(bank, prototype_crops(pool["features"], pool["raw"], self._bank_floor))
+        qi, ti, b = mined["query_index"], mined["target_index"], mined["yaw"]
+        d = torch.remainder(res.angle[ti] - res.angle[qi] - b, A)
+        return (res.prototype[qi] == res.prototype[ti]) & (torch.minimum(d, A - d) <= self.hparams.prototype_yaw_window)
 
     @property
     def vp_settings(self) -> dict[str, Any]:
@@ -475,11 +543,18 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         min_cos = hp.min_cosine if hp.min_cosine is not None else calibrate_context_cosine(
             feats, pool["scene"], hp.context_quantile, hp.patch, generator=g)
         exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
+        verify = self.verify_bank is not None
         mined = mine_correspondences(
-            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, num_angles=hp.num_angles, exclude=exclude,
-            patch=hp.patch, grid=hp.search_grid, context_distance=hp.context_distance, min_cosine=min_cos,
-            min_score=hp.min_score, yaw_window=hp.yaw_window, rank_by=hp.rank_by,
+            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * (hp.prototype_oversample if verify else 1),
+            num_angles=hp.num_angles, exclude=exclude, patch=hp.patch, grid=hp.search_grid,
+            context_distance=hp.context_distance, min_cosine=min_cos, min_score=hp.min_score,
+            yaw_window=hp.yaw_window, rank_by=hp.rank_by,
         )
+        candidates = int(mined["query_index"].numel())
+        if verify:  # the best keep pairs (rank order kept) the bank agrees with
+            ok = self.prototype_agreement(pool, mined).nonzero().flatten()[: hp.keep]
+            mined = {k: v[ok] if isinstance(v, Tensor) and v.shape[:1] == (candidates,) else v
+                     for k, v in mined.items()}
         qi, ti, yaw = mined["query_index"], mined["target_index"], mined["yaw"]
         P = qi.numel()
         offsets = corner_offsets(hp.corner_offset, hp.patch, device=feats.device)
@@ -500,8 +575,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         }
         self._refreshed_at = self.global_step
         self.refreshes += 1
-        info = self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0)
-        return info
+        self._candidates = candidates
+        return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0)
 
     def _diagnostics(self, pool: dict[str, Tensor], mined: dict[str, Tensor], min_cos: float, n_q: int,
                      seconds: float) -> dict[str, Any]:
@@ -521,6 +596,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
         }
+        if self.verify_bank is not None:  # the pairs mined before the bank's check (prototype_oversample x keep at most)
+            info["prototype_candidates"] = self._candidates
         if hp.pool_min_observed_iou is not None:  # boxes looked at, and those the input views' geometry vouched for
             info["pool_boxes_seen"] = self._pool_stats["boxes"]
             info["pool_vouched"] = self._pool_stats["vouched"]

@@ -155,6 +155,9 @@ class TestEm:
             assert yaml.safe_load((work / stage / "config.yaml").read_text())["trainer"]["precision"] == "32-true"
         mined = work / "r01_mining" / "checkpoints" / "last.ckpt"
         assert summary["mining_results"][0]["checkpoint"] == str(mined)
+        # the bank its encoder was last quantized with (round 0's) is handed on, for verify_by_prototypes
+        mining_args = yaml.safe_load((work / "r01_mining" / "config.yaml").read_text())["model"]["init_args"]
+        assert mining_args["bank_ckpt"] == str(work / "r00_quantizer" / "checkpoints" / "last.ckpt")
         refreshes = summary["mining_results"][0]["refreshes"]
         assert refreshes and refreshes[0]["pairs"] >= 1 and 0 <= refreshes[0]["same_category"] <= 1
         assert 1 <= refreshes[0]["labelled_pairs"] <= refreshes[0]["pairs"]  # GT boxes: every box is on an object

@@ -11,6 +11,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from conftest import tiny_data_yaml
+from threedq.errors import InputError
 from threedq.stages.mining import Mining, corner_keys, corner_offsets, crop_voxels, implied_yaw_error_deg
 from threedq.viz.features import mined_pairs_figure
 
@@ -470,3 +471,65 @@ class TestPoolObjectCheck:
         for bad in (0.0, 1.5, True, "0.5"):
             with pytest.raises(ValueError, match="pool_min_observed_iou"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_observed_iou=bad)
+
+
+class TestPrototypeAgreement:
+    """``verify_by_prototypes``: a mined pair passes when the bank puts both objects in one prototype at yaws that
+    imply the pair's mined yaw (rotated copies of two prototypes by known quarter turns)."""
+
+    A = 4  # quarter turns: exact rotations of a cube crop
+
+    def _bank_file(self, tmp_path: Path, protos: torch.Tensor) -> Path:
+        from threedq.quantization.prototypes import PrototypeBank
+
+        bank = PrototypeBank(3, protos.shape[1], protos.shape[-1], self.A)
+        bank.prototypes[:2] = protos
+        bank.active[:2] = True
+        path = tmp_path / "quantizer.ckpt"
+        torch.save({"state_dict": {f"bank.{k}": v for k, v in bank.state_dict().items()},
+                    "hyper_parameters": {"_class_path": "threedq.stages.quantizer.Quantizer", "num_prototypes": 3,
+                                         "crop_size": protos.shape[-1], "num_angles": self.A,
+                                         "occupancy_floor": None}}, path)
+        return path
+
+    def test_rotated_copies_with_known_angles(self, tmp_path: Path) -> None:
+        from threedq.geometry import rotate_yaw
+
+        torch.manual_seed(0)
+        S, C = 8, 32
+        protos = torch.randn(2, C, S, S, S)
+        path = self._bank_file(tmp_path, protos)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=S, num_angles=self.A, bank_ckpt=str(path),
+                   verify_by_prototypes=True, prototype_yaw_window=0)
+        # pool object n = prototype k_n rotated by -a_n quarter turns, so that rotating it by a_n gives the prototype
+        k = torch.tensor([0, 0, 1, 1, 0])
+        a = torch.tensor([0, 1, 3, 2, 2])
+        feats = torch.stack([rotate_yaw(protos[kk][None], torch.tensor([-2 * math.pi * int(aa) / self.A]))[0]
+                             for kk, aa in zip(k, a)])
+        pool = {"features": feats, "raw": torch.ones(5, 4, S, S, S)}
+        qi = torch.tensor([0, 0, 1, 2, 0, 4])
+        ti = torch.tensor([1, 1, 4, 3, 2, 0])
+        # naive: same prototype, and the target rotated by b lands on the query: b = a_t - a_q (mod A)
+        b = torch.tensor([1, 2, 1, 3, 0, 0])
+        want = [bool(k[q] == k[t]) and int(bb) % self.A == (int(a[t]) - int(a[q])) % self.A for q, t, bb in zip(qi, ti, b)]
+        assert want == [True, False, True, True, False, False]
+        got = m.prototype_agreement(pool, {"query_index": qi, "target_index": ti, "yaw": b})
+        assert got.tolist() == want
+        # a window of one step lets the off-by-one yaw through, never another prototype
+        m.hparams.prototype_yaw_window = 1
+        got = m.prototype_agreement(pool, {"query_index": qi, "target_index": ti, "yaw": b})
+        assert got.tolist() == [True, True, True, True, False, False]
+
+    def test_errors(self, tmp_path: Path) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64, "crop_size": 8, "num_angles": self.A}
+        with pytest.raises(ValueError, match="bank_ckpt"):
+            Mining(verify_by_prototypes=True, **kw)
+        with pytest.raises(InputError, match="no such file"):
+            Mining(verify_by_prototypes=True, bank_ckpt=str(tmp_path / "none.ckpt"), **kw)
+        path = self._bank_file(tmp_path, torch.randn(2, 32, 8, 8, 8))
+        with pytest.raises(InputError, match="num_angles"):
+            Mining(verify_by_prototypes=True, bank_ckpt=str(path), **{**kw, "num_angles": 36})
+        with pytest.raises(ValueError, match="prototype_yaw_window"):
+            Mining(verify_by_prototypes=True, bank_ckpt=str(path), prototype_yaw_window=-1, **kw)
+        # not asked to verify: the bank is not read
+        Mining(bank_ckpt=str(tmp_path / "none.ckpt"), **kw)

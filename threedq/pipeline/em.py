@@ -126,7 +126,7 @@ def _frees_its_stage(fn: Callable[..., Any]) -> Callable[..., Any]:
     garbage only the cyclic collector frees, and it runs on counts of Python objects, not on bytes: a module holding
     large tensors (a self-labelling stage's pool grids, 1.4 GiB on the embedded data) outlived its stage by several
     stages, and a four-round run's memory grew by 1-2 GiB a round (peak 16.3-19.1 GiB where one round needs about
-    10; ``docs/results.md``). Collecting after every stage keeps one stage's memory at a time (plus the crop cache).
+    10; ``docs/studies/budget.md``). Collecting after every stage keeps one stage's memory at a time (plus the crop cache).
     """
 
     @functools.wraps(fn)
@@ -393,7 +393,7 @@ def run_em(
         # every argument the rounds hand a stage is checked against the stage's class now, not when the stage starts
         for cfgs, model_args, data_args in ((d_configs, ("encoder_ckpt",), ()),
                                             (q_configs, ("encoder_ckpt", "init_bank_ckpt"), ("boxes",)),
-                                            (m_configs, ("encoder_ckpt",), ("boxes",)),
+                                            (m_configs, ("encoder_ckpt", "bank_ckpt"), ("boxes",)),
                                             (sl_configs, ("encoder_ckpt", "bank_ckpt", "detector_ckpt"), ())):
             if cfgs:
                 stage_overrides(cfgs, model=dict.fromkeys(model_args), data=dict.fromkeys(data_args))
@@ -443,9 +443,12 @@ def run_em(
         encoder = vp_ckpt
         for r in range(1, rounds + 1):
             if mine:
+                # the bank the encoder was last quantized with (round 1: round 0's), for the mining stage's
+                # verify_by_prototypes (unused when that is off)
+                bank_of_encoder = str(prev_bank if prev_bank is not None else q0.path)
                 m = _fit_stage(f"round {r} mining", m_configs, layout.round(r, "mining"),
-                               stage_overrides(m_configs, model={"encoder_ckpt": encoder}, data=boxes_of_round,
-                                               trainer=mining_trainer), resume,
+                               stage_overrides(m_configs, model={"encoder_ckpt": encoder, "bank_ckpt": bank_of_encoder},
+                                               data=boxes_of_round, trainer=mining_trainer), resume,
                                crop_cache)
                 encoder = m.path
                 mining_results.append(MiningResult(m, _mining_diagnostics(layout.round(r, "mining"))))

@@ -400,7 +400,9 @@ def em_markdown(summary: dict[str, Any]) -> str:
                 pool = f"{f['pool_on_objects']:.2f}" if "pool_on_objects" in f else "-"
                 if "pool_vouched" in f:  # the object check: boxes the input views' geometry vouched for / looked at
                     pool += f" ({f['pool_vouched']} of {f['pool_boxes_seen']} vouched)"
-                lines.append(f"| {i} | {f['refresh']} | {pool} | {f['pairs']} | {f.get('labelled_pairs', '-')} | "
+                pairs = f"{f['pairs']}" + (f" (of {f['prototype_candidates']} mined; the bank agreed)"
+                                           if "prototype_candidates" in f else "")
+                lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {f.get('labelled_pairs', '-')} | "
                              f"{f['same_category']:.3f} | {yaw} | {f['min_cosine']:.3f} | {f['seconds']} |")
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
     table3 = summary.get("table3") or []
