@@ -9,7 +9,7 @@ less tall than ``--flat`` (metres; the detector's ``min_box_height``) found at I
     python benchmarks/observed_boxes_margin.py --data_dir data/shifted
     python benchmarks/observed_boxes_margin.py --data_dir data/clevr_veggie --scenes 120
 
-Results with machine and date: ``docs/results.md``, "Flat objects and the observed boxes' ground margin".
+Results with machine and date: ``docs/studies/detector.md``, "Flat objects and the observed boxes' ground margin".
 """
 
 from __future__ import annotations

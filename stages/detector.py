@@ -182,7 +182,7 @@ class Detector(EncoderStage):
         min_box_height: training boxes less tall than this (metres) give no positive cells and their region is
             ignored: the feature grid cannot tell a 2 cm flat object from the floor under it, and training on them
             as objects teaches the head to fire on floor (measured on such data: precision of the boxes handed on at
-            0.9 0.06 -> 0.47, mAP@0.5 0.109 -> 0.244; docs/results.md).
+            0.9 0.06 -> 0.47, mAP@0.5 0.109 -> 0.244; docs/studies/adaptation.md).
             ``None``: half the feature grid's voxel height (4 cm on the packaged grid); 0: every box counts.
         channels: residual-block width (paper: 32).
         num_blocks: residual blocks (paper: 3).

@@ -102,13 +102,13 @@ class Quantizer(SplitEvaluation, EncoderStage):
         occupancy_floor: a float in [0, 1) (default 0.2): every voxel of a crop is weighted by this floor plus its
             input occupancy dilated over 3^3 voxels (:func:`~threedq.quantization.prototypes.prototype_crops`), so
             the cosine weighs the observed surface over the empty space around it (a departure from the paper;
-            docs/results.md measures both). None: the paper's plain cosine of the whole crop. It is the bank's:
+            docs/studies/quantizer.md measures both). None: the paper's plain cosine of the whole crop. It is the bank's:
             self-labelling and ``threedq parse`` read it from this stage's checkpoint, and a checkpoint loaded
             into this stage brings its own (checkpoints written before the option: None).
         crop_shape: the region cut around each box (:func:`threedq.geometry.crop_region`) before it is resized to
             ``crop_size^3``: ``hull`` (the paper's: the box itself, aspect not kept), ``square`` (a horizontal square
             of the larger horizontal extent: aspect kept in the ground plane) or ``cube`` (a cube of the largest
-            extent: aspect kept; a departure from the paper, docs/results.md measures all three). Like
+            extent: aspect kept; a departure from the paper, docs/studies/quantizer.md measures all three). Like
             ``occupancy_floor`` it is the bank's: self-labelling, ``threedq parse`` and the evaluation cut crops as
             the checkpoint says (checkpoints written before the option: ``hull``).
 

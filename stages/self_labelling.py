@@ -13,7 +13,7 @@ and labelled without annotations:
   box that looks like its surroundings is not salient (floor, background);
 * neither otherwise (ignored). A box above both thresholds is negative (``positive_wins`` turns this round):
   on 200 training scenes of the embedded data, 56% of the boxes above the prototype threshold did not match
-  an object at IoU 0.5; the veto leaves 21% (``docs/results.md``).
+  an object at IoU 0.5; the veto leaves 21% (``docs/studies/detector.md``).
 
 The detector head (encoder frozen) is then fine-tuned on these labels with the loss confined to the union of
 the positive and negative regions (:func:`self_label_targets`): cells of a positive box are positives as in
@@ -21,7 +21,7 @@ the warm start (:func:`~threedq.stages.detector.detection_targets`), cells insid
 every other cell is ignored. Two measured departures, each a switch (off = the paper): positives must overlap a
 label-free pseudo-box and take its box (``snap_to_proposals``), and the shell around each positive box is negative
 (``surround_negatives``). Three more use the label-free pseudo-boxes beside the detections (measured on data
-unlike ours, where the self-labels alone cost a third of the detector's recall: ``docs/results.md``):
+unlike ours, where the self-labels alone cost a third of the detector's recall: ``docs/studies/detector.md``):
 ``proposal_positives`` (on) keeps every pseudo-box of a pool scene a positive, as in the warm start, so the labels
 the prototypes and the center-surround score add are negatives and the positives they vouch for;
 ``spare_proposals`` (on) keeps every cell inside a pseudo-box from being a negative (a negative box or shell
@@ -219,10 +219,10 @@ class SelfLabelling(Detector):
             kept), beside the positives the prototypes vouch for; the detections then add negatives (False, the paper:
             only the detections the prototypes vouch for are positives). With ``spare_proposals``, round 1 on the
             shifted data: test mAP@0.5 0.406 -> 0.511 (the head without fine-tuning: 0.521); on the embedded data
-            0.851 -> 0.854 (docs/results.md).
+            0.851 -> 0.854 (docs/studies/detector.md).
         freeze_encoder: must stay True (the encoder is the round's, frozen).
         lr: Adam learning rate of the head (lower than the warm start's: 1e-3 for 300 steps lowered test mAP@0.5
-            0.626 -> 0.554, docs/results.md).
+            0.626 -> 0.554, docs/studies/detector.md).
         image_every_n_steps: as the detector's (0: no pictures).
         anchor_size, channels, num_blocks, score_threshold, eval_score_threshold, nms_iou, nms_iomin, max_detections,
             refine_iou, flat_boxes: as the :class:`~threedq.stages.detector.Detector`'s; None (the default): the value
@@ -457,7 +457,7 @@ class SelfLabelling(Detector):
             aabb, n = d["boxes"], counts[b]
             proto, cs = proto_all[b], cs_all[b]
             # a box both like a prototype and like its surroundings: the center-surround score decides (measured:
-            # docs/results.md), unless positive_wins
+            # docs/studies/detector.md), unless positive_wins
             neg = cs > self.hparams.negative_threshold  # NaN compares False: never negative
             pos = proto > self.hparams.positive_threshold
             if self.hparams.positive_wins:

@@ -212,7 +212,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             valid pixels of the embedded scenes, so with the plain loss the features learn the ground's colour
             and the objects' silhouettes but hardly their colours: after 600 steps, retrieval precision@10 of
             the learned crops is 0.240 with the plain loss and 0.325 with the balanced one (raw input crops
-            0.333; docs/results.md).
+            0.333; docs/studies/main-job-runs.md).
         ground_margin: a target pixel is foreground when its surface lies more than this many metres above
             the ground plane fitted (RANSAC, label-free) to the depth of the sample's views.
         lr: Adam learning rate (paper: 1e-3).
@@ -220,7 +220,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             half cosine over the run's optimizer steps (``trainer.max_steps``, else its epochs), stepped every
             optimizer step (``torch.optim.lr_scheduler.CosineAnnealingLR``; the trainer's checkpoints carry its
             state, so a resumed fit goes on along the same curve). A departure from the paper: at the main job's
-            budget it lost 0.05 same-object top-1 and gained 0.01 linear probe (2 seeds, docs/results.md).
+            budget it lost 0.05 same-object top-1 and gained 0.01 linear probe (2 seeds, docs/studies/viewpred-recipe.md).
         image_every_n_steps: write a PNG of (input, predicted, true target, occupancy slices) this often;
             0 disables.
 

@@ -9,7 +9,7 @@ again (two detections snapped onto one observed box become one). A detection no 
 regressed box: the detector still finds what the geometry misses (an object the ground-plane split cuts, a
 partly hidden one); the geometry places what the detector finds.
 
-Why (``docs/results.md``, "Where the detector loses IoU 0.5"): where a detector box meets an object, its height and
+Why (``docs/studies/detector.md``, "Where the detector loses IoU 0.5"): where a detector box meets an object, its height and
 centre are the error (|log z ratio| 0.08-0.14, centre 2.7-6.1 cm), which the single-view pseudo-boxes do not make
 (they extend every box to the fitted ground plane: 0.00, 0.7-1.4 cm).
 

@@ -312,7 +312,7 @@ def propose_boxes(
             own thickness in the depth maps, so a clean depth map (a renderer's) keeps objects 1-2 cm tall and a
             noisy sensor's floor stays ground. The observed boxes a detector is refined against use it
             (:data:`threedq.box_refinement.OBSERVED_PARAMS`: single-view pseudo-boxes of the shifted data mAP@0.5
-            0.613 -> 0.744, the embedded data's unchanged; ``docs/results.md``); the training pseudo-boxes keep the
+            0.613 -> 0.744, the embedded data's unchanged; ``docs/studies/detector.md``); the training pseudo-boxes keep the
             fixed 1.5 cm (the detector ignores boxes flatter than its ``min_box_height`` in any case).
         min_ground_margin: the least measured ground margin, metres.
         ransac_iters, ransac_threshold, ransac_sample, max_ground_tilt_deg: ground-plane RANSAC

@@ -268,7 +268,7 @@ def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
     the same object seen at another yaw. ``square`` makes the horizontal extent square (the rotation search turns crops
     about z, so a rotated crop is the same object rotated); ``cube`` makes all three equal. A departure from the paper,
     which crops the hull (``hull``, the default everywhere). (A cube standing on the box's base instead of about its
-    centre was measured and dropped: docs/results.md, "A cube standing on the box's base".)
+    centre was measured and dropped: docs/studies/quantizer.md, "A cube standing on the box's base".)
 
     Args:
         boxes: ``[..., 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
