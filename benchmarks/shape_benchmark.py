@@ -28,6 +28,13 @@ them), their occupancy channel alone (retrieval), the colour + size descriptor, 
 ``--input_occupancy`` adds a row per encoder row with the input occupancy skipped into its crops
 (:func:`with_input_occupancy`: the learned crop and the occupancy crop at equal weight; a departure from the paper).
 
+``--weights FILE`` adds the paper's 2D ImageNet row once per dataset (:func:`imagenet_row`): a torchvision ResNet-18
+file, or the ImageNet MobileNetV2 stand-in (``docs/studies/imagenet.md``), its last stage average-pooled in each
+projected GT box as ``threedq eval --weights`` does; cosine retrieval without rotation search under both protocols (the
+gallery features from the second view's image), the shape probe on the pooled vectors, ResNetRet / ResNetClass
+few-shot (paper Table 1) and a K = 50 bank without rotation search (no-rot columns; "Hungarian vs colour" of that
+bank in the extra table). It needs an encoder row in the same run (its test objects are checked to be the same).
+
 One JSON line per (dataset, row, seed) is appended to ``--out`` as soon as it is measured; the markdown table (mean
 and range over seeds) is printed and, with ``--md``, written; ``--table_only`` rebuilds it from ``--out``.
 
@@ -225,6 +232,59 @@ def references(test: dict, train: dict | None, num_classes: int, sym: list[int])
     return row
 
 
+def imagenet_row(net: Any, dm: Any, test: dict, num_classes: int, sym: list[int]) -> dict[str, Any]:
+    """Every number of the 2D ImageNet row (:func:`~threedq.pipeline.baselines2d.collect_resnet_features`: the input
+    view's features ``[N, C]``, the gallery view's for the paper protocol, the training split's for the probe).
+
+    Args:
+        net: :func:`~threedq.pipeline.baselines2d.load_resnet` (ResNet-18 or the MobileNetV2 stand-in).
+        dm: the dataset's DataModule.
+        test: an encoder row's test crops (``labels``, ``boxes``; ``colours`` where known): the objects must be the same.
+
+    Returns:
+        ``cosine/strict``, ``cosine/paper``, ``cosine/top1`` (cosine, no rotation search), ``probe/learned`` (shapes set),
+        ``ret_acc`` / ``class_acc`` (2 shots, seed 0, as ``threedq eval``), ``no_rot/*`` (K = 50 bank on the
+        features, no rotation search; the yaw is meaningless there and dropped) and the backbone's fields.
+    """
+    import torch
+
+    from threedq.metrics.fewshot import linear_probe
+    from threedq.metrics.retrieval import retrieval_precision_at_k, same_object_top1
+    from threedq.pipeline.baselines2d import backbone_fields, collect_resnet_features, resnet_results
+    from threedq.pipeline.report import split_loader
+
+    loader = split_loader(dm, "test", gallery=True)
+    q = collect_resnet_features(net, loader, progress=False)
+    g = collect_resnet_features(net, loader, progress=False, view=dm.num_input_views)
+    labels = test["labels"]
+    if not torch.equal(q["labels"], labels):
+        raise RuntimeError("ImageNet row: the test objects differ from the encoder rows' (loader order?)")
+    fq = torch.nn.functional.normalize(q["features"].double(), dim=1)
+    fg = torch.nn.functional.normalize(g["features"].double(), dim=1)
+    kk = min(10, labels.shape[0] - 1)
+    paper = fq @ fg.T  # query x gallery, row i's twin at column i
+    row: dict[str, Any] = {
+        "cosine/strict": float(retrieval_precision_at_k(fq @ fq.T, labels, labels, kk, exclude_diagonal=True)),
+        "cosine/paper": float(retrieval_precision_at_k(paper, labels, labels, kk, exclude_diagonal=False)),
+        "cosine/top1": float(same_object_top1(paper)),
+        "not_visible": int((~q["visible"]).sum()),
+    }
+    rr = resnet_results(q, k=10, shots=2, seed=0)
+    row["ret_acc"], row["class_acc"] = rr["ret_acc"], rr["class_acc"]
+    train = (collect_resnet_features(net, split_loader(dm, "train"), progress=False)
+             if dm.index.files("train") else None)
+    if train is not None:
+        row["probe/learned"] = float(linear_probe(train["features"], train["labels"], q["features"], labels)["accuracy"])
+    as_crops = lambda f: f[:, :, None, None, None]  # noqa: E731 - a [N, C] vector as a 1-voxel crop for the bank
+    te = {"learned": as_crops(q["features"]), "labels": labels, "boxes": test["boxes"],
+          **({"colours": test["colours"]} if "colours" in test else {})}
+    fit = {"learned": as_crops(train["features"]), "labels": train["labels"]} if train is not None else te
+    for k, v in _bank_metrics("no_rot", fit, te, num_classes, sym, None).items():
+        if k != "yaw_median_deg":
+            row[f"no_rot/{k}"] = v
+    return {**row, **backbone_fields(net)}
+
+
 def _append(out: Path, row: dict[str, Any]) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("a") as f:
@@ -232,10 +292,13 @@ def _append(out: Path, row: dict[str, Any]) -> None:
 
 
 def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: Path,
-        input_occupancy: bool = False) -> None:
+        input_occupancy: bool = False, weights: Path | None = None) -> None:
     import torch
 
+    from threedq.pipeline.baselines2d import load_resnet
     from threedq.stages.viewpred import ViewPrediction
+
+    net = load_resnet(weights) if weights is not None else None  # a bad file is refused before the long work
 
     machine = {"cpu": cpu_name(), "torch": torch.__version__, "threads": torch.get_num_threads(),
                "date": time.strftime("%Y-%m-%d")}
@@ -283,6 +346,15 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
                 print(f"{ds} / references: point-cloud Hungarian {ref['pointcloud/hungarian_acc']:.3f}, raw bank "
                       f"{ref['raw_bank/hungarian_acc']:.3f}", flush=True)
                 refs_done = True
+                if net is not None:
+                    t2 = time.perf_counter()
+                    rn = {"dataset": ds, "row": net.label, "seed": None, "objects": int(test["labels"].shape[0]),
+                          **imagenet_row(net, dm, test, num_classes, sym), **machine}
+                    rn["seconds"] = round(time.perf_counter() - t2, 1)
+                    _append(out, rn)
+                    print(f"{ds} / {rn['row']}: strict {rn['cosine/strict']:.3f} paper {rn['cosine/paper']:.3f} "
+                          f"top-1 {rn['cosine/top1']:.3f} ResNetRet {rn['ret_acc']:.3f} ResNetClass "
+                          f"{rn['class_acc']:.3f} ({rn['seconds']:.0f} s)", flush=True)
             del stage, test, train
             gc.collect()
 
@@ -308,7 +380,8 @@ def table(rows: list[dict[str, Any]]) -> str:
     lines: list[str] = []
     for ds in dict.fromkeys(r["dataset"] for r in rows):
         rs = [r for r in rows if r["dataset"] == ds]
-        feats = [r for r in rs if r["row"] != "references"]
+        feats = [r for r in rs if r["row"] != "references" and "backbone" not in r]
+        imagenet = [r for r in rs if "backbone" in r]
         refs = [r for r in rs if r["row"] == "references"]
         if not feats:
             continue
@@ -350,6 +423,18 @@ def table(rows: list[dict[str, Any]]) -> str:
             label = f"{name} ({len(group)} seed{'s' if len(group) > 1 else ''})"
             lines.append(f"| {label} | " + " | ".join(_cell([r.get(k) for r in group], digits(k)) for k, _ in COLUMNS)
                          + " |")
+        for r in imagenet[-1:]:  # the 2D row: no rotation search, no yaw; its bank is the no-rot one
+            label = f"{r['backbone_label']}, {r['feature_stage']} pooled in the projected GT box (no rotation search)"
+            lines.append(f"| {label} | " + " | ".join(_cell([r.get(k)], digits(k)) for k, _ in COLUMNS) + " |")
+        if imagenet:
+            r = imagenet[-1]
+            lines += ["", f"{r['backbone_label']}: few-shot as in paper Table 1 (2 labelled objects per category, seed "
+                      "0) and the colour of its no-rotation bank's clusters; the encoder rows' few-shot column above "
+                      "propagates the labels through their prototypes instead.", "",
+                      "| features | ResNetRet (nearest labelled object) | ResNetClass (linear classifier on the shots) "
+                      "| no-rot Hungarian K=50 | no-rot Hungarian vs colour |", "|---|---|---|---|---|",
+                      f"| {r['backbone_label']} | {r['ret_acc']:.3f} | {r['class_acc']:.3f} | "
+                      f"{_cell([r.get('no_rot/hungarian_acc')])} | {_cell([r.get('no_rot/colour_hungarian_acc')])} |"]
         lines.append("")
     return "\n".join(lines)
 
@@ -363,6 +448,9 @@ def main() -> None:
     ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
     ap.add_argument("--input_occupancy", action="store_true",
                     help="also score each row with the input occupancy skipped into its crops (with_input_occupancy)")
+    ap.add_argument("--weights", type=Path, default=None,
+                    help="an ImageNet file for the 2D row (torchvision resnet18, or the MobileNetV2 stand-in of "
+                         "docs/studies/imagenet.md); needs an encoder row in the same run")
     ap.add_argument("--out", type=Path, default=Path("runs/shape_benchmark/results.jsonl"))
     ap.add_argument("--md", type=Path, default=None, help="also write the table here")
     ap.add_argument("--table_only", action="store_true", help="print the table of --out and stop")
@@ -371,8 +459,11 @@ def main() -> None:
         name, sep, ckpt = spec.partition("=")
         if not sep or not name or not Path(ckpt).is_file():
             ap.error(f"--encoder {spec!r}: expected NAME=CKPT with an existing checkpoint file")
+    if args.weights is not None and not (args.encoder or args.random_seeds):
+        ap.error("--weights: the ImageNet row needs an encoder row in the same run (--random_seeds or --encoder): "
+                 "its test objects and their colours are checked against that row's")
     if not args.table_only:
-        run(args.encoder, args.random_seeds, args.datasets, args.out, args.input_occupancy)
+        run(args.encoder, args.random_seeds, args.datasets, args.out, args.input_occupancy, args.weights)
     rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()]
     md = table(rows)
     print(md)

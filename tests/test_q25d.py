@@ -120,6 +120,19 @@ def test_eval_rows_with_and_without_baselines(run: Run, tmp_path: Path) -> None:
     assert "needs --weights" not in md and "not run" not in md
     assert "in-plane angles" in md and "fast search" in md  # the tables name their searches
     assert json.loads((out / "results.json").read_text())["resnet"]["k"] == rn["k"]
+    assert rn["backbone"] == "resnet18" and rn["feature_dim"] == 512
+    # the MobileNetV2 stand-in is named in every row it fills (tables from the same numbers, its backbone fields)
+    from threedq.baselines.backbone import backbone_fields
+    from threedq.baselines.mobilenet import MobileNetV2
+    from threedq.pipeline.tables import eval_markdown
+
+    md2 = eval_markdown({**res, "resnet": {**rn, **backbone_fields(MobileNetV2())}})
+    stand_in = "ImageNet MobileNetV2 (stand-in for the paper's ResNet-18)"
+    assert (f"| {stand_in} (features.18, 1280 channels, pooled in the projected GT box; cosine, no rotation search) | "
+            in md2)
+    assert f"| ResNetRet ({stand_in}, nearest labelled object) |" in md2
+    assert f"| ResNetClass ({stand_in} + linear classifier on the shots) |" in md2
+    assert "ResNet-18 (layer4" not in md2 and "ImageNet ResNet-18," not in md2
 
     out = tmp_path / "without"
     res = run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(out), baselines=False, curve_k=[2])
@@ -143,6 +156,32 @@ def test_bad_baseline_files_are_one_line_input_errors(run: Run, tmp_path: Path) 
     torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, bad)
     with pytest.raises(InputError, match=r"bad.pth: field 'bn1.weight': missing"):
         run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "b"), weights=str(bad))
+    torch.save({"features.0.0.weight": torch.zeros(32, 3, 3, 3)}, bad)  # looks like MobileNetV2, is not
+    with pytest.raises(InputError, match=r"bad.pth: field 'features.0.1.weight': missing \(311 MobileNetV2"):
+        run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "c"), weights=str(bad))
+
+
+def test_imagenet_features_of_the_gallery_view(run: Run) -> None:
+    """``collect_resnet_features`` on the MobileNetV2 stand-in: one 1280-vector per GT object in loader order, for the
+    input view or the paper protocol's gallery view (other pixels, so other features); a view the loader lacks is an
+    error."""
+    from threedq.baselines.mobilenet import MobileNetV2
+    from threedq.datamodules.scene_folder import SceneDataset
+    from threedq.pipeline.baselines2d import collect_resnet_features
+    from threedq.scene import load_index
+
+    ds = SceneDataset(run.root / "data", load_index(run.root / "data"), "test", num_target_views=1, random_views=False)
+    loader = torch.utils.data.DataLoader(ds, batch_size=2)
+    torch.manual_seed(0)
+    net = MobileNetV2().eval()
+    a = collect_resnet_features(net, loader, input_size=64, progress=False)
+    b = collect_resnet_features(net, loader, input_size=64, progress=False, view=1)
+    n = sum(int(s["box_mask"].sum()) for s in ds)
+    assert a["features"].shape == b["features"].shape == (n, 1280)
+    assert torch.equal(a["labels"], b["labels"])
+    assert (a["features"] - b["features"]).abs().max() > 1e-2 * a["features"].abs().max()  # (untrained: tiny values)
+    with pytest.raises(ValueError, match="view 2: the loader's samples hold 2 view"):
+        collect_resnet_features(net, loader, input_size=64, progress=False, view=2)
 
 
 def _eval_test_folder(run: Run, tmp_path: Path, folder: Path, *options: str) -> Path:

@@ -43,6 +43,23 @@ class TestTable:
     def test_no_feature_rows_no_table(self) -> None:
         assert sb.table([_row("unseen", "references", None)]) == ""
 
+    def test_imagenet_row_named_and_in_its_columns(self) -> None:
+        stand_in = "ImageNet MobileNetV2 (stand-in for the paper's ResNet-18)"
+        rows = [_row("shapes", "random encoder", 0, **{"cosine/strict": 0.2, "threedq/fewshot_acc": 0.3}),
+                _row("shapes", stand_in, None, **{"cosine/strict": 0.6, "cosine/paper": 0.65, "probe/learned": 0.7,
+                                                  "no_rot/hungarian_acc": 0.45, "no_rot/colour_hungarian_acc": 0.2,
+                                                  "ret_acc": 0.5, "class_acc": 0.55, "backbone": "mobilenet_v2",
+                                                  "backbone_label": stand_in, "feature_stage": "features.18"})]
+        md = sb.table(rows)
+        col = {name: i + 1 for i, (_, name) in enumerate(sb.COLUMNS)}
+        label = f"{stand_in}, features.18 pooled in the projected GT box (no rotation search)"
+        line = next(ln for ln in md.splitlines() if ln.startswith(f"| {label} |")).strip("|").split(" | ")
+        assert line[col["strict P@10"]].strip() == "0.600" and line[col["shape probe"]].strip() == "0.700"
+        assert line[col["no-rot Hungarian"]].strip() == "0.450" and line[col["Hungarian K=50"]].strip() == "-"
+        assert line[col["few-shot"]].strip() == "-"  # not the prototype-propagated few-shot: the extra table's
+        assert f"| {stand_in} | 0.500 | 0.550 | 0.450 | 0.200 |" in md
+        assert "random encoder (1 seed)" in md and f"{stand_in} (1 seed)" not in md
+
 
 class TestRandomStage:
     def test_seeded_and_of_the_main_jobs_architecture(self) -> None:
@@ -109,6 +126,41 @@ class TestInstanceColours:
         crops = {"scene": torch.zeros(1, dtype=torch.long), "boxes": torch.tensor(rec.boxes[:1]),
                  "labels": torch.zeros(1, dtype=torch.long)}
         assert sb.instance_colours(SimpleNamespace(index=index, data_dir=str(tiny_dataset)), "test", crops) is None
+
+
+class TestImagenetRow:
+    def test_scores_of_a_stand_in_on_the_tiny_data(self, tiny_dataset) -> None:
+        """Every number of the 2D row on real scenes (random MobileNetV2 weights): in range, the strict precision equal
+        to a per-query count written out here, and the objects checked against the encoder rows'."""
+        from threedq.baselines.mobilenet import MobileNetV2
+        from threedq.datamodules.scene_folder import SceneFolderDataModule
+        from threedq.pipeline.baselines2d import collect_resnet_features
+        from threedq.pipeline.report import split_loader
+
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=2, num_input_views=1, num_target_views=0)
+        dm.setup("fit")
+        dm.setup("test")
+        torch.manual_seed(0)
+        net = MobileNetV2().eval()
+        q = collect_resnet_features(net, split_loader(dm, "test", gallery=True), progress=False)
+        n = q["labels"].shape[0]
+        boxes = torch.zeros(n, 7)
+        sym = list(dm.index.symmetry_order)
+        row = sb.imagenet_row(net, dm, {"labels": q["labels"], "boxes": boxes}, len(dm.index.categories), sym)
+        for key in ("cosine/strict", "cosine/paper", "cosine/top1", "probe/learned", "no_rot/hungarian_acc"):
+            assert 0.0 <= row[key] <= 1.0, key
+        for key in ("ret_acc", "class_acc"):  # undefined (NaN) where no category has more objects than its 2 shots
+            assert row[key] != row[key] or 0.0 <= row[key] <= 1.0, key
+        assert row["backbone"] == "mobilenet_v2" and row["feature_dim"] == 1280
+        f = torch.nn.functional.normalize(q["features"].double(), dim=1)
+        sim, k = f @ f.T, min(10, n - 1)
+        hits = []
+        for i in range(n):  # leave-one-out: the k nearest other objects, share of the query's category
+            order = [j for j in sim[i].argsort(descending=True).tolist() if j != i][:k]
+            hits.append(sum(int(q["labels"][j] == q["labels"][i]) for j in order) / k)
+        assert row["cosine/strict"] == pytest.approx(sum(hits) / n)
+        with pytest.raises(RuntimeError, match="test objects differ"):
+            sb.imagenet_row(net, dm, {"labels": q["labels"].flip(0) + 1, "boxes": boxes}, 100, sym)
 
 
 class TestWithInputOccupancy:

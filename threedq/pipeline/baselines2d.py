@@ -6,7 +6,9 @@
   one-slice crops make its yaw search an in-plane search, :mod:`threedq.quantization.inplane`) and the test
   crops are scored by :func:`~threedq.pipeline.evaluation.quantization_metrics` (Hungarian, few-shot).
 * ImageNet ResNet-18 (Tables 1 and 2): torchvision ResNet-18 weights from a file (``--weights``), ``layer4``
-  features average-pooled in each projected GT box (:func:`~threedq.baselines.resnet.object_features`);
+  features average-pooled in each projected GT box (:func:`~threedq.baselines.imagenet.object_features`); or, where
+  no ResNet-18 file can be had, the ImageNet MobileNetV2 stand-in (its 1280-channel last stage, pooled alike; the
+  file kind is told from its keys by :func:`~threedq.baselines.backbone.load_backbone` and every row names it);
   retrieval precision@10 by cosine without rotation
   (:func:`~threedq.metrics.retrieval.retrieval_precision_at_k`), few-shot "ResNetRet"
   (:func:`~threedq.metrics.nearest_shot_accuracy`) and "ResNetClass" (:func:`~threedq.metrics.linear_probe_accuracy`).
@@ -24,7 +26,8 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from threedq.baselines.resnet import ResNet18, load_resnet18_weights, object_features
+from threedq.baselines.backbone import backbone_fields, load_backbone
+from threedq.baselines.imagenet import object_features
 from threedq.errors import InputError
 from threedq.geometry import project_boxes_2d
 from threedq.metrics import cluster_confusion, hungarian_accuracy, linear_probe_accuracy, nearest_shot_accuracy
@@ -38,6 +41,7 @@ __all__ = [
     "Q25D_HOWTO",
     "RESNET_HOWTO",
     "collect_q25d_crops",
+    "backbone_fields",
     "collect_resnet_features",
     "load_q25d",
     "q25d_results",
@@ -48,7 +52,8 @@ __all__ = [
 Q25D_HOWTO = ("not run: train it with `threedq fit --config stages/q25d.yaml` (same data), then add "
               "`--q25d runs/q25d/checkpoints/last.ckpt` to `threedq eval`")
 #: What the tables say when the ResNet-18 rows were not computed.
-RESNET_HOWTO = "needs --weights (a torchvision resnet18 ImageNet file, e.g. resnet18-f37072fd.pth)"
+RESNET_HOWTO = ("needs --weights (a torchvision resnet18 ImageNet file, e.g. resnet18-f37072fd.pth, or the ImageNet "
+                "MobileNetV2 stand-in: docs/studies/imagenet.md)")
 
 
 def load_q25d(path: str | Path) -> Q25D:
@@ -90,17 +95,34 @@ def collect_q25d_crops(model: Q25D, loader: torch.utils.data.DataLoader, progres
 
 @torch.no_grad()
 def collect_resnet_features(
-    net: ResNet18, loader: torch.utils.data.DataLoader, input_size: int = 224, progress: bool = True
+    net: torch.nn.Module, loader: torch.utils.data.DataLoader, input_size: int = 224, progress: bool = True,
+    view: int = 0,
 ) -> dict[str, Tensor]:
-    """ResNet-18 box-pooled features of every GT object of ``loader`` (view 0): ``features`` ``[N, 512]``,
-    ``labels`` ``[N]``, ``visible`` ``[N]`` bool."""
+    """ImageNet box-pooled features of every GT object of ``loader`` in one view.
+
+    Args:
+        net: :class:`~threedq.baselines.resnet.ResNet18` or :class:`~threedq.baselines.mobilenet.MobileNetV2`
+            (:func:`~threedq.baselines.backbone.load_backbone`).
+        loader: SceneDataset batches (``rgb`` ``[B, V, 3, H, W]``, ``boxes`` ``[B, M, 7]``, ``K``, ``R_T_cam``,
+            ``box_mask``, ``categories``).
+        view: which view's image (0: the input view; ``num_input_views`` with ``split_loader(gallery=True)``: the
+            paper retrieval protocol's gallery view).
+
+    Returns:
+        ``features`` ``[N, C]`` (C = 512 ResNet-18, 1280 MobileNetV2), ``labels`` ``[N]``, ``visible`` ``[N]`` bool,
+        objects in loader order.
+
+    Convention: each object's oriented GT box projected into the view (:func:`~threedq.geometry.project_boxes_2d`).
+    """
     net.eval()
     device = next(net.parameters()).device
     out: dict[str, list[Tensor]] = {"features": [], "labels": [], "visible": []}
-    for batch in tqdm(loader, desc="ResNet-18 features", disable=not progress, leave=False):
+    for batch in tqdm(loader, desc=f"{getattr(net, 'label', 'ImageNet')} features", disable=not progress, leave=False):
         rgb, boxes, K, pose = (batch[k].to(device) for k in ("rgb", "boxes", "K", "R_T_cam"))
-        rgb = rgb[:, 0]
-        boxes2d, visible = project_boxes_2d(boxes, K[:, 0], pose[:, 0], rgb.shape[-2:])
+        if rgb.shape[1] <= view:
+            raise ValueError(f"view {view}: the loader's samples hold {rgb.shape[1]} view(s)")
+        rgb = rgb[:, view]
+        boxes2d, visible = project_boxes_2d(boxes, K[:, view], pose[:, view], rgb.shape[-2:])
         f = object_features(net, rgb, boxes2d, input_size)
         mask = batch["box_mask"].to(device)
         out["features"].append(f[mask].cpu())
@@ -136,7 +158,7 @@ def q25d_results(
 
 def resnet_results(test: dict[str, Tensor], k: int = 10, shots: int = 2, seed: int = 0) -> dict[str, Any]:
     """Retrieval precision@k (cosine, no rotation, leave-one-out) and few-shot Ret / Class accuracy of the
-    test objects' ResNet-18 features."""
+    test objects' ImageNet features (``test``: :func:`collect_resnet_features`, ``features`` ``[N, C]``)."""
     feats, labels = test["features"].double(), test["labels"]
     n = labels.shape[0]
     if n < 2:
@@ -152,6 +174,7 @@ def resnet_results(test: dict[str, Tensor], k: int = 10, shots: int = 2, seed: i
     }
 
 
-def load_resnet(weights: str | Path) -> ResNet18:
-    """:func:`~threedq.baselines.resnet.load_resnet18_weights` (one-line errors naming the file and the key)."""
-    return load_resnet18_weights(weights)
+def load_resnet(weights: str | Path) -> torch.nn.Module:
+    """The ImageNet backbone of a ``--weights`` file: torchvision ResNet-18 or the MobileNetV2 stand-in, told from its
+    keys (:func:`~threedq.baselines.backbone.load_backbone`; one-line errors naming the file and the key)."""
+    return load_backbone(weights)

