@@ -5,7 +5,8 @@
 - :mod:`threedq.viz.detection` — detections against the GT, self-labels, objects found per size band;
 - :mod:`threedq.viz.features` — view prediction, mined pairs, retrieval, rotational alignment, per-category
   retrieval;
-- :mod:`threedq.viz.curves` — Table 3 against the round, accuracy against K.
+- :mod:`threedq.viz.curves` — Table 3 against the round, accuracy against K;
+- :mod:`threedq.viz.overview` — the README's picture: a scene's boxes and the prototypes they fall into.
 
 Drawing primitives (projected boxes, depth and instance colouring, bird's-eye views of crops) are in
 :mod:`threedq.data.draw`; the dataset contact sheet (``threedq data show``) in :mod:`threedq.data.contact_sheet`;

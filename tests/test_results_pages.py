@@ -1,0 +1,97 @@
+"""The result pages are what the generator writes from the committed main job (``docs/results/``), so they cannot
+go stale: ``docs/results.md``, the README's results table and the generated tables of ``docs/fidelity.md``."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from threedq.pipeline import results_pages as rp
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMITTED = ROOT / "docs/results/metrics.json"
+#: Another main job's metrics.json (same shape, earlier code): the pages must render from it too.
+OLDER = sorted(ROOT.glob("benchmarks/results/em_*/seed0/metrics.json"))
+
+
+def test_committed_pages_are_generated() -> None:
+    stale = [str(p.relative_to(ROOT)) for p, text in rp.expected_pages(ROOT).items()
+             if p.read_text(encoding="utf-8") != text]
+    assert not stale, f"stale pages {stale}: run `python -m threedq.pipeline.results_pages`"
+
+
+def test_check_reports_no_stale_page() -> None:
+    assert rp.main(["--check"]) == 0
+
+
+def test_committed_run_is_described() -> None:
+    if not COMMITTED.is_file():
+        assert rp.NOT_RECORDED in (ROOT / "docs/results.md").read_text(encoding="utf-8")
+        pytest.skip("no main job recorded: the pages say so and show no number")
+    metrics, info = rp.load_results(ROOT / "docs/results")
+    assert info["command"] == rp.MAIN_JOB
+    assert len(info["commit"]) == 40 and info["wall_seconds"] > 0 and info["machine"]
+    assert metrics["rounds"] == len(metrics["round_results"]) == len(metrics["table3"]) - 1
+    assert rp.MAIN_JOB in (ROOT / "README.md").read_text(encoding="utf-8")  # the README runs what was recorded
+
+
+def test_replace_block() -> None:
+    begin, end = rp._markers("x")
+    text = f"a\n{begin}\nold\n{end}\nb\n"
+    assert rp.replace_block(text, "x", "new\nlines") == f"a\n{begin}\nnew\nlines\n{end}\nb\n"
+    with pytest.raises(ValueError, match="block 'y'"):
+        rp.replace_block(text, "y", "new")
+
+
+def test_parse_time_log(tmp_path) -> None:
+    log = tmp_path / "time.log"
+    log.write_text("\tCommand being timed: \"threedq em --rounds 4\"\n"
+                   "\tElapsed (wall clock) time (h:mm:ss or m:ss): 1:02:03\n"
+                   "\tMaximum resident set size (kbytes): 12582912\n")
+    assert rp.parse_time_log(log) == {"wall_seconds": 3723.0, "peak_rss_gib": 12.0}
+    log.write_text("\tElapsed (wall clock) time (h:mm:ss or m:ss): 28:27.50\n")
+    assert rp.parse_time_log(log) == {"wall_seconds": 1707.5}
+
+
+@pytest.mark.skipif(not COMMITTED.is_file() and not OLDER, reason="no main job's metrics.json here")
+def test_record_run_then_write(tmp_path) -> None:
+    """``--run``'s record: metrics.json copied, run.json written; the pages are then generated from them, and a
+    second write changes nothing."""
+    run = tmp_path / "runs" / "em"
+    run.mkdir(parents=True)
+    shutil.copyfile(COMMITTED if COMMITTED.is_file() else OLDER[0], run / "metrics.json")
+    (run / ".threedq-run.lock").write_text(json.dumps({"since": "2026-11-29T06:38:25+00:00"}))
+    root = tmp_path / "repo"
+    (root / "docs").mkdir(parents=True)
+    for page in ("README.md", "docs/fidelity.md"):
+        shutil.copyfile(ROOT / page, root / page)
+    info = rp.record_run(run, root=root, commit="a" * 40, ended="2026-11-29T07:08:25Z", note="A test.")
+    assert info["wall_seconds"] == 1800.0 and info["date"] == "2026-11-29" and info["peak_rss_gib"] is None
+    assert (root / "docs/results/metrics.json").read_bytes() == (run / "metrics.json").read_bytes()
+    changed = rp.write_pages(root)
+    assert root / "docs/results.md" in changed and root / "README.md" in changed
+    text = (root / "docs/results.md").read_text()
+    assert "`aaaaaaa`" in text and "30.0 min" in text and "A test." in text
+    for title in ("## Table 1", "## Table 2", "## Table 3", "## Table 4", "## Table 5", "## Detection by object size",
+                  "## Time of each stage"):
+        assert title in text
+    assert "30.0 min" in (root / "README.md").read_text() and rp.NOT_RECORDED not in (root / "README.md").read_text()
+    assert rp.write_pages(root) == []
+
+
+@pytest.mark.skipif(not OLDER, reason="no older metrics.json in benchmarks/results")
+@pytest.mark.parametrize("path", OLDER, ids=lambda p: p.parent.parent.name)
+def test_older_metrics_render(path: Path) -> None:
+    """Every page renders from the older main jobs' metrics.json (benchmarks/results/em_*): the fields they read are
+    the ones threedq em has written since then."""
+    info = {"command": rp.MAIN_JOB, "timed": "threedq em --rounds 4", "commit": "b" * 40, "date": "2026-11-27",
+            "started": "2026-11-27T10:00:00Z", "ended": "2026-11-27T10:40:00Z", "wall_seconds": 2400.0,
+            "peak_rss_gib": None, "machine": "a test machine"}
+    m = json.loads(path.read_text())
+    assert "## Table 5" in rp.results_page(m, info)
+    assert "| 3D detection mAP@0.5" in rp.readme_table(m, info)
+    assert set(rp.fidelity_blocks(m, info)) == {"fidelity-run", "fidelity-pools", "fidelity-table3",
+                                                "fidelity-tables124", "fidelity-table5"}
