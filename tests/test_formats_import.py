@@ -278,8 +278,8 @@ class TestFolderIndex:
             index_folder(tmp_path / "empty")
 
     def test_readme_example_index_loads(self, turntable, tmp_path) -> None:
-        # the index.json example of the README's "Real captures" section is a valid hand-written index
-        readme = (ROOT / "README.md").read_text(encoding="utf-8")
+        # the index.json example of the "Real captures" section (docs/data.md) is a valid hand-written index
+        readme = (ROOT / "docs" / "data.md").read_text(encoding="utf-8")
         section = readme.split("## Real captures", 1)[1].split("\n## ", 1)[0]
         example = json.loads(re.search(r"```json\n(.*?)```", section, re.DOTALL).group(1))
         (tmp_path / "index.json").write_text(json.dumps(example))
