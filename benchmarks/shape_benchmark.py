@@ -33,7 +33,9 @@ file, or the ImageNet MobileNetV2 stand-in (``docs/studies/imagenet.md``), its l
 projected GT box as ``threedq eval --weights`` does; cosine retrieval without rotation search under both protocols (the
 gallery features from the second view's image), the shape probe on the pooled vectors, ResNetRet / ResNetClass
 few-shot (paper Table 1) and a K = 50 bank without rotation search (no-rot columns; "Hungarian vs colour" of that
-bank in the extra table). It needs an encoder row in the same run (its test objects are checked to be the same).
+bank in the extra table). It may run alone (``--random_seeds`` with no seed and no ``--encoder``); beside encoder
+rows its test objects are checked to be theirs. ``--imagenet_input_size`` changes the image side the network sees
+(224 by default, ImageNet's and ``threedq eval``'s).
 
 One JSON line per (dataset, row, seed) is appended to ``--out`` as soon as it is measured; the markdown table (mean
 and range over seeds) is printed and, with ``--md``, written; ``--table_only`` rebuilds it from ``--out``.
@@ -232,52 +234,53 @@ def references(test: dict, train: dict | None, num_classes: int, sym: list[int])
     return row
 
 
-def imagenet_row(net: Any, dm: Any, test: dict, num_classes: int, sym: list[int]) -> dict[str, Any]:
+def imagenet_row(net: Any, dm: Any, num_classes: int, sym: list[int], labels: Any = None,
+                 input_size: int = 224) -> dict[str, Any]:
     """Every number of the 2D ImageNet row (:func:`~threedq.pipeline.baselines2d.collect_resnet_features`: the input
     view's features ``[N, C]``, the gallery view's for the paper protocol, the training split's for the probe).
 
     Args:
         net: :func:`~threedq.pipeline.baselines2d.load_resnet` (ResNet-18 or the MobileNetV2 stand-in).
         dm: the dataset's DataModule.
-        test: an encoder row's test crops (``labels``, ``boxes``; ``colours`` where known): the objects must be the same.
+        num_classes, sym: the dataset's category count and symmetry orders (for the bank's metrics).
+        labels: ``[N]`` the encoder rows' test labels, where they ran: the objects must be the same (loader order).
+        input_size: the image side the network sees (224: ImageNet's, ``threedq eval``'s).
 
     Returns:
-        ``cosine/strict``, ``cosine/paper``, ``cosine/top1`` (cosine, no rotation search), ``probe/learned`` (shapes set),
+        ``cosine/strict``, ``cosine/paper``, ``cosine/top1`` (cosine, no rotation search), ``probe/learned`` (where
+        there is a training split),
         ``ret_acc`` / ``class_acc`` (2 shots, seed 0, as ``threedq eval``), ``no_rot/*`` (K = 50 bank on the
-        features, no rotation search; the yaw is meaningless there and dropped) and the backbone's fields.
+        features, no rotation search, with "Hungarian vs colour"; the yaw is meaningless there and dropped),
+        ``objects``, ``input_size`` and the backbone's fields.
     """
     import torch
 
     from threedq.metrics.fewshot import linear_probe
-    from threedq.metrics.retrieval import retrieval_precision_at_k, same_object_top1
-    from threedq.pipeline.baselines2d import backbone_fields, collect_resnet_features, resnet_results
+    from threedq.pipeline.baselines2d import (backbone_fields, collect_resnet_features, resnet_paper_results,
+                                              resnet_results)
     from threedq.pipeline.report import split_loader
 
     loader = split_loader(dm, "test", gallery=True)
-    q = collect_resnet_features(net, loader, progress=False)
-    g = collect_resnet_features(net, loader, progress=False, view=dm.num_input_views)
-    labels = test["labels"]
-    if not torch.equal(q["labels"], labels):
+    q = collect_resnet_features(net, loader, input_size, progress=False)
+    g = collect_resnet_features(net, loader, input_size, progress=False, view=dm.num_input_views)
+    if labels is not None and not torch.equal(q["labels"], labels):
         raise RuntimeError("ImageNet row: the test objects differ from the encoder rows' (loader order?)")
-    fq = torch.nn.functional.normalize(q["features"].double(), dim=1)
-    fg = torch.nn.functional.normalize(g["features"].double(), dim=1)
-    kk = min(10, labels.shape[0] - 1)
-    paper = fq @ fg.T  # query x gallery, row i's twin at column i
-    row: dict[str, Any] = {
-        "cosine/strict": float(retrieval_precision_at_k(fq @ fq.T, labels, labels, kk, exclude_diagonal=True)),
-        "cosine/paper": float(retrieval_precision_at_k(paper, labels, labels, kk, exclude_diagonal=False)),
-        "cosine/top1": float(same_object_top1(paper)),
-        "not_visible": int((~q["visible"]).sum()),
-    }
-    rr = resnet_results(q, k=10, shots=2, seed=0)
-    row["ret_acc"], row["class_acc"] = rr["ret_acc"], rr["class_acc"]
-    train = (collect_resnet_features(net, split_loader(dm, "train"), progress=False)
+    rr = resnet_results(q, k=10, shots=2, seed=0)  # strict protocol (leave-one-out), ResNetRet, ResNetClass
+    pp = resnet_paper_results(q, g, k=10)  # the gallery view's features, twin counted
+    row: dict[str, Any] = {"objects": int(q["labels"].shape[0]), "input_size": input_size,
+                           "cosine/strict": rr["precision_at_k"], "cosine/paper": pp["paper_precision_at_k"],
+                           "cosine/top1": pp["same_object_top1"], "ret_acc": rr["ret_acc"],
+                           "class_acc": rr["class_acc"], "not_visible": rr["not_visible"]}
+    train = (collect_resnet_features(net, split_loader(dm, "train"), input_size, progress=False)
              if dm.index.files("train") else None)
     if train is not None:
-        row["probe/learned"] = float(linear_probe(train["features"], train["labels"], q["features"], labels)["accuracy"])
+        row["probe/learned"] = float(linear_probe(train["features"], train["labels"], q["features"],
+                                                  q["labels"])["accuracy"])
     as_crops = lambda f: f[:, :, None, None, None]  # noqa: E731 - a [N, C] vector as a 1-voxel crop for the bank
-    te = {"learned": as_crops(q["features"]), "labels": labels, "boxes": test["boxes"],
-          **({"colours": test["colours"]} if "colours" in test else {})}
+    te = {"learned": as_crops(q["features"]), "labels": q["labels"], "boxes": q["boxes"]}
+    colours = instance_colours(dm, "test", q)
+    if colours is not None:
+        te["colours"] = colours
     fit = {"learned": as_crops(train["features"]), "labels": train["labels"]} if train is not None else te
     for k, v in _bank_metrics("no_rot", fit, te, num_classes, sym, None).items():
         if k != "yaw_median_deg":
@@ -292,7 +295,7 @@ def _append(out: Path, row: dict[str, Any]) -> None:
 
 
 def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: Path,
-        input_occupancy: bool = False, weights: Path | None = None) -> None:
+        input_occupancy: bool = False, weights: Path | None = None, imagenet_input_size: int = 224) -> None:
     import torch
 
     from threedq.pipeline.baselines2d import load_resnet
@@ -313,6 +316,7 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
             seen[name] = seen.get(name, -1) + 1
             rows.append((name, seen[name], lambda ckpt=ckpt: ViewPrediction(encoder_ckpt=ckpt).eval()))
         refs_done = False
+        first_labels = None  # the test objects' labels of the first encoder row (the ImageNet row is checked on them)
         colours = None  # the test objects are the same for every row: their colours are read once per dataset
         for name, seed, make in rows:
             t0 = time.perf_counter()
@@ -346,16 +350,18 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
                 print(f"{ds} / references: point-cloud Hungarian {ref['pointcloud/hungarian_acc']:.3f}, raw bank "
                       f"{ref['raw_bank/hungarian_acc']:.3f}", flush=True)
                 refs_done = True
-                if net is not None:
-                    t2 = time.perf_counter()
-                    rn = {"dataset": ds, "row": net.label, "seed": None, "objects": int(test["labels"].shape[0]),
-                          **imagenet_row(net, dm, test, num_classes, sym), **machine}
-                    rn["seconds"] = round(time.perf_counter() - t2, 1)
-                    _append(out, rn)
-                    print(f"{ds} / {rn['row']}: strict {rn['cosine/strict']:.3f} paper {rn['cosine/paper']:.3f} "
-                          f"top-1 {rn['cosine/top1']:.3f} ResNetRet {rn['ret_acc']:.3f} ResNetClass "
-                          f"{rn['class_acc']:.3f} ({rn['seconds']:.0f} s)", flush=True)
+                first_labels = test["labels"]
             del stage, test, train
+            gc.collect()
+        if net is not None:  # the 2D ImageNet row, once per dataset (checked against the encoder rows' objects)
+            t2 = time.perf_counter()
+            rn = {"dataset": ds, "row": f"{net.label}, input {imagenet_input_size}", "seed": None,
+                  **imagenet_row(net, dm, num_classes, sym, first_labels, imagenet_input_size), **machine}
+            rn["seconds"] = round(time.perf_counter() - t2, 1)
+            _append(out, rn)
+            print(f"{ds} / {rn['row']}: strict {rn['cosine/strict']:.3f} paper {rn['cosine/paper']:.3f} "
+                  f"top-1 {rn['cosine/top1']:.3f} ResNetRet {rn['ret_acc']:.3f} ResNetClass "
+                  f"{rn['class_acc']:.3f} ({rn['seconds']:.0f} s)", flush=True)
             gc.collect()
 
 
@@ -383,10 +389,10 @@ def table(rows: list[dict[str, Any]]) -> str:
         feats = [r for r in rs if r["row"] != "references" and "backbone" not in r]
         imagenet = [r for r in rs if "backbone" in r]
         refs = [r for r in rs if r["row"] == "references"]
-        if not feats:
+        if not feats and not imagenet:
             continue
-        machine = feats[0]
-        lines += [f"### {ds} ({DATASETS.get(ds, ds)}; {feats[0]['objects']} test objects; GT boxes, one input view)",
+        machine = (feats or imagenet)[0]
+        lines += [f"### {ds} ({DATASETS.get(ds, ds)}; {machine['objects']} test objects; GT boxes, one input view)",
                   "", f"{machine['cpu']}, torch {machine['torch']}, {machine['threads']} threads, {machine['date']}. "
                   "Retrieval: rotation-max search over 36 yaws, cosine; banks: K = 50, 36 yaws, occupancy-weighted "
                   f"crops (floor {OCCUPANCY_FLOOR}), mean of EM seeds {', '.join(map(str, EM_SEEDS))}.", "",
@@ -423,18 +429,23 @@ def table(rows: list[dict[str, Any]]) -> str:
             label = f"{name} ({len(group)} seed{'s' if len(group) > 1 else ''})"
             lines.append(f"| {label} | " + " | ".join(_cell([r.get(k) for r in group], digits(k)) for k, _ in COLUMNS)
                          + " |")
-        for r in imagenet[-1:]:  # the 2D row: no rotation search, no yaw; its bank is the no-rot one
-            label = f"{r['backbone_label']}, {r['feature_stage']} pooled in the projected GT box (no rotation search)"
-            lines.append(f"| {label} | " + " | ".join(_cell([r.get(k)], digits(k)) for k, _ in COLUMNS) + " |")
+        def imagenet_label(r: dict[str, Any]) -> str:
+            size = r.get("input_size", 224)
+            return (f"{r['backbone_label']}, {r['feature_stage']} pooled in the projected GT box"
+                    + (f", {size} px input" if size != 224 else "") + " (no rotation search)")
+
+        for r in imagenet:  # the 2D rows: no rotation search, no yaw; their bank is the no-rot one
+            lines.append(f"| {imagenet_label(r)} | " + " | ".join(_cell([r.get(k)], digits(k)) for k, _ in COLUMNS)
+                         + " |")
         if imagenet:
-            r = imagenet[-1]
-            lines += ["", f"{r['backbone_label']}: few-shot as in paper Table 1 (2 labelled objects per category, seed "
-                      "0) and the colour of its no-rotation bank's clusters; the encoder rows' few-shot column above "
+            lines += ["", "ImageNet rows: few-shot as in paper Table 1 (2 labelled objects per category, seed 0) and "
+                      "the colours of their no-rotation banks' clusters; the encoder rows' few-shot column above "
                       "propagates the labels through their prototypes instead.", "",
                       "| features | ResNetRet (nearest labelled object) | ResNetClass (linear classifier on the shots) "
-                      "| no-rot Hungarian K=50 | no-rot Hungarian vs colour |", "|---|---|---|---|---|",
-                      f"| {r['backbone_label']} | {r['ret_acc']:.3f} | {r['class_acc']:.3f} | "
-                      f"{_cell([r.get('no_rot/hungarian_acc')])} | {_cell([r.get('no_rot/colour_hungarian_acc')])} |"]
+                      "| no-rot Hungarian K=50 | no-rot Hungarian vs colour |", "|---|---|---|---|---|"]
+            lines += [f"| {imagenet_label(r)} | {_cell([r['ret_acc']])} | {_cell([r['class_acc']])} | "
+                      f"{_cell([r.get('no_rot/hungarian_acc')])} | {_cell([r.get('no_rot/colour_hungarian_acc')])} |"
+                      for r in imagenet]
         lines.append("")
     return "\n".join(lines)
 
@@ -451,6 +462,8 @@ def main() -> None:
     ap.add_argument("--weights", type=Path, default=None,
                     help="an ImageNet file for the 2D row (torchvision resnet18, or the MobileNetV2 stand-in of "
                          "docs/studies/imagenet.md); needs an encoder row in the same run")
+    ap.add_argument("--imagenet_input_size", type=int, default=224,
+                    help="the image side the ImageNet network sees (224: ImageNet's and threedq eval's)")
     ap.add_argument("--out", type=Path, default=Path("runs/shape_benchmark/results.jsonl"))
     ap.add_argument("--md", type=Path, default=None, help="also write the table here")
     ap.add_argument("--table_only", action="store_true", help="print the table of --out and stop")
@@ -459,11 +472,9 @@ def main() -> None:
         name, sep, ckpt = spec.partition("=")
         if not sep or not name or not Path(ckpt).is_file():
             ap.error(f"--encoder {spec!r}: expected NAME=CKPT with an existing checkpoint file")
-    if args.weights is not None and not (args.encoder or args.random_seeds):
-        ap.error("--weights: the ImageNet row needs an encoder row in the same run (--random_seeds or --encoder): "
-                 "its test objects and their colours are checked against that row's")
     if not args.table_only:
-        run(args.encoder, args.random_seeds, args.datasets, args.out, args.input_occupancy, args.weights)
+        run(args.encoder, args.random_seeds, args.datasets, args.out, args.input_occupancy, args.weights,
+            args.imagenet_input_size)
     rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()]
     md = table(rows)
     print(md)

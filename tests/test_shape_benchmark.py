@@ -57,8 +57,14 @@ class TestTable:
         assert line[col["strict P@10"]].strip() == "0.600" and line[col["shape probe"]].strip() == "0.700"
         assert line[col["no-rot Hungarian"]].strip() == "0.450" and line[col["Hungarian K=50"]].strip() == "-"
         assert line[col["few-shot"]].strip() == "-"  # not the prototype-propagated few-shot: the extra table's
-        assert f"| {stand_in} | 0.500 | 0.550 | 0.450 | 0.200 |" in md
+        assert f"| {label} | 0.500 | 0.550 | 0.450 | 0.200 |" in md  # the extra table: ResNetRet, ResNetClass, bank
         assert "random encoder (1 seed)" in md and f"{stand_in} (1 seed)" not in md
+        big = {**rows[1], "input_size": 448, "cosine/strict": 0.65}  # another input size: its own line in both tables
+        md = sb.table([*rows, big])
+        big_label = f"| {stand_in}, features.18 pooled in the projected GT box, 448 px input (no rotation search) |"
+        assert f"{big_label} 0.650" in md and f"{big_label} 0.500" in md
+        alone = sb.table([rows[1]])  # an ImageNet-only file still makes a table
+        assert label in alone and "test cpu" in alone
 
 
 class TestRandomStage:
@@ -144,9 +150,9 @@ class TestImagenetRow:
         net = MobileNetV2().eval()
         q = collect_resnet_features(net, split_loader(dm, "test", gallery=True), progress=False)
         n = q["labels"].shape[0]
-        boxes = torch.zeros(n, 7)
         sym = list(dm.index.symmetry_order)
-        row = sb.imagenet_row(net, dm, {"labels": q["labels"], "boxes": boxes}, len(dm.index.categories), sym)
+        row = sb.imagenet_row(net, dm, len(dm.index.categories), sym, labels=q["labels"], input_size=224)
+        assert row["objects"] == q["labels"].shape[0] and row["input_size"] == 224
         for key in ("cosine/strict", "cosine/paper", "cosine/top1", "probe/learned", "no_rot/hungarian_acc"):
             assert 0.0 <= row[key] <= 1.0, key
         for key in ("ret_acc", "class_acc"):  # undefined (NaN) where no category has more objects than its 2 shots
@@ -160,7 +166,9 @@ class TestImagenetRow:
             hits.append(sum(int(q["labels"][j] == q["labels"][i]) for j in order) / k)
         assert row["cosine/strict"] == pytest.approx(sum(hits) / n)
         with pytest.raises(RuntimeError, match="test objects differ"):
-            sb.imagenet_row(net, dm, {"labels": q["labels"].flip(0) + 1, "boxes": boxes}, 100, sym)
+            sb.imagenet_row(net, dm, 100, sym, labels=q["labels"].flip(0) + 1)
+        alone = sb.imagenet_row(net, dm, len(dm.index.categories), sym, input_size=96)  # no encoder row: runs alone
+        assert alone["input_size"] == 96 and 0.0 <= alone["cosine/strict"] <= 1.0
 
 
 class TestWithInputOccupancy:

