@@ -80,6 +80,15 @@ def test_record_run_then_write(tmp_path) -> None:
         assert title in text
     assert "30.0 min" in (root / "README.md").read_text() and rp.NOT_RECORDED not in (root / "README.md").read_text()
     assert rp.write_pages(root) == []
+    # a run stopped and resumed: the wall times of its parts add up, the larger peak memory counts
+    logs = []
+    for i, (wall, kb) in enumerate((("20:00.00", 6291456), ("5:00.50", 8388608))):
+        logs.append(tmp_path / f"time{i}.log")
+        logs[-1].write_text(f"\tElapsed (wall clock) time (h:mm:ss or m:ss): {wall}\n"
+                            f"\tMaximum resident set size (kbytes): {kb}\n")
+    info = rp.record_run(run, root=root, commit="a" * 40, started="2026-11-29T06:00:00Z",
+                         ended="2026-11-29T07:00:00Z", time_log=[str(x) for x in logs])
+    assert info["wall_seconds"] == 1500.5 and info["peak_rss_gib"] == 8.0
 
 
 @pytest.mark.skipif(not OLDER, reason="no older metrics.json in benchmarks/results")

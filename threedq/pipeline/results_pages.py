@@ -649,13 +649,14 @@ def _iso(t: str) -> dt.datetime:
 
 
 def record_run(run: str | Path, root: str | Path = ROOT, commit: str | None = None, started: str | None = None,
-               ended: str | None = None, time_log: str | None = None,
+               ended: str | None = None, time_log: str | list[str] | None = None,
                timed: str = "threedq em --rounds 4", note: str | None = None) -> dict[str, Any]:
     """Copy ``run/metrics.json`` to ``docs/results/`` and write ``run.json`` beside it; returns the latter.
 
     ``commit``: default the checkout's ``HEAD``; ``started``: default the time the run took its folder (its lock
     file); ``ended``: default the time ``metrics.json`` was written; ``time_log``: a ``/usr/bin/time -v`` output
-    (wall time and peak memory from it, else from ``ended - started``); ``note``: how the run was made, if not by
+    (wall time and peak memory from it, else from ``ended - started``), or several, of a run resumed after a stop
+    (their wall times added, the largest peak memory); ``note``: how the run was made, if not by
     the plain command in this checkout (shown on the results page).
     """
     run, root = Path(run), Path(root)
@@ -670,7 +671,9 @@ def record_run(run: str | Path, root: str | Path = ROOT, commit: str | None = No
     if ended is None:
         ended = dt.datetime.fromtimestamp((run / "metrics.json").stat().st_mtime, dt.timezone.utc).isoformat()
     started_t, ended_t = _iso(started), _iso(ended)
-    timing = parse_time_log(time_log) if time_log else {}
+    logs = [parse_time_log(t) for t in ([time_log] if isinstance(time_log, (str, Path)) else time_log or [])]
+    timing = {k: (sum if k == "wall_seconds" else max)(t[k] for t in logs if k in t)
+              for k in ("wall_seconds", "peak_rss_gib") if any(k in t for t in logs)}
     threads = re.search(r"(\d+) threads", metrics.get("machine", ""))
     info = {
         "command": MAIN_JOB,
@@ -758,7 +761,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--commit", help="the commit the run ran (default: HEAD)")
     ap.add_argument("--started", help="ISO time the run started (default: its lock file's)")
     ap.add_argument("--ended", help="ISO time the run ended (default: when metrics.json was written)")
-    ap.add_argument("--time_log", help="the run's /usr/bin/time -v output (wall time, peak memory)")
+    ap.add_argument("--time_log", action="append", help="the run's /usr/bin/time -v output (wall time, peak "
+                    "memory); once per part of a resumed run")
     ap.add_argument("--note", help="how the run was made, if not by the plain command in this checkout")
     ap.add_argument("--check", action="store_true", help="write nothing; exit 1 if a generated page is stale")
     args = ap.parse_args(argv)
