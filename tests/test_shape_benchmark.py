@@ -135,6 +135,14 @@ class TestInstanceColours:
 
 
 class TestImagenetRow:
+    @pytest.fixture(autouse=True)
+    def one_thread(self):
+        """Tiny MobileNetV2 inputs: one thread is as fast, and not slowed tenfold when other jobs share the cores."""
+        n = torch.get_num_threads()
+        torch.set_num_threads(1)
+        yield
+        torch.set_num_threads(n)
+
     def test_scores_of_a_stand_in_on_the_tiny_data(self, tiny_dataset) -> None:
         """Every number of the 2D row on real scenes (random MobileNetV2 weights): in range, the strict precision equal
         to a per-query count written out here; beside encoder rows, their objects are checked to be the same."""
