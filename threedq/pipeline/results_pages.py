@@ -727,9 +727,10 @@ def overview_figure(run: str | Path, out: str | Path, data_dir: str | Path | Non
         by_proto.setdefault(o["prototype"], []).append(o)
         by_scene.setdefault(o["scene"], []).append(o)
 
-    def score(scene: str) -> tuple[int, int]:  # most objects, then most other members of their prototypes to show
+    def score(scene: str) -> tuple[int, int]:  # most objects in distinct prototypes, then most other members to show
         objs = by_scene.get(scene, [])
-        return (len(objs), sum(min(members, len(by_proto[o["prototype"]]) - 1) for o in objs))
+        protos = {o["prototype"] for o in objs}
+        return (len(protos) if len(protos) == len(objs) else 0, sum(min(members, len(by_proto[k]) - 1) for k in protos))
 
     scene = max(files, key=score)  # the first such scene in test order
 
