@@ -118,7 +118,9 @@ def readme_table(m: dict[str, Any], info: dict[str, Any]) -> str:
     n = len(m["round_results"])
     lines = [
         f"The main job at commit `{_short(info['commit'])}` ({info['date']}, {info['machine']}, "
-        f"{_minutes(info['wall_seconds'])}), held-out test split, detected boxes, beside the paper's CLEVR-veggie "
+        f"{_minutes(info['wall_seconds'])}"
+        + ("; how it ran: [docs/results.md](docs/results.md)" if info.get("note") else "")
+        + "), held-out test split, detected boxes, beside the paper's CLEVR-veggie "
         "numbers. Retrieval is precision@10 under two protocols: **strict** = leave-one-out over one view of each "
         "test scene; **paper** = the gallery holds the same objects seen from a second view (the query's own object "
         "counts as a hit). Our pool is the test objects the detections matched (paper: about 1000).",
@@ -471,7 +473,7 @@ def fidelity_blocks(m: dict[str, Any], info: dict[str, Any]) -> dict[str, str]:
     coarse = r.get("protocols", {}).get("paper", {}).get("coarse")
     dets = _detector_evals(m)
     per_round = ", ".join(f"round {t['round']} {t['pool']}" for t in t3)
-    run = _run_line(info) + "."
+    run = _run_line(info) + "." + (f" {info['note']}" if info.get("note") else "")
     gt = max(d["detector"]["num_gt"] for d in dets)
     pool_sizes = sorted({t["pool"] for t in t3})
     pools = (f"Today's main job scores the objects of the embedded test split ({gt} GT objects, "
