@@ -104,3 +104,22 @@ def test_older_metrics_render(path: Path) -> None:
     assert "| 3D detection mAP@0.5" in rp.readme_table(m, info)
     assert set(rp.fidelity_blocks(m, info)) == {"fidelity-run", "fidelity-pools", "fidelity-table3",
                                                 "fidelity-tables124", "fidelity-table5"}
+
+
+def test_fidelity_gt_block() -> None:
+    """fidelity.md's Table 2 on GT boxes from two table2.json files (synthetic numbers, the shape threedq eval
+    --encoders writes): one row per feature set, both pools side by side, the paper's row, the ceilings."""
+    row = {"precision_at_10": 0.5, "precision_at_10_paper": 0.55, "same_object_top1": 0.6, "probe_acc": 0.7,
+           "hungarian_acc": 0.4}
+    gt = {"num_test_objects": 487, "K": 50, "ceilings": {"strict": 0.915, "paper": 0.956},
+          "rows": {"raw crops": row, "ours (round 4 mining)": row}}
+    pool = {"num_test_objects": 1003, "K": 50, "ceilings": {"strict": 1.0, "paper": 1.0},
+            "rows": {"raw crops": {**row, "probe_acc": None}}}
+    doc = {"date": "2026-11-29", "commit": "c" * 40, "machine": "a test machine", "commands": ["threedq eval ..."],
+           "gt": gt, "pool": pool}
+    text = rp.fidelity_gt_block(doc)
+    assert "| 487: strict | 487: **paper** |" in text and "| 1003: strict |" in text
+    assert "| raw crops | 0.500 | 0.550 | 0.600 | 0.700 | 0.400 | 0.500 | 0.550 | 0.600 |" in text
+    assert "| ours (round 4 mining) | 0.500 | 0.550 | 0.600 | 0.700 | 0.400 | - | - | - |" in text
+    assert "487 objects: 0.915 strict / 0.956 paper; 1003 objects: 1.000 strict / 1.000 paper" in text
+    assert "| raw crops | 0.500 | 0.550 | 0.600 | 0.700 | 0.400 |\n" in rp.fidelity_gt_block({**doc, "pool": None}) + "\n"

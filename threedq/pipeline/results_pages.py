@@ -541,6 +541,38 @@ def fidelity_blocks(m: dict[str, Any], info: dict[str, Any]) -> dict[str, str]:
             "fidelity-table5": table5}
 
 
+def fidelity_gt_block(doc: dict[str, Any]) -> str:
+    """fidelity.md's Table 2 on GT boxes, from ``docs/results/fidelity_gt.json``: the ``table2.json`` of
+    ``threedq eval --encoders`` on the test split (``gt``) and on the paper-size pool (``pool``), with how they ran."""
+    gt, pool = doc["gt"], doc.get("pool")
+    n, m = gt["num_test_objects"], (pool or {}).get("num_test_objects")
+    head = (f"| features | {n}: strict | {n}: **paper** | {n}: same-object top-1 | {n}: linear probe | "
+            f"{n}: Hungarian, K = {gt['K']} |")
+    sep = "|---|---|---|---|---|---|"
+    if pool:
+        head += f" {m}: strict | {m}: **paper** | {m}: same-object top-1 |"
+        sep += "---|---|---|"
+    lines = [f"Measured {doc['date']} at commit `{_short(doc['commit'])}` on {doc['machine']}, on the encoders of the "
+             f"main job recorded in [results/run.json](results/run.json); commands: "
+             + "; ".join(f"`{c}`" for c in doc["commands"]) + ".", "", head, sep]
+    for name, r in gt["rows"].items():
+        q = (pool or {}).get("rows", {}).get(name, {})
+        row = (f"| {name} | {_f(r.get('precision_at_10'))} | {_f(r.get('precision_at_10_paper'))} | "
+               f"{_f(r.get('same_object_top1'))} | {_f(r.get('probe_acc'))} | {_f(r.get('hungarian_acc'))} |")
+        if pool:
+            row += (f" {_f(q.get('precision_at_10'))} | {_f(q.get('precision_at_10_paper'))} | "
+                    f"{_f(q.get('same_object_top1'))} |")
+        lines.append(row)
+    p2, p4 = PAPER["table2"], PAPER["table4"]
+    paper = f"{p2['rgbocc']:.2f} / {p2['ours']:.2f}"
+    lines.append(f"| **paper** (CLEVR, its protocol and pool): rgbocc / ours | | {paper} | | | "
+                 f"3DQ-Nets {p4['3DQ-Nets']:.2f} (Table 4) |" + (f" | {paper} | |" if pool else ""))
+    ceil = "; ".join(f"{d['num_test_objects']} objects: " + " / ".join(
+        f"{_f(v)} {k}" for k, v in d.get("ceilings", {}).items()) for d in (gt, pool) if d)
+    lines += ["", f"Perfect features would score {ceil}."]
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------------------------------------------------- files
 def _markers(name: str) -> tuple[str, str]:
     return (f"<!-- generated:{name} begin ({GENERATOR}; do not edit by hand) -->", f"<!-- generated:{name} end -->")
@@ -597,6 +629,9 @@ def expected_pages(root: str | Path = ROOT) -> dict[Path, str]:
     if (root / RESULTS_DIR / "metrics.json").is_file():
         m, info = load_results(root / RESULTS_DIR)
         page, fidelity = results_page(m, info), fidelity_blocks(m, info)
+        if (root / RESULTS_DIR / "fidelity_gt.json").is_file():
+            gt_doc = json.loads((root / RESULTS_DIR / "fidelity_gt.json").read_text())
+            fidelity["fidelity-gt"] = fidelity_gt_block(gt_doc)
         readme = {"readme-results": readme_table(m, info),
                   "readme-picture": readme_picture(info) if (root / OVERVIEW).is_file() else ""}
     else:
