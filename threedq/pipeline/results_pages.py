@@ -570,6 +570,8 @@ def fidelity_gt_block(doc: dict[str, Any]) -> str:
     ceil = "; ".join(f"{d['num_test_objects']} objects: " + " / ".join(
         f"{_f(v)} {k}" for k, v in d.get("ceilings", {}).items()) for d in (gt, pool) if d)
     lines += ["", f"Perfect features would score {ceil}."]
+    if doc.get("not_run"):
+        lines += ["", f"Not re-run with these encoders: {doc['not_run']}."]
     return "\n".join(lines)
 
 
