@@ -1,17 +1,7 @@
-"""What machine a benchmark ran on (printed with every table)."""
+"""What machine a benchmark ran on (printed with every table): :func:`threedq.machine.cpu_name`."""
 
 from __future__ import annotations
 
-import platform
-from pathlib import Path
+from threedq.machine import cpu_name
 
-
-def cpu_name() -> str:
-    """CPU model name (Linux), else the platform's processor string."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown CPU"
+__all__ = ["cpu_name"]

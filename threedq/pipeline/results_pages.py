@@ -34,6 +34,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from threedq.machine import cpu_name
+
 __all__ = [
     "PAPER",
     "fidelity_blocks",
@@ -658,18 +660,6 @@ def write_pages(root: str | Path = ROOT) -> list[Path]:
     return changed
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    import platform
-
-    return platform.processor() or platform.machine()
-
-
 def parse_time_log(path: str | Path) -> dict[str, float]:
     """Wall-clock seconds and peak resident memory (GiB) from the output of ``/usr/bin/time -v``."""
     out: dict[str, float] = {}
@@ -723,7 +713,7 @@ def record_run(run: str | Path, root: str | Path = ROOT, commit: str | None = No
         "ended": ended_t.strftime("%Y-%m-%dT%H:%M:%SZ"),
         "wall_seconds": round(timing.get("wall_seconds", (ended_t - started_t).total_seconds()), 1),
         "peak_rss_gib": round(timing["peak_rss_gib"], 2) if "peak_rss_gib" in timing else None,
-        "machine": f"{_cpu_model()}, {threads.group(1) if threads else '?'} threads, torch {metrics.get('torch')}",
+        "machine": f"{cpu_name()}, {threads.group(1) if threads else '?'} threads, torch {metrics.get('torch')}",
     }
     if note:
         info["note"] = note
