@@ -172,7 +172,7 @@ def _per_round_lines(m: dict[str, Any]) -> list[str]:
     t3 = {t["round"]: t for t in m["table3"]}
     lines = [
         "| round | precision@10 strict | paper | same-object top-1 | Hungarian | few-shot | yaw median err. (deg) | "
-        "mAP@0.5 | handed-on precision / recall | mined pairs | same category | mined yaw err. (deg) | "
+        "mAP@0.5 | handed-on precision / recall | mined pairs (on two GT objects) | same category | mined yaw err. (deg) | "
         "self-label positives (true at IoU 0.5) | negatives (background) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -184,7 +184,8 @@ def _per_round_lines(m: dict[str, Any]) -> list[str]:
         pairs = same = yaw = "-"
         if 1 <= i <= len(mining) and mining[i - 1]["refreshes"]:
             refs = mining[i - 1]["refreshes"]
-            pairs = " + ".join(str(f["pairs"]) for f in refs)
+            pairs = " + ".join(f"{f['pairs']} ({f['labelled_pairs']})" if "labelled_pairs" in f else str(f["pairs"])
+                               for f in refs)
             same = " / ".join(_f(f["same_category"], 2) for f in refs)
             yaw = " / ".join(_f(f.get("yaw_median_err_deg"), 0) for f in refs)
         pos = neg = "-"
@@ -412,8 +413,9 @@ def results_page(m: dict[str, Any], info: dict[str, Any]) -> str:
         "",
         "### Per round: features, clusters, pose, detection, and what mining and self-labelling did",
         "",
-        "Mining: pairs of each pool refresh, the share of pairs on two GT objects of one category and the median yaw "
-        "error of their implied relative pose (labels measure, never train). Self-labelling: the boxes the "
+        "Mining: pairs of each pool refresh (in brackets those on two GT objects), the share of those of one "
+        "category and the median yaw error of their implied relative pose (labels measure, never train). "
+        "Self-labelling: the boxes the "
         "prototypes made positives (share true at IoU 0.5; the label-free pseudo-boxes are trained as positives "
         "too) and the negatives (share on no object at IoU 0.25). Handed-on boxes: the detector's boxes above 0.9 "
         "objectness, the next round's boxes, against the test objects at IoU 0.5.",
