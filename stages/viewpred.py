@@ -51,7 +51,7 @@ __all__ = ["VIEW_PREDICTION_SETTINGS", "ViewPrediction", "ViewPredictionObjectiv
 #: the objective as a regulariser (the mining stage's ``view_prediction_weight``) takes them from the checkpoint it
 #: loads the decoder from
 VIEW_PREDICTION_SETTINGS = ("num_planes", "depth_range", "pool", "free_samples_per_ray", "free_pixel_stride",
-                            "rgb_weight", "occ_weight", "rgb_loss", "ground_margin")
+                            "rgb_weight", "occ_weight", "rgb_loss", "ground_margin", "shape_channels")
 
 
 def view_prediction_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Tensor], dict[str, Tensor]]:
@@ -78,6 +78,8 @@ def view_prediction_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[s
             f"prediction as a regulariser needs a view-prediction checkpoint, or a mining one trained with "
             f"view_prediction_weight > 0"
         )
+    settings = dict(settings)
+    settings.setdefault("shape_channels", 0)  # a mining checkpoint from before the setting: the paper's, none
     missing = [k for k in VIEW_PREDICTION_SETTINGS if k not in settings]
     if missing:
         raise InputError(f"{path}: field 'view_prediction_settings': missing {missing}")
@@ -173,7 +175,9 @@ class ViewPredictionObjective:
         rgb_t, depth_t = batch["rgb"][:, n_in:].flatten(0, 1), batch["depth"][:, n_in:].flatten(0, 1)
         K_t, pose_t = batch["K"][:, n_in:].flatten(0, 1), batch["R_T_cam"][:, n_in:].flatten(0, 1)
         H, W = rgb_t.shape[-2:]
-        feats_t = feats.repeat_interleave(T, dim=0) if T > 1 else feats
+        k = int(st.get("shape_channels", 0) or 0)  # shape channels: the decoder reads them, the RGB loss does not train them
+        feats_rgb = torch.cat([feats[:, :k].detach(), feats[:, k:]], 1) if k else feats
+        feats_t = feats_rgb.repeat_interleave(T, dim=0) if T > 1 else feats_rgb
         pred = self.predict_view(feats_t, K_t, pose_t, (H, W))  # [B*T, 3, H/2, W/2]
         target = F.avg_pool2d(rgb_t, 2) - 0.5
         valid = self.target_valid(depth_t, K_t, pose_t)
@@ -206,6 +210,11 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             the held-out in-grid L1 was 0.101 at weight 1, 0.069 at 10, 0.058 at 30 and 0.052 with no
             occupancy loss at all (mean-colour baseline 0.046), while occupancy accuracy stays > 0.98.
         occ_weight: weight of the occupancy loss.
+        shape_channels: the first this many of the ``feature_dim`` channels are trained by the occupancy loss
+            alone: the view decoder reads them detached, so the RGB loss's gradient reaches only the other channels
+            (and, through them, the shared U-Net). 0 (the paper's): every channel serves both losses. A departure
+            from the paper, for features that keep 3D shape where the RGB loss would spend them on colour
+            (docs/studies/shape.md, "Shape channels").
         rgb_loss: ``"balanced"`` (default): :func:`~threedq.nets.balanced_l1`, the mean L1 over target pixels
             above the ground plus the mean over the rest, the RGB counterpart of the balanced occupancy loss;
             ``"plain"``: the mean over all valid pixels (the paper's Eq. 1). Objects cover about 9% of the
@@ -243,6 +252,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         image_every_n_steps: int = 200,
         rgb_loss: Literal["balanced", "plain"] = "balanced",
         ground_margin: float = 0.02,
+        shape_channels: int = 0,
             **kwargs: Any,
     ) -> None:
         if rgb_loss not in ("balanced", "plain"):
@@ -252,6 +262,8 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         if not ground_margin >= 0:
             raise ValueError(f"ground_margin: expected >= 0 metres, got {ground_margin!r}")
         super().__init__(**kwargs)
+        if not 0 <= shape_channels <= self.feature_dim:
+            raise ValueError(f"shape_channels: expected 0..feature_dim ({self.feature_dim}), got {shape_channels!r}")
         self.save_hyperparameters()
         self.decoder = ViewDecoder(in_channels=self.feature_dim, num_planes=num_planes, pool=pool)
         self.occ_head = OccupancyHead(in_channels=self.feature_dim)

@@ -107,6 +107,41 @@ class TestBalancedRgbLoss:
             ViewPrediction(**SMALL, ground_margin=float("nan"))
 
 
+class TestShapeChannels:
+    """``shape_channels``: the RGB loss's gradient stops at the first ``k`` feature channels; the loss's value does not
+    change."""
+
+    def _grads(self, batch: dict[str, torch.Tensor], k: int, rgb_weight: float, occ_weight: float) -> tuple:
+        torch.manual_seed(0)
+        m = ViewPrediction(**SMALL, shape_channels=k, rgb_weight=rgb_weight, occ_weight=occ_weight)
+        with torch.no_grad():
+            feats = m(batch)["features"]
+        feats = feats.clone().requires_grad_(True)
+        r = m.view_prediction_loss(feats, m.occ_head(feats), batch, 1)
+        r["loss"].backward()
+        return r["loss"].detach(), feats.grad.flatten(2).abs().amax(2)[0]  # [C] largest gradient per channel
+
+    def test_rgb_gradient_stops_at_the_shape_channels(self, batch: dict[str, torch.Tensor]) -> None:
+        _, g = self._grads(batch, 8, rgb_weight=1.0, occ_weight=0.0)
+        assert torch.all(g[:8] == 0) and torch.all(g[8:] > 0)
+        _, g0 = self._grads(batch, 0, rgb_weight=1.0, occ_weight=0.0)  # the paper's: every channel gets it
+        assert torch.all(g0 > 0)
+
+    def test_occupancy_gradient_reaches_every_channel(self, batch: dict[str, torch.Tensor]) -> None:
+        _, g = self._grads(batch, 8, rgb_weight=0.0, occ_weight=1.0)
+        assert torch.all(g > 0)
+
+    def test_the_loss_is_unchanged(self, batch: dict[str, torch.Tensor]) -> None:
+        a, _ = self._grads(batch, 0, rgb_weight=30.0, occ_weight=1.0)
+        b, _ = self._grads(batch, 16, rgb_weight=30.0, occ_weight=1.0)
+        assert torch.equal(a, b)
+
+    def test_bad_count_refused(self) -> None:
+        for k in (-1, 33):
+            with pytest.raises(ValueError, match="shape_channels"):
+                ViewPrediction(**SMALL, shape_channels=k)
+
+
 class TestTargetViews:
     """Several target views per sample."""
 
