@@ -121,12 +121,28 @@ def _cluster(train: dict, test: dict, num_classes: int, em_seeds: tuple[int, ...
     return out
 
 
-def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_shape: str = "hull") -> dict[str, Any]:
+def _channels(crops: dict, channels: slice | None) -> dict:
+    """``crops`` with only ``channels`` of its learned crops (``learned``, ``gallery_learned``); all where None."""
+    if channels is None:
+        return crops
+    out = dict(crops)
+    for key in ("learned", "gallery_learned"):
+        if key in crops:
+            c = crops[key].shape[1]
+            if not 0 <= (channels.start or 0) < (channels.stop or c) <= c:
+                raise ValueError(f"--channels {channels.start}:{channels.stop}: the crops have {c} channels")
+            out[key] = crops[key][:, channels]
+    return out
+
+
+def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_shape: str = "hull",
+                  channels: slice | None = None) -> dict[str, Any]:
     """Every number of one row for ``stage``'s encoder on the test split's GT boxes.
 
     Scored on one input view per scene, the protocols' view, whatever a recipe trains on (a recipe with
     ``--data.init_args.num_input_views=2`` trains on two, is scored on one). ``crop_shape``: the region cropped
-    around each box (:func:`threedq.geometry.crop_region`), for the learned and the raw crops alike.
+    around each box (:func:`threedq.geometry.crop_region`), for the learned and the raw crops alike. ``channels``:
+    score only these channels of the learned crops (e.g. the view-prediction stage's ``shape_channels``).
     """
     import copy
 
@@ -142,12 +158,13 @@ def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_
     with torch.no_grad():
         crops = collect_object_crops(stage, split_loader(dm, "test", gallery=True), random_encoder_seed=None,
                                      progress=False, gallery=True, crop_shape=crop_shape)
+        crops = _channels(crops, channels)
         row: dict[str, Any] = {"crop": crop_shape}
         for sim in SIMILARITIES:
             row.update(_score(crops, sim))
         if probe or cluster:
-            train = collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None, progress=False,
-                                         crop_shape=crop_shape)
+            train = _channels(collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None,
+                                                   progress=False, crop_shape=crop_shape), channels)
         if probe:
             acc = probe_table(train, crops)["accuracy"]
             row["probe/learned"], row["probe/raw"] = acc["learned"], acc["raw_rgb_occupancy"]
@@ -216,9 +233,10 @@ def _variant_name(name: str, crop_shape: str) -> str:
 
 
 def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool, cluster: bool = False,
-                      crop_shapes: tuple[str, ...] = ("hull",)) -> None:
+                      crop_shapes: tuple[str, ...] = ("hull",), channels: slice | None = None) -> None:
     """One row per ``NAME=CKPT`` and crop shape: the checkpoint's encoder scored as :func:`score_encoder` does (no
-    training). The shapes share one encoding of each scene (a crop cache holds the grids: about 2 MiB a scene)."""
+    training). The shapes share one encoding of each scene (a crop cache holds the grids: about 2 MiB a scene).
+    ``channels``: one more row per checkpoint and shape on these channels of the learned crops alone."""
     from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
     from threedq.datamodules.scene_folder import SceneFolderDataModule
     from threedq.stages.crop_cache import CropCache
@@ -234,13 +252,15 @@ def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: 
         if len(crop_shapes) > 1:
             stage.use_crop_cache(CropCache())
         for shape in crop_shapes:
-            row = {"variant": _variant_name(name, shape), "overrides": [ckpt], "seed": None, "steps": 0,
-                   "s_per_step": float("nan"), **score_encoder(stage, dm, probe, cluster, shape),
-                   "device": _device_name(stage.device), "data_dir": data_dir}
-            with out.open("a") as f:
-                f.write(json.dumps(row) + "\n")
-            print(f"{row['variant']}: paper {row['cosine/paper']:.3f} (occupancy {row['occupancy/paper']:.3f}) "
-                  f"top-1 {row['cosine/top1']:.3f}", flush=True)
+            for sl in (None, channels) if channels is not None else (None,):
+                variant = _variant_name(name, shape) + ("" if sl is None else f", channels {sl.start}:{sl.stop}")
+                row = {"variant": variant, "overrides": [ckpt], "seed": None, "steps": 0,
+                       "s_per_step": float("nan"), **score_encoder(stage, dm, probe, cluster, shape, sl),
+                       "device": _device_name(stage.device), "data_dir": data_dir}
+                with out.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+                print(f"{row['variant']}: strict {row['cosine/strict']:.3f} paper {row['cosine/paper']:.3f} "
+                      f"(occupancy {row['occupancy/paper']:.3f}) top-1 {row['cosine/top1']:.3f}", flush=True)
         stage.use_crop_cache(None)  # the next checkpoint's grids replace these (about 2 MiB a scene)
         del stage
         gc.collect()
@@ -375,6 +395,9 @@ def main() -> None:
     ap.add_argument("--crop_shapes", nargs="+", default=["hull"], choices=list(CROP_SHAPES),
                     help="regions cropped around each box (threedq.geometry.crop_region), a row each: hull (the "
                          "paper's), square (aspect kept in the ground plane), cube (aspect kept); with --score")
+    ap.add_argument("--channels", default=None, metavar="START:STOP",
+                    help="with --score: one more row per checkpoint on these channels of the learned crops alone "
+                         "(e.g. 0:16, the view-prediction stage's shape_channels)")
     ap.add_argument("--one", nargs=2, metavar=("SPEC", "SEED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -384,7 +407,15 @@ def main() -> None:
                 args.probe, args.data_dir, args.cluster, args.data_config)
         return
     if args.score:
-        score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster, tuple(args.crop_shapes))
+        channels = None
+        if args.channels:
+            try:
+                a, b = (int(v) for v in args.channels.split(":"))
+            except ValueError:
+                ap.error(f"--channels: expected START:STOP, e.g. 0:16, got {args.channels!r}")
+            channels = slice(a, b)
+        score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster, tuple(args.crop_shapes),
+                          channels)
     elif not args.table_only:
         jobs = [(spec, seed) for spec in (args.variant or DEFAULT_VARIANTS) for seed in args.seeds]
         common = ["--eval_steps", *map(str, args.eval_steps), "--root", str(args.root), "--out", str(args.out)]

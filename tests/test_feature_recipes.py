@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from conftest import load_benchmark
@@ -86,6 +87,21 @@ class TestScoreCheckpoints:
         assert [(r["variant"], r["crop"]) for r in rows] == [("enc", "hull"), ("enc, cube crop", "cube")]
 
         assert rows[0]["cosine/paper"] != rows[1]["cosine/paper"] or rows[0]["raw/top1"] != rows[1]["raw/top1"]
+
+
+class TestChannels:
+    def test_slice_of_the_learned_crops_only(self) -> None:
+        crops = {"learned": torch.arange(2 * 6 * 8.0).view(2, 6, 2, 2, 2), "gallery_learned": torch.ones(2, 6, 2, 2, 2),
+                 "raw": torch.zeros(2, 4, 2, 2, 2)}
+        out = feature_recipes._channels(crops, slice(0, 2))
+        assert torch.equal(out["learned"], crops["learned"][:, :2]) and out["gallery_learned"].shape[1] == 2
+        assert out["raw"] is crops["raw"] and feature_recipes._channels(crops, None) is crops
+
+    def test_a_slice_outside_the_crops_is_refused(self) -> None:
+        crops = {"learned": torch.zeros(2, 6, 2, 2, 2)}
+        for bad in (slice(0, 7), slice(3, 3), slice(-1, 2)):
+            with pytest.raises(ValueError, match="--channels"):
+                feature_recipes._channels(crops, bad)
 
 
 class TestCluster:
