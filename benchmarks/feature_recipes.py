@@ -235,7 +235,8 @@ def _variant_name(name: str, crop_shape: str) -> str:
 def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool, cluster: bool = False,
                       crop_shapes: tuple[str, ...] = ("hull",), channels: slice | None = None) -> None:
     """One row per ``NAME=CKPT`` and crop shape: the checkpoint's encoder scored as :func:`score_encoder` does (no
-    training). The shapes share one encoding of each scene (a crop cache holds the grids: about 2 MiB a scene).
+    training). The shapes and the ``channels`` row share one encoding of each scene (a crop cache holds the grids:
+    about 2 MiB a scene).
     ``channels``: one more row per checkpoint and shape on these channels of the learned crops alone."""
     from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
     from threedq.datamodules.scene_folder import SceneFolderDataModule
@@ -249,7 +250,7 @@ def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: 
     for spec in specs:
         name, _, ckpt = spec.partition("=")
         stage = ViewPrediction(encoder_ckpt=ckpt).eval()
-        if len(crop_shapes) > 1:
+        if len(crop_shapes) > 1 or channels is not None:  # each row after the first reads the same encodings
             stage.use_crop_cache(CropCache())
         for shape in crop_shapes:
             for sl in (None, channels) if channels is not None else (None,):
