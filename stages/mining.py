@@ -210,6 +210,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         prototype_yaw_window: the largest disagreement, in yaw steps, between the mined yaw and the one the two
             prototype assignments imply.
         prototype_oversample: see ``verify_by_prototypes``.
+        round_lr: the learning rate across EM rounds: ``"constant"`` (``lr`` in every round, the paper's) or
+            ``"harmonic"`` (``lr / em_round``: the decreasing step of stochastic-approximation EM, so that later
+            rounds refine the encoder rather than move it as far again; a departure from the paper, see
+            docs/studies/mined-pairs.md).
+        em_round: the EM round this stage runs in (``threedq em`` sets it; 1 outside the loop).
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
         symmetry_order: per category, its yaw symmetry order, for the mined pairs' yaw-error diagnostics only (the
@@ -254,6 +259,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         verify_by_prototypes: bool = False,
         prototype_yaw_window: int = 2,
         prototype_oversample: int = 4,
+        round_lr: Literal["constant", "harmonic"] = "constant",
+        em_round: int = 1,
         seed: int = 0,
         retrieval_k: int = 10,
         symmetry_order: list[int] | None = None,
@@ -292,11 +299,16 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
         if verify_by_prototypes and not bank_ckpt:
             raise ValueError("verify_by_prototypes: the pairs are verified by a prototype bank; no bank_ckpt given "
-                             "(threedq em passes the previous round's)")
+                             "(threedq em passes the previous round's; on its own, give --model.init_args.bank_ckpt="
+                             "<a quantizer checkpoint of this encoder> or --model.init_args.verify_by_prototypes=false)")
         for name, v, lo in (("prototype_yaw_window", prototype_yaw_window, 0),
                             ("prototype_oversample", prototype_oversample, 1)):
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"{name}: expected an int >= {lo}, got {v!r}")
+        if round_lr not in ("constant", "harmonic"):
+            raise ValueError(f"round_lr: expected 'constant' or 'harmonic', got {round_lr!r}")
+        if isinstance(em_round, bool) or not isinstance(em_round, int) or em_round < 1:
+            raise ValueError(f"em_round: expected an int >= 1, got {em_round!r}")
         if min_cosine is not None and not -1.0 <= min_cosine <= 1.0:
             raise ValueError(f"min_cosine: expected None or a number in [-1, 1], got {min_cosine!r}")
         if not 0.0 < context_quantile < 1.0:
@@ -736,5 +748,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         params = [p for p in self.encoder.parameters() if p.requires_grad]
         if self._vp is not None:  # the regulariser's decoder and occupancy head train along
             params += [*self.decoder.parameters(), *self.occ_head.parameters()]
-        return torch.optim.Adam(params, lr=self.hparams.lr)
+        return torch.optim.Adam(params, lr=self.round_learning_rate)
+
+    @property
+    def round_learning_rate(self) -> float:
+        """The learning rate of this round: ``lr``, or ``lr / em_round`` under ``round_lr: harmonic``."""
+        hp = self.hparams
+        return hp.lr / hp.em_round if hp.round_lr == "harmonic" else hp.lr
 

@@ -290,6 +290,8 @@ model:
     retrieval_k: 1
     view_positives: {4 if views else 0}
     view_prediction_weight: {1.0 if vp else 0.0}
+    pool_min_observed_iou: null   # the packaged checks (tested in TestPoolObjectCheck, TestPrototypeAgreement and
+    verify_by_prototypes: false   # test_configs) keep few of the tiny scenes' boxes: the pairs' machinery here
 {tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
 trainer:
   max_steps: 3
@@ -533,3 +535,27 @@ class TestPrototypeAgreement:
             Mining(verify_by_prototypes=True, bank_ckpt=str(path), prototype_yaw_window=-1, **kw)
         # not asked to verify: the bank is not read
         Mining(bank_ckpt=str(tmp_path / "none.ckpt"), **kw)
+
+
+class TestRoundLearningRate:
+    """``round_lr``: the optimiser's learning rate per EM round, against the hand-computed lr / r."""
+
+    kw = {"grid_resolution": (32, 32, 16), "queue_size": 64, "lr": 3e-4}
+
+    @pytest.mark.parametrize("em_round", [1, 2, 3, 4])
+    def test_harmonic_and_constant(self, em_round: int) -> None:
+        harmonic = Mining(round_lr="harmonic", em_round=em_round, **self.kw)
+        assert harmonic.configure_optimizers().param_groups[0]["lr"] == pytest.approx(3e-4 / em_round)
+        constant = Mining(em_round=em_round, **self.kw)  # the paper's: one rate in every round
+        assert constant.configure_optimizers().param_groups[0]["lr"] == pytest.approx(3e-4)
+
+    def test_recorded_in_the_hyperparameters(self) -> None:
+        m = Mining(round_lr="harmonic", em_round=3, **self.kw)
+        assert (m.hparams.round_lr, m.hparams.em_round) == ("harmonic", 3)
+
+    def test_errors(self) -> None:
+        with pytest.raises(ValueError, match="round_lr"):
+            Mining(round_lr="cosine", **self.kw)
+        for bad in (0, -1, 1.5, True):
+            with pytest.raises(ValueError, match="em_round"):
+                Mining(em_round=bad, **self.kw)

@@ -447,7 +447,8 @@ def run_em(
                 # verify_by_prototypes (unused when that is off)
                 bank_of_encoder = str(prev_bank if prev_bank is not None else q0.path)
                 m = _fit_stage(f"round {r} mining", m_configs, layout.round(r, "mining"),
-                               stage_overrides(m_configs, model={"encoder_ckpt": encoder, "bank_ckpt": bank_of_encoder},
+                               stage_overrides(m_configs, model={"encoder_ckpt": encoder, "bank_ckpt": bank_of_encoder,
+                                                                   "em_round": r},
                                                data=boxes_of_round, trainer=mining_trainer), resume,
                                crop_cache)
                 encoder = m.path
