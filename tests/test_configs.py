@@ -33,7 +33,8 @@ NEEDS = {
     "stages/detector.yaml": ("encoder_ckpt",),
     "stages/detector_gt.yaml": ("encoder_ckpt",),
     "stages/quantizer.yaml": ("encoder_ckpt",),
-    "stages/mining.yaml": ("encoder_ckpt", "bank_ckpt"),  # verify_by_prototypes: the bank threedq em passes
+    "stages/mining.yaml": ("encoder_ckpt",),
+    "stages/mining_checked.yaml": ("encoder_ckpt", "bank_ckpt"),  # verify_by_prototypes: the bank threedq em passes
     "stages/vc.yaml": ("encoder_ckpt",),
     "stages/vc_moco.yaml": ("encoder_ckpt",),
     "stages/self_labelling.yaml": ("encoder_ckpt", "detector_ckpt", "bank_ckpt"),
@@ -65,7 +66,7 @@ def _run_args(config: str, data_dir: Path, root: Path, ckpts: dict[str, Path]) -
         args.append(f"--model.init_args.{key}={ckpts[key]}")
     if "encoder_ckpt" in NEEDS.get(config, ()):
         args.append(TINY_GRID)  # a bare encoder state dict carries no grid
-    if config in ("stages/self_labelling.yaml", "stages/mining.yaml"):
+    if config in ("stages/self_labelling.yaml", "stages/mining_checked.yaml"):
         args += ["--model.init_args.crop_size=8", "--model.init_args.num_angles=8"]  # the tiny bank's
     return args
 

@@ -90,7 +90,6 @@ def runs(ddp_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     det = ["--config", "stages/detector.yaml", "--config", str(data), enc, "--data.init_args.boxes=gt", "--trainer.max_steps=2",
            "--trainer.limit_val_batches=1", "--model.init_args.eval_score_threshold=0.0"]
     mine = ["--config", "stages/mining.yaml", "--config", str(data), enc, "--model.init_args.retrieval_k=3",
-            "--model.init_args.verify_by_prototypes=false",  # tested: mining's retrieval, which needs no bank
             "--trainer.precision=32-true"]
     ddp = ["--config", "trainer/ddp_cpu.yaml"]
     q_ckpt, det_ckpt = work / "q_ddp" / "checkpoints" / "last.ckpt", work / "det_ddp" / "checkpoints" / "last.ckpt"

@@ -16,7 +16,6 @@ import yaml
 from conftest import tiny_data_yaml
 from lightning.pytorch import LightningModule
 
-from threedq.pipeline.lightning_cli import resolve_config
 from threedq.scene import load_index
 
 
@@ -149,13 +148,7 @@ class TestEm:
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
-        # the packaged mining config without its two pair checks, which keep few of the tiny scenes' boxes (tested
-        # in test_mining_stage.py and, as packaged, for a batch in test_configs.py): the pairs' diagnostics here
-        mining = yaml.safe_load(resolve_config("stages/mining.yaml").read_text())
-        mining["model"]["init_args"].update(pool_min_observed_iou=None, verify_by_prototypes=False)
-        (tmp_path / "mining.yaml").write_text(yaml.safe_dump(mining))
-        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], detection=False, boxes="gt",
-                         mining_config=str(tmp_path / "mining.yaml"))
+        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], detection=False, boxes="gt")
         assert summary["round_stages_run"] == ["mining", "quantizer"]
         assert summary["frozen_precision"] == summary["mining_precision"] == "32-true"
         for stage in ("r01_mining", "r01_quantizer"):  # the mining config asks for bf16-mixed
@@ -165,7 +158,7 @@ class TestEm:
         # the bank its encoder was last quantized with (round 0's) is handed on, for verify_by_prototypes
         mining_args = yaml.safe_load((work / "r01_mining" / "config.yaml").read_text())["model"]["init_args"]
         assert mining_args["bank_ckpt"] == str(work / "r00_quantizer" / "checkpoints" / "last.ckpt")
-        assert mining_args["em_round"] == 1 and mining_args["round_lr"] == "harmonic"  # round r: lr / r
+        assert mining_args["em_round"] == 1  # em tells each round's mining stage its round (round_lr)
         refreshes = summary["mining_results"][0]["refreshes"]
         assert refreshes and refreshes[0]["pairs"] >= 1 and 0 <= refreshes[0]["same_category"] <= 1
         assert 1 <= refreshes[0]["labelled_pairs"] <= refreshes[0]["pairs"]  # GT boxes: every box is on an object

@@ -290,8 +290,6 @@ model:
     retrieval_k: 1
     view_positives: {4 if views else 0}
     view_prediction_weight: {1.0 if vp else 0.0}
-    pool_min_observed_iou: null   # the packaged checks (tested in TestPoolObjectCheck, TestPrototypeAgreement and
-    verify_by_prototypes: false   # test_configs) keep few of the tiny scenes' boxes: the pairs' machinery here
 {tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
 trainer:
   max_steps: 3
