@@ -90,6 +90,8 @@ def _stage_configs() -> list[str]:
 #: prediction trains (the other stages take them from their encoder) and which correspondence source a mining config
 #: runs.
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
+#: A variant config's own choices: what it exists to set, on top of its stage's tuned config.
+VARIANT_CHOICES = {"stages/mining_checked.yaml": {"pool_min_observed_iou", "verify_by_prototypes", "round_lr"}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
@@ -98,9 +100,22 @@ def test_class_defaults_equal_the_tuned_config(config: str) -> None:
     module, name = model["class_path"].rsplit(".", 1)
     defaults = _declared_defaults(getattr(importlib.import_module(module), name))
     differ = {k: (defaults.get(k, "<not an argument>"), v) for k, v in (model.get("init_args") or {}).items()
-              if not k.endswith("_ckpt") and k not in CONFIG_CHOICES
+              if not k.endswith("_ckpt") and k not in CONFIG_CHOICES | VARIANT_CHOICES.get(config, set())
               and (list(d) if isinstance(d := defaults.get(k, "<not an argument>"), tuple) else d) != v}
     assert not differ, f"{config}: class default vs config value: {differ}"
+
+
+def test_a_variant_config_differs_from_its_stage_config_only_in_its_choices() -> None:
+    """``stages/mining_checked.yaml`` is ``stages/mining.yaml`` plus its three settings, nothing else."""
+    for variant, own in VARIANT_CHOICES.items():
+        base = yaml.safe_load((packaged_configs_dir() / "stages/mining.yaml").read_text())
+        cfg = yaml.safe_load((packaged_configs_dir() / variant).read_text())
+        args = cfg["model"]["init_args"]
+        assert set(args) - set(base["model"]["init_args"]) == own
+        assert {k: v for k, v in args.items() if k not in own} == base["model"]["init_args"]
+        assert cfg["data"] == base["data"] and cfg["seed_everything"] == base["seed_everything"]
+        assert {k: v for k, v in cfg["trainer"].items() if k != "default_root_dir"} == \
+            {k: v for k, v in base["trainer"].items() if k != "default_root_dir"}
 
 
 class TestSelfLabellingInheritsTheDetector:
