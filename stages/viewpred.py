@@ -51,7 +51,8 @@ __all__ = ["VIEW_PREDICTION_SETTINGS", "ViewPrediction", "ViewPredictionObjectiv
 #: the objective as a regulariser (the mining stage's ``view_prediction_weight``) takes them from the checkpoint it
 #: loads the decoder from
 VIEW_PREDICTION_SETTINGS = ("num_planes", "depth_range", "pool", "free_samples_per_ray", "free_pixel_stride",
-                            "rgb_weight", "occ_weight", "rgb_loss", "ground_margin", "shape_channels")
+                            "rgb_weight", "occ_weight", "rgb_loss", "ground_margin", "shape_channels",
+                            "occupancy_views")
 
 
 def view_prediction_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Tensor], dict[str, Tensor]]:
@@ -80,6 +81,7 @@ def view_prediction_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[s
         )
     settings = dict(settings)
     settings.setdefault("shape_channels", 0)  # a mining checkpoint from before the setting: the paper's, none
+    settings.setdefault("occupancy_views", 0)  # likewise: every target view decoded, the paper's
     missing = [k for k in VIEW_PREDICTION_SETTINGS if k not in settings]
     if missing:
         raise InputError(f"{path}: field 'view_prediction_settings': missing {missing}")
@@ -132,15 +134,33 @@ class ViewPredictionObjective:
         inside = (ok & self.grid.contains(points)).view(B, 1, H, W).to(depth.dtype)
         return (F.avg_pool2d(inside, 2) > 0.5).to(depth.dtype)
 
-    def target_foreground(self, batch: dict[str, Tensor], n_in: int) -> Tensor:
+    def num_decoded_targets(self, batch: dict[str, Tensor], n_in: int) -> int:
+        """``T``: the target views of ``batch`` the decoder predicts, views ``n_in .. n_in + T - 1``; the last
+        ``occupancy_views`` of the sample's views add only to the occupancy labels.
+
+        Raises:
+            ValueError: fewer than one decoded target would be left (naming the fields).
+        """
+        S, k = batch["rgb"].shape[1], int(self.vp_settings.get("occupancy_views", 0) or 0)
+        T = S - n_in - k
+        if T < 1:
+            raise ValueError(
+                f"occupancy_views: {k} of the sample's {S} views feed only the occupancy labels and {n_in} are inputs, "
+                f"so no target view is left to decode; set data num_target_views >= 1 + occupancy_views"
+            )
+        return T
+
+    def target_foreground(self, batch: dict[str, Tensor], n_in: int, T: int | None = None) -> Tensor:
         """Target pixels whose surface lies above the ground plane, at half resolution ``[B*T, 1, H/2, W/2]``.
 
         The plane is fitted label-free to the depth of every view of the sample
         (:func:`~threedq.geometry.above_ground_mask`); a half-resolution pixel is foreground when most of its
-        four full-resolution pixels are.
+        four full-resolution pixels are. ``T``: the decoded targets (views ``n_in .. n_in + T - 1``; default: every
+        view after the inputs).
         """
+        views = slice(n_in, None if T is None else n_in + T)
         fg = above_ground_mask(batch["depth"], batch["K"], batch["R_T_cam"], margin=self.vp_settings["ground_margin"],
-                               views=slice(n_in, None))  # the plane from every view, the mask of the targets
+                               views=views)  # the plane from every view, the mask of the targets
         fg = fg.flatten(0, 1)[:, None].to(batch["depth"].dtype)  # [B*T, 1, H, W]
         return (F.avg_pool2d(fg, 2) > 0.5).to(fg.dtype)
 
@@ -171,9 +191,10 @@ class ViewPredictionObjective:
             (or None) ``[B*T, 1, H/2, W/2]``, ``occ`` / ``free`` ``[B, 1, Z', Y', X']``.
         """
         st = self.vp_settings
-        T = batch["rgb"].shape[1] - n_in
-        rgb_t, depth_t = batch["rgb"][:, n_in:].flatten(0, 1), batch["depth"][:, n_in:].flatten(0, 1)
-        K_t, pose_t = batch["K"][:, n_in:].flatten(0, 1), batch["R_T_cam"][:, n_in:].flatten(0, 1)
+        T = self.num_decoded_targets(batch, n_in)
+        tv = slice(n_in, n_in + T)  # the decoded targets; the views after them feed the occupancy labels alone
+        rgb_t, depth_t = batch["rgb"][:, tv].flatten(0, 1), batch["depth"][:, tv].flatten(0, 1)
+        K_t, pose_t = batch["K"][:, tv].flatten(0, 1), batch["R_T_cam"][:, tv].flatten(0, 1)
         H, W = rgb_t.shape[-2:]
         k = int(st.get("shape_channels", 0) or 0)  # shape channels: the decoder reads them, the RGB loss does not train them
         feats_rgb = torch.cat([feats[:, :k].detach(), feats[:, k:]], 1) if k else feats
@@ -184,7 +205,7 @@ class ViewPredictionObjective:
         occ, free = self.occupancy_labels(batch["depth"], batch["K"], batch["R_T_cam"])
         l1 = masked_l1(pred, target, valid)
         balanced = st["rgb_loss"] == "balanced"
-        fg = self.target_foreground(batch, n_in) if balanced or foreground else None
+        fg = self.target_foreground(batch, n_in, T) if balanced or foreground else None
         rgb_loss = balanced_l1(pred, target, valid, fg) if balanced else l1
         occ_loss = balanced_occupancy_loss(occ_logits, occ, free)
         loss = st["rgb_weight"] * rgb_loss + st["occ_weight"] * occ_loss
@@ -215,6 +236,11 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             (and, through them, the shared U-Net). 0 (the paper's): every channel serves both losses. A departure
             from the paper, for features that keep 3D shape where the RGB loss would spend them on colour
             (docs/studies/shape.md, "Shape channels").
+        occupancy_views: the last this many views of each sample are not decoded: their depth only adds to the
+            occupancy labels (occupied and free voxels fused over every view of the sample), so the occupancy head
+            must predict the sides of the objects no input view sees, an amodal target. The data's
+            ``num_target_views`` must leave at least one decoded target (``num_target_views >= 1 +
+            occupancy_views``). 0 (the paper's): every target view is decoded and labels occupancy.
         rgb_loss: ``"balanced"`` (default): :func:`~threedq.nets.balanced_l1`, the mean L1 over target pixels
             above the ground plus the mean over the rest, the RGB counterpart of the balanced occupancy loss;
             ``"plain"``: the mean over all valid pixels (the paper's Eq. 1). Objects cover about 9% of the
@@ -253,7 +279,8 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         rgb_loss: Literal["balanced", "plain"] = "balanced",
         ground_margin: float = 0.02,
         shape_channels: int = 0,
-            **kwargs: Any,
+        occupancy_views: int = 0,
+        **kwargs: Any,
     ) -> None:
         if rgb_loss not in ("balanced", "plain"):
             raise ValueError(f"rgb_loss: expected 'balanced' or 'plain', got {rgb_loss!r}")
@@ -262,6 +289,8 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         if not ground_margin >= 0:
             raise ValueError(f"ground_margin: expected >= 0 metres, got {ground_margin!r}")
         super().__init__(**kwargs)
+        if isinstance(occupancy_views, bool) or int(occupancy_views) != occupancy_views or occupancy_views < 0:
+            raise ValueError(f"occupancy_views: expected an int >= 0, got {occupancy_views!r}")
         if not 0 <= shape_channels <= self.feature_dim:
             raise ValueError(f"shape_channels: expected 0..feature_dim ({self.feature_dim}), got {shape_channels!r}")
         self.save_hyperparameters()
@@ -294,10 +323,10 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
     def _step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         out = self(batch)
         n_in = self._num_inputs(batch)
-        T = batch["rgb"].shape[1] - n_in
+        T = self.num_decoded_targets(batch, n_in)
         r = self.view_prediction_loss(out["features"], out["occ_logits"], batch, n_in, foreground=not self.training)
         pred, target, valid, fg, occ, free = r["pred"], r["target"], r["valid"], r["fg"], r["occ"], r["free"]
-        rgb_t = batch["rgb"][:, n_in:].flatten(0, 1)
+        rgb_t = batch["rgb"][:, n_in:n_in + T].flatten(0, 1)
         # Baseline: every valid target pixel predicted as the mean colour of the input views' valid pixels.
         in_valid = (batch["depth"][:, :n_in] > 0).to(rgb_t.dtype)[:, :, None]
         mean_col = (batch["rgb"][:, :n_in] * in_valid).sum((1, 3, 4)) / in_valid.sum((1, 3, 4)).clamp_min(1)
