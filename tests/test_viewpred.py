@@ -164,6 +164,51 @@ class TestTargetViews:
         assert torch.equal(two["pred"][0], two["pred"][1])
 
 
+class TestOccupancyViews:
+    """``occupancy_views``: the last k views of a sample label occupancy only; the decoded target is the one before."""
+
+    @pytest.fixture(scope="class")
+    def four(self, tiny_dataset: Path) -> dict[str, torch.Tensor]:
+        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=1, num_input_views=1, num_target_views=3)
+        dm.setup()
+        return next(iter(dm.val_dataloader()))
+
+    def test_rgb_from_the_first_target_occupancy_from_every_view(self, four: dict[str, torch.Tensor]) -> None:
+        torch.manual_seed(5)
+        m = ViewPrediction(**SMALL, occupancy_views=2).eval()
+        two = {k: (v[:, :2] if k in ("rgb", "depth", "K", "R_T_cam") else v) for k, v in four.items()}
+        ref = ViewPrediction(**SMALL).eval()
+        ref.load_state_dict(m.state_dict())
+        with torch.no_grad():
+            feats = m(four)["features"]
+            r = m.view_prediction_loss(feats, m.occ_head(feats), four, 1)
+            r2 = ref.view_prediction_loss(feats, ref.occ_head(feats), two, 1)
+            occ, free = m.occupancy_labels(four["depth"], four["K"], four["R_T_cam"])
+        assert r["pred"].shape[0] == 1  # one decoded target, not three
+        assert torch.equal(r["pred"], r2["pred"]) and torch.equal(r["target"], r2["target"])
+        assert torch.equal(r["l1"], r2["l1"])  # the plain L1 reads only the decoded target
+        assert torch.equal(r["occ"], occ) and torch.equal(r["free"], free)  # labels fused over all four views
+        # the two extra views add labelled voxels: occupied or free where two views alone label neither
+        labelled, labelled2 = (r["occ"] + r["free"]).sum(), (r2["occ"] + r2["free"]).sum()
+        assert labelled > labelled2
+
+    def test_step_counts_the_decoded_targets(self, four: dict[str, torch.Tensor]) -> None:
+        m = ViewPrediction(**SMALL, occupancy_views=1).eval()
+        with torch.no_grad():
+            r = m._step(four)
+        assert r["pred"].shape[0] == 2  # views 1 and 2 decoded, view 3 labels occupancy only
+
+    def test_no_target_left_is_refused(self, four: dict[str, torch.Tensor]) -> None:
+        m = ViewPrediction(**SMALL, occupancy_views=3).eval()
+        with torch.no_grad(), pytest.raises(ValueError, match="occupancy_views.*num_target_views"):
+            m._step(four)
+
+    def test_bad_count_refused(self) -> None:
+        for k in (-1, 1.5, True):
+            with pytest.raises(ValueError, match="occupancy_views"):
+                ViewPrediction(**SMALL, occupancy_views=k)
+
+
 class TestEncoderContract:
     def test_load_from_lightning_checkpoint(self, tmp_path: Path) -> None:
         torch.manual_seed(1)
