@@ -198,8 +198,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         pool_min_observed_iou: ``mined``: a box enters the pool only when the geometry of its scene's input views
             vouches for it: its 3D IoU with one of those views' label-free pseudo-boxes
             (:func:`~threedq.box_refinement.observed_boxes`, observed surface above the fitted ground, the boxes the
-            detector snaps to) reaches this value. ``None``: every box of the split (the paper's pool, which on
-            detected boxes also holds boxes on empty floor, whose crops are the most alike). Label-free.
+            detector snaps to) reaches this value (default 0.5). ``None``: every box of the split (the paper's pool,
+            which on detected boxes also holds boxes on empty floor, whose crops are the most alike). Label-free; a
+            departure from the paper (docs/studies/mined-pairs.md, "The object check alone").
         bank_ckpt: ``mined``: the prototype bank the pool's encoder was last quantized with (a quantizer
             checkpoint; ``threedq em`` passes the previous round's, round 1 gets round 0's), for ``verify_by_prototypes``.
         verify_by_prototypes: ``mined``: keep only mined pairs whose two objects the bank assigns to one prototype
@@ -211,9 +212,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             prototype assignments imply.
         prototype_oversample: see ``verify_by_prototypes``.
         round_lr: the learning rate across EM rounds: ``"constant"`` (``lr`` in every round, the paper's) or
-            ``"harmonic"`` (``lr / em_round``: the decreasing step of stochastic-approximation EM, so that later
-            rounds refine the encoder rather than move it as far again; a departure from the paper, see
-            docs/studies/mined-pairs.md).
+            ``"harmonic"`` (default; ``lr / em_round``: the decreasing step of stochastic-approximation EM, so that
+            later rounds refine the encoder rather than move it as far again; a departure from the paper, see
+            docs/studies/mined-pairs.md). Outside ``threedq em`` (``em_round`` 1) both are ``lr``.
         em_round: the EM round this stage runs in (``threedq em`` sets it; 1 outside the loop).
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
@@ -254,12 +255,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_weight: float = 1.0,
         view_prediction_weight: float = 0.0,
         pool_batch_size: int = 4,
-        pool_min_observed_iou: float | None = None,
+        pool_min_observed_iou: float | None = 0.5,
         bank_ckpt: str | None = None,
         verify_by_prototypes: bool = False,
         prototype_yaw_window: int = 2,
         prototype_oversample: int = 4,
-        round_lr: Literal["constant", "harmonic"] = "constant",
+        round_lr: Literal["constant", "harmonic"] = "harmonic",
         em_round: int = 1,
         seed: int = 0,
         retrieval_k: int = 10,

@@ -544,8 +544,12 @@ class TestRoundLearningRate:
     def test_harmonic_and_constant(self, em_round: int) -> None:
         harmonic = Mining(round_lr="harmonic", em_round=em_round, **self.kw)
         assert harmonic.configure_optimizers().param_groups[0]["lr"] == pytest.approx(3e-4 / em_round)
-        constant = Mining(em_round=em_round, **self.kw)  # the paper's: one rate in every round
+        constant = Mining(round_lr="constant", em_round=em_round, **self.kw)  # the paper's: one rate in every round
         assert constant.configure_optimizers().param_groups[0]["lr"] == pytest.approx(3e-4)
+
+    def test_the_default_falls_and_is_lr_outside_the_loop(self) -> None:
+        assert Mining(em_round=4, **self.kw).configure_optimizers().param_groups[0]["lr"] == pytest.approx(3e-4 / 4)
+        assert Mining(**self.kw).configure_optimizers().param_groups[0]["lr"] == 3e-4  # em_round 1: lr itself
 
     def test_recorded_in_the_hyperparameters(self) -> None:
         m = Mining(round_lr="harmonic", em_round=3, **self.kw)
