@@ -17,11 +17,16 @@ from threedq.viz.features import view_prediction_figure
 SMALL = dict(grid_resolution=(32, 32, 16), image_every_n_steps=0)
 
 
+def first_batch(root: Path, batch_size: int, num_target_views: int, split: str = "val") -> dict[str, torch.Tensor]:
+    """The first batch of the tiny dataset's ``split`` loader, one input view and ``num_target_views`` targets."""
+    dm = SceneFolderDataModule(str(root), batch_size=batch_size, num_input_views=1, num_target_views=num_target_views)
+    dm.setup()
+    return next(iter(dm.val_dataloader() if split == "val" else dm.train_dataloader()))
+
+
 @pytest.fixture(scope="module")
 def batch(tiny_dataset: Path) -> dict[str, torch.Tensor]:
-    dm = SceneFolderDataModule(str(tiny_dataset), batch_size=1, num_input_views=1, num_target_views=1)
-    dm.setup()
-    return next(iter(dm.val_dataloader()))
+    return first_batch(tiny_dataset, 1, 1)
 
 
 class TestViewPrediction:
@@ -70,9 +75,7 @@ class TestBalancedRgbLoss:
 
     @pytest.fixture(scope="class")
     def many(self, tiny_dataset: Path) -> dict[str, torch.Tensor]:
-        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=4, num_input_views=1, num_target_views=3)
-        dm.setup()
-        return next(iter(dm.train_dataloader()))
+        return first_batch(tiny_dataset, 4, 3, "train")
 
     def test_foreground_matches_the_instance_masks(self, many: dict[str, torch.Tensor]) -> None:
         b = many
@@ -169,9 +172,7 @@ class TestOccupancyViews:
 
     @pytest.fixture(scope="class")
     def four(self, tiny_dataset: Path) -> dict[str, torch.Tensor]:
-        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=1, num_input_views=1, num_target_views=3)
-        dm.setup()
-        return next(iter(dm.val_dataloader()))
+        return first_batch(tiny_dataset, 1, 3)
 
     def test_rgb_from_the_first_target_occupancy_from_every_view(self, four: dict[str, torch.Tensor]) -> None:
         torch.manual_seed(5)
