@@ -24,7 +24,8 @@ Writing: :class:`AtomicCheckpointIO` is the Lightning checkpoint writer of every
 stages of ``threedq em``): each file is written beside its destination, flushed and renamed over it
 (:func:`threedq.atomic_io.atomic_write_bytes`), so a full disk, a read-only folder or a kill leaves the previous
 checkpoint whole (Lightning's own writer stages the bytes in the system's temporary folder and copies them over when
-that is on another disk).
+that is on another disk). :class:`LastStepCheckpoint` is the checkpoint callback of every ``threedq fit`` run: its
+``last.ckpt`` holds the final step, whatever ``max_steps`` is.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from torch import Tensor
 
@@ -83,6 +85,23 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         buf = io.BytesIO()
         torch.save(checkpoint, buf)
         atomic_write_bytes(path, buf.getvalue())
+
+
+class LastStepCheckpoint(ModelCheckpoint):
+    """Lightning's ``ModelCheckpoint`` whose ``last.ckpt`` always holds the final training step.
+
+    Lightning writes ``last.ckpt`` at the end of training only when no ``last.ckpt`` was written before. With
+    ``every_n_train_steps=100``, a run stopped by ``max_steps`` between two saves and away from an epoch end that
+    saves (``check_val_every_n_epoch`` other than 1, no validation that epoch) kept the weights of the last multiple
+    of 100: ``--trainer.max_steps=850`` left step 800. This writes ``last.ckpt`` again when training ends, unless
+    that step is already saved (or Lightning would not save now: ``fast_dev_run``, sanity check, not fitting).
+    """
+
+    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
+        if self.save_last and not self._should_skip_saving_checkpoint(trainer):
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+            return
+        super().on_train_end(trainer, pl_module)
 
 
 def _torch_reason(e: Exception) -> str:

@@ -142,3 +142,37 @@ class TestAtomicCheckpointIO:
         cli = ThreeDQCLI(args=["--config", "stages/viewpred.yaml", f"--data.init_args.data_dir={tiny_dataset}",
                                f"--trainer.default_root_dir={tmp_path}"], run=False)
         assert isinstance(cli.trainer.strategy.checkpoint_io, ck.AtomicCheckpointIO)
+
+
+class TestLastStepCheckpoint:
+    """``last.ckpt`` after a fit stopped by ``max_steps`` between two step saves, mid-epoch, with validation every
+    2nd epoch (so no epoch-end save): the shape of ``threedq fit --trainer.max_steps=850`` on 200-step epochs."""
+
+    @staticmethod
+    def _fit(callback_cls: type, tmp_path: Path, max_steps: int) -> int:
+        import lightning as L
+        from lightning.pytorch.demos.boring_classes import BoringModel
+
+        L.seed_everything(0, verbose=False)
+        ckpt = callback_cls(dirpath=tmp_path / "checkpoints", save_last=True, every_n_train_steps=10)
+        trainer = L.Trainer(max_steps=max_steps, check_val_every_n_epoch=2, callbacks=[ckpt], logger=False,
+                            enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)
+        trainer.fit(BoringModel())  # 32 training batches an epoch
+        assert trainer.global_step == max_steps
+        return torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["global_step"]
+
+    def test_lightnings_own_keeps_the_last_multiple(self, tmp_path: Path) -> None:
+        from lightning.pytorch.callbacks import ModelCheckpoint
+
+        assert self._fit(ModelCheckpoint, tmp_path, 25) == 20  # the defect this class exists for
+
+    @pytest.mark.parametrize("max_steps", [25, 20, 45])
+    def test_holds_the_final_step(self, tmp_path: Path, max_steps: int) -> None:
+        assert self._fit(ck.LastStepCheckpoint, tmp_path, max_steps) == max_steps
+
+    def test_the_cli_uses_it(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        from threedq.pipeline.lightning_cli import ThreeDQCLI
+
+        cli = ThreeDQCLI(args=["--config", "stages/viewpred.yaml", f"--data.init_args.data_dir={tiny_dataset}",
+                               f"--trainer.default_root_dir={tmp_path}"], run=False)
+        assert [type(c) for c in cli.trainer.callbacks if isinstance(c, ck.ModelCheckpoint)] == [ck.LastStepCheckpoint]

@@ -31,7 +31,7 @@ from threedq.errors import InputError, flatten_message, user_error_in_chain
 from threedq.locks import hold_folder
 from threedq.pipeline.precision import cpu_precision
 from threedq.pipeline.strategy import DDPStrategy
-from threedq.stages.checkpoint import AtomicCheckpointIO, checkpoint_stage
+from threedq.stages.checkpoint import AtomicCheckpointIO, LastStepCheckpoint, checkpoint_stage
 
 __all__ = [
     "DEFAULT_DATA_CONFIG", "ThreeDQCLI", "ConfigError", "OldClassPathError", "dataset_num_classes",
@@ -435,7 +435,7 @@ class ThreeDQCLI(LightningCLI):
 
         Unless the config names its own, the loggers are TensorBoard + CSV writing straight into that
         folder (beside the saved ``config.yaml``), and a ModelCheckpoint keeps ``checkpoints/last.ckpt``
-        there, refreshed every 100 training steps, so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
+        there, refreshed every 100 training steps and at the last one, so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
         """
         cfg = self._get(self.config_init, "trainer", default={})
         if cfg.get("sync_batchnorm") and _runs_on_cpu(cfg):
@@ -454,7 +454,7 @@ class ThreeDQCLI(LightningCLI):
             ]
         callbacks = list(cfg.get("callbacks") or [])
         if cfg.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in callbacks):
-            ckpt = ModelCheckpoint(dirpath=root / "checkpoints", save_last=True, every_n_train_steps=100)
+            ckpt = LastStepCheckpoint(dirpath=root / "checkpoints", save_last=True, every_n_train_steps=100)
             kwargs["callbacks"] = [*callbacks, ckpt]
         if not cfg.get("plugins"):  # every checkpoint written atomically (a full disk keeps the previous one whole)
             kwargs["plugins"] = [AtomicCheckpointIO()]
