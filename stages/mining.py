@@ -186,6 +186,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         rank_by: which verified pairs are kept: ``"score"`` (verification score, the paper's) or
             ``"retrieval"`` (object-level similarity among the verified ones; with the context quantile, pairs of one
             category 0.43 -> 0.69, ``configs/stages/mining.yaml``).
+        csls_k: retrieve the targets and rank the pairs by CSLS scores over ``csls_k`` neighbours instead of the plain
+            rotation-max cosine (:func:`~threedq.contrastive.csls_scores`: a box close to every other, such as
+            empty floor or a near-duplicate, loses its lead; not in the paper). None: the cosine, the paper's.
         refresh_every: steps between pool refreshes (the first is at step 0; lineage: 200).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
         view_positives: ``mined``: per object box of the step's query scenes, voxels whose input-view feature is
@@ -249,6 +252,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         corner_search: int = 1,
         yaw_window: int | None = 1,
         rank_by: Literal["score", "retrieval"] = "retrieval",
+        csls_k: int | None = None,
         refresh_every: int = 100,
         pairs_per_step: int = 4,
         view_positives: int = 0,
@@ -298,6 +302,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if pool_min_observed_iou is not None and (isinstance(pool_min_observed_iou, bool) or not isinstance(
                 pool_min_observed_iou, (int, float)) or not 0.0 < pool_min_observed_iou <= 1.0):
             raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
+        if csls_k is not None and (isinstance(csls_k, bool) or not isinstance(csls_k, int) or csls_k < 1):
+            raise ValueError(f"csls_k: expected None or an int >= 1, got {csls_k!r}")
         if verify_by_prototypes and not bank_ckpt:
             raise ValueError("verify_by_prototypes: the pairs are verified by a prototype bank; no bank_ckpt given "
                              "(threedq em passes the previous round's; on its own, give --model.init_args.bank_ckpt="
@@ -561,7 +567,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * (hp.prototype_oversample if verify else 1),
             num_angles=hp.num_angles, exclude=exclude, patch=hp.patch, grid=hp.search_grid,
             context_distance=hp.context_distance, min_cosine=min_cos, min_score=hp.min_score,
-            yaw_window=hp.yaw_window, rank_by=hp.rank_by,
+            yaw_window=hp.yaw_window, rank_by=hp.rank_by, csls_k=hp.csls_k,
         )
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with

@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from threedq.contrastive import (
     calibrate_context_cosine,
     context_offsets,
+    csls_scores,
     match_patch,
     mine_correspondences,
     patch_grid,
@@ -192,6 +193,76 @@ class TestRetrieveTargets:
             retrieve_targets(q, t, top_k=0)
         with pytest.raises(ValueError, match=r"query_crops must have shape \[N, C, Z, Y, X\]"):
             retrieve_targets(q[0], t)
+
+
+class TestCslsScores:
+    """Cross-domain similarity local scaling (Conneau et al. 2018) of a query x target similarity matrix."""
+
+    @staticmethod
+    def naive(sim: torch.Tensor, k: int) -> torch.Tensor:
+        """Loops in float64: each row's and column's mean over its k highest finite entries."""
+        n, m = sim.shape
+        s = sim.double()
+
+        def mean_top(values: list[float]) -> float:
+            finite = sorted((v for v in values if math.isfinite(v)), reverse=True)[:k]
+            return sum(finite) / len(finite) if finite else 0.0
+
+        r_q = [mean_top([s[q, t].item() for t in range(m)]) for q in range(n)]
+        r_t = [mean_top([s[q, t].item() for q in range(n)]) for t in range(m)]
+        out = torch.empty(n, m, dtype=torch.float64)
+        for q in range(n):
+            for t in range(m):
+                out[q, t] = 2 * s[q, t] - r_q[q] - r_t[t]
+        return out
+
+    @pytest.mark.parametrize("k", [1, 3, 10])
+    def test_against_naive_loops(self, k: int) -> None:
+        g = torch.Generator().manual_seed(0)
+        sim = torch.rand(5, 7, generator=g, dtype=torch.float64) * 2 - 1
+        sim[1, 3] = sim[4, 0] = float("-inf")  # excluded pairs: left out of the means, kept -inf
+        out = csls_scores(sim, k)
+        ref = self.naive(sim, k)
+        assert out[1, 3] == out[4, 0] == float("-inf")
+        finite = torch.isfinite(ref)
+        torch.testing.assert_close(out[finite], ref[finite], rtol=0, atol=1e-12)
+
+    def test_hand_computed(self) -> None:
+        # target 1 is a hub (close to every query); query 0's own match is target 0
+        sim = torch.tensor([[0.8, 0.9], [0.1, 0.88], [0.2, 0.87]], dtype=torch.float64)
+        # k = 2: r_q = (0.85, 0.49, 0.535), r_t = (0.5, 0.89)
+        expected = torch.tensor([[1.6 - 0.85 - 0.5, 1.8 - 0.85 - 0.89],
+                                 [0.2 - 0.49 - 0.5, 1.76 - 0.49 - 0.89],
+                                 [0.4 - 0.535 - 0.5, 1.74 - 0.535 - 0.89]], dtype=torch.float64)
+        torch.testing.assert_close(csls_scores(sim, 2), expected, rtol=0, atol=1e-12)
+        assert csls_scores(sim, 2)[0].argmax() == 0 and sim[0].argmax() == 1  # the hub loses query 0
+
+    def test_a_row_with_nothing_admissible(self) -> None:
+        sim = torch.tensor([[float("-inf"), float("-inf")], [0.5, 0.2]])
+        out = csls_scores(sim, 2)
+        assert torch.isinf(out[0]).all() and torch.isfinite(out[1]).all()
+
+    def test_exception(self) -> None:
+        with pytest.raises(ValueError, match="k"):
+            csls_scores(torch.zeros(2, 2), 0)
+
+    def test_retrieval_ranks_by_csls_of_the_full_matrix(self) -> None:
+        """``retrieve_targets(csls_k=k)``: the top targets and scores of CSLS over the whole rotation-max matrix (the
+        means see every target, not only the top ones), exclusions kept out; the planted target still first."""
+        from threedq.quantization.rotation_search import all_pairs_rotation_max
+
+        queries, targets, _ = planted(90)
+        targets = torch.cat([targets, F.normalize(queries.mean(dim=0, keepdim=True), dim=1)])  # a hub: target 4
+        exclude = torch.zeros(3, 5, dtype=torch.bool)
+        exclude[1, 3] = True
+        idx, sim, angle = retrieve_targets(queries, targets, top_k=3, exclude=exclude, csls_k=2)
+        full, full_angle = all_pairs_rotation_max(queries, targets, A, "fast")
+        ref = csls_scores(full.masked_fill(exclude, float("-inf")), 2)
+        torch.testing.assert_close(sim, ref.topk(3, dim=1).values)
+        assert torch.equal(idx, ref.topk(3, dim=1).indices) and torch.equal(angle, full_angle.gather(1, idx))
+        assert idx[0, 0] == 2 and 3 not in idx[1].tolist()
+        with pytest.raises(ValueError, match="csls_k"):
+            retrieve_targets(queries, targets, csls_k=0)
 
 
 class TestMatchPatch:

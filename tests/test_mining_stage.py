@@ -265,6 +265,7 @@ class TestViewPredictionRegulariser:
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
     views = source == "mined_views"
     vp = source == "mined_vp"
+    csls = source == "mined_csls"
     cfg = tmp_path / f"tiny_{source}.yaml"
     cfg.write_text(
         f"""
@@ -290,6 +291,7 @@ model:
     retrieval_k: 1
     view_positives: {4 if views else 0}
     view_prediction_weight: {1.0 if vp else 0.0}
+    csls_k: {2 if csls else "null"}
 {tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
 trainer:
   max_steps: 3
@@ -304,8 +306,9 @@ trainer:
     return cfg
 
 
-@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp"])
-def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path) -> None:
+@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_csls"])
+def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
+                                  monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
 
     from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
@@ -321,13 +324,22 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         vp.encoder.load_state_dict(start)
         enc = tmp_path / "vp.ckpt"
         torch.save({"state_dict": vp.state_dict(), "hyper_parameters": dict(vp.hparams)}, enc)
+    import threedq.stages.mining as stage_mining
+
+    miner_csls_k = []
+    real_miner = stage_mining.mine_correspondences
+    monkeypatch.setattr(stage_mining, "mine_correspondences",
+                        lambda *a, **k: miner_csls_k.append(k.get("csls_k")) or real_miner(*a, **k))
     run = tmp_path / source
     name = "mining" if source.startswith("mined") else source
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),
                            "--config", str(_config(tmp_path, tiny_dataset, enc, source)),
                            f"--trainer.default_root_dir={run}"])
     model = cli.model
-    assert isinstance(model, Mining) and model.hparams.source == source.removesuffix("_views").removesuffix("_vp")
+    assert isinstance(model, Mining)
+    assert model.hparams.source == source.removesuffix("_views").removesuffix("_vp").removesuffix("_csls")
+    if source.startswith("mined"):  # each refresh mined with the config's csls_k
+        assert miner_csls_k and set(miner_csls_k) == ({2} if source == "mined_csls" else {None})
     assert model.trainer.global_step == 3
     logged = cli.trainer.logged_metrics
     assert "train/loss" in logged and torch.isfinite(logged["train/loss"])
@@ -471,6 +483,13 @@ class TestPoolObjectCheck:
         for bad in (0.0, 1.5, True, "0.5"):
             with pytest.raises(ValueError, match="pool_min_observed_iou"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_observed_iou=bad)
+
+
+class TestCslsSetting:
+    def test_bad_value(self) -> None:
+        for bad in (0, -1, True, 2.0, "5"):
+            with pytest.raises(ValueError, match="csls_k"):
+                Mining(grid_resolution=(32, 32, 16), queue_size=64, csls_k=bad)
 
 
 class TestPrototypeAgreement:

@@ -5,6 +5,7 @@ from threedq.contrastive.infonce import info_nce_plain, info_nce_streamed
 from threedq.contrastive.mining import (
     calibrate_context_cosine,
     context_offsets,
+    csls_scores,
     match_patch,
     mine_correspondences,
     patch_grid,
@@ -19,6 +20,7 @@ __all__ = [
     "MomentumContrast",
     "calibrate_context_cosine",
     "context_offsets",
+    "csls_scores",
     "info_nce_plain",
     "info_nce_streamed",
     "match_patch",

@@ -43,6 +43,7 @@ from threedq.quantization.rotation_search import all_pairs_rotation_max
 __all__ = [
     "calibrate_context_cosine",
     "context_offsets",
+    "csls_scores",
     "match_patch",
     "mine_correspondences",
     "patch_grid",
@@ -270,8 +271,15 @@ def retrieve_targets(
     exclude: Tensor | None = None,
     *,
     method: str = "fast",
+    csls_k: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The ``top_k`` targets of highest rotation-max cosine for every query (object-level retrieval).
+
+    With ``csls_k``, targets are retrieved and scored by cross-domain similarity local scaling (CSLS; Conneau et
+    al., "Word translation without parallel data", ICLR 2018) instead: ``2 cos(q, t) - r_q - r_t``, where ``r_q`` is
+    the mean of query ``q``'s ``csls_k`` highest cosines over the targets and ``r_t`` that of target ``t`` over the
+    queries (excluded pairs left out of both). A box that is close to everything (a hub: empty floor, a
+    near-duplicate) has a high ``r`` and loses its lead; a pair that is each other's close neighbour keeps it.
 
     Args:
         query_crops: ``[N, C, S, S, S]`` feature crops.
@@ -281,10 +289,12 @@ def retrieve_targets(
         exclude: optional ``[N, M]`` bool, True where a target must not be retrieved for a query (same object,
             same scene, or the query itself when ``target_crops`` is ``query_crops``); set to ``-inf``.
         method: ``"fast"`` (cylinder cosine, polar spectra) or ``"exact"``, see ``all_pairs_rotation_max``.
+        csls_k: neighbours of the CSLS means (None: plain cosine, the paper's).
 
     Returns:
-        ``idx`` ``[N, k]`` long target indices, best first; ``sim`` ``[N, k]`` their rotation-max cosines
-        (``-inf`` marks a slot with no admissible target left); ``angle`` ``[N, k]`` long yaw indices.
+        ``idx`` ``[N, k]`` long target indices, best first; ``sim`` ``[N, k]`` their rotation-max cosines, or their
+        CSLS scores with ``csls_k`` (``-inf`` marks a slot with no admissible target left); ``angle`` ``[N, k]`` long
+        yaw indices.
 
     Convention:
         As ``all_pairs_rotation_max``: rotating query ``n`` by ``2 pi angle / A`` aligns it with target ``idx``.
@@ -298,6 +308,8 @@ def retrieve_targets(
         )
     _check_int("top_k", top_k)
     _check_int("num_angles", num_angles)
+    if csls_k is not None:
+        _check_int("csls_k", csls_k)
     n, m = query_crops.shape[0], target_crops.shape[0]
     bad = not isinstance(exclude, Tensor) or exclude.dtype != torch.bool or exclude.shape != (n, m)
     if exclude is not None and bad:
@@ -310,8 +322,33 @@ def retrieve_targets(
     sim, angle = all_pairs_rotation_max(query_crops, target_crops, num_angles, method)
     if exclude is not None:
         sim = sim.masked_fill(exclude.to(sim.device), float("-inf"))
+    if csls_k is not None:
+        sim = csls_scores(sim, csls_k)
     top_sim, idx = sim.topk(k, dim=1)
     return idx, top_sim, angle.gather(1, idx)
+
+
+def _mean_top(sim: Tensor, k: int) -> Tensor:
+    """Mean of the ``k`` highest finite entries of each row of ``sim`` ``[N, M]`` (0 for a row with none)."""
+    top = sim.topk(min(k, sim.shape[1]), dim=1).values
+    finite = torch.isfinite(top)
+    return top.where(finite, torch.zeros_like(top)).sum(dim=1) / finite.sum(dim=1).clamp(min=1)
+
+
+def csls_scores(sim: Tensor, k: int) -> Tensor:
+    """Cross-domain similarity local scaling of a query x target similarity matrix.
+
+    Args:
+        sim: ``[N, M]`` similarities; ``-inf`` marks an excluded pair (left out of the means, kept ``-inf``).
+        k: neighbours of each mean.
+
+    Returns:
+        ``[N, M]``: ``2 sim[q, t] - r_q - r_t`` with ``r_q`` the mean of row ``q``'s ``k`` highest entries and ``r_t``
+        that of column ``t``'s.
+    """
+    _check_int("k", k)
+    r_q, r_t = _mean_top(sim, k), _mean_top(sim.t(), k)
+    return 2 * sim - r_q[:, None] - r_t[None, :]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -643,6 +680,7 @@ def mine_correspondences(
     method: str = "fast",
     yaw_window: int | None = None,
     rank_by: str = "score",
+    csls_k: int | None = None,
 ) -> dict[str, Tensor]:
     """Mine verified patch correspondences between query crops and retrieved target crops.
 
@@ -679,6 +717,8 @@ def mine_correspondences(
         rank_by: order of the verified pairs before the ``keep`` best are taken: ``"score"`` (verification
             score, ties by match cosine; ArtMiner's) or ``"retrieval"`` (object-level rotation-max similarity,
             ties by verification score).
+        csls_k: retrieve the targets, and rank by retrieval, with CSLS scores instead of the plain rotation-max
+            cosine (:func:`retrieve_targets`, :func:`csls_scores`); None: the cosine.
 
     Returns:
         A dict of ``P <= keep`` rows, best first: ``query_index`` ``[P]`` long, ``target_index`` ``[P]`` long,
@@ -716,7 +756,8 @@ def mine_correspondences(
         _check_int("yaw_window", yaw_window, minimum=0)
     if rank_by not in ("score", "retrieval"):
         raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
-    idx, sim, ret_angle = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method)
+    idx, sim, ret_angle = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method,
+                                           csls_k=csls_k)
     if query_positions is None:
         starts = [torch.tensor(patch_grid(s, grid, patch), device=dev) for s in size]
         cands = torch.stack(torch.meshgrid(*starts, indexing="ij"), dim=-1).reshape(-1, 3)
