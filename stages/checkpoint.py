@@ -94,8 +94,9 @@ class LastStepCheckpoint(ModelCheckpoint):
     ``every_n_train_steps=100``, a run stopped by ``max_steps`` between two saves and away from an epoch end that
     saves (``check_val_every_n_epoch`` other than 1, no validation that epoch) kept the weights of the last multiple
     of 100: ``--trainer.max_steps=850`` left step 800, and the main job's detector warm start (350 steps, two epochs
-    whose validation does not save) handed on step 300 until 3f3a423. This writes ``last.ckpt`` again when training ends, unless
-    that step is already saved (or Lightning would not save now: ``fast_dev_run``, sanity check, not fitting).
+    whose validation does not save) handed on step 300 until 3f3a423. This writes ``last.ckpt`` again when training
+    ends, unless that step is already saved (or Lightning would not save now: ``fast_dev_run``, sanity check, not
+    fitting).
     """
 
     def on_train_end(self, trainer: Any, pl_module: Any) -> None:
