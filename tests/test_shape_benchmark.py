@@ -91,6 +91,15 @@ def test_data_configs_name_the_shape_only_generator(name: str) -> None:
         assert args["split_fractions"][0] == 0
 
 
+def test_the_guard_dataset_is_the_main_jobs_data_and_only_scored_when_asked() -> None:
+    """``--datasets embedded`` scores the CLI's default data (the guard of the shape issue), never by default."""
+    from threedq.pipeline.lightning_cli import DEFAULT_DATA_CONFIG
+
+    assert sb.GUARD_DATASETS == {"embedded": DEFAULT_DATA_CONFIG}
+    assert not set(sb.GUARD_DATASETS) & set(sb.DATASETS)
+    assert sb.ALL_DATASETS == {**sb.DATASETS, **sb.GUARD_DATASETS}
+
+
 class TestInstanceColours:
     def test_each_object_gets_its_own_palette_colour_in_any_order(self, tmp_path) -> None:
         """The colour of each cropped object, found by its box in its scene (objects given out of order)."""
