@@ -189,6 +189,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         csls_k: retrieve the targets and rank the pairs by CSLS scores over ``csls_k`` neighbours instead of the plain
             rotation-max cosine (:func:`~threedq.contrastive.csls_scores`: a box close to every other, such as
             empty floor or a near-duplicate, loses its lead; not in the paper). None: the cosine, the paper's.
+        mutual_k: retrieve only mutual ``mutual_k``-nearest neighbours by the plain rotation-max cosine
+            (:func:`~threedq.contrastive.mutual_neighbours`: a box close to no other, such as a box cut across parts of
+            objects, which CSLS lifts, is dropped; not in the paper). None: every target, the paper's.
         refresh_every: steps between pool refreshes (the first is at step 0; lineage: 200).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
         view_positives: ``mined``: per object box of the step's query scenes, voxels whose input-view feature is
@@ -253,6 +256,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         yaw_window: int | None = 1,
         rank_by: Literal["score", "retrieval"] = "retrieval",
         csls_k: int | None = None,
+        mutual_k: int | None = None,
         refresh_every: int = 100,
         pairs_per_step: int = 4,
         view_positives: int = 0,
@@ -304,6 +308,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
         if csls_k is not None and (isinstance(csls_k, bool) or not isinstance(csls_k, int) or csls_k < 1):
             raise ValueError(f"csls_k: expected None or an int >= 1, got {csls_k!r}")
+        if mutual_k is not None and (isinstance(mutual_k, bool) or not isinstance(mutual_k, int) or mutual_k < 1):
+            raise ValueError(f"mutual_k: expected None or an int >= 1, got {mutual_k!r}")
         if verify_by_prototypes and not bank_ckpt:
             raise ValueError("verify_by_prototypes: the pairs are verified by a prototype bank; no bank_ckpt given "
                              "(threedq em passes the previous round's; on its own, give --model.init_args.bank_ckpt="
@@ -567,7 +573,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * (hp.prototype_oversample if verify else 1),
             num_angles=hp.num_angles, exclude=exclude, patch=hp.patch, grid=hp.search_grid,
             context_distance=hp.context_distance, min_cosine=min_cos, min_score=hp.min_score,
-            yaw_window=hp.yaw_window, rank_by=hp.rank_by, csls_k=hp.csls_k,
+            yaw_window=hp.yaw_window, rank_by=hp.rank_by, csls_k=hp.csls_k, mutual_k=hp.mutual_k,
         )
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with

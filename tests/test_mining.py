@@ -14,6 +14,7 @@ from threedq.contrastive import (
     csls_scores,
     match_patch,
     mine_correspondences,
+    mutual_neighbours,
     patch_grid,
     retrieve_targets,
     rotate_patch_positions,
@@ -263,6 +264,73 @@ class TestCslsScores:
         assert idx[0, 0] == 2 and 3 not in idx[1].tolist()
         with pytest.raises(ValueError, match="csls_k"):
             retrieve_targets(queries, targets, csls_k=0)
+
+
+class TestMutualNeighbours:
+    """Mutual k-nearest neighbours of a query x target similarity matrix."""
+
+    @staticmethod
+    def naive(sim: torch.Tensor, k: int) -> torch.Tensor:
+        """Loops: t is among q's k best (by rank, ties at the k-th value included) and q among t's, both finite."""
+        n, m = sim.shape
+        out = torch.zeros(n, m, dtype=torch.bool)
+        for q in range(n):
+            for t in range(m):
+                v = sim[q, t].item()
+                if not math.isfinite(v):
+                    continue
+                better_t = sum(1 for u in range(m) if sim[q, u].item() > v)  # targets strictly ahead for q
+                better_q = sum(1 for p in range(n) if sim[p, t].item() > v)  # queries strictly ahead for t
+                out[q, t] = better_t < k and better_q < k
+        return out
+
+    @pytest.mark.parametrize("k", [1, 2, 4, 10])
+    def test_against_naive_loops(self, k: int) -> None:
+        g = torch.Generator().manual_seed(1)
+        sim = torch.rand(6, 9, generator=g, dtype=torch.float64) * 2 - 1
+        sim[0, 2] = sim[5, 8] = float("-inf")
+        sim[3, 4] = sim[3, 5]  # a tie in a row
+        assert torch.equal(mutual_neighbours(sim, k), self.naive(sim, k))
+
+    def test_hand_computed(self) -> None:
+        # target 2 is close to nothing: no query's best, and its own best query (0) has a better target (0)
+        sim = torch.tensor([[0.9, 0.2, 0.30],
+                            [0.1, 0.8, 0.25],
+                            [0.3, 0.7, 0.10]])
+        assert mutual_neighbours(sim, 1).tolist() == [[True, False, False], [False, True, False], [False, False, False]]
+        sim[1, 2] = 0.35  # now query 1's second target and target 2's best query: mutual at k = 2, not at k = 1
+        assert not mutual_neighbours(sim, 1)[1, 2] and mutual_neighbours(sim, 2)[1, 2]
+
+    def test_excluded_and_empty(self) -> None:
+        sim = torch.tensor([[float("-inf"), 0.5], [0.4, float("-inf")]])
+        assert mutual_neighbours(sim, 1).tolist() == [[False, True], [True, False]]
+        assert mutual_neighbours(torch.zeros(0, 3), 2).shape == (0, 3)
+        with pytest.raises(ValueError, match="k"):
+            mutual_neighbours(sim, 0)
+
+    @pytest.mark.parametrize("csls_k", [None, 2])
+    def test_retrieval_admits_only_mutual_neighbours(self, csls_k: int | None) -> None:
+        """``retrieve_targets(mutual_k=k)``: the scores of the unrestricted retrieval (plain or CSLS, computed on the
+        full matrix) on the mutual pairs of the plain cosine, ``-inf`` in every other slot."""
+        from threedq.quantization.rotation_search import all_pairs_rotation_max
+
+        queries, targets, _ = planted(90)
+        targets = torch.cat([targets, F.normalize(queries.mean(dim=0, keepdim=True), dim=1)])
+        exclude = torch.zeros(3, 5, dtype=torch.bool)
+        exclude[1, 3] = True
+        idx, sim, angle = retrieve_targets(queries, targets, top_k=5, exclude=exclude, csls_k=csls_k, mutual_k=2)
+        full, full_angle = all_pairs_rotation_max(queries, targets, A, "fast")
+        full = full.masked_fill(exclude, float("-inf"))
+        mutual = mutual_neighbours(full, 2)
+        ref = (csls_scores(full, csls_k) if csls_k else full).masked_fill(~mutual, float("-inf"))
+        torch.testing.assert_close(sim, ref.topk(5, dim=1).values)
+        finite = torch.isfinite(sim)
+        assert finite.sum() == mutual.sum()  # every mutual pair retrieved (top_k = all targets), nothing else
+        assert mutual.gather(1, idx)[finite].all()
+        assert torch.equal(angle, full_angle.gather(1, idx))
+        assert idx[0, 0] == 2  # the planted target is each other's nearest
+        with pytest.raises(ValueError, match="mutual_k"):
+            retrieve_targets(queries, targets, mutual_k=0)
 
 
 class TestMatchPatch:

@@ -292,6 +292,7 @@ model:
     view_positives: {4 if views else 0}
     view_prediction_weight: {1.0 if vp else 0.0}
     csls_k: {2 if csls else "null"}
+    mutual_k: {3 if csls else "null"}
 {tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
 trainer:
   max_steps: 3
@@ -329,7 +330,7 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     miner_csls_k = []
     real_miner = stage_mining.mine_correspondences
     monkeypatch.setattr(stage_mining, "mine_correspondences",
-                        lambda *a, **k: miner_csls_k.append(k.get("csls_k")) or real_miner(*a, **k))
+                        lambda *a, **k: miner_csls_k.append((k.get("csls_k"), k.get("mutual_k"))) or real_miner(*a, **k))
     run = tmp_path / source
     name = "mining" if source.startswith("mined") else source
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),
@@ -338,8 +339,8 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     model = cli.model
     assert isinstance(model, Mining)
     assert model.hparams.source == source.removesuffix("_views").removesuffix("_vp").removesuffix("_csls")
-    if source.startswith("mined"):  # each refresh mined with the config's csls_k
-        assert miner_csls_k and set(miner_csls_k) == ({2} if source == "mined_csls" else {None})
+    if source.startswith("mined"):  # each refresh mined with the config's csls_k and mutual_k
+        assert miner_csls_k and set(miner_csls_k) == ({(2, 3)} if source == "mined_csls" else {(None, None)})
     assert model.trainer.global_step == 3
     logged = cli.trainer.logged_metrics
     assert "train/loss" in logged and torch.isfinite(logged["train/loss"])
@@ -490,6 +491,8 @@ class TestCslsSetting:
         for bad in (0, -1, True, 2.0, "5"):
             with pytest.raises(ValueError, match="csls_k"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, csls_k=bad)
+            with pytest.raises(ValueError, match="mutual_k"):
+                Mining(grid_resolution=(32, 32, 16), queue_size=64, mutual_k=bad)
 
 
 class TestPrototypeAgreement:

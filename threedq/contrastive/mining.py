@@ -46,6 +46,7 @@ __all__ = [
     "csls_scores",
     "match_patch",
     "mine_correspondences",
+    "mutual_neighbours",
     "patch_grid",
     "retrieve_targets",
     "rotate_patch_positions",
@@ -272,6 +273,7 @@ def retrieve_targets(
     *,
     method: str = "fast",
     csls_k: int | None = None,
+    mutual_k: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The ``top_k`` targets of highest rotation-max cosine for every query (object-level retrieval).
 
@@ -280,6 +282,12 @@ def retrieve_targets(
     the mean of query ``q``'s ``csls_k`` highest cosines over the targets and ``r_t`` that of target ``t`` over the
     queries (excluded pairs left out of both). A box that is close to everything (a hub: empty floor, a
     near-duplicate) has a high ``r`` and loses its lead; a pair that is each other's close neighbour keeps it.
+
+    With ``mutual_k``, only mutual nearest neighbours may be retrieved: target ``t`` for query ``q`` when ``t`` is
+    among ``q``'s ``mutual_k`` targets of highest rotation-max cosine and ``q`` among ``t``'s ``mutual_k`` queries of
+    highest cosine (the plain cosine, excluded pairs left out; ties at the ``k``-th value admitted). CSLS lifts a
+    box that is close to nothing (a box cut across parts of objects); the mutual test drops it, as no box has it
+    among its nearest.
 
     Args:
         query_crops: ``[N, C, S, S, S]`` feature crops.
@@ -290,11 +298,12 @@ def retrieve_targets(
             same scene, or the query itself when ``target_crops`` is ``query_crops``); set to ``-inf``.
         method: ``"fast"`` (cylinder cosine, polar spectra) or ``"exact"``, see ``all_pairs_rotation_max``.
         csls_k: neighbours of the CSLS means (None: plain cosine, the paper's).
+        mutual_k: admit only mutual ``mutual_k``-nearest neighbours (None: every target, the paper's).
 
     Returns:
         ``idx`` ``[N, k]`` long target indices, best first; ``sim`` ``[N, k]`` their rotation-max cosines, or their
-        CSLS scores with ``csls_k`` (``-inf`` marks a slot with no admissible target left); ``angle`` ``[N, k]`` long
-        yaw indices.
+        CSLS scores with ``csls_k`` (``-inf`` marks a slot with no admissible target left, excluded or not mutual);
+        ``angle`` ``[N, k]`` long yaw indices.
 
     Convention:
         As ``all_pairs_rotation_max``: rotating query ``n`` by ``2 pi angle / A`` aligns it with target ``idx``.
@@ -310,6 +319,8 @@ def retrieve_targets(
     _check_int("num_angles", num_angles)
     if csls_k is not None:
         _check_int("csls_k", csls_k)
+    if mutual_k is not None:
+        _check_int("mutual_k", mutual_k)
     n, m = query_crops.shape[0], target_crops.shape[0]
     bad = not isinstance(exclude, Tensor) or exclude.dtype != torch.bool or exclude.shape != (n, m)
     if exclude is not None and bad:
@@ -322,8 +333,11 @@ def retrieve_targets(
     sim, angle = all_pairs_rotation_max(query_crops, target_crops, num_angles, method)
     if exclude is not None:
         sim = sim.masked_fill(exclude.to(sim.device), float("-inf"))
+    mutual = mutual_neighbours(sim, mutual_k) if mutual_k is not None else None
     if csls_k is not None:
         sim = csls_scores(sim, csls_k)
+    if mutual is not None:
+        sim = sim.masked_fill(~mutual, float("-inf"))
     top_sim, idx = sim.topk(k, dim=1)
     return idx, top_sim, angle.gather(1, idx)
 
@@ -333,6 +347,25 @@ def _mean_top(sim: Tensor, k: int) -> Tensor:
     top = sim.topk(min(k, sim.shape[1]), dim=1).values
     finite = torch.isfinite(top)
     return top.where(finite, torch.zeros_like(top)).sum(dim=1) / finite.sum(dim=1).clamp(min=1)
+
+
+def mutual_neighbours(sim: Tensor, k: int) -> Tensor:
+    """Mutual ``k``-nearest neighbours of a query x target similarity matrix.
+
+    Args:
+        sim: ``[N, M]`` similarities; ``-inf`` marks an excluded pair (never a neighbour).
+        k: neighbours on each side.
+
+    Returns:
+        ``[N, M]`` bool: ``sim[q, t]`` is finite, at least the ``k``-th highest of row ``q`` and at least the ``k``-th
+        highest of column ``t`` (ties at the ``k``-th value count as neighbours).
+    """
+    _check_int("k", k)
+    if sim.numel() == 0:
+        return torch.zeros_like(sim, dtype=torch.bool)
+    row_kth = sim.topk(min(k, sim.shape[1]), dim=1).values[:, -1:]
+    col_kth = sim.topk(min(k, sim.shape[0]), dim=0).values[-1:, :]
+    return torch.isfinite(sim) & (sim >= row_kth) & (sim >= col_kth)
 
 
 def csls_scores(sim: Tensor, k: int) -> Tensor:
@@ -681,6 +714,7 @@ def mine_correspondences(
     yaw_window: int | None = None,
     rank_by: str = "score",
     csls_k: int | None = None,
+    mutual_k: int | None = None,
 ) -> dict[str, Tensor]:
     """Mine verified patch correspondences between query crops and retrieved target crops.
 
@@ -719,6 +753,8 @@ def mine_correspondences(
             ties by verification score).
         csls_k: retrieve the targets, and rank by retrieval, with CSLS scores instead of the plain rotation-max
             cosine (:func:`retrieve_targets`, :func:`csls_scores`); None: the cosine.
+        mutual_k: retrieve only mutual ``mutual_k``-nearest neighbours by the plain cosine
+            (:func:`retrieve_targets`, :func:`mutual_neighbours`); None: every target.
 
     Returns:
         A dict of ``P <= keep`` rows, best first: ``query_index`` ``[P]`` long, ``target_index`` ``[P]`` long,
@@ -757,7 +793,7 @@ def mine_correspondences(
     if rank_by not in ("score", "retrieval"):
         raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
     idx, sim, ret_angle = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method,
-                                           csls_k=csls_k)
+                                           csls_k=csls_k, mutual_k=mutual_k)
     if query_positions is None:
         starts = [torch.tensor(patch_grid(s, grid, patch), device=dev) for s in size]
         cands = torch.stack(torch.meshgrid(*starts, indexing="ij"), dim=-1).reshape(-1, 3)
