@@ -11,7 +11,7 @@ View prediction trains it; later stages load it:
 * ``freeze_encoder``: keep those weights fixed (no gradient, BatchNorm in eval mode) or fine-tune them.
 
 The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``,
-``grid_resolution``, ``feature_dim``, ``encoder_channels`` and ``feature_stride`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
+``grid_resolution``, ``feature_dim``, ``encoder_channels``, ``feature_stride`` and ``encoder_input`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
 them from there unless it names them itself; a stage that names a different grid than its encoder was
 trained on is refused with one line naming the checkpoint and the field. Only view prediction (which
 trains the encoder from scratch) needs them in its config.
@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import inspect
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import lightning as L
 import torch
@@ -43,8 +43,13 @@ from threedq.stages.checkpoint import (  # noqa: F401 - re-exported: the names' 
     resolve_grid,
 )
 
+#: What the encoder may see of the unprojected views (``encoder_input``): the paper's ``cat[occ, occ * rgb]``, and the
+#: shape study's two ablations.
+ENCODER_INPUTS = ("occupancy_colour", "occupancy", "colour")
+
 __all__ = [
     "DEFAULT_GRID",
+    "ENCODER_INPUTS",
     "EncoderStage",
     "SplitEvaluation",
     "checkpoint_hparams",
@@ -88,6 +93,11 @@ class EncoderStage(L.LightningModule):
             else the paper's ``(64, 128, 256)``); narrower is cheaper per step (see :class:`~threedq.nets.UNet3D`).
         feature_stride: input voxels per feature voxel along each axis (None: the encoder checkpoint's, else the
             paper's 2); 1 gives features on the input grid itself (not the paper's; see :class:`~threedq.nets.UNet3D`).
+        encoder_input: what of the unprojected views the encoder sees (None: the encoder checkpoint's, else the
+            paper's ``occupancy_colour``, ``cat[occ, occ * rgb]``); ``occupancy`` zeroes the colour channels,
+            ``colour`` gives the colour of each voxel's pixel along the whole ray and no depth (``cat[0, seen * rgb]``).
+            Input ablations of the shape study (docs/studies/shape.md), not the paper's; the raw crops
+            (``object_crops``' ``raw``) are what the encoder sees.
         encoder_ckpt: optional checkpoint to load the encoder from (see the module docstring).
         freeze_encoder: keep the encoder fixed.
         channels_last: run the encoder in ``channels_last_3d`` memory format (faster oneDNN / cuDNN
@@ -110,19 +120,23 @@ class EncoderStage(L.LightningModule):
         feature_dim: int | None = None,
         encoder_channels: tuple[int, int, int] | None = None,
         feature_stride: int | None = None,
+        encoder_input: Literal["occupancy_colour", "occupancy", "colour"] | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = False,
         channels_last: bool = True,
     ) -> None:
         super().__init__()
         given = {"grid_min": grid_min, "grid_max": grid_max, "grid_resolution": grid_resolution, "feature_dim": feature_dim,
-                 "encoder_channels": encoder_channels, "feature_stride": feature_stride}
+                 "encoder_channels": encoder_channels, "feature_stride": feature_stride, "encoder_input": encoder_input}
         #: the resolved grid fields, written into every checkpoint's hyperparameters (see the module docstring)
         self.grid_fields = resolve_grid(given, encoder_ckpt)
         g = self.grid_fields
         self.grid = VoxelGridSpec(g["grid_min"], g["grid_max"], g["grid_resolution"])
         if g["feature_stride"] not in (1, 2):
             raise ValueError(f"feature_stride: expected 1 or 2, got {g['feature_stride']!r}")
+        if g["encoder_input"] not in ENCODER_INPUTS:
+            raise ValueError(f"encoder_input: expected one of {ENCODER_INPUTS}, got {g['encoder_input']!r}")
+        self.encoder_input_kind = g["encoder_input"]
         self.feature_grid = self.grid.half() if g["feature_stride"] == 2 else self.grid
         self.feature_dim = g["feature_dim"]
         self.encoder = UNet3D(in_channels=4, out_channels=self.feature_dim, channels=g["encoder_channels"],
@@ -201,13 +215,18 @@ class EncoderStage(L.LightningModule):
             rgb: ``[N, 3, H, W]`` in [0, 1]; depth ``[N, H, W]``; K ``[N, 3, 3]``; R_T_cam ``[N, 4, 4]``.
 
         Returns:
-            ``x`` ``[N, 4, Z, Y, X]`` = ``cat[occ, occ * rgb]`` and ``seen`` ``[N, 1, Z, Y, X]``, 1 where the
-            voxel centre projects into the image in front of the camera.
+            ``x`` ``[N, 4, Z, Y, X]`` = ``cat[occ, occ * rgb]`` (``cat[occ, 0]`` with ``encoder_input: occupancy``,
+            ``cat[0, seen * rgb]`` with ``colour``) and ``seen`` ``[N, 1, Z, Y, X]``, 1 where the voxel centre
+            projects into the image in front of the camera.
         """
         occ = occupancy_from_depth(depth, K, R_T_cam, self.grid)
         ones = torch.ones_like(rgb[:, :1])
         sampled = unproject_rgb(torch.cat([rgb, ones], dim=1), K, R_T_cam, self.grid)
         rgb_vol, seen = sampled[:, :3], (sampled[:, 3:] > 0.5).to(rgb.dtype)
+        if self.encoder_input_kind == "occupancy":
+            return torch.cat([occ, torch.zeros_like(rgb_vol)], dim=1), seen
+        if self.encoder_input_kind == "colour":
+            return torch.cat([torch.zeros_like(occ), seen * rgb_vol], dim=1), seen
         return torch.cat([occ, occ * rgb_vol], dim=1), seen
 
     def views_input(
@@ -279,7 +298,8 @@ class EncoderStage(L.LightningModule):
         """What besides weights and inputs decides a crop: grid, memory format, device type and autocast state."""
         dev = self.device.type
         amp = str(torch.get_autocast_dtype(dev)) if torch.is_autocast_enabled(dev) else "fp32"
-        return f"{self.grid}|{self.channels_last}|{dev}|{amp}"
+        kind = "" if self.encoder_input_kind == "occupancy_colour" else f"|{self.encoder_input_kind}"  # ablations only
+        return f"{self.grid}{kind}|{self.channels_last}|{dev}|{amp}"
 
     def encode_views(self, rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
         """Encode each of S views of B scenes and aggregate them in R (mean over the views that see a voxel).

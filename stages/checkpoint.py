@@ -69,6 +69,7 @@ DEFAULT_GRID: dict[str, Any] = {
     "feature_dim": 32,
     "encoder_channels": (64, 128, 256),
     "feature_stride": 2,
+    "encoder_input": "occupancy_colour",
 }
 
 
@@ -302,6 +303,8 @@ def require_stage(path: str | Path, wanted: str, option: str, needs: str | None 
 def _same(a: Any, b: Any) -> bool:
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, str) or isinstance(b, str):
+        return a == b
     return float(a) == float(b)
 
 
@@ -325,7 +328,7 @@ def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict
             )
         value = mine if mine is not None else theirs if theirs is not None else default
         out[k] = (int(value) if k in ("feature_dim", "feature_stride") else tuple(int(v) for v in value)
-                  if k == "encoder_channels" else tuple(value))
+                  if k == "encoder_channels" else str(value) if k == "encoder_input" else tuple(value))
     return out
 
 

@@ -63,7 +63,8 @@ class TestStageArguments:
             detector = _declared_defaults(Detector)
             expected.update({n: detector[n] for n in INHERITED_FROM_DETECTOR})
         for name, default in expected.items():
-            if name in ("grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "feature_stride"):
+            if name in ("grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "feature_stride",
+                        "encoder_input"):
                 continue  # the resolved grid and widths (checked below)
             got = stage.hparams[name]
             assert (list(got) if isinstance(got, tuple) else got) == \
@@ -71,6 +72,7 @@ class TestStageArguments:
         assert stage.hparams["grid_resolution"] == [16, 16, 8] and stage.hparams["feature_dim"] == 8
         assert stage.hparams["encoder_channels"] == [64, 128, 256]  # none given, no checkpoint: the paper's
         assert stage.hparams["feature_stride"] == 2  # likewise
+        assert stage.hparams["encoder_input"] == "occupancy_colour"  # likewise
         assert stage.hparams["grid_min"] == list(stage.grid.bounds_min)
 
     def test_a_parents_argument_by_keyword_reaches_the_parent(self, cls: type) -> None:
