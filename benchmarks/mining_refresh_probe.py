@@ -1,0 +1,119 @@
+"""Replay the first pool refresh of a ``threedq em`` round's mining stage under several retrieval settings.
+
+The mining stage of round r writes its full configuration to ``<work_dir>/rNN_mining/config.yaml``. This script
+builds that stage from it (same encoder, boxes, data, seed), cuts the pool exactly as the stage's first refresh did
+(:meth:`~threedq.stages.mining.Mining.refresh_pairs`: same generator, same object check), and mines it once per
+setting given in ``--settings`` (keyword arguments of :func:`~threedq.contrastive.mine_correspondences`, on top of
+the stage's own). For each it prints, with GT used for measuring only, the columns of the round's report: pairs on
+two GT objects, one category among those, the implied yaw error on asymmetric categories; and whether the pairs
+(query, target, yaw) are the same as the first setting's, and the seconds the mining took. Run it from the folder the
+run was made in (the config's paths are relative to it):
+
+    python benchmarks/mining_refresh_probe.py runs/em/r01_mining/config.yaml \\
+        --settings '{"plain": {"csls_k": null}, "csls": {"csls_k": 10}, "csls+mutual": {"csls_k": 10, "mutual_k": 10}}'
+
+Rows are appended to ``--out`` as JSON lines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import torch  # noqa: E402
+import yaml  # noqa: E402
+
+from _machine import cpu_name  # noqa: E402
+
+
+def stage_from_run_config(path: Path) -> tuple[object, object]:
+    """(Mining stage, DataModule set up for fit) from a run's saved ``config.yaml`` (its run-only keys dropped)."""
+    from threedq.pipeline.lightning_cli import ThreeDQCLI
+
+    cfg = yaml.safe_load(path.read_text())
+    for key in ("ckpt_path", "weights_only"):  # keys of `threedq fit`'s saved config that are not configuration
+        cfg.pop(key, None)
+    with tempfile.TemporaryDirectory() as tmp:
+        clean = Path(tmp) / "config.yaml"
+        clean.write_text(yaml.safe_dump(cfg))
+        cli = ThreeDQCLI(args=["--config", str(clean), "--trainer.logger=false"], run=False)
+    cli.datamodule.setup("fit")
+    return cli.model, cli.datamodule
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("config", type=Path, help="a round's rNN_mining/config.yaml")
+    ap.add_argument("--settings", required=True,
+                    help='JSON {"name": {keyword: value}}: mine_correspondences keywords per setting')
+    ap.add_argument("--out", type=Path, default=Path("runs/mining_refresh_probe.jsonl"))
+    args = ap.parse_args()
+    settings = json.loads(args.settings)
+    if not isinstance(settings, dict) or not all(isinstance(v, dict) for v in settings.values()):
+        ap.error('--settings: expected a JSON object {"name": {keyword: value}}')
+
+    from threedq.contrastive import calibrate_context_cosine, mine_correspondences
+    from threedq.stages.mining import implied_yaw_error_deg
+
+    model, dm = stage_from_run_config(args.config)
+    hp = model.hparams
+    ds = copy.copy(dm.train_dataloader().dataset)
+    if getattr(ds, "random_views", False):
+        ds.random_views = False  # the pool's views, as Mining._pool_dataset
+    g = torch.Generator().manual_seed(hp.seed + 1009 * 0)  # the first refresh of the stage, rank 0
+    model._pool_stats = {"boxes": 0, "vouched": 0}
+    t0 = time.time()
+    pool = model._cut_pool(ds, g)
+    feats = pool["features"]
+    n_t = feats.shape[0]
+    n_q = min(hp.query_pool, n_t)
+    on_objects = float((pool["labels"] >= 0).float().mean())
+    print(f"machine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  {args.config}: pool of {n_t} boxes, "
+          f"{on_objects:.3f} on GT objects ({time.time() - t0:.0f} s)", flush=True)
+    min_cos = hp.min_cosine if hp.min_cosine is not None else calibrate_context_cosine(
+        feats, pool["scene"], hp.context_quantile, hp.patch, generator=g)
+    exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
+    sym = torch.tensor(list(hp.symmetry_order)) if hp.symmetry_order is not None else None
+    stage_kw = {"csls_k": hp.get("csls_k"), "mutual_k": hp.get("mutual_k")}
+    first = None
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for name, kw in settings.items():
+        t1 = time.time()
+        mined = mine_correspondences(
+            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, num_angles=hp.num_angles, exclude=exclude,
+            patch=hp.patch, grid=hp.search_grid, context_distance=hp.context_distance, min_cosine=min_cos,
+            min_score=hp.min_score, yaw_window=hp.yaw_window, rank_by=hp.rank_by, **{**stage_kw, **kw})
+        seconds = time.time() - t1
+        qi, ti = mined["query_index"], mined["target_index"]
+        lq, lt = pool["labels"][qi], pool["labels"][ti]
+        labelled = (lq >= 0) & (lt >= 0)
+        same = labelled & (lq == lt)
+        row = {"config": str(args.config), "setting": name, **kw, "pool_on_objects": round(on_objects, 3),
+               "pairs": int(qi.numel()),
+               "on_two_objects": round(float(labelled.float().mean()), 3) if qi.numel() else None,
+               "same_category": round(float(same.sum() / labelled.sum()), 3) if labelled.any() else None}
+        if sym is not None:
+            s = sym[lq.clamp_min(0)]
+            use = same & (s == 1)
+            err = implied_yaw_error_deg(mined["yaw"][use], hp.num_angles, pool["yaw"][qi][use], pool["yaw"][ti][use],
+                                        s[use]) if use.any() else torch.zeros(0)
+            row.update(yaw_median_deg=round(float(err.median()), 1) if err.numel() else None, yaw_pairs=int(use.sum()))
+        key = torch.stack([qi, ti, mined["yaw"]], dim=1)
+        first = key if first is None else first
+        row.update(same_pairs_as_first=bool(key.shape == first.shape and torch.equal(key, first)),
+                   seconds=round(seconds, 1), cpu=cpu_name(), date=time.strftime("%Y-%m-%d"))
+        print(json.dumps(row), flush=True)
+        with args.out.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    main()
