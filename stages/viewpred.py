@@ -187,7 +187,7 @@ class ViewPredictionObjective:
 
         Returns:
             ``loss`` (``rgb_weight`` x the RGB loss + ``occ_weight`` x the balanced occupancy loss), ``l1`` (the plain
-            masked L1), ``occ_loss``, ``pred`` / ``target`` ``[B*T, 3, H/2, W/2]`` in [-0.5, 0.5], ``valid``, ``fg``
+            masked L1), ``rgb_loss`` (the RGB loss, unweighted), ``occ_loss``, ``pred`` / ``target`` ``[B*T, 3, H/2, W/2]`` in [-0.5, 0.5], ``valid``, ``fg``
             (or None) ``[B*T, 1, H/2, W/2]``, ``occ`` / ``free`` ``[B, 1, Z', Y', X']``.
         """
         st = self.vp_settings
@@ -209,8 +209,8 @@ class ViewPredictionObjective:
         rgb_loss = balanced_l1(pred, target, valid, fg) if balanced else l1
         occ_loss = balanced_occupancy_loss(occ_logits, occ, free)
         loss = st["rgb_weight"] * rgb_loss + st["occ_weight"] * occ_loss
-        return {"loss": loss, "l1": l1, "occ_loss": occ_loss, "pred": pred, "target": target, "valid": valid,
-                "fg": fg, "occ": occ, "free": free}
+        return {"loss": loss, "l1": l1, "rgb_loss": rgb_loss, "occ_loss": occ_loss, "pred": pred, "target": target,
+                "valid": valid, "fg": fg, "occ": occ, "free": free}
 
 
 class ViewPrediction(ViewPredictionObjective, EncoderStage):
@@ -231,6 +231,10 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             the held-out in-grid L1 was 0.101 at weight 1, 0.069 at 10, 0.058 at 30 and 0.052 with no
             occupancy loss at all (mean-colour baseline 0.046), while occupancy accuracy stays > 0.98.
         occ_weight: weight of the occupancy loss.
+        rgb_warmup_steps: the RGB loss's weight rises linearly from 0 at step 0 to ``rgb_weight`` at this step, so that
+            the first steps train the encoder on occupancy alone (the shape study found the first 100 steps are where
+            the RGB term costs shape; docs/studies/shape.md). 0 (the paper's): ``rgb_weight`` from the first step.
+            Training only: validation reports the full-weight loss.
         shape_channels: the first this many of the ``feature_dim`` channels are trained by the occupancy loss
             alone: the view decoder reads them detached, so the RGB loss's gradient reaches only the other channels
             (and, through them, the shared U-Net). 0 (the paper's): every channel serves both losses. A departure
@@ -273,6 +277,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         free_pixel_stride: int = 2,
         rgb_weight: float = 30.0,
         occ_weight: float = 1.0,
+        rgb_warmup_steps: int = 0,
         lr: float = 1e-3,
         lr_schedule: Literal["constant", "cosine"] = "constant",
         image_every_n_steps: int = 200,
@@ -289,6 +294,8 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
         if not ground_margin >= 0:
             raise ValueError(f"ground_margin: expected >= 0 metres, got {ground_margin!r}")
         super().__init__(**kwargs)
+        if isinstance(rgb_warmup_steps, bool) or not isinstance(rgb_warmup_steps, int) or rgb_warmup_steps < 0:
+            raise ValueError(f"rgb_warmup_steps: expected an int >= 0, got {rgb_warmup_steps!r}")
         if isinstance(occupancy_views, bool) or int(occupancy_views) != occupancy_views or occupancy_views < 0:
             raise ValueError(f"occupancy_views: expected an int >= 0, got {occupancy_views!r}")
         if not 0 <= shape_channels <= self.feature_dim:
@@ -348,9 +355,17 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             out["l1_fg_mean_colour"] = masked_l1(mean_img, target, valid * fg)
         return out
 
+    def training_loss(self, r: dict[str, Tensor]) -> Tensor:
+        """``r["loss"]`` of :meth:`_step` with the RGB term scaled by ``min(1, global_step / rgb_warmup_steps)``."""
+        w = self.hparams.get("rgb_warmup_steps", 0)
+        if not w or self.global_step >= w:
+            return r["loss"]
+        return r["loss"] - (1.0 - self.global_step / w) * self.hparams.rgb_weight * r["rgb_loss"]
+
     # ------------------------------------------------------------------ Lightning hooks
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         r = self._step(batch)
+        r["loss"] = self.training_loss(r)
         B = batch["rgb"].shape[0]
         self.log_dict(
             {"train/loss": r["loss"], "train/l1": r["l1"], "train/occ_loss": r["occ_loss"], "train/occ_bacc": r["occ_bacc"]},

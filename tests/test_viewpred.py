@@ -415,3 +415,36 @@ class TestLrSchedule:
     def test_unknown_schedule_refused(self) -> None:
         with pytest.raises(ValueError, match="lr_schedule: expected 'constant' or 'cosine', got 'step'"):
             ViewPrediction(lr_schedule="step", **SMALL)
+
+
+class TestRgbWarmup:
+    """``rgb_warmup_steps``: the RGB term's weight rises linearly from 0 to ``rgb_weight`` over the first steps."""
+
+    @pytest.mark.parametrize("step, scale", [(0, 0.0), (25, 0.25), (99, 0.99), (100, 1.0), (400, 1.0)])
+    def test_the_training_loss_against_a_hand_computed_weight(self, step: int, scale: float,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+        stage = ViewPrediction(grid_resolution=(16, 16, 8), feature_dim=8, image_every_n_steps=0, rgb_weight=30.0,
+                               occ_weight=2.0, rgb_warmup_steps=100)
+        monkeypatch.setattr(ViewPrediction, "global_step", property(lambda self: step))
+        rgb, occ = torch.tensor(0.1, dtype=torch.float64), torch.tensor(0.7, dtype=torch.float64)
+        r = {"loss": 30.0 * rgb + 2.0 * occ, "rgb_loss": rgb, "occ_loss": occ}
+        torch.testing.assert_close(stage.training_loss(r), scale * 30.0 * rgb + 2.0 * occ)
+
+    def test_off_by_default_and_refused_when_bad(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        stage = ViewPrediction(grid_resolution=(16, 16, 8), feature_dim=8, image_every_n_steps=0)
+        assert stage.hparams.rgb_warmup_steps == 0
+        r = {"loss": torch.tensor(5.0), "rgb_loss": torch.tensor(0.1)}
+        assert stage.training_loss(r) is r["loss"]  # step 0, no warm-up: the loss as computed
+        for bad in (-1, 2.5, True):
+            with pytest.raises(ValueError, match="rgb_warmup_steps"):
+                ViewPrediction(grid_resolution=(16, 16, 8), feature_dim=8, rgb_warmup_steps=bad)
+
+    def test_the_step_returns_the_unweighted_rgb_loss(self, batch: dict[str, torch.Tensor]) -> None:
+        """``view_prediction_loss`` reports the RGB loss it weighted: loss = rgb_weight * rgb_loss + occ_weight * occ."""
+        torch.manual_seed(0)
+        stage = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0, rgb_weight=7.0, occ_weight=3.0)
+        with torch.no_grad():
+            out = stage(batch)
+            r = stage.view_prediction_loss(out["features"], out["occ_logits"], batch, 1)
+        assert torch.isfinite(r["rgb_loss"]) and torch.isfinite(r["occ_loss"]) and r["rgb_loss"] > 0
+        torch.testing.assert_close(r["loss"], 7.0 * r["rgb_loss"] + 3.0 * r["occ_loss"])
