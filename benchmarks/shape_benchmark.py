@@ -23,7 +23,9 @@ view per scene, with the measurements of ``threedq eval`` and ``benchmarks/featu
 
 and once per dataset, the references: the raw ``cat[occ, occ * rgb]`` input crops (retrieval, and a K = 50 bank on
 them), their occupancy channel alone (retrieval), the colour + size descriptor, and point-cloud registration
-(K = 50, rotation-aware, input occupancy).
+(K = 50, rotation-aware, input occupancy). They are cut with the first row whose encoder sees the paper's input (not
+an ``encoder_input`` ablation, whose raw crops are what it sees); a run of ablations alone adds ``--random_seeds 0``
+for them.
 
 ``--datasets embedded`` scores the same rows on the embedded data (``configs/data/clevr_veggie.yaml``, whose
 categories are a shape and a colour): the guard that a change made for shape must not lower.
@@ -350,7 +352,8 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
                 _append(out, row2)
                 print(f"{ds} / {row2['row']} [{seed}]: strict {row2['cosine/strict']:.3f} paper "
                       f"{row2['cosine/paper']:.3f} Hungarian {row2['threedq/hungarian_acc']:.3f}", flush=True)
-            if not refs_done:
+            if not refs_done and getattr(stage, "encoder_input_kind", "occupancy_colour") == "occupancy_colour":
+                # the references are the paper's input crops: never those of an encoder that sees an ablated input
                 ref = {"dataset": ds, "row": "references", "seed": None, "objects": int(test["labels"].shape[0]),
                        **references(test, train, num_classes, sym), **machine}
                 _append(out, ref)
