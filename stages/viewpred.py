@@ -343,6 +343,7 @@ class ViewPrediction(ViewPredictionObjective, EncoderStage):
             "loss": r["loss"],
             "l1": r["l1"],
             "l1_mean_colour": masked_l1(mean_img, target, valid),
+            "rgb_loss": r["rgb_loss"],
             "occ_loss": r["occ_loss"],
             "occ_bacc": occupancy_balanced_accuracy(out["occ_logits"], occ, free),
             "pred": pred,

@@ -448,3 +448,13 @@ class TestRgbWarmup:
             r = stage.view_prediction_loss(out["features"], out["occ_logits"], batch, 1)
         assert torch.isfinite(r["rgb_loss"]) and torch.isfinite(r["occ_loss"]) and r["rgb_loss"] > 0
         torch.testing.assert_close(r["loss"], 7.0 * r["rgb_loss"] + 3.0 * r["occ_loss"])
+
+    def test_a_training_step_at_step_0_is_the_occupancy_term_alone(self, batch: dict[str, torch.Tensor]) -> None:
+        """The whole path of a training step (``_step`` then ``training_loss``), not a hand-made dict."""
+        torch.manual_seed(0)
+        stage = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0, rgb_weight=7.0, occ_weight=3.0,
+                               rgb_warmup_steps=10)
+        with torch.no_grad():
+            r = stage._step(batch)
+            torch.testing.assert_close(stage.training_loss(r), 3.0 * r["occ_loss"])
+        assert r["rgb_loss"] > 0
