@@ -99,7 +99,8 @@ def main() -> None:
             kinds[kind].append((float(occl[j]), ratio, int((iou[j] > 0.05).sum())))
     n = sum(len(v) for v in kinds.values())
     print(f"machine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  {args.detections}: {n} boxes, {len(ds)} scenes")
-    print("| boxes | count | share | occluded > 10% | volume / GT's < 0.7 | 0.7-1.4 | >= 1.4 | touching 2+ GT objects |")
+    print("| boxes | count | share | occluded > 10% | volume / GT's < 0.7 | 0.7-1.4 | >= 1.4 | "
+          "touching 2+ GT objects |")
     print("|---|---|---|---|---|---|---|---|")
     for kind, rows in kinds.items():
         if not rows:

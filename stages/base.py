@@ -11,10 +11,10 @@ View prediction trains it; later stages load it:
 * ``freeze_encoder``: keep those weights fixed (no gradient, BatchNorm in eval mode) or fine-tune them.
 
 The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``,
-``grid_resolution``, ``feature_dim``, ``encoder_channels``, ``feature_stride`` and ``encoder_input`` in its hyperparameters, and a stage given an ``encoder_ckpt`` takes
-them from there unless it names them itself; a stage that names a different grid than its encoder was
-trained on is refused with one line naming the checkpoint and the field. Only view prediction (which
-trains the encoder from scratch) needs them in its config.
+``grid_resolution``, ``feature_dim``, ``encoder_channels``, ``feature_stride`` and ``encoder_input`` in its
+hyperparameters, and a stage given an ``encoder_ckpt`` takes them from there unless it names them itself; a
+stage that names a different grid than its encoder was trained on is refused with one line naming the checkpoint
+and the field. Only view prediction (which trains the encoder from scratch) needs them in its config.
 """
 
 from __future__ import annotations

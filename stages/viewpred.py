@@ -187,8 +187,9 @@ class ViewPredictionObjective:
 
         Returns:
             ``loss`` (``rgb_weight`` x the RGB loss + ``occ_weight`` x the balanced occupancy loss), ``l1`` (the plain
-            masked L1), ``rgb_loss`` (the RGB loss, unweighted), ``occ_loss``, ``pred`` / ``target`` ``[B*T, 3, H/2, W/2]`` in [-0.5, 0.5], ``valid``, ``fg``
-            (or None) ``[B*T, 1, H/2, W/2]``, ``occ`` / ``free`` ``[B, 1, Z', Y', X']``.
+            masked L1), ``rgb_loss`` (the RGB loss, unweighted), ``occ_loss``, ``pred`` / ``target``
+            ``[B*T, 3, H/2, W/2]`` in [-0.5, 0.5], ``valid``, ``fg`` (or None) ``[B*T, 1, H/2, W/2]``, ``occ`` /
+            ``free`` ``[B, 1, Z', Y', X']``.
         """
         st = self.vp_settings
         T = self.num_decoded_targets(batch, n_in)

@@ -185,7 +185,8 @@ class TestEncoderInputAblations:
         q = Quantizer(encoder_ckpt=str(ckpt), num_prototypes=2, crop_size=8)
         assert q.encoder_input_kind == "occupancy" and q.hparams["encoder_input"] == "occupancy"
         assert q.crop_cache_prefix() != _stage().crop_cache_prefix()  # cached inputs of another kind never reused
-        with pytest.raises(ValueError, match="field 'encoder_input': the encoder was trained with encoder_input=occupancy"):
+        with pytest.raises(ValueError, match="field 'encoder_input': the encoder was trained with "
+                                             "encoder_input=occupancy"):
             EncoderStage(encoder_ckpt=str(ckpt), encoder_input="colour")
         obj = torch.load(ckpt, weights_only=True)
         del obj["hyper_parameters"]["encoder_input"]  # a checkpoint from before the setting: the paper's input

@@ -330,7 +330,8 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     miner_csls_k = []
     real_miner = stage_mining.mine_correspondences
     monkeypatch.setattr(stage_mining, "mine_correspondences",
-                        lambda *a, **k: miner_csls_k.append((k.get("csls_k"), k.get("mutual_k"))) or real_miner(*a, **k))
+                        lambda *a, **k: miner_csls_k.append((k.get("csls_k"), k.get("mutual_k")))
+                        or real_miner(*a, **k))
     run = tmp_path / source
     name = "mining" if source.startswith("mined") else source
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),

@@ -440,7 +440,7 @@ class TestRgbWarmup:
                 ViewPrediction(grid_resolution=(16, 16, 8), feature_dim=8, rgb_warmup_steps=bad)
 
     def test_the_step_returns_the_unweighted_rgb_loss(self, batch: dict[str, torch.Tensor]) -> None:
-        """``view_prediction_loss`` reports the RGB loss it weighted: loss = rgb_weight * rgb_loss + occ_weight * occ."""
+        """``view_prediction_loss`` reports the RGB loss it weighted: rgb_weight * rgb_loss + occ_weight * occ."""
         torch.manual_seed(0)
         stage = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0, rgb_weight=7.0, occ_weight=3.0)
         with torch.no_grad():
