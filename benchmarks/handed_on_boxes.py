@@ -80,13 +80,7 @@ def main() -> None:
         aabb = s["aabb"][m].float()
         if aabb.shape[0] == 0:
             continue
-        gt = s["gt_aabb"] if "gt_aabb" in s else None
-        if gt is None:  # the scene's GT boxes (axis-aligned hulls), read from its record
-            from threedq.boxes import boxes_to_aabb
-            from threedq.scene import load_scene
-
-            rec = load_scene(args.data_dir / ds.files[i], validate=False)
-            gt = torch.from_numpy(boxes_to_aabb(np.asarray(rec.boxes, np.float64).reshape(-1, 7)).astype(np.float32))
+        gt = s["gt_aabb"][s["gt_mask"]].float()  # the scene's GT boxes, which every sample carries beside its own
         iou = aabb_iou_3d(aabb, gt) if gt.shape[0] else torch.zeros(len(aabb), 1)
         occl = occluded_fraction(aabb, s["depth"][0], s["K"][0], s["R_T_cam"][0])
         vol = (aabb[:, 3:] - aabb[:, :3]).clamp_min(0).prod(1)

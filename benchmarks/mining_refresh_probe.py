@@ -63,7 +63,6 @@ def main() -> None:
         ap.error('--settings: expected a JSON object {"name": {keyword: value}}')
 
     from threedq.contrastive import calibrate_context_cosine, mine_correspondences
-    from threedq.stages.mining import implied_yaw_error_deg
 
     model, dm = stage_from_run_config(args.config)
     hp = model.hparams
@@ -83,31 +82,21 @@ def main() -> None:
     min_cos = hp.min_cosine if hp.min_cosine is not None else calibrate_context_cosine(
         feats, pool["scene"], hp.context_quantile, hp.patch, generator=g)
     exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
-    sym = torch.tensor(list(hp.symmetry_order)) if hp.symmetry_order is not None else None
-    stage_kw = {"csls_k": hp.get("csls_k"), "mutual_k": hp.get("mutual_k")}
     first = None
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name, kw in settings.items():
         t1 = time.time()
-        mined = mine_correspondences(
-            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, num_angles=hp.num_angles, exclude=exclude,
-            patch=hp.patch, grid=hp.search_grid, context_distance=hp.context_distance, min_cosine=min_cos,
-            min_score=hp.min_score, yaw_window=hp.yaw_window, rank_by=hp.rank_by, **{**stage_kw, **kw})
+        mined = mine_correspondences(feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, exclude=exclude,
+                                     min_cosine=min_cos, **{**model.miner_settings(), **kw})
         seconds = time.time() - t1
         qi, ti = mined["query_index"], mined["target_index"]
-        lq, lt = pool["labels"][qi], pool["labels"][ti]
-        labelled = (lq >= 0) & (lt >= 0)
-        same = labelled & (lq == lt)
+        m = model.pair_measures(pool, mined)  # the measures of the round's report
         row = {"config": str(args.config), "setting": name, **kw, "pool_on_objects": round(on_objects, 3),
                "pairs": int(qi.numel()),
-               "on_two_objects": round(float(labelled.float().mean()), 3) if qi.numel() else None,
-               "same_category": round(float(same.sum() / labelled.sum()), 3) if labelled.any() else None}
-        if sym is not None:
-            s = sym[lq.clamp_min(0)]
-            use = same & (s == 1)
-            err = implied_yaw_error_deg(mined["yaw"][use], hp.num_angles, pool["yaw"][qi][use], pool["yaw"][ti][use],
-                                        s[use]) if use.any() else torch.zeros(0)
-            row.update(yaw_median_deg=round(float(err.median()), 1) if err.numel() else None, yaw_pairs=int(use.sum()))
+               "on_two_objects": round(m["labelled_pairs"] / qi.numel(), 3) if qi.numel() else None,
+               "same_category": round(m["same_category"], 3) if m["labelled_pairs"] else None,
+               "yaw_median_deg": round(m["yaw_median_err_deg"], 1) if "yaw_median_err_deg" in m else None,
+               "yaw_pairs": m.get("yaw_pairs", 0)}
         key = torch.stack([qi, ti, mined["yaw"]], dim=1)
         first = key if first is None else first
         row.update(same_pairs_as_first=bool(key.shape == first.shape and torch.equal(key, first)),

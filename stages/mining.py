@@ -190,8 +190,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             rotation-max cosine (:func:`~threedq.contrastive.csls_scores`: a box close to every other, such as
             empty floor or a near-duplicate, loses its lead; not in the paper). None: the cosine, the paper's.
         mutual_k: retrieve only mutual ``mutual_k``-nearest neighbours by the plain rotation-max cosine
-            (:func:`~threedq.contrastive.mutual_neighbours`: a box close to no other, such as a box cut across parts of
-            objects, which CSLS lifts, is dropped; not in the paper). None: every target, the paper's.
+            (:func:`~threedq.contrastive.mutual_neighbours`; not in the paper): fewer targets to match; with
+            ``csls_k: 10`` it kept the same pairs at about half the mining time. None: every target, the paper's.
         refresh_every: steps between pool refreshes (the first is at step 0; lineage: 200).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
         view_positives: ``mined``: per object box of the step's query scenes, voxels whose input-view feature is
@@ -306,10 +306,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if pool_min_observed_iou is not None and (isinstance(pool_min_observed_iou, bool) or not isinstance(
                 pool_min_observed_iou, (int, float)) or not 0.0 < pool_min_observed_iou <= 1.0):
             raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
-        if csls_k is not None and (isinstance(csls_k, bool) or not isinstance(csls_k, int) or csls_k < 1):
-            raise ValueError(f"csls_k: expected None or an int >= 1, got {csls_k!r}")
-        if mutual_k is not None and (isinstance(mutual_k, bool) or not isinstance(mutual_k, int) or mutual_k < 1):
-            raise ValueError(f"mutual_k: expected None or an int >= 1, got {mutual_k!r}")
+        for name, k in (("csls_k", csls_k), ("mutual_k", mutual_k)):
+            if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+                raise ValueError(f"{name}: expected None or an int >= 1, got {k!r}")
         if verify_by_prototypes and not bank_ckpt:
             raise ValueError("verify_by_prototypes: the pairs are verified by a prototype bank; no bank_ckpt given "
                              "(threedq em passes the previous round's; on its own, give --model.init_args.bank_ckpt="
@@ -571,9 +570,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         verify = self.verify_bank is not None
         mined = mine_correspondences(
             feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * (hp.prototype_oversample if verify else 1),
-            num_angles=hp.num_angles, exclude=exclude, patch=hp.patch, grid=hp.search_grid,
-            context_distance=hp.context_distance, min_cosine=min_cos, min_score=hp.min_score,
-            yaw_window=hp.yaw_window, rank_by=hp.rank_by, csls_k=hp.csls_k, mutual_k=hp.mutual_k,
+            exclude=exclude, min_cosine=min_cos, **self.miner_settings(),
         )
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with
@@ -603,20 +600,46 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         self._candidates = candidates
         return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0)
 
-    def _diagnostics(self, pool: dict[str, Tensor], mined: dict[str, Tensor], min_cos: float, n_q: int,
-                     seconds: float) -> dict[str, Any]:
+    def miner_settings(self) -> dict[str, Any]:
+        """The keywords of :func:`~threedq.contrastive.mine_correspondences` this stage's hyperparameters set (all but
+        the pool-dependent ``top_k``, ``keep``, ``exclude`` and ``min_cosine``)."""
         hp = self.hparams
+        return {"num_angles": hp.num_angles, "patch": hp.patch, "grid": hp.search_grid,
+                "context_distance": hp.context_distance, "min_score": hp.min_score, "yaw_window": hp.yaw_window,
+                "rank_by": hp.rank_by, "csls_k": hp.csls_k, "mutual_k": hp.mutual_k}
+
+    def pair_measures(self, pool: dict[str, Tensor], mined: dict[str, Tensor]) -> dict[str, Any]:
+        """GT measures of mined pairs (measuring only): ``same_category`` among the ``labelled_pairs`` (both boxes
+        match a GT object; detected boxes may not), and, where the data names symmetries, the median implied yaw error
+        ``yaw_median_err_deg`` over the ``yaw_pairs`` same-category pairs of asymmetric categories."""
         qi, ti = mined["query_index"], mined["target_index"]
         lq, lt = pool["labels"][qi], pool["labels"][ti]
         labelled = (lq >= 0) & (lt >= 0)
         same = (lq == lt) & labelled
+        out: dict[str, Any] = {"same_category": float(same.sum() / labelled.sum()) if labelled.any() else float("nan"),
+                               "labelled_pairs": int(labelled.sum())}
+        sym = self._symmetry()
+        if sym is not None and same.any():
+            s = sym.to(qi.device)[lq.clamp_min(0)]
+            use = same & (s == 1)
+            if use.any():
+                err = implied_yaw_error_deg(mined["yaw"][use], self.hparams.num_angles, pool["yaw"][qi][use],
+                                            pool["yaw"][ti][use], s[use])
+                out["yaw_median_err_deg"] = float(err.median())
+                out["yaw_pairs"] = int(use.sum())
+        return out
+
+    def _diagnostics(self, pool: dict[str, Tensor], mined: dict[str, Tensor], min_cos: float, n_q: int,
+                     seconds: float) -> dict[str, Any]:
+        hp = self.hparams
+        qi = mined["query_index"]
+        measures = self.pair_measures(pool, mined)
         info: dict[str, Any] = {
             "step": int(self.global_step), "refresh": int(self.refreshes), "pool_objects": int(pool["features"].shape[0]),
             "queries": n_q, "pairs": int(qi.numel()), "min_cosine": round(min_cos, 4),
             "score_mean": float(mined["score"].mean()) if qi.numel() else float("nan"),
-            "same_category": float(same.sum() / labelled.sum()) if labelled.any() else float("nan"),
-            # the pairs same_category is measured on: both boxes match a GT object (detected boxes may not)
-            "labelled_pairs": int(labelled.sum()),
+            "same_category": measures["same_category"],
+            "labelled_pairs": measures["labelled_pairs"],
             # the pool's boxes that match a GT object (measuring only)
             "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
@@ -626,15 +649,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if hp.pool_min_observed_iou is not None:  # boxes looked at, and those the input views' geometry vouched for
             info["pool_boxes_seen"] = self._pool_stats["boxes"]
             info["pool_vouched"] = self._pool_stats["vouched"]
-        sym = self._symmetry()
-        if sym is not None and same.any():
-            s = sym.to(qi.device)[lq.clamp_min(0)]
-            use = same & (s == 1)
-            if use.any():
-                err = implied_yaw_error_deg(mined["yaw"][use], hp.num_angles, pool["yaw"][qi][use],
-                                            pool["yaw"][ti][use], s[use])
-                info["yaw_median_err_deg"] = float(err.median())
-                info["yaw_pairs"] = int(use.sum())
+        info.update({k: v for k, v in measures.items() if k.startswith("yaw")})
         self.mining_history.append(info)
         if self.trainer is not None:
             self.log_dict({f"mining/{k}": float(v) for k, v in info.items()
