@@ -121,6 +121,48 @@ def corner_keys(
     return qv, tf[torch.arange(tf.shape[0]), best]
 
 
+def prototype_keys(prototypes: Tensor, angle: Tensor, voxels: Tensor, num_angles: int) -> tuple[Tensor, Tensor]:
+    """Prototype positives: the features of each object's prototype, turned into the object's frame, at its voxels.
+
+    Args:
+        prototypes: ``[P, C, S, S, S]`` the prototype each object is assigned to (its crop, as the bank holds it).
+        angle: ``[P]`` long yaw steps of the assignment ("object o has yaw a": ``rotate_yaw(o, a)`` lies on its
+            prototype).
+        voxels: ``[P, V, 3]`` long ``(z, y, x)`` cells of the objects' crops.
+        num_angles: yaw steps in a full turn.
+
+    Returns:
+        ``keys`` ``[P, V, C]`` L2-normalised (zero where the turned prototype is empty: its cell came from outside
+        the crop) and ``valid`` ``[P, V]`` bool, where the prototype has a feature.
+
+    Convention: yaw as in :func:`~threedq.geometry.rotate_yaw` (about the crop's vertical axis, through its centre);
+    the prototype is turned by ``-a``, the object is not touched.
+    """
+    P = prototypes.shape[0]
+    if P == 0:
+        return prototypes.new_zeros(0, voxels.shape[1], prototypes.shape[1]), voxels.new_zeros(0, voxels.shape[1],
+                                                                                               dtype=torch.bool)
+    turned = rotate_yaw(prototypes, -angle.to(prototypes.dtype) * (2 * math.pi / num_angles))
+    f = turned[torch.arange(P, device=voxels.device)[:, None], :, voxels[..., 0], voxels[..., 1], voxels[..., 2]]
+    valid = f.norm(dim=2) > 1e-6
+    return F.normalize(f, dim=2), valid
+
+
+def prototype_purity(prototype: Tensor, labels: Tensor, query_index: Tensor) -> float:
+    """GT measure of the prototype positives (measuring only): over the labelled queries, the mean share of the other
+    labelled pool objects in the query's prototype that have the query's label (NaN where no query has such a
+    neighbour). ``prototype``, ``labels`` ``[N]`` (label -1: no GT object); ``query_index`` ``[P]``."""
+    shares = []
+    for q in query_index.tolist():
+        if int(labels[q]) < 0:
+            continue
+        mates = (prototype == prototype[q]) & (labels >= 0)
+        mates[q] = False
+        if mates.any():
+            shares.append(float((labels[mates] == labels[q]).float().mean()))
+    return sum(shares) / len(shares) if shares else float("nan")
+
+
 def crop_voxels(crops: Tensor, idx: Tensor) -> Tensor:
     """The L2-normalised features ``[N, V, C]`` of crops ``[N, C, s, s, s]`` at flat cell indices ``idx`` ``[N, V]``
     (row-major over ``(z, y, x)``, i.e. ``z * s * s + y * s + x``): the view-contrastive positives' queries and keys."""
@@ -216,6 +258,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             ``keep`` that pass are kept. Needs ``bank_ckpt``; label-free.
         prototype_yaw_window: the largest disagreement, in yaw steps, between the mined yaw and the one the two
             prototype assignments imply.
+        prototype_weight: ``mined``: weight of a second positive for each mined pair's query voxels: the same cells
+            of the prototype the bank (``bank_ckpt``) assigns the query object to, turned to the object's frame by
+            its assigned yaw, against the same queue of negatives (0: off, the paper's). The quantizer feeding the
+            correspondence learner, so that objects move towards their prototype; a departure from the paper
+            (docs/studies/mined-pairs.md, "The prototypes as positives"). Needs ``bank_ckpt``; label-free.
         prototype_oversample: see ``verify_by_prototypes``.
         round_lr: the learning rate across EM rounds: ``"constant"`` (``lr`` in every round, the paper's) or
             ``"harmonic"`` (default; ``lr / em_round``: the decreasing step of stochastic-approximation EM, so that
@@ -268,6 +315,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         verify_by_prototypes: bool = False,
         prototype_yaw_window: int = 2,
         prototype_oversample: int = 4,
+        prototype_weight: float = 0.0,
         round_lr: Literal["constant", "harmonic"] = "harmonic",
         em_round: int = 1,
         seed: int = 0,
@@ -317,6 +365,16 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                             ("prototype_oversample", prototype_oversample, 1)):
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"{name}: expected an int >= {lo}, got {v!r}")
+        if isinstance(prototype_weight, bool) or not isinstance(prototype_weight, (int, float)) \
+                or not prototype_weight >= 0:
+            raise ValueError(f"prototype_weight: expected a number >= 0, got {prototype_weight!r}")
+        if prototype_weight and source != "mined":
+            raise ValueError(f"prototype_weight: the prototype positives are a term of the mined source, not of source "
+                             f"{source!r}")
+        if prototype_weight and not bank_ckpt:
+            raise ValueError("prototype_weight: the positives come from a prototype bank; no bank_ckpt given (threedq "
+                             "em passes the previous round's; on its own, give --model.init_args.bank_ckpt=<a "
+                             "quantizer checkpoint of this encoder> or --model.init_args.prototype_weight=0)")
         if round_lr not in ("constant", "harmonic"):
             raise ValueError(f"round_lr: expected 'constant' or 'harmonic', got {round_lr!r}")
         if isinstance(em_round, bool) or not isinstance(em_round, int) or em_round < 1:
@@ -357,7 +415,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         # state_dict, the optimizer and device moves; prototype_agreement moves it)
         self.__dict__["verify_bank"] = None
         self._bank_floor: float | None = None
-        if verify_by_prototypes:
+        if verify_by_prototypes or prototype_weight:
             self.__dict__["verify_bank"], self._bank_floor = self._load_bank(bank_ckpt, num_angles, crop_size)
         #: per refresh, the diagnostics written to ``mining/refresh_<step>.json``
         self.mining_history: list[dict[str, Any]] = []
@@ -365,7 +423,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
     def _load_bank(self, path: str, num_angles: int, crop_size: int) -> tuple[PrototypeBank, float | None]:
         """The prototype bank of quantizer checkpoint ``path`` and its crops' occupancy floor (one-line errors
         naming the file and field)."""
-        require_stage(path, "quantizer", "bank_ckpt", "verify_by_prototypes")
+        require_stage(path, "quantizer", "bank_ckpt",
+                      "verify_by_prototypes" if self.hparams.verify_by_prototypes else "prototype_weight")
         hp = checkpoint_hparams(path)
         for name, want in (("num_angles", num_angles), ("crop_size", crop_size)):
             if int(hp.get(name, want)) != want:
@@ -384,17 +443,25 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         return bank, bank_occupancy_floor(path)
 
     @torch.no_grad()
-    def prototype_agreement(self, pool: dict[str, Tensor], mined: dict[str, Tensor]) -> Tensor:
+    def assign_pool(self, pool: dict[str, Tensor]) -> Any:
+        """The bank's prototype and yaw of every pool object (a ``RotationSearchResult``; ``[N]`` ``prototype`` and
+        ``angle``), on the pool's occupancy-weighted crops as the bank was fitted."""
+        assert self.verify_bank is not None
+        bank = self.verify_bank.to(pool["features"].device)
+        return assign_chunked(bank, prototype_crops(pool["features"], pool["raw"], self._bank_floor))
+
+    @torch.no_grad()
+    def prototype_agreement(self, pool: dict[str, Tensor], mined: dict[str, Tensor], assignment: Any = None
+                            ) -> Tensor:
         """``[P]`` bool: the bank puts both objects of each mined pair in one prototype, at yaws whose difference is
-        the pair's mined yaw within ``prototype_yaw_window`` steps.
+        the pair's mined yaw within ``prototype_yaw_window`` steps (``assignment``: :meth:`assign_pool`'s, or None to
+        compute it).
 
         Convention: "object o has yaw a" rotates o by ``a`` onto its prototype (the bank's); the mined yaw ``b``
         rotates the target onto the query; so ``rot(q, a_q) ~ rot(t, a_t)`` gives ``b ~ a_t - a_q`` (mod A).
         """
-        assert self.verify_bank is not None
         A = self.hparams.num_angles
-        bank = self.verify_bank.to(pool["features"].device)
-        res = assign_chunked(bank, prototype_crops(pool["features"], pool["raw"], self._bank_floor))
+        res = assignment if assignment is not None else self.assign_pool(pool)
         qi, ti, b = mined["query_index"], mined["target_index"], mined["yaw"]
         d = torch.remainder(res.angle[ti] - res.angle[qi] - b, A)
         return (res.prototype[qi] == res.prototype[ti]) & (torch.minimum(d, A - d) <= self.hparams.prototype_yaw_window)
@@ -567,14 +634,15 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         min_cos = hp.min_cosine if hp.min_cosine is not None else calibrate_context_cosine(
             feats, pool["scene"], hp.context_quantile, hp.patch, generator=g)
         exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
-        verify = self.verify_bank is not None
+        verify = bool(hp.verify_by_prototypes)
+        assignment = self.assign_pool(pool) if verify or hp.prototype_weight else None
         mined = mine_correspondences(
             feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * (hp.prototype_oversample if verify else 1),
             exclude=exclude, min_cosine=min_cos, **self.miner_settings(),
         )
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with
-            ok = self.prototype_agreement(pool, mined).nonzero().flatten()[: hp.keep]
+            ok = self.prototype_agreement(pool, mined, assignment).nonzero().flatten()[: hp.keep]
             mined = {k: v[ok] if isinstance(v, Tensor) and v.shape[:1] == (candidates,) else v
                      for k, v in mined.items()}
         qi, ti, yaw = mined["query_index"], mined["target_index"], mined["yaw"]
@@ -595,10 +663,14 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             "query_voxels": torch.stack(q_vox) if P else offsets.new_zeros(0, 8, 3),
             "keys": torch.stack(keys) if P else feats.new_zeros(0, 8, C),
         }
+        if hp.prototype_weight:  # the query object's prototype at the same voxels, turned to the object's yaw
+            protos = self.verify_bank.prototypes.to(feats.device, feats.dtype)[assignment.prototype[qi]]
+            pk, valid = prototype_keys(protos, assignment.angle[qi], self._pairs["query_voxels"], hp.num_angles)
+            self._pairs.update(prototype_keys=pk, prototype_valid=valid)
         self._refreshed_at = self.global_step
         self.refreshes += 1
         self._candidates = candidates
-        return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0)
+        return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0, assignment)
 
     def miner_settings(self) -> dict[str, Any]:
         """The keywords of :func:`~threedq.contrastive.mine_correspondences` this stage's hyperparameters set (all but
@@ -630,7 +702,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         return out
 
     def _diagnostics(self, pool: dict[str, Tensor], mined: dict[str, Tensor], min_cos: float, n_q: int,
-                     seconds: float) -> dict[str, Any]:
+                     seconds: float, assignment: Any = None) -> dict[str, Any]:
         hp = self.hparams
         qi = mined["query_index"]
         measures = self.pair_measures(pool, mined)
@@ -644,8 +716,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
         }
-        if self.verify_bank is not None:  # the pairs mined before the bank's check (prototype_oversample x keep at most)
+        if hp.verify_by_prototypes:  # the pairs mined before the bank's check (prototype_oversample x keep at most)
             info["prototype_candidates"] = self._candidates
+        if hp.prototype_weight and assignment is not None:  # GT, measuring only
+            info["prototype_positive_purity"] = prototype_purity(assignment.prototype, pool["labels"], qi)
         if hp.pool_min_observed_iou is not None:  # boxes looked at, and those the input views' geometry vouched for
             info["pool_boxes_seen"] = self._pool_stats["boxes"]
             info["pool_vouched"] = self._pool_stats["vouched"]
@@ -716,6 +790,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             self.moco._momentum_update_key_encoder()
         loss = self.moco.loss(q, k)
         out = {"positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
+        if hp.prototype_weight:
+            valid = pairs["prototype_valid"][pick].reshape(-1)
+            if valid.any():
+                pk = pairs["prototype_keys"][pick].reshape(-1, q.shape[-1]).to(q.dtype)[valid]
+                loss = loss + hp.prototype_weight * self.moco.loss(q[valid], pk)
+                out.update(prototype_positives=int(valid.sum()), prototype_pos_cos=(q[valid] * pk).sum(1).mean())
         if hp.view_positives:
             qv_, kv_ = self._view_positives(feats, self._two_view_sets(batch)[1], batch, hp.view_positives)
             if qv_.shape[0]:
@@ -753,6 +833,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                        "train/positives": float(r["positives"])}, prog_bar=True, batch_size=1)
         if "vp_l1" in r:
             self.log_dict({"train/vp_loss": r["vp_loss"], "train/vp_l1": r["vp_l1"]}, batch_size=1)
+        if "prototype_pos_cos" in r:
+            self.log_dict({"train/prototype_pos_cos": r["prototype_pos_cos"],
+                           "train/prototype_positives": float(r["prototype_positives"])}, batch_size=1)
         if "view_pos_cos" in r:
             self.log_dict({"train/view_pos_cos": r["view_pos_cos"],
                            "train/view_positives": float(r["view_positives"])}, batch_size=1)

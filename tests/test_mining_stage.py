@@ -12,7 +12,15 @@ import torch
 import torch.nn.functional as F
 from conftest import tiny_data_yaml
 from threedq.errors import InputError
-from threedq.stages.mining import Mining, corner_keys, corner_offsets, crop_voxels, implied_yaw_error_deg
+from threedq.stages.mining import (
+    Mining,
+    corner_keys,
+    corner_offsets,
+    crop_voxels,
+    implied_yaw_error_deg,
+    prototype_keys,
+    prototype_purity,
+)
 from threedq.viz.features import mined_pairs_figure
 
 
@@ -262,8 +270,25 @@ class TestViewPredictionRegulariser:
             plain.vp_settings
 
 
+def _bank_file(path: Path, protos: torch.Tensor, num_angles: int) -> Path:
+    """A quantizer checkpoint holding ``protos`` ``[k, C, S, S, S]`` as its active prototypes (one slot free)."""
+    from threedq.quantization.prototypes import PrototypeBank
+
+    k = protos.shape[0]
+    bank = PrototypeBank(k + 1, protos.shape[1], protos.shape[-1], num_angles)
+    bank.prototypes[:k] = protos
+    bank.active[:k] = True
+    torch.save({"state_dict": {f"bank.{n}": v for n, v in bank.state_dict().items()},
+                "hyper_parameters": {"_class_path": "threedq.stages.quantizer.Quantizer", "num_prototypes": k + 1,
+                                     "crop_size": protos.shape[-1], "num_angles": num_angles,
+                                     "occupancy_floor": None}}, path)
+    return path
+
+
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
     views = source == "mined_views"
+    proto = source == "mined_proto"
+    bank = _bank_file(tmp_path / "bank.ckpt", torch.randn(3, 32, 8, 8, 8), 8) if proto else None
     vp = source == "mined_vp"
     csls = source == "mined_csls"
     cfg = tmp_path / f"tiny_{source}.yaml"
@@ -293,6 +318,8 @@ model:
     view_prediction_weight: {1.0 if vp else 0.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
+    prototype_weight: {1.0 if proto else 0.0}
+    bank_ckpt: {bank if proto else "null"}
 {tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
 trainer:
   max_steps: 3
@@ -307,7 +334,8 @@ trainer:
     return cfg
 
 
-@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_csls"])
+@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_csls",
+                                    "mined_proto"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -339,7 +367,7 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
                            f"--trainer.default_root_dir={run}"])
     model = cli.model
     assert isinstance(model, Mining)
-    assert model.hparams.source == source.removesuffix("_views").removesuffix("_vp").removesuffix("_csls")
+    assert model.hparams.source == ("mined" if source.startswith("mined") else source)
     if source.startswith("mined"):  # each refresh mined with the config's csls_k and mutual_k
         assert miner_csls_k and set(miner_csls_k) == ({(2, 3)} if source == "mined_csls" else {(None, None)})
     assert model.trainer.global_step == 3
@@ -374,6 +402,12 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert all(torch.equal(state[f"decoder.{k}"], v) for k, v in nxt.decoder.state_dict().items())
     elif source.startswith("mined"):
         assert not any(k.startswith("decoder.") for k in state)
+    if source == "mined_proto":  # a prototype positive for every query voxel the turned prototype covers
+        assert 1 <= float(logged["train/prototype_positives"]) <= 2 * 8
+        assert -1.0 <= float(logged["train/prototype_pos_cos"]) <= 1.0
+        assert not any(k.startswith("bank.") for k in state)  # the bank is bank_ckpt's, not this stage's state
+    else:
+        assert "train/prototype_pos_cos" not in logged
     if source.startswith("mined"):
         assert bool(state["queue_primed"]) and int(state["refreshes"]) == 2  # steps 0 and 2
         logs = sorted((run / "mining").glob("refresh_*.json"))
@@ -381,6 +415,7 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         info = json.loads(logs[0].read_text())
         assert info["pairs"] >= 1 and 0.0 <= info["same_category"] <= 1.0 and info["queries"] == 6
         assert (run / "mining" / "refresh_000000.png").is_file()
+        assert ("prototype_positive_purity" in info) == (source == "mined_proto")
 
 
 def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -584,3 +619,90 @@ class TestRoundLearningRate:
         for bad in (0, -1, 1.5, True):
             with pytest.raises(ValueError, match="em_round"):
                 Mining(em_round=bad, **self.kw)
+
+
+class TestPrototypeKeys:
+    """``prototype_weight``: each query voxel's second positive is its prototype's feature at the same cell, the
+    prototype turned by the object's assigned yaw onto the object."""
+
+    def test_rotated_copies_with_known_angles(self) -> None:
+        from threedq.geometry import rotate_yaw
+
+        torch.manual_seed(0)
+        S, C, A = 8, 16, 4  # quarter turns: exact on a cube crop
+        protos = torch.randn(5, C, S, S, S)
+        a = torch.tensor([0, 1, 2, 3, 1])
+        # object n = its prototype turned by -a_n (so that turning the object by a_n gives the prototype)
+        objects = rotate_yaw(protos, -a.float() * (2 * math.pi / A))
+        vox = torch.randint(0, S, (5, 8, 3))
+        keys, valid = prototype_keys(protos, a, vox, A)
+        assert keys.shape == (5, 8, C) and valid.shape == (5, 8) and bool(valid.all())
+        want = torch.stack([F.normalize(objects[n][:, vox[n, :, 0], vox[n, :, 1], vox[n, :, 2]].T, dim=1)
+                            for n in range(5)])
+        torch.testing.assert_close(keys, want, atol=1e-5, rtol=0)
+        # the wrong yaw gives other cells: not the object's features
+        wrong, _ = prototype_keys(protos, (a + 1) % A, vox, A)
+        assert (wrong * want).sum(2).mean() < 0.5
+
+    def test_against_a_naive_loop(self) -> None:
+        from threedq.geometry import rotate_yaw
+
+        torch.manual_seed(1)
+        S, C, A = 8, 4, 36
+        protos = torch.randn(3, C, S, S, S, dtype=torch.float64)
+        a = torch.tensor([5, 0, 31])
+        vox = torch.randint(0, S, (3, 6, 3))
+        keys, valid = prototype_keys(protos, a, vox, A)
+        for n in range(3):
+            turned = rotate_yaw(protos[n : n + 1], torch.tensor([-2 * math.pi * int(a[n]) / A], dtype=torch.float64))[0]
+            for v in range(6):
+                f = turned[:, int(vox[n, v, 0]), int(vox[n, v, 1]), int(vox[n, v, 2])]
+                assert bool(valid[n, v]) == bool(f.norm() > 1e-6)
+                if valid[n, v]:
+                    torch.testing.assert_close(keys[n, v], f / f.norm())
+
+    def test_cells_turned_in_from_outside_are_not_positives(self) -> None:
+        S, C, A = 8, 2, 8
+        protos = torch.ones(1, C, S, S, S)
+        corner = torch.tensor([[[0, 0, 0], [0, 4, 4]]])  # a corner cell comes from outside the crop at 45 deg
+        keys, valid = prototype_keys(protos, torch.tensor([1]), corner, A)
+        assert valid.tolist() == [[False, True]] and float(keys[0, 0].abs().sum()) == 0.0
+
+    def test_no_pairs(self) -> None:
+        keys, valid = prototype_keys(torch.zeros(0, 4, 8, 8, 8), torch.zeros(0, dtype=torch.long),
+                                     torch.zeros(0, 8, 3, dtype=torch.long), 36)
+        assert keys.shape == (0, 8, 4) and valid.shape == (0, 8) and valid.dtype == torch.bool
+
+    def test_gradcheck(self) -> None:
+        protos = torch.randn(2, 3, 4, 4, 4, dtype=torch.float64, requires_grad=True)
+        vox = torch.tensor([[[1, 1, 2], [2, 2, 1]], [[0, 1, 1], [3, 2, 2]]])
+        assert torch.autograd.gradcheck(lambda p: prototype_keys(p, torch.tensor([3, 7]), vox, 36)[0], (protos,))
+
+
+class TestPrototypePurity:
+    def test_hand_computed(self) -> None:
+        prototype = torch.tensor([0, 0, 0, 1, 1, 2])
+        labels = torch.tensor([4, 4, 7, 5, -1, 9])
+        # query 0: mates 1 (4), 2 (7) -> 1/2; query 3: its only mate is unlabelled -> no share; query 4: unlabelled;
+        # query 2: mates 0, 1 (both 4) -> 0
+        assert prototype_purity(prototype, labels, torch.tensor([0, 3, 4, 2])) == pytest.approx(0.25)
+        assert math.isnan(prototype_purity(prototype, labels, torch.tensor([3, 5])))
+
+
+class TestPrototypeWeightErrors:
+    def test_errors(self, tmp_path: Path) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64, "crop_size": 8, "num_angles": 4}
+        with pytest.raises(ValueError, match="prototype_weight.*bank_ckpt"):
+            Mining(prototype_weight=1.0, **kw)
+        path = _bank_file(tmp_path / "bank.ckpt", torch.randn(2, 32, 8, 8, 8), 4)
+        for bad in (-1.0, True, "1"):
+            with pytest.raises(ValueError, match="prototype_weight"):
+                Mining(prototype_weight=bad, bank_ckpt=str(path), **kw)
+        with pytest.raises(ValueError, match="prototype_weight.*source"):
+            Mining(source="vc", prototype_weight=1.0, bank_ckpt=str(path), **kw)
+        with pytest.raises(InputError, match="no such file"):
+            Mining(prototype_weight=1.0, bank_ckpt=str(tmp_path / "none.ckpt"), **kw)
+        with pytest.raises(InputError, match="num_angles"):
+            Mining(prototype_weight=1.0, bank_ckpt=str(path), **{**kw, "num_angles": 36})
+        m = Mining(prototype_weight=1.0, bank_ckpt=str(path), **kw)
+        assert m.verify_bank is not None and m.verify_bank.num_active == 2
