@@ -43,6 +43,13 @@ scenes, so the fine-tuning cannot forget what view prediction taught (off, the m
 them on) and train along; the data must give target views (``num_target_views >= 1``). Off by default: the
 measurement is in ``docs/studies/mining.md``.
 
+The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
+prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
+assigns every pool object a prototype and a yaw; each kept pair's query corners get a second key, the same cells of
+their object's prototype turned onto the object (:func:`prototype_keys`), in the same queue, weighted by
+``prototype_weight``. Off by default: it lifts the rounds' category retrieval and lowers the loop's Hungarian
+accuracy (``docs/studies/mined-pairs.md``, "The prototypes as positives").
+
 Convention: frame R metres, z up; crops ``[N, C, Z, Y, X]``; yaw counter-clockwise seen from above, index
 ``b`` meaning ``2 pi b / num_angles``; the mined yaw rotates the TARGET crop onto the query.
 """
@@ -250,7 +257,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             which on detected boxes also holds boxes on empty floor, whose crops are the most alike). Label-free; a
             departure from the paper (docs/studies/mined-pairs.md, "The object check alone").
         bank_ckpt: ``mined``: the prototype bank the pool's encoder was last quantized with (a quantizer
-            checkpoint; ``threedq em`` passes the previous round's, round 1 gets round 0's), for ``verify_by_prototypes``.
+            checkpoint; ``threedq em`` passes the previous round's, round 1 gets round 0's), for
+            ``verify_by_prototypes`` and ``prototype_weight``.
         verify_by_prototypes: ``mined``: keep only mined pairs whose two objects the bank assigns to one prototype
             at yaws that agree with the pair's mined yaw (within ``prototype_yaw_window`` steps): the quantizer
             vouches for the pair's category and pose (a departure from the paper, whose pairs are verified by
@@ -411,8 +419,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                 except RuntimeError as e:
                     raise InputError(f"{kwargs['encoder_ckpt']}: field '{name}.*': does not fit this "
                                      f"{name}: {str(e).splitlines()[0]}") from e
-        # the verifying bank is bank_ckpt's, not this stage's state: kept out of the module tree (so out of the
-        # state_dict, the optimizer and device moves; prototype_agreement moves it)
+        # bank_ckpt's bank (for verify_by_prototypes and prototype_weight), not this stage's state: kept out of the
+        # module tree (so out of the state_dict, the optimizer and device moves; assign_pool moves it)
         self.__dict__["verify_bank"] = None
         self._bank_floor: float | None = None
         if verify_by_prototypes or prototype_weight:
