@@ -348,9 +348,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                              f"{source!r} has its own view pairs (voxels_per_object)")
         if isinstance(view_weight, bool) or not isinstance(view_weight, (int, float)) or not view_weight > 0:
             raise ValueError(f"view_weight: expected a number > 0, got {view_weight!r}")
-        if isinstance(view_prediction_weight, bool) or not isinstance(view_prediction_weight, (int, float)) \
-                or not view_prediction_weight >= 0:
-            raise ValueError(f"view_prediction_weight: expected a number >= 0, got {view_prediction_weight!r}")
+        for name, w in (("view_prediction_weight", view_prediction_weight), ("prototype_weight", prototype_weight)):
+            if isinstance(w, bool) or not isinstance(w, (int, float)) or not w >= 0:
+                raise ValueError(f"{name}: expected a number >= 0, got {w!r}")
         if view_prediction_weight and source != "mined":
             raise ValueError(f"view_prediction_weight: the view-prediction regulariser is a term of the mined source, "
                              f"not of source {source!r}")
@@ -373,9 +373,6 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                             ("prototype_oversample", prototype_oversample, 1)):
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"{name}: expected an int >= {lo}, got {v!r}")
-        if isinstance(prototype_weight, bool) or not isinstance(prototype_weight, (int, float)) \
-                or not prototype_weight >= 0:
-            raise ValueError(f"prototype_weight: expected a number >= 0, got {prototype_weight!r}")
         if prototype_weight and source != "mined":
             raise ValueError(f"prototype_weight: the prototype positives are a term of the mined source, not of source "
                              f"{source!r}")
