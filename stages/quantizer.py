@@ -89,6 +89,10 @@ class Quantizer(SplitEvaluation, EncoderStage):
         fill_free_slots: after the incremental pass, open the remaining slots from the objects farthest
             from the bank.
         em_iterations: E/M rounds at the end of each training epoch.
+        em_restarts: fits of an empty bank, each from its own initialisation order (seeds ``seed, seed + 1, ...``),
+            of which the one with the lowest quantization loss on the training crops is kept (default 1: the
+            paper's single fit; more is a departure from it, as k-means keeps the best of several starts). A bank
+            warm-started from ``init_bank_ckpt`` is refined once.
         search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
         num_classes: categories of the dataset (metrics only; labels are never used for training). The threedq CLI
             links it, and ``symmetry_order``, from the dataset's ``index.json`` (``ThreeDQCLI``'s
@@ -125,6 +129,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         init_threshold: float = 0.8,
         fill_free_slots: bool = True,
         em_iterations: int = 10,
+        em_restarts: int = 1,
         search_method: str = "fast",
         num_classes: int | None = None,
         symmetry_order: list[int] | None = None,
@@ -139,6 +144,8 @@ class Quantizer(SplitEvaluation, EncoderStage):
             raise ValueError(f"occupancy_floor: expected null or a float in [0, 1), got {occupancy_floor!r}")
         if crop_shape not in CROP_SHAPES:
             raise ValueError(f"crop_shape: expected one of {CROP_SHAPES}, got {crop_shape!r}")
+        if isinstance(em_restarts, bool) or not isinstance(em_restarts, int) or em_restarts < 1:
+            raise ValueError(f"em_restarts: expected an int >= 1, got {em_restarts!r}")
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         self.save_hyperparameters()
         self.automatic_optimization = False
@@ -243,7 +250,8 @@ class Quantizer(SplitEvaluation, EncoderStage):
             raise RuntimeError("quantizer: no object crops in the training split")
         spectra: dict = {}  # each chunk's polar spectrum, computed once for the EM and the assignment below
         bank = run_prototype_em(self.bank, crops, self.hparams.em_iterations, seed=self.hparams.seed,
-                                fill_free=self.hparams.fill_free_slots, spectra=spectra)
+                                fill_free=self.hparams.fill_free_slots, spectra=spectra,
+                                restarts=self.hparams.em_restarts)
         res = assign_chunked(bank, crops, spectra=spectra)
         self.log_dict(
             {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
@@ -111,6 +112,64 @@ class TestPrototypeBank:
         objs, labels, _ = rotated_copies(base_shapes(), per=4)
         bank = fit_prototype_bank(objs, num_prototypes=3, iterations=2, num_angles=1)
         assert bank.assign(objs).angle.eq(0).all()
+
+
+class TestRestarts:
+    """``run_prototype_em(restarts=R)`` against a naive loop: R separate fits, the lowest quantization loss kept."""
+
+    def _crops(self) -> torch.Tensor:
+        # 8 shapes into 3 prototypes: the initialisation order decides which optimum the EM reaches
+        crops, _, _ = rotated_copies(base_shapes(8, channels=4, seed=5), per=4, seed=2, noise=0.1)
+        return crops
+
+    @staticmethod
+    def _fit(crops: torch.Tensor, seed: int, restarts: int = 1) -> PrototypeBank:
+        from threedq.quantization.prototypes import run_prototype_em
+
+        bank = PrototypeBank(3, crops.shape[1], crops.shape[-1], 36, init_threshold=0.8)
+        return run_prototype_em(bank, crops, iterations=3, seed=seed, restarts=restarts)
+
+    @staticmethod
+    def _loss(bank: PrototypeBank, crops: torch.Tensor) -> float:
+        return float(quantization_loss(bank, crops, bank.assign(crops)))
+
+    def test_keeps_the_fit_of_lowest_loss(self) -> None:
+        crops = self._crops()
+        singles = [self._fit(crops, seed) for seed in (4, 5, 6, 7)]
+        losses = [self._loss(b, crops) for b in singles]
+        assert len({round(v, 4) for v in losses}) > 1  # the seeds reach different optima: the choice matters
+        best = singles[min(range(4), key=lambda i: losses[i])]
+        chosen = self._fit(crops, seed=4, restarts=4)
+        assert torch.equal(chosen.prototypes, best.prototypes)
+        assert torch.equal(chosen.active, best.active)
+        assert self._loss(chosen, crops) == pytest.approx(min(losses))
+        assert chosen.member_count.sum() == 0  # the kept bank is as a single fit leaves it
+
+    def test_one_restart_is_the_single_fit(self) -> None:
+        crops = self._crops()
+        assert torch.equal(self._fit(crops, seed=3, restarts=1).prototypes, self._fit(crops, seed=3).prototypes)
+
+    def test_a_warm_bank_is_refined_once(self) -> None:
+        from threedq.quantization.prototypes import run_prototype_em
+
+        crops = self._crops()
+        warm = self._fit(crops, seed=0)
+        a, b = copy.deepcopy(warm), copy.deepcopy(warm)
+        run_prototype_em(a, crops, iterations=2, seed=9, restarts=5)
+        run_prototype_em(b, crops, iterations=2, seed=9)
+        assert torch.equal(a.prototypes, b.prototypes)
+
+    @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+    def test_exception(self, bad) -> None:
+        with pytest.raises(ValueError, match="restarts: expected an int >= 1"):
+            self._fit(self._crops(), seed=0, restarts=bad)
+
+    @pytest.mark.parametrize("bad", [0, 2.0, False])
+    def test_stage_exception(self, bad) -> None:
+        from threedq.stages.quantizer import Quantizer
+
+        with pytest.raises(ValueError, match="em_restarts: expected an int >= 1"):
+            Quantizer(grid_resolution=(32, 32, 16), num_prototypes=4, crop_size=8, em_restarts=bad)
 
 
 class TestPrototypeCrops:

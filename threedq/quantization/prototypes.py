@@ -269,6 +269,7 @@ def fit_prototype_bank(
 def run_prototype_em(
     bank: PrototypeBank, crops: Tensor, iterations: int = 10, seed: int = 0, fill_free: bool = True, chunk: int = 256,
     reuse_spectra: bool = True, spectra: dict[int, PolarSpectrum | None] | None = None, reuse_aligned: bool = True,
+    restarts: int = 1,
 ) -> PrototypeBank:
     """The prototype EM of the paper (Sec. 3.2) on ``crops`` ``[N, C, S, S, S]``, in place; returns ``bank``.
 
@@ -286,14 +287,34 @@ def run_prototype_em(
     ``reuse_aligned``: each object's rotation into its prototype's pose is kept between the M-steps and redone only
     when its yaw changes (:meth:`PrototypeBank.accumulate`'s ``previous``): the same bank, about 2x the crops'
     memory while the EM runs; False rotates every object at every iteration.
+
+    ``restarts`` (an empty bank only; default 1, the paper's single fit): the initialisation and EM are run
+    ``restarts`` times, visiting the objects in the orders of seeds ``seed, seed + 1, ...``, and the bank with the
+    lowest :func:`quantization_loss` on ``crops`` is kept (the first of equal ones), as k-means keeps the best of
+    several starts (a departure from the paper). A bank that already holds prototypes is refined once, as it is.
     """
     N = crops.shape[0]
     if N == 0:
         raise ValueError("crops: no objects to fit prototypes to")
+    if isinstance(restarts, bool) or not isinstance(restarts, int) or restarts < 1:
+        raise ValueError(f"restarts: expected an int >= 1, got {restarts!r}")
     if not reuse_spectra:
         spectra = None
     elif spectra is None:
         spectra = {}
+    if bank.num_active == 0 and restarts > 1:
+        empty = {k: v.clone() for k, v in bank.state_dict().items()}
+        best: dict[str, Tensor] | None = None
+        best_loss = float("inf")
+        for i in range(restarts):
+            bank.load_state_dict(empty)
+            run_prototype_em(bank, crops, iterations, seed=seed + i, fill_free=fill_free, chunk=chunk,
+                             reuse_spectra=reuse_spectra, spectra=spectra, reuse_aligned=reuse_aligned)
+            loss = float(quantization_loss(bank, crops, assign_chunked(bank, crops, chunk, spectra)))
+            if best is None or loss < best_loss:
+                best, best_loss = {k: v.clone() for k, v in bank.state_dict().items()}, loss
+        bank.load_state_dict(best)
+        return bank
     if bank.num_active == 0:
         g = torch.Generator().manual_seed(seed)
         order = torch.randperm(N, generator=g).to(crops.device)
