@@ -223,9 +223,13 @@ class TestDetectorStage:
         m = Detector(anchor_size=(0.5, 0.5, 0.5), score_threshold=0.5, **SMALL)
         opt = torch.optim.Adam(m.head.parameters(), lr=3e-3)
         m.train()
+        with torch.no_grad():  # the frozen encoder (in eval mode) gives the same grid every step: encode it once
+            v = m.input_views(train_batch)
+            feats = m.encode_views(*(train_batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
+            torch.testing.assert_close(m.head(feats)[0], m(train_batch)[0])  # what the stage's forward computes
         losses = []
         for _ in range(150):
-            logits, box = m(train_batch)
+            logits, box = m.head(feats)
             r = m.loss(logits, box, train_batch["aabb"], train_batch["box_mask"])
             opt.zero_grad()
             r["loss"].backward()
