@@ -18,3 +18,11 @@ for S in 0 1; do
   for d in $B/*/; do n=$(basename $d); case $n in r0?_quantizer|r0?_eval) ;; *) cp -r $d $W/;; esac; done
   threedq em --rounds 4 --work_dir $W --quantizer_config q_restarts4.yaml $EXTRA --resume true   # metrics_restarts4_seed$S.json
 done
+# both checks + prototype positives + restarts, from the start (ae44cd0, fresh clone; 2026-12-02, tenth session):
+sed 's/^    prototype_weight: 0.0 /    prototype_weight: 1.0 /' configs/stages/mining_checked.yaml > mining_checked_proto.yaml
+/usr/bin/time -v threedq em --rounds 4 --work_dir runs/em_cpr --mining_config mining_checked_proto.yaml \
+  --quantizer_config q_restarts4.yaml                               # metrics_checked_proto_restarts4_seed0.json
+mkdir -p runs/em_cpr_s1
+for d in 00_viewpred 01_viewpred_eval 02_detector 03_detector_eval r00_eval r00_quantizer; do cp -r runs/em_cpr/$d runs/em_cpr_s1/; done
+threedq em --rounds 4 --work_dir runs/em_cpr_s1 --mining_config mining_checked_proto.yaml --quantizer_config q_restarts4.yaml \
+  --extra_configs seed1.yaml --resume true                          # metrics_checked_proto_restarts4_seed1.json
