@@ -26,3 +26,7 @@ mkdir -p runs/em_cpr_s1
 for d in 00_viewpred 01_viewpred_eval 02_detector 03_detector_eval r00_eval r00_quantizer; do cp -r runs/em_cpr/$d runs/em_cpr_s1/; done
 threedq em --rounds 4 --work_dir runs/em_cpr_s1 --mining_config mining_checked_proto.yaml --quantizer_config q_restarts4.yaml \
   --extra_configs seed1.yaml --resume true                          # metrics_checked_proto_restarts4_seed1.json
+# em_restarts 4 with today's miner from the start (self-labelling after each round's restarted quantizer), seed 0:
+mkdir -p runs/em_r4
+for d in 00_viewpred 01_viewpred_eval 02_detector 03_detector_eval r00_eval r00_quantizer; do cp -r runs/em_cpr/$d runs/em_r4/; done
+threedq em --rounds 4 --work_dir runs/em_r4 --quantizer_config q_restarts4.yaml --resume true   # metrics_restarts4_fromstart_seed0.json
