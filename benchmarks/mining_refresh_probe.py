@@ -6,10 +6,11 @@ builds that stage from it (same encoder, boxes, data, seed), cuts the pool as th
 without its crop cache: on the main job's runs its measures came within 0.03 of the run's own refresh, not bit for
 bit), and mines it once per
 setting given in ``--settings`` (keyword arguments of :func:`~threedq.contrastive.mine_correspondences`, on top of
-the stage's own). For each it prints, with GT used for measuring only, the columns of the round's report: pairs on
-two GT objects, one category among those, the implied yaw error on asymmetric categories; and whether the pairs
-(query, target, yaw) are the same as the first setting's, and the seconds the mining took. Run it from the folder the
-run was made in (the config's paths are relative to it):
+the stage's own; and the stage's ``retrieval_occupancy_floor``). For each it prints, with GT used for measuring only,
+the columns of the round's report: pairs on two GT objects, one category among those, the implied yaw error on
+asymmetric categories; and whether the pairs (query, target, yaw) are the same as the first setting's, and the
+seconds the mining took. ``--seed`` draws another pool of the same boxes. Run it from the folder the run was made in
+(the config's paths are relative to it):
 
     python benchmarks/mining_refresh_probe.py runs/em/r01_mining/config.yaml \\
         --settings '{"plain": {"csls_k": null}, "csls": {"csls_k": 10}, "csls+mutual": {"csls_k": 10, "mutual_k": 10}}'
@@ -51,12 +52,34 @@ def stage_from_run_config(path: Path) -> tuple[object, object]:
     return cli.model, cli.datamodule
 
 
+def yaw_modulo_symmetry(model: object, pool: dict, mined: dict) -> dict:
+    """The implied yaw error of the same-category pairs of every category with a finite symmetry order (asymmetric
+    ones and those of order 2, 4, ..., each modulo its period; the report's column keeps the asymmetric ones only):
+    more pairs, for a steadier median. GT, measuring only."""
+    from threedq.stages.mining import implied_yaw_error_deg
+
+    sym = model._symmetry()
+    qi, ti = mined["query_index"], mined["target_index"]
+    lq, lt = pool["labels"][qi], pool["labels"][ti]
+    if sym is None or qi.numel() == 0:
+        return {}
+    s = sym[lq.clamp_min(0)]
+    use = (lq == lt) & (lq >= 0) & (s >= 1)
+    if not use.any():
+        return {"yaw_sym_pairs": 0}
+    err = implied_yaw_error_deg(mined["yaw"][use], model.hparams.num_angles, pool["yaw"][qi][use],
+                                pool["yaw"][ti][use], s[use])
+    return {"yaw_sym_median_deg": round(float(err.median()), 1), "yaw_sym_pairs": int(use.sum())}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("config", type=Path, help="a round's rNN_mining/config.yaml")
     ap.add_argument("--settings", required=True,
                     help='JSON {"name": {keyword: value}}: mine_correspondences keywords per setting')
     ap.add_argument("--out", type=Path, default=Path("runs/mining_refresh_probe.jsonl"))
+    ap.add_argument("--seed", type=int, default=None,
+                    help="draw the pool with this seed instead of the stage's (another pool of the same boxes)")
     args = ap.parse_args()
     settings = json.loads(args.settings)
     if not isinstance(settings, dict) or not all(isinstance(v, dict) for v in settings.values()):
@@ -69,7 +92,8 @@ def main() -> None:
     ds = copy.copy(dm.train_dataloader().dataset)
     if getattr(ds, "random_views", False):
         ds.random_views = False  # the pool's views, as Mining._pool_dataset
-    g = torch.Generator().manual_seed(hp.seed + 1009 * 0)  # the first refresh of the stage, rank 0
+    seed = hp.seed if args.seed is None else args.seed
+    g = torch.Generator().manual_seed(seed + 1009 * 0)  # the first refresh of the stage, rank 0
     model._pool_stats = {"boxes": 0, "vouched": 0}
     t0 = time.time()
     pool = model._cut_pool(ds, g)
@@ -86,17 +110,19 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name, kw in settings.items():
         t1 = time.time()
+        mine_kw = {k: v for k, v in kw.items() if k != "retrieval_occupancy_floor"}  # a stage setting, not a keyword
+        r_crops = model.retrieval_crops(pool, n_q, kw.get("retrieval_occupancy_floor", "hparams"))
         mined = mine_correspondences(feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, exclude=exclude,
-                                     min_cosine=min_cos, **{**model.miner_settings(), **kw})
+                                     min_cosine=min_cos, retrieval_crops=r_crops, **{**model.miner_settings(), **mine_kw})
         seconds = time.time() - t1
         qi, ti = mined["query_index"], mined["target_index"]
         m = model.pair_measures(pool, mined)  # the measures of the round's report
-        row = {"config": str(args.config), "setting": name, **kw, "pool_on_objects": round(on_objects, 3),
+        row = {"config": str(args.config), "seed": seed, "setting": name, **kw, "pool_on_objects": round(on_objects, 3),
                "pairs": int(qi.numel()),
                "on_two_objects": round(m["labelled_pairs"] / qi.numel(), 3) if qi.numel() else None,
                "same_category": round(m["same_category"], 3) if m["labelled_pairs"] else None,
                "yaw_median_deg": round(m["yaw_median_err_deg"], 1) if "yaw_median_err_deg" in m else None,
-               "yaw_pairs": m.get("yaw_pairs", 0)}
+               "yaw_pairs": m.get("yaw_pairs", 0), **yaw_modulo_symmetry(model, pool, mined)}
         key = torch.stack([qi, ti, mined["yaw"]], dim=1)
         first = key if first is None else first
         row.update(same_pairs_as_first=bool(key.shape == first.shape and torch.equal(key, first)),

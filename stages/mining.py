@@ -241,6 +241,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         mutual_k: retrieve only mutual ``mutual_k``-nearest neighbours by the plain rotation-max cosine
             (:func:`~threedq.contrastive.mutual_neighbours`; not in the paper): fewer targets to match; with
             ``csls_k: 10`` it kept the same pairs at about half the mining time. None: every target, the paper's.
+        retrieval_occupancy_floor: run the object-level retrieval (targets, the ranking's similarity, the yaw of
+            ``yaw_window``) on the pool's crops weighted by their input occupancy with this floor, the similarity
+            the quantizer's prototypes use (:func:`~threedq.quantization.prototypes.prototype_crops`; not in the
+            paper); patches are matched and verified on the plain crops. None: the plain crops, the paper's.
         refresh_every: steps between pool refreshes (the first is at step 0; lineage: 200).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
         view_positives: ``mined``: per object box of the step's query scenes, voxels whose input-view feature is
@@ -312,6 +316,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         rank_by: Literal["score", "retrieval"] = "retrieval",
         csls_k: int | None = None,
         mutual_k: int | None = None,
+        retrieval_occupancy_floor: float | None = None,
         refresh_every: int = 100,
         pairs_per_step: int = 4,
         view_positives: int = 0,
@@ -362,6 +367,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if pool_min_observed_iou is not None and (isinstance(pool_min_observed_iou, bool) or not isinstance(
                 pool_min_observed_iou, (int, float)) or not 0.0 < pool_min_observed_iou <= 1.0):
             raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
+        f = retrieval_occupancy_floor
+        if f is not None and (isinstance(f, bool) or not isinstance(f, (int, float)) or not 0.0 <= f < math.inf):
+            raise ValueError(f"retrieval_occupancy_floor: expected None or a number >= 0, got {f!r}")
         for name, k in (("csls_k", csls_k), ("mutual_k", mutual_k)):
             if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
                 raise ValueError(f"{name}: expected None or an int >= 1, got {k!r}")
@@ -643,7 +651,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         assignment = self.assign_pool(pool) if verify or hp.prototype_weight else None
         mined = mine_correspondences(
             feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * (hp.prototype_oversample if verify else 1),
-            exclude=exclude, min_cosine=min_cos, **self.miner_settings(),
+            exclude=exclude, min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q),
+            **self.miner_settings(),
         )
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with
@@ -676,6 +685,19 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         self.refreshes += 1
         self._candidates = candidates
         return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0, assignment)
+
+    def retrieval_crops(self, pool: dict[str, Tensor], n_q: int,
+                        occupancy_floor: float | None | str = "hparams") -> tuple[Tensor, Tensor] | None:
+        """The crops the object-level retrieval of a refresh runs on (``mine_correspondences``' ``retrieval_crops``):
+        None (the pool's feature crops, the paper's) without ``retrieval_occupancy_floor``, else the pool's crops
+        weighted by their input occupancy at that floor (:func:`~threedq.quantization.prototypes.prototype_crops`,
+        the similarity the quantizer's prototypes use), as (the first ``n_q``, all). ``occupancy_floor`` overrides
+        the hyperparameter (a probe's setting)."""
+        floor = self.hparams.retrieval_occupancy_floor if occupancy_floor == "hparams" else occupancy_floor
+        if floor is None:
+            return None
+        w = prototype_crops(pool["features"], pool["raw"], float(floor))
+        return w[:n_q], w
 
     def miner_settings(self) -> dict[str, Any]:
         """The keywords of :func:`~threedq.contrastive.mine_correspondences` this stage's hyperparameters set (all but

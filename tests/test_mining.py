@@ -598,6 +598,56 @@ class TestMineCorrespondences:
             mine_correspondences(queries, targets, min_score=2.0)
 
 
+class TestRetrievalCrops:
+    """``retrieval_crops``: the object-level retrieval (targets, yaw window) on other crops of the same objects."""
+
+    def test_same_crops_equal_the_default(self) -> None:
+        queries, targets, _ = planted(90)
+        kw = dict(top_k=3, keep=5, min_score=0.0, yaw_window=1, rank_by="retrieval")
+        plain = mine_correspondences(queries, targets, **kw)
+        same = mine_correspondences(queries, targets, retrieval_crops=(queries.clone(), targets.clone()), **kw)
+        assert set(plain) == set(same)
+        for k in plain:
+            torch.testing.assert_close(same[k], plain[k], rtol=0, atol=0)
+
+    def test_the_retrieval_crops_choose_the_target(self) -> None:
+        """top_k 1: the retrieval crops send query 0 to target 1, whose features hold no match; sent to the planted
+        target 2 it is found."""
+        queries, targets, b = planted(90)
+        r_q, r_t = unit(3, 2, S, S, S, seed=7), unit(4, 2, S, S, S, seed=8)
+        r_t[1] = r_q[0]
+        wrong = mine_correspondences(queries, targets, top_k=1, retrieval_crops=(r_q, r_t))
+        assert 2 not in wrong["target_index"].tolist()
+        r_t = unit(4, 2, S, S, S, seed=8)
+        r_t[2] = r_q[0]
+        right = mine_correspondences(queries, targets, top_k=1, retrieval_crops=(r_q, r_t))
+        assert right["query_index"].tolist() == [0] and right["target_index"].tolist() == [2]
+
+    @pytest.mark.parametrize(("degrees", "found"), [(90, True), (270, False)])
+    def test_the_retrieval_crops_set_the_yaw_window(self, degrees: int, found: bool) -> None:
+        """The planted target matches at 90 degrees; retrieval crops rotated by ``degrees`` centre a 0-step window
+        there: at 90 the pair is mined at exactly the planted yaw, at 270 the patch is not searched where it lies."""
+        queries, targets, b = planted(90)
+        r_q = unit(3, 2, S, S, S, seed=7)
+        r_t = unit(4, 2, S, S, S, seed=8)
+        r_t[2] = rotate_yaw(r_q[:1], torch.tensor([math.radians(degrees)]))[0]
+        out = mine_correspondences(queries, targets, top_k=4, yaw_window=0, retrieval_crops=(r_q, r_t))
+        pairs = list(zip(out["query_index"].tolist(), out["target_index"].tolist(), out["yaw"].tolist()))
+        assert ((0, 2, b) in pairs) == found
+        assert all(p[:2] != (0, 2) for p in pairs) != found
+
+    def test_errors(self) -> None:
+        queries, targets, _ = planted(90)
+        with pytest.raises(ValueError, match="pair"):
+            mine_correspondences(queries, targets, retrieval_crops=queries)
+        with pytest.raises(ValueError, match="must hold the 3 query and 4 target objects"):
+            mine_correspondences(queries, targets, retrieval_crops=(queries, targets[:3]))
+        with pytest.raises(ValueError, match=r"retrieval_crops\[1\] must have shape"):
+            mine_correspondences(queries, targets, retrieval_crops=(queries, targets[0]))
+        with pytest.raises(ValueError, match="share"):
+            mine_correspondences(queries, targets, retrieval_crops=(queries, targets[:, :2]))
+
+
 class TestCalibrateContextCosine:
     def test_identical_features_give_one(self) -> None:
         crops = torch.zeros(4, 8, 8, 8, 8)

@@ -318,6 +318,7 @@ model:
     view_prediction_weight: {1.0 if vp else 0.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
+    retrieval_occupancy_floor: {0.2 if csls else "null"}
     prototype_weight: {1.0 if proto else 0.0}
     bank_ckpt: {bank if proto else "null"}
 {tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
@@ -358,7 +359,8 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     miner_csls_k = []
     real_miner = stage_mining.mine_correspondences
     monkeypatch.setattr(stage_mining, "mine_correspondences",
-                        lambda *a, **k: miner_csls_k.append((k.get("csls_k"), k.get("mutual_k")))
+                        lambda *a, **k: miner_csls_k.append((k.get("csls_k"), k.get("mutual_k"),
+                                                             k.get("retrieval_crops") is not None))
                         or real_miner(*a, **k))
     run = tmp_path / source
     name = "mining" if source.startswith("mined") else source
@@ -368,8 +370,8 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     model = cli.model
     assert isinstance(model, Mining)
     assert model.hparams.source == ("mined" if source.startswith("mined") else source)
-    if source.startswith("mined"):  # each refresh mined with the config's csls_k and mutual_k
-        assert miner_csls_k and set(miner_csls_k) == ({(2, 3)} if source == "mined_csls" else {(None, None)})
+    if source.startswith("mined"):  # each refresh mined with the config's csls_k, mutual_k and retrieval crops
+        assert miner_csls_k and set(miner_csls_k) == ({(2, 3, True)} if source == "mined_csls" else {(None, None, False)})
     assert model.trainer.global_step == 3
     logged = cli.trainer.logged_metrics
     assert "train/loss" in logged and torch.isfinite(logged["train/loss"])
@@ -529,6 +531,30 @@ class TestCslsSetting:
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, csls_k=bad)
             with pytest.raises(ValueError, match="mutual_k"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, mutual_k=bad)
+
+
+class TestRetrievalOccupancyFloor:
+    def test_bad_value(self) -> None:
+        for bad in (-0.1, True, "0.2", float("nan"), float("inf")):
+            with pytest.raises(ValueError, match="retrieval_occupancy_floor"):
+                Mining(grid_resolution=(32, 32, 16), queue_size=64, retrieval_occupancy_floor=bad)
+
+    def test_crops(self) -> None:
+        """None without a floor; with one, the quantizer's occupancy-weighted crops (hand-computed: the 3^3 dilated
+        occupancy times 1, plus the floor), queries first."""
+        g = torch.Generator().manual_seed(0)
+        feats = torch.randn(5, 3, 4, 4, 4, generator=g)
+        raw = torch.zeros(5, 4, 4, 4, 4)
+        raw[:, 0, 0, 0, 0] = 1.0  # one occupied corner voxel: its 2^3 corner block is near surface
+        pool = {"features": feats, "raw": raw}
+        assert Mining(grid_resolution=(32, 32, 16), queue_size=64).retrieval_crops(pool, 2) is None
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, retrieval_occupancy_floor=0.2)
+        q, t = m.retrieval_crops(pool, 2)
+        w = torch.full((4, 4, 4), 0.2)
+        w[:2, :2, :2] = 1.2
+        torch.testing.assert_close(t, feats * w)
+        torch.testing.assert_close(q, t[:2])
+        assert m.retrieval_crops(pool, 2, None) is None  # a probe's override
 
 
 class TestPrototypeAgreement:

@@ -715,6 +715,7 @@ def mine_correspondences(
     rank_by: str = "score",
     csls_k: int | None = None,
     mutual_k: int | None = None,
+    retrieval_crops: tuple[Tensor, Tensor] | None = None,
 ) -> dict[str, Tensor]:
     """Mine verified patch correspondences between query crops and retrieved target crops.
 
@@ -755,6 +756,11 @@ def mine_correspondences(
             cosine (:func:`retrieve_targets`, :func:`csls_scores`); None: the cosine.
         mutual_k: retrieve only mutual ``mutual_k``-nearest neighbours by the plain cosine
             (:func:`retrieve_targets`, :func:`mutual_neighbours`); None: every target.
+        retrieval_crops: optional ``([N, C', S', S', S'], [M, C', S', S', S'])`` crops of the same query and target
+            objects on which the object-level retrieval runs instead (its targets, similarity for ``rank_by
+            "retrieval"`` and yaw for ``yaw_window``), e.g. the feature crops weighted by their input occupancy
+            (:func:`threedq.quantization.prototype_crops`); patches are matched and verified on ``query_crops`` and
+            ``target_crops`` all the same. None: retrieve on those (the paper's).
 
     Returns:
         A dict of ``P <= keep`` rows, best first: ``query_index`` ``[P]`` long, ``target_index`` ``[P]`` long,
@@ -792,7 +798,18 @@ def mine_correspondences(
         _check_int("yaw_window", yaw_window, minimum=0)
     if rank_by not in ("score", "retrieval"):
         raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
-    idx, sim, ret_angle = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method,
+    r_query, r_target = query_crops, target_crops
+    if retrieval_crops is not None:
+        if not isinstance(retrieval_crops, (tuple, list)) or len(retrieval_crops) != 2:
+            raise ValueError("retrieval_crops must be a pair (query crops, target crops) or None")
+        r_query = _check_volume(retrieval_crops[0], "retrieval_crops[0]", 5)
+        r_target = _check_volume(retrieval_crops[1], "retrieval_crops[1]", 5)
+        if r_query.shape[0] != n or r_target.shape[0] != target_crops.shape[0]:
+            raise ValueError(
+                f"retrieval_crops must hold the {n} query and {target_crops.shape[0]} target objects, got "
+                f"{r_query.shape[0]} and {r_target.shape[0]}"
+            )
+    idx, sim, ret_angle = retrieve_targets(r_query, r_target, top_k, num_angles, exclude, method=method,
                                            csls_k=csls_k, mutual_k=mutual_k)
     if query_positions is None:
         starts = [torch.tensor(patch_grid(s, grid, patch), device=dev) for s in size]
