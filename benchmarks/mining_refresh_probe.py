@@ -113,7 +113,8 @@ def main() -> None:
         mine_kw = {k: v for k, v in kw.items() if k != "retrieval_occupancy_floor"}  # a stage setting, not a keyword
         r_crops = model.retrieval_crops(pool, n_q, kw.get("retrieval_occupancy_floor", "hparams"))
         mined = mine_correspondences(feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, exclude=exclude,
-                                     min_cosine=min_cos, retrieval_crops=r_crops, **{**model.miner_settings(), **mine_kw})
+                                     min_cosine=min_cos, retrieval_crops=r_crops,
+                                     **{**model.miner_settings(), **mine_kw})
         seconds = time.time() - t1
         qi, ti = mined["query_index"], mined["target_index"]
         m = model.pair_measures(pool, mined)  # the measures of the round's report

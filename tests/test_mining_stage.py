@@ -371,7 +371,8 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     assert isinstance(model, Mining)
     assert model.hparams.source == ("mined" if source.startswith("mined") else source)
     if source.startswith("mined"):  # each refresh mined with the config's csls_k, mutual_k and retrieval crops
-        assert miner_csls_k and set(miner_csls_k) == ({(2, 3, True)} if source == "mined_csls" else {(None, None, False)})
+        want = {(2, 3, True)} if source == "mined_csls" else {(None, None, False)}
+        assert miner_csls_k and set(miner_csls_k) == want
     assert model.trainer.global_step == 3
     logged = cli.trainer.logged_metrics
     assert "train/loss" in logged and torch.isfinite(logged["train/loss"])
