@@ -8,9 +8,9 @@ bit), and mines it once per
 setting given in ``--settings`` (keyword arguments of :func:`~threedq.contrastive.mine_correspondences`, on top of
 the stage's own; and the stage's ``retrieval_occupancy_floor``). For each it prints, with GT used for measuring only,
 the columns of the round's report: pairs on two GT objects, one category among those, the implied yaw error on
-asymmetric categories; and whether the pairs (query, target, yaw) are the same as the first setting's, and the
-seconds the mining took. ``--seed`` draws another pool of the same boxes. Run it from the folder the run was made in
-(the config's paths are relative to it):
+asymmetric categories and over every category of finite symmetry order; and whether the pairs (query, target, yaw)
+are the same as the first setting's, and the seconds the mining took. ``--seed`` draws another pool of the same
+boxes. Run it from the folder the run was made in (the config's paths are relative to it):
 
     python benchmarks/mining_refresh_probe.py runs/em/r01_mining/config.yaml \\
         --settings '{"plain": {"csls_k": null}, "csls": {"csls_k": 10}, "csls+mutual": {"csls_k": 10, "mutual_k": 10}}'
@@ -50,26 +50,6 @@ def stage_from_run_config(path: Path) -> tuple[object, object]:
         cli = ThreeDQCLI(args=["--config", str(clean), "--trainer.logger=false"], run=False)
     cli.datamodule.setup("fit")
     return cli.model, cli.datamodule
-
-
-def yaw_modulo_symmetry(model: object, pool: dict, mined: dict) -> dict:
-    """The implied yaw error of the same-category pairs of every category with a finite symmetry order (asymmetric
-    ones and those of order 2, 4, ..., each modulo its period; the report's column keeps the asymmetric ones only):
-    more pairs, for a steadier median. GT, measuring only."""
-    from threedq.stages.mining import implied_yaw_error_deg
-
-    sym = model._symmetry()
-    qi, ti = mined["query_index"], mined["target_index"]
-    lq, lt = pool["labels"][qi], pool["labels"][ti]
-    if sym is None or qi.numel() == 0:
-        return {}
-    s = sym[lq.clamp_min(0)]
-    use = (lq == lt) & (lq >= 0) & (s >= 1)
-    if not use.any():
-        return {"yaw_sym_pairs": 0}
-    err = implied_yaw_error_deg(mined["yaw"][use], model.hparams.num_angles, pool["yaw"][qi][use],
-                                pool["yaw"][ti][use], s[use])
-    return {"yaw_sym_median_deg": round(float(err.median()), 1), "yaw_sym_pairs": int(use.sum())}
 
 
 def main() -> None:
@@ -123,7 +103,10 @@ def main() -> None:
                "on_two_objects": round(m["labelled_pairs"] / qi.numel(), 3) if qi.numel() else None,
                "same_category": round(m["same_category"], 3) if m["labelled_pairs"] else None,
                "yaw_median_deg": round(m["yaw_median_err_deg"], 1) if "yaw_median_err_deg" in m else None,
-               "yaw_pairs": m.get("yaw_pairs", 0), **yaw_modulo_symmetry(model, pool, mined)}
+               "yaw_pairs": m.get("yaw_pairs", 0),
+               # every category of finite symmetry order, modulo its period (more pairs than the report's column)
+               "yaw_sym_median_deg": round(m["yaw_sym_median_err_deg"], 1) if "yaw_sym_median_err_deg" in m else None,
+               "yaw_sym_pairs": m.get("yaw_sym_pairs", 0)}
         key = torch.stack([qi, ti, mined["yaw"]], dim=1)
         first = key if first is None else first
         row.update(same_pairs_as_first=bool(key.shape == first.shape and torch.equal(key, first)),

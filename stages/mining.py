@@ -710,7 +710,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
     def pair_measures(self, pool: dict[str, Tensor], mined: dict[str, Tensor]) -> dict[str, Any]:
         """GT measures of mined pairs (measuring only): ``same_category`` among the ``labelled_pairs`` (both boxes
         match a GT object; detected boxes may not), and, where the data names symmetries, the median implied yaw error
-        ``yaw_median_err_deg`` over the ``yaw_pairs`` same-category pairs of asymmetric categories."""
+        ``yaw_median_err_deg`` over the ``yaw_pairs`` same-category pairs of asymmetric categories, and
+        ``yaw_sym_median_err_deg`` over the ``yaw_sym_pairs`` of every category of finite symmetry order (each modulo
+        its period: more pairs, a steadier median). A key is absent where it has no pair."""
         qi, ti = mined["query_index"], mined["target_index"]
         lq, lt = pool["labels"][qi], pool["labels"][ti]
         labelled = (lq >= 0) & (lt >= 0)
@@ -720,12 +722,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         sym = self._symmetry()
         if sym is not None and same.any():
             s = sym.to(qi.device)[lq.clamp_min(0)]
-            use = same & (s == 1)
-            if use.any():
-                err = implied_yaw_error_deg(mined["yaw"][use], self.hparams.num_angles, pool["yaw"][qi][use],
-                                            pool["yaw"][ti][use], s[use])
-                out["yaw_median_err_deg"] = float(err.median())
-                out["yaw_pairs"] = int(use.sum())
+            for key, use in (("yaw", same & (s == 1)), ("yaw_sym", same & (s >= 1))):
+                if use.any():
+                    err = implied_yaw_error_deg(mined["yaw"][use], self.hparams.num_angles, pool["yaw"][qi][use],
+                                                pool["yaw"][ti][use], s[use])
+                    out[f"{key}_median_err_deg"] = float(err.median())
+                    out[f"{key}_pairs"] = int(use.sum())
         return out
 
     def _diagnostics(self, pool: dict[str, Tensor], mined: dict[str, Tensor], min_cos: float, n_q: int,

@@ -733,3 +733,35 @@ class TestPrototypeWeightErrors:
             Mining(prototype_weight=1.0, bank_ckpt=str(path), **{**kw, "num_angles": 36})
         m = Mining(prototype_weight=1.0, bank_ckpt=str(path), **kw)
         assert m.verify_bank is not None and m.verify_bank.num_active == 2
+
+
+class TestPairMeasures:
+    """``Mining.pair_measures`` on a hand-computed case: categories of yaw symmetry order 1, 2 and 0 (any yaw),
+    36 yaw steps of 10 deg."""
+
+    def _case(self) -> tuple[dict, dict]:
+        deg = [50.0, 10.0, 105.0, 0.0, 30.0, 70.0, 0.0]
+        pool = {"labels": torch.tensor([0, 0, 1, 1, 2, 2, -1]), "yaw": torch.tensor([math.radians(d) for d in deg])}
+        # (query, target, mined yaw step): 50 - 10 = 40 = step 4 (0 deg off); 10 - 50 = -40 = step 32 (30: 20 off,
+        # 33: 10 off); order 2: 105 - 0 = 105 mod 180 against step 28 = 280 (5 off); order 0, another category and a
+        # box on no object have no yaw error
+        rows = [(0, 1, 4), (1, 0, 30), (1, 0, 33), (2, 3, 28), (4, 5, 9), (0, 2, 0), (6, 0, 0)]
+        q, t, y = (torch.tensor(c) for c in zip(*rows))
+        return pool, {"query_index": q, "target_index": t, "yaw": y}
+
+    def test_hand_computed(self) -> None:
+        pool, mined = self._case()
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, num_angles=36, symmetry_order=[1, 2, 0])
+        out = m.pair_measures(pool, mined)
+        assert out["labelled_pairs"] == 6 and out["same_category"] == pytest.approx(5 / 6)
+        # of 0, 20 and 10 deg (float32 yaws)
+        assert out["yaw_pairs"] == 3 and out["yaw_median_err_deg"] == pytest.approx(10.0, abs=1e-4)
+        assert out["yaw_sym_pairs"] == 4 and out["yaw_sym_median_err_deg"] == pytest.approx(5.0, abs=1e-4)
+
+    def test_without_symmetry_or_pairs(self) -> None:
+        pool, mined = self._case()
+        out = Mining(grid_resolution=(32, 32, 16), queue_size=64).pair_measures(pool, mined)
+        assert not any(k.startswith("yaw") for k in out)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, symmetry_order=[0, 0, 0])
+        out = m.pair_measures(pool, mined)  # every category symmetric under any yaw: no yaw error to measure
+        assert not any(k.startswith("yaw") for k in out) and out["labelled_pairs"] == 6

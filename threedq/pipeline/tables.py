@@ -402,19 +402,22 @@ def em_markdown(summary: dict[str, Any]) -> str:
             "measuring only)",
             "",
             "| round | refresh | pool boxes on GT objects | pairs | of them on two GT objects | same category (of those) | "
-            "yaw median err., same-category asymmetric pairs (deg) | context cosine threshold | seconds |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "yaw median err., same-category asymmetric pairs (deg) | the same over every finite symmetry, modulo its "
+            "period (deg) | context cosine threshold | seconds |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for i, m in enumerate(mining, 1):
             for f in m["refreshes"]:
                 yaw = f"{f['yaw_median_err_deg']:.1f} ({f['yaw_pairs']} pairs)" if "yaw_median_err_deg" in f else "-"
+                yaw_sym = (f"{f['yaw_sym_median_err_deg']:.1f} ({f['yaw_sym_pairs']} pairs)"
+                           if "yaw_sym_median_err_deg" in f else "-")  # absent from runs before 2026-12-02
                 pool = f"{f['pool_on_objects']:.2f}" if "pool_on_objects" in f else "-"
                 if "pool_vouched" in f:  # the object check: boxes the input views' geometry vouched for / looked at
                     pool += f" ({f['pool_vouched']} of {f['pool_boxes_seen']} vouched)"
                 pairs = f"{f['pairs']}" + (f" (of {f['prototype_candidates']} mined; the bank agreed)"
                                            if "prototype_candidates" in f else "")
                 lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {f.get('labelled_pairs', '-')} | "
-                             f"{f['same_category']:.3f} | {yaw} | {f['min_cosine']:.3f} | {f['seconds']} |")
+                             f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {f['min_cosine']:.3f} | {f['seconds']} |")
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
     table3 = summary.get("table3") or []
     if table3:
