@@ -36,3 +36,8 @@ done
 python benchmarks/em_seeds.py --arm "default miner=runs/em runs/ref_s1" --arm "restarts (em_restarts 4)=runs/r_s0 runs/r_s1" \
   --arm "occupancy-weighted retrieval=runs/em_occ_s0 runs/em_occ_s1" \
   --arm "occupancy-weighted retrieval + restarts=runs/em_oq_s0 runs/em_oq_s1" --png docs/img/em_seeds_occupancy_restarts.png
+# (ocq: seed 0 only this session; seed 1 was not run for time.)
+# 4. Table 2 on GT boxes (487 test objects; banks fitted with the settings of the oq seed-0 round-4 quantizer, em_restarts 4):
+threedq eval --ckpt runs/em_oq_s0/r04_quantizer/checkpoints/last.ckpt --out runs/fid_gt_oq --curve_k '[]' --baselines false \
+  --encoders '{"view prediction": "runs/em/00_viewpred/checkpoints/last.ckpt", "round 4, default miner, seed 0": "runs/em/r04_mining/checkpoints/last.ckpt", "round 4, occupancy-weighted retrieval + restarts, seed 0": "runs/em_oq_s0/r04_mining/checkpoints/last.ckpt", "round 4, occupancy-weighted retrieval + restarts, seed 1": "runs/em_oq_s1/r04_mining/checkpoints/last.ckpt", "round 4, + CSLS, seed 0": "runs/em_ocq_s0/r04_mining/checkpoints/last.ckpt"}'
+# -> table2_gt_boxes.md / .json (9.6 min, 17.3 GiB peak)
