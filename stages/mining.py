@@ -244,8 +244,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         retrieval_occupancy_floor: run the object-level retrieval (targets, the ranking's similarity, the yaw of
             ``yaw_window``) on the pool's crops weighted by their input occupancy with this floor, the similarity
             the quantizer's prototypes use (:func:`~threedq.quantization.prototypes.prototype_crops`; not in the
-            paper; default 0.2, the quantizer's floor); patches are matched and verified on the plain crops. None:
-            the plain crops, the paper's.
+            paper); patches are matched and verified on the plain crops. None: the plain crops, the paper's.
         refresh_every: steps between pool refreshes (the first is at step 0; lineage: 200).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
         view_positives: ``mined``: per object box of the step's query scenes, voxels whose input-view feature is
@@ -317,7 +316,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         rank_by: Literal["score", "retrieval"] = "retrieval",
         csls_k: int | None = None,
         mutual_k: int | None = None,
-        retrieval_occupancy_floor: float | None = 0.2,
+        retrieval_occupancy_floor: float | None = None,
         refresh_every: int = 100,
         pairs_per_step: int = 4,
         view_positives: int = 0,

@@ -541,16 +541,15 @@ class TestRetrievalOccupancyFloor:
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, retrieval_occupancy_floor=bad)
 
     def test_crops(self) -> None:
-        """None without a floor (the paper's plain crops); with one (the default 0.2), the quantizer's
-        occupancy-weighted crops (hand-computed: the 3^3 dilated occupancy times 1, plus the floor), queries first."""
+        """None without a floor; with one, the quantizer's occupancy-weighted crops (hand-computed: the 3^3 dilated
+        occupancy times 1, plus the floor), queries first."""
         g = torch.Generator().manual_seed(0)
         feats = torch.randn(5, 3, 4, 4, 4, generator=g)
         raw = torch.zeros(5, 4, 4, 4, 4)
         raw[:, 0, 0, 0, 0] = 1.0  # one occupied corner voxel: its 2^3 corner block is near surface
         pool = {"features": feats, "raw": raw}
-        assert Mining(grid_resolution=(32, 32, 16), queue_size=64,
-                      retrieval_occupancy_floor=None).retrieval_crops(pool, 2) is None
-        m = Mining(grid_resolution=(32, 32, 16), queue_size=64)
+        assert Mining(grid_resolution=(32, 32, 16), queue_size=64).retrieval_crops(pool, 2) is None
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, retrieval_occupancy_floor=0.2)
         q, t = m.retrieval_crops(pool, 2)
         w = torch.full((4, 4, 4), 0.2)
         w[:2, :2, :2] = 1.2
