@@ -41,8 +41,9 @@ METRICS = (
 
 
 def read_run(work_dir: str | Path) -> dict[int, dict[str, float | None]]:
-    """``{round: {metric: value}}`` of one ``threedq em`` work dir (its ``metrics.json``)."""
-    path = Path(work_dir) / "metrics.json"
+    """``{round: {metric: value}}`` of one ``threedq em`` work dir (its ``metrics.json``), or of a copy of a
+    ``metrics.json`` under another name (a ``.json`` file, as kept in ``benchmarks/results/``)."""
+    path = Path(work_dir) if str(work_dir).endswith(".json") else Path(work_dir) / "metrics.json"
     if not path.is_file():
         raise SystemExit(f"em_seeds: {path}: no metrics.json (a run writes it when its last round ends)")
     try:
@@ -57,8 +58,12 @@ def read_run(work_dir: str | Path) -> dict[int, dict[str, float | None]]:
         cells = {k: row.get(k) for k, _ in METRICS[:4] + METRICS[5:6]}
         res = results[r] if r < len(results) and results[r] else {}
         cells["fewshot_acc"] = res.get("quantization", {}).get("threedq", {}).get("fewshot_acc")
-        stage = Path(work_dir) / f"r{r:02d}_mining" / "stage.json"
-        cells["mining_seconds"] = json.loads(stage.read_text()).get("seconds") if r and stage.is_file() else None
+        stage = path.parent / f"r{r:02d}_mining" / "stage.json"
+        mining = list(m.get("mining_results") or [])
+        if r and stage.is_file():
+            cells["mining_seconds"] = json.loads(stage.read_text()).get("seconds")
+        else:  # the copy of metrics.json alone: the seconds it recorded for the round's mining stage
+            cells["mining_seconds"] = mining[r - 1].get("seconds") if 0 < r <= len(mining) else None
         out[r] = cells
     return out
 
@@ -119,7 +124,8 @@ def figure(arms: dict[str, list[str]], runs: dict[str, list[dict[int, dict[str, 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arm", action="append", required=True, metavar="NAME=DIR [DIR ...]",
-                    help="an arm: its name and its runs' work dirs, separated by spaces (repeatable)")
+                    help="an arm: its name and its runs' work dirs (or copies of their metrics.json, any name "
+                         "ending .json), separated by spaces (repeatable)")
     ap.add_argument("--png", type=Path, default=None, help="write the per-seed curves here")
     args = ap.parse_args(argv)
     arms: dict[str, list[str]] = {}

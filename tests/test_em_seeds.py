@@ -53,6 +53,22 @@ class TestEmSeeds:
         assert "| x | a | no | yes |" in md and "| x | b | yes | no |" in md
         assert "| 0.800 (0.000) | 105.0 (10.0) |" in md and "| 0.800 (0.000) | 105.0 (30.0) |" in md  # rounds 1, 2
 
+    def test_read_renamed_copy(self, tmp_path):
+        # a metrics.json kept under another name, alone: the same rows; the mining seconds from its mining_results
+        w = _run(tmp_path, "a", [0.30, 0.35, 0.28], [0.4, 0.41, 0.42], [0.3, None, 0.5], [100.0, 120.0])
+        m = json.loads((w / "metrics.json").read_text())
+        m["mining_results"] = [{"seconds": 101.0}, {"seconds": 121.0}]
+        copy = tmp_path / "kept" / "metrics_seed0.json"
+        copy.parent.mkdir()
+        copy.write_text(json.dumps(m))
+        run, ref = em_seeds.read_run(copy), em_seeds.read_run(w)
+        for r in (0, 1, 2):
+            assert {k: v for k, v in run[r].items() if k != "mining_seconds"} == \
+                {k: v for k, v in ref[r].items() if k != "mining_seconds"}
+        assert [run[r]["mining_seconds"] for r in (0, 1, 2)] == [None, 101.0, 121.0]
+        with pytest.raises(SystemExit, match="no metrics.json"):
+            em_seeds.read_run(tmp_path / "kept" / "absent.json")
+
     def test_missing_metrics(self, tmp_path):
         with pytest.raises(SystemExit, match="no metrics.json"):
             em_seeds.read_run(tmp_path)
