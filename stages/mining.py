@@ -41,7 +41,8 @@ scenes, so the fine-tuning cannot forget what view prediction taught (off, the m
 0.0415 -> 0.0938 in 100 steps, ``docs/studies/mining.md``). The decoder, the occupancy head and their settings come from
 ``encoder_ckpt`` (view prediction's, or an earlier round's mining checkpoint trained with the term, which carries
 them on) and train along; the data must give target views (``num_target_views >= 1``). Off by default: the
-measurement is in ``docs/studies/mining.md``.
+measurement is in ``docs/studies/mining.md``. ``correspondence_weight: 0`` with it is the control arm: the same
+stage, scenes and pairs, with view prediction alone training the encoder (docs/studies/mined-pairs.md).
 
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
 prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
@@ -253,6 +254,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_weight: ``mined``: weight of that multi-view term in the loss.
         view_prediction_weight: ``mined``: weight of the view-prediction loss kept as a regulariser (0: off; see the
             module docstring; needs an ``encoder_ckpt`` that carries the decoder, and ``num_target_views >= 1``).
+        correspondence_weight: ``mined``: weight of the mined pairs' InfoNCE (default 1, the paper's only term). 0
+            leaves the pairs mined and enqueued but out of the loss: an ablation, allowed only where another term
+            (``view_prediction_weight``, ``prototype_weight`` or ``view_positives``) trains the encoder.
         pool_batch_size: scenes encoded at once while cutting the pool.
         pool_min_observed_iou: ``mined``: a box enters the pool only when the geometry of its scene's input views
             vouches for it: its 3D IoU with one of those views' label-free pseudo-boxes
@@ -322,6 +326,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_positives: int = 0,
         view_weight: float = 1.0,
         view_prediction_weight: float = 0.0,
+        correspondence_weight: float = 1.0,
         pool_batch_size: int = 4,
         pool_min_observed_iou: float | None = 0.5,
         bank_ckpt: str | None = None,
@@ -353,9 +358,13 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                              f"{source!r} has its own view pairs (voxels_per_object)")
         if isinstance(view_weight, bool) or not isinstance(view_weight, (int, float)) or not view_weight > 0:
             raise ValueError(f"view_weight: expected a number > 0, got {view_weight!r}")
-        for name, w in (("view_prediction_weight", view_prediction_weight), ("prototype_weight", prototype_weight)):
+        for name, w in (("view_prediction_weight", view_prediction_weight), ("prototype_weight", prototype_weight),
+                        ("correspondence_weight", correspondence_weight)):
             if isinstance(w, bool) or not isinstance(w, (int, float)) or not w >= 0:
                 raise ValueError(f"{name}: expected a number >= 0, got {w!r}")
+        if not correspondence_weight and not (view_prediction_weight or prototype_weight or view_positives):
+            raise ValueError("correspondence_weight: 0 leaves the mined source no loss; keep it > 0 or set "
+                             "view_prediction_weight, prototype_weight or view_positives")
         if view_prediction_weight and source != "mined":
             raise ValueError(f"view_prediction_weight: the view-prediction regulariser is a term of the mined source, "
                              f"not of source {source!r}")
@@ -817,7 +826,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         k = pairs["keys"][pick].reshape(-1, q.shape[-1]).to(q.dtype)
         with torch.no_grad():
             self.moco._momentum_update_key_encoder()
-        loss = self.moco.loss(q, k)
+        if hp.correspondence_weight:
+            loss = self.moco.loss(q, k)
+            if hp.correspondence_weight != 1:
+                loss = loss * hp.correspondence_weight
+        else:  # the ablation: the pairs are mined and enqueued, the other terms train
+            loss = q.new_zeros(())
         out = {"positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
         if hp.prototype_weight:
             valid = pairs["prototype_valid"][pick].reshape(-1)
@@ -836,6 +850,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             loss = loss + hp.view_prediction_weight * vp["loss"]
             out.update(vp_loss=vp["loss"].detach(), vp_l1=vp["l1"].detach())
         self._enqueue(k)
+        if not loss.requires_grad:  # correspondence_weight 0 and no other term had anything this step
+            return {"loss": None}
         return {"loss": loss, **out}
 
     def _view_positives(self, feats: Tensor, second: tuple[Tensor, ...], batch: dict[str, Tensor], count: int

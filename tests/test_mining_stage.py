@@ -249,6 +249,10 @@ class TestViewPredictionRegulariser:
             Mining(view_prediction_weight=-1.0, **kw)
         with pytest.raises(ValueError, match="view_prediction_weight.*encoder_ckpt"):
             Mining(view_prediction_weight=1.0, **kw)
+        with pytest.raises(ValueError, match="correspondence_weight: expected a number >= 0"):
+            Mining(correspondence_weight=-0.5, **kw)
+        with pytest.raises(ValueError, match="correspondence_weight: 0 leaves the mined source no loss"):
+            Mining(correspondence_weight=0.0, **kw)
         ckpt, _ = self._vp_checkpoint(tmp_path)
         with pytest.raises(ValueError, match="view_prediction_weight.*source 'vc'"):
             Mining(source="vc", encoder_ckpt=str(ckpt), view_prediction_weight=1.0, queue_size=64)
@@ -289,7 +293,7 @@ def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> 
     views = source == "mined_views"
     proto = source == "mined_proto"
     bank = _bank_file(tmp_path / "bank.ckpt", torch.randn(3, 32, 8, 8, 8), 8) if proto else None
-    vp = source == "mined_vp"
+    vp = source in ("mined_vp", "mined_vp_only")
     csls = source == "mined_csls"
     cfg = tmp_path / f"tiny_{source}.yaml"
     cfg.write_text(
@@ -316,6 +320,7 @@ model:
     retrieval_k: 1
     view_positives: {4 if views else 0}
     view_prediction_weight: {1.0 if vp else 0.0}
+    correspondence_weight: {0.0 if source == "mined_vp_only" else 1.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
     retrieval_occupancy_floor: {0.2 if csls else "null"}
@@ -335,8 +340,8 @@ trainer:
     return cfg
 
 
-@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_csls",
-                                    "mined_proto"])
+@pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_vp_only",
+                                    "mined_csls", "mined_proto"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -347,7 +352,7 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     enc = tmp_path / "enc.pt"
     start = EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict()
     torch.save(start, enc)
-    if source == "mined_vp":  # the regulariser's decoder comes from a view-prediction checkpoint
+    if source in ("mined_vp", "mined_vp_only"):  # the regulariser's decoder comes from a view-prediction checkpoint
         from threedq.stages.viewpred import ViewPrediction
 
         vp = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0)
@@ -394,7 +399,12 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert float(logged["train/view_positives"]) % 4 == 0 and float(logged["train/view_positives"]) >= 4
         assert -1.0 <= float(logged["train/view_pos_cos"]) <= 1.0
         assert int(state["moco.queue_ptr"]) > 3 * 2 * 8
-    if source == "mined_vp":
+    if source == "mined_vp_only":  # correspondence_weight 0: the step's loss is the view-prediction term alone
+        assert torch.allclose(logged["train/loss"], logged["train/vp_loss"])
+        assert int(state["moco.queue_ptr"]) > 0  # the pairs were still mined and their keys enqueued
+    if source == "mined_vp":  # with the pairs' InfoNCE (> 0) on top of the view-prediction term
+        assert float(logged["train/loss"]) > float(logged["train/vp_loss"]) + 1e-3
+    if source in ("mined_vp", "mined_vp_only"):
         assert float(logged["train/vp_l1"]) > 0 and torch.isfinite(logged["train/vp_loss"])
         # the decoder trained along, and the checkpoint carries it and its settings on to the next round's mining
         before = vp.decoder.state_dict()
