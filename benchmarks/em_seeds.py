@@ -52,6 +52,7 @@ def read_run(work_dir: str | Path) -> dict[int, dict[str, float | None]]:
     except (json.JSONDecodeError, KeyError) as e:
         raise SystemExit(f"em_seeds: {path}: not a threedq em metrics.json ({type(e).__name__}: {e})") from e
     results = [m.get("round0_result")] + list(m.get("round_results") or [])
+    mining = list(m.get("mining_results") or [])
     out: dict[int, dict[str, float | None]] = {}
     for row in rows:
         r = int(row["round"])
@@ -59,7 +60,6 @@ def read_run(work_dir: str | Path) -> dict[int, dict[str, float | None]]:
         res = results[r] if r < len(results) and results[r] else {}
         cells["fewshot_acc"] = res.get("quantization", {}).get("threedq", {}).get("fewshot_acc")
         stage = path.parent / f"r{r:02d}_mining" / "stage.json"
-        mining = list(m.get("mining_results") or [])
         if r and stage.is_file():
             cells["mining_seconds"] = json.loads(stage.read_text()).get("seconds")
         else:  # the copy of metrics.json alone: the seconds it recorded for the round's mining stage
