@@ -14,9 +14,11 @@ A full disk and a folder without write permission are simulated in the subproces
 ``sitecustomize`` on ``PYTHONPATH``, see its docstring); without root, the permission case uses a real
 read-only folder instead.
 
-The subprocesses of the selected cases run two at a time (each spends ~3 s importing threedq); a case's test
-then checks its own outcome. A few cases whose code path another case already takes through a subprocess run in
-this process through ``threedq.cli.main`` instead (:data:`IN_PROCESS`), with the same checks.
+The commands of the selected cases run two at a time, each a process of its own forked from one that has imported
+threedq once (``tests/forkserver.py``: a new ``python -m threedq`` spends 5-9 s importing torch and Lightning before it
+reads its arguments); a case's test then checks its own outcome. A few cases (:data:`REAL_TOO`) also run as a new
+``python -m threedq`` subprocess, and the two outcomes must agree. A few cases whose code path another case already
+takes run in this process through ``threedq.cli.main`` instead (:data:`IN_PROCESS`), with the same checks.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-
+from forkserver import ForkServer
 
 pytestmark = pytest.mark.slow
 
@@ -537,40 +539,70 @@ class Outcome:
     before: dict[str, tuple[int, int, str]]
     after: dict[str, tuple[int, int, str]]
     seconds: float
+    folder: Path | None = None  # the case's folder (None: a case run in this process)
 
 
-def _execute(folder: Path, run: Run) -> tuple[int, str, str, float]:
-    env = {**os.environ, "PYTHONWARNINGS": "ignore", "TQDM_DISABLE": "1"}
+#: The environment of every command (and of the fork server).
+ENV = {**os.environ, "PYTHONWARNINGS": "ignore", "TQDM_DISABLE": "1"}
+#: Cases that also run as a new ``python -m threedq`` process: the forked command must give the same outcome.
+#: A data command under the fault shim, and a parse error of a Lightning subcommand.
+REAL_TOO = ("disk_full_index", "config_unknown_key")
+REAL_SUFFIX = "@subprocess"
+
+
+def _execute(folder: Path, run: Run, server: ForkServer | None) -> tuple[int, str, str, float]:
+    """Run the case's command in ``folder``: forked by ``server``, or (None) as a new ``python -m threedq``."""
+    env = dict(ENV)
     if run.fault:
         env["PYTHONPATH"] = os.pathsep.join([str(SHIM), *filter(None, [env.get("PYTHONPATH")])])
         env["THREEDQ_FAULT"] = run.fault
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "threedq", *run.argv], cwd=folder, env=env, capture_output=True,
-                       text=True, timeout=TIMEOUT_S)
+    if server is None:
+        p = subprocess.run([sys.executable, "-m", "threedq", *run.argv], cwd=folder, env=env, capture_output=True,
+                           text=True, timeout=TIMEOUT_S)
+    else:
+        p = server.run(run.argv, cwd=folder, env=env, timeout=TIMEOUT_S)
     return p.returncode, p.stdout, p.stderr, time.perf_counter() - t0
 
 
 @pytest.fixture(scope="module")
-def outcomes(request: pytest.FixtureRequest, shared: Shared, tmp_path_factory: pytest.TempPathFactory):
+def server():
+    """The fork server of the cases' commands (its imports run while the shared inputs and the cases are built)."""
+    with ForkServer(ENV) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def outcomes(request: pytest.FixtureRequest, server: ForkServer, shared: Shared,
+             tmp_path_factory: pytest.TempPathFactory):
     """Build the selected cases' inputs, run their commands two at a time; name -> Outcome, plus the shared
     inputs' snapshots before and after all runs under the key ``None``."""
-    selected = [item.callspec.params["case"] for item in request.session.items
-                if getattr(item, "originalname", None) == "test_bad_input" and item.module is request.module]
+    selected: dict[str, Case] = {}
+    for item in request.session.items:
+        if item.module is not request.module or not hasattr(item, "callspec"):
+            continue
+        if getattr(item, "originalname", None) == "test_bad_input":
+            selected[item.callspec.params["case"].name] = item.callspec.params["case"]
+        elif getattr(item, "originalname", None) == "test_a_forked_command_is_the_real_process":
+            case = BY_NAME[item.callspec.params["name"]]
+            selected[case.name] = case
+            selected[case.name + REAL_SUFFIX] = case
     base = tmp_path_factory.mktemp("bad_inputs")
     built: dict[str, tuple[Path, Run, dict]] = {}
     out: dict = {}
-    for case in selected:
-        folder = base / case.name
+    for name, case in selected.items():
+        folder = base / name
         folder.mkdir()
         try:
             run = case.build(Ctx(folder, shared))
         except Exception as e:  # noqa: BLE001 - reported by the case's own test
-            out[case.name] = e
+            out[name] = e
             continue
-        built[case.name] = (folder, run, snapshot(folder))
+        built[name] = (folder, run, snapshot(folder))
     shared_before = snapshot(shared.root)
     with concurrent.futures.ThreadPoolExecutor(PARALLEL) as pool:
-        futures = {name: pool.submit(_execute, folder, run) for name, (folder, run, _) in built.items()}
+        futures = {name: pool.submit(_execute, folder, run, None if name.endswith(REAL_SUFFIX) else server)
+                   for name, (folder, run, _) in built.items()}
         results = {name: f.result() for name, f in futures.items()}
     out[None] = (shared_before, snapshot(shared.root))
     for name, (folder, run, before) in built.items():
@@ -579,7 +611,7 @@ def outcomes(request: pytest.FixtureRequest, shared: Shared, tmp_path_factory: p
             if p.is_dir():
                 p.chmod(0o755)
         after = {k: v for k, v in snapshot(folder).items() if k in before}
-        out[name] = Outcome(run, rc, so, se, before, after, seconds)
+        out[name] = Outcome(run, rc, so, se, before, after, seconds, folder)
     for name, o in out.items():
         if isinstance(o, Outcome):
             _log(name, o)
@@ -616,6 +648,7 @@ IN_PROCESS = {
     "scene_inf_depth", "scene_negative_depth", "scene_inf_pose", "scene_rgb_float", "scene_box_outside_bounds",
     "em_unknown_boxes", "config_old_class_path", "import_scannet", "import_open3d",
 }
+BY_NAME = {c.name: c for c in CASES}
 SUBPROCESS_CASES = [c for c in CASES if c.name not in IN_PROCESS]
 IN_PROCESS_CASES = [c for c in CASES if c.name in IN_PROCESS]
 
@@ -628,6 +661,29 @@ def test_bad_input(case: Case, outcomes) -> None:
     check(o)
     before, after = outcomes[None]
     assert before == after, "a shared input changed"
+
+
+@pytest.mark.parametrize("name", REAL_TOO)
+def test_a_forked_command_is_the_real_process(name: str, outcomes) -> None:
+    """The same case through the fork server and as a new ``python -m threedq``: one exit status, one output."""
+    forked, real = outcomes[name], outcomes[name + REAL_SUFFIX]
+    for o in (forked, real):
+        if isinstance(o, Exception):
+            raise o
+
+    def text(o: Outcome, stream: str) -> str:
+        return getattr(o, stream).replace(str(o.folder), "<case>")
+
+    assert forked.returncode == real.returncode
+    assert text(forked, "stderr") == text(real, "stderr")
+    assert text(forked, "stdout") == text(real, "stdout")
+    assert error_lines(real), "the real process printed no error line"
+
+
+def test_the_fork_server_refuses_a_start_up_variable_it_did_not_start_with(server: ForkServer) -> None:
+    with pytest.raises(ValueError, match="OMP_NUM_THREADS"):
+        server.run(["--help"], env={**ENV, "OMP_NUM_THREADS": str(int(ENV.get("OMP_NUM_THREADS", "1")) + 1)})
+    assert server.run(["--help"], env={**ENV, "THREEDQ_FAULT_MATCH": "x"}).returncode == 0  # not read at start-up
 
 
 @pytest.mark.parametrize("case", IN_PROCESS_CASES, ids=[c.name for c in IN_PROCESS_CASES])
@@ -708,12 +764,12 @@ def test_small_test_split_is_scored_at_a_lower_k_and_says_so(shared: Shared, tmp
 def test_extra_configs_takes_one_path_like_config() -> None:
     from threedq.cli import build_parser
 
-    p = build_parser()
-    assert p.parse_args(["em", "--extra_configs", "my.yaml"]).em.extra_configs == "my.yaml"
-    assert p.parse_args(["eval", "--ckpt", "q.ckpt", "--extra_configs", "my.yaml"]).eval.extra_configs == "my.yaml"
-    assert p.parse_args(["em", "--extra_configs", "[a.yaml, b.yaml]"]).em.extra_configs == ["a.yaml", "b.yaml"]
+    em, ev = build_parser("em"), build_parser("eval")
+    assert em.parse_args(["em", "--extra_configs", "my.yaml"]).em.extra_configs == "my.yaml"
+    assert ev.parse_args(["eval", "--ckpt", "q.ckpt", "--extra_configs", "my.yaml"]).eval.extra_configs == "my.yaml"
+    assert em.parse_args(["em", "--extra_configs", "[a.yaml, b.yaml]"]).em.extra_configs == ["a.yaml", "b.yaml"]
     two = ["em", "--extra_configs", "a.yaml", "--extra_configs+", "b.yaml"]
-    assert p.parse_args(two).em.extra_configs == ["a.yaml", "b.yaml"]
+    assert em.parse_args(two).em.extra_configs == ["a.yaml", "b.yaml"]
 
 
 def test_a_failed_atomic_write_names_the_file_and_keeps_the_old_one(tmp_path: Path,
@@ -764,9 +820,9 @@ def test_data_config_is_composed_after_the_stage_config(tmp_path: Path, monkeypa
     from threedq.cli import build_parser
     from threedq.pipeline import report
 
-    p = build_parser()
-    assert p.parse_args(["em", "--data_config", "d.yaml"]).em.data_config == "d.yaml"
-    assert p.parse_args(["eval", "--ckpt", "q.ckpt", "--data_config", "d.yaml"]).eval.data_config == "d.yaml"
+    assert build_parser("em").parse_args(["em", "--data_config", "d.yaml"]).em.data_config == "d.yaml"
+    assert build_parser("eval").parse_args(["eval", "--ckpt", "q.ckpt", "--data_config", "d.yaml"]).eval.data_config \
+        == "d.yaml"
     seen: list[list[Path]] = []
 
     class Stop(Exception):

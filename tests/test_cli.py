@@ -14,8 +14,12 @@ from threedq.cli import main
 from threedq.pipeline.lightning_cli import packaged_configs_dir, resolve_config
 
 
-def test_help_lists_subcommands() -> None:
-    out = subprocess.run([sys.executable, "-m", "threedq", "--help"], capture_output=True, text=True, check=True).stdout
+def test_help_lists_subcommands(capsys: pytest.CaptureFixture[str]) -> None:
+    """In this process (``tests/test_packaging.py`` runs the installed command's ``--help``)."""
+    with pytest.raises(SystemExit) as done:
+        main(["--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
     for sub in ("fit", "validate", "test", "predict", "data", "em"):
         assert sub in out
     for sub in ("eval", "parse", "label"):
@@ -49,6 +53,13 @@ def test_a_subcommand_imports_its_own_modules_only() -> None:
     assert out.strip() == "[]"
     code = "import sys; from threedq.cli import build_parser; build_parser('em'); print('lightning' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "True"
+    # the top-level help lists every subcommand without importing one
+    code = ("import sys, contextlib, io; from threedq.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit): main(['--help'])\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('lightning', 'torch', 'threedq')\n"
+            "             and not m.startswith(('threedq.cli', 'threedq.errors')) and m != 'threedq'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
 
 
 class TestResolveConfig:

@@ -226,6 +226,10 @@ def _wait_for_line(proc: subprocess.Popen, text: str, stream: str = "stderr") ->
 
 _PAUSE = """
 import sys
+def _gate(pause):
+    if not pause:  # the second process: its imports overlap the first's; it goes on once told to
+        print("ready", file=sys.stderr, flush=True)
+        sys.stdin.readline()
 def _pause_once(fn, said=[]):
     def run(*a, **k):
         if not said:
@@ -248,6 +252,7 @@ if {pause}:
     generate._run_task = _pause_once(generate._run_task)
 dm = ClevrVeggieDataModule(data_dir={data!r}, num_scenes=6, image_size=TINY["image_size"], num_views=TINY["num_views"],
                            max_objects=TINY["max_objects"], generator_workers=1)
+_gate({pause})
 dm.prepare_data()
 index = load_index({data!r})
 digest = hashlib.sha256()
@@ -259,13 +264,16 @@ print("digest", digest.hexdigest(), len(index.scenes), flush=True)
 
 
 def _meet(first_code: str, second_code: str) -> tuple[subprocess.Popen, str, str, subprocess.Popen, str, str]:
-    """Start the first, wait until it is paused holding the lock, start the second, wait until it says it waits for
-    the first, let the first go on; both run to their end."""
+    """Start both (their imports overlap); wait until the first is paused holding the lock, let the second go on,
+    wait until it says it waits for the first, let the first go on; both run to their end."""
     first = _start(first_code)
     second = None
     try:
-        _wait_for_line(first, "paused")
         second = _start(second_code)
+        _wait_for_line(first, "paused")
+        _wait_for_line(second, "ready")
+        second.stdin.write("\n")
+        second.stdin.flush()
         waited = _wait_for_line(second, "waiting for")
         assert f"pid {first.pid}" in waited, waited
         first.stdin.write("\n")
@@ -306,6 +314,7 @@ def counted(*a, **k):
 pc.propose_boxes = counted
 if {pause}:
     pc._complete = _pause_once(pc._complete)
+_gate({pause})
 out = propose_dataset({data!r}, "train", {cache!r}, progress=False)
 print("computed", len(calls), "of", len(out), flush=True)
 """

@@ -1,7 +1,9 @@
 """``kill -9`` a running ``threedq em`` at several points, resume it, and get the uninterrupted run's numbers.
 
-The run is a real subprocess (``python -m threedq em --rounds 2`` on the tiny fixture). It is killed with
-``SIGKILL`` by ``tests/fault_shim`` when an atomic write reaches a chosen file, before or after the rename:
+The uninterrupted run is a new ``python -m threedq em --rounds 2`` process on the tiny fixture; the killed and resumed
+runs are processes forked from one that imported threedq once (``tests/forkserver.py``: each new interpreter spends
+5-9 s on imports), each a process of its own. A run is killed with ``SIGKILL`` by ``tests/fault_shim`` when an atomic
+write reaches a chosen file, before or after the rename:
 
 1. during view prediction (its first training picture half-written: a torn temporary file is left behind);
 2. between stages (right after the detector's ``stage.json``);
@@ -38,6 +40,7 @@ from typing import Any
 import pytest
 import torch
 from conftest import tiny_data_yaml
+from forkserver import ForkServer
 
 from threedq.locks import FOLDER_LOCK_NAME
 
@@ -75,8 +78,12 @@ def _em_command(work: Path, cfg: Path, *extra: str, kill_at: str | None = None,
     return cmd, env
 
 
-def _em(work: Path, cfg: Path, *extra: str, **faults: Any) -> subprocess.CompletedProcess:
+def _em(work: Path, cfg: Path, *extra: str, server: ForkServer | None = None,
+        **faults: Any) -> subprocess.CompletedProcess:
+    """One ``threedq em`` run: forked by ``server``, or (None) a new ``python -m threedq`` process."""
     cmd, env = _em_command(work, cfg, *extra, **faults)
+    if server is not None:
+        return server.run(cmd[3:], env=env, timeout=600)
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -119,19 +126,27 @@ def workspace(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> t
 
 
 @pytest.fixture(scope="module")
-def background(request: pytest.FixtureRequest, workspace: tuple[Path, Path]):
+def server(workspace: tuple[Path, Path]):
+    """The fork server of the killed and resumed runs, in the environment of :func:`_em_command`."""
+    with ForkServer(_em_command(*workspace)[1]) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def background(request: pytest.FixtureRequest, workspace: tuple[Path, Path], server: ForkServer):
     """The full-disk chain (:data:`FULL_DISK`), started in a thread before the uninterrupted run when a test of
     :class:`TestFullDisk` is selected: its runs are separate processes in their own work folder, each mostly on one
-    core, so on two cores it overlaps the uninterrupted run and the kill chain (the two chains' runs take ~100 s
-    each). Yields ``{"full_disk": future}`` (empty when not selected)."""
+    core, so on two cores it overlaps the uninterrupted run and the kill chain (running the kill chain in a third
+    thread made the module slower: 132 s against 106 s). Yields ``{"full_disk": future}`` (empty when not
+    selected)."""
     wanted = any(item.module is request.module and item.cls is TestFullDisk for item in request.session.items)
     with concurrent.futures.ThreadPoolExecutor(1) as pool:
-        futures = {"full_disk": pool.submit(_full_disk_chain, *workspace)} if wanted else {}
+        futures = {"full_disk": pool.submit(_full_disk_chain, *workspace, server)} if wanted else {}
         yield futures  # leaving the pool waits for the chain, whatever happened meanwhile
 
 
 @pytest.fixture(scope="module")
-def reference(workspace: tuple[Path, Path], background: dict) -> dict:
+def reference(workspace: tuple[Path, Path], background: dict, server: ForkServer) -> dict:
     """The uninterrupted run; while it runs (paused once the detector has finished), a second ``threedq em`` on the
     same work folder is started and must be refused."""
     tmp, cfg = workspace
@@ -147,7 +162,7 @@ def reference(workspace: tuple[Path, Path], background: dict) -> dict:
                 break
         else:
             raise AssertionError(f"the first run never paused (exit {first.wait()}):\n{''.join(seen)[-3000:]}")
-        second = _em(ref, cfg)
+        second = _em(ref, cfg, server=server)
         first.stdin.write("\n")
         first.stdin.flush()
         out, err = first.communicate(timeout=600)
@@ -158,17 +173,20 @@ def reference(workspace: tuple[Path, Path], background: dict) -> dict:
     return {"ref": ref, "cfg": cfg, "tmp": tmp, "first_pid": first.pid, "second": second}
 
 
-@pytest.fixture(scope="module")
-def runs(reference: dict) -> dict:
-    ref, cfg, tmp = reference["ref"], reference["cfg"], reference["tmp"]
+def _kill_chain(tmp: Path, cfg: Path, server: ForkServer) -> dict:
     killed = tmp / "killed"
     log = []
     for what, at in KILLS:
-        res = _em(killed, cfg, "--resume", "true", kill_at=at)
+        res = _em(killed, cfg, "--resume", "true", kill_at=at, server=server)
         log.append((what, res))
-    final = _em(killed, cfg, "--resume", "true")
+    final = _em(killed, cfg, "--resume", "true", server=server)
     assert final.returncode == 0, final.stderr[-3000:]
-    return {"ref": ref, "killed": killed, "log": log, "final": final}
+    return {"killed": killed, "log": log, "final": final}
+
+
+@pytest.fixture(scope="module")
+def runs(reference: dict, workspace: tuple[Path, Path], server: ForkServer) -> dict:
+    return {"ref": reference["ref"], **_kill_chain(*workspace, server)}
 
 
 class TestKillAndResume:
@@ -244,21 +262,23 @@ FULL_DISK = [
 ]
 
 
-def _full_disk_chain(tmp: Path, cfg: Path) -> dict:
+def _full_disk_chain(tmp: Path, cfg: Path, server: ForkServer) -> dict:
     work = tmp / "full_disk"
     log = []
     for errno_name, what, glob in FULL_DISK:
-        log.append((errno_name, what, glob, _em(work, cfg, "--resume", "true", fault=(errno_name, str(work), glob))))
-    final = _em(work, cfg, "--resume", "true")
+        log.append((errno_name, what, glob, _em(work, cfg, "--resume", "true", fault=(errno_name, str(work), glob),
+                                               server=server)))
+    final = _em(work, cfg, "--resume", "true", server=server)
     assert final.returncode == 0, final.stderr[-3000:]
     before = (work / "metrics.json").read_bytes()
-    rewrite = _em(work, cfg, "--resume", "true", fault=("ENOSPC", str(work), "*/full_disk/metrics.json"))
+    rewrite = _em(work, cfg, "--resume", "true", fault=("ENOSPC", str(work), "*/full_disk/metrics.json"),
+                  server=server)
     return {"work": work, "log": log, "before": before, "rewrite": rewrite}
 
 
 @pytest.fixture(scope="module")
-def full_disk(reference: dict, background: dict, workspace: tuple[Path, Path]) -> dict:
-    chain = background["full_disk"].result() if "full_disk" in background else _full_disk_chain(*workspace)
+def full_disk(reference: dict, background: dict, workspace: tuple[Path, Path], server: ForkServer) -> dict:
+    chain = background["full_disk"].result() if "full_disk" in background else _full_disk_chain(*workspace, server)
     return {"ref": reference["ref"], **chain}
 
 
