@@ -22,6 +22,21 @@ def tiny_data_yaml(data_dir: Path, **extra: object) -> str:
     return "\n".join(lines)
 
 
+def tiny_quantizer_config(folder: Path) -> Path:
+    """``stages/quantizer.yaml`` with a coarser rotation search (12 yaws, not 36) and 3 EM iterations (not 10), written
+    to ``folder``: what ``threedq em``'s tests check is the loop (stages, resume, files), and on the tiny dataset the
+    packaged search was a third of a loop's time. The packaged config itself runs in ``tests/test_configs.py``."""
+    import yaml
+
+    from threedq.pipeline.lightning_cli import resolve_config
+
+    config = yaml.safe_load(resolve_config("stages/quantizer.yaml").read_text())
+    config["model"]["init_args"].update(num_angles=12, em_iterations=3)
+    path = folder / "tiny_quantizer.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
 def load_benchmark(name: str) -> ModuleType:
     """``benchmarks/<name>.py`` imported as a module (the scripts are not a package)."""
     path = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"

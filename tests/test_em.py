@@ -9,11 +9,12 @@ import json
 import shutil
 import weakref
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
 import yaml
-from conftest import tiny_data_yaml
+from conftest import tiny_data_yaml, tiny_quantizer_config
 from threedq.pipeline.lightning_cli import packaged_configs_dir
 from lightning.pytorch import LightningModule
 
@@ -40,9 +41,19 @@ trainer:
     return str(cfg)
 
 
+def run_em(**kwargs: Any) -> dict:
+    """:func:`threedq.pipeline.em.run_em` with the tests' quantizer config (:func:`conftest.tiny_quantizer_config`,
+    written beside the work folder) unless the test gives one."""
+    from threedq.pipeline import em
+
+    if "quantizer_config" not in kwargs:
+        q = Path(kwargs["work_dir"]).parent / "tiny_quantizer.yaml"
+        kwargs["quantizer_config"] = str(q if q.is_file() else tiny_quantizer_config(q.parent))
+    return em.run_em(**kwargs)
+
+
 class TestEm:
     def test_runs_then_skips_finished_stages(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
-        from threedq.pipeline.em import run_em
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
@@ -143,7 +154,6 @@ class TestEm:
         from threedq.stages.base import encoder_state_from_checkpoint
 
         from threedq.pipeline import em
-        from threedq.pipeline.em import run_em
 
         monkeypatch.setattr(em, "_bf16_is_native", lambda cpu=None: False)
 
@@ -184,7 +194,6 @@ class TestEm:
 
         from threedq.boxes import boxes_to_aabb
         from threedq.data.box_files import load_boxes_file, save_boxes_file
-        from threedq.pipeline.em import run_em
         from threedq.scene import load_index, load_scene
 
         cfg = _em_config(tmp_path, tiny_dataset)
@@ -215,7 +224,6 @@ class TestEm:
             run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], boxes="detections", detection=False)
 
     def test_resume_an_interrupted_stage(self, tmp_path: Path, tiny_dataset: Path, capsys) -> None:
-        from threedq.pipeline.em import run_em
 
         cfg = _em_config(tmp_path, tiny_dataset)
         work = tmp_path / "em"
@@ -241,7 +249,6 @@ def test_em_given_viewpred_checkpoint(tmp_path: Path, tiny_dataset: Path, capsys
     from threedq.stages.base import encoder_state_from_checkpoint
 
     from threedq.errors import InputError
-    from threedq.pipeline.em import run_em
 
     cfg = _em_config(tmp_path, tiny_dataset)
     first = tmp_path / "first"
@@ -269,7 +276,6 @@ def test_em_given_viewpred_checkpoint(tmp_path: Path, tiny_dataset: Path, capsys
 def test_em_data_config(tmp_path: Path, tiny_dataset: Path) -> None:
     """``--data_config``: a user's dataset is one file (a DataModule class and its folder), composed into every stage;
     the stage configs keep how they load it, and the report names the file."""
-    from threedq.pipeline.em import run_em
 
     mine = tmp_path / "my_data.yaml"
     mine.write_text(yaml.safe_dump({"data": {"class_path": "threedq.datamodules.scene_folder.SceneFolderDataModule",

@@ -39,7 +39,7 @@ from typing import Any
 
 import pytest
 import torch
-from conftest import tiny_data_yaml
+from conftest import tiny_data_yaml, tiny_quantizer_config
 from forkserver import ForkServer
 
 from threedq.locks import FOLDER_LOCK_NAME
@@ -74,7 +74,8 @@ def _em_command(work: Path, cfg: Path, *extra: str, kill_at: str | None = None,
     if pause_at is not None:
         env["THREEDQ_PAUSE_AT"] = pause_at
     cmd = [sys.executable, "-m", "threedq", "em", "--rounds", "2", "--work_dir", str(work), "--extra_configs",
-           str(cfg), "--mining_config", "none", "--boxes", "gt", *extra]
+           str(cfg), "--quantizer_config", str(cfg.parent / "tiny_quantizer.yaml"), "--mining_config", "none",
+           "--boxes", "gt", *extra]
     return cmd, env
 
 
@@ -122,6 +123,7 @@ KILLS = [
 def workspace(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """(folder of this module's runs, their tiny config)."""
     tmp = tmp_path_factory.mktemp("resume")
+    tiny_quantizer_config(tmp)  # beside the config: _em_command passes it
     return tmp, _config(tmp, tiny_dataset)
 
 
