@@ -32,6 +32,7 @@ import tempfile
 import threading
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 
 SHIM = Path(__file__).resolve().parent / "fault_shim"
@@ -42,6 +43,16 @@ _STARTUP_PREFIXES = ("PYTHON", "OMP_", "MKL_", "KMP_", "TQDM_", "TORCH")
 def startup_variables(env: Mapping[str, str]) -> dict[str, str]:
     """The variables of ``env`` that the interpreter or an import may read once, at start-up (PYTHONPATH aside)."""
     return {k: v for k, v in env.items() if k.startswith(_STARTUP_PREFIXES) and k != "PYTHONPATH"}
+
+
+def _take(path: Path) -> str:
+    """A child's captured stream, removed once read ('' when the child was killed before it opened the file)."""
+    try:
+        text = path.read_text(errors="replace")
+    except FileNotFoundError:
+        return ""
+    path.unlink()
+    return text
 
 
 class ForkServer:
@@ -115,15 +126,11 @@ class ForkServer:
         args = [sys.executable, "-m", "threedq", *map(str, argv)]
         try:
             returncode = fut.result(timeout)
-        except TimeoutError:
+        except FutureTimeout:  # the builtin TimeoutError from Python 3.11 on, its own class in 3.10
             self._send({"kill": cid})
             fut.result()
-            raise subprocess.TimeoutExpired(args, timeout or 0.0,
-                                            out.read_text(errors="replace"), err.read_text(errors="replace"))
-        stdout, stderr = out.read_text(errors="replace"), err.read_text(errors="replace")
-        out.unlink()
-        err.unlink()
-        return subprocess.CompletedProcess(args, returncode, stdout, stderr)
+            raise subprocess.TimeoutExpired(args, timeout or 0.0, _take(out), _take(err))
+        return subprocess.CompletedProcess(args, returncode, _take(out), _take(err))
 
     def close(self) -> None:
         if self._proc.poll() is None:

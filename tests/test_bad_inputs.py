@@ -686,6 +686,12 @@ def test_the_fork_server_refuses_a_start_up_variable_it_did_not_start_with(serve
     assert server.run(["--help"], env={**ENV, "THREEDQ_FAULT_MATCH": "x"}).returncode == 0  # not read at start-up
 
 
+def test_the_fork_server_kills_a_command_past_its_timeout(server: ForkServer) -> None:
+    with pytest.raises(subprocess.TimeoutExpired):
+        server.run(["em", "--help"], env=ENV, timeout=0.01)  # about 0.3 s forked
+    assert server.run(["--help"], env=ENV).returncode == 0  # the server goes on
+
+
 @pytest.mark.parametrize("case", IN_PROCESS_CASES, ids=[c.name for c in IN_PROCESS_CASES])
 def test_bad_input_in_process(case: Case, shared: Shared, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                               capsys: pytest.CaptureFixture[str]) -> None:
