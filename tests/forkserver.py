@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import runpy
 import select
 import signal
 import subprocess
@@ -170,11 +171,7 @@ def _child(req: dict) -> None:
             os.close(f)
         sys.path[0] = os.getcwd()  # ``python -m`` puts the working directory first, not this file's folder
         if str(SHIM) in req["env"].get("PYTHONPATH", "").split(os.pathsep):  # what sitecustomize would do
-            import runpy
-
             runpy.run_path(str(SHIM / "sitecustomize.py"), run_name="sitecustomize")
-        import runpy
-
         sys.argv = ["threedq", *req["argv"]]
         runpy.run_module("threedq", run_name="__main__", alter_sys=True)
         code = 0
