@@ -43,6 +43,8 @@ scenes, so the fine-tuning cannot forget what view prediction taught (off, the m
 them on) and train along; the data must give target views (``num_target_views >= 1``). Off by default: the
 measurement is in ``docs/studies/mining.md``. ``correspondence_weight: 0`` with it is the control arm: the same
 stage, scenes and pairs, with view prediction alone training the encoder (docs/studies/mined-pairs.md).
+``view_prediction_rgb: false`` keeps only the loss's occupancy term (the one that keeps shape, docs/studies/shape.md):
+no decoder pass, the decoder carried on untrained.
 
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
 prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
@@ -75,7 +77,7 @@ from threedq.contrastive import MomentumContrast, calibrate_context_cosine, mine
 from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
-from threedq.nets import OccupancyHead, ViewDecoder
+from threedq.nets import OccupancyHead, ViewDecoder, balanced_occupancy_loss
 from threedq.quantization.prototypes import PrototypeBank, assign_chunked, prototype_crops
 from threedq.stages.base import EncoderStage, SplitEvaluation
 from threedq.stages.checkpoint import checkpoint_hparams, require_stage
@@ -254,6 +256,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_weight: ``mined``: weight of that multi-view term in the loss.
         view_prediction_weight: ``mined``: weight of the view-prediction loss kept as a regulariser (0: off; see the
             module docstring; needs an ``encoder_ckpt`` that carries the decoder, and ``num_target_views >= 1``).
+        view_prediction_rgb: with ``view_prediction_weight > 0``: keep the whole view-prediction loss (true, default)
+            or only its occupancy term (false: ``occ_weight`` x the balanced occupancy loss with raycast free space,
+            the term that keeps shape, docs/studies/shape.md): the decoder is then neither run nor trained, and is
+            carried on unchanged in the checkpoint for the next round. Not in the paper.
         correspondence_weight: ``mined``: weight of the mined pairs' InfoNCE (default 1, the paper's only term). 0
             leaves the pairs mined and enqueued but out of the loss: an ablation, allowed only where another term
             (``view_prediction_weight``, ``prototype_weight`` or ``view_positives``) trains the encoder.
@@ -326,6 +332,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_positives: int = 0,
         view_weight: float = 1.0,
         view_prediction_weight: float = 0.0,
+        view_prediction_rgb: bool = True,
         correspondence_weight: float = 1.0,
         pool_batch_size: int = 4,
         pool_min_observed_iou: float | None = 0.5,
@@ -368,6 +375,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if view_prediction_weight and source != "mined":
             raise ValueError(f"view_prediction_weight: the view-prediction regulariser is a term of the mined source, "
                              f"not of source {source!r}")
+        if not isinstance(view_prediction_rgb, bool):
+            raise ValueError(f"view_prediction_rgb: expected true or false, got {view_prediction_rgb!r}")
+        if not view_prediction_rgb and not view_prediction_weight:
+            raise ValueError("view_prediction_rgb: false keeps only the occupancy term of the view-prediction "
+                             "regulariser, which is off (view_prediction_weight 0); set view_prediction_weight > 0")
         if view_prediction_weight and not kwargs.get("encoder_ckpt"):
             raise ValueError("view_prediction_weight: the regulariser's decoder comes from encoder_ckpt; none given")
         if query_pool > target_pool:
@@ -433,6 +445,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                 except RuntimeError as e:
                     raise InputError(f"{kwargs['encoder_ckpt']}: field '{name}.*': does not fit this "
                                      f"{name}: {str(e).splitlines()[0]}") from e
+            if not view_prediction_rgb:  # the occupancy term alone: the decoder is carried, not trained
+                self.decoder.requires_grad_(False)
         # bank_ckpt's bank (for verify_by_prototypes and prototype_weight), not this stage's state: kept out of the
         # module tree (so out of the state_dict, the optimizer and device moves; assign_pool moves it)
         self.__dict__["verify_bank"] = None
@@ -502,12 +516,18 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
 
     def _view_prediction_term(self, feats: Tensor, batch: dict[str, Tensor], n_in: int) -> dict[str, Tensor]:
         """The view-prediction loss of the first scene of ``batch`` (its grid ``feats[:1]``, from the first ``n_in``
-        views) at predicting its other views."""
+        views) at predicting its other views; with ``view_prediction_rgb`` false, only its occupancy term
+        (``loss`` = ``occ_weight`` x ``occ_loss``, labels from all the scene's views)."""
         if batch["rgb"].shape[1] <= n_in:
             raise ValueError(f"num_target_views: view_prediction_weight > 0 needs target views beside the {n_in} "
                              f"input view(s) of each scene (set the data's num_target_views >= 1)")
         one = {k: batch[k][:1] for k in ("rgb", "depth", "K", "R_T_cam")}
-        return self.view_prediction_loss(feats[:1], self.occ_head(feats[:1]), one, n_in)
+        occ_logits = self.occ_head(feats[:1])
+        if self.hparams.view_prediction_rgb:
+            return self.view_prediction_loss(feats[:1], occ_logits, one, n_in)
+        occ, free = self.occupancy_labels(one["depth"], one["K"], one["R_T_cam"])
+        occ_loss = balanced_occupancy_loss(occ_logits, occ, free)
+        return {"loss": self.vp_settings["occ_weight"] * occ_loss, "occ_loss": occ_loss}
 
     # ------------------------------------------------------------------ view-contrastive sources
     def _two_view_sets(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -848,7 +868,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if hp.view_prediction_weight:
             vp = self._view_prediction_term(feats, batch, v)
             loss = loss + hp.view_prediction_weight * vp["loss"]
-            out.update(vp_loss=vp["loss"].detach(), vp_l1=vp["l1"].detach())
+            out.update(vp_loss=vp["loss"].detach(), vp_occ=vp["occ_loss"].detach())
+            if "l1" in vp:
+                out.update(vp_l1=vp["l1"].detach())
         self._enqueue(k)
         if not loss.requires_grad:  # correspondence_weight 0 and no other term had anything this step
             return {"loss": None}
@@ -876,8 +898,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             return None  # no objects / no verified pairs: skip the step
         self.log_dict({"train/loss": r["loss"], "train/pos_cos": r["pos_cos"],
                        "train/positives": float(r["positives"])}, prog_bar=True, batch_size=1)
-        if "vp_l1" in r:
-            self.log_dict({"train/vp_loss": r["vp_loss"], "train/vp_l1": r["vp_l1"]}, batch_size=1)
+        if "vp_loss" in r:
+            self.log_dict({"train/vp_loss": r["vp_loss"], "train/vp_occ": r["vp_occ"],
+                           **({"train/vp_l1": r["vp_l1"]} if "vp_l1" in r else {})}, batch_size=1)
         if "prototype_pos_cos" in r:
             self.log_dict({"train/prototype_pos_cos": r["prototype_pos_cos"],
                            "train/prototype_positives": float(r["prototype_positives"])}, batch_size=1)
@@ -902,8 +925,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         params = [p for p in self.encoder.parameters() if p.requires_grad]
-        if self._vp is not None:  # the regulariser's decoder and occupancy head train along
-            params += [*self.decoder.parameters(), *self.occ_head.parameters()]
+        if self._vp is not None:  # the regulariser's occupancy head (and, with its RGB term, decoder) train along
+            params += [p for p in (*self.decoder.parameters(), *self.occ_head.parameters()) if p.requires_grad]
         return torch.optim.Adam(params, lr=self.round_learning_rate)
 
     @property

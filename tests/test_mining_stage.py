@@ -240,6 +240,36 @@ class TestViewPredictionRegulariser:
             a, b = m._view_prediction_term(f1, one, 1)["loss"], m._view_prediction_term(f2, two, 1)["loss"]
         assert torch.allclose(a, b, rtol=1e-5)
 
+    def test_occupancy_term_alone(self, tmp_path: Path, tiny_dataset: Path) -> None:
+        """``view_prediction_rgb: false``: the whole loss less its RGB term, and only the occupancy head trains."""
+        from threedq.nets import balanced_l1
+
+        ckpt, _ = self._vp_checkpoint(tmp_path)
+        full = Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=1.0).eval()
+        occ = Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=1.0,
+                     view_prediction_rgb=False).eval()
+        batch = self._batch(tiny_dataset)
+        views = [batch[k][:, :1] for k in ("rgb", "depth", "K", "R_T_cam")]
+        with torch.no_grad():
+            want = full._view_prediction_term(full.encode_views(*views), batch, 1)
+        feats = occ.encode_views(*views)
+        got = occ._view_prediction_term(feats, batch, 1)
+        assert "l1" not in got and "pred" not in got  # the decoder did not run
+        rgb = balanced_l1(want["pred"], want["target"], want["valid"], want["fg"])
+        assert torch.allclose(got["loss"], want["loss"] - 7.0 * rgb, rtol=1e-5, atol=1e-7)
+        assert torch.allclose(got["loss"], 0.5 * got["occ_loss"]) and float(got["occ_loss"]) > 0
+        got["loss"].backward()
+        assert all(p.grad is None and not p.requires_grad for p in occ.decoder.parameters())
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in occ.occ_head.parameters())
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in occ.encoder.parameters())
+        trained = {id(p) for g in occ.configure_optimizers().param_groups for p in g["params"]}
+        assert not any(id(p) in trained for p in occ.decoder.parameters())
+        assert all(id(p) in trained for p in occ.occ_head.parameters())
+        with pytest.raises(ValueError, match=r"view_prediction_rgb: false .*\(view_prediction_weight 0\)"):
+            Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_rgb=False)
+        with pytest.raises(ValueError, match="view_prediction_rgb: expected true or false"):
+            Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=1.0, view_prediction_rgb="no")
+
     def test_errors(self, tmp_path: Path, tiny_dataset: Path) -> None:
         from threedq.errors import InputError
         from threedq.stages.base import EncoderStage
@@ -293,7 +323,7 @@ def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> 
     views = source == "mined_views"
     proto = source == "mined_proto"
     bank = _bank_file(tmp_path / "bank.ckpt", torch.randn(3, 32, 8, 8, 8), 8) if proto else None
-    vp = source in ("mined_vp", "mined_vp_only")
+    vp = source in ("mined_vp", "mined_vp_only", "mined_vp_occ")
     csls = source == "mined_csls"
     cfg = tmp_path / f"tiny_{source}.yaml"
     cfg.write_text(
@@ -320,6 +350,7 @@ model:
     retrieval_k: 1
     view_positives: {4 if views else 0}
     view_prediction_weight: {1.0 if vp else 0.0}
+    view_prediction_rgb: {"false" if source == "mined_vp_occ" else "true"}
     correspondence_weight: {0.0 if source == "mined_vp_only" else 1.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
@@ -341,7 +372,7 @@ trainer:
 
 
 @pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_vp_only",
-                                    "mined_csls", "mined_proto"])
+                                    "mined_vp_occ", "mined_csls", "mined_proto"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -352,7 +383,7 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     enc = tmp_path / "enc.pt"
     start = EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict()
     torch.save(start, enc)
-    if source in ("mined_vp", "mined_vp_only"):  # the regulariser's decoder comes from a view-prediction checkpoint
+    if source in ("mined_vp", "mined_vp_only", "mined_vp_occ"):  # the regulariser's decoder: a view-prediction ckpt
         from threedq.stages.viewpred import ViewPrediction
 
         vp = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0)
@@ -413,6 +444,14 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert saved["view_prediction_settings"]["rgb_weight"] == 30.0
         nxt = Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=1.0)
         assert all(torch.equal(state[f"decoder.{k}"], v) for k, v in nxt.decoder.state_dict().items())
+    elif source == "mined_vp_occ":  # the occupancy term alone: the head trained, the decoder carried on untouched
+        assert "train/vp_l1" not in logged and float(logged["train/vp_occ"]) > 0
+        assert torch.allclose(logged["train/vp_loss"], logged["train/vp_occ"])  # occ_weight 1
+        assert all(torch.equal(state[f"decoder.{k}"], v) for k, v in vp.decoder.state_dict().items())
+        assert any(not torch.equal(state[f"occ_head.{k}"], v) for k, v in vp.occ_head.state_dict().items()
+                   if v.is_floating_point())
+        nxt = Mining(encoder_ckpt=str(ckpt), queue_size=64, view_prediction_weight=1.0, view_prediction_rgb=False)
+        assert all(torch.equal(state[f"occ_head.{k}"], v) for k, v in nxt.occ_head.state_dict().items())
     elif source.startswith("mined"):
         assert not any(k.startswith("decoder.") for k in state)
     if source == "mined_proto":  # a prototype positive for every query voxel the turned prototype covers
