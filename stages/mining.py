@@ -259,7 +259,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_prediction_rgb: with ``view_prediction_weight > 0``: keep the whole view-prediction loss (true, default)
             or only its occupancy term (false: ``occ_weight`` x the balanced occupancy loss with raycast free space,
             the term that keeps shape, docs/studies/shape.md): the decoder is then neither run nor trained, and is
-            carried on unchanged in the checkpoint for the next round. Not in the paper.
+            carried on unchanged in the checkpoint for the next round. Not in the paper. At weight 1 it keeps no
+            shape on the shape-only data and lifts the embedded few-shot accuracy (docs/studies/mined-pairs.md): off.
         correspondence_weight: ``mined``: weight of the mined pairs' InfoNCE (default 1, the paper's only term). 0
             leaves the pairs mined and enqueued but out of the loss: an ablation, allowed only where another term
             (``view_prediction_weight``, ``prototype_weight`` or ``view_positives``) trains the encoder.
