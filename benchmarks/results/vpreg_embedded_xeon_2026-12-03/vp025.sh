@@ -3,9 +3,11 @@
 # num_target_views 1, otherwise today's defaults), 2 seeds on the embedded data and on the shape-only data, rounds 1-4
 # from each seed's round 0 of the default runs (embedded: em_def_s0r0 refits round 0, em_def_s1; shape-only:
 # shp_floor_s{0,1}, whose round 0 is the default's). Order: seed 0 on both, then seed 1 on both.
+# Other arms: ARM=<name> runs mining_<name>.yaml; SEEDS="0" runs seed 0 alone (seventeenth session:
+# ARM=vpocc and ARM=vpocc10, benchmarks/results/vpocc_xeon_2026-12-03/).
 cd /tmp/mj/main && source /tmp/mj/venv/bin/activate
-ARM=vp025
-for S in 0 1; do
+ARM=${ARM:-vp025}
+for S in ${SEEDS:-0 1}; do
   # embedded
   W=runs/emb_${ARM}_s$S; mkdir -p $W
   if [ $S = 0 ]; then EXTRA=""; SRC=runs/em_def_s0r0; DIRS="00_viewpred 01_viewpred_eval 02_detector 03_detector_eval"
