@@ -43,8 +43,9 @@ scenes, so the fine-tuning cannot forget what view prediction taught (off, the m
 them on) and train along; the data must give target views (``num_target_views >= 1``). Off by default: the
 measurement is in ``docs/studies/mining.md``. ``correspondence_weight: 0`` with it is the control arm: the same
 stage, scenes and pairs, with view prediction alone training the encoder (docs/studies/mined-pairs.md).
-``view_prediction_rgb: false`` keeps only the loss's occupancy term (the one that keeps shape, docs/studies/shape.md):
-no decoder pass, the decoder carried on untrained.
+``view_prediction_rgb: false`` keeps only the loss's occupancy term (no decoder pass, the decoder carried on
+untrained): the term keeps shape when it trains the encoder from the start (docs/studies/shape.md), but as the
+regulariser at weight 1 it does not (docs/studies/mined-pairs.md).
 
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
 prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
@@ -258,9 +259,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             module docstring; needs an ``encoder_ckpt`` that carries the decoder, and ``num_target_views >= 1``).
         view_prediction_rgb: with ``view_prediction_weight > 0``: keep the whole view-prediction loss (true, default)
             or only its occupancy term (false: ``occ_weight`` x the balanced occupancy loss with raycast free space,
-            the term that keeps shape, docs/studies/shape.md): the decoder is then neither run nor trained, and is
-            carried on unchanged in the checkpoint for the next round. Not in the paper. At weight 1 it keeps no
-            shape on the shape-only data and lifts the embedded few-shot accuracy (docs/studies/mined-pairs.md): off.
+            the term that keeps shape when it trains from the start, docs/studies/shape.md): the decoder is then
+            neither run nor trained, and is carried on unchanged in the checkpoint for the next round. Not in the
+            paper. At weight 1 it keeps no shape on the shape-only data and lifts the embedded few-shot accuracy
+            (docs/studies/mined-pairs.md): off.
         correspondence_weight: ``mined``: weight of the mined pairs' InfoNCE (default 1, the paper's only term). 0
             leaves the pairs mined and enqueued but out of the loss: an ablation, allowed only where another term
             (``view_prediction_weight``, ``prototype_weight`` or ``view_positives``) trains the encoder.
