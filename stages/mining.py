@@ -47,6 +47,14 @@ stage, scenes and pairs, with view prediction alone training the encoder (docs/s
 untrained): the term keeps shape when it trains the encoder from the start (docs/studies/shape.md), but as the
 regulariser at weight 1 it does not (docs/studies/mined-pairs.md).
 
+A projection head (``projection_dim``, MoCo v2's, not in the paper): the queue's InfoNCE (the mined pairs, the view
+positives, the prototype positives, ``vc_moco``'s) is taken on ``Linear(C, C)``, ReLU, ``Linear(C, projection_dim)`` of
+the features, L2-normalised; keys and the queue (which keeps the unit feature vectors) go through the head as it is
+at the step, without gradient. The grid's features, which retrieval, the miner and the quantizer use, are the head's
+input: the invariances the pairs teach may settle in the head. The head trains at its own constant ``projection_lr``
+and is carried to the next EM round by the checkpoint (``projection.*``; a fresh head when ``encoder_ckpt`` has
+none). Off by default (the paper's InfoNCE on the features).
+
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
 prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
 assigns every pool object a prototype and a yaw; each kept pair's query corners get a second key, the same cells of
@@ -74,14 +82,14 @@ from torch.utils.data import default_collate
 from threedq.atomic_io import atomic_write_text
 from threedq.box_refinement import observed_boxes
 from threedq.boxes import aabb_iou_3d
-from threedq.contrastive import MomentumContrast, calibrate_context_cosine, mine_correspondences
+from threedq.contrastive import MomentumContrast, calibrate_context_cosine, info_nce_streamed, mine_correspondences
 from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
 from threedq.nets import OccupancyHead, ViewDecoder, balanced_occupancy_loss
 from threedq.quantization.prototypes import PrototypeBank, assign_chunked, prototype_crops
 from threedq.stages.base import EncoderStage, SplitEvaluation
-from threedq.stages.checkpoint import checkpoint_hparams, require_stage
+from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint, require_stage
 from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 from threedq.stages.viewpred import ViewPredictionObjective, view_prediction_checkpoint
 from threedq.viz.features import mined_pairs_figure
@@ -337,6 +345,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         view_prediction_weight: float = 0.0,
         view_prediction_rgb: bool = True,
         correspondence_weight: float = 1.0,
+        projection_dim: int | None = None,
+        projection_lr: float = 1e-3,
         pool_batch_size: int = 4,
         pool_min_observed_iou: float | None = 0.5,
         bank_ckpt: str | None = None,
@@ -412,6 +422,14 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             raise ValueError("prototype_weight: the positives come from a prototype bank; no bank_ckpt given (threedq "
                              "em passes the previous round's; on its own, give --model.init_args.bank_ckpt=<a "
                              "quantizer checkpoint of this encoder> or --model.init_args.prototype_weight=0)")
+        if projection_dim is not None and (isinstance(projection_dim, bool) or not isinstance(projection_dim, int)
+                                           or projection_dim < 1):
+            raise ValueError(f"projection_dim: expected None or an int >= 1, got {projection_dim!r}")
+        if projection_dim is not None and source == "vc":
+            raise ValueError("projection_dim: the projection head serves the queue's InfoNCE (source 'mined' or "
+                             "'vc_moco'); source 'vc' contrasts in-batch")
+        if isinstance(projection_lr, bool) or not isinstance(projection_lr, (int, float)) or not projection_lr > 0:
+            raise ValueError(f"projection_lr: expected a number > 0, got {projection_lr!r}")
         if round_lr not in ("constant", "harmonic"):
             raise ValueError(f"round_lr: expected 'constant' or 'harmonic', got {round_lr!r}")
         if isinstance(em_round, bool) or not isinstance(em_round, int) or em_round < 1:
@@ -450,6 +468,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                                      f"{name}: {str(e).splitlines()[0]}") from e
             if not view_prediction_rgb:  # the occupancy term alone: the decoder is carried, not trained
                 self.decoder.requires_grad_(False)
+        self.projection: torch.nn.Module | None = None
+        if projection_dim is not None:
+            self.projection = self._projection_head(self.feature_dim, projection_dim, kwargs.get("encoder_ckpt"))
+        self._projected_queue: Tensor | None = None  # the queue through the head, once a step
         # bank_ckpt's bank (for verify_by_prototypes and prototype_weight), not this stage's state: kept out of the
         # module tree (so out of the state_dict, the optimizer and device moves; assign_pool moves it)
         self.__dict__["verify_bank"] = None
@@ -570,7 +592,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         with torch.no_grad():
             self.moco._momentum_update_key_encoder()
         q, k = self._view_positives(self.encode_views(*a), b, batch, V)
-        loss = self.moco.loss(q, k)
+        loss = self._contrast(q, k)
         self._enqueue(k)
         return {"loss": loss, "positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
 
@@ -582,9 +604,45 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         feats = self.encode_input(x, seen, rgb.shape[1], encoder=self.moco.encoder_k)
         return self._object_points(feats, aabb, mask, idx)
 
+    @staticmethod
+    def _projection_head(channels: int, dim: int, encoder_ckpt: str | None) -> torch.nn.Module:
+        """MoCo v2's projection head on voxel features: ``Linear(C, C)``, ReLU, ``Linear(C, dim)``; the weights of
+        ``encoder_ckpt``'s head (``projection.*``, an earlier round's mining checkpoint trained with one) when it
+        carries one, a fresh head otherwise."""
+        head = torch.nn.Sequential(torch.nn.Linear(channels, channels), torch.nn.ReLU(),
+                                   torch.nn.Linear(channels, dim))
+        ck = load_checkpoint(encoder_ckpt) if encoder_ckpt else None
+        carried = ck.prefixed("projection.") if ck is not None and ck.is_lightning else {}
+        if carried:
+            try:
+                head.load_state_dict(carried)
+            except RuntimeError as e:
+                raise InputError(f"{encoder_ckpt}: field 'projection.*': does not fit a projection head "
+                                 f"{channels} -> {channels} -> {dim}: {str(e).splitlines()[0]}") from e
+        return head
+
+    def _contrast(self, q: Tensor, k: Tensor) -> Tensor:
+        """InfoNCE of queries ``q`` ``[N, C]`` (with gradient) against keys ``k`` ``[N, C]`` and the queue.
+
+        Without a projection head: :meth:`MomentumContrast.loss` on the features themselves (the paper's). With one
+        (``projection_dim``), queries, keys and the queue (which keeps the unit feature vectors) go through the
+        head and are L2-normalised before the loss, in float32; the keys and the queue without gradient, by the
+        head as it is now, so that the negatives stay comparable however the head has moved.
+        """
+        if self.projection is None:
+            return self.moco.loss(q, k)
+        head = self.projection
+        with torch.no_grad():
+            if self._projected_queue is None:
+                self._projected_queue = F.normalize(head(self.moco.queue.to(q.dtype)).float(), dim=1)
+            kp = F.normalize(head(k.to(q.dtype)).float(), dim=1)
+        qp = F.normalize(head(q).float(), dim=1)
+        return info_nce_streamed(qp, kp, self._projected_queue, self.moco.temperature)
+
     def _enqueue(self, k: Tensor) -> None:
         keys = self.all_gather(k.detach())
         self.moco._dequeue_and_enqueue(keys.reshape(-1, k.shape[-1]))
+        self._projected_queue = None
 
     # ------------------------------------------------------------------ mined source
     def _train_dataset(self) -> Any:
@@ -850,7 +908,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         with torch.no_grad():
             self.moco._momentum_update_key_encoder()
         if hp.correspondence_weight:
-            loss = self.moco.loss(q, k)
+            loss = self._contrast(q, k)
             if hp.correspondence_weight != 1:
                 loss = loss * hp.correspondence_weight
         else:  # the ablation: the pairs are mined and enqueued, the other terms train
@@ -860,12 +918,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             valid = pairs["prototype_valid"][pick].reshape(-1)
             if valid.any():
                 pk = pairs["prototype_keys"][pick].reshape(-1, q.shape[-1]).to(q.dtype)[valid]
-                loss = loss + hp.prototype_weight * self.moco.loss(q[valid], pk)
+                loss = loss + hp.prototype_weight * self._contrast(q[valid], pk)
                 out.update(prototype_positives=int(valid.sum()), prototype_pos_cos=(q[valid] * pk).sum(1).mean())
         if hp.view_positives:
             qv_, kv_ = self._view_positives(feats, self._two_view_sets(batch)[1], batch, hp.view_positives)
             if qv_.shape[0]:
-                loss = loss + hp.view_weight * self.moco.loss(qv_, kv_)
+                loss = loss + hp.view_weight * self._contrast(qv_, kv_)
                 out.update(view_positives=qv_.shape[0], view_pos_cos=(qv_ * kv_).sum(1).mean())
                 k = torch.cat([k, kv_.to(k.dtype)])
         if hp.view_prediction_weight:
@@ -930,7 +988,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         params = [p for p in self.encoder.parameters() if p.requires_grad]
         if self._vp is not None:  # the regulariser's occupancy head (and, with its RGB term, decoder) train along
             params += [p for p in (*self.decoder.parameters(), *self.occ_head.parameters()) if p.requires_grad]
-        return torch.optim.Adam(params, lr=self.round_learning_rate)
+        groups: list[dict[str, Any]] = [{"params": params}]
+        if self.projection is not None:  # the head, at its own constant rate: it starts afresh and has few steps
+            groups.append({"params": list(self.projection.parameters()), "lr": self.hparams.projection_lr})
+        return torch.optim.Adam(groups, lr=self.round_learning_rate)
 
     @property
     def round_learning_rate(self) -> float:

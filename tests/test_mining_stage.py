@@ -319,6 +319,69 @@ def _bank_file(path: Path, protos: torch.Tensor, num_angles: int) -> Path:
     return path
 
 
+class TestProjectionHead:
+    """``projection_dim``: the queue's InfoNCE on the head's outputs (MoCo v2), the grid's features left as they are."""
+
+    def _moco_state(self, m: Mining) -> None:
+        torch.manual_seed(1)
+        m.moco.queue.copy_(F.normalize(torch.randn(64, 32), dim=1))
+
+    def test_loss_against_a_hand_built_reference(self) -> None:
+        from threedq.contrastive import info_nce_plain
+
+        torch.manual_seed(0)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, projection_dim=8)
+        self._moco_state(m)
+        head = m.projection
+        q = F.normalize(torch.randn(6, 32, dtype=torch.float64), dim=1).float().requires_grad_(True)
+        k = F.normalize(torch.randn(6, 32), dim=1)
+        got = m._contrast(q, k)
+        # the reference: every row through the head by hand (float64), normalised, then the plain InfoNCE
+        w1, b1, w2, b2 = (t.detach().double() for t in (head[0].weight, head[0].bias, head[2].weight, head[2].bias))
+
+        def proj(x: torch.Tensor) -> torch.Tensor:
+            return F.normalize(torch.clamp(x.double() @ w1.T + b1, min=0) @ w2.T + b2, dim=1)
+
+        want = info_nce_plain(proj(q.detach()), proj(k), proj(m.moco.queue), 0.07)
+        assert got.dtype == torch.float32 and torch.allclose(got.double(), want, atol=1e-5)
+        got.backward()
+        assert q.grad is not None and q.grad.abs().sum() > 0  # the encoder side learns through the head
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
+        assert not m.moco.queue.requires_grad  # keys and queue: no gradient (MoCo)
+
+    def test_queue_keeps_features_and_is_projected_afresh_after_each_enqueue(self) -> None:
+        torch.manual_seed(0)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, projection_dim=8)
+        self._moco_state(m)
+        m.all_gather = lambda t: t  # no trainer: one process
+        q, k = F.normalize(torch.randn(4, 32), dim=1), F.normalize(torch.randn(4, 32), dim=1)
+        first = m._contrast(q, k)
+        m._enqueue(k)
+        assert torch.equal(m.moco.queue[:4], k)  # the queue holds the unit features, not the head's outputs
+        second = m._contrast(q, k)
+        assert not torch.allclose(first, second)  # the new negatives were projected
+        m._projected_queue = None
+        assert torch.allclose(second, m._contrast(q, k))
+
+    def test_without_a_head_the_paper_loss(self) -> None:
+        torch.manual_seed(0)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64)
+        self._moco_state(m)
+        q, k = F.normalize(torch.randn(4, 32), dim=1), F.normalize(torch.randn(4, 32), dim=1)
+        assert m.projection is None and torch.equal(m._contrast(q, k), m.moco.loss(q, k))
+
+    def test_bad_arguments(self) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
+        for bad in (0, -3, 2.5, True, "32"):
+            with pytest.raises(ValueError, match="projection_dim"):
+                Mining(projection_dim=bad, **kw)
+        with pytest.raises(ValueError, match="projection_dim.*in-batch"):
+            Mining(projection_dim=8, source="vc", **kw)
+        for bad in (0.0, -1e-3, True):
+            with pytest.raises(ValueError, match="projection_lr"):
+                Mining(projection_lr=bad, projection_dim=8, **kw)
+
+
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
     views = source == "mined_views"
     proto = source == "mined_proto"
@@ -351,6 +414,8 @@ model:
     view_positives: {4 if views else 0}
     view_prediction_weight: {1.0 if vp else 0.0}
     view_prediction_rgb: {"false" if source == "mined_vp_occ" else "true"}
+    projection_dim: {16 if source == "mined_proj" else "null"}
+    projection_lr: {0.01 if source == "mined_proj" else 0.001}
     correspondence_weight: {0.0 if source == "mined_vp_only" else 1.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
@@ -372,7 +437,7 @@ trainer:
 
 
 @pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_vp_only",
-                                    "mined_vp_occ", "mined_csls", "mined_proto"])
+                                    "mined_vp_occ", "mined_csls", "mined_proto", "mined_proj"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -454,6 +519,16 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert all(torch.equal(state[f"occ_head.{k}"], v) for k, v in nxt.occ_head.state_dict().items())
     elif source.startswith("mined"):
         assert not any(k.startswith("decoder.") for k in state)
+    if source == "mined_proj":  # the head trains at its own rate and goes on to the next round's mining
+        assert state["projection.2.weight"].shape == (16, 32) and state["moco.queue"].shape == (256, 32)
+        groups = torch.load(ckpt, weights_only=True, map_location="cpu")["optimizer_states"][0]["param_groups"]
+        assert [g["lr"] for g in groups] == [pytest.approx(1e-4), pytest.approx(0.01)] and len(groups[1]["params"]) == 4
+        nxt = Mining(encoder_ckpt=str(ckpt), queue_size=64, projection_dim=16)
+        assert all(torch.equal(state[f"projection.{k}"], v) for k, v in nxt.projection.state_dict().items())
+        with pytest.raises(InputError, match=r"last\.ckpt: field 'projection\.\*': does not fit"):
+            Mining(encoder_ckpt=str(ckpt), queue_size=64, projection_dim=8)
+    else:
+        assert not any(k.startswith("projection.") for k in state)
     if source == "mined_proto":  # a prototype positive for every query voxel the turned prototype covers
         assert 1 <= float(logged["train/prototype_positives"]) <= 2 * 8
         assert -1.0 <= float(logged["train/prototype_pos_cos"]) <= 1.0
