@@ -53,7 +53,8 @@ the features, L2-normalised; keys and the queue (which keeps the unit feature ve
 at the step, without gradient. The grid's features, which retrieval, the miner and the quantizer use, are the head's
 input: the invariances the pairs teach may settle in the head. The head trains at its own constant ``projection_lr``
 and is carried to the next EM round by the checkpoint (``projection.*``; a fresh head when ``encoder_ckpt`` has
-none). Off by default (the paper's InfoNCE on the features).
+none). Off by default (the paper's InfoNCE on the features): it holds the embedded rounds back and lets the shape-only
+ones fall a little less, the trade the view-prediction keepers make (``docs/studies/mined-pairs.md``).
 
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
 prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
