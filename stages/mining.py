@@ -735,6 +735,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             pick = torch.randint(0, flat.shape[0], (self.moco.queue.shape[0],), generator=g).to(flat.device)
             self.moco.queue.copy_(F.normalize(flat[pick], dim=1))
             self.queue_primed.fill_(True)
+            self._projected_queue = None
         min_cos = hp.min_cosine if hp.min_cosine is not None else calibrate_context_cosine(
             feats, pool["scene"], hp.context_quantile, hp.patch, generator=g)
         exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
