@@ -96,7 +96,8 @@ from threedq.stages.viewpred import ViewPredictionObjective, view_prediction_che
 from threedq.viz.features import mined_pairs_figure
 from threedq.viz.png import write_png
 
-__all__ = ["Mining", "corner_offsets", "corner_keys", "crop_voxels", "implied_yaw_error_deg"]
+__all__ = ["Mining", "corner_offsets", "corner_keys", "crop_voxels", "implied_yaw_error_deg", "shape_agreement",
+           "shape_cells"]
 
 SOURCES = ("vc", "vc_moco", "mined")
 
@@ -181,6 +182,57 @@ def prototype_purity(prototype: Tensor, labels: Tensor, query_index: Tensor) -> 
         if mates.any():
             shares.append(float((labels[mates] == labels[q]).float().mean()))
     return sum(shares) / len(shares) if shares else float("nan")
+
+
+def shape_agreement(query_occ: Tensor, target_occ: Tensor, num_angles: int, chunk: int = 64
+                    ) -> tuple[Tensor, Tensor]:
+    """How well each pair's two objects agree in shape: the cosine of the query's input occupancy crop with the
+    target's, rotated onto it, at the yaw where it is highest (exact: every yaw step by :func:`rotate_yaw`).
+
+    Args:
+        query_occ: ``[P, 1, s, s, s]`` occupancy crops (any non-negative weights); target_occ: the same, pairwise.
+        num_angles: yaw steps in a full turn.
+        chunk: pairs rotated at once.
+
+    Returns:
+        ``cos`` ``[P]`` (0 where a crop is empty) and ``yaw`` ``[P]`` long, the step ``b`` whose rotation of the target
+        by ``2 pi b / num_angles`` lies best on the query (the mined yaw's convention); ties go to the lowest ``b``.
+
+    Convention: as the miner's: yaw about the crop's vertical axis through its centre, counter-clockwise seen from
+    above; crops ``[Z, Y, X]``.
+    """
+    P, A = query_occ.shape[0], num_angles
+    cos = query_occ.new_zeros(P)
+    yaw = torch.zeros(P, dtype=torch.long, device=query_occ.device)
+    angles = torch.arange(A, device=query_occ.device, dtype=query_occ.dtype) * (2 * math.pi / A)
+    for s in range(0, P, chunk):
+        q = F.normalize(query_occ[s:s + chunk].flatten(1), dim=1)  # [n, V]
+        t = rotate_yaw(target_occ[s:s + chunk], angles.expand(q.shape[0], A))  # [n, A, 1, s, s, s]
+        t = F.normalize(t.flatten(2), dim=2)  # [n, A, V]
+        c = torch.einsum("nv,nav->na", q, t)
+        cos[s:s + chunk], yaw[s:s + chunk] = c.max(dim=1)
+    return cos, yaw
+
+
+def shape_cells(query_occ: Tensor, target_occ_aligned: Tensor, count: int,
+                generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """Where a pair's positives go when they are to be shape agreements by construction: ``count`` cells drawn where
+    both objects have input occupancy once the target is turned onto the query (weight: the product of the two).
+
+    Args:
+        query_occ: ``[P, 1, s, s, s]``; target_occ_aligned: ``[P, 1, s, s, s]`` the target's, rotated onto the query.
+        count: cells per pair, drawn without replacement.
+        generator: the draw's generator (CPU).
+
+    Returns:
+        ``cells`` ``[P', count]`` long flat indices ``z * s * s + y * s + x`` (:func:`crop_voxels`' order) and ``valid``
+        ``[P]`` bool: the pairs with at least ``count`` cells of shared occupancy (the ``P'`` returned, in order).
+    """
+    w = (query_occ * target_occ_aligned).flatten(1).clamp_min(0)  # [P, s^3]
+    valid = (w > 0).sum(dim=1) >= count
+    if not valid.any():
+        return w.new_zeros(0, count, dtype=torch.long), valid
+    return torch.multinomial(w[valid].float().cpu(), count, replacement=False, generator=generator).to(w.device), valid
 
 
 def crop_voxels(crops: Tensor, idx: Tensor) -> Tensor:
@@ -298,6 +350,15 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             correspondence learner, so that objects move towards their prototype; a departure from the paper
             (docs/studies/mined-pairs.md, "The prototypes as positives"). Needs ``bank_ckpt``; label-free.
         prototype_oversample: see ``verify_by_prototypes``.
+        positives: ``mined``: what each kept pair teaches. ``"patches"`` (the paper's): the 8 corners around the
+            verified patch match, each keyed by its best-matching target voxel (``corner_offset``, ``corner_search``):
+            the features vouch for the correspondence. ``"occupancy"`` (not in the paper): the miner is asked for
+            ``shape_oversample`` x ``keep`` pairs; each pair's yaw is re-found on the two objects' input occupancy
+            (:func:`shape_agreement`, 3^3-dilated crops, every yaw step), the ``keep`` pairs whose occupancy agrees
+            best are kept, and their positives are 8 cells where both objects are occupied at that yaw, each keyed
+            by the target's feature at the same cell (:func:`shape_cells`): the geometry vouches for the
+            correspondence, so the positives are shape agreements by construction. Label-free.
+        shape_oversample: see ``positives``.
         round_lr: the learning rate across EM rounds: ``"constant"`` (``lr`` in every round, the paper's) or
             ``"harmonic"`` (default; ``lr / em_round``: the decreasing step of stochastic-approximation EM, so that
             later rounds refine the encoder rather than move it as far again; a departure from the paper, see
@@ -355,6 +416,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         prototype_yaw_window: int = 2,
         prototype_oversample: int = 4,
         prototype_weight: float = 0.0,
+        positives: Literal["patches", "occupancy"] = "patches",
+        shape_oversample: int = 4,
         round_lr: Literal["constant", "harmonic"] = "harmonic",
         em_round: int = 1,
         seed: int = 0,
@@ -431,6 +494,13 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                              "'vc_moco'); source 'vc' contrasts in-batch")
         if isinstance(projection_lr, bool) or not isinstance(projection_lr, (int, float)) or not projection_lr > 0:
             raise ValueError(f"projection_lr: expected a number > 0, got {projection_lr!r}")
+        if positives not in ("patches", "occupancy"):
+            raise ValueError(f"positives: expected 'patches' or 'occupancy', got {positives!r}")
+        if isinstance(shape_oversample, bool) or not isinstance(shape_oversample, int) or shape_oversample < 1:
+            raise ValueError(f"shape_oversample: expected an int >= 1, got {shape_oversample!r}")
+        if positives == "occupancy" and verify_by_prototypes:
+            raise ValueError("positives: 'occupancy' ranks the mined pairs by shape agreement; with "
+                             "verify_by_prototypes the bank ranks them too: choose one")
         if round_lr not in ("constant", "harmonic"):
             raise ValueError(f"round_lr: expected 'constant' or 'harmonic', got {round_lr!r}")
         if isinstance(em_round, bool) or not isinstance(em_round, int) or em_round < 1:
@@ -740,9 +810,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             feats, pool["scene"], hp.context_quantile, hp.patch, generator=g)
         exclude = pool["scene"][:n_q, None] == pool["scene"][None, :]
         verify = bool(hp.verify_by_prototypes)
+        by_shape = hp.positives == "occupancy"
         assignment = self.assign_pool(pool) if verify or hp.prototype_weight else None
+        oversample = hp.prototype_oversample if verify else hp.shape_oversample if by_shape else 1
         mined = mine_correspondences(
-            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * (hp.prototype_oversample if verify else 1),
+            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * oversample,
             exclude=exclude, min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q),
             **self.miner_settings(),
         )
@@ -751,24 +823,25 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             ok = self.prototype_agreement(pool, mined, assignment).nonzero().flatten()[: hp.keep]
             mined = {k: v[ok] if isinstance(v, Tensor) and v.shape[:1] == (candidates,) else v
                      for k, v in mined.items()}
+        offsets = corner_offsets(hp.corner_offset, hp.patch, device=feats.device)
+        if by_shape:
+            mined, q_voxels, keys = self._shape_positives(pool, mined, offsets.shape[0], g)
         qi, ti, yaw = mined["query_index"], mined["target_index"], mined["yaw"]
         P = qi.numel()
-        offsets = corner_offsets(hp.corner_offset, hp.patch, device=feats.device)
-        angle = yaw.to(feats.dtype) * (2 * math.pi / hp.num_angles)
-        q_vox, keys = [], []
-        if P:
-            aligned = rotate_yaw(feats[ti], angle)  # [P, C, S, S, S]
-            for j in range(P):
-                v, k = corner_keys(feats[qi[j]], mined["query_pos"][j], aligned[j], mined["target_pos_aligned"][j],
-                                   offsets, hp.corner_search)
-                q_vox.append(v)
-                keys.append(k)
-        C = feats.shape[1]
-        self._pairs = {
-            "scene": pool["scene"][qi], "slot": pool["slot"][qi],
-            "query_voxels": torch.stack(q_vox) if P else offsets.new_zeros(0, 8, 3),
-            "keys": torch.stack(keys) if P else feats.new_zeros(0, 8, C),
-        }
+        if not by_shape:
+            angle = yaw.to(feats.dtype) * (2 * math.pi / hp.num_angles)
+            q_vox, k_list = [], []
+            if P:
+                aligned = rotate_yaw(feats[ti], angle)  # [P, C, S, S, S]
+                for j in range(P):
+                    v, k = corner_keys(feats[qi[j]], mined["query_pos"][j], aligned[j],
+                                       mined["target_pos_aligned"][j], offsets, hp.corner_search)
+                    q_vox.append(v)
+                    k_list.append(k)
+            C = feats.shape[1]
+            q_voxels = torch.stack(q_vox) if P else offsets.new_zeros(0, 8, 3)
+            keys = torch.stack(k_list) if P else feats.new_zeros(0, 8, C)
+        self._pairs = {"scene": pool["scene"][qi], "slot": pool["slot"][qi], "query_voxels": q_voxels, "keys": keys}
         if hp.prototype_weight:  # the query object's prototype at the same voxels, turned to the object's yaw
             protos = self.verify_bank.prototypes.to(feats.device, feats.dtype)[assignment.prototype[qi]]
             pk, valid = prototype_keys(protos, assignment.angle[qi], self._pairs["query_voxels"], hp.num_angles)
@@ -777,6 +850,32 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         self.refreshes += 1
         self._candidates = candidates
         return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0, assignment)
+
+    def _shape_positives(self, pool: dict[str, Tensor], mined: dict[str, Tensor], count: int,
+                         generator: torch.Generator) -> tuple[dict[str, Tensor], Tensor, Tensor]:
+        """``positives: occupancy``: the ``keep`` mined pairs whose objects' input occupancy agrees best, each at the
+        yaw of that agreement, and their positives (:func:`shape_agreement`, :func:`shape_cells`). Returns the kept
+        pairs (``mined``'s keys, ``yaw`` replaced, ``shape_cosine`` added), their query cells ``[P, count, 3]`` and
+        keys ``[P, count, C]``."""
+        hp = self.hparams
+        qi, ti = mined["query_index"], mined["target_index"]
+        n = qi.numel()
+        occ = F.max_pool3d(pool["raw"][:, :1].float(), kernel_size=3, stride=1, padding=1)  # the surface and next to it
+        cos, yaw = shape_agreement(occ[qi], occ[ti], hp.num_angles)
+        order = torch.sort(cos, descending=True, stable=True).indices
+        t_occ = rotate_yaw(occ[ti[order]], yaw[order].to(occ.dtype) * (2 * math.pi / hp.num_angles))
+        cells, valid = shape_cells(occ[qi[order]], t_occ, count, generator)
+        pick, cells = order[valid][: hp.keep], cells[: hp.keep]
+        feats = pool["features"]
+        aligned = rotate_yaw(feats[ti[pick]], yaw[pick].to(feats.dtype) * (2 * math.pi / hp.num_angles))
+        keys = crop_voxels(aligned, cells)  # [P, count, C]
+        s = occ.shape[-1]
+        vox = torch.stack((cells // (s * s), (cells // s) % s, cells % s), dim=-1)  # [P, count, 3]
+        out = {k: v[pick] if isinstance(v, Tensor) and v.shape[:1] == (n,) else v for k, v in mined.items()}
+        out["yaw"], out["shape_cosine"] = yaw[pick], cos[pick]
+        # the pictures mark one positive cell, the same cell of both crops once the target is turned onto the query
+        out["query_pos"], out["target_pos_aligned"] = vox[:, 0], vox[:, 0]
+        return out, vox, keys
 
     def retrieval_crops(self, pool: dict[str, Tensor], n_q: int,
                         occupancy_floor: float | None | str = "hparams") -> tuple[Tensor, Tensor] | None:
@@ -839,6 +938,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         }
         if hp.verify_by_prototypes:  # the pairs mined before the bank's check (prototype_oversample x keep at most)
             info["prototype_candidates"] = self._candidates
+        if hp.positives == "occupancy":  # the pairs mined before the shape ranking, and the kept pairs' agreement
+            info["shape_candidates"] = self._candidates
+            info["shape_cosine_mean"] = float(mined["shape_cosine"].mean()) if qi.numel() else float("nan")
         if hp.prototype_weight and assignment is not None:  # GT, measuring only
             info["prototype_positive_purity"] = prototype_purity(assignment.prototype, pool["labels"], qi)
         if hp.pool_min_observed_iou is not None:  # boxes looked at, and those the input views' geometry vouched for
@@ -878,7 +980,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                 return "off an object" if (q < 0) != (t < 0) else "off objects"
             return "same category" if q == t else "other category"
 
-        captions = [f"{'best' if int(j) < 6 else 'worst'} {int(j) + 1}: {float(mined['score'][j]):.2f}, "
+        score = mined.get("shape_cosine", mined["score"])  # what ranked the kept pairs
+        captions = [f"{'best' if int(j) < 6 else 'worst'} {int(j) + 1}: {float(score[j]):.2f}, "
                     f"{int(yaw[n]) * 360 // self.hparams.num_angles} deg, {verdict(int(lab[qi[n]]), int(lab[ti[n]]))}"
                     for n, j in enumerate(pick.tolist())]  # at most 40 characters (the figure's caption bar)
         img = mined_pairs_figure(pool["raw"][qi], aligned, mined["query_pos"][pick], mined["target_pos_aligned"][pick],

@@ -20,7 +20,10 @@ from threedq.stages.mining import (
     implied_yaw_error_deg,
     prototype_keys,
     prototype_purity,
+    shape_agreement,
+    shape_cells,
 )
+from threedq.geometry import rotate_yaw
 from threedq.viz.features import mined_pairs_figure
 
 
@@ -382,6 +385,87 @@ class TestProjectionHead:
                 Mining(projection_lr=bad, projection_dim=8, **kw)
 
 
+class TestShapePositives:
+    """``positives: occupancy``: pairs re-posed and ranked by their objects' occupancy, positives where both are occupied."""
+
+    @staticmethod
+    def _shape(seed: int, s: int = 8) -> torch.Tensor:
+        g = torch.Generator().manual_seed(seed)
+        return (torch.rand(1, s, s, s, generator=g) > 0.6).float()  # asymmetric under yaw, almost surely
+
+    def test_smoke_and_a_known_quarter_turn(self) -> None:
+        q = self._shape(0)[None]
+        t = rotate_yaw(q, torch.tensor([-math.pi / 2]))  # the target is the query turned back a quarter
+        cos, yaw = shape_agreement(q, t, num_angles=8)
+        assert yaw.tolist() == [2] and torch.allclose(cos, torch.ones(1), atol=1e-5)  # 2 steps of 45 deg turn it on
+
+    def test_against_a_naive_float64_loop(self) -> None:
+        q = torch.stack([self._shape(i) for i in range(5)])
+        t = torch.stack([self._shape(10 + i) for i in range(5)])
+        cos, yaw = shape_agreement(q, t, num_angles=12, chunk=2)
+        for p in range(5):
+            best, arg = -2.0, -1
+            for a in range(12):
+                r = rotate_yaw(t[p:p + 1].double(), torch.tensor([2 * math.pi * a / 12], dtype=torch.float64))
+                c = float(F.cosine_similarity(q[p].double().flatten(), r.flatten(), dim=0))
+                if c > best + 1e-9:
+                    best, arg = c, a
+            assert abs(float(cos[p]) - best) < 1e-5 and int(yaw[p]) == arg
+
+    def test_cells_lie_where_both_are_occupied(self) -> None:
+        s = 8
+        q = torch.stack([self._shape(1), self._shape(2), torch.zeros(1, s, s, s)])
+        t = torch.stack([self._shape(3), self._shape(4), self._shape(5)])
+        cells, valid = shape_cells(q, t, 8, torch.Generator().manual_seed(0))
+        assert valid.tolist() == [True, True, False] and cells.shape == (2, 8) and cells.dtype == torch.long
+        for p in range(2):
+            assert len(set(cells[p].tolist())) == 8  # without replacement
+            for c in cells[p].tolist():
+                z, y, x = c // (s * s), (c // s) % s, c % s
+                assert q[p, 0, z, y, x] > 0 and t[p, 0, z, y, x] > 0
+        again = shape_cells(q, t, 8, torch.Generator().manual_seed(0))
+        assert torch.equal(again[0], cells)  # the generator reproduces the draw
+        few = torch.zeros(1, 1, s, s, s)
+        few[0, 0, 0, 0, :5] = 1
+        assert not shape_cells(few, few, 8)[1].any()  # fewer shared cells than positives: dropped
+
+    def test_the_stage_keeps_the_pairs_that_agree_best_at_their_own_yaw(self) -> None:
+        s = 8
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=s, corner_offset=2, num_angles=8, keep=2,
+                   positives="occupancy")
+        a, b = torch.zeros(1, s, s, s), torch.zeros(1, s, s, s)  # sparse, so the 3^3 dilation keeps them apart
+        a[0, 1:3, 1, 1:7] = 1  # an L on the floor with a post at one end
+        a[0, 1:3, 1:5, 1] = 1
+        a[0, 1:6, 1, 6] = 1
+        b[0, 1:6, 4, 3:5] = 1  # a wall across the middle
+        raw = torch.zeros(4, 4, s, s, s)
+        raw[0, :1], raw[1, :1], raw[2, :1] = a, rotate_yaw(a[None], torch.tensor([-math.pi / 2]))[0], b
+        pool = {"raw": raw, "features": torch.randn(4, 32, s, s, s)}
+        # pair 0: query 0 with an unrelated shape; pair 1: with its own quarter-turned copy; pair 2: an empty target
+        mined = {"query_index": torch.tensor([0, 0, 0]), "target_index": torch.tensor([2, 1, 3]),
+                 "yaw": torch.tensor([5, 5, 5]), "score": torch.tensor([0.9, 0.8, 0.7]),
+                 "query_pos": torch.zeros(3, 3, dtype=torch.long), "target_pos_aligned": torch.zeros(3, 3, dtype=torch.long)}
+        out, vox, keys = m._shape_positives(pool, mined, 8, torch.Generator().manual_seed(0))
+        assert out["target_index"].tolist() == [1, 2] and out["yaw"][0] == 2  # the copy first, turned by 90 deg
+        assert out["score"].tolist() == pytest.approx([0.8, 0.9]) and out["shape_cosine"][0] > out["shape_cosine"][1]
+        assert vox.shape == (2, 8, 3) and keys.shape == (2, 8, 32) and torch.equal(out["query_pos"], vox[:, 0])
+        for p, (t, b_) in enumerate(zip(out["target_index"].tolist(), out["yaw"].tolist())):  # keys: the turned target
+            turned = rotate_yaw(pool["features"][t:t + 1], torch.tensor([2 * math.pi * b_ / 8]))[0]
+            for n, (z, y, x) in enumerate(vox[p].tolist()):
+                assert F.max_pool3d(raw[:1, :1], 3, 1, 1)[0, 0, z, y, x] > 0  # on the query's dilated occupancy
+                assert torch.allclose(keys[p, n], F.normalize(turned[:, z, y, x], dim=0), atol=1e-5)
+
+    def test_exceptions(self) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
+        with pytest.raises(ValueError, match="positives"):
+            Mining(positives="corners", **kw)
+        for bad in (0, 1.5, True):
+            with pytest.raises(ValueError, match="shape_oversample"):
+                Mining(shape_oversample=bad, **kw)
+        with pytest.raises(ValueError, match="positives.*verify_by_prototypes"):
+            Mining(positives="occupancy", verify_by_prototypes=True, bank_ckpt="x.ckpt", **kw)
+
+
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
     views = source == "mined_views"
     proto = source == "mined_proto"
@@ -416,6 +500,7 @@ model:
     view_prediction_rgb: {"false" if source == "mined_vp_occ" else "true"}
     projection_dim: {16 if source == "mined_proj" else "null"}
     projection_lr: {0.01 if source == "mined_proj" else 0.001}
+    positives: {"occupancy" if source == "mined_shape" else "patches"}
     correspondence_weight: {0.0 if source == "mined_vp_only" else 1.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
@@ -437,7 +522,7 @@ trainer:
 
 
 @pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_vp_only",
-                                    "mined_vp_occ", "mined_csls", "mined_proto", "mined_proj"])
+                                    "mined_vp_occ", "mined_csls", "mined_proto", "mined_proj", "mined_shape"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -529,6 +614,10 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
             Mining(encoder_ckpt=str(ckpt), queue_size=64, projection_dim=8)
     else:
         assert not any(k.startswith("projection.") for k in state)
+    if source == "mined_shape":  # each refresh ranked the miner's pairs by their objects' occupancy agreement
+        for f in sorted((run / "mining").glob("refresh_*.json")):
+            info = json.loads(f.read_text())
+            assert info["pairs"] <= min(5, info["shape_candidates"]) and 0.0 < info["shape_cosine_mean"] <= 1.0 + 1e-6
     if source == "mined_proto":  # a prototype positive for every query voxel the turned prototype covers
         assert 1 <= float(logged["train/prototype_positives"]) <= 2 * 8
         assert -1.0 <= float(logged["train/prototype_pos_cos"]) <= 1.0
