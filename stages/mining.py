@@ -56,6 +56,14 @@ and is carried to the next EM round by the checkpoint (``projection.*``; a fresh
 none). Off by default (the paper's InfoNCE on the features): it holds the embedded rounds back and lets the shape-only
 ones fall a little less, the trade the view-prediction keepers make (``docs/studies/mined-pairs.md``).
 
+Positives that are shape agreements by construction (``positives: occupancy``, issue #63's lever, not in the paper):
+the miner is asked for ``shape_oversample`` x ``keep`` pairs; each is re-posed on its two objects' input occupancy
+(:func:`shape_agreement`) and the ``keep`` that agree best are kept, with positives at cells both objects occupy at
+that yaw, keyed by the turned target's feature at the same cell (:func:`shape_cells`), instead of the corners of the
+patch match keyed by the features. Off by default: it lifts the embedded rounds' category retrieval and pose and the
+shape-only clustering, and lowers same-object identity, a little embedded clustering, and costs ~30 s a round
+(``docs/studies/mined-pairs.md``, "Positives that are shape agreements by construction").
+
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
 prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
 assigns every pool object a prototype and a yaw; each kept pair's query corners get a second key, the same cells of

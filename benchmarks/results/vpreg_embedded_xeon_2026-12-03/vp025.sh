@@ -7,7 +7,8 @@
 # ARM=vpocc and ARM=vpocc10, benchmarks/results/vpocc_xeon_2026-12-03/).
 # DATA=shapes (or embedded) runs one data set alone (eighteenth session: ARM=chk DATA=shapes,
 # benchmarks/results/prototype_check_shapes_xeon_2026-12-03/; ARM=proj,
-# benchmarks/results/projection_head_xeon_2026-12-03/).
+# benchmarks/results/projection_head_xeon_2026-12-03/). Nineteenth session: ARM=shape and ARM=shape1
+# (benchmarks/results/shape_positives_xeon_2026-12-03/).
 cd /tmp/mj/main && source /tmp/mj/venv/bin/activate
 ARM=${ARM:-vp025}
 DATA=${DATA:-both}
