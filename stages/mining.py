@@ -61,7 +61,7 @@ the miner is asked for ``shape_oversample`` x ``keep`` pairs; each is re-posed o
 (:func:`shape_agreement`) and the ``keep`` that agree best are kept, with positives at cells both objects occupy at
 that yaw, keyed by the turned target's feature at the same cell (:func:`shape_cells`), instead of the corners of the
 patch match keyed by the features. Off by default: it lifts the embedded rounds' category retrieval and pose and the
-shape-only clustering, and lowers same-object identity, a little embedded clustering, and costs ~30 s a round
+shape-only clustering, and lowers same-object identity, a little embedded clustering, and costs ~10 s more a refresh
 (``docs/studies/mined-pairs.md``, "Positives that are shape agreements by construction").
 
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
