@@ -455,6 +455,22 @@ class TestShapePositives:
                 assert F.max_pool3d(raw[:1, :1], 3, 1, 1)[0, 0, z, y, x] > 0  # on the query's dilated occupancy
                 assert torch.allclose(keys[p, n], F.normalize(turned[:, z, y, x], dim=0), atol=1e-5)
 
+    def test_no_candidates_or_no_shared_cells_leave_no_pairs(self) -> None:
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=8, corner_offset=2, num_angles=8, keep=2,
+                   positives="occupancy")
+        pool = {"raw": torch.zeros(3, 4, 8, 8, 8), "features": torch.randn(3, 32, 8, 8, 8)}  # empty crops
+
+        def mined(q: list[int], t: list[int]) -> dict[str, torch.Tensor]:
+            n = len(q)
+            return {"query_index": torch.tensor(q, dtype=torch.long), "target_index": torch.tensor(t, dtype=torch.long),
+                    "yaw": torch.zeros(n, dtype=torch.long), "score": torch.zeros(n),
+                    "query_pos": torch.zeros(n, 3, dtype=torch.long),
+                    "target_pos_aligned": torch.zeros(n, 3, dtype=torch.long)}
+
+        for q, t in (([], []), ([0, 1], [1, 2])):
+            out, vox, keys = m._shape_positives(pool, mined(q, t), 8, torch.Generator().manual_seed(0))
+            assert out["query_index"].numel() == 0 and vox.shape == (0, 8, 3) and keys.shape == (0, 8, 32)
+
     def test_exceptions(self) -> None:
         kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
         with pytest.raises(ValueError, match="positives"):
