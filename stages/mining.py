@@ -243,6 +243,13 @@ def shape_cells(query_occ: Tensor, target_occ_aligned: Tensor, count: int,
     return torch.multinomial(w[valid].float().cpu(), count, replacement=False, generator=generator).to(w.device), valid
 
 
+def take_pairs(mined: dict[str, Any], idx: Tensor) -> dict[str, Any]:
+    """The pairs ``idx`` of a :func:`~threedq.contrastive.mine_correspondences` result (its per-pair ``[P, ...]``
+    tensors indexed, the rest kept)."""
+    n = mined["query_index"].shape[0]
+    return {k: v[idx] if isinstance(v, Tensor) and v.shape[:1] == (n,) else v for k, v in mined.items()}
+
+
 def crop_voxels(crops: Tensor, idx: Tensor) -> Tensor:
     """The L2-normalised features ``[N, V, C]`` of crops ``[N, C, s, s, s]`` at flat cell indices ``idx`` ``[N, V]``
     (row-major over ``(z, y, x)``, i.e. ``z * s * s + y * s + x``): the view-contrastive positives' queries and keys."""
@@ -829,8 +836,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with
             ok = self.prototype_agreement(pool, mined, assignment).nonzero().flatten()[: hp.keep]
-            mined = {k: v[ok] if isinstance(v, Tensor) and v.shape[:1] == (candidates,) else v
-                     for k, v in mined.items()}
+            mined = take_pairs(mined, ok)
         offsets = corner_offsets(hp.corner_offset, hp.patch, device=feats.device)
         if by_shape:
             mined, q_voxels, keys = self._shape_positives(pool, mined, offsets.shape[0], g)
@@ -867,7 +873,6 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         keys ``[P, count, C]``."""
         hp = self.hparams
         qi, ti = mined["query_index"], mined["target_index"]
-        n = qi.numel()
         occ = F.max_pool3d(pool["raw"][:, :1].float(), kernel_size=3, stride=1, padding=1)  # the surface and next to it
         cos, yaw = shape_agreement(occ[qi], occ[ti], hp.num_angles)
         order = torch.sort(cos, descending=True, stable=True).indices
@@ -877,9 +882,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         feats = pool["features"]
         aligned = rotate_yaw(feats[ti[pick]], yaw[pick].to(feats.dtype) * (2 * math.pi / hp.num_angles))
         keys = crop_voxels(aligned, cells)  # [P, count, C]
-        s = occ.shape[-1]
-        vox = torch.stack((cells // (s * s), (cells // s) % s, cells % s), dim=-1)  # [P, count, 3]
-        out = {k: v[pick] if isinstance(v, Tensor) and v.shape[:1] == (n,) else v for k, v in mined.items()}
+        vox = torch.stack(torch.unravel_index(cells, occ.shape[2:]), dim=-1)  # [P, count, 3]
+        out = take_pairs(mined, pick)
         out["yaw"], out["shape_cosine"] = yaw[pick], cos[pick]
         # the pictures mark one positive cell, the same cell of both crops once the target is turned onto the query
         out["query_pos"], out["target_pos_aligned"] = vox[:, 0], vox[:, 0]
