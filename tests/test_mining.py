@@ -663,6 +663,18 @@ class TestCalibrateContextCosine:
         # the max of 27 cosines of independent random 512-d unit vectors: positive, well below 1
         assert 0.0 < lo < hi < 0.5
 
+    def test_bf16_cosines_of_a_gpu_autocast(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        # under a GPU's bf16 autocast the einsum returns bf16, which torch.quantile refuses (found on an H200,
+        # 2026-12-04); emulated here by an einsum that rounds to bf16 as CUDA's autocast does
+        import threedq.contrastive.mining as mining_mod
+
+        crops = unit(6, 16, 8, 8, 8)
+        ref = calibrate_context_cosine(crops, torch.arange(6), generator=torch.Generator().manual_seed(0))
+        einsum = torch.einsum
+        monkeypatch.setattr(mining_mod.torch, "einsum", lambda *a: einsum(*a).bfloat16())
+        low = calibrate_context_cosine(crops, torch.arange(6), generator=torch.Generator().manual_seed(0))
+        assert low == pytest.approx(ref, abs=2 ** -8)
+
     def test_one_scene_and_errors(self) -> None:
         crops = unit(3, 4, 8, 8, 8)
         assert calibrate_context_cosine(crops, torch.zeros(3, dtype=torch.long)) == 0.5

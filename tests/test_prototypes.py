@@ -12,7 +12,8 @@ from conftest import tiny_data_yaml
 
 from threedq.geometry import rotate_yaw
 from threedq.metrics import cluster_confusion, hungarian_accuracy
-from threedq.quantization.prototypes import PrototypeBank, fit_prototype_bank, prototype_crops, quantization_loss
+from threedq.quantization.prototypes import (PrototypeBank, assign_chunked, fit_prototype_bank, prototype_crops,
+                                              quantization_loss, run_prototype_em)
 
 S = 12
 
@@ -44,6 +45,24 @@ class TestPrototypeBank:
         assert bank.num_active == 3 and int(opened.sum()) == 3
         # the first copy of each shape opened its prototype
         assert sorted(labels[opened].tolist()) == [0, 1, 2]
+
+    @pytest.mark.parametrize("method", ["fast", "exact"])
+    def test_bf16_crops_fit_as_their_float32_copy(self, method: str) -> None:
+        # crops of an encoder under a GPU's bf16 autocast reached the EM in bf16 and failed the spectrum's plan check
+        # (found on an H200, 2026-12-04); the bank searches them in its own float32, as the float32 copy
+        objs, _, _ = rotated_copies(base_shapes(), per=6)
+        low = objs.to(torch.bfloat16)
+        banks = []
+        for crops in (low, low.float()):
+            bank = PrototypeBank(num_prototypes=4, channels=4, size=S, num_angles=36, method=method)
+            spectra: dict = {}
+            run_prototype_em(bank, crops, 2, seed=0, spectra=spectra)
+            banks.append((bank, assign_chunked(bank, crops, spectra=spectra)))
+        (a, ra), (b, rb) = banks
+        assert a.num_active == b.num_active >= 3
+        assert torch.equal(a.prototypes, b.prototypes) and a.prototypes.dtype == torch.float32
+        assert torch.equal(ra.prototype, rb.prototype) and torch.equal(ra.angle, rb.angle)
+        assert torch.equal(ra.score, rb.score)
 
     def test_em_clusters_and_aligns(self) -> None:
         shapes = base_shapes()

@@ -691,7 +691,7 @@ def calibrate_context_cosine(
         return F.normalize(f.flatten(-2).float(), dim=-1)
 
     cos = torch.einsum("mf,mef->me", vecs(a, pa), vecs(b, pb[:, None] + near)).amax(dim=1)
-    return float(cos.quantile(quantile))
+    return float(cos.float().quantile(quantile))  # einsum gives bf16 under a GPU's autocast; quantile needs float
 
 
 @torch.no_grad()

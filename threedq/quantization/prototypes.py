@@ -91,17 +91,21 @@ class PrototypeBank(nn.Module):
     def num_active(self) -> int:
         return int(self.active.sum())
 
-    def _check(self, objects: Tensor) -> None:
+    def _as_bank(self, objects: Tensor) -> Tensor:
+        """``objects`` checked for shape and in the bank's dtype: crops of an encoder run under bf16 autocast (a GPU's
+        ``bf16-mixed``) are searched, rotated and summed in the bank's float32, as float32 crops are (the polar
+        spectra of objects and prototypes must share one plan, dtype included)."""
         if objects.ndim != 5 or tuple(objects.shape[1:]) != tuple(self.prototypes.shape[1:]):
             raise ValueError(
                 f"objects: expected shape [N, {', '.join(map(str, self.prototypes.shape[1:]))}], got {tuple(objects.shape)}"
             )
+        return objects.to(self.prototypes.dtype)
 
     @torch.no_grad()
     def spectrum(self, objects: Tensor) -> PolarSpectrum | None:
         """The polar spectrum :meth:`assign` would compute for ``objects`` (``"fast"`` search), to hand back to it
         while the objects stay the same and the prototypes change; None for the ``"exact"`` search."""
-        self._check(objects)
+        objects = self._as_bank(objects)
         return polar_spectrum(objects, self.num_angles) if self.method == "fast" else None
 
     @torch.no_grad()
@@ -114,7 +118,7 @@ class PrototypeBank(nn.Module):
             :class:`~threedq.quantization.rotation_search.RotationSearchResult` with prototype ids in bank numbering
             ``[N]``, yaw indices ``[N]``, cosine scores ``[N]`` and all scores ``[N, K_active, A]``.
         """
-        self._check(objects)
+        objects = self._as_bank(objects)
         idx = self.active.nonzero().flatten()
         if idx.numel() == 0:
             raise RuntimeError("the prototype bank is empty: initialise it first (init_from / add)")
@@ -133,7 +137,7 @@ class PrototypeBank(nn.Module):
         Returns:
             ``[N]`` bool, which objects became prototypes.
         """
-        self._check(objects)
+        objects = self._as_bank(objects)
         thr = self.init_threshold if threshold is None else threshold
         opened = torch.zeros(objects.shape[0], dtype=torch.bool, device=objects.device)
         if self.num_active == self.active.numel():
@@ -174,7 +178,7 @@ class PrototypeBank(nn.Module):
         Returns:
             ``(angle [N], aligned [N, C, D, S, S])``: the yaw indices and the rotated objects, for ``previous``.
         """
-        self._check(objects)
+        objects = self._as_bank(objects)
         angles = yaw_angles(self.num_angles, device=objects.device, dtype=objects.dtype)
         if previous is not None and previous[0].shape == result.angle.shape and previous[1].shape == objects.shape:
             aligned = previous[1]
@@ -293,6 +297,7 @@ def run_prototype_em(
     lowest :func:`quantization_loss` on ``crops`` is kept (the first of equal ones), as k-means keeps the best of
     several starts (a departure from the paper). A bank that already holds prototypes is refined once, as it is.
     """
+    crops = bank._as_bank(crops)
     N = crops.shape[0]
     if N == 0:
         raise ValueError("crops: no objects to fit prototypes to")
@@ -349,6 +354,7 @@ def assign_chunked(bank: PrototypeBank, crops: Tensor, chunk: int = 256,
                    spectra: dict[int, PolarSpectrum | None] | None = None) -> RotationSearchResult:
     """:meth:`PrototypeBank.assign` of ``crops`` in chunks of ``chunk`` (reusing the spectra of a
     :func:`run_prototype_em` cache when given)."""
+    crops = bank._as_bank(crops)
     parts = [bank.assign(crops[s : s + chunk], _chunk_spectrum(bank, crops, s, chunk, spectra))
              for s in range(0, crops.shape[0], chunk)]
     return RotationSearchResult(prototype=torch.cat([r.prototype for r in parts]),
@@ -367,6 +373,7 @@ def fill_free_slots(bank: PrototypeBank, crops: Tensor, chunk: int = 256,
     Returns:
         The number of prototypes opened.
     """
+    crops = bank._as_bank(crops)
     free = bank.active.numel() - bank.num_active
     if free == 0 or crops.shape[0] == 0:
         return 0
