@@ -60,9 +60,11 @@ Positives that are shape agreements by construction (``positives: occupancy``, i
 the miner is asked for ``shape_oversample`` x ``keep`` pairs; each is re-posed on its two objects' input occupancy
 (:func:`shape_agreement`) and the ``keep`` that agree best are kept, with positives at cells both objects occupy at
 that yaw, keyed by the turned target's feature at the same cell (:func:`shape_cells`), instead of the corners of the
-patch match keyed by the features. Off by default: it lifts the embedded rounds' category retrieval and pose and the
-shape-only clustering, and lowers same-object identity, a little embedded clustering, and costs ~10 s more a refresh
-(``docs/studies/mined-pairs.md``, "Positives that are shape agreements by construction").
+patch match keyed by the features. The default since issue #63's twenty-first session (``"patches"`` is the
+paper's): over 2 seeds on each of two CPU types it lifts the embedded rounds' category retrieval and pose and the
+shape-only clustering, and lowers same-object identity; the embedded clustering is equal within the seeds' spread;
+it costs a few seconds a refresh (``docs/studies/mined-pairs.md``, "Positives that are shape agreements by
+construction" and the sections after it).
 
 The prototypes as positives (``prototype_weight > 0``, issue #63's lever, not in the paper): at each refresh the
 prototype bank of ``bank_ckpt`` (``threedq em`` hands over the bank the pool's encoder was last quantized with)
@@ -372,8 +374,16 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             (:func:`shape_agreement`, 3^3-dilated crops, every yaw step), the ``keep`` pairs whose occupancy agrees
             best are kept, and their positives are 8 cells where both objects are occupied at that yaw, each keyed
             by the target's feature at the same cell (:func:`shape_cells`): the geometry vouches for the
-            correspondence, so the positives are shape agreements by construction. Label-free.
+            correspondence, so the positives are shape agreements by construction. Label-free; the default.
         shape_oversample: see ``positives``.
+        negatives: ``mined``: what the InfoNCE contrasts the positives with. ``"queue"`` (MoCo's, the paper's): the
+            queue of past keys; it is primed with random voxels of the first refresh's pool and every step's keys
+            are enqueued after the loss. ``"pool"`` (not in the paper): random voxels of the latest refresh's pool,
+            drawn afresh at every refresh; the step's keys are not enqueued. The keys are the features of the
+            parts the pairs put in correspondence, mostly on objects of the queries' categories, and each pair is
+            drawn ``refresh_every * pairs_per_step / keep`` times a refresh on average (2 by default), so in MoCo's
+            queue later queries meet them (their own pair's earlier keys among them) as negatives: false negatives
+            at the highest cosines, which the temperature turns into the largest pushes. Label-free.
         round_lr: the learning rate across EM rounds: ``"constant"`` (``lr`` in every round, the paper's) or
             ``"harmonic"`` (default; ``lr / em_round``: the decreasing step of stochastic-approximation EM, so that
             later rounds refine the encoder rather than move it as far again; a departure from the paper, see
@@ -431,8 +441,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         prototype_yaw_window: int = 2,
         prototype_oversample: int = 4,
         prototype_weight: float = 0.0,
-        positives: Literal["patches", "occupancy"] = "patches",
+        positives: Literal["patches", "occupancy"] = "occupancy",
         shape_oversample: int = 4,
+        negatives: Literal["queue", "pool"] = "queue",
         round_lr: Literal["constant", "harmonic"] = "harmonic",
         em_round: int = 1,
         seed: int = 0,
@@ -513,9 +524,15 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             raise ValueError(f"positives: expected 'patches' or 'occupancy', got {positives!r}")
         if isinstance(shape_oversample, bool) or not isinstance(shape_oversample, int) or shape_oversample < 1:
             raise ValueError(f"shape_oversample: expected an int >= 1, got {shape_oversample!r}")
+        if negatives not in ("queue", "pool"):
+            raise ValueError(f"negatives: expected 'queue' or 'pool', got {negatives!r}")
+        if negatives == "pool" and source != "mined":
+            raise ValueError(f"negatives: 'pool' draws the negatives from the mined source's pool; source {source!r} "
+                             f"has no pool (use 'queue')")
         if positives == "occupancy" and verify_by_prototypes:
             raise ValueError("positives: 'occupancy' ranks the mined pairs by shape agreement; with "
-                             "verify_by_prototypes the bank ranks them too: choose one")
+                             "verify_by_prototypes the bank ranks them too: choose one (positives: patches, "
+                             "the paper's, to verify by prototypes)")
         if round_lr not in ("constant", "harmonic"):
             raise ValueError(f"round_lr: expected 'constant' or 'harmonic', got {round_lr!r}")
         if isinstance(em_round, bool) or not isinstance(em_round, int) or em_round < 1:
@@ -815,7 +832,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         feats = pool["features"]
         n_t = feats.shape[0]
         n_q = min(hp.query_pool, n_t)
-        if not bool(self.queue_primed):
+        if not bool(self.queue_primed) or hp.negatives == "pool":
             flat = feats.permute(0, 2, 3, 4, 1).reshape(-1, feats.shape[1])
             pick = torch.randint(0, flat.shape[0], (self.moco.queue.shape[0],), generator=g).to(flat.device)
             self.moco.queue.copy_(F.normalize(flat[pick], dim=1))
@@ -1049,7 +1066,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             out.update(vp_loss=vp["loss"].detach(), vp_occ=vp["occ_loss"].detach())
             if "l1" in vp:
                 out.update(vp_l1=vp["l1"].detach())
-        self._enqueue(k)
+        if hp.negatives == "queue":
+            self._enqueue(k)
         if not loss.requires_grad:  # correspondence_weight 0 and no other term had anything this step
             return {"loss": None}
         return {"loss": loss, **out}

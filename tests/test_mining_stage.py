@@ -108,6 +108,10 @@ class TestMiningStageErrors:
             Mining(source="vc_moco", view_positives=4, **kw)
         with pytest.raises(ValueError, match="view_weight"):
             Mining(view_positives=4, view_weight=0.0, **kw)
+        with pytest.raises(ValueError, match="negatives: expected 'queue' or 'pool', got 'batch'"):
+            Mining(negatives="batch", **kw)
+        with pytest.raises(ValueError, match="negatives: 'pool' .* source 'vc_moco' has no pool"):
+            Mining(source="vc_moco", negatives="pool", **kw)
 
     def test_vc_needs_two_view_sets(self) -> None:
         m = Mining(grid_resolution=(32, 32, 16), queue_size=64, source="vc")
@@ -517,6 +521,7 @@ model:
     projection_dim: {16 if source == "mined_proj" else "null"}
     projection_lr: {0.01 if source == "mined_proj" else 0.001}
     positives: {"occupancy" if source == "mined_shape" else "patches"}
+    negatives: {"pool" if source == "mined_pool" else "queue"}
     correspondence_weight: {0.0 if source == "mined_vp_only" else 1.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
@@ -538,7 +543,8 @@ trainer:
 
 
 @pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_vp_only",
-                                    "mined_vp_occ", "mined_csls", "mined_proto", "mined_proj", "mined_shape"])
+                                    "mined_vp_occ", "mined_csls", "mined_proto", "mined_proj", "mined_shape",
+                                    "mined_pool"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -586,6 +592,8 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     assert any(not torch.equal(tuned[k], start[k]) for k in start if start[k].is_floating_point())
     if source == "vc":
         assert int(state["moco.queue_ptr"]) == 0  # in-batch negatives: the queue is not used
+    elif source == "mined_pool":
+        assert int(state["moco.queue_ptr"]) == 0  # the pool's voxels are the negatives: no key was enqueued
     else:
         assert int(state["moco.queue_ptr"]) > 0
         # the key encoder moved towards the query encoder but lags it (momentum 0.999)
@@ -648,6 +656,57 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert info["pairs"] >= 1 and 0.0 <= info["same_category"] <= 1.0 and info["queries"] == 6
         assert (run / "mining" / "refresh_000000.png").is_file()
         assert ("prototype_positive_purity" in info) == (source == "mined_proto")
+
+
+@pytest.mark.parametrize("negatives", ["queue", "pool"])
+def test_negatives_from_the_queue_or_the_pool(negatives: str, tmp_path: Path, tiny_dataset: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """``negatives: queue`` (MoCo's): primed once with pool voxels, then every step's keys are enqueued. ``pool``:
+    the queue is drawn afresh from each refresh's pool and no step writes to it."""
+    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+    from threedq.stages.base import EncoderStage
+
+    torch.manual_seed(0)
+    enc = tmp_path / "enc.pt"
+    torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
+    source = "mined_pool" if negatives == "pool" else "mined"
+    after_refresh, after_step, keys = [], [], []
+    real_refresh, real_step, real_enqueue = Mining.refresh_pairs, Mining._mined_step, Mining._enqueue
+
+    def refresh(self: Mining) -> dict:
+        out = real_refresh(self)
+        after_refresh.append(self.moco.queue.clone())
+        return out
+
+    def step(self: Mining) -> dict:
+        out = real_step(self)
+        after_step.append((len(after_refresh), self.moco.queue.clone()))
+        return out
+
+    def enqueue(self: Mining, k: torch.Tensor) -> None:
+        keys.append(k.detach().clone())
+        real_enqueue(self, k)
+
+    monkeypatch.setattr(Mining, "refresh_pairs", refresh)
+    monkeypatch.setattr(Mining, "_mined_step", step)
+    monkeypatch.setattr(Mining, "_enqueue", enqueue)
+    cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/mining.yaml")),
+                           "--config", str(_config(tmp_path, tiny_dataset, enc, source)),
+                           f"--trainer.default_root_dir={tmp_path / 'run'}"])
+    assert cli.model.hparams.negatives == negatives
+    assert len(after_refresh) == 2 and len(after_step) == 3  # refreshes at steps 0 and 2
+    norms = after_refresh[0].norm(dim=1)
+    assert torch.allclose(norms, torch.ones_like(norms), atol=1e-5)  # unit rows
+    if negatives == "pool":
+        assert not keys
+        assert not torch.equal(after_refresh[0], after_refresh[1])  # drawn afresh from the second pool
+        for n, queue in after_step:  # no step writes to it
+            assert torch.equal(queue, after_refresh[n - 1])
+    else:
+        k = torch.cat(keys)
+        assert k.shape[0] > 0 and torch.equal(after_step[-1][1][: k.shape[0]], k.float())  # the keys, in order
+        # not re-primed at the second refresh: the rows no key has reached are the first refresh's pool voxels
+        assert torch.equal(after_refresh[1][k.shape[0]:], after_refresh[0][k.shape[0]:])
 
 
 def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -814,7 +873,7 @@ class TestPrototypeAgreement:
         protos = torch.randn(2, C, S, S, S)
         path = self._bank_file(tmp_path, protos)
         m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=S, num_angles=self.A, bank_ckpt=str(path),
-                   verify_by_prototypes=True, prototype_yaw_window=0)
+                   verify_by_prototypes=True, prototype_yaw_window=0, positives="patches")
         # pool object n = prototype k_n rotated by -a_n quarter turns, so that rotating it by a_n gives the prototype
         k = torch.tensor([0, 0, 1, 1, 0])
         a = torch.tensor([0, 1, 3, 2, 2])
@@ -835,7 +894,8 @@ class TestPrototypeAgreement:
         assert got.tolist() == [True, True, True, True, False, False]
 
     def test_errors(self, tmp_path: Path) -> None:
-        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64, "crop_size": 8, "num_angles": self.A}
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64, "crop_size": 8, "num_angles": self.A,
+              "positives": "patches"}
         with pytest.raises(ValueError, match="bank_ckpt"):
             Mining(verify_by_prototypes=True, **kw)
         with pytest.raises(InputError, match="no such file"):

@@ -93,7 +93,7 @@ def _stage_configs() -> list[str]:
 #: runs.
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
 #: A variant config's own choices: what it exists to set, on top of its stage's tuned config.
-VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes"}}
+VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives"}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
@@ -113,8 +113,9 @@ def test_a_variant_config_differs_from_its_stage_config_only_in_its_choices() ->
         base = yaml.safe_load((packaged_configs_dir() / "stages/mining.yaml").read_text())
         cfg = yaml.safe_load((packaged_configs_dir() / variant).read_text())
         args = cfg["model"]["init_args"]
-        assert set(args) - set(base["model"]["init_args"]) == own
-        assert {k: v for k, v in args.items() if k not in own} == base["model"]["init_args"]
+        assert set(args) == set(base["model"]["init_args"]) | own
+        assert {k: v for k, v in args.items() if k not in own} == \
+            {k: v for k, v in base["model"]["init_args"].items() if k not in own}
         assert cfg["data"] == base["data"] and cfg["seed_everything"] == base["seed_everything"]
         assert {k: v for k, v in cfg["trainer"].items() if k != "default_root_dir"} == \
             {k: v for k, v in base["trainer"].items() if k != "default_root_dir"}
