@@ -13,10 +13,11 @@ One stage, three sources of positive pairs (``source``), all trained with InfoNC
   (eval mode, no gradient, float32, each scene's fixed input views), and the first ``query_pool`` of them are mined against the rest
   (:func:`threedq.contrastive.mine_correspondences`: object-level rotation-max retrieval, the query patch
   searched over each target's patch grid at ``num_angles`` yaws, verification by the context ring at
-  Manhattan distance ``context_distance``); the ``keep`` best verified pairs are kept. Each pair gives 8
-  positives: the corners of a ``2 * corner_offset``-voxel cube around the match in the query crop, each paired
-  with its best-matching voxel within ``+-corner_search`` voxels of the expected place in the target rotated
-  onto the query (keys computed at the refresh). A training step draws ``pairs_per_step`` pairs, re-encodes
+  Manhattan distance ``context_distance``); the ``keep`` best verified pairs are kept. With ``positives:
+  patches`` (the paper's; the default is ``occupancy``, below) each pair gives 8 positives: the corners of a
+  ``2 * corner_offset``-voxel cube around the match in the query crop, each paired with its best-matching voxel
+  within ``+-corner_search`` voxels of the expected place in the target rotated onto the query (keys computed at
+  the refresh). A training step draws ``pairs_per_step`` pairs, re-encodes
   their query scenes with the encoder being trained (the loader's batch is not used) and takes InfoNCE of
   the query corners against their keys, with the queue as negatives. The queue is primed at the first refresh
   with random voxels of the pool, so the first steps do not contrast against random vectors.
