@@ -836,8 +836,9 @@ class TestRetrievalOccupancyFloor:
         raw = torch.zeros(5, 4, 4, 4, 4)
         raw[:, 0, 0, 0, 0] = 1.0  # one occupied corner voxel: its 2^3 corner block is near surface
         pool = {"features": feats, "raw": raw}
-        assert Mining(grid_resolution=(32, 32, 16), queue_size=64).retrieval_crops(pool, 2) is None
-        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, retrieval_occupancy_floor=0.2)
+        plain = Mining(grid_resolution=(32, 32, 16), queue_size=64, retrieval_occupancy_floor=None)
+        assert plain.retrieval_crops(pool, 2) is None
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64)  # the default floor, 0.2
         q, t = m.retrieval_crops(pool, 2)
         w = torch.full((4, 4, 4), 0.2)
         w[:2, :2, :2] = 1.2

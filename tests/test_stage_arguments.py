@@ -93,7 +93,7 @@ def _stage_configs() -> list[str]:
 #: runs.
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
 #: A variant config's own choices: what it exists to set, on top of its stage's tuned config.
-VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives"}}
+VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives", "retrieval_occupancy_floor"}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
