@@ -1,49 +1,51 @@
 """What machine a measurement ran on: the CPU's model name, its logical CPUs and the instruction sets that change
 bf16 numbers and speed, printed beside every benchmark table and recorded with every main job
 (:mod:`threedq.pipeline.results_pages`). Numbers from different CPU types differ (AMD, Intel with or without
-bf16/AMX), so each result names its CPU."""
+bf16/AMX), so each result names its CPU. The capabilities are torch's (:func:`cpu_capabilities`), the same ones
+that decide whether bf16 runs natively (:mod:`threedq.pipeline.precision`)."""
 
 from __future__ import annotations
 
-import os
 import platform
-from pathlib import Path
+from typing import Any
 
-__all__ = ["cpu_name"]
+import torch
 
-#: ``/proc/cpuinfo`` flags named in :func:`cpu_name`, most telling first: AMX and AVX512-BF16 run bf16 matrix
-#: products natively; without them bf16 is emulated (threedq's CLI then trains in float32).
+__all__ = ["cpu_capabilities", "cpu_name", "describe_cpu"]
+
+#: capabilities named in :func:`describe_cpu`, most telling first: AMX and AVX512-BF16 run bf16 matrix products
+#: natively; without them bf16 is emulated (threedq's CLI then trains in float32).
 _FEATURES = (("amx_bf16", "AMX"), ("avx512_bf16", "AVX512-BF16"))
 #: the widest vector set, named when none of the above is there
-_VECTORS = (("avx512f", "AVX-512"), ("avx2", "AVX2"))
+_VECTORS = (("avx512_f", "AVX-512"), ("avx2", "AVX2"))
 
 
-def describe_cpu(cpuinfo: str, logical_cpus: int | None) -> str:
-    """``"<model name> (<n> logical CPUs with <features>)"`` from the text of ``/proc/cpuinfo``; ``""`` without a model
-    name. Features: AMX and AVX512-BF16 where the flags say so, else the widest of AVX-512 and AVX2."""
-    model, flags = "", set()
-    for line in cpuinfo.splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() == "model name" and not model:
-            model = value.strip()
-        elif key.strip() == "flags" and not flags:
-            flags = set(value.split())
+def cpu_capabilities() -> dict[str, Any]:
+    """This CPU's capabilities as torch reads them (``torch._C._cpu._get_cpu_capability``: ``cpu_name``,
+    ``num_logical_cores``, ``architecture`` and one flag per instruction set); ``{}`` where torch cannot say."""
+    try:
+        return dict(torch._C._cpu._get_cpu_capability())
+    except (AttributeError, RuntimeError):
+        return {}
+
+
+def describe_cpu(cpu: dict[str, Any]) -> str:
+    """``"<cpu_name> (<n> logical CPUs with <features>)"`` from capabilities as :func:`cpu_capabilities` gives them;
+    ``""`` without a name. Features: AMX and AVX512-BF16 where the capabilities say so, else the widest of AVX-512
+    and AVX2."""
+    model = str(cpu.get("cpu_name") or "").strip()
     if not model:
         return ""
-    names = [name for flag, name in _FEATURES if flag in flags]
+    names = [name for flag, name in _FEATURES if cpu.get(flag)]
     if not names:
-        names = [name for flag, name in _VECTORS if flag in flags][:1]
-    inner = f"{logical_cpus} logical CPUs" if logical_cpus else ""
+        names = [name for flag, name in _VECTORS if cpu.get(flag)][:1]
+    count = cpu.get("num_logical_cores")
+    inner = f"{count} logical CPUs" if count else ""
     if names:
         inner += (" with " if inner else "") + " and ".join(names)
     return f"{model} ({inner})" if inner else model
 
 
 def cpu_name() -> str:
-    """This machine's CPU as :func:`describe_cpu` writes it (Linux ``/proc/cpuinfo``), else the platform's processor
-    string."""
-    try:
-        name = describe_cpu(Path("/proc/cpuinfo").read_text(), os.cpu_count())
-    except OSError:
-        name = ""
-    return name or platform.processor() or platform.machine() or "unknown CPU"
+    """This machine's CPU as :func:`describe_cpu` writes it, else the platform's processor string."""
+    return describe_cpu(cpu_capabilities()) or platform.processor() or platform.machine() or "unknown CPU"

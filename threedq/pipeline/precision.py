@@ -15,6 +15,8 @@ from typing import Any
 
 import torch
 
+from threedq.machine import cpu_capabilities
+
 __all__ = ["BF16_PRECISIONS", "bf16_is_native", "cpu_bf16_is_native", "cpu_precision"]
 
 #: Lightning's ``Trainer(precision=...)`` values that compute in bf16.
@@ -24,14 +26,11 @@ BF16_PRECISIONS = ("bf16-mixed", "bf16-true", "bf16")
 def cpu_bf16_is_native(cpu: dict[str, Any] | None = None) -> bool:
     """Whether this CPU has bf16 instructions: AVX512-BF16 or AMX-BF16 on x86, what oneDNN says elsewhere.
 
-    ``cpu``: the capabilities to judge (default: this machine's, ``torch._C._cpu._get_cpu_capability``), for tests.
+    ``cpu``: the capabilities to judge (default: this machine's, :func:`~threedq.machine.cpu_capabilities`), for tests.
     On x86 oneDNN also says bf16 is "supported" on a CPU with AVX-512 only; that is emulation, so it is not asked.
     """
     if cpu is None:
-        try:
-            cpu = dict(torch._C._cpu._get_cpu_capability())
-        except (AttributeError, RuntimeError):
-            cpu = {}
+        cpu = cpu_capabilities()
     if cpu.get("architecture", platform.machine()) in ("x86_64", "AMD64", "i386", "x86"):
         return bool(cpu.get("avx512_bf16") or cpu.get("amx_bf16"))
     try:  # other architectures (aarch64 with bf16 kernels): what oneDNN says
