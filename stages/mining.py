@@ -246,6 +246,28 @@ def shape_cells(query_occ: Tensor, target_occ_aligned: Tensor, count: int,
     return torch.multinomial(w[valid].float().cpu(), count, replacement=False, generator=generator).to(w.device), valid
 
 
+def recolour_scenes(rgb: Tensor, strength: float) -> Tensor:
+    """One random colour transform per scene, the same for all of its views: kornia's ``ColorJitter`` at
+    brightness, contrast and saturation ``0.4 * strength`` (MoCo v2's at 1) and hue ``0.5 * strength`` (any hue at 1).
+
+    Args:
+        rgb: ``[B, S, 3, H, W]`` in [0, 1], ``S`` views of each of ``B`` scenes.
+        strength: in [0, 1]; 0 returns ``rgb`` itself.
+
+    Returns:
+        ``[B, S, 3, H, W]`` in [0, 1]. Draws from torch's global generator (a seed reproduces it).
+
+    Convention: RGB channel order; the transform acts on colour only, never on pixel positions, so depth, poses
+    and boxes stay valid.
+    """
+    if not strength:
+        return rgb
+    from kornia.augmentation import ColorJitter  # the package's augmentation import is slow; only when asked
+
+    jitter = ColorJitter(0.4 * strength, 0.4 * strength, 0.4 * strength, 0.5 * strength, same_on_batch=True, p=1.0)
+    return torch.stack([jitter(scene.float()).clamp(0, 1).to(rgb.dtype) for scene in rgb])
+
+
 def take_pairs(mined: dict[str, Any], idx: Tensor) -> dict[str, Any]:
     """The pairs ``idx`` of a :func:`~threedq.contrastive.mine_correspondences` result (its per-pair ``[P, ...]``
     tensors indexed, the rest kept)."""
@@ -390,6 +412,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             at the highest cosines, which the temperature turns into the largest pushes. Label-free. Measured on
             the shape-only data (seed 0, both kinds of positives) it changes nothing: the queue's keys are not what
             lowers those rounds (docs/studies/mined-pairs.md): off.
+        colour_jitter: ``mined``: recolour each step's query scenes at random (:func:`recolour_scenes`, one
+            transform per scene, ``0`` off: the paper's, default). The keys were encoded at the refresh from the
+            targets' own colours, so a positive cannot be matched by colour: a test of whether the miner teaches
+            the colour of the pairs' objects rather than their shape (on data whose instances are coloured at
+            random, the pairs of one colour are the most similar, and the negatives differ in colour). Label-free;
+            not in the paper (MoCo v2 jitters the colours of its views; docs/studies/mined-pairs.md).
         round_lr: the learning rate across EM rounds: ``"constant"`` (``lr`` in every round, the paper's) or
             ``"harmonic"`` (default; ``lr / em_round``: the decreasing step of stochastic-approximation EM, so that
             later rounds refine the encoder rather than move it as far again; a departure from the paper, see
@@ -450,6 +478,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         positives: Literal["patches", "occupancy"] = "occupancy",
         shape_oversample: int = 4,
         negatives: Literal["queue", "pool"] = "queue",
+        colour_jitter: float = 0.0,
         round_lr: Literal["constant", "harmonic"] = "harmonic",
         em_round: int = 1,
         seed: int = 0,
@@ -532,6 +561,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             raise ValueError(f"shape_oversample: expected an int >= 1, got {shape_oversample!r}")
         if negatives not in ("queue", "pool"):
             raise ValueError(f"negatives: expected 'queue' or 'pool', got {negatives!r}")
+        if isinstance(colour_jitter, bool) or not isinstance(colour_jitter, (int, float)) \
+                or not 0.0 <= colour_jitter <= 1.0:
+            raise ValueError(f"colour_jitter: expected a number in [0, 1], got {colour_jitter!r}")
+        if colour_jitter and source != "mined":
+            raise ValueError(f"colour_jitter: recolours the mined source's query scenes; source {source!r} has none "
+                             f"(use 0)")
         if negatives == "pool" and source != "mined":
             raise ValueError(f"negatives: 'pool' draws the negatives from the mined source's pool; source {source!r} "
                              f"has no pool (use 'queue')")
@@ -1036,6 +1071,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         uniq, inv = scenes.unique(return_inverse=True)
         ds = self._train_dataset()
         batch = self._to_device(default_collate([ds[int(s)] for s in uniq.tolist()]))
+        if hp.colour_jitter:
+            batch["rgb"] = recolour_scenes(batch["rgb"], hp.colour_jitter)
         v = self.input_views(batch)
         feats = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
         crops = crop_boxes(feats, batch["aabb"], self.feature_grid, hp.crop_size)  # [B, M, C, s, s, s]

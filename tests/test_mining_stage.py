@@ -20,6 +20,7 @@ from threedq.stages.mining import (
     implied_yaw_error_deg,
     prototype_keys,
     prototype_purity,
+    recolour_scenes,
     shape_agreement,
     shape_cells,
 )
@@ -112,6 +113,11 @@ class TestMiningStageErrors:
             Mining(negatives="batch", **kw)
         with pytest.raises(ValueError, match="negatives: 'pool' .* source 'vc_moco' has no pool"):
             Mining(source="vc_moco", negatives="pool", **kw)
+        for bad in (-0.1, 1.5, True, "1", None):
+            with pytest.raises(ValueError, match="colour_jitter: expected a number in"):
+                Mining(colour_jitter=bad, **kw)
+        with pytest.raises(ValueError, match="colour_jitter: .* source 'vc' has none"):
+            Mining(source="vc", colour_jitter=0.5, **kw)
 
     def test_vc_needs_two_view_sets(self) -> None:
         m = Mining(grid_resolution=(32, 32, 16), queue_size=64, source="vc")
@@ -522,6 +528,7 @@ model:
     projection_lr: {0.01 if source == "mined_proj" else 0.001}
     positives: {"occupancy" if source == "mined_shape" else "patches"}
     negatives: {"pool" if source == "mined_pool" else "queue"}
+    colour_jitter: {1.0 if source == "mined_jitter" else 0.0}
     correspondence_weight: {0.0 if source == "mined_vp_only" else 1.0}
     csls_k: {2 if csls else "null"}
     mutual_k: {3 if csls else "null"}
@@ -544,7 +551,7 @@ trainer:
 
 @pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_vp_only",
                                     "mined_vp_occ", "mined_csls", "mined_proto", "mined_proj", "mined_shape",
-                                    "mined_pool"])
+                                    "mined_pool", "mined_jitter"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -570,6 +577,10 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
                         lambda *a, **k: miner_csls_k.append((k.get("csls_k"), k.get("mutual_k"),
                                                              k.get("retrieval_crops") is not None))
                         or real_miner(*a, **k))
+    recoloured = []  # (input, output) of each recolouring
+    real_recolour = stage_mining.recolour_scenes
+    monkeypatch.setattr(stage_mining, "recolour_scenes",
+                        lambda rgb, s: recoloured.append((rgb.clone(), out := real_recolour(rgb, s))) or out)
     run = tmp_path / source
     name = "mining" if source.startswith("mined") else source
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),
@@ -590,6 +601,12 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     assert state["moco.queue"].shape == (256, 32) and "moco.queue_ptr" in state
     tuned = encoder_state_from_checkpoint(ckpt)
     assert any(not torch.equal(tuned[k], start[k]) for k in start if start[k].is_floating_point())
+    if source == "mined_jitter":  # each step's query scenes, and nothing else (the pool keeps its colours)
+        assert model.hparams.colour_jitter == 1.0 and len(recoloured) == 3
+        for rgb, out in recoloured:
+            assert rgb.ndim == 5 and out.shape == rgb.shape and not torch.equal(out, rgb)
+    else:
+        assert not recoloured
     if source == "vc":
         assert int(state["moco.queue_ptr"]) == 0  # in-batch negatives: the queue is not used
     elif source == "mined_pool":
@@ -656,6 +673,53 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert info["pairs"] >= 1 and 0.0 <= info["same_category"] <= 1.0 and info["queries"] == 6
         assert (run / "mining" / "refresh_000000.png").is_file()
         assert ("prototype_positive_purity" in info) == (source == "mined_proto")
+
+
+class TestRecolourScenes:
+    """:func:`recolour_scenes`: one random colour transform per scene, shared by its views."""
+
+    def test_smoke_and_shapes(self) -> None:
+        torch.manual_seed(0)
+        rgb = torch.rand(2, 3, 3, 12, 16)
+        out = recolour_scenes(rgb, 1.0)
+        assert out.shape == rgb.shape and out.dtype == rgb.dtype
+        assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+        assert recolour_scenes(rgb, 0.0) is rgb  # off: the input itself
+
+    def test_one_transform_per_scene(self) -> None:
+        torch.manual_seed(1)
+        view = torch.rand(3, 12, 16)
+        rgb = view.expand(2, 3, 3, 12, 16).clone()  # 2 scenes of 3 identical views
+        out = recolour_scenes(rgb, 1.0)
+        assert torch.allclose(out[:, 0], out[:, 1]) and torch.allclose(out[:, 0], out[:, 2])  # views alike
+        assert (out[0] - out[1]).abs().max() > 0.05  # scenes not
+
+    def test_grey_stays_grey(self) -> None:
+        """Hue and saturation leave a grey pixel grey, brightness and contrast act on all channels alike
+        (hand-derived: R = G = B in, R = G = B out)."""
+        torch.manual_seed(2)
+        grey = torch.rand(4, 1, 1, 8, 8).expand(4, 2, 3, 8, 8).clone()
+        out = recolour_scenes(grey, 1.0)
+        assert torch.allclose(out[:, :, 0], out[:, :, 1], atol=1e-5)
+        assert torch.allclose(out[:, :, 1], out[:, :, 2], atol=1e-5)
+
+    def test_strength_scales_the_change(self) -> None:
+        """Near 0 the colours barely move; at 1 a saturated colour's hue moves (red no longer the largest channel in
+        some scene)."""
+        torch.manual_seed(3)
+        rgb = torch.rand(4, 1, 3, 8, 8)
+        assert (recolour_scenes(rgb, 1e-6) - rgb).abs().max() < 1e-3
+        red = torch.zeros(16, 1, 3, 4, 4)
+        red[:, :, 0] = 0.9
+        out = recolour_scenes(red, 1.0)
+        assert (out[:, 0, 0].mean((1, 2)) < out[:, 0, 1:].mean((2, 3)).max(1).values).any()
+
+    def test_a_seed_reproduces_it(self) -> None:
+        rgb = torch.rand(2, 2, 3, 8, 8)
+        torch.manual_seed(4)
+        a = recolour_scenes(rgb, 0.5)
+        torch.manual_seed(4)
+        assert torch.equal(a, recolour_scenes(rgb, 0.5))
 
 
 @pytest.mark.parametrize("negatives", ["queue", "pool"])
