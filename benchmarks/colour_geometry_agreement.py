@@ -22,8 +22,9 @@ Subsets (GT picks the objects, to show a kind of data; the statistic itself neve
 CLEVR primitives, whose 24 categories are 3 shapes x 8 colours (colour drawn apart from shape, yet half of the
 category), and its 17 meshes of one colour each.
 
-    python benchmarks/colour_geometry_agreement.py --seeds 0 1 \\
-        --md benchmarks/results/colour_geometry_amd_2026-12-05/agreement.md
+    D=benchmarks/results/colour_geometry_amd_2026-12-05
+    python benchmarks/colour_geometry_agreement.py --seeds 0 1 --out $D/agreement.jsonl --md $D/agreement.md \\
+        --png docs/img/colour_geometry_agreement.png
 
 One pool per (dataset, subset, seed) from a random draw of the training objects; about 3 min a dataset on 2 cores
 (most of it cutting the crops).
@@ -32,6 +33,7 @@ One pool per (dataset, subset, seed) from a random draw of the training objects;
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -42,6 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _machine import cpu_name
+
+from threedq.atomic_io import atomic_write_text
 
 DATASETS = {"shapes": "data/shapes.yaml", "embedded": "data/clevr_veggie.yaml"}
 NUM_ANGLES = 36
@@ -174,19 +178,56 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def figure(rows: list[dict[str, Any]]) -> Any:
+    """A scatter, one point per (dataset, subset) and seed: the label-free agreement (x) against the colour within
+    category (y, GT). A signal able to choose the jitter would put the data whose colour names the category (low y)
+    at low x only."""
+    from threedq.viz.png import new_figure
+
+    fig = new_figure(figsize=(6.4, 4.4), dpi=110)
+    ax = fig.add_subplot(1, 1, 1)
+    keys = list(dict.fromkeys((r["dataset"], r["subset"]) for r in rows))
+    for i, (dataset, subset) in enumerate(keys):
+        rs = [r for r in rows if (r["dataset"], r["subset"]) == (dataset, subset)]
+        ax.scatter([r["label_free_agreement"] for r in rs], [r["colour_within_category"] for r in rs],
+                   color=f"C{i}", label=f"{dataset}, {subset}", s=36)
+    ax.plot([0, 1.1], [0, 1.1], color="0.7", lw=0.8, ls="--")
+    ax.set_xlim(0, 1.1)
+    ax.set_ylim(0, 1.1)
+    ax.set_xlabel("label-free: colour distance to the shape neighbour / chance")
+    ax.set_ylabel("GT: colour distance within a category / chance")
+    ax.set_title("Does colour follow shape? (1 = no)", fontsize=10)
+    ax.legend(fontsize=7, loc="lower left")
+    return fig
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="one random pool of objects per seed")
     ap.add_argument("--queries", type=int, default=256, help="queries per pool (the miner's query_pool)")
     ap.add_argument("--pool", type=int, default=512, help="objects per pool (the miner's target_pool)")
+    ap.add_argument("--out", type=Path, default=Path("runs/colour_geometry_agreement.jsonl"),
+                    help="the rows, one JSON line per (dataset, subset, seed); rewritten by a run")
     ap.add_argument("--md", type=Path, default=None, help="also write the table here")
+    ap.add_argument("--png", type=Path, default=None, help="also draw the scatter (figure) here")
+    ap.add_argument("--table_only", action="store_true", help="table (and picture) from --out, nothing measured")
     args = ap.parse_args()
-    md = table(run(args.datasets, args.seeds, args.queries, args.pool))
+    if args.table_only:
+        rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()]
+    else:
+        rows = run(args.datasets, args.seeds, args.queries, args.pool)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.out, "".join(json.dumps(r) + "\n" for r in rows))
+    md = table(rows)
     print(md)
     if args.md:
         args.md.parent.mkdir(parents=True, exist_ok=True)
         args.md.write_text(md + "\n")
+    if args.png:
+        from threedq.viz.png import write_png
+
+        write_png(args.png, figure(rows))
 
 
 if __name__ == "__main__":

@@ -101,3 +101,28 @@ def test_table_means_and_ranges() -> None:
              "nn_same_category": 0.5, "colour_within_category": 1.0} for s, v in ((0, 0.8), (1, 1.0))]
     md = cga.table(rows)
     assert "| shapes, all | 2 of 4 | 0.900 (0.800-1.000) | 0.500 (0.500-0.500) | 1.000 (1.000-1.000) |" in md
+
+
+def test_figure_one_series_per_subset_a_point_per_seed(tmp_path) -> None:
+    rows = [{"dataset": d, "subset": "all", "seed": s, "queries": 2, "pool": 4, "label_free_agreement": 0.5 + s / 10,
+             "nn_same_category": 0.5, "colour_within_category": 0.3} for d in ("shapes", "embedded") for s in (0, 1)]
+    fig = cga.figure(rows)
+    series = fig.axes[0].collections
+    assert len(series) == 2 and all(c.get_offsets().shape == (2, 2) for c in series)
+    assert series[1].get_offsets()[1].tolist() == pytest.approx([0.6, 0.3])
+    from threedq.viz.png import write_png
+
+    assert write_png(tmp_path / "f.png", fig).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_table_only_reads_the_rows_back(tmp_path, monkeypatch, capsys) -> None:
+    import json
+    import sys
+
+    rows = [{"dataset": "shapes", "subset": "all", "seed": 0, "queries": 2, "pool": 4, "label_free_agreement": 0.9,
+             "nn_same_category": 0.5, "colour_within_category": 1.0}]
+    out = tmp_path / "rows.jsonl"
+    out.write_text(json.dumps(rows[0]) + "\n")
+    monkeypatch.setattr(sys, "argv", ["x", "--table_only", "--out", str(out), "--md", str(tmp_path / "t.md")])
+    cga.main()
+    assert "| shapes, all | 2 of 4 | 0.900 |" in (tmp_path / "t.md").read_text()
