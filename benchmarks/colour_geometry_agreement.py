@@ -7,7 +7,8 @@ shape share a colour more often than chance? This script measures it on the trai
 view per scene, the raw ``cat[occ, occ * rgb]`` crops every stage starts from), and, for reference only, what the
 labels say.
 
-Per object ``i``: its colour ``c_i``, the mean sRGB of its input-occupied cells; its geometric nearest neighbour
+Per object ``i``: its colour ``c_i``, the mean sRGB of its input-occupied cells (the colour half of
+:func:`threedq.baselines.descriptor.colour_size_descriptor`); its geometric nearest neighbour
 ``nn(i)``, the object of another scene whose 3^3-dilated input occupancy agrees best at the best of 36 yaws (the
 cosine of :func:`threedq.stages.mining.shape_agreement`, the miner's shape ranking), searched among ``--pool``
 objects for ``--queries`` of them, as a refresh of the miner does (256 of 512 by default).
@@ -49,19 +50,6 @@ from threedq.atomic_io import atomic_write_text
 
 DATASETS = {"shapes": "data/shapes.yaml", "embedded": "data/clevr_veggie.yaml"}
 NUM_ANGLES = 36
-
-
-def object_colours(raw: Any) -> Any:
-    """``[N, 3]``: the mean sRGB of each crop's input-occupied cells.
-
-    Args:
-        raw: ``[N, 4, s, s, s]`` raw crops ``cat[occ, occ * rgb]``
-            (:meth:`threedq.stages.base.EncoderStage.object_crops`).
-
-    Convention: sRGB in [0, 1]; a crop with no occupied cell gets 0.
-    """
-    occ = raw[:, :1].float().flatten(1).sum(1, keepdim=True)
-    return raw[:, 1:4].float().flatten(2).sum(2) / occ.clamp_min(1e-6)
 
 
 def shape_similarity(raw_q: Any, raw_t: Any, num_angles: int = NUM_ANGLES) -> Any:
@@ -132,6 +120,7 @@ def run(datasets: list[str], seeds: list[int], queries: int, pool: int) -> list[
     from shape_benchmark import load_datamodule, random_stage
     from tqdm import tqdm
 
+    from threedq.baselines.descriptor import colour_size_descriptor
     from threedq.pipeline.evaluation import collect_object_crops
     from threedq.pipeline.report import split_loader
 
@@ -150,7 +139,8 @@ def run(datasets: list[str], seeds: list[int], queries: int, pool: int) -> list[
                 pick = idx[torch.randperm(idx.numel(), generator=g)[:pool]]
                 n_q = min(queries, pick.numel())
                 sim = shape_similarity(raw[pick[:n_q]], raw[pick])
-                m = agreement(object_colours(raw[pick]), sim, scene[pick], labels[pick])
+                colours = colour_size_descriptor(raw[pick], crops["aabb"][pick])[:, :3]  # the descriptor's colour
+                m = agreement(colours, sim, scene[pick], labels[pick])
                 rows.append({"dataset": name, "subset": subset, "seed": seed, "queries": n_q,
                              "pool": int(pick.numel()), **m})
         print(f"{name}: {raw.shape[0]} training objects, {time.time() - t0:.0f} s", file=sys.stderr)

@@ -1,5 +1,6 @@
-"""``benchmarks/colour_geometry_agreement.py``: its colours, its all-pairs shape search and its three measures,
-against naive loops, the miner's pairwise search and hand-made cases."""
+"""``benchmarks/colour_geometry_agreement.py``: its all-pairs shape search and its three measures, against the
+miner's pairwise search, a copy turned a quarter and hand-made cases (its colours are the descriptor baseline's,
+tested in ``test_baseline_descriptor.py``)."""
 
 from __future__ import annotations
 
@@ -15,21 +16,6 @@ cga = load_benchmark("colour_geometry_agreement")
 def _raw(occ: torch.Tensor, rgb: tuple[float, float, float]) -> torch.Tensor:
     """``[4, s, s, s]`` raw crop ``cat[occ, occ * rgb]`` of one colour."""
     return torch.cat([occ[None], occ[None] * torch.tensor(rgb).view(3, 1, 1, 1)])
-
-
-class TestObjectColours:
-    def test_against_a_loop_over_occupied_cells(self) -> None:
-        g = torch.Generator().manual_seed(0)
-        occ = (torch.rand(3, 1, 4, 4, 4, generator=g) > 0.6).float()
-        rgb = torch.rand(3, 3, 4, 4, 4, generator=g)
-        raw = torch.cat([occ, occ * rgb], dim=1)
-        out = cga.object_colours(raw)
-        for n in range(3):
-            cells = [rgb[n, :, z, y, x] for z in range(4) for y in range(4) for x in range(4) if occ[n, 0, z, y, x]]
-            assert torch.allclose(out[n], torch.stack(cells).mean(0), atol=1e-6)
-
-    def test_empty_crop_is_black_not_nan(self) -> None:
-        assert torch.equal(cga.object_colours(torch.zeros(1, 4, 2, 2, 2)), torch.zeros(1, 3))
 
 
 class TestShapeSimilarity:
