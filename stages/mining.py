@@ -268,6 +268,39 @@ def recolour_scenes(rgb: Tensor, strength: float) -> Tensor:
     return torch.stack([jitter(scene.float()).clamp(0, 1).to(rgb.dtype) for scene in rgb])
 
 
+def gt_box_iou(batch: dict[str, Any]) -> Tensor:
+    """``[N]`` for the batch's valid boxes (``box_mask`` order): the highest 3D IoU with a GT object box of its scene
+    (``gt_aabb``/``gt_mask``; measuring only: the pair diagnostics' looser "on an object"); NaN where the batch
+    carries no GT boxes, 0 where the scene has none."""
+    mask = batch["box_mask"]
+    if "gt_aabb" not in batch or "gt_mask" not in batch:
+        return torch.full((int(mask.sum()),), float("nan"), device=mask.device)
+    out = []
+    for i in range(mask.shape[0]):
+        boxes, gt = batch["aabb"][i][mask[i]].float(), batch["gt_aabb"][i][batch["gt_mask"][i]].float()
+        out.append(aabb_iou_3d(boxes, gt).amax(dim=1) if boxes.shape[0] and gt.shape[0] else
+                   torch.zeros(boxes.shape[0], device=mask.device))
+    return torch.cat(out)
+
+
+def cap_pairs_per_box(query_index: Tensor, target_index: Tensor, cap: int) -> Tensor:
+    """``[P]`` bool: walking the pairs in the given (rank) order, keep a pair only while each of its two boxes is in
+    fewer than ``cap`` kept pairs (as query or target). A box whose crop agrees with many (a thin object, a part
+    cut short) then cannot take most of a refresh's pairs.
+
+    Args:
+        query_index, target_index: ``[P]`` pool indices of each pair's boxes, best pair first. cap: >= 1.
+    """
+    used: dict[int, int] = {}
+    keep = torch.zeros(query_index.numel(), dtype=torch.bool, device=query_index.device)
+    for n, (q, t) in enumerate(zip(query_index.tolist(), target_index.tolist())):
+        if used.get(q, 0) < cap and used.get(t, 0) < cap:
+            keep[n] = True
+            used[q] = used.get(q, 0) + 1
+            used[t] = used.get(t, 0) + 1
+    return keep
+
+
 def take_pairs(mined: dict[str, Any], idx: Tensor) -> dict[str, Any]:
     """The pairs ``idx`` of a :func:`~threedq.contrastive.mine_correspondences` result (its per-pair ``[P, ...]``
     tensors indexed, the rest kept)."""
@@ -377,6 +410,14 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             detector snaps to) reaches this value (default 0.5). ``None``: every box of the split (the paper's pool,
             which on detected boxes also holds boxes on empty floor, whose crops are the most alike). Label-free; a
             departure from the paper (docs/studies/mined-pairs.md, "The object check alone").
+        pool_min_scene_iou: ``mined``: a box enters the pool only when the geometry of its whole training scene
+            vouches for it too: its 3D IoU with one of the label-free pseudo-boxes fused over the scene's views (the
+            DataModule's ``pseudo_boxes``: observed surface above the fitted ground over every second view, what the
+            detector's warm start learns from, cached per split) reaches this value. The input view's check above
+            passes boxes cut short to the part of an object one view sees (the detector snaps to that view's
+            surface); the fused views see most of each object, so this check drops them. ``None`` (default): off.
+            Label-free; the views are the training scene's own (the data view prediction learns from), not
+            labels. Not in the paper (docs/studies/mined-pairs.md, "The scene's views vouch for the box").
         bank_ckpt: ``mined``: the prototype bank the pool's encoder was last quantized with (a quantizer
             checkpoint; ``threedq em`` passes the previous round's, round 1 gets round 0's), for
             ``verify_by_prototypes`` and ``prototype_weight``.
@@ -402,6 +443,10 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             by the target's feature at the same cell (:func:`shape_cells`): the geometry vouches for the
             correspondence, so the positives are shape agreements by construction. Label-free; the default.
         shape_oversample: see ``positives``.
+        max_pairs_per_box: with ``positives: occupancy``: walking the ranked pairs, a box takes part in at most this
+            many kept pairs, as query or target (:func:`cap_pairs_per_box`); ``None`` (default): no cap. Crops
+            that agree with many others (thin objects, parts cut short) otherwise take a large share of a
+            refresh's pairs. Label-free; not in the paper (docs/studies/mined-pairs.md, "Pairs per box").
         negatives: ``mined``: what the InfoNCE contrasts the positives with. ``"queue"`` (MoCo's, the paper's): the
             queue of past keys; it is primed with random voxels of the first refresh's pool and every step's keys
             are enqueued after the loss. ``"pool"`` (not in the paper): random voxels of the latest refresh's pool,
@@ -470,6 +515,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         projection_lr: float = 1e-3,
         pool_batch_size: int = 4,
         pool_min_observed_iou: float | None = 0.5,
+        pool_min_scene_iou: float | None = None,
         bank_ckpt: str | None = None,
         verify_by_prototypes: bool = False,
         prototype_yaw_window: int = 2,
@@ -477,6 +523,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         prototype_weight: float = 0.0,
         positives: Literal["patches", "occupancy"] = "occupancy",
         shape_oversample: int = 4,
+        max_pairs_per_box: int | None = None,
         negatives: Literal["queue", "pool"] = "queue",
         colour_jitter: float = 0.0,
         round_lr: Literal["constant", "harmonic"] = "harmonic",
@@ -526,6 +573,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if pool_min_observed_iou is not None and (isinstance(pool_min_observed_iou, bool) or not isinstance(
                 pool_min_observed_iou, (int, float)) or not 0.0 < pool_min_observed_iou <= 1.0):
             raise ValueError(f"pool_min_observed_iou: expected None or a number in (0, 1], got {pool_min_observed_iou!r}")
+        if pool_min_scene_iou is not None and (isinstance(pool_min_scene_iou, bool) or not isinstance(
+                pool_min_scene_iou, (int, float)) or not 0.0 < pool_min_scene_iou <= 1.0):
+            raise ValueError(f"pool_min_scene_iou: expected None or a number in (0, 1], got {pool_min_scene_iou!r}")
+        if pool_min_scene_iou is not None and source != "mined":
+            raise ValueError(f"pool_min_scene_iou: a check of the mined source's pool, not of source {source!r}")
         f = retrieval_occupancy_floor
         if f is not None and (isinstance(f, bool) or not isinstance(f, (int, float)) or not 0.0 <= f < math.inf):
             raise ValueError(f"retrieval_occupancy_floor: expected None or a number >= 0, got {f!r}")
@@ -559,6 +611,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             raise ValueError(f"positives: expected 'patches' or 'occupancy', got {positives!r}")
         if isinstance(shape_oversample, bool) or not isinstance(shape_oversample, int) or shape_oversample < 1:
             raise ValueError(f"shape_oversample: expected an int >= 1, got {shape_oversample!r}")
+        if max_pairs_per_box is not None and (isinstance(max_pairs_per_box, bool) or not isinstance(
+                max_pairs_per_box, int) or max_pairs_per_box < 1):
+            raise ValueError(f"max_pairs_per_box: expected None or an int >= 1, got {max_pairs_per_box!r}")
+        if max_pairs_per_box is not None and positives != "occupancy":
+            raise ValueError(f"max_pairs_per_box: caps the occupancy ranking's pairs (positives: occupancy), not "
+                             f"positives {positives!r}")
         if negatives not in ("queue", "pool"):
             raise ValueError(f"negatives: expected 'queue' or 'pool', got {negatives!r}")
         if isinstance(colour_jitter, bool) or not isinstance(colour_jitter, (int, float)) \
@@ -594,7 +652,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             split: RetrievalPrecisionAtK(k=retrieval_k, num_angles=num_angles) for split in ("val", "test")
         })
         self._pairs: dict[str, Tensor] | None = None
-        self._pool_stats = {"boxes": 0, "vouched": 0}
+        self._pool_stats = {"boxes": 0, "vouched": 0, "scene_vouched": 0}
+        self._scene_boxes: dict[str, Any] | None = None  # the training split's fused pseudo-boxes (pool_min_scene_iou)
         self._candidates = 0
         self._refreshed_at = -1
         self._vp: dict[str, Any] | None = None  # the regulariser's settings (VIEW_PREDICTION_SETTINGS)
@@ -817,7 +876,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         self.encoder.eval()
         want = self.hparams.target_pool
         order = torch.randperm(len(ds), generator=generator).tolist()
-        parts: dict[str, list[Tensor]] = {k: [] for k in ("features", "raw", "labels", "yaw", "scene", "slot")}
+        parts: dict[str, list[Tensor]] = {k: [] for k in ("features", "raw", "labels", "yaw", "scene", "slot",
+                                                          "gt_iou")}
         got, i = 0, 0
         try:
             while got < want and i < len(order):
@@ -832,8 +892,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                     keep = self._observed_iou(batch) >= self.hparams.pool_min_observed_iou
                     self._pool_stats["boxes"] += int(keep.numel())
                     self._pool_stats["vouched"] += int(keep.sum())
+                if self.hparams.pool_min_scene_iou is not None:
+                    keep &= self._scene_iou(batch, ds) >= self.hparams.pool_min_scene_iou
+                    self._pool_stats["scene_vouched"] += int(keep.sum())
                 for k, v in (("features", c["features"]), ("raw", c["raw"]), ("labels", c["labels"]),
-                             ("yaw", c["boxes"][:, 6]), ("scene", c["scene"]), ("slot", slot)):
+                             ("yaw", c["boxes"][:, 6]), ("scene", c["scene"]), ("slot", slot),
+                             ("gt_iou", gt_box_iou(batch))):
                     parts[k].append(v[keep])
                 got += int(keep.sum())
         finally:
@@ -858,6 +922,37 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
                 out.append(aabb_iou_3d(boxes, torch.from_numpy(obs)).amax(dim=1))
         return torch.cat(out).to(self.device)
 
+    def _scene_iou(self, batch: dict[str, Any], ds: Any) -> Tensor:
+        """``[N]`` for the batch's valid boxes (``box_mask`` order): the highest 3D IoU with a label-free pseudo-box
+        fused over the views of its training scene (the DataModule's ``pseudo_boxes("train")``, by the scene's file in
+        ``ds.files``); 0 where the scene has none."""
+        if self._scene_boxes is None:
+            self._scene_boxes = self._scene_pseudo_boxes()
+        if not hasattr(ds, "files"):
+            raise ValueError(f"pool_min_scene_iou: the pool's dataset ({type(ds).__name__}) names no scene files "
+                             f"(.files); set pool_min_scene_iou: null")
+        out = []
+        for i in range(batch["box_mask"].shape[0]):
+            boxes = batch["aabb"][i][batch["box_mask"][i]].float().cpu()
+            name = ds.files[int(batch["scene_index"][i])]
+            if name not in self._scene_boxes:
+                raise ValueError(f"pool_min_scene_iou: the training split's pseudo-boxes have no entry for {name}")
+            fused = torch.as_tensor(self._scene_boxes[name][0], dtype=torch.float32).reshape(-1, 6)
+            if boxes.shape[0] == 0 or fused.shape[0] == 0:
+                out.append(torch.zeros(boxes.shape[0]))
+            else:
+                out.append(aabb_iou_3d(boxes, fused).amax(dim=1))
+        return torch.cat(out).to(self.device)
+
+    def _scene_pseudo_boxes(self) -> dict[str, Any]:
+        """The training split's label-free pseudo-boxes per scene file, fused over its views: the DataModule's
+        ``pseudo_boxes("train")`` (computed once per split and cached by it)."""
+        dm = getattr(self._trainer, "datamodule", None)
+        if dm is None or not callable(getattr(dm, "pseudo_boxes", None)):
+            raise ValueError(f"pool_min_scene_iou: the check needs a DataModule with pseudo_boxes(split) (threedq's "
+                             f"scene-folder DataModules); got {type(dm).__name__}; set pool_min_scene_iou: null")
+        return dm.pseudo_boxes("train")
+
     def _to_device(self, batch: dict[str, Any]) -> dict[str, Any]:
         return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
 
@@ -868,7 +963,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         t0 = time.time()
         rank = self.trainer.global_rank if self.trainer is not None else 0
         g = torch.Generator().manual_seed(hp.seed + 1009 * int(self.refreshes) + 7919 * rank)
-        self._pool_stats = {"boxes": 0, "vouched": 0}
+        self._pool_stats = {"boxes": 0, "vouched": 0, "scene_vouched": 0}
         pool = self._cut_pool(self._pool_dataset(), g)
         feats = pool["features"]
         n_t = feats.shape[0]
@@ -936,7 +1031,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         order = torch.sort(cos, descending=True, stable=True).indices
         t_occ = rotate_yaw(occ[ti[order]], yaw[order].to(occ.dtype) * (2 * math.pi / hp.num_angles))
         cells, valid = shape_cells(occ[qi[order]], t_occ, count, generator)
-        pick, cells = order[valid][: hp.keep], cells[: hp.keep]
+        order = order[valid]
+        if hp.max_pairs_per_box is not None:
+            spread = cap_pairs_per_box(qi[order], ti[order], hp.max_pairs_per_box)
+            order, cells = order[spread], cells[spread]
+        pick, cells = order[: hp.keep], cells[: hp.keep]
         feats = pool["features"]
         aligned = rotate_yaw(feats[ti[pick]], yaw[pick].to(feats.dtype) * (2 * math.pi / hp.num_angles))
         keys = crop_voxels(aligned, cells)  # [P, count, C]
@@ -980,6 +1079,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         same = (lq == lt) & labelled
         out: dict[str, Any] = {"same_category": float(same.sum() / labelled.sum()) if labelled.any() else float("nan"),
                                "labelled_pairs": int(labelled.sum())}
+        iou = pool.get("gt_iou")
+        if iou is not None and iou.numel() and not bool(torch.isnan(iou).any()):
+            # the looser "on an object": both boxes overlap a GT object at IoU >= 0.25 (mAP@0.25's threshold), which
+            # counts boxes cut short on thin or half-seen objects
+            out["pairs_on_objects_iou25"] = int(((iou[qi] >= 0.25) & (iou[ti] >= 0.25)).sum())
         sym = self._symmetry()
         if sym is not None and same.any():
             s = sym.to(qi.device)[lq.clamp_min(0)]
@@ -1000,8 +1104,13 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             "step": int(self.global_step), "refresh": int(self.refreshes), "pool_objects": int(pool["features"].shape[0]),
             "queries": n_q, "pairs": int(qi.numel()), "min_cosine": round(min_cos, 4),
             "score_mean": float(mined["score"].mean()) if qi.numel() else float("nan"),
+            # how widely the pairs spread over the pool (a box in many pairs is a hub of the ranking)
+            "distinct_queries": int(qi.unique().numel()), "distinct_targets": int(mined["target_index"].unique().numel()),
+            "distinct_boxes": int(torch.cat([qi, mined["target_index"]]).unique().numel()),
             "same_category": measures["same_category"],
             "labelled_pairs": measures["labelled_pairs"],
+            **({"pairs_on_objects_iou25": measures["pairs_on_objects_iou25"]}
+               if "pairs_on_objects_iou25" in measures else {}),
             # the pool's boxes that match a GT object (measuring only)
             "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
@@ -1016,6 +1125,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if hp.pool_min_observed_iou is not None:  # boxes looked at, and those the input views' geometry vouched for
             info["pool_boxes_seen"] = self._pool_stats["boxes"]
             info["pool_vouched"] = self._pool_stats["vouched"]
+        if hp.pool_min_scene_iou is not None:  # of those, the ones the fused views of their scene vouched for too
+            info["pool_scene_vouched"] = self._pool_stats["scene_vouched"]
         info.update({k: v for k, v in measures.items() if k.startswith("yaw")})
         self.mining_history.append(info)
         if self.trainer is not None:

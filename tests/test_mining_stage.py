@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -535,6 +536,8 @@ model:
     retrieval_occupancy_floor: {0.2 if csls else "null"}
     prototype_weight: {1.0 if proto else 0.0}
     bank_ckpt: {bank if proto else "null"}
+    pool_min_scene_iou: {0.3 if source == "mined_scene" else "null"}
+    max_pairs_per_box: {2 if source == "mined_shape" else "null"}
 {tiny_data_yaml(data_dir, batch_size=2, **({"num_target_views": 1} if views or vp else {}))}
 trainer:
   max_steps: 3
@@ -551,7 +554,7 @@ trainer:
 
 @pytest.mark.parametrize("source", ["vc", "vc_moco", "mined", "mined_views", "mined_vp", "mined_vp_only",
                                     "mined_vp_occ", "mined_csls", "mined_proto", "mined_proj", "mined_shape",
-                                    "mined_pool", "mined_jitter"])
+                                    "mined_pool", "mined_jitter", "mined_scene"])
 def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Path,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
     from threedq.stages.base import EncoderStage, encoder_state_from_checkpoint
@@ -581,6 +584,17 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
     real_recolour = stage_mining.recolour_scenes
     monkeypatch.setattr(stage_mining, "recolour_scenes",
                         lambda rgb, s: recoloured.append((rgb.clone(), out := real_recolour(rgb, s))) or out)
+    asked = []  # the splits the stage asked the DataModule's fused pseudo-boxes of
+    if source == "mined_scene":  # the tiny scenes' 32x32 views are too coarse for pseudo-boxes: their GT boxes stand in
+        from threedq.datamodules.scene_folder import SceneFolderDataModule
+
+        def gt_as_fused(dm: SceneFolderDataModule, split: str, progress: bool = False) -> dict:
+            asked.append(split)
+            ds = dm.fixed_view_dataset(split, with_boxes=False)
+            return {f: (ds[i]["aabb"][ds[i]["box_mask"]].numpy(), np.ones(int(ds[i]["box_mask"].sum()), np.float32))
+                    for i, f in enumerate(ds.files)}
+
+        monkeypatch.setattr(SceneFolderDataModule, "pseudo_boxes", gt_as_fused)
     run = tmp_path / source
     name = "mining" if source.startswith("mined") else source
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config(f"stages/{name}.yaml")),
@@ -659,6 +673,7 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         for f in sorted((run / "mining").glob("refresh_*.json")):
             info = json.loads(f.read_text())
             assert info["pairs"] <= min(5, info["shape_candidates"]) and 0.0 < info["shape_cosine_mean"] <= 1.0 + 1e-6
+            assert info["distinct_boxes"] >= info["pairs"]  # each box in at most 2 pairs: 2 P slots over >= P boxes
     if source == "mined_proto":  # a prototype positive for every query voxel the turned prototype covers
         assert 1 <= float(logged["train/prototype_positives"]) <= 2 * 8
         assert -1.0 <= float(logged["train/prototype_pos_cos"]) <= 1.0
@@ -671,8 +686,68 @@ def test_short_fit_of_each_config(source: str, tmp_path: Path, tiny_dataset: Pat
         assert [p.name for p in logs] == ["refresh_000000.json", "refresh_000002.json"]
         info = json.loads(logs[0].read_text())
         assert info["pairs"] >= 1 and 0.0 <= info["same_category"] <= 1.0 and info["queries"] == 6
+        # a box matched at IoU 0.5 overlaps its object at >= 0.25: the looser count holds the stricter one
+        assert info["labelled_pairs"] <= info["pairs_on_objects_iou25"] <= info["pairs"]
+        assert 1 <= info["distinct_queries"] <= min(info["pairs"], info["queries"])
+        assert max(info["distinct_queries"], info["distinct_targets"]) <= info["distinct_boxes"] <= 2 * info["pairs"]
         assert (run / "mining" / "refresh_000000.png").is_file()
         assert ("prototype_positive_purity" in info) == (source == "mined_proto")
+        # the scene check: of the boxes the input views vouched for, those the DataModule's fused pseudo-boxes vouch
+        # for too
+        assert ("pool_scene_vouched" in info) == (source == "mined_scene")
+        if source == "mined_scene":  # asked once (then kept), and every input-vouched GT box passes
+            assert asked == ["train"] and info["pool_scene_vouched"] == info["pool_vouched"] >= 1
+
+
+class TestCapPairsPerBox:
+    """:func:`cap_pairs_per_box`: in rank order, each box in at most ``cap`` kept pairs."""
+
+    def test_hand_computed(self) -> None:
+        from threedq.stages.mining import cap_pairs_per_box
+
+        q, t = torch.tensor([0, 0, 1, 0, 2, 3]), torch.tensor([1, 2, 2, 3, 3, 0])
+        # cap 2: (0,1) keep [0:1, 1:1]; (0,2) keep [0:2, 2:1]; (1,2) keep [1:2, 2:2]; (0,3) box 0 full; (2,3) box 2
+        # full; (3,0) box 0 full
+        assert cap_pairs_per_box(q, t, 2).tolist() == [True, True, True, False, False, False]
+        assert cap_pairs_per_box(q, t, 1).tolist() == [True, False, False, False, True, False]
+        assert cap_pairs_per_box(q, t, 6).all() and cap_pairs_per_box(q[:0], t[:0], 1).shape == (0,)
+
+    def test_against_a_naive_count(self) -> None:
+        from threedq.stages.mining import cap_pairs_per_box
+
+        g = torch.Generator().manual_seed(0)
+        q, t = torch.randint(0, 12, (300,), generator=g), torch.randint(0, 12, (300,), generator=g)
+        for cap in (1, 3, 7):
+            keep = cap_pairs_per_box(q, t, cap)
+            for n in range(q.numel()):  # a pair is dropped exactly when one of its boxes is already full before it
+                before = torch.cat([q[:n][keep[:n]], t[:n][keep[:n]]])
+                full = int((before == q[n]).sum()) >= cap or int((before == t[n]).sum()) >= cap
+                assert bool(keep[n]) == (not full)
+
+    def test_the_stage_spreads_its_pairs(self) -> None:
+        s = 8
+        kw: dict = {"grid_resolution": (32, 32, 16), "queue_size": 64, "crop_size": s, "corner_offset": 2,
+                    "num_angles": 8, "keep": 3, "positives": "occupancy"}
+        raw = torch.zeros(4, 4, s, s, s)
+        raw[:, 0, 1:6, 2:5, 2:5] = 1  # four equal boxes: every pair agrees fully
+        pool = {"raw": raw, "features": torch.randn(4, 32, s, s, s)}
+        n = 3
+        mined = {"query_index": torch.tensor([0, 0, 2]), "target_index": torch.tensor([1, 2, 3]),
+                 "yaw": torch.zeros(n, dtype=torch.long), "score": torch.tensor([0.9, 0.8, 0.7]),
+                 "query_pos": torch.zeros(n, 3, dtype=torch.long), "target_pos_aligned": torch.zeros(n, 3, dtype=torch.long)}
+        out, _, _ = Mining(**kw)._shape_positives(pool, mined, 8, torch.Generator().manual_seed(0))
+        assert out["query_index"].numel() == 3  # no cap: box 0 in two pairs
+        out, vox, keys = Mining(**kw, max_pairs_per_box=1)._shape_positives(pool, mined, 8,
+                                                                            torch.Generator().manual_seed(0))
+        pairs = sorted(zip(out["query_index"].tolist(), out["target_index"].tolist()))  # equal agreement: rank order
+        assert pairs == [(0, 1), (2, 3)] and vox.shape[0] == keys.shape[0] == 2  # (0, 2): box 0 is taken
+
+    def test_exceptions(self) -> None:
+        for bad in (0, True, 2.0, "4"):
+            with pytest.raises(ValueError, match="max_pairs_per_box"):
+                Mining(grid_resolution=(32, 32, 16), queue_size=64, max_pairs_per_box=bad)
+        with pytest.raises(ValueError, match="max_pairs_per_box.*positives"):
+            Mining(grid_resolution=(32, 32, 16), queue_size=64, positives="patches", max_pairs_per_box=4)
 
 
 class TestRecolourScenes:
@@ -875,6 +950,90 @@ class TestPoolObjectCheck:
         for bad in (0.0, 1.5, True, "0.5"):
             with pytest.raises(ValueError, match="pool_min_observed_iou"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_observed_iou=bad)
+
+
+class TestPoolSceneCheck:
+    """``pool_min_scene_iou``: the pool keeps the boxes the pseudo-boxes fused over their scene's views vouch for."""
+
+    def test_against_a_naive_loop_and_a_box_cut_short(self, tiny_dataset: Path) -> None:
+        from threedq.boxes import aabb_iou_3d
+        from threedq.datamodules.scene_folder import SceneDataset
+        from threedq.scene import load_index
+
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=8, pool_min_scene_iou=0.7).eval()
+        ds = SceneDataset(tiny_dataset, load_index(tiny_dataset), "train", num_input_views=1, num_target_views=0,
+                          random_views=False)
+        j = next(i for i in range(len(ds)) if int(ds[i]["box_mask"].sum()) >= 2)
+        batch = {k: v[None] if isinstance(v, torch.Tensor) else v for k, v in ds[j].items()}
+        gt = batch["aabb"][0][batch["box_mask"][0]].float()
+        # the scene's fused pseudo-boxes: its GT boxes (the fused views see each object whole)
+        m._scene_pseudo_boxes = lambda: {ds.files[j]: (gt.numpy(), np.ones(len(gt), np.float32))}
+        half = gt[0].clone()
+        half[3] = (half[0] + half[3]) / 2  # cut short to half its x extent: IoU 0.5 with its object's box, by hand
+        batch["aabb"] = torch.cat([batch["aabb"], half[None, None].to(batch["aabb"].dtype)], dim=1)
+        batch["box_mask"] = torch.cat([batch["box_mask"], torch.ones(1, 1, dtype=torch.bool)], dim=1)
+        got = m._scene_iou(batch, ds)
+        boxes = batch["aabb"][0][batch["box_mask"][0]].float()
+        assert got.shape == (boxes.shape[0],)
+        for n, b in enumerate(boxes):  # naive: one box at a time, every fused box
+            best = max(float(aabb_iou_3d(b[None], g[None])[0, 0]) for g in gt)
+            assert abs(float(got[n]) - best) < 1e-6
+        assert torch.allclose(got[:-1], torch.ones(len(gt)))  # the objects' own boxes
+        assert abs(float(got[-1]) - 0.5) < 1e-5  # the cut-short box: dropped at 0.7
+
+    def test_the_pool_keeps_only_boxes_both_checks_vouch_for(self, tiny_dataset: Path,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+        from threedq.datamodules.scene_folder import SceneDataset
+        from threedq.scene import load_index
+
+        train = SceneDataset(tiny_dataset, load_index(tiny_dataset), "train", num_input_views=1, num_target_views=0,
+                             random_views=False)
+        fused = {}  # each scene's GT boxes, but the first object of every second scene cut to half its height
+        for i in range(len(train)):
+            s = train[i]
+            gt = s["aabb"][s["box_mask"]].float().clone()
+            if i % 2 == 0 and len(gt):
+                gt[0, 5] = (gt[0, 2] + gt[0, 5]) / 2
+            fused[train.files[i]] = (gt.numpy(), np.ones(len(gt), np.float32))
+        pools = {}
+        for thr in (None, 0.7):
+            torch.manual_seed(0)  # the same encoder
+            m = Mining(grid_resolution=(32, 32, 16), target_pool=1000, query_pool=2, crop_size=8, queue_size=64,
+                       pool_min_scene_iou=thr).eval()
+            monkeypatch.setattr(m, "_train_dataset", lambda: train)
+            monkeypatch.setattr(m, "_scene_pseudo_boxes", lambda: fused)
+            m._pool_stats = {"boxes": 0, "vouched": 0, "scene_vouched": 0}
+            pools[thr] = (m._cut_pool(m._pool_dataset(), torch.Generator().manual_seed(3)), dict(m._pool_stats))
+        (every, before), (kept, stats) = pools[None], pools[0.7]
+        assert before["scene_vouched"] == 0 and stats["vouched"] == every["scene"].numel()
+        assert stats["scene_vouched"] == kept["scene"].numel()
+        # dropped: exactly the input-vouched boxes whose slot-0 object was cut, in the even scenes
+        dropped = {(int(s), int(t)) for s, t in zip(every["scene"], every["slot"])} - \
+            {(int(s), int(t)) for s, t in zip(kept["scene"], kept["slot"])}
+        assert dropped and all(s % 2 == 0 and t == 0 for s, t in dropped)
+        assert len(dropped) == sum(1 for s, t in zip(every["scene"], every["slot"]) if int(s) % 2 == 0 and int(t) == 0)
+        ref = {(int(s), int(t)): n for n, (s, t) in enumerate(zip(every["scene"], every["slot"]))}
+        for n, (s, t) in enumerate(zip(kept["scene"], kept["slot"])):  # the same boxes with the same crops
+            assert torch.equal(kept["features"][n], every["features"][ref[(int(s), int(t))]])
+
+    def test_exceptions(self, tiny_dataset: Path) -> None:
+        for bad in (0.0, 1.5, True, "0.7"):
+            with pytest.raises(ValueError, match="pool_min_scene_iou"):
+                Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_scene_iou=bad)
+        with pytest.raises(ValueError, match="pool_min_scene_iou.*mined source"):
+            Mining(grid_resolution=(32, 32, 16), queue_size=64, source="vc", pool_min_scene_iou=0.7)
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_scene_iou=0.7)
+        with pytest.raises(ValueError, match="pool_min_scene_iou.*pseudo_boxes"):  # no DataModule to ask
+            m._scene_pseudo_boxes()
+        from threedq.datamodules.scene_folder import SceneDataset
+        from threedq.scene import load_index
+
+        ds = SceneDataset(tiny_dataset, load_index(tiny_dataset), "train", num_input_views=1, num_target_views=0,
+                          random_views=False)
+        batch = {k: v[None] if isinstance(v, torch.Tensor) else v for k, v in ds[0].items()}
+        m._scene_pseudo_boxes = dict
+        with pytest.raises(ValueError, match=f"pool_min_scene_iou.*no entry for {ds.files[0]}"):
+            m._scene_iou(batch, ds)
 
 
 class TestCslsSetting:
@@ -1111,6 +1270,31 @@ class TestPairMeasures:
         # of 0, 20 and 10 deg (float32 yaws)
         assert out["yaw_pairs"] == 3 and out["yaw_median_err_deg"] == pytest.approx(10.0, abs=1e-4)
         assert out["yaw_sym_pairs"] == 4 and out["yaw_sym_median_err_deg"] == pytest.approx(5.0, abs=1e-4)
+
+    def test_pairs_on_objects_at_iou_025(self) -> None:
+        pool, mined = self._case()
+        m = Mining(grid_resolution=(32, 32, 16), queue_size=64)
+        assert "pairs_on_objects_iou25" not in m.pair_measures(pool, mined)  # no GT IoUs: not measured
+        # boxes 1 and 6 overlap no object at 0.25: pairs (0,1), (1,0), (1,0), (6,0) fall out, 3 of 7 remain
+        pool["gt_iou"] = torch.tensor([0.9, 0.2, 0.25, 0.6, 0.3, 0.5, 0.0])
+        assert m.pair_measures(pool, mined)["pairs_on_objects_iou25"] == 3
+        pool["gt_iou"] = torch.full((7,), float("nan"))  # a batch without GT boxes
+        assert "pairs_on_objects_iou25" not in m.pair_measures(pool, mined)
+
+    def test_gt_box_iou_hand_computed(self) -> None:
+        from threedq.stages.mining import gt_box_iou
+
+        unit = [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+        batch = {"aabb": torch.tensor([[unit, [0, 0, 0, 0.5, 1, 1], [5, 5, 5, 6, 6, 6]],
+                                       [unit, [0, 0, 0, 2, 1, 1], unit]]),
+                 "box_mask": torch.tensor([[True, True, True], [True, True, False]]),
+                 "gt_aabb": torch.tensor([[unit, [4, 4, 4, 5.5, 6, 6]], [[0, 0, 0, 0.0, 0, 0], unit]]),
+                 "gt_mask": torch.tensor([[True, True], [False, False]])}
+        # scene 0: the box itself 1; half its x extent 0.5; [5,6]^3 against [4,5.5]x[4,6]x[4,6]: 0.5 / (1 + 6 - 0.5)
+        got = gt_box_iou(batch)
+        assert torch.allclose(got, torch.tensor([1.0, 0.5, 0.5 / 6.5, 0.0, 0.0]))  # scene 1 has no GT box
+        del batch["gt_aabb"]
+        assert torch.isnan(gt_box_iou(batch)).all() and gt_box_iou(batch).shape == (5,)
 
     def test_without_symmetry_or_pairs(self) -> None:
         pool, mined = self._case()

@@ -413,10 +413,13 @@ def em_markdown(summary: dict[str, Any]) -> str:
                            if "yaw_sym_median_err_deg" in f else "-")  # absent from runs before 2026-12-02
                 pool = f"{f['pool_on_objects']:.2f}" if "pool_on_objects" in f else "-"
                 if "pool_vouched" in f:  # the object check: boxes the input views' geometry vouched for / looked at
-                    pool += f" ({f['pool_vouched']} of {f['pool_boxes_seen']} vouched)"
+                    pool += f" ({f['pool_vouched']} of {f['pool_boxes_seen']} vouched"
+                    pool += f", {f['pool_scene_vouched']} by the scene too)" if "pool_scene_vouched" in f else ")"
                 pairs = f"{f['pairs']}" + (f" (of {f['prototype_candidates']} mined; the bank agreed)"
                                            if "prototype_candidates" in f else "")
-                lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {f.get('labelled_pairs', '-')} | "
+                on = f"{f.get('labelled_pairs', '-')}" + (f" ({f['pairs_on_objects_iou25']} at IoU 0.25)"
+                                                          if "pairs_on_objects_iou25" in f else "")
+                lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {on} | "
                              f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {f['min_cosine']:.3f} | {f['seconds']} |")
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
     table3 = summary.get("table3") or []
