@@ -74,7 +74,8 @@ def main() -> None:
         ds.random_views = False  # the pool's views, as Mining._pool_dataset
     seed = hp.seed if args.seed is None else args.seed
     g = torch.Generator().manual_seed(seed + 1009 * 0)  # the first refresh of the stage, rank 0
-    model._pool_stats = {"boxes": 0, "vouched": 0}
+    model._pool_stats = {"boxes": 0, "vouched": 0, "scene_vouched": 0}
+    model._scene_pseudo_boxes = lambda: dm.pseudo_boxes("train")  # the scene's check asks the DataModule
     t0 = time.time()
     pool = model._cut_pool(ds, g)
     feats = pool["features"]

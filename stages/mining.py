@@ -415,9 +415,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             DataModule's ``pseudo_boxes``: observed surface above the fitted ground over every second view, what the
             detector's warm start learns from, cached per split) reaches this value. The input view's check above
             passes boxes cut short to the part of an object one view sees (the detector snaps to that view's
-            surface); the fused views see most of each object, so this check drops them. ``None`` (default): off.
-            Label-free; the views are the training scene's own (the data view prediction learns from), not
-            labels. Not in the paper (docs/studies/mined-pairs.md, "The scene's views vouch for the box").
+            surface); the fused views see most of each object, so this check drops them (default 0.7; ``None``:
+            off). Label-free: the views are the training scene's own, which view prediction learns from. Not in the
+            paper (docs/studies/mined-pairs.md, "The scene's views vouch for the box").
         bank_ckpt: ``mined``: the prototype bank the pool's encoder was last quantized with (a quantizer
             checkpoint; ``threedq em`` passes the previous round's, round 1 gets round 0's), for
             ``verify_by_prototypes`` and ``prototype_weight``.
@@ -515,7 +515,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         projection_lr: float = 1e-3,
         pool_batch_size: int = 4,
         pool_min_observed_iou: float | None = 0.5,
-        pool_min_scene_iou: float | None = None,
+        pool_min_scene_iou: float | None = 0.7,
         bank_ckpt: str | None = None,
         verify_by_prototypes: bool = False,
         prototype_yaw_window: int = 2,
@@ -576,8 +576,6 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if pool_min_scene_iou is not None and (isinstance(pool_min_scene_iou, bool) or not isinstance(
                 pool_min_scene_iou, (int, float)) or not 0.0 < pool_min_scene_iou <= 1.0):
             raise ValueError(f"pool_min_scene_iou: expected None or a number in (0, 1], got {pool_min_scene_iou!r}")
-        if pool_min_scene_iou is not None and source != "mined":
-            raise ValueError(f"pool_min_scene_iou: a check of the mined source's pool, not of source {source!r}")
         f = retrieval_occupancy_floor
         if f is not None and (isinstance(f, bool) or not isinstance(f, (int, float)) or not 0.0 <= f < math.inf):
             raise ValueError(f"retrieval_occupancy_floor: expected None or a number >= 0, got {f!r}")
@@ -967,6 +965,14 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         pool = self._cut_pool(self._pool_dataset(), g)
         feats = pool["features"]
         n_t = feats.shape[0]
+        if n_t == 0:
+            st = self._pool_stats
+            checks = ", ".join(f"{k}={hp[k]}" for k in ("pool_min_observed_iou", "pool_min_scene_iou") if hp[k] is not None)
+            seen = f" (of {st['boxes']} boxes seen, {st['vouched']} vouched for by the input views, " \
+                   f"{st['scene_vouched']} by the scenes' fused views too)" if hp.pool_min_observed_iou is not None else ""
+            raise ValueError(f"mining: the pool of the training split's boxes is empty{seen}: no box to mine pairs from"
+                             + (f"; the pool's checks ({checks}) may be too strict for this data: set them to null"
+                                if checks else ""))
         n_q = min(hp.query_pool, n_t)
         if not bool(self.queue_primed) or hp.negatives == "pool":
             flat = feats.permute(0, 2, 3, 4, 1).reshape(-1, feats.shape[1])

@@ -69,6 +69,8 @@ def _run_args(config: str, data_dir: Path, root: Path, ckpts: dict[str, Path]) -
         args.append(TINY_GRID)  # a bare encoder state dict carries no grid
     if config in ("stages/self_labelling.yaml", "stages/mining_checked.yaml"):
         args += ["--model.init_args.crop_size=8", "--model.init_args.num_angles=8"]  # the tiny bank's
+    if config.startswith("stages/mining"):  # the tiny scenes' 32x32 views give no pseudo-boxes to fuse
+        args.append("--model.init_args.pool_min_scene_iou=null")
     return args
 
 

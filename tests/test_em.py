@@ -164,6 +164,8 @@ class TestEm:
         mining = yaml.safe_load((packaged_configs_dir() / "stages/mining.yaml").read_text())
         assert mining["model"]["init_args"]["pool_min_observed_iou"] == 0.5
         mining["model"]["init_args"]["pool_min_observed_iou"] = None
+        assert mining["model"]["init_args"]["pool_min_scene_iou"] == 0.7  # likewise the scene's check
+        mining["model"]["init_args"]["pool_min_scene_iou"] = None
         (tmp_path / "mining_paper_pool.yaml").write_text(yaml.safe_dump(mining))
         summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], detection=False, boxes="gt",
                          mining_config=str(tmp_path / "mining_paper_pool.yaml"))
@@ -213,7 +215,15 @@ class TestEm:
                 a = boxes_to_aabb(load_scene(tiny_dataset / f, validate=False).boxes.astype(np.float64)) + 0.01
                 perfect[f] = (a.astype(np.float32), np.full(len(a), 0.95, np.float32))
             save_boxes_file(det_dir / f"detections_{split}.npz", perfect)
-        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], boxes="detections")
+        # the tiny scenes' 32x32 views give no pseudo-boxes to fuse: mining's scene check finds an empty pool and
+        # says so; without it the rounds run
+        with pytest.raises(ValueError, match="pool of the training split's boxes is empty.*pool_min_scene_iou"):
+            run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], boxes="detections")
+        mining = yaml.safe_load((packaged_configs_dir() / "stages/mining.yaml").read_text())
+        mining["model"]["init_args"]["pool_min_scene_iou"] = None
+        (tmp_path / "mining_input_check.yaml").write_text(yaml.safe_dump(mining))
+        summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], boxes="detections",
+                         mining_config=str(tmp_path / "mining_input_check.yaml"), resume=True)
         assert summary["boxes"] == "detections"
         q = yaml.safe_load((work / "r01_quantizer" / "config.yaml").read_text())
         assert q["data"]["init_args"]["boxes"].endswith("detections_{split}.npz")

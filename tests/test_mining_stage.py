@@ -857,7 +857,8 @@ def test_pool_reads_the_grids_other_stages_cached(tiny_dataset: Path, monkeypatc
     from threedq.scene import load_index
 
     torch.manual_seed(0)
-    m = Mining(grid_resolution=(32, 32, 16), target_pool=4, query_pool=2, crop_size=8, queue_size=64)
+    m = Mining(grid_resolution=(32, 32, 16), target_pool=4, query_pool=2, crop_size=8, queue_size=64,
+               pool_min_scene_iou=None)  # the scene's check asks a DataModule (its own tests below)
     index = load_index(tiny_dataset)
     train = SceneDataset(tiny_dataset, index, "train", num_input_views=1, num_target_views=0, random_views=True)
     monkeypatch.setattr(m, "_train_dataset", lambda: train)
@@ -934,7 +935,7 @@ class TestPoolObjectCheck:
         for thr in (None, 0.5):
             torch.manual_seed(0)  # the same encoder
             m = Mining(grid_resolution=(32, 32, 16), target_pool=1000, query_pool=2, crop_size=8, queue_size=64,
-                       pool_min_observed_iou=thr).eval()
+                       pool_min_observed_iou=thr, pool_min_scene_iou=None).eval()
             monkeypatch.setattr(m, "_train_dataset", lambda: train)
             m._pool_stats = {"boxes": 0, "vouched": 0}
             pools[thr] = (m._cut_pool(m._pool_dataset(), torch.Generator().manual_seed(3)), dict(m._pool_stats))
@@ -1020,8 +1021,6 @@ class TestPoolSceneCheck:
         for bad in (0.0, 1.5, True, "0.7"):
             with pytest.raises(ValueError, match="pool_min_scene_iou"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_scene_iou=bad)
-        with pytest.raises(ValueError, match="pool_min_scene_iou.*mined source"):
-            Mining(grid_resolution=(32, 32, 16), queue_size=64, source="vc", pool_min_scene_iou=0.7)
         m = Mining(grid_resolution=(32, 32, 16), queue_size=64, pool_min_scene_iou=0.7)
         with pytest.raises(ValueError, match="pool_min_scene_iou.*pseudo_boxes"):  # no DataModule to ask
             m._scene_pseudo_boxes()
