@@ -10,7 +10,9 @@ One stage, three sources of positive pairs (``source``), all trained with InfoNC
   (``moco.encoder_k``), negatives come from the queue (``moco.queue``, ``[Q, D]``).
 * ``mined`` (ours, supplement "3D correspondence mining"): every ``refresh_every`` steps a pool of
   ``target_pool`` object crops (``crop_size^3``) is cut from random training scenes with the current encoder
-  (eval mode, no gradient, float32, each scene's fixed input views), and the first ``query_pool`` of them are mined against the rest
+  (eval mode, no gradient, float32, each scene's fixed input views; by default only boxes that the pseudo-boxes of
+  the input views and of the whole scene's views vouch for: ``pool_min_observed_iou``, ``pool_min_scene_iou``), and
+  the first ``query_pool`` of them are mined against the rest
   (:func:`threedq.contrastive.mine_correspondences`: object-level rotation-max retrieval, the query patch
   searched over each target's patch grid at ``num_angles`` yaws, verification by the context ring at
   Manhattan distance ``context_distance``); the ``keep`` best verified pairs are kept. With ``positives:
