@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -57,6 +58,27 @@ def occluded_fraction(aabb: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, 
     return out
 
 
+def handed_on_samples(detections: Path, data_dir: Path, split: str = "train", max_boxes: int = 8
+                      ) -> Iterator[tuple[str, dict, torch.Tensor, torch.Tensor]]:
+    """The scenes of ``split`` with the boxes a round hands on (each scene's ``max_boxes`` of highest score, its fixed
+    input view), as ``(scene file, sample, box_mask, aabb [M, 6] of the valid boxes)``; scenes without a box are
+    skipped. Each sample also carries the scene's GT boxes (``gt_aabb``, ``gt_mask``) and the boxes' GT match
+    (``categories``, -1 where unmatched)."""
+    from threedq.data.box_files import load_boxes_file
+    from threedq.datamodules.scene_folder import SceneDataset
+    from threedq.scene import load_index
+
+    ds = SceneDataset(data_dir, load_index(data_dir), split, num_input_views=1, num_target_views=0,
+                      max_objects=max_boxes, box_sets=load_boxes_file(detections), random_views=False,
+                      max_boxes=max_boxes)
+    for i in range(len(ds)):
+        s = ds[i]
+        m = s["box_mask"]
+        aabb = s["aabb"][m].float()
+        if aabb.shape[0]:
+            yield ds.files[i], s, m, aabb
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("detections", type=Path, help="a detections_<split>.npz a round hands on")
@@ -65,21 +87,12 @@ def main() -> None:
     ap.add_argument("--max_boxes", type=int, default=8, help="boxes per scene the rounds take (highest scores)")
     args = ap.parse_args()
 
-    from datamodules.scene_folder import SceneDataset
     from threedq.boxes import aabb_iou_3d
-    from threedq.data.box_files import load_boxes_file
-    from threedq.scene import load_index
 
-    ds = SceneDataset(args.data_dir, load_index(args.data_dir), args.split, num_input_views=1, num_target_views=0,
-                      max_objects=args.max_boxes, box_sets=load_boxes_file(args.detections), random_views=False,
-                      max_boxes=args.max_boxes)
     kinds: dict[str, list[tuple[float, float, int]]] = {k: [] for k in ("matched", "duplicate", "partial", "off")}
-    for i in range(len(ds)):
-        s = ds[i]
-        m = s["box_mask"]
-        aabb = s["aabb"][m].float()
-        if aabb.shape[0] == 0:
-            continue
+    scenes = 0
+    for _, s, m, aabb in handed_on_samples(args.detections, args.data_dir, args.split, args.max_boxes):
+        scenes += 1
         gt = s["gt_aabb"][s["gt_mask"]].float()  # the scene's GT boxes, which every sample carries beside its own
         iou = aabb_iou_3d(aabb, gt) if gt.shape[0] else torch.zeros(len(aabb), 1)
         occl = occluded_fraction(aabb, s["depth"][0], s["K"][0], s["R_T_cam"][0])
@@ -92,7 +105,7 @@ def main() -> None:
             ratio = float(vol[j] / gvol[iou[j].argmax()]) if gt.shape[0] else float("nan")
             kinds[kind].append((float(occl[j]), ratio, int((iou[j] > 0.05).sum())))
     n = sum(len(v) for v in kinds.values())
-    print(f"machine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  {args.detections}: {n} boxes, {len(ds)} scenes")
+    print(f"machine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  {args.detections}: {n} boxes, {scenes} scenes with boxes")
     print("| boxes | count | share | occluded > 10% | volume / GT's < 0.7 | 0.7-1.4 | >= 1.4 | "
           "touching 2+ GT objects |")
     print("|---|---|---|---|---|---|---|---|")

@@ -41,32 +41,24 @@ def box_scores(detections: Path, data_dir: Path, split: str = "train", max_boxes
     """Per handed-on box (scenes in index order, each scene's boxes by decreasing score): ``on_object`` (matches a
     GT object; measuring only), ``input_iou`` and ``scene_iou`` (the two checks' best IoUs, 0 where there is no
     pseudo-box)."""
+    from handed_on_boxes import handed_on_samples
+
     from threedq.box_refinement import observed_boxes
     from threedq.boxes import aabb_iou_3d
     from threedq.data.box_files import load_boxes_file
-    from threedq.datamodules.scene_folder import SceneDataset
-    from threedq.scene import load_index
 
     fused = load_boxes_file(data_dir / "proposals" / f"{split}.npz")
-    ds = SceneDataset(data_dir, load_index(data_dir), split, num_input_views=1, num_target_views=0,
-                      max_objects=max_boxes, box_sets=load_boxes_file(detections), random_views=False,
-                      max_boxes=max_boxes)
     cols: dict[str, list[float]] = {"on_object": [], "input_iou": [], "scene_iou": []}
 
     def best(boxes: torch.Tensor, others: np.ndarray) -> torch.Tensor:
         o = torch.as_tensor(others, dtype=torch.float32).reshape(-1, 6)
         return aabb_iou_3d(boxes, o).amax(1) if len(o) else torch.zeros(len(boxes))
 
-    for i in range(len(ds)):
-        s = ds[i]
-        m = s["box_mask"]
-        aabb = s["aabb"][m].float()
-        if aabb.shape[0] == 0:
-            continue
+    for name, s, m, aabb in handed_on_samples(detections, data_dir, split, max_boxes):
         obs, _ = observed_boxes(s["depth"][:1], s["K"][:1], s["R_T_cam"][:1], bounds)
         cols["on_object"] += (s["categories"][m] >= 0).float().tolist()
         cols["input_iou"] += best(aabb, obs).tolist()
-        cols["scene_iou"] += best(aabb, fused[ds.files[i]][0]).tolist()
+        cols["scene_iou"] += best(aabb, fused[name][0]).tolist()
     return {k: np.asarray(v, np.float64) for k, v in cols.items()}
 
 
