@@ -37,6 +37,21 @@ def tiny_quantizer_config(folder: Path) -> Path:
     return path
 
 
+def tiny_mining_config(folder: Path) -> Path:
+    """``stages/mining.yaml`` without the scene's check of the pool (``pool_min_scene_iou: null``), written to
+    ``folder``: the tiny scenes' 32x32 views give no pseudo-boxes to fuse, so the check would leave the pool empty
+    (the check has its own tests in ``tests/test_mining_stage.py``)."""
+    import yaml
+
+    from threedq.pipeline.lightning_cli import resolve_config
+
+    config = yaml.safe_load(resolve_config("stages/mining.yaml").read_text())
+    config["model"]["init_args"]["pool_min_scene_iou"] = None
+    path = folder / "tiny_mining.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
 def load_benchmark(name: str) -> ModuleType:
     """``benchmarks/<name>.py`` imported as a module (the scripts are not a package)."""
     path = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"

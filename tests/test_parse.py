@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import tiny_mining_config
 from test_em import _em_config
 
 from threedq.cli import main
@@ -39,7 +40,7 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory, tiny_dataset: Path) -> Pa
     work = tmp / "em"
     # fp32 evaluation: the parse (fp32 by default) must reproduce it exactly
     run_em(rounds=1, work_dir=str(work), extra_configs=[_em_config(tmp, tiny_dataset)], boxes="gt",
-           frozen_precision="32-true")
+           frozen_precision="32-true", mining_config=str(tiny_mining_config(tmp)))
     return work
 
 
