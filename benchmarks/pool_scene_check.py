@@ -44,15 +44,14 @@ def box_scores(detections: Path, data_dir: Path, split: str = "train", max_boxes
     from handed_on_boxes import handed_on_samples
 
     from threedq.box_refinement import observed_boxes
-    from threedq.boxes import aabb_iou_3d
+    from threedq.boxes import best_aabb_iou
     from threedq.data.box_files import load_boxes_file
 
     fused = load_boxes_file(data_dir / "proposals" / f"{split}.npz")
     cols: dict[str, list[float]] = {"on_object": [], "input_iou": [], "scene_iou": []}
 
     def best(boxes: torch.Tensor, others: np.ndarray) -> torch.Tensor:
-        o = torch.as_tensor(others, dtype=torch.float32).reshape(-1, 6)
-        return aabb_iou_3d(boxes, o).amax(1) if len(o) else torch.zeros(len(boxes))
+        return best_aabb_iou(boxes, torch.as_tensor(others, dtype=torch.float32).reshape(-1, 6))
 
     for name, s, m, aabb in handed_on_samples(detections, data_dir, split, max_boxes):
         obs, _ = observed_boxes(s["depth"][:1], s["K"][:1], s["R_T_cam"][:1], bounds)

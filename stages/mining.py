@@ -95,7 +95,7 @@ from torch.utils.data import default_collate
 
 from threedq.atomic_io import atomic_write_text
 from threedq.box_refinement import observed_boxes
-from threedq.boxes import aabb_iou_3d
+from threedq.boxes import best_aabb_iou
 from threedq.contrastive import MomentumContrast, calibrate_context_cosine, info_nce_streamed, mine_correspondences
 from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw
@@ -277,12 +277,9 @@ def gt_box_iou(batch: dict[str, Any]) -> Tensor:
     mask = batch["box_mask"]
     if "gt_aabb" not in batch or "gt_mask" not in batch:
         return torch.full((int(mask.sum()),), float("nan"), device=mask.device)
-    out = []
-    for i in range(mask.shape[0]):
-        boxes, gt = batch["aabb"][i][mask[i]].float(), batch["gt_aabb"][i][batch["gt_mask"][i]].float()
-        out.append(aabb_iou_3d(boxes, gt).amax(dim=1) if boxes.shape[0] and gt.shape[0] else
-                   torch.zeros(boxes.shape[0], device=mask.device))
-    return torch.cat(out)
+    gt, gt_mask = batch["gt_aabb"], batch["gt_mask"]
+    return torch.cat([best_aabb_iou(batch["aabb"][i][mask[i]].float(), gt[i][gt_mask[i]].float())
+                      for i in range(mask.shape[0])])
 
 
 def cap_pairs_per_box(query_index: Tensor, target_index: Tensor, cap: int) -> Tensor:
@@ -916,10 +913,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             boxes = batch["aabb"][i][batch["box_mask"][i]].float().cpu()
             obs, _ = observed_boxes(batch["depth"][i, :v], batch["K"][i, :v], batch["R_T_cam"][i, :v],
                                     (fg.bounds_min, fg.bounds_max))
-            if boxes.shape[0] == 0 or obs.shape[0] == 0:
-                out.append(torch.zeros(boxes.shape[0]))
-            else:
-                out.append(aabb_iou_3d(boxes, torch.from_numpy(obs)).amax(dim=1))
+            out.append(best_aabb_iou(boxes, torch.from_numpy(obs).reshape(-1, 6)))
         return torch.cat(out).to(self.device)
 
     def _scene_iou(self, batch: dict[str, Any], ds: Any) -> Tensor:
@@ -938,10 +932,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             if name not in self._scene_boxes:
                 raise ValueError(f"pool_min_scene_iou: the training split's pseudo-boxes have no entry for {name}")
             fused = torch.as_tensor(self._scene_boxes[name][0], dtype=torch.float32).reshape(-1, 6)
-            if boxes.shape[0] == 0 or fused.shape[0] == 0:
-                out.append(torch.zeros(boxes.shape[0]))
-            else:
-                out.append(aabb_iou_3d(boxes, fused).amax(dim=1))
+            out.append(best_aabb_iou(boxes, fused))
         return torch.cat(out).to(self.device)
 
     def _scene_pseudo_boxes(self) -> dict[str, Any]:
@@ -969,9 +960,11 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         n_t = feats.shape[0]
         if n_t == 0:
             st = self._pool_stats
-            checks = ", ".join(f"{k}={hp[k]}" for k in ("pool_min_observed_iou", "pool_min_scene_iou") if hp[k] is not None)
-            seen = f" (of {st['boxes']} boxes seen, {st['vouched']} vouched for by the input views, " \
-                   f"{st['scene_vouched']} by the scenes' fused views too)" if hp.pool_min_observed_iou is not None else ""
+            checks = ", ".join(f"{k}={hp[k]}" for k in ("pool_min_observed_iou", "pool_min_scene_iou")
+                               if hp[k] is not None)
+            seen = (f" (of {st['boxes']} boxes seen, {st['vouched']} vouched for by the input views, "
+                    f"{st['scene_vouched']} by the scenes' fused views too)") if hp.pool_min_observed_iou is not None \
+                else ""
             raise ValueError(f"mining: the pool of the training split's boxes is empty{seen}: no box to mine pairs from"
                              + (f"; the pool's checks ({checks}) may be too strict for this data: set them to null"
                                 if checks else ""))

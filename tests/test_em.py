@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 import torch
 import yaml
-from conftest import tiny_data_yaml, tiny_quantizer_config
+from conftest import tiny_data_yaml, tiny_mining_config, tiny_quantizer_config
 from threedq.pipeline.lightning_cli import packaged_configs_dir
 from lightning.pytorch import LightningModule
 
@@ -219,11 +219,8 @@ class TestEm:
         # says so; without it the rounds run
         with pytest.raises(ValueError, match="pool of the training split's boxes is empty.*pool_min_scene_iou"):
             run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], boxes="detections")
-        mining = yaml.safe_load((packaged_configs_dir() / "stages/mining.yaml").read_text())
-        mining["model"]["init_args"]["pool_min_scene_iou"] = None
-        (tmp_path / "mining_input_check.yaml").write_text(yaml.safe_dump(mining))
         summary = run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], boxes="detections",
-                         mining_config=str(tmp_path / "mining_input_check.yaml"), resume=True)
+                         mining_config=str(tiny_mining_config(tmp_path)), resume=True)
         assert summary["boxes"] == "detections"
         q = yaml.safe_load((work / "r01_quantizer" / "config.yaml").read_text())
         assert q["data"]["init_args"]["boxes"].endswith("detections_{split}.npz")

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from threedq.boxes import aabb_iomin_3d, aabb_iou_3d, nms_3d
+from threedq.boxes import aabb_iomin_3d, aabb_iou_3d, best_aabb_iou, nms_3d
 from threedq.metrics import DetectionMAP, average_precision, match_detections
 
 
@@ -71,6 +71,21 @@ def _frame(boxes: torch.Tensor, scores: list[float]) -> dict[str, torch.Tensor]:
 
 
 UNIT = [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+
+
+class TestBestAabbIou:
+    def test_against_a_naive_loop(self) -> None:
+        g = torch.Generator().manual_seed(1)
+        a, b = _random_boxes(5, g), _random_boxes(4, g)
+        got = best_aabb_iou(a, b)
+        assert got.shape == (5,)
+        for i in range(5):
+            assert float(got[i]) == pytest.approx(max(float(aabb_iou_3d(a[i:i + 1], b[j:j + 1])[0, 0]) for j in range(4)))
+
+    def test_empty_sets(self) -> None:
+        g = torch.Generator().manual_seed(2)
+        assert torch.equal(best_aabb_iou(_random_boxes(3, g), torch.zeros(0, 6)), torch.zeros(3))
+        assert best_aabb_iou(torch.zeros(0, 6), _random_boxes(2, g)).shape == (0,)
 
 
 class TestAabbIou3d:

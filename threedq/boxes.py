@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["aabb_iomin_3d", "aabb_iou_3d", "aabb_to_corners", "box_corners", "boxes_to_aabb", "nms_3d"]
+__all__ = ["aabb_iomin_3d", "aabb_iou_3d", "best_aabb_iou", "aabb_to_corners", "box_corners", "boxes_to_aabb", "nms_3d"]
 
 _SIGNS = np.array([[(i & 1), (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=np.float64) - 0.5
 
@@ -125,6 +125,21 @@ def aabb_iou_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     inter, vol_a, vol_b = _aabb_intersection(a, b)
     union = vol_a[:, None] + vol_b[None, :] - inter
     return torch.where(union > 0, inter / union.clamp(min=torch.finfo(inter.dtype).tiny), torch.zeros_like(inter))
+
+
+def best_aabb_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Each box's highest IoU with any box of another set (:func:`aabb_iou_3d`).
+
+    Args:
+        a: ``[N, 6]`` boxes. b: ``[M, 6]`` boxes (``M = 0`` allowed).
+
+    Returns:
+        ``[N]``: ``max_j IoU(a_i, b_j)``, 0 for every box when ``b`` is empty.
+
+    Convention: as :func:`aabb_iou_3d`.
+    """
+    iou = aabb_iou_3d(a, b)
+    return iou.amax(dim=1) if iou.shape[1] else iou.new_zeros(iou.shape[0])
 
 
 def aabb_iomin_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
