@@ -10,7 +10,9 @@ the stage's own; and the stage's ``retrieval_occupancy_floor``). For each it pri
 the columns of the round's report: pairs on two GT objects, one category among those, the implied yaw error on
 asymmetric categories and over every category of finite symmetry order; and whether the pairs (query, target, yaw)
 are the same as the first setting's, and the seconds the mining took. ``--seed`` draws another pool of the same
-boxes. Run it from the folder the run was made in (the config's paths are relative to it):
+boxes. With the stage's ``positives: occupancy`` each setting's candidates (``shape_oversample`` x ``keep``) go
+through the stage's shape ranking (:meth:`~threedq.stages.mining.Mining._shape_positives`) as in a refresh; the
+stage settings ``retrieval_occupancy_floor`` and ``max_pairs_per_box`` may be set per setting too. Run it from the folder the run was made in (the config's paths are relative to it):
 
     python benchmarks/mining_refresh_probe.py runs/em/r01_mining/config.yaml \\
         --settings '{"plain": {"csls_k": null}, "csls": {"csls_k": 10}, "csls+mutual": {"csls_k": 10, "mutual_k": 10}}'
@@ -35,6 +37,10 @@ import torch  # noqa: E402
 import yaml  # noqa: E402
 
 from _machine import cpu_name  # noqa: E402
+
+
+# settings of the stage (not keywords of mine_correspondences) a probe setting may change
+STAGE_SETTINGS = ("retrieval_occupancy_floor", "max_pairs_per_box")
 
 
 def stage_from_run_config(path: Path) -> tuple[object, object]:
@@ -91,11 +97,18 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name, kw in settings.items():
         t1 = time.time()
-        mine_kw = {k: v for k, v in kw.items() if k != "retrieval_occupancy_floor"}  # a stage setting, not a keyword
+        mine_kw = {k: v for k, v in kw.items() if k not in STAGE_SETTINGS}  # mine_correspondences' keywords
         r_crops = model.retrieval_crops(pool, n_q, kw.get("retrieval_occupancy_floor", "hparams"))
-        mined = mine_correspondences(feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep, exclude=exclude,
+        by_shape = hp.positives == "occupancy"
+        mined = mine_correspondences(feats[:n_q], feats, top_k=min(hp.top_k, n_t),
+                                     keep=hp.keep * (hp.shape_oversample if by_shape else 1), exclude=exclude,
                                      min_cosine=min_cos, retrieval_crops=r_crops,
                                      **{**model.miner_settings(), **mine_kw})
+        if by_shape:  # the stage's shape ranking (and cap), as its refresh
+            cap = hp.max_pairs_per_box
+            hp.max_pairs_per_box = kw.get("max_pairs_per_box", cap)
+            mined = model._shape_positives(pool, mined, 8, torch.Generator().manual_seed(seed))[0]
+            hp.max_pairs_per_box = cap
         seconds = time.time() - t1
         qi, ti = mined["query_index"], mined["target_index"]
         m = model.pair_measures(pool, mined)  # the measures of the round's report
@@ -107,7 +120,11 @@ def main() -> None:
                "yaw_pairs": m.get("yaw_pairs", 0),
                # every category of finite symmetry order, modulo its period (more pairs than the report's column)
                "yaw_sym_median_deg": round(m["yaw_sym_median_err_deg"], 1) if "yaw_sym_median_err_deg" in m else None,
-               "yaw_sym_pairs": m.get("yaw_sym_pairs", 0)}
+               "yaw_sym_pairs": m.get("yaw_sym_pairs", 0),
+               # both boxes on a GT object at IoU 0.25 (the report's looser count), and the boxes the pairs use
+               "on_two_objects_iou25": (round(m["pairs_on_objects_iou25"] / qi.numel(), 3)
+                                        if qi.numel() and "pairs_on_objects_iou25" in m else None),
+               "distinct_boxes": int(torch.cat([qi, ti]).unique().numel())}
         key = torch.stack([qi, ti, mined["yaw"]], dim=1)
         first = key if first is None else first
         row.update(same_pairs_as_first=bool(key.shape == first.shape and torch.equal(key, first)),

@@ -124,6 +124,10 @@ class TestEm:
         assert summary["table3"][2]["map_50"] == sl[1]["detector_eval"]["detector"]["map_50"]
         assert "handed_on" in sl[1]["detector_eval"] and (work / "table3.png").is_file()
         assert "Table 3" in report and "self-labelling per round" in report
+        # round 2's prototypes start from round 1's bank (--bank_warm_start, default true)
+        q2 = yaml.safe_load((work / "r02_quantizer" / "config.yaml").read_text())["model"]["init_args"]
+        assert q2["init_bank_ckpt"] == str(work / "r01_quantizer" / "checkpoints" / "last.ckpt")
+        assert summary["bank_warm_start"] is True and "refines the previous round's bank" in report
         # round 2's detector is round 1's, fine-tuned again
         r1 = torch.load(work / "r01_self_labelling" / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
         cfg2 = yaml.safe_load((work / "r02_self_labelling" / "config.yaml").read_text())
@@ -301,3 +305,27 @@ def test_em_data_config(tmp_path: Path, tiny_dataset: Path) -> None:
     assert summary["viewpred_eval"]["view_prediction"]["num_scenes"] == 2
     # named as the report names configs: relative to the work folder's parent, where threedq em usually runs
     assert summary["data_config"] == "my_data.yaml" and "data: `my_data.yaml`" in (work / "report.md").read_text()
+
+
+def test_em_fresh_bank_every_round(tmp_path: Path, tiny_dataset: Path) -> None:
+    """``--bank_warm_start false``: every round's quantizer fits an empty bank. Without mining and on GT boxes round 2
+    quantizes round 1's crops with round 1's seed, so its fit is round 1's, prototype for prototype."""
+    from threedq.errors import InputError
+
+    cfg = _em_config(tmp_path, tiny_dataset)
+    work = tmp_path / "em"
+    with pytest.raises(InputError, match="--bank_warm_start"):
+        run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt", detection=False,
+               bank_warm_start="no")
+    summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt",
+                     detection=False, bank_warm_start=False)
+    q2 = yaml.safe_load((work / "r02_quantizer" / "config.yaml").read_text())["model"]["init_args"]
+    assert q2.get("init_bank_ckpt") is None
+    banks = [torch.load(work / f"r0{r}_quantizer" / "checkpoints" / "last.ckpt", weights_only=True,
+                        map_location="cpu")["state_dict"] for r in (1, 2)]
+    keys = [k for k in banks[0] if k.startswith("bank.")]
+    assert keys and all(torch.equal(banks[0][k], banks[1][k]) for k in keys)
+    t1, t2 = summary["table3"][1], summary["table3"][2]
+    assert t1["hungarian_acc"] == t2["hungarian_acc"]
+    assert summary["bank_warm_start"] is False
+    assert "`--bank_warm_start false`" in (work / "report.md").read_text()

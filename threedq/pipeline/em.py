@@ -320,6 +320,7 @@ def run_em(
     self_labelling_config: str | None = "stages/self_labelling.yaml",
     viewpred_ckpt: str | None = None,
     frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
+    bank_warm_start: bool = True,
 ) -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
@@ -358,6 +359,11 @@ def run_em(
             without them mining, whose config asks for ``bf16-mixed``, runs in fp32 too). View prediction keeps its config's
             precision. Whatever is asked, a stage on a CPU without bf16 instructions runs bf16 as fp32 (the CLI's
             rule, :func:`~threedq.pipeline.precision.cpu_precision`: emulated bf16 costs 2x to 60x).
+        bank_warm_start: from round 2 on, each round's quantizer refines the previous round's prototype bank (true,
+            the default) or fits an empty bank on the round's encoder, as rounds 0 and 1 do (false; with the quantizer
+            config's ``em_restarts`` each round then keeps its lowest-loss fit). A bank carried over from an earlier encoder's
+            features can stay in a worse fit than a fresh one (``benchmarks/bank_fit_spread.py``;
+            docs/studies/quantizer.md, "A fresh bank every round").
     """
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
         raise InputError(f"--rounds: expected an int >= 0, got {rounds!r}")
@@ -365,6 +371,8 @@ def run_em(
         raise InputError(f"--boxes: expected 'gt' or 'detections', got {boxes!r}")
     if boxes == "detections" and not detection:
         raise InputError("--boxes: 'detections' needs --detection true")
+    if not isinstance(bank_warm_start, bool):
+        raise InputError(f"--bank_warm_start: expected true or false, got {bank_warm_start!r}")
     if frozen_precision not in ("auto", "bf16-mixed", "32-true"):
         raise InputError(f"--frozen_precision: expected 'auto', 'bf16-mixed' or '32-true', got {frozen_precision!r}")
     mining_trainer: dict[str, Any] = {}  # mining keeps its config's precision (bf16-mixed) ...
@@ -457,7 +465,7 @@ def run_em(
                 crop_cache.drop("features")
                 crop_cache.drop("grid")
             q_model: dict[str, Any] = {"encoder_ckpt": encoder}
-            if prev_bank is not None:
+            if prev_bank is not None and bank_warm_start:
                 q_model["init_bank_ckpt"] = prev_bank
             q_over = stage_overrides(q_configs, model=q_model, data=boxes_of_round, trainer={**_QUANTIZER_FIT, **prec})
             q = _fit_stage(f"round {r} quantizer", q_configs, layout.round(r, "quantizer"), q_over, resume, crop_cache)
@@ -512,6 +520,7 @@ def run_em(
             "detector": det.to_json() if det else None,
             "detector_eval": det_eval,
             "boxes": boxes,
+            "bank_warm_start": bank_warm_start,
             "frozen_precision": frozen_precision,
             "mining_precision": mining_trainer.get("precision", "its config's"),
             "round_results": round_results,

@@ -435,7 +435,10 @@ def em_markdown(summary: dict[str, Any]) -> str:
             f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; strict and paper protocol as above "
             "(pool and ceilings in the per-round table); detection: the round's detector "
             "(after its self-labelling), dataset-level mAP@0.5; precision / recall: its boxes above the 0.9 "
-            "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false positive).",
+            "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false positive). "
+            + ("Prototypes: from round 2 on, each round's quantizer refines the previous round's bank."
+               if summary.get("bank_warm_start", True) else
+               "Prototypes: every round's quantizer fits an empty bank on its encoder (`--bank_warm_start false`)."),
             "",
             f"| round | features: precision@{rounds[0]['retrieval']['k'] if rounds else 10}, strict | paper protocol | "
             "same object nearest | quantization: Hungarian acc. | detection: mAP@0.5 | mAP@0.25 | "
