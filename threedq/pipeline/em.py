@@ -361,8 +361,8 @@ def run_em(
             rule, :func:`~threedq.pipeline.precision.cpu_precision`: emulated bf16 costs 2x to 60x).
         bank_warm_start: from round 2 on, each round's quantizer refines the previous round's prototype bank (true,
             the default) or fits an empty bank on the round's encoder, as rounds 0 and 1 do (false; with the quantizer
-            config's ``em_restarts`` each round then keeps its lowest-loss fit). A bank carried over from an earlier encoder's
-            features can stay in a worse fit than a fresh one (``benchmarks/bank_fit_spread.py``;
+            config's ``em_restarts`` each round then keeps its lowest-loss fit). A bank carried over from an earlier
+            encoder's features can stay in a worse fit than a fresh one (``benchmarks/bank_fit_spread.py``;
             docs/studies/quantizer.md, "A fresh bank every round").
     """
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
