@@ -109,10 +109,11 @@ from threedq.stages.viewpred import ViewPredictionObjective, view_prediction_che
 from threedq.viz.features import mined_pairs_figure
 from threedq.viz.png import write_png
 
-__all__ = ["Mining", "corner_offsets", "corner_keys", "crop_voxels", "implied_yaw_error_deg", "shape_agreement",
-           "shape_cells"]
+__all__ = ["Mining", "corner_offsets", "corner_keys", "crop_voxels", "implied_yaw_error_deg", "oracle_pairs",
+           "shape_agreement", "shape_cells", "spread_candidates"]
 
 SOURCES = ("vc", "vc_moco", "mined")
+ORACLES = ("gt", "gt_category", "mined_gt_filtered")
 
 
 def corner_offsets(corner_offset: int = 4, patch: int = 2, device: torch.device | str | None = None) -> Tensor:
@@ -300,6 +301,75 @@ def cap_pairs_per_box(query_index: Tensor, target_index: Tensor, cap: int) -> Te
     return keep
 
 
+def oracle_pairs(labels: Tensor, scene: Tensor, yaw: Tensor, n_q: int, per_query: int, count: int, num_angles: int,
+                 generator: torch.Generator | None = None) -> dict[str, Tensor]:
+    """A diagnostic that uses labels (``oracle_pairs: "gt"``; never for a real run): the pairs a perfect miner would
+    give, to tell what the learning makes of right pairs from what the miner gives it. Each of the first ``n_q`` pool
+    boxes that matches a GT object is paired with up to ``per_query`` boxes of other scenes whose GT object is of the
+    same category (drawn at random), at the GT relative yaw. The pairs are interleaved (every query's first target,
+    then every query's second, ...) and cut at ``count``.
+
+    Args:
+        labels: ``[N]`` long GT category of each pool box (-1: no GT object); scene: ``[N]`` long scene of each box;
+        yaw: ``[N]`` GT yaw (radians) of each box's object; n_q: queries (the first boxes); per_query, count: >= 1;
+        num_angles: yaw steps in a full turn; generator: the draw's generator (CPU).
+
+    Returns:
+        The keys of :func:`~threedq.contrastive.mine_correspondences` the stage reads: ``query_index``,
+        ``target_index``, ``yaw`` ``[P]`` long (the step nearest to ``query_yaw - target_yaw``), ``score`` ``[P]``
+        (ones), ``query_pos``, ``target_pos`` and ``target_pos_aligned`` ``[P, 3]`` long (zeros: no patch match).
+
+    Convention: the mined yaw's: ``rotate_yaw(target, 2 pi yaw / num_angles)`` turns the target onto the query.
+    """
+    q_list, t_list, r_list = [], [], []
+    lab, sc = labels.cpu(), scene.cpu()
+    for i in range(min(n_q, lab.numel())):
+        if lab[i] < 0:
+            continue
+        cand = ((lab == lab[i]) & (sc != sc[i])).nonzero().flatten()
+        cand = cand[torch.randperm(cand.numel(), generator=generator)[:per_query]]
+        q_list.append(torch.full_like(cand, i))
+        t_list.append(cand)
+        r_list.append(torch.arange(cand.numel()))
+    if q_list:
+        qi, ti, rank = torch.cat(q_list), torch.cat(t_list), torch.cat(r_list)
+        order = torch.sort(rank * (n_q + 1) + qi, stable=True).indices[:count]
+        qi, ti = qi[order].to(labels.device), ti[order].to(labels.device)
+    else:
+        qi = ti = labels.new_zeros(0, dtype=torch.long)
+    step = 2 * math.pi / num_angles
+    b = torch.round(torch.remainder((yaw[qi] - yaw[ti]).double(), 2 * math.pi) / step).long() % num_angles
+    zeros = qi.new_zeros(qi.numel(), 3)
+    return {"query_index": qi, "target_index": ti, "yaw": b, "score": yaw.new_ones(qi.numel()),
+            "query_pos": zeros, "target_pos": zeros.clone(), "target_pos_aligned": zeros.clone()}
+
+
+def spread_candidates(query_index: Tensor, per_query: int, count: int) -> Tensor:
+    """Indices of the candidate pairs that spread over the queries: each query's first ``per_query`` pairs (in the
+    given rank order), every query's best before any query's second (round-robin, ties in rank order), cut at
+    ``count``. The globally most similar pairs otherwise crowd onto the queries with the nearest neighbours.
+
+    Args:
+        query_index: ``[P]`` pool index of each pair's query, best pair first. per_query, count: >= 1.
+
+    Returns:
+        ``[P']`` long indices into the pairs, ``P' <= min(count, P)``, in the new order.
+    """
+    P = query_index.numel()
+    if P == 0:
+        return torch.zeros(0, dtype=torch.long, device=query_index.device)
+    order = torch.sort(query_index, stable=True).indices  # pairs grouped by query, rank order within a query
+    q = query_index[order]
+    start = torch.ones_like(q, dtype=torch.bool)
+    start[1:] = q[1:] != q[:-1]
+    group_start = torch.cummax(torch.where(start, torch.arange(P, device=q.device), 0), dim=0).values
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(P, device=q.device) - group_start  # each pair's rank among its query's pairs
+    pos = torch.arange(P, device=q.device)
+    keep = (rank < per_query).nonzero().flatten()
+    return keep[torch.sort(rank[keep] * P + pos[keep], stable=True).indices][:count]
+
+
 def take_pairs(mined: dict[str, Any], idx: Tensor) -> dict[str, Any]:
     """The pairs ``idx`` of a :func:`~threedq.contrastive.mine_correspondences` result (its per-pair ``[P, ...]``
     tensors indexed, the rest kept)."""
@@ -456,6 +526,20 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             at the highest cosines, which the temperature turns into the largest pushes. Label-free. Measured on
             the shape-only data (seed 0, both kinds of positives) it changes nothing: the queue's keys are not what
             lowers those rounds (docs/studies/mined-pairs.md): off.
+        candidates_per_query: ``mined``: the candidates handed to the ranking (``keep`` x ``shape_oversample`` with
+            the occupancy positives) are each query's best ``candidates_per_query`` verified pairs, every query's
+            best before any query's second (:func:`spread_candidates`), instead of the globally most similar pairs
+            (``None``, default, the paper's). Label-free; not in the paper: with the most similar pairs the pairs
+            crowd onto the queries whose neighbours are nearest, and pairs of one category drawn across the pool
+            are what raises the rounds (docs/studies/mined-pairs.md, "Pairs from GT").
+        oracle_pairs: a diagnostic that uses labels, never for a real run (default ``None``: the miner's pairs).
+            ``"gt"``: each refresh's candidate pairs come from GT instead of the miner (:func:`oracle_pairs`: boxes
+            on GT objects of one category, in other scenes, drawn at random), ranked by the occupancy positives'
+            shape agreement and posed at the GT relative yaw. ``"gt_category"``: the same pairs, posed at the shape
+            agreement's yaw (the stage's own posing). ``"mined_gt_filtered"``: the miner's candidates, less those
+            not on two GT objects of one category, then the stage's ranking and posing. Everything else (pool,
+            checks, InfoNCE, queue, rate) is the stage's own, so runs with them tell what the learning makes of
+            right pairs and which of their properties it needs (docs/studies/mined-pairs.md, "Pairs from GT").
         colour_jitter: ``mined``: recolour each step's query scenes at random (:func:`recolour_scenes`, one
             transform per scene, ``0`` off: the paper's, default). The keys were encoded at the refresh from the
             targets' own colours, so a positive cannot be matched by colour: a test of whether the miner teaches
@@ -524,6 +608,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         shape_oversample: int = 4,
         max_pairs_per_box: int | None = None,
         negatives: Literal["queue", "pool"] = "queue",
+        oracle_pairs: Literal["gt", "gt_category", "mined_gt_filtered"] | None = None,
+        candidates_per_query: int | None = None,
         colour_jitter: float = 0.0,
         round_lr: Literal["constant", "harmonic"] = "harmonic",
         em_round: int = 1,
@@ -625,6 +711,15 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if negatives == "pool" and source != "mined":
             raise ValueError(f"negatives: 'pool' draws the negatives from the mined source's pool; source {source!r} "
                              f"has no pool (use 'queue')")
+        if candidates_per_query is not None and (isinstance(candidates_per_query, bool)
+                                                 or not isinstance(candidates_per_query, int) or candidates_per_query < 1):
+            raise ValueError(f"candidates_per_query: expected null or an int >= 1, got {candidates_per_query!r}")
+        if oracle_pairs not in (None, *ORACLES):
+            raise ValueError(f"oracle_pairs: expected null or one of {ORACLES}, got {oracle_pairs!r}")
+        if oracle_pairs and (source != "mined" or positives != "occupancy"):
+            raise ValueError("oracle_pairs: the GT pairs replace the mined source's miner and are posed by the occupancy "
+                             f"positives; source {source!r} with positives {positives!r} has no place for them "
+                             "(source: mined, positives: occupancy)")
         if positives == "occupancy" and verify_by_prototypes:
             raise ValueError("positives: 'occupancy' ranks the mined pairs by shape agreement; with "
                              "verify_by_prototypes the bank ranks them too: choose one (positives: patches, "
@@ -982,11 +1077,23 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         by_shape = hp.positives == "occupancy"
         assignment = self.assign_pool(pool) if verify or hp.prototype_weight else None
         oversample = hp.prototype_oversample if verify else hp.shape_oversample if by_shape else 1
-        mined = mine_correspondences(
-            feats[:n_q], feats, top_k=min(hp.top_k, n_t), keep=hp.keep * oversample,
-            exclude=exclude, min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q),
-            **self.miner_settings(),
-        )
+        if hp.oracle_pairs in ("gt", "gt_category"):  # a diagnostic with labels: the pairs a perfect miner would give
+            mined = oracle_pairs(pool["labels"], pool["scene"], pool["yaw"], n_q, min(hp.top_k, n_t),
+                                 hp.keep * oversample, hp.num_angles, g)
+        else:
+            spread = hp.candidates_per_query is not None
+            mined = mine_correspondences(
+                feats[:n_q], feats, top_k=min(hp.top_k, n_t),
+                keep=n_q * min(hp.top_k, n_t) if spread else hp.keep * oversample,
+                exclude=exclude, min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q),
+                **self.miner_settings(),
+            )
+            if spread:  # every query's best pairs before any query's next ones
+                mined = take_pairs(mined, spread_candidates(mined["query_index"], hp.candidates_per_query,
+                                                            hp.keep * oversample))
+            if hp.oracle_pairs == "mined_gt_filtered":  # a diagnostic with labels: the miner's pairs, made pure
+                lq, lt = pool["labels"][mined["query_index"]], pool["labels"][mined["target_index"]]
+                mined = take_pairs(mined, ((lq == lt) & (lq >= 0)).nonzero().flatten())
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with
             ok = self.prototype_agreement(pool, mined, assignment).nonzero().flatten()[: hp.keep]
@@ -1029,6 +1136,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         qi, ti = mined["query_index"], mined["target_index"]
         occ = F.max_pool3d(pool["raw"][:, :1].float(), kernel_size=3, stride=1, padding=1)  # the surface and next to it
         cos, yaw = shape_agreement(occ[qi], occ[ti], hp.num_angles)
+        if hp.oracle_pairs == "gt":  # ranked by shape agreement all the same, posed at the GT yaw
+            yaw = mined["yaw"]
         order = torch.sort(cos, descending=True, stable=True).indices
         t_occ = rotate_yaw(occ[ti[order]], yaw[order].to(occ.dtype) * (2 * math.pi / hp.num_angles))
         cells, valid = shape_cells(occ[qi[order]], t_occ, count, generator)
@@ -1116,6 +1225,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
         }
+        if hp.oracle_pairs:  # the diagnostic: the report says these pairs came from labels
+            info["oracle_pairs"] = hp.oracle_pairs
         if hp.verify_by_prototypes:  # the pairs mined before the bank's check (prototype_oversample x keep at most)
             info["prototype_candidates"] = self._candidates
         if hp.positives == "occupancy":  # the pairs mined before the shape ranking, and the kept pairs' agreement

@@ -750,6 +750,164 @@ class TestCapPairsPerBox:
             Mining(grid_resolution=(32, 32, 16), queue_size=64, positives="patches", max_pairs_per_box=4)
 
 
+class TestOraclePairs:
+    """:func:`oracle_pairs` (a diagnostic with labels): same category, other scene, the GT relative yaw."""
+
+    def test_hand_computed(self) -> None:
+        from threedq.stages.mining import oracle_pairs
+
+        labels = torch.tensor([0, 1, 0, -1, 0, 1])
+        scene = torch.tensor([0, 0, 1, 1, 0, 2])
+        yaw = torch.tensor([math.radians(50), 0.0, math.radians(20), 0.0, 0.0, math.radians(-30)])
+        out = oracle_pairs(labels, scene, yaw, n_q=2, per_query=5, count=10, num_angles=36)
+        # query 0 (category 0, scene 0): only box 2 (box 4 shares its scene); query 1: only box 5
+        assert out["query_index"].tolist() == [0, 1] and out["target_index"].tolist() == [2, 5]
+        assert out["yaw"].tolist() == [3, 3]  # 50 - 20 = 30 deg; 0 - (-30) = 30 deg
+        err = implied_yaw_error_deg(out["yaw"], 36, yaw[out["query_index"]], yaw[out["target_index"]],
+                                    torch.ones(2, dtype=torch.long))
+        assert float(err.max()) == pytest.approx(0.0, abs=1e-6)
+        assert out["query_pos"].shape == out["target_pos_aligned"].shape == (2, 3)
+
+    def test_against_a_naive_check(self) -> None:
+        from threedq.stages.mining import oracle_pairs
+
+        g = torch.Generator().manual_seed(0)
+        N, A = 60, 36
+        labels = torch.randint(-1, 4, (N,), generator=g)
+        scene = torch.randint(0, 10, (N,), generator=g)
+        yaw = torch.rand(N, generator=g) * 2 * math.pi - math.pi
+        out = oracle_pairs(labels, scene, yaw, n_q=20, per_query=3, count=40, num_angles=A,
+                           generator=torch.Generator().manual_seed(1))
+        qi, ti = out["query_index"], out["target_index"]
+        assert 0 < qi.numel() <= 40 and bool((qi < 20).all())
+        assert bool((labels[qi] == labels[ti]).all() & (labels[qi] >= 0).all() & (scene[qi] != scene[ti]).all())
+        err = implied_yaw_error_deg(out["yaw"], A, yaw[qi], yaw[ti], torch.ones_like(qi))
+        assert float(err.max()) <= 180 / A + 1e-6  # the nearest step: within half a step
+        first = [int(qi[n]) for n in range(qi.numel()) if int(qi[n]) not in qi[:n].tolist()]
+        assert qi[: len(first)].tolist() == sorted(first)  # every query's first target before any second one
+        counts = torch.bincount(qi, minlength=20)
+        assert int(counts.max()) <= 3
+        empty = oracle_pairs(torch.full((5,), -1), scene[:5], yaw[:5], 5, 3, 10, A)
+        assert empty["query_index"].numel() == 0 and empty["yaw"].numel() == 0
+
+    def test_the_stage_poses_them_at_the_gt_yaw(self) -> None:
+        s = 8
+        kw: dict = {"grid_resolution": (32, 32, 16), "queue_size": 64, "crop_size": s, "corner_offset": 2,
+                    "num_angles": 8, "keep": 2, "positives": "occupancy"}
+        raw = torch.zeros(3, 4, s, s, s)
+        raw[:, 0, 1:7, 1:7, 1:7] = 1  # a cube: it agrees with itself at every quarter turn
+        pool = {"raw": raw, "features": torch.randn(3, 32, s, s, s)}
+        mined = {"query_index": torch.tensor([0, 1]), "target_index": torch.tensor([1, 2]),
+                 "yaw": torch.tensor([2, 6]), "score": torch.ones(2),
+                 "query_pos": torch.zeros(2, 3, dtype=torch.long), "target_pos_aligned": torch.zeros(2, 3, dtype=torch.long)}
+        out, _, _ = Mining(**kw)._shape_positives(pool, mined, 8, torch.Generator().manual_seed(0))
+        assert out["yaw"].tolist() == [0, 0]  # the miner's own pose: the shape's best yaw, ties to the lowest step
+        out, vox, keys = Mining(**kw, oracle_pairs="gt")._shape_positives(pool, mined, 8,
+                                                                          torch.Generator().manual_seed(0))
+        assert sorted(out["yaw"].tolist()) == [2, 6] and vox.shape == (2, 8, 3) and keys.shape == (2, 8, 32)
+        out, _, _ = Mining(**kw, oracle_pairs="gt_category")._shape_positives(pool, mined, 8,
+                                                                              torch.Generator().manual_seed(0))
+        assert out["yaw"].tolist() == [0, 0]  # the GT pairs at the stage's own posing
+        # the keys are the target's features turned by the GT yaw, at the query's cells
+        j = out["query_index"].tolist().index(0)
+        turned = rotate_yaw(pool["features"][1:2], torch.tensor([2 * 2 * math.pi / 8]))[0]
+        z, y, x = vox[j].unbind(-1)
+        assert torch.allclose(keys[j], F.normalize(turned[:, z, y, x].T, dim=1), atol=1e-5)
+
+    def test_exceptions(self) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
+        for bad in (True, 1, "GT"):
+            with pytest.raises(ValueError, match="oracle_pairs: expected null or one of"):
+                Mining(oracle_pairs=bad, **kw)
+        with pytest.raises(ValueError, match="oracle_pairs: .*positives 'patches'"):
+            Mining(oracle_pairs="gt", positives="patches", **kw)
+
+
+@pytest.mark.parametrize("oracle", ["gt", "mined_gt_filtered", "spread"])
+def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: Path,
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The diagnostic's pairs reach the stage's refresh: every kept pair on two GT objects of one category; ``gt``
+    does not call the miner, ``mined_gt_filtered`` does. ``spread`` (``candidates_per_query: 1``, label-free): the
+    miner returns every verified pair and the ranking gets at most one per query."""
+    import threedq.stages.mining as stage_mining
+    from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
+    from threedq.stages.base import EncoderStage
+
+    torch.manual_seed(0)
+    enc = tmp_path / "enc.pt"
+    torch.save(EncoderStage(grid_resolution=(32, 32, 16)).encoder.state_dict(), enc)
+    calls, handed = [], []
+    real_miner, real_shape = stage_mining.mine_correspondences, Mining._shape_positives
+    monkeypatch.setattr(stage_mining, "mine_correspondences",
+                        lambda *a, **k: calls.append(k["keep"]) or real_miner(*a, **k))
+
+    def shape(self: Mining, pool: dict, mined: dict, *a: object) -> tuple:
+        handed.append(mined["query_index"].clone())
+        return real_shape(self, pool, mined, *a)
+
+    monkeypatch.setattr(Mining, "_shape_positives", shape)
+    real_cut = Mining._cut_pool
+
+    def two_categories(self: Mining, ds: object, generator: torch.Generator) -> dict:  # the tiny data's are all distinct
+        pool = real_cut(self, ds, generator)
+        pool["labels"] = torch.where(pool["labels"] >= 0, pool["labels"] % 2, pool["labels"])
+        return pool
+
+    monkeypatch.setattr(Mining, "_cut_pool", two_categories)
+    cfg = _config(tmp_path, tiny_dataset, enc, "mined_shape")
+    setting = "candidates_per_query: 1" if oracle == "spread" else f"oracle_pairs: {oracle}"
+    cfg.write_text(cfg.read_text().replace("    max_pairs_per_box: 2\n", f"    max_pairs_per_box: 2\n    {setting}\n"
+                                            "    pool_min_observed_iou: null\n"))
+    run = tmp_path / "run"
+    cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/mining.yaml")), "--config", str(cfg),
+                           f"--trainer.default_root_dir={run}"])
+    history = cli.model.mining_history
+    assert history and sum(h["pairs"] for h in history) > 0
+    if oracle == "spread":
+        assert cli.model.hparams.candidates_per_query == 1 and cli.model.hparams.oracle_pairs is None
+        assert calls and set(calls) == {6 * 3}  # every query's top_k verified pairs
+        for q in handed:
+            assert q.numel() and q.unique().numel() == q.numel()  # one candidate per query
+        return
+    assert cli.model.hparams.oracle_pairs == oracle
+    assert bool(calls) == (oracle == "mined_gt_filtered")
+    for h in history:
+        if h["pairs"]:
+            assert h["same_category"] == 1.0 and h["labelled_pairs"] == h["pairs"]
+
+
+class TestSpreadCandidates:
+    """:func:`spread_candidates`: each query's best pairs, round-robin over the queries."""
+
+    def test_hand_computed(self) -> None:
+        from threedq.stages.mining import spread_candidates
+
+        q = torch.tensor([5, 5, 2, 5, 2, 7, 2, 7])  # ranks: 5 -> pairs 0, 1, 3; 2 -> 2, 4, 6; 7 -> 5, 7
+        assert spread_candidates(q, 2, 10).tolist() == [0, 2, 5, 1, 4, 7]
+        assert spread_candidates(q, 1, 10).tolist() == [0, 2, 5]
+        assert spread_candidates(q, 3, 4).tolist() == [0, 2, 5, 1]
+        assert spread_candidates(q[:0], 2, 4).numel() == 0
+
+    def test_against_a_naive_loop(self) -> None:
+        from threedq.stages.mining import spread_candidates
+
+        g = torch.Generator().manual_seed(0)
+        q = torch.randint(0, 15, (200,), generator=g)
+        for per_query, count in ((1, 100), (3, 30), (4, 500)):
+            seen: dict[int, int] = {}
+            rank = []
+            for v in q.tolist():  # each pair's rank among its query's pairs, walking in rank order
+                rank.append(seen.get(v, 0))
+                seen[v] = seen.get(v, 0) + 1
+            want = sorted((r, n) for n, r in enumerate(rank) if r < per_query)[:count]
+            assert spread_candidates(q, per_query, count).tolist() == [n for _, n in want]
+
+    def test_exceptions(self) -> None:
+        for bad in (0, True, 2.0, "3"):
+            with pytest.raises(ValueError, match="candidates_per_query"):
+                Mining(grid_resolution=(32, 32, 16), queue_size=64, candidates_per_query=bad)
+
+
 class TestRecolourScenes:
     """:func:`recolour_scenes`: one random colour transform per scene, shared by its views."""
 

@@ -90,3 +90,31 @@ def test_tables_name_a_crop_region_other_than_the_hull() -> None:
     assert "largest extent" not in retrieval_markdown({**r, "crop_shape": "hull"})[0]
     assert "crops of a cube of each box's largest extent" in retrieval_markdown({**r, "crop_shape": "cube"})[0]
 
+
+
+def test_em_report_says_when_the_pairs_came_from_labels() -> None:
+    """A run with the ``oracle_pairs`` diagnostic is marked as such above its mining table; a run without is not.
+    The table names the queries and boxes each refresh's pairs use."""
+    import copy
+    import json
+    from pathlib import Path
+
+    from threedq.pipeline.tables import em_markdown
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks/results/cap_csls_amd_2026-12-05/metrics_scene_csls10_seed0.json"
+    summary = json.loads(path.read_text())
+    plain = em_markdown(summary)
+    assert "Pairs from labels" not in plain
+    f = summary["mining_results"][0]["refreshes"][0]  # the pairs' spread over the pool, a column of its own
+    row = next(line for line in plain.splitlines() if line.startswith("| 1 | 1 | "))
+    assert row.split(" | ")[4] == f"{f['distinct_queries']} / {f['distinct_boxes']}"
+    del f["distinct_boxes"]  # a run from before the field
+    assert next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | ")).split(" | ")[4] == "-"
+    marked = copy.deepcopy(summary)
+    for m in marked["mining_results"]:
+        for f in m["refreshes"]:
+            f["oracle_pairs"] = "gt"
+    report = em_markdown(marked)
+    head = report.index("## Correspondence mining per round")
+    assert report.index("**Pairs from labels** (`oracle_pairs: gt`)") > head
+    assert report.count("Pairs from labels") == 1

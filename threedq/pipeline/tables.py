@@ -396,15 +396,18 @@ def em_markdown(summary: dict[str, Any]) -> str:
                   "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
     mining = summary.get("mining_results") or []
     if mining:
+        oracle = sorted({f["oracle_pairs"] for m in mining for f in m["refreshes"] if f.get("oracle_pairs")})
         lines += [
             "",
             f"## Correspondence mining per round (`{summary.get('mining_config')}`; categories and yaws used for "
             "measuring only)",
             "",
-            "| round | refresh | pool boxes on GT objects | pairs | of them on two GT objects | same category (of those) | "
-            "yaw median err., same-category asymmetric pairs (deg) | the same over every finite symmetry, modulo its "
-            "period (deg) | context cosine threshold | seconds |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            *([f"**Pairs from labels** (`oracle_pairs: {', '.join(oracle)}`): a diagnostic of what the learning makes "
+               "of right pairs, not the method; its rounds are no result of threedq's.", ""] if oracle else []),
+            "| round | refresh | pool boxes on GT objects | pairs | queries / boxes they use | of them on two GT objects | "
+            "same category (of those) | yaw median err., same-category asymmetric pairs (deg) | the same over every "
+            "finite symmetry, modulo its period (deg) | context cosine threshold | seconds |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for i, m in enumerate(mining, 1):
             for f in m["refreshes"]:
@@ -419,7 +422,9 @@ def em_markdown(summary: dict[str, Any]) -> str:
                                            if "prototype_candidates" in f else "")
                 on = f"{f.get('labelled_pairs', '-')}" + (f" ({f['pairs_on_objects_iou25']} at IoU 0.25)"
                                                           if "pairs_on_objects_iou25" in f else "")
-                lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {on} | "
+                # how widely the pairs spread over the pool (label-free; logged since 2026-12-05)
+                spread = (f"{f['distinct_queries']} / {f['distinct_boxes']}" if "distinct_boxes" in f else "-")
+                lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {spread} | {on} | "
                              f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {f['min_cosine']:.3f} | {f['seconds']} |")
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
     table3 = summary.get("table3") or []
