@@ -711,15 +711,15 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if negatives == "pool" and source != "mined":
             raise ValueError(f"negatives: 'pool' draws the negatives from the mined source's pool; source {source!r} "
                              f"has no pool (use 'queue')")
-        if candidates_per_query is not None and (isinstance(candidates_per_query, bool)
-                                                 or not isinstance(candidates_per_query, int) or candidates_per_query < 1):
+        cpq = candidates_per_query
+        if cpq is not None and (isinstance(cpq, bool) or not isinstance(cpq, int) or cpq < 1):
             raise ValueError(f"candidates_per_query: expected null or an int >= 1, got {candidates_per_query!r}")
         if oracle_pairs not in (None, *ORACLES):
             raise ValueError(f"oracle_pairs: expected null or one of {ORACLES}, got {oracle_pairs!r}")
         if oracle_pairs and (source != "mined" or positives != "occupancy"):
-            raise ValueError("oracle_pairs: the GT pairs replace the mined source's miner and are posed by the occupancy "
-                             f"positives; source {source!r} with positives {positives!r} has no place for them "
-                             "(source: mined, positives: occupancy)")
+            raise ValueError("oracle_pairs: the GT pairs replace the mined source's miner and are posed by the "
+                             f"occupancy positives; source {source!r} with positives {positives!r} has no place for "
+                             "them (source: mined, positives: occupancy)")
         if positives == "occupancy" and verify_by_prototypes:
             raise ValueError("positives: 'occupancy' ranks the mined pairs by shape agreement; with "
                              "verify_by_prototypes the bank ranks them too: choose one (positives: patches, "

@@ -797,9 +797,9 @@ class TestOraclePairs:
         raw = torch.zeros(3, 4, s, s, s)
         raw[:, 0, 1:7, 1:7, 1:7] = 1  # a cube: it agrees with itself at every quarter turn
         pool = {"raw": raw, "features": torch.randn(3, 32, s, s, s)}
+        z = torch.zeros(2, 3, dtype=torch.long)
         mined = {"query_index": torch.tensor([0, 1]), "target_index": torch.tensor([1, 2]),
-                 "yaw": torch.tensor([2, 6]), "score": torch.ones(2),
-                 "query_pos": torch.zeros(2, 3, dtype=torch.long), "target_pos_aligned": torch.zeros(2, 3, dtype=torch.long)}
+                 "yaw": torch.tensor([2, 6]), "score": torch.ones(2), "query_pos": z, "target_pos_aligned": z}
         out, _, _ = Mining(**kw)._shape_positives(pool, mined, 8, torch.Generator().manual_seed(0))
         assert out["yaw"].tolist() == [0, 0]  # the miner's own pose: the shape's best yaw, ties to the lowest step
         out, vox, keys = Mining(**kw, oracle_pairs="gt")._shape_positives(pool, mined, 8,
@@ -848,7 +848,7 @@ def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: 
     monkeypatch.setattr(Mining, "_shape_positives", shape)
     real_cut = Mining._cut_pool
 
-    def two_categories(self: Mining, ds: object, generator: torch.Generator) -> dict:  # the tiny data's are all distinct
+    def two_categories(self: Mining, ds: object, generator: torch.Generator) -> dict:  # the tiny data's: all distinct
         pool = real_cut(self, ds, generator)
         pool["labels"] = torch.where(pool["labels"] >= 0, pool["labels"] % 2, pool["labels"])
         return pool
@@ -856,8 +856,8 @@ def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: 
     monkeypatch.setattr(Mining, "_cut_pool", two_categories)
     cfg = _config(tmp_path, tiny_dataset, enc, "mined_shape")
     setting = "candidates_per_query: 1" if oracle == "spread" else f"oracle_pairs: {oracle}"
-    cfg.write_text(cfg.read_text().replace("    max_pairs_per_box: 2\n", f"    max_pairs_per_box: 2\n    {setting}\n"
-                                            "    pool_min_observed_iou: null\n"))
+    extra = f"    max_pairs_per_box: 2\n    {setting}\n    pool_min_observed_iou: null\n"
+    cfg.write_text(cfg.read_text().replace("    max_pairs_per_box: 2\n", extra))
     run = tmp_path / "run"
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/mining.yaml")), "--config", str(cfg),
                            f"--trainer.default_root_dir={run}"])

@@ -101,7 +101,8 @@ def test_em_report_says_when_the_pairs_came_from_labels() -> None:
 
     from threedq.pipeline.tables import em_markdown
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks/results/cap_csls_amd_2026-12-05/metrics_scene_csls10_seed0.json"
+    results = Path(__file__).resolve().parents[1] / "benchmarks/results"
+    path = results / "cap_csls_amd_2026-12-05/metrics_scene_csls10_seed0.json"
     summary = json.loads(path.read_text())
     plain = em_markdown(summary)
     assert "Pairs from labels" not in plain
@@ -109,7 +110,8 @@ def test_em_report_says_when_the_pairs_came_from_labels() -> None:
     row = next(line for line in plain.splitlines() if line.startswith("| 1 | 1 | "))
     assert row.split(" | ")[4] == f"{f['distinct_queries']} / {f['distinct_boxes']}"
     del f["distinct_boxes"]  # a run from before the field
-    assert next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | ")).split(" | ")[4] == "-"
+    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
+    assert row.split(" | ")[4] == "-"
     marked = copy.deepcopy(summary)
     for m in marked["mining_results"]:
         for f in m["refreshes"]:

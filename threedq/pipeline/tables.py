@@ -404,9 +404,9 @@ def em_markdown(summary: dict[str, Any]) -> str:
             "",
             *([f"**Pairs from labels** (`oracle_pairs: {', '.join(oracle)}`): a diagnostic of what the learning makes "
                "of right pairs, not the method; its rounds are no result of threedq's.", ""] if oracle else []),
-            "| round | refresh | pool boxes on GT objects | pairs | queries / boxes they use | of them on two GT objects | "
-            "same category (of those) | yaw median err., same-category asymmetric pairs (deg) | the same over every "
-            "finite symmetry, modulo its period (deg) | context cosine threshold | seconds |",
+            "| round | refresh | pool boxes on GT objects | pairs | queries / boxes they use | of them on two GT "
+            "objects | same category (of those) | yaw median err., same-category asymmetric pairs (deg) | the same "
+            "over every finite symmetry, modulo its period (deg) | context cosine threshold | seconds |",
             "|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for i, m in enumerate(mining, 1):
