@@ -2,7 +2,8 @@
 
 The mining stage of round r writes its full configuration to ``<work_dir>/rNN_mining/config.yaml``. This script
 builds that stage from it (same encoder, boxes, data, seed), cuts the pool as the stage's first refresh does
-(:meth:`~threedq.stages.mining.Mining.refresh_pairs`: same generator, same object check; outside ``threedq em``, so
+(:meth:`~threedq.stages.mining.Mining.refresh_pairs`: same generator, same object check, same candidates by
+:meth:`~threedq.stages.mining.Mining.candidate_pairs`; outside ``threedq em``, so
 without its crop cache: on the main job's runs its measures came within 0.03 of the run's own refresh, not bit for
 bit), and mines it once per
 setting given in ``--settings`` (keyword arguments of :func:`~threedq.contrastive.mine_correspondences`, on top of
@@ -71,7 +72,7 @@ def main() -> None:
     if not isinstance(settings, dict) or not all(isinstance(v, dict) for v in settings.values()):
         ap.error('--settings: expected a JSON object {"name": {keyword: value}}')
 
-    from threedq.contrastive import calibrate_context_cosine, mine_correspondences
+    from threedq.contrastive import calibrate_context_cosine
 
     model, dm = stage_from_run_config(args.config)
     hp = model.hparams
@@ -98,12 +99,9 @@ def main() -> None:
     for name, kw in settings.items():
         t1 = time.time()
         mine_kw = {k: v for k, v in kw.items() if k not in STAGE_SETTINGS}  # mine_correspondences' keywords
-        r_crops = model.retrieval_crops(pool, n_q, kw.get("retrieval_occupancy_floor", "hparams"))
         by_shape = hp.positives == "occupancy"
-        mined = mine_correspondences(feats[:n_q], feats, top_k=min(hp.top_k, n_t),
-                                     keep=hp.keep * (hp.shape_oversample if by_shape else 1), exclude=exclude,
-                                     min_cosine=min_cos, retrieval_crops=r_crops,
-                                     **{**model.miner_settings(), **mine_kw})
+        mined = model.candidate_pairs(pool, n_q, min_cos, exclude, hp.keep * (hp.shape_oversample if by_shape else 1),
+                                      g, kw.get("retrieval_occupancy_floor", "hparams"), **mine_kw)
         if by_shape:  # the stage's shape ranking (and cap), as its refresh
             cap = hp.max_pairs_per_box
             hp.max_pairs_per_box = kw.get("max_pairs_per_box", cap)

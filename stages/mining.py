@@ -321,7 +321,7 @@ def oracle_pairs(labels: Tensor, scene: Tensor, yaw: Tensor, n_q: int, per_query
 
     Convention: the mined yaw's: ``rotate_yaw(target, 2 pi yaw / num_angles)`` turns the target onto the query.
     """
-    q_list, t_list, r_list = [], [], []
+    q_list, t_list = [labels.new_zeros(0, dtype=torch.long).cpu()], [labels.new_zeros(0, dtype=torch.long).cpu()]
     lab, sc = labels.cpu(), scene.cpu()
     for i in range(min(n_q, lab.numel())):
         if lab[i] < 0:
@@ -330,13 +330,9 @@ def oracle_pairs(labels: Tensor, scene: Tensor, yaw: Tensor, n_q: int, per_query
         cand = cand[torch.randperm(cand.numel(), generator=generator)[:per_query]]
         q_list.append(torch.full_like(cand, i))
         t_list.append(cand)
-        r_list.append(torch.arange(cand.numel()))
-    if q_list:
-        qi, ti, rank = torch.cat(q_list), torch.cat(t_list), torch.cat(r_list)
-        order = torch.sort(rank * (n_q + 1) + qi, stable=True).indices[:count]
-        qi, ti = qi[order].to(labels.device), ti[order].to(labels.device)
-    else:
-        qi = ti = labels.new_zeros(0, dtype=torch.long)
+    qi, ti = torch.cat(q_list), torch.cat(t_list)
+    order = spread_candidates(qi, per_query, count)  # every query's first target before any second one
+    qi, ti = qi[order].to(labels.device), ti[order].to(labels.device)
     step = 2 * math.pi / num_angles
     b = torch.round(torch.remainder((yaw[qi] - yaw[ti]).double(), 2 * math.pi) / step).long() % num_angles
     zeros = qi.new_zeros(qi.numel(), 3)
@@ -1077,23 +1073,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         by_shape = hp.positives == "occupancy"
         assignment = self.assign_pool(pool) if verify or hp.prototype_weight else None
         oversample = hp.prototype_oversample if verify else hp.shape_oversample if by_shape else 1
-        if hp.oracle_pairs in ("gt", "gt_category"):  # a diagnostic with labels: the pairs a perfect miner would give
-            mined = oracle_pairs(pool["labels"], pool["scene"], pool["yaw"], n_q, min(hp.top_k, n_t),
-                                 hp.keep * oversample, hp.num_angles, g)
-        else:
-            spread = hp.candidates_per_query is not None
-            mined = mine_correspondences(
-                feats[:n_q], feats, top_k=min(hp.top_k, n_t),
-                keep=n_q * min(hp.top_k, n_t) if spread else hp.keep * oversample,
-                exclude=exclude, min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q),
-                **self.miner_settings(),
-            )
-            if spread:  # every query's best pairs before any query's next ones
-                mined = take_pairs(mined, spread_candidates(mined["query_index"], hp.candidates_per_query,
-                                                            hp.keep * oversample))
-            if hp.oracle_pairs == "mined_gt_filtered":  # a diagnostic with labels: the miner's pairs, made pure
-                lq, lt = pool["labels"][mined["query_index"]], pool["labels"][mined["target_index"]]
-                mined = take_pairs(mined, ((lq == lt) & (lq >= 0)).nonzero().flatten())
+        mined = self.candidate_pairs(pool, n_q, min_cos, exclude, hp.keep * oversample, g)
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with
             ok = self.prototype_agreement(pool, mined, assignment).nonzero().flatten()[: hp.keep]
@@ -1125,6 +1105,31 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         self.refreshes += 1
         self._candidates = candidates
         return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0, assignment)
+
+    def candidate_pairs(self, pool: dict[str, Tensor], n_q: int, min_cos: float, exclude: Tensor, count: int,
+                        generator: torch.Generator, occupancy_floor: float | None | str = "hparams",
+                        **miner: Any) -> dict[str, Any]:
+        """A refresh's candidate pairs, best first, before the bank's check or the shape ranking: the miner's
+        ``count`` most similar verified pairs (:func:`~threedq.contrastive.mine_correspondences`), or each query's
+        best ``candidates_per_query`` (:func:`spread_candidates`), or the pairs of the ``oracle_pairs`` diagnostic.
+        ``occupancy_floor`` and ``miner`` (keywords of the miner) override the stage's settings (a probe's)."""
+        hp = self.hparams
+        feats = pool["features"]
+        top_k = min(hp.top_k, feats.shape[0])
+        if hp.oracle_pairs in ("gt", "gt_category"):  # a diagnostic with labels: the pairs a perfect miner would give
+            return oracle_pairs(pool["labels"], pool["scene"], pool["yaw"], n_q, top_k, count, hp.num_angles, generator)
+        spread = hp.candidates_per_query is not None
+        mined = mine_correspondences(
+            feats[:n_q], feats, top_k=top_k, keep=n_q * top_k if spread else count, exclude=exclude,
+            min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q, occupancy_floor),
+            **{**self.miner_settings(), **miner},
+        )
+        if spread:  # every query's best pairs before any query's next ones
+            mined = take_pairs(mined, spread_candidates(mined["query_index"], hp.candidates_per_query, count))
+        if hp.oracle_pairs == "mined_gt_filtered":  # a diagnostic with labels: the miner's pairs, made pure
+            lq, lt = pool["labels"][mined["query_index"]], pool["labels"][mined["target_index"]]
+            mined = take_pairs(mined, ((lq == lt) & (lq >= 0)).nonzero().flatten())
+        return mined
 
     def _shape_positives(self, pool: dict[str, Tensor], mined: dict[str, Tensor], count: int,
                          generator: torch.Generator) -> tuple[dict[str, Tensor], Tensor, Tensor]:
