@@ -3,17 +3,17 @@
 The mining stage of round r writes its full configuration to ``<work_dir>/rNN_mining/config.yaml``. This script
 builds that stage from it (same encoder, boxes, data, seed), cuts the pool as the stage's first refresh does
 (:meth:`~threedq.stages.mining.Mining.refresh_pairs`: same generator, same object check, same candidates by
-:meth:`~threedq.stages.mining.Mining.candidate_pairs`; outside ``threedq em``, so
-without its crop cache: on the main job's runs its measures came within 0.03 of the run's own refresh, not bit for
-bit), and mines it once per
-setting given in ``--settings`` (keyword arguments of :func:`~threedq.contrastive.mine_correspondences`, on top of
+:meth:`~threedq.stages.mining.Mining.candidate_pairs`; outside ``threedq em``, so without its crop cache: on the main
+job's runs its measures came within 0.03 of the run's own refresh, not bit for bit), and mines it once per setting
+given in ``--settings`` (keyword arguments of :func:`~threedq.contrastive.mine_correspondences`, on top of
 the stage's own; and the stage's ``retrieval_occupancy_floor``). For each it prints, with GT used for measuring only,
 the columns of the round's report: pairs on two GT objects, one category among those, the implied yaw error on
 asymmetric categories and over every category of finite symmetry order; and whether the pairs (query, target, yaw)
 are the same as the first setting's, and the seconds the mining took. ``--seed`` draws another pool of the same
 boxes. With the stage's ``positives: occupancy`` each setting's candidates (``shape_oversample`` x ``keep``) go
 through the stage's shape ranking (:meth:`~threedq.stages.mining.Mining._shape_positives`) as in a refresh; the
-stage settings ``retrieval_occupancy_floor`` and ``max_pairs_per_box`` may be set per setting too. Run it from the folder the run was made in (the config's paths are relative to it):
+stage settings ``retrieval_occupancy_floor`` and ``max_pairs_per_box`` may be set per setting too. Run it from the
+folder the run was made in (the config's paths are relative to it):
 
     python benchmarks/mining_refresh_probe.py runs/em/r01_mining/config.yaml \\
         --settings '{"plain": {"csls_k": null}, "csls": {"csls_k": 10}, "csls+mutual": {"csls_k": 10, "mutual_k": 10}}'
