@@ -12,7 +12,8 @@ asymmetric categories and over every category of finite symmetry order; and whet
 are the same as the first setting's, and the seconds the mining took. ``--seed`` draws another pool of the same
 boxes. With the stage's ``positives: occupancy`` each setting's candidates (``shape_oversample`` x ``keep``) go
 through the stage's shape ranking (:meth:`~threedq.stages.mining.Mining._shape_positives`) as in a refresh; the
-stage settings ``retrieval_occupancy_floor`` and ``max_pairs_per_box`` may be set per setting too. Run it from the
+stage settings ``retrieval_occupancy_floor``, ``max_pairs_per_box``, ``candidates_per_query`` and
+``occupancy_mutual_k``, ``candidates_from`` may be set per setting too. Run it from the
 folder the run was made in (the config's paths are relative to it):
 
     python benchmarks/mining_refresh_probe.py runs/em/r01_mining/config.yaml \\
@@ -41,7 +42,8 @@ from _machine import cpu_name  # noqa: E402
 
 
 # settings of the stage (not keywords of mine_correspondences) a probe setting may change
-STAGE_SETTINGS = ("retrieval_occupancy_floor", "max_pairs_per_box")
+STAGE_SETTINGS = ("retrieval_occupancy_floor", "max_pairs_per_box", "candidates_per_query", "occupancy_mutual_k",
+                  "candidates_from")
 
 
 def stage_from_run_config(path: Path) -> tuple[object, object]:
@@ -99,14 +101,12 @@ def main() -> None:
     for name, kw in settings.items():
         t1 = time.time()
         mine_kw = {k: v for k, v in kw.items() if k not in STAGE_SETTINGS}  # mine_correspondences' keywords
-        by_shape = hp.positives == "occupancy"
-        mined = model.candidate_pairs(pool, n_q, min_cos, exclude, hp.keep * (hp.shape_oversample if by_shape else 1),
-                                      g, kw.get("retrieval_occupancy_floor", "hparams"), **mine_kw)
-        if by_shape:  # the stage's shape ranking (and cap), as its refresh
-            cap = hp.max_pairs_per_box
-            hp.max_pairs_per_box = kw.get("max_pairs_per_box", cap)
+        saved = {k: hp[k] for k in STAGE_SETTINGS}
+        hp.update({k: v for k, v in kw.items() if k in STAGE_SETTINGS})  # this setting's stage settings
+        mined = model.candidate_pairs(pool, n_q, min_cos, exclude, model.candidate_count(), g, **mine_kw)
+        if hp.positives == "occupancy":  # the stage's shape ranking (and cap), as its refresh
             mined = model._shape_positives(pool, mined, 8, torch.Generator().manual_seed(seed))[0]
-            hp.max_pairs_per_box = cap
+        hp.update(saved)
         seconds = time.time() - t1
         qi, ti = mined["query_index"], mined["target_index"]
         m = model.pair_measures(pool, mined)  # the measures of the round's report

@@ -228,6 +228,73 @@ def shape_agreement(query_occ: Tensor, target_occ: Tensor, num_angles: int, chun
     return cos, yaw
 
 
+def pool_shape_agreement(occ: Tensor, num_angles: int, chunk: int = 128) -> Tensor:
+    """:func:`shape_agreement` of every box of a pool with every other: ``S[n, m]``, the cosine of crop ``n`` with
+    crop ``m`` turned onto it, at the yaw where it is highest. One rotation per crop and yaw, then one product per
+    chunk of targets: ``N^2 A V`` multiply-adds (512 crops of ``16^3`` at 36 yaws: about a second on 2 cores).
+
+    Args:
+        occ: ``[N, C, s, s, s]`` occupancy crops (any non-negative weights; more channels: one cosine over all of
+            them). num_angles: yaw steps in a full turn.
+        chunk: target crops rotated at once (memory ``chunk * num_angles * C * s^3`` floats).
+
+    Returns:
+        ``[N, N]`` cosines (0 where a crop is empty); row: the query, column: the target.
+
+    Convention: as :func:`shape_agreement`'s: yaw about the crop's vertical axis through its centre, crops
+    ``[Z, Y, X]``.
+    """
+    N, A = occ.shape[0], num_angles
+    q = F.normalize(occ.flatten(1), dim=1)  # [N, V]
+    out = occ.new_zeros(N, N)
+    angles = torch.arange(A, device=occ.device, dtype=occ.dtype) * (2 * math.pi / A)
+    for s in range(0, N, chunk):
+        t = rotate_yaw(occ[s:s + chunk], angles.expand(min(chunk, N - s), A))  # [n, A, 1, s, s, s]
+        t = F.normalize(t.flatten(2), dim=2)  # [n, A, V]
+        out[:, s:s + chunk] = torch.einsum("nv,mav->nma", q, t).amax(dim=2)
+    return out
+
+
+def mutual_neighbours(similarity: Tensor, exclude: Tensor, k: int) -> Tensor:
+    """``[N, N]`` bool: ``n`` and ``m`` are each among the other's ``k`` most similar (excluded pairs never count;
+    ties go to the lower index, :func:`torch.topk`'s order).
+
+    Args:
+        similarity: ``[N, N]``; exclude: ``[N, N]`` bool (e.g. the same scene, the box itself); k: >= 1.
+    """
+    sim = similarity.masked_fill(exclude, float("-inf"))
+    k = min(k, sim.shape[1])
+    near = torch.zeros_like(exclude)
+    near.scatter_(1, sim.topk(k, dim=1).indices, True)
+    return near & near.T & ~exclude
+
+
+def input_pairs(occ: Tensor, scene: Tensor, n_q: int, k: int, num_angles: int) -> dict[str, Tensor]:
+    """Candidate pairs from the input crops alone (``candidates_from: occupancy`` or ``input``): every pair of mutual
+    ``k`` nearest neighbours by :func:`pool_shape_agreement` (other scenes only) whose query is one of the first
+    ``n_q`` boxes, best agreement first.
+
+    Args:
+        occ: ``[N, C, s, s, s]`` input crops (occupancy, or occupancy and colour; non-negative); scene: ``[N]`` long
+            scene of each box; n_q: queries; k: >= 1; num_angles: yaw steps in a full turn.
+
+    Returns:
+        The keys of :func:`~threedq.contrastive.mine_correspondences` the stage reads: ``query_index``,
+        ``target_index``, ``yaw`` ``[P]`` long (the agreement's step, :func:`shape_agreement`'s convention),
+        ``score`` ``[P]`` (the agreement), ``query_pos``, ``target_pos``, ``target_pos_aligned`` ``[P, 3]`` long
+        (zeros: no patch match).
+    """
+    sim = pool_shape_agreement(occ, num_angles)
+    mutual = mutual_neighbours(sim, scene[:, None] == scene[None, :], k)[:n_q]
+    qi, ti = mutual.nonzero(as_tuple=True)
+    order = torch.sort(sim[qi, ti], descending=True, stable=True).indices
+    qi, ti = qi[order], ti[order]
+    _, yaw = shape_agreement(occ[qi], occ[ti], num_angles)
+    zeros = qi.new_zeros(qi.numel(), 3)
+    return {"query_index": qi, "target_index": ti, "yaw": yaw, "score": sim[qi, ti],
+            "query_pos": zeros, "target_pos": zeros.clone(), "target_pos_aligned": zeros.clone()}
+
+
 def shape_cells(query_occ: Tensor, target_occ_aligned: Tensor, count: int,
                 generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
     """Where a pair's positives go when they are to be shape agreements by construction: ``count`` cells drawn where
@@ -528,6 +595,21 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             (``None``, default, the paper's). Label-free; not in the paper: with the most similar pairs the pairs
             crowd onto the queries whose neighbours are nearest, and pairs of one category drawn across the pool
             are what raises the rounds (docs/studies/mined-pairs.md, "Pairs from GT").
+        occupancy_mutual_k: ``mined`` with the occupancy positives: keep only the verified candidate pairs whose two
+            boxes are each among the other's ``k`` best matches of the pool (other scenes) by input-occupancy shape
+            agreement over every yaw (:func:`pool_shape_agreement`, :func:`mutual_neighbours`), in the miner's rank
+            order, then cut at ``keep`` (no shape oversampling: the check is the shape ranking). ``None`` (default):
+            every candidate, the ``shape_oversample`` x ``keep`` most similar, ranked by shape agreement. Label-free;
+            not in the paper (it mines with the learned features alone): the features' nearest neighbours and the
+            input geometry's must agree, and a pair need not be the pool's most similar one to be kept. With
+            ``candidates_per_query`` the pairs spread over the queries. Costs one ``N x N`` agreement per refresh.
+        candidates_from: ``mined`` with ``occupancy_mutual_k``: ``"features"`` (default, the paper's): the candidates
+            are the miner's verified pairs by the learned features, checked by the input geometry. ``"occupancy"``:
+            the candidates are the mutual neighbours of the input occupancy crops themselves (every such pair with a
+            query among the first ``query_pool`` boxes, best agreement first; :func:`input_pairs`); ``"input"``: the
+            same on the whole unprojected input crop, occupancy and colour (``cat[occ, occ * rgb]``, each channel
+            with the 3^3 dilation). The learned features then choose no pair. Label-free; a departure from the
+            paper: the input proposes the pairs, the features learn from them.
         oracle_pairs: a diagnostic that uses labels, never for a real run (default ``None``: the miner's pairs).
             ``"gt"``: each refresh's candidate pairs come from GT instead of the miner (:func:`oracle_pairs`: boxes
             on GT objects of one category, in other scenes, drawn at random), ranked by the occupancy positives'
@@ -606,6 +688,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         negatives: Literal["queue", "pool"] = "queue",
         oracle_pairs: Literal["gt", "gt_category", "mined_gt_filtered"] | None = None,
         candidates_per_query: int | None = None,
+        occupancy_mutual_k: int | None = None,
+        candidates_from: Literal["features", "occupancy", "input"] = "features",
         colour_jitter: float = 0.0,
         round_lr: Literal["constant", "harmonic"] = "harmonic",
         em_round: int = 1,
@@ -710,6 +794,18 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         cpq = candidates_per_query
         if cpq is not None and (isinstance(cpq, bool) or not isinstance(cpq, int) or cpq < 1):
             raise ValueError(f"candidates_per_query: expected null or an int >= 1, got {candidates_per_query!r}")
+        omk = occupancy_mutual_k
+        if omk is not None and (isinstance(omk, bool) or not isinstance(omk, int) or omk < 1):
+            raise ValueError(f"occupancy_mutual_k: expected null or an int >= 1, got {occupancy_mutual_k!r}")
+        if omk is not None and (source != "mined" or positives != "occupancy"):
+            raise ValueError("occupancy_mutual_k: checks the mined source's candidates by the occupancy positives' "
+                             f"shape agreement; source {source!r} with positives {positives!r} has neither "
+                             "(source: mined, positives: occupancy)")
+        if candidates_from not in ("features", "occupancy", "input"):
+            raise ValueError(f"candidates_from: expected 'features', 'occupancy' or 'input', got {candidates_from!r}")
+        if candidates_from != "features" and omk is None:
+            raise ValueError(f"candidates_from: {candidates_from!r} takes the input crops' mutual neighbours as the "
+                             "candidates; set occupancy_mutual_k (e.g. 10)")
         if oracle_pairs not in (None, *ORACLES):
             raise ValueError(f"oracle_pairs: expected null or one of {ORACLES}, got {oracle_pairs!r}")
         if oracle_pairs and (source != "mined" or positives != "occupancy"):
@@ -1072,8 +1168,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         verify = bool(hp.verify_by_prototypes)
         by_shape = hp.positives == "occupancy"
         assignment = self.assign_pool(pool) if verify or hp.prototype_weight else None
-        oversample = hp.prototype_oversample if verify else hp.shape_oversample if by_shape else 1
-        mined = self.candidate_pairs(pool, n_q, min_cos, exclude, hp.keep * oversample, g)
+        mined = self.candidate_pairs(pool, n_q, min_cos, exclude, self.candidate_count(), g)
         candidates = int(mined["query_index"].numel())
         if verify:  # the best keep pairs (rank order kept) the bank agrees with
             ok = self.prototype_agreement(pool, mined, assignment).nonzero().flatten()[: hp.keep]
@@ -1106,12 +1201,24 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         self._candidates = candidates
         return self._diagnostics(pool, mined, min_cos, n_q, time.time() - t0, assignment)
 
+    def candidate_count(self) -> int:
+        """How many candidate pairs a refresh hands to the bank's check or the shape ranking, which keep ``keep``:
+        ``keep`` times ``prototype_oversample`` or ``shape_oversample``; ``keep`` itself with ``occupancy_mutual_k``
+        (its check is the shape ranking) or with neither."""
+        hp = self.hparams
+        if hp.verify_by_prototypes:
+            return hp.keep * hp.prototype_oversample
+        if hp.positives == "occupancy" and hp.occupancy_mutual_k is None:
+            return hp.keep * hp.shape_oversample
+        return hp.keep
+
     def candidate_pairs(self, pool: dict[str, Tensor], n_q: int, min_cos: float, exclude: Tensor, count: int,
                         generator: torch.Generator, occupancy_floor: float | None | str = "hparams",
                         **miner: Any) -> dict[str, Any]:
         """A refresh's candidate pairs, best first, before the bank's check or the shape ranking: the miner's
         ``count`` most similar verified pairs (:func:`~threedq.contrastive.mine_correspondences`), or each query's
-        best ``candidates_per_query`` (:func:`spread_candidates`), or the pairs of the ``oracle_pairs`` diagnostic.
+        best ``candidates_per_query`` (:func:`spread_candidates`), either of them only those the input geometry's
+        mutual neighbours agree with (``occupancy_mutual_k``), or the pairs of the ``oracle_pairs`` diagnostic.
         ``occupancy_floor`` and ``miner`` (keywords of the miner) override the stage's settings (a probe's)."""
         hp = self.hparams
         feats = pool["features"]
@@ -1119,17 +1226,37 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if hp.oracle_pairs in ("gt", "gt_category"):  # a diagnostic with labels: the pairs a perfect miner would give
             return oracle_pairs(pool["labels"], pool["scene"], pool["yaw"], n_q, top_k, count, hp.num_angles, generator)
         spread = hp.candidates_per_query is not None
-        mined = mine_correspondences(
-            feats[:n_q], feats, top_k=top_k, keep=n_q * top_k if spread else count, exclude=exclude,
-            min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q, occupancy_floor),
-            **{**self.miner_settings(), **miner},
-        )
+        checked = hp.occupancy_mutual_k is not None
+        if hp.candidates_from != "features":  # the input crops' mutual neighbours, best agreement first
+            crops = self._input_occupancy(pool) if hp.candidates_from == "occupancy" else \
+                F.max_pool3d(pool["raw"].float(), kernel_size=3, stride=1, padding=1)
+            mined = input_pairs(crops, pool["scene"], n_q, hp.occupancy_mutual_k, hp.num_angles)
+        else:
+            mined = mine_correspondences(
+                feats[:n_q], feats, top_k=top_k, keep=n_q * top_k if spread or checked else count, exclude=exclude,
+                min_cosine=min_cos, retrieval_crops=self.retrieval_crops(pool, n_q, occupancy_floor),
+                **{**self.miner_settings(), **miner},
+            )
+        if checked and hp.candidates_from == "features":  # the pairs the input geometry's neighbours agree with
+            scene = pool["scene"]
+            mutual = mutual_neighbours(pool_shape_agreement(self._input_occupancy(pool), hp.num_angles),
+                                       scene[:, None] == scene[None, :], hp.occupancy_mutual_k)
+            ok = mutual[mined["query_index"], mined["target_index"]].nonzero().flatten()
+            mined = take_pairs(mined, ok if spread else ok[:count])
         if spread:  # every query's best pairs before any query's next ones
             mined = take_pairs(mined, spread_candidates(mined["query_index"], hp.candidates_per_query, count))
+        elif hp.candidates_from != "features":  # the best agreements
+            mined = take_pairs(mined, torch.arange(min(count, mined["query_index"].numel()), device=feats.device))
         if hp.oracle_pairs == "mined_gt_filtered":  # a diagnostic with labels: the miner's pairs, made pure
             lq, lt = pool["labels"][mined["query_index"]], pool["labels"][mined["target_index"]]
             mined = take_pairs(mined, ((lq == lt) & (lq >= 0)).nonzero().flatten())
         return mined
+
+    @staticmethod
+    def _input_occupancy(pool: dict[str, Tensor]) -> Tensor:
+        """``[N, 1, s, s, s]`` the pool crops' input occupancy, the surface and the cells next to it (a 3^3 max): what
+        the shape agreement of the occupancy positives compares."""
+        return F.max_pool3d(pool["raw"][:, :1].float(), kernel_size=3, stride=1, padding=1)
 
     def _shape_positives(self, pool: dict[str, Tensor], mined: dict[str, Tensor], count: int,
                          generator: torch.Generator) -> tuple[dict[str, Tensor], Tensor, Tensor]:
@@ -1139,7 +1266,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         keys ``[P, count, C]``."""
         hp = self.hparams
         qi, ti = mined["query_index"], mined["target_index"]
-        occ = F.max_pool3d(pool["raw"][:, :1].float(), kernel_size=3, stride=1, padding=1)  # the surface and next to it
+        occ = self._input_occupancy(pool)
         cos, yaw = shape_agreement(occ[qi], occ[ti], hp.num_angles)
         if hp.oracle_pairs == "gt":  # ranked by shape agreement all the same, posed at the GT yaw
             yaw = mined["yaw"]
@@ -1230,6 +1357,9 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
         }
+        if hp.occupancy_mutual_k is not None:  # the candidates the input geometry's mutual neighbours agreed with
+            info["occupancy_mutual_k"] = hp.occupancy_mutual_k
+            info["candidates_from"] = hp.candidates_from
         if hp.oracle_pairs:  # the diagnostic: the report says these pairs came from labels
             info["oracle_pairs"] = hp.oracle_pairs
         if hp.verify_by_prototypes:  # the pairs mined before the bank's check (prototype_oversample x keep at most)

@@ -36,6 +36,7 @@ NEEDS = {
     "stages/mining.yaml": ("encoder_ckpt",),
     "stages/mining_checked.yaml": ("encoder_ckpt", "bank_ckpt"),  # verify_by_prototypes: the bank threedq em passes
     "stages/mining_colour_jitter.yaml": ("encoder_ckpt",),
+    "stages/mining_occupancy_pairs.yaml": ("encoder_ckpt",),
     "stages/vc.yaml": ("encoder_ckpt",),
     "stages/vc_moco.yaml": ("encoder_ckpt",),
     "stages/self_labelling.yaml": ("encoder_ckpt", "detector_ckpt", "bank_ckpt"),

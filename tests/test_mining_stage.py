@@ -823,12 +823,16 @@ class TestOraclePairs:
             Mining(oracle_pairs="gt", positives="patches", **kw)
 
 
-@pytest.mark.parametrize("oracle", ["gt", "mined_gt_filtered", "spread"])
+@pytest.mark.parametrize("oracle", ["gt", "mined_gt_filtered", "spread", "occupancy", "occupancy_only", "input_only"])
 def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: Path,
                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """The diagnostic's pairs reach the stage's refresh: every kept pair on two GT objects of one category; ``gt``
     does not call the miner, ``mined_gt_filtered`` does. ``spread`` (``candidates_per_query: 1``, label-free): the
-    miner returns every verified pair and the ranking gets at most one per query."""
+    miner returns every verified pair and the ranking gets at most one per query. ``occupancy``
+    (``occupancy_mutual_k: 3`` with ``candidates_per_query: 1``, label-free): every pair the ranking gets is a pair
+    of mutual neighbours by a naive loop over :func:`shape_agreement`, at most one per query, ``keep`` at most.
+    ``occupancy_only`` (the same with ``candidates_from: occupancy``): the same, and the miner is never called;
+    ``input_only`` (``candidates_from: input``): the same on the whole input crops, occupancy and colour."""
     import threedq.stages.mining as stage_mining
     from threedq.pipeline.lightning_cli import ThreeDQCLI, resolve_config
     from threedq.stages.base import EncoderStage
@@ -842,7 +846,7 @@ def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: 
                         lambda *a, **k: calls.append(k["keep"]) or real_miner(*a, **k))
 
     def shape(self: Mining, pool: dict, mined: dict, *a: object) -> tuple:
-        handed.append(mined["query_index"].clone())
+        handed.append((mined["query_index"].clone(), mined["target_index"].clone(), pool))
         return real_shape(self, pool, mined, *a)
 
     monkeypatch.setattr(Mining, "_shape_positives", shape)
@@ -855,7 +859,11 @@ def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: 
 
     monkeypatch.setattr(Mining, "_cut_pool", two_categories)
     cfg = _config(tmp_path, tiny_dataset, enc, "mined_shape")
-    setting = "candidates_per_query: 1" if oracle == "spread" else f"oracle_pairs: {oracle}"
+    setting = {"spread": "candidates_per_query: 1",
+               "occupancy": "candidates_per_query: 1\n    occupancy_mutual_k: 3",
+               "occupancy_only": "candidates_per_query: 1\n    occupancy_mutual_k: 3\n    candidates_from: occupancy",
+               "input_only": "candidates_per_query: 1\n    occupancy_mutual_k: 3\n    candidates_from: input",
+               }.get(oracle, f"oracle_pairs: {oracle}")
     extra = f"    max_pairs_per_box: 2\n    {setting}\n    pool_min_observed_iou: null\n"
     cfg.write_text(cfg.read_text().replace("    max_pairs_per_box: 2\n", extra))
     run = tmp_path / "run"
@@ -866,8 +874,30 @@ def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: 
     if oracle == "spread":
         assert cli.model.hparams.candidates_per_query == 1 and cli.model.hparams.oracle_pairs is None
         assert calls and set(calls) == {6 * 3}  # every query's top_k verified pairs
-        for q in handed:
+        for q, _, _ in handed:
             assert q.numel() and q.unique().numel() == q.numel()  # one candidate per query
+        return
+    if oracle.startswith(("occupancy", "input")):
+        from threedq.stages.mining import shape_agreement
+
+        hp = cli.model.hparams
+        assert hp.occupancy_mutual_k == 3 and cli.model.candidate_count() == hp.keep
+        assert all(h["occupancy_mutual_k"] == 3 for h in history)
+        if oracle == "occupancy":
+            assert calls and set(calls) == {6 * 3} and hp.candidates_from == "features"
+        else:
+            assert not calls and all(h["candidates_from"] == oracle[:-5] for h in history)
+        for q, t, pool in handed:
+            assert q.numel() <= hp.keep and q.unique().numel() == q.numel()
+            occ = Mining._input_occupancy(pool) if oracle != "input_only" else \
+                F.max_pool3d(pool["raw"].float(), kernel_size=3, stride=1, padding=1)  # occupancy and colour
+            N = occ.shape[0]
+            a, b = torch.meshgrid(torch.arange(N), torch.arange(N), indexing="ij")
+            sim = shape_agreement(occ[a.flatten()], occ[b.flatten()], hp.num_angles)[0].view(N, N)
+            sim = sim.masked_fill(pool["scene"][:, None] == pool["scene"][None, :], float("-inf"))
+            third = [sorted(row.tolist(), reverse=True)[2] for row in sim]  # each box's 3rd best in other scenes
+            for i, j in zip(q.tolist(), t.tolist()):  # within float rounding of the batched agreement
+                assert sim[i, j] >= third[i] - 1e-5 and sim[j, i] >= third[j] - 1e-5
         return
     assert cli.model.hparams.oracle_pairs == oracle
     assert bool(calls) == (oracle == "mined_gt_filtered")
@@ -906,6 +936,144 @@ class TestSpreadCandidates:
         for bad in (0, True, 2.0, "3"):
             with pytest.raises(ValueError, match="candidates_per_query"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, candidates_per_query=bad)
+
+
+class TestPoolShapeAgreement:
+    """:func:`pool_shape_agreement`: :func:`shape_agreement` of every pair of a pool at once."""
+
+    @staticmethod
+    def _crops(n: int, s: int = 8, seed: int = 0) -> torch.Tensor:
+        g = torch.Generator().manual_seed(seed)
+        return (torch.rand(n, 1, s, s, s, generator=g) > 0.7).float()
+
+    def test_smoke_and_shapes(self) -> None:
+        from threedq.stages.mining import pool_shape_agreement
+
+        out = pool_shape_agreement(self._crops(5), 12)
+        assert out.shape == (5, 5) and out.dtype == torch.float32
+        assert torch.allclose(out.diagonal(), torch.ones(5), atol=1e-5)  # yaw 0: each crop on itself
+
+    def test_against_pairwise_shape_agreement(self) -> None:
+        """The naive reference: :func:`shape_agreement` pair by pair; chunking changes nothing."""
+        from threedq.stages.mining import pool_shape_agreement, shape_agreement
+
+        for channels in (1, 4):  # occupancy, and occupancy with colour (one cosine over all channels)
+            occ = torch.cat([self._crops(7, seed=c) for c in range(channels)], dim=1)
+            occ[3] = 0  # an empty crop agrees with nothing
+            want = torch.stack([torch.stack([shape_agreement(occ[n:n + 1], occ[m:m + 1], 12)[0][0]
+                                             for m in range(7)]) for n in range(7)])
+            for chunk in (1, 3, 128):
+                assert torch.allclose(pool_shape_agreement(occ, 12, chunk=chunk), want, atol=1e-5)
+            assert float(want[3].abs().max()) == 0.0
+
+    def test_rotated_copy(self) -> None:
+        """A crop and its copy turned by a known quarter turn agree fully (grid-exact rotation)."""
+        from threedq.stages.mining import pool_shape_agreement
+
+        occ = self._crops(2, seed=1)
+        turned = torch.rot90(occ[0], 1, dims=(2, 3))  # 90 deg about the vertical (Z) axis of a [1, Z, Y, X] crop
+        out = pool_shape_agreement(torch.stack([occ[0], turned, occ[1]]), 36)
+        assert float(out[0, 1]) == pytest.approx(1.0, abs=1e-5) and float(out[1, 0]) == pytest.approx(1.0, abs=1e-5)
+        assert float(out[0, 2]) < 0.9
+
+    def test_gradcheck(self) -> None:
+        from threedq.stages.mining import pool_shape_agreement
+
+        occ = (torch.rand(3, 1, 4, 4, 4, dtype=torch.float64) + 0.1).requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda x: pool_shape_agreement(x, 4), (occ,))
+
+
+class TestMutualNeighbours:
+    """:func:`mutual_neighbours`: pairs each among the other's k most similar."""
+
+    def test_hand_computed(self) -> None:
+        from threedq.stages.mining import mutual_neighbours
+
+        sim = torch.tensor([[0.0, 0.9, 0.1, 0.5],
+                            [0.9, 0.0, 0.8, 0.2],
+                            [0.1, 0.8, 0.0, 0.7],
+                            [0.5, 0.2, 0.7, 0.0]])
+        eye = torch.eye(4, dtype=torch.bool)
+        # 1-NN: 0 -> 1, 1 -> 0, 2 -> 1, 3 -> 2: only 0 - 1 is mutual
+        assert mutual_neighbours(sim, eye, 1).nonzero().tolist() == [[0, 1], [1, 0]]
+        # 2-NN: 0 -> {1, 3}, 1 -> {0, 2}, 2 -> {1, 3}, 3 -> {2, 0}
+        assert mutual_neighbours(sim, eye, 2).nonzero().tolist() == [[0, 1], [0, 3], [1, 0], [1, 2], [2, 1],
+                                                                     [2, 3], [3, 0], [3, 2]]
+        # excluding 0 - 1 (the same scene, say): 0 -> 3, 1 -> 2, 2 -> 1, 3 -> 2
+        ex = eye.clone()
+        ex[0, 1] = ex[1, 0] = True
+        assert mutual_neighbours(sim, ex, 1).nonzero().tolist() == [[1, 2], [2, 1]]
+
+    def test_against_a_naive_loop(self) -> None:
+        from threedq.stages.mining import mutual_neighbours
+
+        g = torch.Generator().manual_seed(0)
+        N = 30
+        sim = torch.rand(N, N, generator=g)
+        scene = torch.randint(0, 6, (N,), generator=g)
+        ex = scene[:, None] == scene[None, :]
+        for k in (1, 3, 8, 40):
+            near = [set(sorted((m for m in range(N) if not ex[n, m]), key=lambda m: -float(sim[n, m]))[:k])
+                    for n in range(N)]
+            want = [[n, m] for n in range(N) for m in range(N) if m in near[n] and n in near[m]]
+            assert mutual_neighbours(sim, ex, k).nonzero().tolist() == want
+
+    def test_exceptions(self) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
+        for bad in (0, True, 2.0, "3"):
+            with pytest.raises(ValueError, match="occupancy_mutual_k: expected"):
+                Mining(occupancy_mutual_k=bad, **kw)
+        with pytest.raises(ValueError, match="occupancy_mutual_k: .*positives 'patches'"):
+            Mining(occupancy_mutual_k=5, positives="patches", **kw)
+
+
+class TestInputPairs:
+    """:func:`input_pairs`: candidate pairs from the input crops alone."""
+
+    @staticmethod
+    def _pool() -> tuple[torch.Tensor, torch.Tensor]:
+        g = torch.Generator().manual_seed(3)
+        a, b = ((torch.rand(2, 1, 8, 8, 8, generator=g) > 0.7).float()).unbind(0)
+        # scene 0: a, b; scene 1: a and b turned by a quarter turn about the vertical axis (grid-exact)
+        occ = torch.stack([a, b, torch.rot90(a, 1, dims=(2, 3)), torch.rot90(b, -1, dims=(2, 3))])
+        return occ, torch.tensor([0, 0, 1, 1])
+
+    def test_hand_computed(self) -> None:
+        from threedq.geometry.rotate import rotate_yaw
+        from threedq.stages.mining import input_pairs
+
+        occ, scene = self._pool()
+        out = input_pairs(occ, scene, 2, 1, 36)
+        assert sorted(zip(out["query_index"].tolist(), out["target_index"].tolist())) == [(0, 2), (1, 3)]
+        for q, t, y, sc in zip(out["query_index"], out["target_index"], out["yaw"], out["score"]):
+            assert float(sc) == pytest.approx(1.0, abs=1e-5)
+            turned = rotate_yaw(occ[t][None], torch.tensor([2 * math.pi * float(y) / 36]))[0]  # the miner's yaw
+            assert torch.allclose(turned, occ[q], atol=1e-4)  # convention: turns the target onto the query
+        assert {int(y) for y in out["yaw"]} == {9, 27}  # a quarter turn back, either way
+        assert out["query_pos"].shape == (2, 3) and out["score"][0] >= out["score"][1]
+
+    def test_against_the_mutual_matrix(self) -> None:
+        """Every mutual pair with a query among the first n_q, best agreement first, and nothing else."""
+        from threedq.stages.mining import input_pairs, mutual_neighbours, pool_shape_agreement
+
+        g = torch.Generator().manual_seed(0)
+        occ = (torch.rand(12, 1, 6, 6, 6, generator=g) > 0.6).float()
+        scene = torch.arange(12) // 3
+        out = input_pairs(occ, scene, 7, 3, 12)
+        sim = pool_shape_agreement(occ, 12)
+        mut = mutual_neighbours(sim, scene[:, None] == scene[None, :], 3)
+        want = {(n, m) for n in range(7) for m in range(12) if mut[n, m]}
+        got = list(zip(out["query_index"].tolist(), out["target_index"].tolist()))
+        assert set(got) == want and len(got) == len(want)
+        assert bool((out["score"][1:] <= out["score"][:-1]).all())
+
+    def test_exceptions(self) -> None:
+        kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
+        with pytest.raises(ValueError, match="candidates_from: expected"):
+            Mining(candidates_from="geometry", **kw)
+        for source in ("occupancy", "input"):
+            with pytest.raises(ValueError, match=f"candidates_from: '{source}' .*occupancy_mutual_k"):
+                Mining(candidates_from=source, **kw)
 
 
 class TestRecolourScenes:

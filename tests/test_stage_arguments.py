@@ -94,7 +94,9 @@ def _stage_configs() -> list[str]:
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
 #: A variant config's own choices: what it exists to set, on top of its stage's tuned config.
 VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives", "retrieval_occupancy_floor"},
-                   "stages/mining_colour_jitter.yaml": {"colour_jitter"}}
+                   "stages/mining_colour_jitter.yaml": {"colour_jitter"},
+                   "stages/mining_occupancy_pairs.yaml": {"occupancy_mutual_k", "candidates_from",
+                                                          "candidates_per_query"}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
@@ -109,8 +111,8 @@ def test_class_defaults_equal_the_tuned_config(config: str) -> None:
 
 
 def test_a_variant_config_differs_from_its_stage_config_only_in_its_choices() -> None:
-    """Each variant (``stages/mining_checked.yaml``, ``stages/mining_colour_jitter.yaml``) is ``stages/mining.yaml``
-    plus its own settings, nothing else."""
+    """Each variant (``stages/mining_checked.yaml``, ``stages/mining_colour_jitter.yaml``,
+    ``stages/mining_occupancy_pairs.yaml``) is ``stages/mining.yaml`` plus its own settings, nothing else."""
     for variant, own in VARIANT_CHOICES.items():
         base = yaml.safe_load((packaged_configs_dir() / "stages/mining.yaml").read_text())
         cfg = yaml.safe_load((packaged_configs_dir() / variant).read_text())

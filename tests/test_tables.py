@@ -94,7 +94,7 @@ def test_tables_name_a_crop_region_other_than_the_hull() -> None:
 
 def test_em_report_says_when_the_pairs_came_from_labels() -> None:
     """A run with the ``oracle_pairs`` diagnostic is marked as such above its mining table; a run without is not.
-    The table names the queries and boxes each refresh's pairs use."""
+    The table names the queries and boxes each refresh's pairs use, and the input geometry's check where it ran."""
     import copy
     import json
     from pathlib import Path
@@ -109,6 +109,10 @@ def test_em_report_says_when_the_pairs_came_from_labels() -> None:
     f = summary["mining_results"][0]["refreshes"][0]  # the pairs' spread over the pool, a column of its own
     row = next(line for line in plain.splitlines() if line.startswith("| 1 | 1 | "))
     assert row.split(" | ")[4] == f"{f['distinct_queries']} / {f['distinct_boxes']}"
+    assert row.split(" | ")[3] == f"{f['pairs']}"
+    f["occupancy_mutual_k"] = 10  # a run whose candidates the input geometry checked says so in the pairs cell
+    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
+    assert row.split(" | ")[3] == f"{f['pairs']} (mutual 10-NN by input shape)"
     del f["distinct_boxes"]  # a run from before the field
     row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
     assert row.split(" | ")[4] == "-"
