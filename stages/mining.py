@@ -245,12 +245,12 @@ def pool_shape_agreement(occ: Tensor, num_angles: int, chunk: int = 128) -> Tens
     ``[Z, Y, X]``.
     """
     N, A = occ.shape[0], num_angles
-    q = F.normalize(occ.flatten(1), dim=1)  # [N, V]
+    q = F.normalize(occ.flatten(1), dim=1)  # [N, C s^3]
     out = occ.new_zeros(N, N)
     angles = torch.arange(A, device=occ.device, dtype=occ.dtype) * (2 * math.pi / A)
     for s in range(0, N, chunk):
-        t = rotate_yaw(occ[s:s + chunk], angles.expand(min(chunk, N - s), A))  # [n, A, 1, s, s, s]
-        t = F.normalize(t.flatten(2), dim=2)  # [n, A, V]
+        t = rotate_yaw(occ[s:s + chunk], angles.expand(min(chunk, N - s), A))  # [n, A, C, s, s, s]
+        t = F.normalize(t.flatten(2), dim=2)  # [n, A, C s^3]
         out[:, s:s + chunk] = torch.einsum("nv,mav->nma", q, t).amax(dim=2)
     return out
 
@@ -269,14 +269,14 @@ def mutual_neighbours(similarity: Tensor, exclude: Tensor, k: int) -> Tensor:
     return near & near.T & ~exclude
 
 
-def input_pairs(occ: Tensor, scene: Tensor, n_q: int, k: int, num_angles: int) -> dict[str, Tensor]:
+def input_pairs(crops: Tensor, scene: Tensor, n_q: int, k: int, num_angles: int) -> dict[str, Tensor]:
     """Candidate pairs from the input crops alone (``candidates_from: occupancy`` or ``input``): every pair of mutual
     ``k`` nearest neighbours by :func:`pool_shape_agreement` (other scenes only) whose query is one of the first
     ``n_q`` boxes, best agreement first.
 
     Args:
-        occ: ``[N, C, s, s, s]`` input crops (occupancy, or occupancy and colour; non-negative); scene: ``[N]`` long
-            scene of each box; n_q: queries; k: >= 1; num_angles: yaw steps in a full turn.
+        crops: ``[N, C, s, s, s]`` input crops (occupancy, or occupancy and colour; non-negative); scene: ``[N]``
+            long scene of each box; n_q: queries; k: >= 1; num_angles: yaw steps in a full turn.
 
     Returns:
         The keys of :func:`~threedq.contrastive.mine_correspondences` the stage reads: ``query_index``,
@@ -284,12 +284,12 @@ def input_pairs(occ: Tensor, scene: Tensor, n_q: int, k: int, num_angles: int) -
         ``score`` ``[P]`` (the agreement), ``query_pos``, ``target_pos``, ``target_pos_aligned`` ``[P, 3]`` long
         (zeros: no patch match).
     """
-    sim = pool_shape_agreement(occ, num_angles)
+    sim = pool_shape_agreement(crops, num_angles)
     mutual = mutual_neighbours(sim, scene[:, None] == scene[None, :], k)[:n_q]
     qi, ti = mutual.nonzero(as_tuple=True)
     order = torch.sort(sim[qi, ti], descending=True, stable=True).indices
     qi, ti = qi[order], ti[order]
-    _, yaw = shape_agreement(occ[qi], occ[ti], num_angles)
+    _, yaw = shape_agreement(crops[qi], crops[ti], num_angles)
     zeros = qi.new_zeros(qi.numel(), 3)
     return {"query_index": qi, "target_index": ti, "yaw": yaw, "score": sim[qi, ti],
             "query_pos": zeros, "target_pos": zeros.clone(), "target_pos_aligned": zeros.clone()}
@@ -603,13 +603,18 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             not in the paper (it mines with the learned features alone): the features' nearest neighbours and the
             input geometry's must agree, and a pair need not be the pool's most similar one to be kept. With
             ``candidates_per_query`` the pairs spread over the queries. Costs one ``N x N`` agreement per refresh.
+            On the shape-only data (2 seeds) it makes the pairs purer and the rounds lower: the features propose
+            pairs only within the categories they already match (docs/studies/mined-pairs.md, "The input proposes
+            the pairs").
         candidates_from: ``mined`` with ``occupancy_mutual_k``: ``"features"`` (default, the paper's): the candidates
             are the miner's verified pairs by the learned features, checked by the input geometry. ``"occupancy"``:
             the candidates are the mutual neighbours of the input occupancy crops themselves (every such pair with a
             query among the first ``query_pool`` boxes, best agreement first; :func:`input_pairs`); ``"input"``: the
             same on the whole unprojected input crop, occupancy and colour (``cat[occ, occ * rgb]``, each channel
             with the 3^3 dilation). The learned features then choose no pair. Label-free; a departure from the
-            paper: the input proposes the pairs, the features learn from them.
+            paper: the input proposes the pairs, the features learn from them. ``"occupancy"`` (with k = 10, as
+            ``stages/mining_occupancy_pairs.yaml`` sets) raises every round on data whose categories are shapes
+            and joins colours of one shape where colour is part of the category (2 seeds each, same study).
         oracle_pairs: a diagnostic that uses labels, never for a real run (default ``None``: the miner's pairs).
             ``"gt"``: each refresh's candidate pairs come from GT instead of the miner (:func:`oracle_pairs`: boxes
             on GT objects of one category, in other scenes, drawn at random), ranked by the occupancy positives'
@@ -1218,7 +1223,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         """A refresh's candidate pairs, best first, before the bank's check or the shape ranking: the miner's
         ``count`` most similar verified pairs (:func:`~threedq.contrastive.mine_correspondences`), or each query's
         best ``candidates_per_query`` (:func:`spread_candidates`), either of them only those the input geometry's
-        mutual neighbours agree with (``occupancy_mutual_k``), or the pairs of the ``oracle_pairs`` diagnostic.
+        mutual neighbours agree with (``occupancy_mutual_k``); or the input crops' mutual pairs themselves
+        (``candidates_from``, :func:`input_pairs`); or the pairs of the ``oracle_pairs`` diagnostic.
         ``occupancy_floor`` and ``miner`` (keywords of the miner) override the stage's settings (a probe's)."""
         hp = self.hparams
         feats = pool["features"]

@@ -111,8 +111,12 @@ def test_em_report_says_when_the_pairs_came_from_labels() -> None:
     assert row.split(" | ")[4] == f"{f['distinct_queries']} / {f['distinct_boxes']}"
     assert row.split(" | ")[3] == f"{f['pairs']}"
     f["occupancy_mutual_k"] = 10  # a run whose candidates the input geometry checked says so in the pairs cell
+    f["candidates_from"] = "features"
     row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
-    assert row.split(" | ")[3] == f"{f['pairs']} (mutual 10-NN by input shape)"
+    assert row.split(" | ")[3] == f"{f['pairs']} (checked: mutual 10-NN by input occupancy)"
+    f["candidates_from"] = "occupancy"  # and one whose candidates the input proposed
+    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
+    assert row.split(" | ")[3] == f"{f['pairs']} (from the input occupancy: mutual 10-NN)"
     del f["distinct_boxes"]  # a run from before the field
     row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
     assert row.split(" | ")[4] == "-"

@@ -420,8 +420,10 @@ def em_markdown(summary: dict[str, Any]) -> str:
                     pool += f", {f['pool_scene_vouched']} by the scene too)" if "pool_scene_vouched" in f else ")"
                 pairs = f"{f['pairs']}" + (f" (of {f['prototype_candidates']} mined; the bank agreed)"
                                            if "prototype_candidates" in f else "")
-                if "occupancy_mutual_k" in f:  # candidates kept where the input geometry's neighbours agree
-                    pairs += f" (mutual {f['occupancy_mutual_k']}-NN by input shape)"
+                if "occupancy_mutual_k" in f:  # the input crops' mutual neighbours: a check, or the candidates
+                    src = f.get("candidates_from", "features")
+                    pairs += (f" (checked: mutual {f['occupancy_mutual_k']}-NN by input occupancy)" if src == "features"
+                              else f" (from the input {src}: mutual {f['occupancy_mutual_k']}-NN)")
                 on = f"{f.get('labelled_pairs', '-')}" + (f" ({f['pairs_on_objects_iou25']} at IoU 0.25)"
                                                           if "pairs_on_objects_iou25" in f else "")
                 # how widely the pairs spread over the pool (label-free; logged since 2026-12-05)
