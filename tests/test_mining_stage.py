@@ -493,6 +493,13 @@ class TestShapePositives:
             Mining(positives="occupancy", verify_by_prototypes=True, bank_ckpt="x.ckpt", **kw)
 
 
+#: The miner's own candidates (the paper's; ``stages/mining.yaml`` takes the input crops' mutual neighbours): what
+#: the patch positives need and what the short fits below exercise, unless a test replaces these lines.
+FEATURE_CANDIDATES = "    candidates_from: features\n    occupancy_mutual_k: null\n    candidates_per_query: null\n"
+#: The same as keyword arguments of :class:`Mining`.
+PAPER_MINER = {"candidates_from": "features", "occupancy_mutual_k": None, "candidates_per_query": None}
+
+
 def _config(tmp_path: Path, data_dir: Path, encoder_ckpt: Path, source: str) -> Path:
     views = source == "mined_views"
     proto = source == "mined_proto"
@@ -528,7 +535,7 @@ model:
     projection_dim: {16 if source == "mined_proj" else "null"}
     projection_lr: {0.01 if source == "mined_proj" else 0.001}
     positives: {"occupancy" if source == "mined_shape" else "patches"}
-    negatives: {"pool" if source == "mined_pool" else "queue"}
+{FEATURE_CANDIDATES}    negatives: {"pool" if source == "mined_pool" else "queue"}
     colour_jitter: {1.0 if source == "mined_jitter" else 0.0}
     correspondence_weight: {0.0 if source == "mined_vp_only" else 1.0}
     csls_k: {2 if csls else "null"}
@@ -747,7 +754,8 @@ class TestCapPairsPerBox:
             with pytest.raises(ValueError, match="max_pairs_per_box"):
                 Mining(grid_resolution=(32, 32, 16), queue_size=64, max_pairs_per_box=bad)
         with pytest.raises(ValueError, match="max_pairs_per_box.*positives"):
-            Mining(grid_resolution=(32, 32, 16), queue_size=64, positives="patches", max_pairs_per_box=4)
+            Mining(grid_resolution=(32, 32, 16), queue_size=64, positives="patches", max_pairs_per_box=4,
+                   **PAPER_MINER)
 
 
 class TestOraclePairs:
@@ -820,7 +828,7 @@ class TestOraclePairs:
             with pytest.raises(ValueError, match="oracle_pairs: expected null or one of"):
                 Mining(oracle_pairs=bad, **kw)
         with pytest.raises(ValueError, match="oracle_pairs: .*positives 'patches'"):
-            Mining(oracle_pairs="gt", positives="patches", **kw)
+            Mining(oracle_pairs="gt", positives="patches", **kw, **PAPER_MINER)
 
 
 @pytest.mark.parametrize("oracle", ["gt", "mined_gt_filtered", "spread", "occupancy", "occupancy_only", "input_only"])
@@ -859,13 +867,14 @@ def test_oracle_pairs_in_a_short_fit(oracle: str, tmp_path: Path, tiny_dataset: 
 
     monkeypatch.setattr(Mining, "_cut_pool", two_categories)
     cfg = _config(tmp_path, tiny_dataset, enc, "mined_shape")
-    setting = {"spread": "candidates_per_query: 1",
-               "occupancy": "candidates_per_query: 1\n    occupancy_mutual_k: 3",
+    paper = "candidates_from: features\n    occupancy_mutual_k: null\n    candidates_per_query: null"
+    setting = {"spread": "candidates_per_query: 1\n    occupancy_mutual_k: null\n    candidates_from: features",
+               "occupancy": "candidates_per_query: 1\n    occupancy_mutual_k: 3\n    candidates_from: features",
                "occupancy_only": "candidates_per_query: 1\n    occupancy_mutual_k: 3\n    candidates_from: occupancy",
                "input_only": "candidates_per_query: 1\n    occupancy_mutual_k: 3\n    candidates_from: input",
-               }.get(oracle, f"oracle_pairs: {oracle}")
+               }.get(oracle, f"oracle_pairs: {oracle}\n    {paper}")
     extra = f"    max_pairs_per_box: 2\n    {setting}\n    pool_min_observed_iou: null\n"
-    cfg.write_text(cfg.read_text().replace("    max_pairs_per_box: 2\n", extra))
+    cfg.write_text(cfg.read_text().replace(FEATURE_CANDIDATES, "").replace("    max_pairs_per_box: 2\n", extra))
     run = tmp_path / "run"
     cli = ThreeDQCLI(args=["fit", "--config", str(resolve_config("stages/mining.yaml")), "--config", str(cfg),
                            f"--trainer.default_root_dir={run}"])
@@ -1073,7 +1082,7 @@ class TestInputPairs:
             Mining(candidates_from="geometry", **kw)
         for source in ("occupancy", "input"):
             with pytest.raises(ValueError, match=f"candidates_from: '{source}' .*occupancy_mutual_k"):
-                Mining(candidates_from=source, **kw)
+                Mining(candidates_from=source, occupancy_mutual_k=None, **kw)
 
 
 class TestRecolourScenes:
@@ -1422,7 +1431,7 @@ class TestPrototypeAgreement:
         protos = torch.randn(2, C, S, S, S)
         path = self._bank_file(tmp_path, protos)
         m = Mining(grid_resolution=(32, 32, 16), queue_size=64, crop_size=S, num_angles=self.A, bank_ckpt=str(path),
-                   verify_by_prototypes=True, prototype_yaw_window=0, positives="patches")
+                   verify_by_prototypes=True, prototype_yaw_window=0, positives="patches", **PAPER_MINER)
         # pool object n = prototype k_n rotated by -a_n quarter turns, so that rotating it by a_n gives the prototype
         k = torch.tensor([0, 0, 1, 1, 0])
         a = torch.tensor([0, 1, 3, 2, 2])
@@ -1444,7 +1453,7 @@ class TestPrototypeAgreement:
 
     def test_errors(self, tmp_path: Path) -> None:
         kw = {"grid_resolution": (32, 32, 16), "queue_size": 64, "crop_size": 8, "num_angles": self.A,
-              "positives": "patches"}
+              "positives": "patches", **PAPER_MINER}
         with pytest.raises(ValueError, match="bank_ckpt"):
             Mining(verify_by_prototypes=True, **kw)
         with pytest.raises(InputError, match="no such file"):

@@ -93,10 +93,11 @@ def _stage_configs() -> list[str]:
 #: runs.
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
 #: A variant config's own choices: what it exists to set, on top of its stage's tuned config.
-VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives", "retrieval_occupancy_floor"},
-                   "stages/mining_colour_jitter.yaml": {"colour_jitter"},
-                   "stages/mining_occupancy_pairs.yaml": {"occupancy_mutual_k", "candidates_from",
-                                                          "candidates_per_query"}}
+_MINERS_CANDIDATES = {"candidates_per_query", "occupancy_mutual_k", "candidates_from"}
+VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives", "retrieval_occupancy_floor",
+                                                  *_MINERS_CANDIDATES},
+                   "stages/mining_colour_jitter.yaml": {"colour_jitter", *_MINERS_CANDIDATES},
+                   "stages/mining_occupancy_pairs.yaml": {"candidates_from"}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
