@@ -114,9 +114,14 @@ def test_em_report_says_when_the_pairs_came_from_labels() -> None:
     f["candidates_from"] = "features"
     row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
     assert row.split(" | ")[3] == f"{f['pairs']} (checked: mutual 10-NN by input occupancy)"
+    assert row.split(" | ")[9] == f"{f['min_cosine']:.3f}"
     f["candidates_from"] = "occupancy"  # and one whose candidates the input proposed
     row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
     assert row.split(" | ")[3] == f"{f['pairs']} (from the input occupancy: mutual 10-NN)"
+    assert row.split(" | ")[9] == "- (no patch check)"  # the context threshold reads nothing then
+    f["candidates_from"] = "input"
+    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
+    assert row.split(" | ")[3] == f"{f['pairs']} (from the input crops, occupancy and colour: mutual 10-NN)"
     del f["distinct_boxes"]  # a run from before the field
     row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
     assert row.split(" | ")[4] == "-"

@@ -420,16 +420,19 @@ def em_markdown(summary: dict[str, Any]) -> str:
                     pool += f", {f['pool_scene_vouched']} by the scene too)" if "pool_scene_vouched" in f else ")"
                 pairs = f"{f['pairs']}" + (f" (of {f['prototype_candidates']} mined; the bank agreed)"
                                            if "prototype_candidates" in f else "")
+                src = f.get("candidates_from", "features")
                 if "occupancy_mutual_k" in f:  # the input crops' mutual neighbours: a check, or the candidates
-                    src = f.get("candidates_from", "features")
+                    inputs = {"occupancy": "occupancy", "input": "crops, occupancy and colour"}.get(src, src)
                     pairs += (f" (checked: mutual {f['occupancy_mutual_k']}-NN by input occupancy)" if src == "features"
-                              else f" (from the input {src}: mutual {f['occupancy_mutual_k']}-NN)")
+                              else f" (from the input {inputs}: mutual {f['occupancy_mutual_k']}-NN)")
+                # the patch verification's threshold: calibrated every refresh, read only by the miner's candidates
+                context = f"{f['min_cosine']:.3f}" if src == "features" else "- (no patch check)"
                 on = f"{f.get('labelled_pairs', '-')}" + (f" ({f['pairs_on_objects_iou25']} at IoU 0.25)"
                                                           if "pairs_on_objects_iou25" in f else "")
                 # how widely the pairs spread over the pool (label-free; logged since 2026-12-05)
                 spread = (f"{f['distinct_queries']} / {f['distinct_boxes']}" if "distinct_boxes" in f else "-")
                 lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {spread} | {on} | "
-                             f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {f['min_cosine']:.3f} | {f['seconds']} |")
+                             f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {context} | {f['seconds']} |")
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
     table3 = summary.get("table3") or []
     if table3:
