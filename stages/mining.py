@@ -15,7 +15,10 @@ One stage, three sources of positive pairs (``source``), all trained with InfoNC
   the first ``query_pool`` of them are mined against the rest
   (:func:`threedq.contrastive.mine_correspondences`: object-level rotation-max retrieval, the query patch
   searched over each target's patch grid at ``num_angles`` yaws, verification by the context ring at
-  Manhattan distance ``context_distance``); the ``keep`` best verified pairs are kept. With ``positives:
+  Manhattan distance ``context_distance``); the ``keep`` best verified pairs are kept. That is the paper's miner,
+  ``candidates_from: "features"``; by default (issue #63) the input crops propose the pairs instead
+  (``candidates_from: "input"``, :func:`input_pairs`: the pool's mutual nearest neighbours by input agreement over
+  every yaw, the learned features choosing none), and the miner and its settings are not used. With ``positives:
   patches`` (the paper's; the default is ``occupancy``, below) each pair gives 8 positives: the corners of a
   ``2 * corner_offset``-voxel cube around the match in the query crop, each paired with its best-matching voxel
   within ``+-corner_search`` voxels of the expected place in the target rotated onto the query (keys computed at
@@ -485,7 +488,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             per query on 2 cores).
         target_pool: ``mined``: crops cut per refresh; queries are the first ``query_pool`` of them, targets all
             of them from other scenes (paper: 1000).
-        top_k: targets retrieved per query (paper: 30).
+        top_k: targets retrieved per query (paper: 30). This and the miner's settings after ``keep`` up to
+            ``retrieval_occupancy_floor`` act on the miner's candidates (``candidates_from: "features"``) only.
         keep: verified pairs kept per refresh (paper: 200).
         num_angles: yaw steps of retrieval and patch search (paper: 36).
         patch: query patch edge in voxels (paper: 2).
@@ -1241,8 +1245,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         spread = hp.candidates_per_query is not None
         checked = hp.occupancy_mutual_k is not None
         if hp.candidates_from != "features":  # the input crops' mutual neighbours, best agreement first
-            crops = self._input_occupancy(pool) if hp.candidates_from == "occupancy" else \
-                F.max_pool3d(pool["raw"].float(), kernel_size=3, stride=1, padding=1)
+            crops = self._input_occupancy(pool, colour=hp.candidates_from == "input")
             mined = input_pairs(crops, pool["scene"], n_q, hp.occupancy_mutual_k, hp.num_angles)
         else:
             mined = mine_correspondences(
@@ -1266,10 +1269,12 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         return mined
 
     @staticmethod
-    def _input_occupancy(pool: dict[str, Tensor]) -> Tensor:
+    def _input_occupancy(pool: dict[str, Tensor], colour: bool = False) -> Tensor:
         """``[N, 1, s, s, s]`` the pool crops' input occupancy, the surface and the cells next to it (a 3^3 max): what
-        the shape agreement of the occupancy positives compares."""
-        return F.max_pool3d(pool["raw"][:, :1].float(), kernel_size=3, stride=1, padding=1)
+        the shape agreement of the occupancy positives compares. ``colour``: ``[N, 4, s, s, s]``, the whole input
+        crop ``cat[occ, occ * rgb]`` dilated alike (what ``candidates_from: input`` compares)."""
+        raw = pool["raw"] if colour else pool["raw"][:, :1]
+        return F.max_pool3d(raw.float(), kernel_size=3, stride=1, padding=1)
 
     def _shape_positives(self, pool: dict[str, Tensor], mined: dict[str, Tensor], count: int,
                          generator: torch.Generator) -> tuple[dict[str, Tensor], Tensor, Tensor]:

@@ -90,9 +90,10 @@ class Quantizer(SplitEvaluation, EncoderStage):
             from the bank.
         em_iterations: E/M rounds at the end of each training epoch.
         em_restarts: fits of an empty bank, each from its own initialisation order (seeds ``seed, seed + 1, ...``),
-            of which the one with the lowest quantization loss on the training crops is kept (default 1: the
-            paper's single fit; more is a departure from it, as k-means keeps the best of several starts). A bank
-            warm-started from ``init_bank_ckpt`` is refined once.
+            of which the one with the lowest quantization loss on the training crops is kept (1: the paper's
+            single fit; the default 4 is a departure from it, as k-means keeps the best of several starts; issue
+            #63, docs/studies/mined-pairs.md, "The input's pairs as the default"). A bank warm-started from
+            ``init_bank_ckpt`` is refined once.
         search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
         num_classes: categories of the dataset (metrics only; labels are never used for training). The threedq CLI
             links it, and ``symmetry_order``, from the dataset's ``index.json`` (``ThreeDQCLI``'s
@@ -129,7 +130,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
         init_threshold: float = 0.8,
         fill_free_slots: bool = True,
         em_iterations: int = 10,
-        em_restarts: int = 1,
+        em_restarts: int = 4,
         search_method: str = "fast",
         num_classes: int | None = None,
         symmetry_order: list[int] | None = None,

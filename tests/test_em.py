@@ -124,10 +124,15 @@ class TestEm:
         assert summary["table3"][2]["map_50"] == sl[1]["detector_eval"]["detector"]["map_50"]
         assert "handed_on" in sl[1]["detector_eval"] and (work / "table3.png").is_file()
         assert "Table 3" in report and "self-labelling per round" in report
-        # round 2's prototypes start from round 1's bank (--bank_warm_start, default true)
+        # round 2's prototypes: an empty bank fitted afresh (--bank_warm_start, default false since 2026-12-05); on
+        # GT boxes without mining round 2 quantizes round 1's crops with round 1's seeds, so its fit is round 1's
         q2 = yaml.safe_load((work / "r02_quantizer" / "config.yaml").read_text())["model"]["init_args"]
-        assert q2["init_bank_ckpt"] == str(work / "r01_quantizer" / "checkpoints" / "last.ckpt")
-        assert summary["bank_warm_start"] is True and "refines the previous round's bank" in report
+        assert q2.get("init_bank_ckpt") is None
+        banks = [torch.load(work / f"r0{r}_quantizer" / "checkpoints" / "last.ckpt", weights_only=True,
+                            map_location="cpu")["state_dict"] for r in (1, 2)]
+        keys = [k for k in banks[0] if k.startswith("bank.")]
+        assert keys and all(torch.equal(banks[0][k], banks[1][k]) for k in keys)
+        assert summary["bank_warm_start"] is False and "`--bank_warm_start false`" in report
         # round 2's detector is round 1's, fine-tuned again
         r1 = torch.load(work / "r01_self_labelling" / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
         cfg2 = yaml.safe_load((work / "r02_self_labelling" / "config.yaml").read_text())
@@ -307,9 +312,10 @@ def test_em_data_config(tmp_path: Path, tiny_dataset: Path) -> None:
     assert summary["data_config"] == "my_data.yaml" and "data: `my_data.yaml`" in (work / "report.md").read_text()
 
 
-def test_em_fresh_bank_every_round(tmp_path: Path, tiny_dataset: Path) -> None:
-    """``--bank_warm_start false``: every round's quantizer fits an empty bank. Without mining and on GT boxes round 2
-    quantizes round 1's crops with round 1's seed, so its fit is round 1's, prototype for prototype."""
+def test_em_bank_warm_start(tmp_path: Path, tiny_dataset: Path) -> None:
+    """``--bank_warm_start true`` (the default until 2026-12-05): from round 2 on each round's quantizer refines the
+    previous round's bank, once (no restarts). Without mining and on GT boxes round 2 refines round 1's fit on the
+    same crops: its assignments, so its Hungarian accuracy, stay round 1's."""
     from threedq.errors import InputError
 
     cfg = _em_config(tmp_path, tiny_dataset)
@@ -318,14 +324,10 @@ def test_em_fresh_bank_every_round(tmp_path: Path, tiny_dataset: Path) -> None:
         run_em(rounds=1, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt", detection=False,
                bank_warm_start="no")
     summary = run_em(rounds=2, work_dir=str(work), extra_configs=[cfg], mining_config="none", boxes="gt",
-                     detection=False, bank_warm_start=False)
+                     detection=False, bank_warm_start=True)
     q2 = yaml.safe_load((work / "r02_quantizer" / "config.yaml").read_text())["model"]["init_args"]
-    assert q2.get("init_bank_ckpt") is None
-    banks = [torch.load(work / f"r0{r}_quantizer" / "checkpoints" / "last.ckpt", weights_only=True,
-                        map_location="cpu")["state_dict"] for r in (1, 2)]
-    keys = [k for k in banks[0] if k.startswith("bank.")]
-    assert keys and all(torch.equal(banks[0][k], banks[1][k]) for k in keys)
+    assert q2["init_bank_ckpt"] == str(work / "r01_quantizer" / "checkpoints" / "last.ckpt")
     t1, t2 = summary["table3"][1], summary["table3"][2]
     assert t1["hungarian_acc"] == t2["hungarian_acc"]
-    assert summary["bank_warm_start"] is False
-    assert "`--bank_warm_start false`" in (work / "report.md").read_text()
+    assert summary["bank_warm_start"] is True
+    assert "refines the previous round's bank" in (work / "report.md").read_text()
