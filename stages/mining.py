@@ -258,9 +258,12 @@ def pool_shape_agreement(occ: Tensor, num_angles: int, chunk: int = 128) -> Tens
     return out
 
 
-def mutual_neighbours(similarity: Tensor, exclude: Tensor, k: int) -> Tensor:
+def mutual_pool_neighbours(similarity: Tensor, exclude: Tensor, k: int) -> Tensor:
     """``[N, N]`` bool: ``n`` and ``m`` are each among the other's ``k`` most similar (excluded pairs never count;
-    ties go to the lower index, :func:`torch.topk`'s order).
+    ties go to the lower index, :func:`torch.topk`'s order). Not :func:`threedq.contrastive.mutual_neighbours`,
+    which takes a query x target matrix, ranks both sides by the same entry and counts ties at the ``k``-th value:
+    here the matrix is the pool against itself and not symmetric (``S[n, m]`` turns ``m`` onto ``n``), so ``n``'s
+    neighbours are ranked by row ``n`` and ``m``'s by row ``m``, exactly ``k`` each.
 
     Args:
         similarity: ``[N, N]``; exclude: ``[N, N]`` bool (e.g. the same scene, the box itself); k: >= 1.
@@ -288,7 +291,7 @@ def input_pairs(crops: Tensor, scene: Tensor, n_q: int, k: int, num_angles: int)
         (zeros: no patch match).
     """
     sim = pool_shape_agreement(crops, num_angles)
-    mutual = mutual_neighbours(sim, scene[:, None] == scene[None, :], k)[:n_q]
+    mutual = mutual_pool_neighbours(sim, scene[:, None] == scene[None, :], k)[:n_q]
     qi, ti = mutual.nonzero(as_tuple=True)
     order = torch.sort(sim[qi, ti], descending=True, stable=True).indices
     qi, ti = qi[order], ti[order]
@@ -602,7 +605,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             are what raises the rounds (docs/studies/mined-pairs.md, "Pairs from GT").
         occupancy_mutual_k: ``mined`` with the occupancy positives: keep only the verified candidate pairs whose two
             boxes are each among the other's ``k`` best matches of the pool (other scenes) by input-occupancy shape
-            agreement over every yaw (:func:`pool_shape_agreement`, :func:`mutual_neighbours`), in the miner's rank
+            agreement over every yaw (:func:`pool_shape_agreement`, :func:`mutual_pool_neighbours`), in the miner's rank
             order, then cut at ``keep`` (no shape oversampling: the check is the shape ranking). ``None``:
             every candidate, the ``shape_oversample`` x ``keep`` most similar, ranked by shape agreement. Label-free;
             not in the paper (it mines with the learned features alone): the features' nearest neighbours and the
@@ -1255,7 +1258,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             )
         if checked and hp.candidates_from == "features":  # the pairs the input geometry's neighbours agree with
             scene = pool["scene"]
-            mutual = mutual_neighbours(pool_shape_agreement(self._input_occupancy(pool), hp.num_angles),
+            mutual = mutual_pool_neighbours(pool_shape_agreement(self._input_occupancy(pool), hp.num_angles),
                                        scene[:, None] == scene[None, :], hp.occupancy_mutual_k)
             ok = mutual[mined["query_index"], mined["target_index"]].nonzero().flatten()
             mined = take_pairs(mined, ok if spread else ok[:count])

@@ -992,11 +992,11 @@ class TestPoolShapeAgreement:
         assert torch.autograd.gradcheck(lambda x: pool_shape_agreement(x, 4), (occ,))
 
 
-class TestMutualNeighbours:
-    """:func:`mutual_neighbours`: pairs each among the other's k most similar."""
+class TestMutualPoolNeighbours:
+    """:func:`mutual_pool_neighbours`: pairs each among the other's k most similar."""
 
     def test_hand_computed(self) -> None:
-        from threedq.stages.mining import mutual_neighbours
+        from threedq.stages.mining import mutual_pool_neighbours
 
         sim = torch.tensor([[0.0, 0.9, 0.1, 0.5],
                             [0.9, 0.0, 0.8, 0.2],
@@ -1004,17 +1004,17 @@ class TestMutualNeighbours:
                             [0.5, 0.2, 0.7, 0.0]])
         eye = torch.eye(4, dtype=torch.bool)
         # 1-NN: 0 -> 1, 1 -> 0, 2 -> 1, 3 -> 2: only 0 - 1 is mutual
-        assert mutual_neighbours(sim, eye, 1).nonzero().tolist() == [[0, 1], [1, 0]]
+        assert mutual_pool_neighbours(sim, eye, 1).nonzero().tolist() == [[0, 1], [1, 0]]
         # 2-NN: 0 -> {1, 3}, 1 -> {0, 2}, 2 -> {1, 3}, 3 -> {2, 0}
-        assert mutual_neighbours(sim, eye, 2).nonzero().tolist() == [[0, 1], [0, 3], [1, 0], [1, 2], [2, 1],
+        assert mutual_pool_neighbours(sim, eye, 2).nonzero().tolist() == [[0, 1], [0, 3], [1, 0], [1, 2], [2, 1],
                                                                      [2, 3], [3, 0], [3, 2]]
         # excluding 0 - 1 (the same scene, say): 0 -> 3, 1 -> 2, 2 -> 1, 3 -> 2
         ex = eye.clone()
         ex[0, 1] = ex[1, 0] = True
-        assert mutual_neighbours(sim, ex, 1).nonzero().tolist() == [[1, 2], [2, 1]]
+        assert mutual_pool_neighbours(sim, ex, 1).nonzero().tolist() == [[1, 2], [2, 1]]
 
     def test_against_a_naive_loop(self) -> None:
-        from threedq.stages.mining import mutual_neighbours
+        from threedq.stages.mining import mutual_pool_neighbours
 
         g = torch.Generator().manual_seed(0)
         N = 30
@@ -1025,7 +1025,7 @@ class TestMutualNeighbours:
             near = [set(sorted((m for m in range(N) if not ex[n, m]), key=lambda m: -float(sim[n, m]))[:k])
                     for n in range(N)]
             want = [[n, m] for n in range(N) for m in range(N) if m in near[n] and n in near[m]]
-            assert mutual_neighbours(sim, ex, k).nonzero().tolist() == want
+            assert mutual_pool_neighbours(sim, ex, k).nonzero().tolist() == want
 
     def test_exceptions(self) -> None:
         kw = {"grid_resolution": (32, 32, 16), "queue_size": 64}
@@ -1063,14 +1063,14 @@ class TestInputPairs:
 
     def test_against_the_mutual_matrix(self) -> None:
         """Every mutual pair with a query among the first n_q, best agreement first, and nothing else."""
-        from threedq.stages.mining import input_pairs, mutual_neighbours, pool_shape_agreement
+        from threedq.stages.mining import input_pairs, mutual_pool_neighbours, pool_shape_agreement
 
         g = torch.Generator().manual_seed(0)
         occ = (torch.rand(12, 1, 6, 6, 6, generator=g) > 0.6).float()
         scene = torch.arange(12) // 3
         out = input_pairs(occ, scene, 7, 3, 12)
         sim = pool_shape_agreement(occ, 12)
-        mut = mutual_neighbours(sim, scene[:, None] == scene[None, :], 3)
+        mut = mutual_pool_neighbours(sim, scene[:, None] == scene[None, :], 3)
         want = {(n, m) for n in range(7) for m in range(12) if mut[n, m]}
         got = list(zip(out["query_index"].tolist(), out["target_index"].tolist()))
         assert set(got) == want and len(got) == len(want)
