@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from threedq.cli import end_process_group
 from threedq.pipeline.lightning_cli import ThreeDQCLI
 
 
@@ -28,6 +29,7 @@ def main(plan_path: str) -> None:
         results.append({k: float(v) for k, v in cli.trainer.callback_metrics.items()})
     if int(os.environ.get("RANK", "0")) == 0:
         Path(plan["out"]).write_text(json.dumps(results, indent=1))
+    end_process_group()  # as the threedq command does: a group left standing can abort the process at exit
 
 
 if __name__ == "__main__":

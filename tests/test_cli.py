@@ -44,6 +44,39 @@ def test_one_blas_thread(user_setting: str | None) -> None:
     assert out.split() == (["[1]", "2"] if user_setting is None else ["[2]", "2"])
 
 
+class TestEndProcessGroup:
+    def test_destroys_the_group_a_run_formed(self, tmp_path: Path) -> None:
+        """A one-process gloo group, formed as Lightning forms it, is gone after the call; a second call is a no-op."""
+        import torch.distributed as dist
+
+        from threedq.cli import end_process_group
+
+        dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'store'}", rank=0, world_size=1)
+        try:
+            assert dist.is_initialized()
+            end_process_group()
+            assert not dist.is_initialized()
+            end_process_group()
+        finally:
+            if dist.is_initialized():
+                dist.destroy_process_group()
+
+    def test_main_ends_it_on_an_error_too(self, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+        """``main`` ends the group when the command stops on a bad input (one line, exit 2), not only on success."""
+        import torch.distributed as dist
+
+        from threedq.cli import main
+
+        dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'store'}", rank=0, world_size=1)
+        try:
+            assert main(["data", "check", str(tmp_path / "missing")]) == 2
+            assert "threedq: error:" in capsys.readouterr().err
+            assert not dist.is_initialized()
+        finally:
+            if dist.is_initialized():
+                dist.destroy_process_group()
+
+
 def test_a_subcommand_imports_its_own_modules_only() -> None:
     """``threedq data ...`` parses without importing Lightning (a fresh interpreter: this one has imported it)."""
     code = ("import sys; from threedq.cli import build_parser; p = build_parser('data'); "

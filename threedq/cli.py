@@ -19,7 +19,7 @@ from jsonargparse import ArgumentError, ArgumentParser
 
 from threedq.errors import InputError, error_line
 
-__all__ = ["build_parser", "main", "one_blas_thread"]
+__all__ = ["build_parser", "end_process_group", "main", "one_blas_thread"]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -133,6 +133,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (InputError, OSError, RuntimeError) as e:  # a bad input, a full disk, ...: one line, no traceback
         print(f"threedq: error: {error_line(e)}", file=sys.stderr)
         return 2
+    finally:
+        end_process_group()
+
+
+def end_process_group() -> None:
+    """Destroy the default process group, if a DDP run formed one in this process (no-op otherwise).
+
+    Lightning leaves the group it forms standing when the trainer is done. A process that then exits with it standing
+    lets the interpreter's shutdown destroy gloo's worker threads while they are still joinable: the process aborts
+    (``terminate called without an active exception``, exit -6, after its work is written), which a scheduler such as
+    SLURM counts as a failed task. ``threedq`` therefore ends the group itself before it returns. No collective is
+    called here: a rank that stopped on an error does not make the others wait.
+    """
+    dist = sys.modules.get("torch.distributed")  # not imported: no group (threedq data ... never imports torch's)
+    if dist is not None and dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
 
 
 if __name__ == "__main__":
