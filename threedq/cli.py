@@ -146,7 +146,7 @@ def end_process_group() -> None:
     SLURM counts as a failed task. ``threedq`` therefore ends the group itself before it returns. No collective is
     called here: a rank that stopped on an error does not make the others wait.
     """
-    dist = sys.modules.get("torch.distributed")  # not imported: no group (threedq data ... never imports torch's)
+    dist = sys.modules.get("torch.distributed")  # not imported by this process: it formed no group
     if dist is not None and dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
 
