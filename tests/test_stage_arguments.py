@@ -96,7 +96,7 @@ CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "enc
 _MINERS_CANDIDATES = {"candidates_per_query", "occupancy_mutual_k", "candidates_from"}
 VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives", "retrieval_occupancy_floor",
                                                   *_MINERS_CANDIDATES},
-                   "stages/mining_colour_jitter.yaml": {"colour_jitter", *_MINERS_CANDIDATES},
+                   "stages/mining_colour_jitter.yaml": {"colour_jitter"},
                    "stages/mining_occupancy_pairs.yaml": {"candidates_from"}}
 
 
