@@ -605,8 +605,8 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
             are what raises the rounds (docs/studies/mined-pairs.md, "Pairs from GT").
         occupancy_mutual_k: ``mined`` with the occupancy positives: keep only the verified candidate pairs whose two
             boxes are each among the other's ``k`` best matches of the pool (other scenes) by input-occupancy shape
-            agreement over every yaw (:func:`pool_shape_agreement`, :func:`mutual_pool_neighbours`), in the miner's rank
-            order, then cut at ``keep`` (no shape oversampling: the check is the shape ranking). ``None``:
+            agreement over every yaw (:func:`pool_shape_agreement`, :func:`mutual_pool_neighbours`), in the miner's
+            rank order, then cut at ``keep`` (no shape oversampling: the check is the shape ranking). ``None``:
             every candidate, the ``shape_oversample`` x ``keep`` most similar, ranked by shape agreement. Label-free;
             not in the paper (it mines with the learned features alone): the features' nearest neighbours and the
             input geometry's must agree, and a pair need not be the pool's most similar one to be kept. With
@@ -1259,7 +1259,7 @@ class Mining(SplitEvaluation, ViewPredictionObjective, EncoderStage):
         if checked and hp.candidates_from == "features":  # the pairs the input geometry's neighbours agree with
             scene = pool["scene"]
             mutual = mutual_pool_neighbours(pool_shape_agreement(self._input_occupancy(pool), hp.num_angles),
-                                       scene[:, None] == scene[None, :], hp.occupancy_mutual_k)
+                                            scene[:, None] == scene[None, :], hp.occupancy_mutual_k)
             ok = mutual[mined["query_index"], mined["target_index"]].nonzero().flatten()
             mined = take_pairs(mined, ok if spread else ok[:count])
         if spread:  # every query's best pairs before any query's next ones

@@ -1007,7 +1007,7 @@ class TestMutualPoolNeighbours:
         assert mutual_pool_neighbours(sim, eye, 1).nonzero().tolist() == [[0, 1], [1, 0]]
         # 2-NN: 0 -> {1, 3}, 1 -> {0, 2}, 2 -> {1, 3}, 3 -> {2, 0}
         assert mutual_pool_neighbours(sim, eye, 2).nonzero().tolist() == [[0, 1], [0, 3], [1, 0], [1, 2], [2, 1],
-                                                                     [2, 3], [3, 0], [3, 2]]
+                                                                          [2, 3], [3, 0], [3, 2]]
         # excluding 0 - 1 (the same scene, say): 0 -> 3, 1 -> 2, 2 -> 1, 3 -> 2
         ex = eye.clone()
         ex[0, 1] = ex[1, 0] = True
