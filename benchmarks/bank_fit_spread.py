@@ -21,17 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import torch
 
-import torch  # noqa: E402
-
-from _machine import cpu_name  # noqa: E402
+from threedq.machine import cpu_name
 
 
 def round_crops(run: Path, rnd: int) -> tuple[object, torch.Tensor, torch.Tensor, torch.Tensor, int]:
@@ -53,9 +49,9 @@ def round_crops(run: Path, rnd: int) -> tuple[object, torch.Tensor, torch.Tensor
     hp = model.hparams
     with torch.no_grad():
         tr = collect_object_crops(model, split_loader(dm, "train"), dm.num_input_views, hp.crop_size,
-                                  random_encoder_seed=None, crop_shape=hp.crop_shape)
+                                  random_encoder_seed=None)
         te = collect_object_crops(model, split_loader(dm, "test"), dm.num_input_views, hp.crop_size,
-                                  random_encoder_seed=None, crop_shape=hp.crop_shape)
+                                  random_encoder_seed=None)
     x_tr = prototype_crops(tr["learned"], tr["raw"], hp.occupancy_floor).float().contiguous()
     matched = te["labels"] >= 0
     x_te = prototype_crops(te["learned"], te["raw"], hp.occupancy_floor).float()[matched].contiguous()

@@ -4,7 +4,7 @@ threedq (``tests/forkserver.py``, what the end-to-end tests use).
 Prints a markdown table, the median seconds (wall clock) of commands that end as soon as they have parsed their
 arguments or found their first bad input:
 
-* ``threedq --help`` (the subcommands listed; since 2026-12-03 none of their modules is imported for it);
+* ``threedq --help`` (the subcommands listed; none of their modules is imported for it);
 * ``threedq em --help`` (the em parser: imports Lightning and the pipeline);
 * ``threedq data check <missing folder>`` (a data command's error: no Lightning);
 * ``threedq fit --config <missing file>`` (a Lightning subcommand's error);
@@ -17,6 +17,7 @@ each as ``python -m threedq ...`` (a new interpreter, what a user runs) and thro
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import statistics
 import subprocess
 import sys
@@ -24,12 +25,18 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(ROOT / "tests"))
+from threedq.machine import cpu_name
 
-from _machine import cpu_name  # noqa: E402
-from forkserver import ForkServer  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def fork_server_class() -> type:
+    """``tests/forkserver.py``'s ``ForkServer``, loaded from its file (the tests are no package)."""
+    spec = importlib.util.spec_from_file_location("forkserver", ROOT / "tests" / "forkserver.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["forkserver"] = module
+    spec.loader.exec_module(module)
+    return module.ForkServer
 
 
 def main() -> None:
@@ -43,7 +50,7 @@ def main() -> None:
                     ["fit", "--config", str(Path(tmp) / "missing.yaml")]]
         rows = []
         t0 = time.perf_counter()
-        with ForkServer() as server:
+        with fork_server_class()() as server:
             server.run(["--help"], cwd=tmp)  # waits for the server's imports
             start = time.perf_counter() - t0
             for argv in commands:

@@ -1,5 +1,5 @@
-"""``crop_boxes`` two ways, bitwise the same crops: ``grid_sample`` (one call, its points spread over the threads;
-every crop until 2026-11-28) and the row gather (``threedq.geometry.crop._gather_crops``: ``grid_sample``'s
+"""``crop_boxes`` two ways, bitwise the same crops: ``grid_sample`` (one call, its points spread over the threads)
+and the row gather (``threedq.geometry.crop._gather_crops``: ``grid_sample``'s
 arithmetic with each of the eight corners a gather of whole channel rows), and ``crop_boxes`` as it now chooses,
 with the padding slots skipped (``mask=``).
 
@@ -17,16 +17,12 @@ from __future__ import annotations
 
 import datetime
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name
 from _scenes import bench_scenes, scene_arguments
+
+from threedq.machine import cpu_name
 
 
 def main() -> None:
@@ -62,7 +58,7 @@ def main() -> None:
              ("features [4, 32, 16, 32, 32] bf16", torch.bfloat16, fgrid, 32),
              ("input [4, 4, 32, 64, 64] float32", torch.float32, grid, 4)]
     ways = {
-        "`grid_sample`, every slot (until 2026-11-28)": lambda v, a, m: _sampled_crops(v, a.to(v.dtype), fgrid_of(v), size)[m],
+        "`grid_sample`, every slot": lambda v, a, m: _sampled_crops(v, a.to(v.dtype), fgrid_of(v), size)[m],
         "row gather, every slot": lambda v, a, m: gather(v, a, m)[m],
         "`crop_boxes(..., mask=)` (its choice, valid boxes only)": lambda v, a, m: crop_boxes(v, a, fgrid_of(v), size, mask=m),
     }

@@ -21,7 +21,6 @@ import io
 import os
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -29,9 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name
+from threedq.machine import cpu_name
 
 
 def _median_s(fn, repeats: int) -> float:

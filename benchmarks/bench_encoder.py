@@ -26,21 +26,15 @@ import argparse
 import contextlib
 import os
 import statistics
-import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-
-from threedq.nets import UNet3D  # noqa: E402
+from threedq.machine import cpu_name
+from threedq.nets import UNet3D
 
 #: Full sweep: (nx, ny, nz) input grids.
 GRIDS: tuple[tuple[int, int, int], ...] = ((64, 64, 32), (64, 64, 64), (72, 72, 72))

@@ -20,15 +20,11 @@ folder with the embedded generator's defaults (seed 0).
 from __future__ import annotations
 
 import datetime
-import sys
-from pathlib import Path
 
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name
 from _scenes import bench_scenes, median_ms, scene_arguments
+
+from threedq.machine import cpu_name
 
 
 def main() -> None:

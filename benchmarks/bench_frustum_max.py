@@ -1,5 +1,5 @@
 """The view decoder's input, the depth max of the target camera's frustum, three ways: ``grid_sample`` of the whole
-frustum then ``F.max_pool3d`` (the decoder until 2026-11-28), the whole frustum then ``depth_max_pool`` (a reduction
+frustum then ``F.max_pool3d``, the whole frustum then ``depth_max_pool`` (a reduction
 over a view of the planes), and ``frustum_depth_max`` (only the windows with a sample near the grid).
 
 Each row: median milliseconds per batch of 2 target views, forward alone and forward + backward (the volume's
@@ -17,17 +17,13 @@ from __future__ import annotations
 
 import datetime
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name
 from _scenes import bench_scenes, scene_arguments
+
+from threedq.machine import cpu_name
 
 
 def main() -> None:
@@ -47,7 +43,7 @@ def main() -> None:
                for i in range(0, len(cams) - 1, 2)]
 
     ways = {
-        "`grid_sample` + `F.max_pool3d` (the decoder until 2026-11-28)": lambda v, K, T: F.max_pool3d(
+        "`grid_sample` + `F.max_pool3d`": lambda v, K, T: F.max_pool3d(
             resample_to_frustum(v, grid, K, T, hw, depth_range, planes), (pool, 1, 1), (pool, 1, 1)),
         "`grid_sample` + `depth_max_pool`": lambda v, K, T: depth_max_pool(
             resample_to_frustum(v, grid, K, T, hw, depth_range, planes), pool),

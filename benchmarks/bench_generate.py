@@ -13,18 +13,13 @@ from __future__ import annotations
 
 import argparse
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-
 from threedq.data.generate import generate_dataset
 from threedq.data.generator_config import GeneratorConfig
+from threedq.machine import cpu_name
 
 
 def main(argv: list[str] | None = None) -> int:

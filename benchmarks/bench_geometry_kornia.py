@@ -1,4 +1,4 @@
-"""Geometry core: local implementations vs kornia (issue #12, item 5), at the main job's sizes.
+"""Geometry core: local implementations vs kornia, at the main job's sizes.
 
 For every op of ``threedq.geometry`` that kornia could take over, this times
 
@@ -38,10 +38,8 @@ import argparse
 import math
 import random
 import statistics
-import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import kornia
 import torch
@@ -57,13 +55,9 @@ from kornia.geometry.transform import rotate3d as k_rotate3d
 from kornia.geometry.transform import warp_affine3d
 from torch import Tensor
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-
-import threedq.geometry as G  # noqa: E402
-from threedq.geometry.unproject import BEHIND_EPS, _voxelize  # noqa: E402
+import threedq.geometry as G
+from threedq.geometry.unproject import BEHIND_EPS, _voxelize
+from threedq.machine import cpu_name
 
 # --------------------------------------------------------------------------------------------- local references
 
@@ -356,13 +350,9 @@ def _fmt(ms: float | None) -> str:
     return f"{ms:.4f}" if ms < 0.1 else f"{ms:.2f}" if ms < 100 else f"{ms:.0f}"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="fewer rounds, rotate_yaw on 10 crops, no rotate3d")
-    args = parser.parse_args()
-    torch.set_num_threads(2)
-    rounds, big_rounds = (5, 3) if args.quick else (21, 7)
-
+def _rows(quick: bool) -> list[tuple]:
+    """The benchmark rows: ``(op, shape, local, kornia, threedq, kornia function, ships, inner, rounds)``."""
+    rounds, big_rounds = (5, 3) if quick else (21, 7)
     grid = G.VoxelGridSpec((-1.28, -1.28, -0.32), (1.28, 1.28, 0.96), (64, 64, 32))
     fgrid = grid.half()
     rgb, depth, K, poses = _views(4)
@@ -382,13 +372,12 @@ def main() -> None:
     boxes15 = torch.cat((centre15 - half15, centre15 + half15), -1)
     k_half = G.scale_intrinsics(K[:2], 0.5, 0.5)
     frustum_args = (k_half, poses[:2], (64, 64), (1.2, 5.2), 32)
-    n_crops = 10 if args.quick else 50
+    n_crops = 10 if quick else 50
     crops = torch.randn(n_crops, 32, 16, 16, 16)
     yaws = yaw36[None].expand(n_crops, -1).contiguous()
     ds = depth[:, ::2, ::2]
     ks = K * torch.tensor([0.5, 0.5, 1.0])[:, None]
 
-    # (op, shape, local, kornia, threedq, kornia function, ships, inner, rounds)
     rows: list[tuple] = [
         ("invert_rigid", "[4, 4, 4]", lambda: _local_invert_rigid(poses), lambda: inverse_transformation(poses),
          lambda: G.invert_rigid(poses), "linalg.inverse_transformation", "kornia", 200, rounds),
@@ -442,13 +431,21 @@ def main() -> None:
          lambda: _kornia_rotate_yaw_2d(crops, yaws[:, 3:4]), lambda: G.rotate_yaw(crops, yaws[:, 3:4]),
          "transform.rotate (2D, folded slices)", "local", 1, rounds)
     )
-    if not args.quick:
+    if not quick:
         rows.append(
             ("rotate_yaw", f"36 x [{n_crops}, 32, 16, 16, 16]", lambda: _local_rotate_yaw(crops, yaws),
              lambda: _kornia_rotate_yaw_3d(crops, yaws), lambda: G.rotate_yaw(crops, yaws),
              "transform.rotate3d (align_corners=True)", "local", 1, big_rounds)
         )
+    return rows
 
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="fewer rounds, rotate_yaw on 10 crops, no rotate3d")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    rows = _rows(args.quick)
     print(f"threedq.geometry vs kornia {kornia.__version__}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads, {cpu_name()}")
     print()

@@ -7,7 +7,7 @@ the chunk logits in backward. Each variant runs in a fresh subprocess (fp32, ``t
 median wall time of forward + backward over a few repeats after warm-ups, and the extra memory, i.e. the
 growth of the peak resident set (``VmHWM`` in ``/proc/self/status``, reset once the inputs are made) over the
 runs (on CUDA: ``torch.cuda.max_memory_allocated`` minus the memory allocated before the runs).
-Issue #13 targets for 1024 queries vs a 100k x 32 queue on 2 cores: <= 0.2 s and <= 64 MiB extra.
+Targets for 1024 queries vs a 100k x 32 queue on 2 cores: <= 0.2 s and <= 64 MiB extra.
 
     python benchmarks/bench_infonce.py                    # CPU, and CUDA when there is one
     python benchmarks/bench_infonce.py --device cpu --chunks 256 1024
@@ -30,11 +30,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-from threedq.contrastive import info_nce_plain, info_nce_streamed  # noqa: E402
+from threedq.contrastive import info_nce_plain, info_nce_streamed
+from threedq.machine import cpu_name
 
 
 def vm_mib(field: str) -> float:

@@ -1,4 +1,4 @@
-"""Time the miner's patch search (:func:`threedq.contrastive.mining.match_patch`) with and without a yaw window.
+"""Time the miner's patch search (:func:`threedq.contrastive.miner.match_patch`) with and without a yaw window.
 
 The mining stage searches a query's 2^3 patch in each of its 30 retrieved targets only at the yaws next to the
 object-level retrieval's (``yaw_window: 1``: 3 of 36). The search interpolates only those yaws; before, it
@@ -12,19 +12,14 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from datetime import date
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-from threedq.contrastive.mining import _rotated_grid_patches, match_patch, patch_grid, yaw_angles  # noqa: E402
+from threedq.contrastive.miner import _rotated_grid_patches, match_patch, patch_grid, yaw_angles
+from threedq.machine import cpu_name
 
 
 def _masked_full_search(q: torch.Tensor, pos: tuple[int, int, int], t: torch.Tensor, allowed: torch.Tensor):

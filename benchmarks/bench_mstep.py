@@ -14,17 +14,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-from threedq.quantization.prototypes import fit_prototype_bank, normalized, quantization_loss  # noqa: E402
+from threedq.machine import cpu_name
+from threedq.quantization.prototypes import fit_prototype_bank, normalized, quantization_loss
 
 
 def main() -> None:

@@ -13,7 +13,7 @@ on the random head, then the 3 highest boxes are matched, as in a typical embedd
 ``channels_last_3d`` as the parse uses it.
 
 With ``--run`` (a ``threedq em`` folder) and ``--scenes`` (its dataset), it also parses the test split in fp32 and
-in bf16 on the same boxes (fp32's detections) and prints how often prototype id and yaw agree (the issue's bar:
+in bf16 on the same boxes (fp32's detections) and prints how often prototype id and yaw agree (the bar:
 >= 99%), and how often bf16's own detections equal fp32's.
 
 Usage::
@@ -29,7 +29,6 @@ import argparse
 import contextlib
 import datetime
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -37,15 +36,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-
-from threedq.pipeline.parse import RunArtifacts, SceneParser, find_scenes, parse_records, resolve_run  # noqa: E402
-from threedq.scene import load_scene  # noqa: E402
-from threedq.stages.detector import Detector  # noqa: E402
-from threedq.quantization.prototypes import PrototypeBank  # noqa: E402
+from threedq.machine import cpu_name
+from threedq.pipeline.parse import RunArtifacts, SceneParser, find_scenes, parse_records, resolve_run
+from threedq.scene import load_scene
+from threedq.stages.detector import Detector
+from threedq.quantization.prototypes import PrototypeBank
 
 SCALES = {
     "default (128^2 view, 64x64x32 grid)": ((128, 128), (-1.28, -1.28, -0.32), (1.28, 1.28, 0.96), (64, 64, 32)),

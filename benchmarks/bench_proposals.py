@@ -9,7 +9,8 @@ Rows (median milliseconds per scene over the scenes, after one warm-up scene):
 
 Scenes: ``--data_dir`` (a dataset folder; its first ``--scenes`` training scenes), else that many scenes generated
 into a temporary folder with the embedded generator's defaults (seed 0). The script runs on older commits too (copy
-it, `_machine.py` and `_scenes.py` into a worktree) to price a change there.
+it and `_scenes.py` into a worktree, run it there with ``PYTHONPATH=.`` so that the worktree's threedq is imported) to
+price a change there.
 
     python benchmarks/bench_proposals.py [--data_dir data/clevr_veggie] [--scenes 30]
 """
@@ -18,15 +19,11 @@ from __future__ import annotations
 
 import datetime
 import statistics
-import sys
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name
 from _scenes import bench_scenes, median_ms, scene_arguments
+
+from threedq.machine import cpu_name
 
 
 def main() -> None:

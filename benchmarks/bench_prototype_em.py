@@ -16,17 +16,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-from threedq.quantization.prototypes import PrototypeBank, run_prototype_em  # noqa: E402
+from threedq.machine import cpu_name
+from threedq.quantization.prototypes import PrototypeBank, run_prototype_em
 
 
 def main() -> None:
@@ -42,9 +37,9 @@ def main() -> None:
     crops = torch.nn.functional.normalize(crops, dim=1)
     ctx = torch.autocast("cpu", dtype=torch.bfloat16) if args.bf16 else contextlib.nullcontext()
     rows, banks = [], []
-    ways = [("spectra recomputed at every comparison, every object rotated at every M-step (before 2026-11-23)",
+    ways = [("spectra recomputed at every comparison, every object rotated at every M-step",
              {"reuse_spectra": False, "reuse_aligned": False}),
-            ("spectra computed once per chunk, every object rotated at every M-step (until 2026-11-28)",
+            ("spectra computed once per chunk, every object rotated at every M-step",
              {"reuse_spectra": True, "reuse_aligned": False}),
             ("spectra once, rotations kept until an object's yaw changes (`reuse_aligned`, default)",
              {"reuse_spectra": True, "reuse_aligned": True})]

@@ -36,24 +36,18 @@ import argparse
 import datetime
 import math
 import statistics
-import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-
-from threedq.geometry import rotate_yaw, yaw_angles  # noqa: E402
-from threedq.quantization.rotation_search import rotation_max_similarity  # noqa: E402
-from threedq.quantization.rotation_search import all_pairs_rotation_max, best_prototype_and_yaw  # noqa: E402
+from threedq.geometry import rotate_yaw, yaw_angles
+from threedq.machine import cpu_name
+from threedq.quantization.rotation_search import rotation_max_similarity
+from threedq.quantization.rotation_search import all_pairs_rotation_max, best_prototype_and_yaw
 
 A = 36
 C = 32

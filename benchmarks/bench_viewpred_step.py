@@ -20,22 +20,17 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import tempfile
 import time
 from contextlib import nullcontext
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
 from threedq.datamodules.scene_folder import SceneFolderDataModule
-from threedq.stages.viewpred import ViewPrediction  # noqa: E402
-from threedq.data.generate import generate_dataset  # noqa: E402
-from threedq.data.generator_config import GeneratorConfig  # noqa: E402
+from threedq.stages.viewpred import ViewPrediction
+from threedq.data.generate import generate_dataset
+from threedq.data.generator_config import GeneratorConfig
+from threedq.machine import cpu_name
 
 
 def _sync(device: str) -> None:

@@ -1,4 +1,4 @@
-"""Where a detector loses IoU (issue #32): objects found per size band, from an existing run's detection files.
+"""Where a detector loses IoU: objects found per size band, from an existing run's detection files.
 
 For each detector evaluation folder given (``<run>/03_detector_eval``, ``<run>/rNN_detector_eval``: its
 ``detections_test.npz`` holds the boxes above the detector's score threshold, the ones handed on), and for the
@@ -29,16 +29,14 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 import numpy as np
 import torch
-from _machine import cpu_name
 from threedq.datamodules.scene_folder import SceneDataset
 
 from threedq.boxes import aabb_iou_3d
 from threedq.data.box_files import load_boxes_file
 from threedq.data.proposal_cache import propose_dataset
+from threedq.machine import cpu_name
 from threedq.pipeline.detection_eval import (
     box_sets_map,
     gt_hulls,

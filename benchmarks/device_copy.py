@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from functools import partial
 from multiprocessing import Pool
 from pathlib import Path
@@ -32,8 +31,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 from tqdm import tqdm
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from threedq.datamodules.scene_folder import fixed_views
 

@@ -26,9 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name
+from threedq.machine import cpu_name
 
 MARKERS = ("stage.json", "results.json", "metrics.json")
 

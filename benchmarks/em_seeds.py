@@ -1,15 +1,23 @@
 """Several ``threedq em`` runs per arm (one per seed) side by side: Table 3 per round, the mean and range over seeds.
 
-A change to the loop is a claim only where its difference is larger than the seeds' spread (issue #30: round-4
-precision@10 moves by 0.03-0.04 between seeds of one recipe). This script reads the ``metrics.json`` that every
-``threedq em`` run writes (Table 3's rows; few-shot accuracy from the round results; the mining stage's seconds from
-``rNN_mining/stage.json``), so it measures nothing itself and repeats no evaluation. Per arm and round it prints the
-mean (range) over the arm's runs, then for each run whether every round's strict and paper-protocol precision@10
-stayed at or above its round 0 (the view-prediction encoder on the same boxes), and with ``--png`` draws the
-per-seed curves.
+A change to the loop is a claim only where its difference is larger than the seeds' spread (round-4 precision@10
+moves by 0.03-0.04 between seeds of one recipe). This script reads the ``metrics.json`` that every ``threedq em`` run
+writes (Table 3's rows; few-shot accuracy from the round results; the mining stage's seconds from
+``rNN_mining/stage.json``), or the rows kept of such runs in ``benchmarks/results/<folder>/rows.jsonl``, so it
+measures nothing itself and repeats no evaluation. Per arm and round it prints the mean (range) over the arm's runs,
+then for each run whether every round's strict and paper-protocol precision@10 stayed at or above its round 0 (the
+view-prediction encoder on the same boxes), and with ``--png`` draws the per-seed curves.
 
     python benchmarks/em_seeds.py --arm "base=runs/em_s0 runs/em_s1" --arm "vp reg.=runs/vp_s0 runs/vp_s1" \\
         --png docs/img/em_seeds.png
+    python benchmarks/em_seeds.py --rows benchmarks/results/occupancy_pairs_amd_2026-12-05/rows.jsonl
+    R=benchmarks/results/occupancy_pairs_amd_2026-12-05/rows.jsonl
+    python benchmarks/em_seeds.py --arm "occ10=$R#metrics_occ10_seed0.json $R#metrics_occ10_seed1.json" \\
+        --arm "new=runs/new_s0 runs/new_s1"
+
+A run is a work dir, a copy of its ``metrics.json`` (any name ending ``.json``), or ``ROWS.jsonl#RUN``: the row of a
+results folder whose ``run`` is ``RUN`` (the name of the ``metrics.json`` it was cut from). ``--rows`` takes every
+row of a file, one arm per data set and arm.
 
 Convention: rounds as in Table 3 (0 = the view-prediction encoder, 1..R = after each EM round); a value a run
 does not have (a round it did not reach, few-shot with too few categories) is left out of the mean.
@@ -19,14 +27,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name
+from threedq.machine import cpu_name
 
 #: (column, name in the table)
 METRICS = (
@@ -40,9 +44,21 @@ METRICS = (
 )
 
 
+def read_rows(path: str | Path) -> list[dict[str, Any]]:
+    """The rows of a results folder's ``rows.jsonl``: one per run, each metric a list over its ``rounds``."""
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
 def read_run(work_dir: str | Path) -> dict[int, dict[str, float | None]]:
-    """``{round: {metric: value}}`` of one ``threedq em`` work dir (its ``metrics.json``), or of a copy of a
-    ``metrics.json`` under another name (a ``.json`` file, as kept in ``benchmarks/results/``)."""
+    """``{round: {metric: value}}`` of one ``threedq em`` work dir (its ``metrics.json``), of a copy of a
+    ``metrics.json`` under another name (a ``.json`` file), or of a kept row (``ROWS.jsonl#RUN``)."""
+    rows_file, sep, name = str(work_dir).partition(".jsonl#")
+    if sep:
+        row = next((r for r in read_rows(rows_file + ".jsonl") if r["run"] == name), None)
+        if row is None:
+            raise SystemExit(f"em_seeds: {rows_file}.jsonl: no row of run {name!r}")
+        return {r: {k: (row.get(k) or [None] * len(row["rounds"]))[i] for k, _ in METRICS}
+                for i, r in enumerate(row["rounds"])}
     path = Path(work_dir) if str(work_dir).endswith(".json") else Path(work_dir) / "metrics.json"
     if not path.is_file():
         raise SystemExit(f"em_seeds: {path}: no metrics.json (a run writes it when its last round ends)")
@@ -123,9 +139,11 @@ def figure(arms: dict[str, list[str]], runs: dict[str, list[dict[int, dict[str, 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--arm", action="append", required=True, metavar="NAME=DIR [DIR ...]",
+    ap.add_argument("--arm", action="append", default=[], metavar="NAME=DIR [DIR ...]",
                     help="an arm: its name and its runs' work dirs (or copies of their metrics.json, any name "
-                         "ending .json), separated by spaces (repeatable)")
+                         "ending .json, or ROWS.jsonl#RUN), separated by spaces (repeatable)")
+    ap.add_argument("--rows", action="append", default=[], type=Path, metavar="ROWS.jsonl",
+                    help="every run of a results folder's rows file, one arm per data set and arm (repeatable)")
     ap.add_argument("--png", type=Path, default=None, help="write the per-seed curves here")
     args = ap.parse_args(argv)
     arms: dict[str, list[str]] = {}
@@ -134,6 +152,11 @@ def main(argv: list[str] | None = None) -> None:
         if not sep or not name.strip() or not dirs.split():
             raise SystemExit(f"em_seeds: --arm {spec!r}: expected NAME=DIR [DIR ...]")
         arms[name.strip()] = dirs.split()
+    for path in args.rows:
+        for row in read_rows(path):
+            arms.setdefault(f"{row['data']}: {row['arm']}", []).append(f"{path}#{row['run']}")
+    if not arms:
+        ap.error("give --arm or --rows")
     runs = {arm: [read_run(d) for d in dirs] for arm, dirs in arms.items()}
     print(f"# threedq em runs per arm: mean (range) over runs; {cpu_name()} (where this table was printed, "
           "not necessarily where the runs ran)")

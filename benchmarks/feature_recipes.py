@@ -1,4 +1,4 @@
-"""Feature recipe study (issue #30): view-prediction recipes vs. what the learned 3D features retrieve.
+"""Feature recipe study: view-prediction recipes vs. what the learned 3D features retrieve.
 
 Each recipe (``--variant NAME=OVERRIDES``: extra LightningCLI overrides of ``configs/stages/viewpred.yaml``) is
 trained from scratch once per seed (``--seeds``) up to the largest of ``--eval_steps`` (a recipe's own
@@ -25,7 +25,7 @@ mean and the range over the seeds; ``--png PATH`` also draws each recipe's numbe
 seed (e.g. ``docs/img/feature_recipes_long_cpu.png``). ``--jobs N`` trains N (recipe, seed) pairs at once in subprocesses (on a GPU;
 on a 2-core CPU keep 1: two trainings halve each other's speed and spoil ``s/step``). Run it from a folder holding
 the embedded data (``data/clevr_veggie``, made by ``threedq em`` or ``threedq fit``) or pass ``--data_dir``.
-A ``{seed}`` in a recipe's overrides becomes the run's seed. The mining stage (issue #30's fine-tuning levers)
+A ``{seed}`` in a recipe's overrides becomes the run's seed. The mining stage (the fine-tuning levers)
 is a recipe too: ``--variant "mined=--config stages/mining.yaml --model.init_args.encoder_ckpt=VP.ckpt
 --model.init_args.seed={seed}"`` fine-tunes a given view-prediction encoder per seed (its steps count from 0).
 ``--data_config data/shapes.yaml`` trains and scores on another dataset (the shape-only data of
@@ -50,12 +50,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
-
-from threedq.geometry import CROP_SHAPES  # noqa: E402
+from threedq.geometry import CROP_SHAPES
+from threedq.machine import cpu_name
 
 DEFAULT_VARIANTS = [
     "default=",
@@ -142,7 +138,7 @@ def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_
     Scored on one input view per scene, the protocols' view, whatever a recipe trains on (a recipe with
     ``--data.init_args.num_input_views=2`` trains on two, is scored on one). ``crop_shape``: the region cropped
     around each box (:func:`threedq.geometry.crop_region`), for the learned and the raw crops alike. ``channels``:
-    score only these channels of the learned crops (e.g. the view-prediction stage's ``shape_channels``).
+    score only these channels of the learned crops.
     """
     import copy
 

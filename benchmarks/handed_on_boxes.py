@@ -18,18 +18,14 @@ depth 5 cm nearer than the box's nearest corner (something in front: occluded).
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from _machine import cpu_name  # noqa: E402
+from threedq.machine import cpu_name
 
 
 def occluded_fraction(aabb: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor,

@@ -1,4 +1,4 @@
-"""The single-view pseudo-boxes a detector is refined against, at several ground margins (issue #32).
+"""The single-view pseudo-boxes a detector is refined against, at several ground margins.
 
 For each ``--margin MARGIN:MIN_HEIGHT`` (metres; ``measured`` = ``ground_margin=None, min_height=None``, the packaged
 :data:`threedq.box_refinement.OBSERVED_PARAMS`), compute :func:`threedq.box_refinement.observed_boxes` of the input
@@ -16,20 +16,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 import numpy as np
 import torch
-from _machine import cpu_name
 from tqdm import tqdm
 
 from threedq.box_refinement import OBSERVED_PARAMS, observed_boxes
 from threedq.boxes import aabb_iou_3d
 from threedq.datamodules.scene_folder import SceneDataset
+from threedq.machine import cpu_name
 from threedq.pipeline.detection_eval import box_sets_map, gt_hulls
 from threedq.scene import load_index, load_scene
 

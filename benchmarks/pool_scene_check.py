@@ -20,17 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from _machine import cpu_name  # noqa: E402
+from threedq.machine import cpu_name
 
 #: the feature grid's bounds of ``configs/stages/viewpred.yaml`` (what the detector and the pool's input check use)
 GRID_BOUNDS = ((-1.28, -1.28, -0.32), (1.28, 1.28, 0.96))

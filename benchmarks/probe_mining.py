@@ -1,4 +1,4 @@
-"""How well does the 3D patch miner pick same-category pairs on trained features? (issue #13 diagnostics)
+"""How well does the 3D patch miner pick same-category pairs on trained features?
 
 Crops every test object of the embedded data with the encoder of a quantizer checkpoint, mines
 correspondences from the first ``--queries`` objects against all of them (other scenes only), and prints,
@@ -13,20 +13,16 @@ Run it from the folder of a finished ``threedq em`` (it reads ``data/clevr_veggi
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import torch
 
-import torch  # noqa: E402
-
-from _machine import cpu_name  # noqa: E402
-from threedq.contrastive import mine_correspondences, retrieve_targets  # noqa: E402
-from threedq.pipeline.evaluation import collect_object_crops  # noqa: E402
-from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint  # noqa: E402
-from threedq.pipeline.report import split_loader  # noqa: E402
-from threedq.stages.mining import implied_yaw_error_deg  # noqa: E402
+from threedq.contrastive import mine_correspondences, retrieve_targets
+from threedq.machine import cpu_name
+from threedq.pipeline.evaluation import collect_object_crops
+from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint
+from threedq.pipeline.report import split_loader
+from threedq.stages.mining import implied_yaw_error_deg
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """The RGB loss's weight against shape (shapes data) and category retrieval (embedded data): one picture.
 
-Reads the rows the shape issue's study measured (``docs/studies/shape.md``, "The RGB loss's weight on both
+Reads the rows the shape study measured (``docs/studies/shape.md``, "The RGB loss's weight on both
 datasets"): ``benchmarks/results/shape_benchmark_levers_cpu_2026-11-29.jsonl`` and
 ``shape_benchmark_cpu_2026-11-29.jsonl`` (shapes data, 500 steps; weight 30 is the "view prediction on shapes, 500
 steps" row) and the ``threedq eval --encoders`` tables under
@@ -16,10 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import sys
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 RESULTS = Path(__file__).resolve().parent / "results"
 WEIGHTS = (0.0, 3.0, 30.0)  # drawn at x = 0, 1, 2 (the tick labels give the weights)

@@ -39,8 +39,7 @@ projected GT box as ``threedq eval --weights`` does; cosine retrieval without ro
 gallery features from the second view's image), the shape probe on the pooled vectors, ResNetRet / ResNetClass
 few-shot (paper Table 1) and a K = 50 bank without rotation search (no-rot columns; "Hungarian vs colour" of that
 bank in the extra table). It may run alone (``--random_seeds`` with no seed and no ``--encoder``); beside encoder
-rows its test objects are checked to be theirs. ``--imagenet_input_size`` changes the image side the network sees
-(224 by default, ImageNet's and ``threedq eval``'s).
+rows its test objects are checked to be theirs.
 
 One JSON line per (dataset, row, seed) is appended to ``--out`` as soon as it is measured; the markdown table (mean
 and range over seeds) is printed and, with ``--md``, written; ``--table_only`` rebuilds it from ``--out``.
@@ -58,18 +57,14 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _machine import cpu_name  # noqa: E402
+from threedq.machine import cpu_name
 
 DATASETS = {"shapes": "data/shapes.yaml", "unseen": "data/shapes_unseen.yaml"}
-# the embedded data, where a category is a shape and a colour: the shape issue's guard ("nothing lower than today"),
+# the embedded data, where a category is a shape and a colour: the shape study's guard ("nothing lower than today"),
 # scored only when asked for (--datasets embedded); its banks are fitted on its training objects like the shapes set's
 GUARD_DATASETS = {"embedded": "data/clevr_veggie.yaml"}
 ALL_DATASETS = {**DATASETS, **GUARD_DATASETS}
@@ -82,12 +77,9 @@ def load_datamodule(config: str) -> Any:
     """The DataModule a data config names (a path, or one inside the packaged ``configs/``), prepared and set up."""
     import importlib
 
-    import yaml
+    from threedq.pipeline.lightning_cli import load_config
 
-    from threedq.pipeline.lightning_cli import resolve_config
-
-    path = resolve_config(config)
-    spec = yaml.safe_load(Path(path).read_text())["data"]
+    spec = load_config(config)["data"]  # with its base's keys (``base:``)
     module, _, cls = spec["class_path"].rpartition(".")
     dm = getattr(importlib.import_module(module), cls)(**spec.get("init_args", {}))
     dm.prepare_data()
@@ -180,7 +172,7 @@ def instance_colours(dm: Any, split: str, crops: dict) -> Any:
 
 
 def with_input_occupancy(crops: dict) -> dict:
-    """The crops with the input occupancy skipped into the features (a lever of the shape issue; a departure from the
+    """The crops with the input occupancy skipped into the features (a lever of the shape study; a departure from the
     paper, whose crops hold the learned features alone): ``learned`` becomes ``cat[f / |f|, o / |o|]`` per object,
     ``f`` its learned crop and ``o`` its input-occupancy crop (channel 0 of ``raw``), each scaled to unit norm, so
     that their cosine is the mean of the two parts' cosines; likewise ``gallery_learned``.
@@ -243,8 +235,7 @@ def references(test: dict, train: dict | None, num_classes: int, sym: list[int])
     return row
 
 
-def imagenet_row(net: Any, dm: Any, num_classes: int, sym: list[int], labels: Any = None,
-                 input_size: int = 224) -> dict[str, Any]:
+def imagenet_row(net: Any, dm: Any, num_classes: int, sym: list[int], labels: Any = None) -> dict[str, Any]:
     """Every number of the 2D ImageNet row (:func:`~threedq.pipeline.baselines2d.collect_resnet_features`: the input
     view's features ``[N, C]``, the gallery view's for the paper protocol, the training split's for the probe).
 
@@ -253,14 +244,13 @@ def imagenet_row(net: Any, dm: Any, num_classes: int, sym: list[int], labels: An
         dm: the dataset's DataModule.
         num_classes, sym: the dataset's category count and symmetry orders (for the bank's metrics).
         labels: ``[N]`` the encoder rows' test labels, where they ran: the objects must be the same (loader order).
-        input_size: the image side the network sees (224: ImageNet's, ``threedq eval``'s).
 
     Returns:
         ``cosine/strict``, ``cosine/paper``, ``cosine/top1`` (cosine, no rotation search), ``probe/learned`` (where
         there is a training split),
         ``ret_acc`` / ``class_acc`` (2 shots, seed 0, as ``threedq eval``), ``no_rot/*`` (K = 50 bank on the
         features, no rotation search, with "Hungarian vs colour"; the yaw is meaningless there and dropped),
-        ``objects``, ``input_size`` and the backbone's fields.
+        ``objects`` and the backbone's fields.
     """
     import torch
 
@@ -270,17 +260,17 @@ def imagenet_row(net: Any, dm: Any, num_classes: int, sym: list[int], labels: An
     from threedq.pipeline.report import split_loader
 
     loader = split_loader(dm, "test", gallery=True)
-    q = collect_resnet_features(net, loader, input_size, progress=False)
-    g = collect_resnet_features(net, loader, input_size, progress=False, view=dm.num_input_views)
+    q = collect_resnet_features(net, loader, progress=False)
+    g = collect_resnet_features(net, loader, progress=False, view=dm.num_input_views)
     if labels is not None and not torch.equal(q["labels"], labels):
         raise RuntimeError("ImageNet row: the test objects differ from the encoder rows' (loader order?)")
     rr = resnet_results(q, k=10, shots=2, seed=0)  # strict protocol (leave-one-out), ResNetRet, ResNetClass
     pp = resnet_paper_results(q, g, k=10)  # the gallery view's features, twin counted
-    row: dict[str, Any] = {"objects": int(q["labels"].shape[0]), "input_size": input_size,
+    row: dict[str, Any] = {"objects": int(q["labels"].shape[0]),
                            "cosine/strict": rr["precision_at_k"], "cosine/paper": pp["paper_precision_at_k"],
                            "cosine/top1": pp["same_object_top1"], "ret_acc": rr["ret_acc"],
                            "class_acc": rr["class_acc"], "not_visible": rr["not_visible"]}
-    train = (collect_resnet_features(net, split_loader(dm, "train"), input_size, progress=False)
+    train = (collect_resnet_features(net, split_loader(dm, "train"), progress=False)
              if dm.index.files("train") else None)
     if train is not None:
         row["probe/learned"] = float(linear_probe(train["features"], train["labels"], q["features"],
@@ -304,7 +294,7 @@ def _append(out: Path, row: dict[str, Any]) -> None:
 
 
 def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: Path,
-        input_occupancy: bool = False, weights: Path | None = None, imagenet_input_size: int = 224) -> None:
+        input_occupancy: bool = False, weights: Path | None = None) -> None:
     import torch
 
     from threedq.pipeline.baselines2d import load_resnet
@@ -365,8 +355,8 @@ def run(encoders: list[str], random_seeds: list[int], datasets: list[str], out: 
             gc.collect()
         if net is not None:  # the 2D ImageNet row, once per dataset (checked against the encoder rows' objects)
             t2 = time.perf_counter()
-            rn = {"dataset": ds, "row": f"{net.label}, input {imagenet_input_size}", "seed": None,
-                  **imagenet_row(net, dm, num_classes, sym, first_labels, imagenet_input_size), **machine}
+            rn = {"dataset": ds, "row": net.label, "seed": None, **imagenet_row(net, dm, num_classes, sym, first_labels),
+                  **machine}
             rn["seconds"] = round(time.perf_counter() - t2, 1)
             _append(out, rn)
             print(f"{ds} / {rn['row']}: strict {rn['cosine/strict']:.3f} paper {rn['cosine/paper']:.3f} "
@@ -440,9 +430,7 @@ def table(rows: list[dict[str, Any]]) -> str:
             lines.append(f"| {label} | " + " | ".join(_cell([r.get(k) for r in group], digits(k)) for k, _ in COLUMNS)
                          + " |")
         def imagenet_label(r: dict[str, Any]) -> str:
-            size = r.get("input_size", 224)
-            return (f"{r['backbone_label']}, {r['feature_stage']} pooled in the projected GT box"
-                    + (f", {size} px input" if size != 224 else "") + " (no rotation search)")
+            return f"{r['backbone_label']}, {r['feature_stage']} pooled in the projected GT box (no rotation search)"
 
         for r in imagenet:  # the 2D rows: no rotation search, no yaw; their bank is the no-rot one
             lines.append(f"| {imagenet_label(r)} | " + " | ".join(_cell([r.get(k)], digits(k)) for k, _ in COLUMNS)
@@ -474,8 +462,6 @@ def main() -> None:
     ap.add_argument("--weights", type=Path, default=None,
                     help="an ImageNet file for the 2D row (torchvision resnet18, or the MobileNetV2 stand-in of "
                          "docs/studies/imagenet.md); needs an encoder row in the same run")
-    ap.add_argument("--imagenet_input_size", type=int, default=224,
-                    help="the image side the ImageNet network sees (224: ImageNet's and threedq eval's)")
     ap.add_argument("--out", type=Path, default=Path("runs/shape_benchmark/results.jsonl"))
     ap.add_argument("--md", type=Path, default=None, help="also write the table here")
     ap.add_argument("--table_only", action="store_true", help="print the table of --out and stop")
@@ -485,8 +471,7 @@ def main() -> None:
         if not sep or not name or not Path(ckpt).is_file():
             ap.error(f"--encoder {spec!r}: expected NAME=CKPT with an existing checkpoint file")
     if not args.table_only:
-        run(args.encoder, args.random_seeds, args.datasets, args.out, args.input_occupancy, args.weights,
-            args.imagenet_input_size)
+        run(args.encoder, args.random_seeds, args.datasets, args.out, args.input_occupancy, args.weights)
     rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()]
     md = table(rows)
     print(md)

@@ -31,11 +31,9 @@ from typing import Any
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from threedq.boxes import aabb_iou_3d, boxes_to_aabb  # noqa: E402
-from threedq.metrics import relative_yaw_error  # noqa: E402
-from threedq.scene import load_scene_gt  # noqa: E402
+from threedq.boxes import aabb_iou_3d, boxes_to_aabb
+from threedq.metrics import relative_yaw_error
+from threedq.scene import load_scene_gt
 
 
 def read_objects(path: Path, data_dir: Path, min_iou: float = 0.5) -> dict[tuple[str, int], dict[str, Any]]:

@@ -6,7 +6,7 @@ into ``data_dir`` (skipped when ``data_dir/index.json`` exists); everything afte
 format (``datamodules/<dataset>.py``) only names its format.
 
 Expected trees: ``capture_dirs[split]`` is one capture, or a folder of captures, in the format's layout (the
-parser's module docstring in ``threedq/data/formats/``); ``data_dir`` receives ``index.json`` and
+reader's module docstring in ``threedq/data/formats/``); ``data_dir`` receives ``index.json`` and
 ``<split>/<capture>.npz``.
 """
 
@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import logging
 from typing import Any, ClassVar
+
+from jsonargparse.typing import PositiveFloat, PositiveInt
 
 from threedq.datamodules.scene_folder import SceneFolderDataModule
 
@@ -33,9 +35,8 @@ class CaptureDataModule(SceneFolderDataModule):
         data_dir: the canonical dataset folder written by the import.
         max_views: views kept per scene (farthest camera positions).
         max_depth: depth beyond this many metres becomes 0.
-        parser_options: keyword arguments of the format's parser (e.g. ``intrinsics`` for TUM).
-        batch_size, num_workers, num_input_views, num_target_views, max_objects, seed, boxes, match_iou,
-            max_boxes, train_random_views: as in :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
+        reader_options: keyword arguments of the format's reader (e.g. ``intrinsics`` for TUM).
+        **kwargs: the arguments of :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
 
     FORMAT: ClassVar[str] = ""
@@ -44,40 +45,19 @@ class CaptureDataModule(SceneFolderDataModule):
         self,
         capture_dirs: dict[str, str],
         data_dir: str,
-        max_views: int = 28,
-        max_depth: float = 10.0,
-        parser_options: dict[str, Any] | None = None,
-        batch_size: int = 2,
-        num_workers: int = 0,
-        num_input_views: int = 1,
-        num_target_views: int = 1,
-        max_objects: int = 3,
-        seed: int = 0,
-        boxes: str = "gt",
-        match_iou: float = 0.5,
-        max_boxes: int = 8,
-        train_random_views: bool = True,
+        max_views: PositiveInt = 28,
+        max_depth: PositiveFloat = 10.0,
+        reader_options: dict[str, Any] | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(
-            data_dir=data_dir,
-            batch_size=batch_size,
-            num_workers=num_workers,
-            num_input_views=num_input_views,
-            num_target_views=num_target_views,
-            max_objects=max_objects,
-            seed=seed,
-            boxes=boxes,
-            match_iou=match_iou,
-            max_boxes=max_boxes,
-            train_random_views=train_random_views,
-        )
+        super().__init__(data_dir=data_dir, **kwargs)
         bad = [s for s in capture_dirs if s not in ("train", "val", "test")]
         if bad:
             raise ValueError(f"capture_dirs: expected keys among train, val, test, got {bad[0]!r}")
         self.capture_dirs = dict(capture_dirs)
         self.max_views = max_views
         self.max_depth = max_depth
-        self.parser_options = dict(parser_options or {})
+        self.reader_options = dict(reader_options or {})
 
     def prepare_data(self) -> None:
         if (self.data_dir / INDEX_NAME).is_file():
@@ -90,7 +70,7 @@ class CaptureDataModule(SceneFolderDataModule):
                 split=split,
                 max_views=self.max_views,
                 max_depth=self.max_depth,
-                parser_options=self.parser_options,
+                reader_options=self.reader_options,
                 progress=False,
             )
             for line in summary.lines():

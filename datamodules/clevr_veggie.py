@@ -15,6 +15,9 @@ Expected tree (written by ``threedq data generate`` or by :meth:`ClevrVeggieData
 from __future__ import annotations
 
 import logging
+from typing import Any, ClassVar, Literal
+
+from jsonargparse.typing import PositiveInt
 
 from threedq.datamodules.scene_folder import SceneFolderDataModule
 
@@ -44,45 +47,27 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
             :data:`threedq.data.catalog.SHAPE_ONLY_NAMES` or the held-out meshes).
         color_mode: ``"category"`` (catalogue colours) or ``"random"`` (a random palette colour per instance: the
             category is the shape alone); see :class:`~threedq.data.generator_config.GeneratorConfig`.
-        batch_size, num_workers, num_input_views, num_target_views, seed, boxes, match_iou, max_boxes, train_random_views: as in
-            :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
+        **kwargs: the arguments of :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
+
+    #: the embedded categories are shape and colour (a red cube is not a blue one): the default miner's pairs
+    PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining.yaml"}
 
     def __init__(
         self,
         data_dir: str = "data/clevr_veggie",
-        num_scenes: int = 300,
+        num_scenes: PositiveInt = 300,
         split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1),
         generator_seed: int = 0,
         image_size: tuple[int, int] = (128, 128),
-        num_views: int = 28,
-        max_objects: int = 3,
-        generator_workers: int = 2,
-        batch_size: int = 2,
-        num_workers: int = 0,
-        num_input_views: int = 1,
-        num_target_views: int = 1,
-        seed: int = 0,
-        boxes: str = "gt",
-        match_iou: float = 0.5,
-        max_boxes: int = 8,
-        train_random_views: bool = True,
+        num_views: PositiveInt = 28,
+        max_objects: PositiveInt = 3,
+        generator_workers: PositiveInt = 2,
         categories: list[str] | None = None,
-        color_mode: str = "category",
+        color_mode: Literal["category", "random"] = "category",
+        **kwargs: Any,
     ) -> None:
-        super().__init__(
-            data_dir=data_dir,
-            batch_size=batch_size,
-            num_workers=num_workers,
-            num_input_views=num_input_views,
-            num_target_views=num_target_views,
-            max_objects=max_objects,
-            seed=seed,
-            boxes=boxes,
-            match_iou=match_iou,
-            max_boxes=max_boxes,
-            train_random_views=train_random_views,
-        )
+        super().__init__(data_dir=data_dir, max_objects=max_objects, **kwargs)
         self.num_scenes = num_scenes
         self.split_fractions = tuple(split_fractions)
         self.generator_seed = generator_seed

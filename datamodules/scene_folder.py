@@ -21,13 +21,15 @@ import zipfile
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import lightning as L
 import numpy as np
 import torch
+from jsonargparse.typing import NonNegativeInt, PositiveInt
 from torch.utils.data import DataLoader, Dataset
 
+from threedq.argtypes import UnitIoU
 from threedq.boxes import boxes_to_aabb
 from threedq.data.box_files import load_boxes_file
 from threedq.data.proposal_cache import propose_dataset
@@ -63,10 +65,9 @@ class _SceneViews:
 class _ViewCache:
     """A process-wide LRU of the fixed views of scenes already read (a few hundred KiB per scene).
 
-    The stages after view prediction read each scene's fixed input views again and again (the quantizer, the
-    evaluations, self-labelling, the detections of every split, in every round of ``threedq em``); a record holds all
-    its views compressed, and reading + validating one costs ~10 ms. The key holds the file's size and modification
-    time, so a rewritten file is read again. ``THREEDQ_VIEW_CACHE_MB`` (default 1024, 0 = off) caps its size.
+    The stages after view prediction read each scene's fixed input views again and again; a record holds all its
+    views compressed. The key holds the file's size and modification time, so a rewritten file is read again.
+    ``THREEDQ_VIEW_CACHE_MB`` (default 1024, 0 = off) caps its size.
     """
 
     def __init__(self) -> None:
@@ -357,37 +358,32 @@ class SceneFolderDataModule(L.LightningDataModule):
     detection metrics instead).
     """
 
+    #: the stage configs that serve this kind of data (threedq.pipeline.presets): objects of one kind come in many
+    #: colours, so the mining pairs compare the input occupancy alone
+    PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining_occupancy_pairs.yaml"}
+
     def __init__(
         self,
         data_dir: str = "data/scenes",
-        batch_size: int = 2,
-        num_workers: int = 0,
-        num_input_views: int = 1,
-        num_target_views: int = 1,
-        max_objects: int = 3,
+        batch_size: PositiveInt = 2,
+        num_workers: NonNegativeInt = 0,
+        num_input_views: PositiveInt = 1,
+        num_target_views: NonNegativeInt = 1,
+        max_objects: PositiveInt = 3,
         seed: int = 0,
         boxes: str = "gt",
-        match_iou: float = 0.5,
-        max_boxes: int = 8,
+        match_iou: UnitIoU = 0.5,
+        max_boxes: PositiveInt = 8,
         train_random_views: bool = True,
-        proposal_workers: int | None = None,
+        proposal_workers: PositiveInt | None = None,
     ) -> None:
         super().__init__()
         if boxes not in ("gt", "proposals") and "{split}" not in boxes:
             raise ValueError(f"boxes: expected 'gt', 'proposals' or a path containing '{{split}}', got {boxes!r}")
-        if not 0.0 < match_iou <= 1.0:
-            raise ValueError(f"match_iou: expected in (0, 1], got {match_iou}")
         self.boxes = boxes
         self.match_iou = match_iou
         self.max_boxes = max_boxes
         self.train_random_views = bool(train_random_views)
-        if batch_size < 1:
-            raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
-        if num_workers < 0:
-            raise ValueError(f"num_workers: expected >= 0, got {num_workers}")
-        if proposal_workers is not None and (isinstance(proposal_workers, bool) or not isinstance(proposal_workers, int)
-                                             or proposal_workers < 1):
-            raise ValueError(f"proposal_workers: expected an int >= 1 or null, got {proposal_workers!r}")
         self.proposal_workers = proposal_workers if proposal_workers is not None else _cores(8)
         self.data_dir = Path(data_dir)
         self.batch_size = batch_size

@@ -2,19 +2,18 @@
 
 Every stage is a LightningModule that owns ``self.encoder`` (a :class:`~threedq.nets.UNet3D` over
 ``cat[occ, occ * rgb]`` of the input grid, producing L2-normalised features at half resolution, or at the input's
-with ``feature_stride=1``).
-View prediction trains it; later stages load it:
+with ``feature_stride=1``). View prediction trains it; later stages load it:
 
 * ``encoder_ckpt``: a Lightning checkpoint of any stage (its ``encoder.*`` weights are used) or a plain
   ``state_dict`` of the encoder saved with ``torch.save``. Loaded with ``weights_only=True``. Shapes
   must match the stage's encoder; a mismatch is an error naming the file and the parameter.
 * ``freeze_encoder``: keep those weights fixed (no gradient, BatchNorm in eval mode) or fine-tune them.
 
-The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``,
-``grid_resolution``, ``feature_dim``, ``encoder_channels``, ``feature_stride`` and ``encoder_input`` in its
-hyperparameters, and a stage given an ``encoder_ckpt`` takes them from there unless it names them itself; a
-stage that names a different grid than its encoder was trained on is refused with one line naming the checkpoint
-and the field. Only view prediction (which trains the encoder from scratch) needs them in its config.
+The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``, ``grid_resolution``,
+``feature_dim``, ``encoder_channels`` and ``feature_stride`` in its hyperparameters, and a stage given an
+``encoder_ckpt`` takes them from there unless it names them itself; a stage that names a different grid than its
+encoder was trained on is refused with one line naming the checkpoint and the field. Only view prediction (which
+trains the encoder from scratch) needs them in its config.
 """
 
 from __future__ import annotations
@@ -22,7 +21,7 @@ from __future__ import annotations
 import contextlib
 import inspect
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import lightning as L
 import torch
@@ -31,7 +30,7 @@ from torch import Tensor
 from threedq.geometry import VoxelGridSpec, crop_boxes, crop_region, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 from threedq.stages.crop_cache import CropCache, pack_bits, pack_sparse, unpack_bits, unpack_sparse
-from threedq.stages.checkpoint import (  # noqa: F401 - re-exported: the names' home before stages/checkpoint.py
+from threedq.stages.checkpoint import (  # noqa: F401 - re-exported beside the stage base
     DEFAULT_GRID,
     checkpoint_hparams,
     checkpoint_stage,
@@ -43,13 +42,8 @@ from threedq.stages.checkpoint import (  # noqa: F401 - re-exported: the names' 
     resolve_grid,
 )
 
-#: What the encoder may see of the unprojected views (``encoder_input``): the paper's ``cat[occ, occ * rgb]``, and the
-#: shape study's two ablations.
-ENCODER_INPUTS = ("occupancy_colour", "occupancy", "colour")
-
 __all__ = [
     "DEFAULT_GRID",
-    "ENCODER_INPUTS",
     "EncoderStage",
     "SplitEvaluation",
     "checkpoint_hparams",
@@ -79,6 +73,15 @@ def stage_arguments(cls: type) -> dict[str, Any]:
     return out
 
 
+def builtin_number(value: Any) -> Any:
+    """``value`` as a plain ``int`` or ``float`` where it is an instance of a subclass of one (a restricted number type
+    such as jsonargparse's ``PositiveInt``), else unchanged (``bool`` too)."""
+    for base in (int, float):
+        if isinstance(value, base) and type(value) not in (base, bool):
+            return base(value)
+    return value
+
+
 class EncoderStage(L.LightningModule):
     """Base of every stage: the voxel grid, the shared encoder and multi-view encoding.
 
@@ -93,11 +96,6 @@ class EncoderStage(L.LightningModule):
             else the paper's ``(64, 128, 256)``); narrower is cheaper per step (see :class:`~threedq.nets.UNet3D`).
         feature_stride: input voxels per feature voxel along each axis (None: the encoder checkpoint's, else the
             paper's 2); 1 gives features on the input grid itself (not the paper's; see :class:`~threedq.nets.UNet3D`).
-        encoder_input: what of the unprojected views the encoder sees (None: the encoder checkpoint's, else the
-            paper's ``occupancy_colour``, ``cat[occ, occ * rgb]``); ``occupancy`` zeroes the colour channels,
-            ``colour`` gives the colour of each voxel's pixel along the whole ray and no depth (``cat[0, seen * rgb]``).
-            Input ablations of the shape study (docs/studies/shape.md), not the paper's; the raw crops
-            (``object_crops``' ``raw``) are what the encoder sees.
         encoder_ckpt: optional checkpoint to load the encoder from (see the module docstring).
         freeze_encoder: keep the encoder fixed.
         channels_last: run the encoder in ``channels_last_3d`` memory format (faster oneDNN / cuDNN
@@ -120,23 +118,19 @@ class EncoderStage(L.LightningModule):
         feature_dim: int | None = None,
         encoder_channels: tuple[int, int, int] | None = None,
         feature_stride: int | None = None,
-        encoder_input: Literal["occupancy_colour", "occupancy", "colour"] | None = None,
         encoder_ckpt: str | None = None,
         freeze_encoder: bool = False,
         channels_last: bool = True,
     ) -> None:
         super().__init__()
         given = {"grid_min": grid_min, "grid_max": grid_max, "grid_resolution": grid_resolution, "feature_dim": feature_dim,
-                 "encoder_channels": encoder_channels, "feature_stride": feature_stride, "encoder_input": encoder_input}
+                 "encoder_channels": encoder_channels, "feature_stride": feature_stride}
         #: the resolved grid fields, written into every checkpoint's hyperparameters (see the module docstring)
         self.grid_fields = resolve_grid(given, encoder_ckpt)
         g = self.grid_fields
         self.grid = VoxelGridSpec(g["grid_min"], g["grid_max"], g["grid_resolution"])
         if g["feature_stride"] not in (1, 2):
             raise ValueError(f"feature_stride: expected 1 or 2, got {g['feature_stride']!r}")
-        if g["encoder_input"] not in ENCODER_INPUTS:
-            raise ValueError(f"encoder_input: expected one of {ENCODER_INPUTS}, got {g['encoder_input']!r}")
-        self.encoder_input_kind = g["encoder_input"]
         self.feature_grid = self.grid.half() if g["feature_stride"] == 2 else self.grid
         self.feature_dim = g["feature_dim"]
         self.encoder = UNet3D(in_channels=4, out_channels=self.feature_dim, channels=g["encoder_channels"],
@@ -201,6 +195,9 @@ class EncoderStage(L.LightningModule):
         for name in [k for k in self.hparams if not k.startswith("_") and k not in own]:
             del self.hparams[name]
         self.hparams.update({k: list(v) if isinstance(v, tuple) else v for k, v in self.grid_fields.items()})
+        # the restricted numbers the annotations validate with (jsonargparse's PositiveInt, ...) as plain int and float,
+        # so that a checkpoint's hyperparameters load with torch.load(weights_only=True)
+        self.hparams.update({k: builtin_number(v) for k, v in self.hparams.items()})
 
     def train(self, mode: bool = True) -> EncoderStage:
         super().train(mode)
@@ -215,18 +212,13 @@ class EncoderStage(L.LightningModule):
             rgb: ``[N, 3, H, W]`` in [0, 1]; depth ``[N, H, W]``; K ``[N, 3, 3]``; R_T_cam ``[N, 4, 4]``.
 
         Returns:
-            ``x`` ``[N, 4, Z, Y, X]`` = ``cat[occ, occ * rgb]`` (``cat[occ, 0]`` with ``encoder_input: occupancy``,
-            ``cat[0, seen * rgb]`` with ``colour``) and ``seen`` ``[N, 1, Z, Y, X]``, 1 where the voxel centre
-            projects into the image in front of the camera.
+            ``x`` ``[N, 4, Z, Y, X]`` = ``cat[occ, occ * rgb]`` and ``seen`` ``[N, 1, Z, Y, X]``, 1 where the voxel
+            centre projects into the image in front of the camera.
         """
         occ = occupancy_from_depth(depth, K, R_T_cam, self.grid)
         ones = torch.ones_like(rgb[:, :1])
         sampled = unproject_rgb(torch.cat([rgb, ones], dim=1), K, R_T_cam, self.grid)
         rgb_vol, seen = sampled[:, :3], (sampled[:, 3:] > 0.5).to(rgb.dtype)
-        if self.encoder_input_kind == "occupancy":
-            return torch.cat([occ, torch.zeros_like(rgb_vol)], dim=1), seen
-        if self.encoder_input_kind == "colour":
-            return torch.cat([torch.zeros_like(occ), seen * rgb_vol], dim=1), seen
         return torch.cat([occ, occ * rgb_vol], dim=1), seen
 
     def views_input(
@@ -238,9 +230,8 @@ class EncoderStage(L.LightningModule):
         The input depends on the views and the grid alone, not on the encoder, so every stage of a run reads each
         scene's unprojection from the one computed first, under the ``input`` kind, which a new encoder does not drop.
         It is kept compact (:func:`~threedq.stages.crop_cache.pack_sparse` and
-        :func:`~threedq.stages.crop_cache.pack_bits`): about 110 KB a view of the main job's 64 x 64 x 32 grid against
-        2.6 MB dense. Only where :meth:`crops_cacheable`: the views of a training step may be drawn at random, and
-        would fill the cache with inputs never asked for again.
+        :func:`~threedq.stages.crop_cache.pack_bits`). Only where :meth:`crops_cacheable`: the views of a training step
+        may be drawn at random, and would fill the cache with inputs never asked for again.
 
         Args:
             rgb: ``[B, S, 3, H, W]``; depth ``[B, S, H, W]``; K ``[B, S, 3, 3]``; R_T_cam ``[B, S, 4, 4]``.
@@ -298,8 +289,7 @@ class EncoderStage(L.LightningModule):
         """What besides weights and inputs decides a crop: grid, memory format, device type and autocast state."""
         dev = self.device.type
         amp = str(torch.get_autocast_dtype(dev)) if torch.is_autocast_enabled(dev) else "fp32"
-        kind = "" if self.encoder_input_kind == "occupancy_colour" else f"|{self.encoder_input_kind}"  # ablations only
-        return f"{self.grid}{kind}|{self.channels_last}|{dev}|{amp}"
+        return f"{self.grid}|{self.channels_last}|{dev}|{amp}"
 
     def encode_views(self, rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> Tensor:
         """Encode each of S views of B scenes and aggregate them in R (mean over the views that see a voxel).

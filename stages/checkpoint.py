@@ -14,11 +14,11 @@ used) or a plain ``state_dict`` of the encoder saved with ``torch.save``. Shapes
 mismatch is an error naming the file and the parameter.
 
 The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``, ``grid_resolution``,
-``feature_dim``, ``encoder_channels`` and ``feature_stride`` in its hyperparameters (a checkpoint written before
-``encoder_channels`` or ``feature_stride`` existed holds the paper's widths and stride, the defaults), and a stage given an ``encoder_ckpt`` takes them from there unless it names
-them itself (:func:`resolve_grid`); a stage that names a different grid than its encoder was trained on is refused
-with one line naming the checkpoint and the field. Only view prediction (which trains the encoder from scratch) needs
-them in its config.
+``feature_dim``, ``encoder_channels`` and ``feature_stride`` in its hyperparameters (a field a checkpoint lacks is
+:data:`DEFAULT_GRID`'s), and a stage given an ``encoder_ckpt`` takes them from there unless it names them itself
+(:func:`resolve_grid`); a stage that names a different grid than its encoder was trained on is refused with one line
+naming the checkpoint and the field. Only view prediction (which trains the encoder from scratch) needs them in its
+config.
 
 Writing: :class:`AtomicCheckpointIO` is the Lightning checkpoint writer of every threedq run (``threedq fit``, the
 stages of ``threedq em``): each file is written beside its destination, flushed and renamed over it
@@ -69,7 +69,6 @@ DEFAULT_GRID: dict[str, Any] = {
     "feature_dim": 32,
     "encoder_channels": (64, 128, 256),
     "feature_stride": 2,
-    "encoder_input": "occupancy_colour",
 }
 
 
@@ -91,13 +90,10 @@ class AtomicCheckpointIO(TorchCheckpointIO):
 class LastStepCheckpoint(ModelCheckpoint):
     """Lightning's ``ModelCheckpoint`` whose ``last.ckpt`` always holds the final training step.
 
-    Lightning writes ``last.ckpt`` at the end of training only when no ``last.ckpt`` was written before. With
-    ``every_n_train_steps=100``, a run stopped by ``max_steps`` between two saves and away from an epoch end that
-    saves (``check_val_every_n_epoch`` other than 1, no validation that epoch) kept the weights of the last multiple
-    of 100: ``--trainer.max_steps=850`` left step 800, and the main job's detector warm start (350 steps, two epochs
-    whose validation does not save) handed on step 300 until 3f3a423. This writes ``last.ckpt`` again when training
-    ends, unless that step is already saved (or Lightning would not save now: ``fast_dev_run``, sanity check, not
-    fitting).
+    Lightning writes ``last.ckpt`` at the end of training only when no ``last.ckpt`` was written before, so with
+    ``every_n_train_steps=100`` a run stopped by ``max_steps`` between two saves (``--trainer.max_steps=850``) would
+    keep step 800. This writes ``last.ckpt`` again when training ends, unless that step is already saved (or Lightning
+    would not save now: ``fast_dev_run``, sanity check, not fitting).
     """
 
     def on_train_end(self, trainer: Any, pl_module: Any) -> None:
@@ -120,7 +116,6 @@ def _torch_reason(e: Exception) -> str:
 
 
 #: The stage of a checkpoint without a saved class path, by the weights it holds (first match wins).
-# mining before viewpred: a mining checkpoint trained with view_prediction_weight > 0 carries the decoder too
 _STAGE_BY_WEIGHTS = (("self_labelling", ("bank.", "head.")), ("quantizer", ("bank.",)), ("detector", ("head.",)),
                      ("mining", ("moco.",)), ("viewpred", ("decoder.",)))
 
@@ -303,8 +298,6 @@ def require_stage(path: str | Path, wanted: str, option: str, needs: str | None 
 def _same(a: Any, b: Any) -> bool:
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
-    if isinstance(a, str) or isinstance(b, str):
-        return a == b
     return float(a) == float(b)
 
 
@@ -328,7 +321,7 @@ def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict
             )
         value = mine if mine is not None else theirs if theirs is not None else default
         out[k] = (int(value) if k in ("feature_dim", "feature_stride") else tuple(int(v) for v in value)
-                  if k == "encoder_channels" else str(value) if k == "encoder_input" else tuple(value))
+                  if k == "encoder_channels" else tuple(value))
     return out
 
 

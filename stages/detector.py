@@ -26,6 +26,9 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+from jsonargparse.typing import ClosedUnitInterval, PositiveInt
+
+from threedq.argtypes import UnitIoU as UnitFraction
 from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor, nn
 
@@ -38,6 +41,7 @@ from threedq.viz.detection import detection_figure
 from threedq.viz.png import write_png
 
 __all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes"]
+
 
 
 class _ResBlock3d(nn.Module):
@@ -178,11 +182,10 @@ class Detector(EncoderStage):
             the training boxes at least ``min_box_height`` tall (the DataModule's ``boxes``: pseudo-boxes, GT or
             detections), taken when training starts unless a loaded checkpoint gives it, and saved in the
             checkpoint's hyperparameters. The regression is relative to it, so an anchor far from the objects' size
-            weakens it (0.3 m objects, the embedded data's 0.5 m anchor: test mAP@0.5 0.055; the data's median 0.109).
+            weakens it.
         min_box_height: training boxes less tall than this (metres) give no positive cells and their region is
             ignored: the feature grid cannot tell a 2 cm flat object from the floor under it, and training on them
-            as objects teaches the head to fire on floor (measured on such data: precision of the boxes handed on at
-            0.9 0.06 -> 0.47, mAP@0.5 0.109 -> 0.244; docs/studies/adaptation.md).
+            as objects teaches the head to fire on floor (docs/studies/adaptation.md).
             ``None``: half the feature grid's voxel height (4 cm on the packaged grid); 0: every box counts.
         channels: residual-block width (paper: 32).
         num_blocks: residual blocks (paper: 3).
@@ -193,8 +196,7 @@ class Detector(EncoderStage):
         nms_iou: 3D NMS IoU threshold.
         nms_iomin: 3D NMS threshold on intersection over the smaller box (1 = off): also drops the smaller
             boxes regressed from cells off an object's centre, which sit inside the object's box with an IoU
-            below ``nms_iou`` (0.3: on the embedded data's val split the boxes handed on at 0.9 go from 191 to 159,
-            mAP the same).
+            below ``nms_iou``.
         max_detections: per scene, after NMS.
         refine_iou: each detection is replaced by the label-free pseudo-box of the detector's own input views
             (:mod:`threedq.box_refinement`: the same view's depth and ground plane) it overlaps most, when that IoU
@@ -217,34 +219,28 @@ class Detector(EncoderStage):
         *,
         freeze_encoder: bool = True,
         anchor_size: tuple[float, float, float] | None = None,
-        channels: int = 32,
-        num_blocks: int = 3,
-        inner_fraction: float = 0.5,
+        channels: PositiveInt = 32,
+        num_blocks: PositiveInt = 3,
+        inner_fraction: UnitFraction = 0.5,
         negative_margin: float = 0.1,
         box_weight: float = 1.0,
-        score_threshold: float = 0.9,
-        eval_score_threshold: float = 0.05,
-        nms_iou: float = 0.1,
-        nms_iomin: float = 0.3,
-        max_detections: int = 16,
-        refine_iou: float = 0.1,
+        score_threshold: ClosedUnitInterval = 0.9,
+        eval_score_threshold: ClosedUnitInterval = 0.05,
+        nms_iou: ClosedUnitInterval = 0.1,
+        nms_iomin: ClosedUnitInterval = 0.3,
+        max_detections: PositiveInt = 16,
+        refine_iou: ClosedUnitInterval = 0.1,
         flat_boxes: bool = True,
         lr: float = 1e-3,
         image_every_n_steps: int = 200,
         min_box_height: float | None = None,
-            **kwargs: Any,
+        **kwargs: Any,
     ) -> None:
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         if anchor_size is not None and (len(anchor_size) != 3 or not all(math.isfinite(a) and a > 0 for a in anchor_size)):
             raise ValueError(f"anchor_size: expected 3 positive sizes (metres) or null, got {anchor_size}")
         if min_box_height is not None and not (math.isfinite(min_box_height) and min_box_height >= 0):
             raise ValueError(f"min_box_height: expected a size >= 0 (metres) or null, got {min_box_height}")
-        for name, v in (("score_threshold", score_threshold), ("eval_score_threshold", eval_score_threshold), ("nms_iou", nms_iou),
-                        ("nms_iomin", nms_iomin), ("refine_iou", refine_iou)):
-            if not 0.0 <= v <= 1.0:
-                raise ValueError(f"{name}: expected in [0, 1], got {v}")
-        if not 0.0 < inner_fraction <= 1.0:
-            raise ValueError(f"inner_fraction: expected in (0, 1], got {inner_fraction}")
         self.save_hyperparameters()
         self.head = DetectorHead(self.feature_dim, channels, num_blocks)
         fg = self.feature_grid

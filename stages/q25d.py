@@ -6,8 +6,8 @@ view (:class:`~threedq.nets.RGBDDecoder2D`; L1 on RGB plus L1 on normalised dept
 by predicting another view, which is what makes it 2.5D. Objects are the regions of their projected
 ground-truth 3D boxes (:func:`~threedq.geometry.project_boxes_2d`) in the feature map, resampled to
 ``crop_size x crop_size`` (:meth:`Q25D.object_crops`). Their 2D prototypes are fitted by the same prototype EM
-as 3DQ-Nets (:func:`~threedq.quantization.prototypes.fit_prototype_bank` on one-slice crops, whose yaw search
-is the in-plane search of :mod:`threedq.quantization.inplane`, 36 angles) — in ``threedq eval --q25d`` on the
+as 3DQ-Nets (:func:`~threedq.quantization.prototypes.fit_prototype_bank` on one-slice crops ``[N, F, 1, s, s]``,
+whose yaw search is an in-plane rotation search, 36 angles) — in ``threedq eval --q25d`` on the
 training split's objects, like the other baselines, and scored there on the test split.
 
 Train: ``threedq fit --config stages/q25d.yaml``; evaluate: ``threedq eval --ckpt <quantizer.ckpt> --q25d

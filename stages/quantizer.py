@@ -1,8 +1,8 @@
 """Rotation-aware quantization into 3D prototypes (paper Sec. 3.2) as a Lightning stage.
 
 With the encoder frozen (loaded from the view-prediction checkpoint), one pass over the training scenes
-collects the object crops (GT boxes for now; detected boxes once the detector stage exists); at the
-last batch of that epoch the prototype bank is initialised incrementally and refined by ``em_iterations``
+collects the object crops (of the DataModule's boxes: GT, pseudo-boxes or detections); at the last batch of that
+epoch the prototype bank is initialised incrementally and refined by ``em_iterations``
 rounds of E-step (best prototype and yaw per object) and closed-form M-step, in memory. Under DDP the
 crops of every process are gathered first, so every process runs the same EM on the same objects.
 Validation and test assign held-out objects to the prototypes and measure Hungarian-matched accuracy,
@@ -15,11 +15,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
+from jsonargparse.typing import NonNegativeInt, PositiveInt
+
+from threedq.argtypes import OccupancyFloor
 from torch import Tensor
 
 from threedq.stages.base import EncoderStage, SplitEvaluation
 from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
-from threedq.geometry import CROP_SHAPES, yaw_angles
+from threedq.geometry import yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
 from threedq.quantization.prototypes import (
     PrototypeBank,
@@ -29,7 +32,8 @@ from threedq.quantization.prototypes import (
     run_prototype_em,
 )
 
-__all__ = ["Quantizer", "bank_crop_shape", "bank_occupancy_floor", "load_bank_state"]
+__all__ = ["Quantizer", "bank_occupancy_floor", "load_bank_state"]
+
 
 
 def load_bank_state(bank: PrototypeBank, path: str) -> None:
@@ -45,8 +49,8 @@ def load_bank_state(bank: PrototypeBank, path: str) -> None:
 
 
 def _saved_floor(hparams: dict[str, Any] | None) -> float | None:
-    """``occupancy_floor`` of a quantizer checkpoint's hyperparameters (None: the plain cosine; so are checkpoints
-    written before the option existed)."""
+    """``occupancy_floor`` of a quantizer checkpoint's hyperparameters (None, or a checkpoint without it: the plain
+    cosine)."""
     floor = (hparams or {}).get("occupancy_floor")
     return None if floor is None else float(floor)
 
@@ -55,23 +59,6 @@ def bank_occupancy_floor(path: str | Path) -> float | None:
     """The ``occupancy_floor`` a quantizer checkpoint's bank was fitted with: the crops that bank scores must be
     weighted the same way."""
     return _saved_floor(checkpoint_hparams(path, missing_ok=True))
-
-
-def _saved_crop_shape(hparams: dict[str, Any] | None) -> str:
-    """``crop_shape`` of a quantizer checkpoint's hyperparameters (``hull`` for checkpoints written before it)."""
-    shape = (hparams or {}).get("crop_shape") or "hull"
-    if shape not in CROP_SHAPES:
-        raise ValueError(f"field 'hyper_parameters.crop_shape': expected one of {CROP_SHAPES}, got {shape!r}")
-    return shape
-
-
-def bank_crop_shape(path: str | Path) -> str:
-    """The ``crop_shape`` a quantizer checkpoint's bank was fitted with: the crops that bank scores must be cut the
-    same way (:func:`threedq.geometry.crop_region`)."""
-    try:
-        return _saved_crop_shape(checkpoint_hparams(path, missing_ok=True))
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") from None
 
 
 class Quantizer(SplitEvaluation, EncoderStage):
@@ -91,9 +78,8 @@ class Quantizer(SplitEvaluation, EncoderStage):
         em_iterations: E/M rounds at the end of each training epoch.
         em_restarts: fits of an empty bank, each from its own initialisation order (seeds ``seed, seed + 1, ...``),
             of which the one with the lowest quantization loss on the training crops is kept (1: the paper's
-            single fit; the default 4 is a departure from it, as k-means keeps the best of several starts; issue
-            #63, docs/studies/mined-pairs.md, "The input's pairs as the default"). A bank warm-started from
-            ``init_bank_ckpt`` is refined once.
+            single fit; more is a departure from it, as k-means keeps the best of several starts;
+            docs/studies/quantizer.md). A bank warm-started from ``init_bank_ckpt`` is refined once.
         search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
         num_classes: categories of the dataset (metrics only; labels are never used for training). The threedq CLI
             links it, and ``symmetry_order``, from the dataset's ``index.json`` (``ThreeDQCLI``'s
@@ -104,18 +90,12 @@ class Quantizer(SplitEvaluation, EncoderStage):
         seed: seed of the incremental-initialisation order and of the few-shot draw.
         init_bank_ckpt: start from the prototype bank of an earlier quantizer checkpoint (the previous EM
             round) instead of an empty one.
-        occupancy_floor: a float in [0, 1) (default 0.2): every voxel of a crop is weighted by this floor plus its
-            input occupancy dilated over 3^3 voxels (:func:`~threedq.quantization.prototypes.prototype_crops`), so
-            the cosine weighs the observed surface over the empty space around it (a departure from the paper;
-            docs/studies/quantizer.md measures both). None: the paper's plain cosine of the whole crop. It is the bank's:
-            self-labelling and ``threedq parse`` read it from this stage's checkpoint, and a checkpoint loaded
-            into this stage brings its own (checkpoints written before the option: None).
-        crop_shape: the region cut around each box (:func:`threedq.geometry.crop_region`) before it is resized to
-            ``crop_size^3``: ``hull`` (the paper's: the box itself, aspect not kept), ``square`` (a horizontal square
-            of the larger horizontal extent: aspect kept in the ground plane) or ``cube`` (a cube of the largest
-            extent: aspect kept; a departure from the paper, docs/studies/quantizer.md measures all three). Like
-            ``occupancy_floor`` it is the bank's: self-labelling, ``threedq parse`` and the evaluation cut crops as
-            the checkpoint says (checkpoints written before the option: ``hull``).
+        occupancy_floor: a float in [0, 1): every voxel of a crop is weighted by this floor plus its input occupancy
+            dilated over 3^3 voxels (:func:`~threedq.quantization.prototypes.prototype_crops`), so the cosine weighs
+            the observed surface over the empty space around it (a departure from the paper;
+            docs/studies/quantizer.md). None: the paper's plain cosine of the whole crop. It is the bank's:
+            self-labelling and ``threedq parse`` read it from this stage's checkpoint, and a checkpoint loaded into
+            this stage brings its own.
 
     Convention: crops in frame R, z up; yaw counter-clockwise seen from above.
     """
@@ -124,29 +104,22 @@ class Quantizer(SplitEvaluation, EncoderStage):
         self,
         *,
         freeze_encoder: bool = True,
-        num_prototypes: int = 50,
-        crop_size: int = 16,
-        num_angles: int = 36,
+        num_prototypes: PositiveInt = 50,
+        crop_size: PositiveInt = 16,
+        num_angles: PositiveInt = 36,
         init_threshold: float = 0.8,
         fill_free_slots: bool = True,
-        em_iterations: int = 10,
-        em_restarts: int = 4,
-        search_method: str = "fast",
+        em_iterations: NonNegativeInt = 10,
+        em_restarts: PositiveInt = 4,
+        search_method: Literal["fast", "exact"] = "fast",
         num_classes: int | None = None,
         symmetry_order: list[int] | None = None,
-        shots: int = 2,
+        shots: PositiveInt = 2,
         seed: int = 0,
         init_bank_ckpt: str | None = None,
-        occupancy_floor: float | None = 0.2,
-        crop_shape: Literal["hull", "square", "cube"] = "hull",
+        occupancy_floor: OccupancyFloor | None = 0.2,
         **kwargs: Any,
     ) -> None:
-        if occupancy_floor is not None and not 0.0 <= occupancy_floor < 1.0:
-            raise ValueError(f"occupancy_floor: expected null or a float in [0, 1), got {occupancy_floor!r}")
-        if crop_shape not in CROP_SHAPES:
-            raise ValueError(f"crop_shape: expected one of {CROP_SHAPES}, got {crop_shape!r}")
-        if isinstance(em_restarts, bool) or not isinstance(em_restarts, int) or em_restarts < 1:
-            raise ValueError(f"em_restarts: expected an int >= 1, got {em_restarts!r}")
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         self.save_hyperparameters()
         self.automatic_optimization = False
@@ -157,10 +130,6 @@ class Quantizer(SplitEvaluation, EncoderStage):
             if fitted != occupancy_floor:
                 raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.occupancy_floor': the bank was fitted with "
                                  f"{fitted}, this stage has occupancy_floor={occupancy_floor}")
-            cut = bank_crop_shape(init_bank_ckpt)
-            if cut != crop_shape:
-                raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.crop_shape': the bank was fitted on "
-                                 f"{cut!r} crops, this stage has crop_shape={crop_shape!r}")
         self._train_crops: list[Tensor] = []
         self._train_keys: list[Tensor] = []
         self.metrics: torch.nn.ModuleDict | None = None
@@ -171,11 +140,9 @@ class Quantizer(SplitEvaluation, EncoderStage):
             self._make_metrics(num_classes, sym)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """The crop weighting and crop shape of the checkpoint's bank (:func:`bank_occupancy_floor`'s rule: a
-        checkpoint written before the options holds a plain bank of hull crops), whatever this stage was built with:
-        the bank is scored as it was fitted."""
+        """The crop weighting of the checkpoint's bank (:func:`bank_occupancy_floor`'s rule), whatever this stage was
+        built with: the bank is scored as it was fitted."""
         self.hparams.occupancy_floor = _saved_floor(checkpoint.get("hyper_parameters"))
-        self.hparams.crop_shape = _saved_crop_shape(checkpoint.get("hyper_parameters"))
 
     def _make_metrics(self, num_classes: int, sym: list[int]) -> None:
         hp = self.hparams
@@ -206,7 +173,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         with torch.no_grad():
-            out = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size, self.hparams.crop_shape)
+            out = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
             crops = prototype_crops(out["features"], out["raw"], self.hparams.occupancy_floor)
         self._train_crops.append(crops.detach())
         self._train_keys.append(out["scene"] * batch["box_mask"].shape[1] + out["slot"])
@@ -270,7 +237,7 @@ class Quantizer(SplitEvaluation, EncoderStage):
     def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:
         if self.bank.num_active == 0:
             return  # sanity check before any training
-        crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size, self.hparams.crop_shape)
+        crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
         if crops["features"].shape[0] == 0:
             return  # no (matched) boxes in this batch, e.g. detections that hit no GT object
         res = self.bank.assign(prototype_crops(crops["features"], crops["raw"], self.hparams.occupancy_floor))

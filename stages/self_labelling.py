@@ -11,24 +11,21 @@ and labelled without annotations:
 * **negative** when its center-surround similarity (:func:`center_surround_similarity`: the mean cosine of the
   crop with its six face-adjacent, equal-size neighbour crops) exceeds ``negative_threshold`` (paper: 0.65): a
   box that looks like its surroundings is not salient (floor, background);
-* neither otherwise (ignored). A box above both thresholds is negative (``positive_wins`` turns this round):
-  on 200 training scenes of the embedded data, 56% of the boxes above the prototype threshold did not match
-  an object at IoU 0.5; the veto leaves 21% (``docs/studies/detector.md``).
+* neither otherwise (ignored). A box above both thresholds is negative: the center-surround score vetoes
+  background that happens to resemble a prototype (``docs/studies/detector.md``).
 
 The detector head (encoder frozen) is then fine-tuned on these labels with the loss confined to the union of
 the positive and negative regions (:func:`self_label_targets`): cells of a positive box are positives as in
 the warm start (:func:`~threedq.stages.detector.detection_targets`), cells inside a negative box are negatives,
-every other cell is ignored. Two measured departures, each a switch (off = the paper): positives must overlap a
-label-free pseudo-box and take its box (``snap_to_proposals``), and the shell around each positive box is negative
-(``surround_negatives``). Three more use the label-free pseudo-boxes beside the detections (measured on data
-unlike ours, where the self-labels alone cost a third of the detector's recall: ``docs/studies/detector.md``):
-``proposal_positives`` (on) keeps every pseudo-box of a pool scene a positive, as in the warm start, so the labels
-the prototypes and the center-surround score add are negatives and the positives they vouch for;
-``spare_proposals`` (on) keeps every cell inside a pseudo-box from being a negative (a negative box or shell
-cutting into an object is ignored there, not taught as background); ``proposal_candidates`` (off) makes the
-pseudo-boxes no detection snaps to candidates too. The labels are registered buffers (``labels``, ``labelled``), so a resumed run
-trains on the same labels; the pool's feature grids are computed once (the encoder is frozen) and every step
-draws ``batch_size`` of them, so a step costs a head pass, not an encoding (the loader's batch is not used).
+every other cell is ignored. Departures from the paper, each a switch (off = the paper; ``docs/studies/detector.md``):
+positives must overlap a label-free pseudo-box and take its box (``snap_to_proposals``); the shell around each
+positive box is negative (``surround_negatives``); every pseudo-box of a pool scene stays a positive, as in the warm
+start, so the labels the prototypes and the center-surround score add are negatives and the positives they vouch for
+(``proposal_positives``); no cell inside a pseudo-box is a negative, so a negative box or shell cutting into an
+object is ignored there, not taught as background (``spare_proposals``). The labels are registered buffers
+(``labels``, ``labelled``), so a resumed run trains on the same labels; the pool's feature grids are computed once
+(the encoder is frozen) and every step draws ``batch_size`` of them, so a step costs a head pass, not an encoding
+(the loader's batch is not used).
 
 Diagnostics (GT boxes used for measuring only): ``self_labels/labels.json`` (counts; the share of positives
 that match a GT object at IoU 0.5 and of negatives that match none at IoU 0.25) and
@@ -44,26 +41,31 @@ import inspect
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
+from jsonargparse.typing import ClosedUnitInterval, NonNegativeFloat, PositiveInt
+
+from threedq.argtypes import Cosine
 from torch import Tensor
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
 from threedq.atomic_io import atomic_write_text
 from threedq.boxes import aabb_iou_3d
-from threedq.geometry import VoxelGridSpec, crop_boxes, crop_region
+from threedq.geometry import VoxelGridSpec, crop_boxes
 from threedq.metrics.detection import assign_detections
 from threedq.quantization.prototypes import PrototypeBank, prototype_crops
 from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
+from threedq.stages.base import builtin_number
 from threedq.stages.detector import Detector, check_same_anchor, detection_targets
-from threedq.stages.quantizer import bank_crop_shape, bank_occupancy_floor, load_bank_state
+from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 from threedq.viz.detection import self_labels_figure
 from threedq.viz.png import write_png
 
 __all__ = ["INHERITED_FROM_DETECTOR", "SelfLabelling", "center_surround_similarity", "load_head_state", "self_label_targets"]
+
 
 #: face-adjacent neighbour directions (x, y, z order), in units of the box's extent
 _FACES = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=torch.float32)
@@ -189,7 +191,7 @@ class SelfLabelling(Detector):
             detections per scene, box refinement) is taken from this checkpoint, so a self-labelled detector decodes
             as the detector it fine-tunes.
         bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (the round's); its crops are
-            cut and weighted as that bank's were (the quantizer's ``crop_shape`` and ``occupancy_floor``).
+            weighted as that bank's were (the quantizer's ``occupancy_floor``).
         positive_threshold: best prototype cosine (over all prototypes and yaws) above which a box is positive
             (paper: 0.8).
         negative_threshold: center-surround similarity above which a box is negative (paper: 0.65).
@@ -200,29 +202,19 @@ class SelfLabelling(Detector):
         search_method: ``"fast"`` or ``"exact"`` rotation search.
         batch_size: pool scenes per training step.
         seed: seed of the pool draw and of the step's scene draws.
-        positive_wins: a box above both thresholds is positive (default: negative; the center-surround score
-            vetoes boxes of background that happen to resemble a prototype, see the module docstring).
         surround_crop_size: crop size of the center-surround score (coarser than ``crop_size``: 7 crops per box).
         snap_to_proposals: when > 0, a positive must overlap a label-free pseudo-box (:mod:`threedq.proposals`,
             the warm start's labels: something standing on the ground plane) at IoU at least this, and takes that
-            box; one that overlaps none is left unlabelled. 0 (the paper): positives keep the detector's own box
-            (0.3: positives on an object 79% -> 95-100%).
+            box; one that overlaps none is left unlabelled. 0 (the paper): positives keep the detector's own box.
         surround_negatives: cells in a shell this many box extents wide around each positive box are negatives
-            (see :func:`self_label_targets`; 0, the paper: only the negative boxes' cells; 0.5: round 4 mAP@0.5
-            0.565 -> 0.746).
-        proposal_candidates: the pool scenes' label-free pseudo-boxes that no detection snaps to (IoU below
-            ``snap_to_proposals``, or 0.5 when that is 0) are candidates too, labelled like the detections (the
-            paper labels detections only).
+            (see :func:`self_label_targets`; 0, the paper: only the negative boxes' cells).
         spare_proposals: no cell inside a label-free pseudo-box is a negative (False, the paper: negative boxes label
             all their cells).
         proposal_positives: every label-free pseudo-box of a pool scene is a positive (the warm start's targets
             kept), beside the positives the prototypes vouch for; the detections then add negatives (False, the paper:
-            only the detections the prototypes vouch for are positives). With ``spare_proposals``, round 1 on the
-            shifted data: test mAP@0.5 0.406 -> 0.511 (the head without fine-tuning: 0.521); on the embedded data
-            0.851 -> 0.854 (docs/studies/detector.md).
+            only the detections the prototypes vouch for are positives).
         freeze_encoder: must stay True (the encoder is the round's, frozen).
-        lr: Adam learning rate of the head (lower than the warm start's: 1e-3 for 300 steps lowered test mAP@0.5
-            0.626 -> 0.554, docs/studies/detector.md).
+        lr: Adam learning rate of the head (lower than the warm start's; docs/studies/detector.md).
         image_every_n_steps: as the detector's (0: no pictures).
         anchor_size, channels, num_blocks, score_threshold, eval_score_threshold, nms_iou, nms_iomin, max_detections,
             refine_iou, flat_boxes: as the :class:`~threedq.stages.detector.Detector`'s; None (the default): the value
@@ -236,20 +228,18 @@ class SelfLabelling(Detector):
         *,
         detector_ckpt: str | None = None,
         bank_ckpt: str | None = None,
-        positive_threshold: float = 0.8,
-        negative_threshold: float = 0.65,
-        candidate_threshold: float = 0.5,
-        pool_scenes: int = 1000,
-        crop_size: int = 16,
-        num_angles: int = 36,
-        search_method: str = "fast",
-        batch_size: int = 8,
+        positive_threshold: Cosine = 0.8,
+        negative_threshold: Cosine = 0.65,
+        candidate_threshold: ClosedUnitInterval = 0.5,
+        pool_scenes: PositiveInt = 1000,
+        crop_size: PositiveInt = 16,
+        num_angles: PositiveInt = 36,
+        search_method: Literal["fast", "exact"] = "fast",
+        batch_size: PositiveInt = 8,
         seed: int = 0,
-        positive_wins: bool = False,
-        surround_crop_size: int = 8,
-        snap_to_proposals: float = 0.3,
-        surround_negatives: float = 0.5,
-        proposal_candidates: bool = False,
+        surround_crop_size: PositiveInt = 8,
+        snap_to_proposals: ClosedUnitInterval = 0.3,
+        surround_negatives: NonNegativeFloat = 0.5,
         spare_proposals: bool = True,
         proposal_positives: bool = True,
         freeze_encoder: bool = True,
@@ -258,12 +248,12 @@ class SelfLabelling(Detector):
         anchor_size: tuple[float, float, float] | None = None,
         channels: int | None = None,
         num_blocks: int | None = None,
-        score_threshold: float | None = None,
-        eval_score_threshold: float | None = None,
-        nms_iou: float | None = None,
-        nms_iomin: float | None = None,
-        max_detections: int | None = None,
-        refine_iou: float | None = None,
+        score_threshold: ClosedUnitInterval | None = None,
+        eval_score_threshold: ClosedUnitInterval | None = None,
+        nms_iou: ClosedUnitInterval | None = None,
+        nms_iomin: ClosedUnitInterval | None = None,
+        max_detections: PositiveInt | None = None,
+        refine_iou: ClosedUnitInterval | None = None,
         flat_boxes: bool | None = None,
         **kwargs: Any,
     ) -> None:
@@ -286,29 +276,20 @@ class SelfLabelling(Detector):
                     kwargs[name] = v
         super().__init__(freeze_encoder=freeze_encoder, lr=lr, image_every_n_steps=image_every_n_steps, **kwargs)
         self._given_decoding = given_decoding
-        for name, v in (("positive_threshold", positive_threshold), ("negative_threshold", negative_threshold)):
-            if not -1.0 <= v <= 1.0:
-                raise ValueError(f"{name}: expected a cosine in [-1, 1], got {v}")
-        if not 0.0 <= candidate_threshold <= 1.0:
-            raise ValueError(f"candidate_threshold: expected in [0, 1], got {candidate_threshold}")
-        if pool_scenes < 1 or batch_size < 1:
-            raise ValueError(f"pool_scenes, batch_size: expected >= 1, got {pool_scenes}, {batch_size}")
         self.save_hyperparameters()
         # save_hyperparameters records the arguments as given (under LightningCLI: the parsed config, where these
         # are null): record what this detector decodes with, or a fit would take a new anchor from its own training
         # boxes and decode the fine-tuned head at another size than it was trained for
         defaults = inspect.signature(Detector.__init__).parameters
-        self.hparams.update({n: kwargs[n] if n in kwargs else defaults[n].default for n in INHERITED_FROM_DETECTOR})
+        self.hparams.update({n: builtin_number(kwargs[n]) if n in kwargs else defaults[n].default
+                             for n in INHERITED_FROM_DETECTOR})
         if detector_ckpt:
             load_head_state(self.head, detector_ckpt, asked_anchor)
         self.bank: PrototypeBank | None = None
         #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`), from its checkpoint
         self.occupancy_floor: float | None = None
-        #: the region the bank's crops are cut from around each box (:func:`~threedq.geometry.crop_region`)
-        self.crop_shape = "hull"
         if bank_ckpt:
             self.occupancy_floor = bank_occupancy_floor(bank_ckpt)
-            self.crop_shape = bank_crop_shape(bank_ckpt)
             num = load_checkpoint(bank_ckpt).prefixed("bank.").get("prototypes")
             if num is None:
                 raise ValueError(f"{bank_ckpt}: field 'state_dict': no 'bank.prototypes' (not a quantizer checkpoint?)")
@@ -338,8 +319,7 @@ class SelfLabelling(Detector):
     @property
     def _uses_proposals(self) -> bool:
         h = self.hparams
-        return (h.snap_to_proposals > 0 or bool(h.proposal_candidates) or bool(h.spare_proposals)
-                or bool(h.proposal_positives))
+        return h.snap_to_proposals > 0 or bool(h.spare_proposals) or bool(h.proposal_positives)
 
     def _pool_dataset(self) -> Any:
         dm = getattr(self.trainer, "datamodule", None)
@@ -407,7 +387,7 @@ class SelfLabelling(Detector):
         """Per scene: label rows ``[L, 7]`` (kind, aabb) and the candidates' measurements (for the diagnostics).
 
         ``proposals``: per scene the label-free pseudo-boxes ``[P, 6]`` that positives snap to (``snap_to_proposals``),
-        that join the candidates (``proposal_candidates``) and whose cells are spared (``spare_proposals``).
+        that are positives (``proposal_positives``) and whose cells are spared (``spare_proposals``).
         ``occupancy``: ``[B, 1, Z, Y, X]`` the input occupancy on the input grid (union over the input views); needed
         when the bank weights its crops by it (:attr:`occupancy_floor`).
         """
@@ -420,16 +400,6 @@ class SelfLabelling(Detector):
         dets = self.detect(logits, box, self.hparams.candidate_threshold)
         props = [None] * len(dets) if proposals is None else [
             torch.as_tensor(p, dtype=grid.dtype, device=grid.device).reshape(-1, 6) for p in proposals]
-        n_det = [d["boxes"].shape[0] for d in dets]
-        if self.hparams.proposal_candidates and proposals is not None:
-            taken_iou = self.hparams.snap_to_proposals or 0.5
-            for d, pr in zip(dets, props):
-                taken = torch.zeros(len(pr), dtype=torch.bool, device=pr.device)
-                if len(pr) and len(d["boxes"]):
-                    best, j = aabb_iou_3d(d["boxes"], pr).max(1)
-                    taken[j[best >= taken_iou]] = True
-                d["boxes"] = torch.cat([d["boxes"], pr[~taken].to(d["boxes"].dtype)])
-                d["scores"] = torch.cat([d["scores"], d["scores"].new_zeros(int((~taken).sum()))])
         counts = [d["boxes"].shape[0] for d in dets]
         proto_all: list[Tensor] = [grid.new_zeros(n) for n in counts]
         cs_all: list[Tensor] = [grid.new_zeros(n) for n in counts]
@@ -441,10 +411,9 @@ class SelfLabelling(Detector):
                 if not counts[b]:
                     continue
                 aabb = d["boxes"].to(grid.dtype)[None]
-                region = crop_region(aabb, self.crop_shape)
-                c = crop_boxes(grid[b : b + 1], region, self.feature_grid, self.hparams.crop_size)[0]
+                c = crop_boxes(grid[b : b + 1], aabb, self.feature_grid, self.hparams.crop_size)[0]
                 if self.occupancy_floor is not None:
-                    occ = crop_boxes(occupancy[b : b + 1], region.to(occupancy.dtype), self.grid,
+                    occ = crop_boxes(occupancy[b : b + 1], aabb.to(occupancy.dtype), self.grid,
                                      self.hparams.crop_size)[0]
                     c = prototype_crops(c, occ, self.occupancy_floor)
                 crops.append(c)
@@ -456,14 +425,10 @@ class SelfLabelling(Detector):
         for b, d in enumerate(dets):
             aabb, n = d["boxes"], counts[b]
             proto, cs = proto_all[b], cs_all[b]
-            # a box both like a prototype and like its surroundings: the center-surround score decides (measured:
-            # docs/studies/detector.md), unless positive_wins
+            # a box both like a prototype and like its surroundings is negative: the center-surround score decides
             neg = cs > self.hparams.negative_threshold  # NaN compares False: never negative
             pos = proto > self.hparams.positive_threshold
-            if self.hparams.positive_wins:
-                neg &= ~pos
-            else:
-                pos &= ~neg
+            pos &= ~neg
             if proposals is not None and self.hparams.snap_to_proposals > 0 and pos.any():
                 pr = props[b].to(aabb.dtype)
                 if len(pr):
@@ -483,25 +448,22 @@ class SelfLabelling(Detector):
             if self.hparams.spare_proposals and proposals is not None and len(props[b]):
                 spare = props[b].to(aabb.dtype)
                 rows = torch.cat([rows, torch.cat([spare.new_full((len(spare), 1), 2.0), spare], dim=1).cpu()])
-            from_prop = torch.arange(n, device=aabb.device) >= n_det[b]
             gt = batch["aabb"][b][batch["box_mask"][b]]
             m50 = assign_detections(aabb, d["scores"], gt, 0.5) >= 0 if n else torch.zeros(0, dtype=torch.bool)
             m25 = assign_detections(aabb, d["scores"], gt, 0.25) >= 0 if n else torch.zeros(0, dtype=torch.bool)
             out.append((rows, {"pos": pos.cpu(), "neg": neg.cpu(), "tp50": m50.cpu(), "tp25": m25.cpu(),
-                               "from_proposal": from_prop.cpu(),
                                "proto": proto.cpu(), "cs": cs.cpu(), "num_gt": torch.tensor(gt.shape[0])}))
         return out
 
     def _diagnostics(self, rows: list[dict[str, Tensor]], seconds: float) -> dict[str, Any]:
         cat = {k: torch.cat([r[k] for r in rows]) if rows else torch.zeros(0)
-               for k in ("pos", "neg", "tp50", "tp25", "from_proposal")}
+               for k in ("pos", "neg", "tp50", "tp25")}
         pos, neg = cat["pos"].bool(), cat["neg"].bool()
         tp50, tp25 = cat["tp50"].bool(), cat["tp25"].bool()
         n_gt = int(sum(int(r["num_gt"]) for r in rows))
         info: dict[str, Any] = {
             "scenes": len(rows),
             "candidates": int(pos.numel()),
-            "candidates_from_proposals": int(cat["from_proposal"].bool().sum()),
             "candidate_threshold": self.hparams.candidate_threshold,
             "positives": int(pos.sum()),
             "negatives": int(neg.sum()),

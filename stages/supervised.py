@@ -53,7 +53,7 @@ class SupervisedCeiling(SplitEvaluation, EncoderStage):
         logit_scale: float = 16.0,
         retrieval_k: int = 10,
         num_angles: int = 36,
-            **kwargs: Any,
+        **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
         if num_classes is not None and num_classes < 2:

@@ -195,6 +195,16 @@ class TestOldClassPaths:
         err = capsys.readouterr().err
         assert "field 'class_path'" in err and "use 'threedq.datamodules." in err
 
+    @pytest.mark.parametrize("old, new", [("tum_rgbd.TumRGBDDataModule", "tum.TumRGBDDataModule"),
+                                          ("kinect_open3d.KinectOpen3dDataModule", "open3d.KinectOpen3dDataModule"),
+                                          ("camera_rig.CameraRigDataModule", "rig.CameraRigDataModule")])
+    def test_renamed_data_modules(self, old: str, new: str, tmp_path: Path, capsys) -> None:
+        cfg = tmp_path / "capture.yaml"
+        cfg.write_text(f"data:\n  class_path: threedq.datamodules.{old}\n")
+        assert main(["fit", "--config", "stages/viewpred.yaml", "--config", str(cfg)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"was renamed; use 'threedq.datamodules.{new}'" in err
+
     def test_new_paths_and_other_values_pass(self) -> None:
         from threedq.pipeline.lightning_cli import check_class_paths, resolve_config_args
 

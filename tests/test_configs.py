@@ -21,7 +21,7 @@ import torch
 import yaml
 
 from threedq.cli import main
-from threedq.pipeline.lightning_cli import ThreeDQCLI, default_data, packaged_configs_dir, resolve_config
+from threedq.pipeline.lightning_cli import ThreeDQCLI, default_data, load_config, packaged_configs_dir
 
 CONFIGS = sorted(str(p.relative_to(packaged_configs_dir())) for p in packaged_configs_dir().glob("*/*.yaml"))
 #: Trainer configs parsed but not run here (a GPU, or several processes).
@@ -34,9 +34,8 @@ NEEDS = {
     "stages/detector_gt.yaml": ("encoder_ckpt",),
     "stages/quantizer.yaml": ("encoder_ckpt",),
     "stages/mining.yaml": ("encoder_ckpt",),
-    "stages/mining_checked.yaml": ("encoder_ckpt", "bank_ckpt"),  # verify_by_prototypes: the bank threedq em passes
-    "stages/mining_colour_jitter.yaml": ("encoder_ckpt",),
     "stages/mining_occupancy_pairs.yaml": ("encoder_ckpt",),
+    "stages/mining_paper.yaml": ("encoder_ckpt",),
     "stages/vc.yaml": ("encoder_ckpt",),
     "stages/vc_moco.yaml": ("encoder_ckpt",),
     "stages/self_labelling.yaml": ("encoder_ckpt", "detector_ckpt", "bank_ckpt"),
@@ -45,7 +44,8 @@ TINY_GRID = "--model.init_args.grid_resolution=[32, 32, 16]"
 
 
 def _load(config: str) -> dict:
-    return yaml.safe_load(resolve_config(config).read_text())
+    """The config as it runs: its bases' keys with its own on top."""
+    return load_config(config)
 
 
 def _data_args(data_dir: Path) -> list[str]:

@@ -149,53 +149,18 @@ class TestInputWithCache:
         assert len(stage.crop_cache) == 0
 
 
-class TestEncoderInputAblations:
-    """``encoder_input``: what of the unprojected views the encoder sees (the shape study's input ablations)."""
+class TestEncoderInput:
+    """``encoder_input``: the paper's ``cat[occ, occ * rgb]`` of the unprojected views."""
 
-    def _views(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
-        return tuple(batch[k][:, 0] for k in ("rgb", "depth", "K", "R_T_cam"))
-
-    def test_each_kind_against_the_papers_input(self, batch: dict[str, torch.Tensor]) -> None:
+    def test_against_independent_references(self, batch: dict[str, torch.Tensor]) -> None:
         from threedq.geometry import occupancy_from_depth, unproject_rgb
 
-        rgb, depth, K, pose = self._views(batch)
-        paper = EncoderStage(grid_resolution=(32, 32, 16), feature_dim=8)
-        x, seen = paper.encoder_input(rgb, depth, K, pose)
-        occ = occupancy_from_depth(depth, K, pose, paper.grid)  # independent references
-        ray_rgb = unproject_rgb(rgb, K, pose, paper.grid)
+        rgb, depth, K, pose = (batch[k][:, 0] for k in ("rgb", "depth", "K", "R_T_cam"))
+        stage = EncoderStage(grid_resolution=(32, 32, 16), feature_dim=8)
+        x, _ = stage.encoder_input(rgb, depth, K, pose)
+        occ = occupancy_from_depth(depth, K, pose, stage.grid)
+        ray_rgb = unproject_rgb(rgb, K, pose, stage.grid)
         assert torch.equal(x, torch.cat([occ, occ * ray_rgb], dim=1)) and occ.sum() > 0
-        xo, seen_o = EncoderStage(grid_resolution=(32, 32, 16), feature_dim=8, encoder_input="occupancy").encoder_input(
-            rgb, depth, K, pose)
-        assert torch.equal(xo[:, :1], occ) and not xo[:, 1:].any() and torch.equal(seen_o, seen)
-        xc, seen_c = EncoderStage(grid_resolution=(32, 32, 16), feature_dim=8, encoder_input="colour").encoder_input(
-            rgb, depth, K, pose)
-        assert not xc[:, :1].any() and torch.equal(seen_c, seen)
-        torch.testing.assert_close(xc[:, 1:], seen * ray_rgb)
-        # colour along the whole ray: far more voxels than the surface, and the surface's colour where it lies
-        assert (xc[:, 1:].amax(1) > 0).sum() > 5 * (occ * ray_rgb).amax(1).gt(0).sum()
-        surface = occ.bool().expand_as(xc[:, 1:]) & seen.bool().expand_as(xc[:, 1:])
-        torch.testing.assert_close(xc[:, 1:][surface], x[:, 1:][surface])
-
-    def test_the_kind_travels_with_the_encoder(self, tmp_path: Path) -> None:
-        from threedq.stages.quantizer import Quantizer
-
-        src = EncoderStage(grid_resolution=(32, 32, 16), feature_dim=8, encoder_input="occupancy")
-        ckpt = tmp_path / "enc.ckpt"
-        torch.save({"state_dict": src.state_dict(), "hyper_parameters": {**src.grid_fields}}, ckpt)
-        q = Quantizer(encoder_ckpt=str(ckpt), num_prototypes=2, crop_size=8)
-        assert q.encoder_input_kind == "occupancy" and q.hparams["encoder_input"] == "occupancy"
-        assert q.crop_cache_prefix() != _stage().crop_cache_prefix()  # cached inputs of another kind never reused
-        with pytest.raises(ValueError, match="field 'encoder_input': the encoder was trained with "
-                                             "encoder_input=occupancy"):
-            EncoderStage(encoder_ckpt=str(ckpt), encoder_input="colour")
-        obj = torch.load(ckpt, weights_only=True)
-        del obj["hyper_parameters"]["encoder_input"]  # a checkpoint from before the setting: the paper's input
-        torch.save(obj, ckpt)
-        assert EncoderStage(encoder_ckpt=str(ckpt)).encoder_input_kind == "occupancy_colour"
-
-    def test_exception(self) -> None:
-        with pytest.raises(ValueError, match="encoder_input: expected one of"):
-            EncoderStage(grid_resolution=(32, 32, 16), feature_dim=8, encoder_input="depth")
 
 
 class TestSampleKey:

@@ -84,3 +84,18 @@ class TestEmSeeds:
         assert "| 1 | x | 1 | 0.350 | 0.410 |" in capsys.readouterr().out
         with pytest.raises(SystemExit, match="expected NAME=DIR"):
             em_seeds.main(["--arm", "nodirs="])
+
+    def test_kept_rows(self, tmp_path, capsys):
+        # a results folder's rows.jsonl: one row per run, each metric a list over its rounds
+        rows = [{"run": f"metrics_x_seed{s}.json", "arm": "x", "data": "embedded", "seed": s, "rounds": [0, 1],
+                 "precision_at_10": [0.30, 0.35 + s / 100], "precision_at_10_paper": [0.4, 0.41],
+                 "hungarian_acc": [0.4, 0.5], "mining_seconds": [None, 100.0]} for s in (0, 1)]
+        path = tmp_path / "rows.jsonl"
+        path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        run = em_seeds.read_run(f"{path}#metrics_x_seed1.json")
+        assert run[1]["precision_at_10"] == 0.36 and run[1]["mining_seconds"] == 100.0
+        assert run[0]["fewshot_acc"] is None  # a metric the row does not keep
+        with pytest.raises(SystemExit, match="no row of run"):
+            em_seeds.read_run(f"{path}#metrics_absent.json")
+        em_seeds.main(["--rows", str(path)])
+        assert "| 1 | embedded: x | 2 | 0.355 (0.010) | 0.410 (0.000) |" in capsys.readouterr().out

@@ -17,14 +17,14 @@ from capture_writers import (
 )
 from scipy.spatial.transform import Rotation
 from threedq.datamodules.bigbird import BigBirdDataModule
-from threedq.datamodules.camera_rig import CameraRigDataModule
+from threedq.datamodules.rig import CameraRigDataModule
 from threedq.datamodules.capture_folder import CaptureDataModule
-from threedq.datamodules.kinect_open3d import KinectOpen3dDataModule
+from threedq.datamodules.open3d import KinectOpen3dDataModule
 from threedq.datamodules.nerfstudio import NerfstudioDataModule
 from threedq.datamodules.replica import ReplicaDataModule
 from threedq.datamodules.scannet import ScanNetDataModule
 from threedq.datamodules.scene_folder import SceneFolderDataModule
-from threedq.datamodules.tum_rgbd import TumRGBDDataModule
+from threedq.datamodules.tum import TumRGBDDataModule
 
 from threedq.cli import main
 from threedq.data.folder_index import index_folder
@@ -116,7 +116,7 @@ class TestNormalise:
             write_tum(src, turntable, capture_T_world=c_T_w)
             options = {"intrinsics": (K[0, 0], K[1, 1], K[0, 2], K[1, 2])}
         write_objects(src, turntable, c_T_w)
-        summary = import_captures(fmt, src, tmp_path / "out", parser_options=options, progress=False)
+        summary = import_captures(fmt, src, tmp_path / "out", reader_options=options, progress=False)
         assert summary.scenes == [("train/desk.npz", 6, 6)] and not summary.skipped
         rec = load_scene(tmp_path / "out" / "train" / "desk.npz")
         n_T_c = np.asarray(rec.meta["canonical_T_capture"])
@@ -195,7 +195,7 @@ class TestImport:
             import_captures("replica", tmp_path, tmp_path / "out", progress=False)
         with pytest.raises(ValueError, match="'max_dt' does not apply to format 'replica'"):
             write_replica(tmp_path / "room0", turntable)
-            import_captures("replica", tmp_path / "room0", tmp_path / "out", parser_options={"max_dt": 0.1})
+            import_captures("replica", tmp_path / "room0", tmp_path / "out", reader_options={"max_dt": 0.1})
         assert (
             main(
                 [

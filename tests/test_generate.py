@@ -23,6 +23,7 @@ from threedq.data.catalog import (
     CLEVR_COLORS,
     HELD_OUT_CATEGORIES,
     HELD_OUT_NAMES,
+    PRIMITIVE_SOURCES,
     RANDOM_COLOR_PALETTE,
     SHAPE_ONLY_NAMES,
     category_by_name,
@@ -62,7 +63,7 @@ def test_catalogue():
     assert {orders[f"sphere_{c}"] for c, _ in CLEVR_COLORS} == {orders[f"cylinder_{c}"] for c, _ in CLEVR_COLORS} == {0}
     assert orders["cracker_box"] == orders["lego_duplo"] == orders["potted_meat_can"] == 2
     assert orders["apple"] == 0 and orders["banana"] == orders["mug"] == orders["power_drill"] == 1
-    ycb = [c for c in CATEGORIES if not c.is_primitive]
+    ycb = [c for c in CATEGORIES if c.source not in PRIMITIVE_SOURCES]
     assert len(ycb) == 17 and sum(c.symmetry_order == 1 for c in ycb) >= 12  # mostly asymmetric
     colours = np.array([c.color for c in ycb])
     dists = np.linalg.norm(colours[:, None] - colours[None], axis=-1) + np.eye(17)

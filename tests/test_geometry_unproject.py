@@ -12,7 +12,6 @@ from threedq.geometry import (
     free_space_from_depth,
     occupancy_from_depth,
     unproject_rgb,
-    unproject_rgbd,
     unproject_rgbd_occupied,
     yaw_matrix,
 )
@@ -315,49 +314,11 @@ class TestFreeSpaceFromDepth:
         torch.testing.assert_close(free, free_space_from_depth(depth, K, R_T_cam, grid))
 
 
-class TestUnprojectRgbd:
-    def test_smoke(self) -> None:
-        depth, K, R_T_cam, grid = plane_scene()
-        out = unproject_rgbd(torch.rand(1, 3, 64, 64), depth, K, R_T_cam, grid)
-        assert out.shape == (1, 4, 8, 8, 8)
-
-    def test_exception(self) -> None:
-        depth, K, R_T_cam, grid = plane_scene()
-        with pytest.raises(ValueError, match=r"rgb must have shape \[B, 3, H, W\]"):
-            unproject_rgbd(torch.rand(1, 1, 64, 64), depth, K, R_T_cam, grid)
-        with pytest.raises(ValueError, match="depth must have shape"):
-            unproject_rgbd(torch.rand(1, 3, 64, 64), depth[:, :32], K, R_T_cam, grid)
-
-    @pytest.mark.parametrize("batch", [1, 2])
-    def test_cardinality(self, batch: int) -> None:
-        depth, K, R_T_cam, grid = plane_scene()
-        out = unproject_rgbd(
-            torch.rand(batch, 3, 64, 64, dtype=torch.float64),
-            depth.expand(batch, -1, -1),
-            K.expand(batch, -1, -1),
-            R_T_cam.expand(batch, -1, -1),
-            grid,
-        )
-        assert out.shape == (batch, 4, 8, 8, 8) and out.dtype == torch.float64
-
-    def test_feature(self) -> None:
-        torch.manual_seed(3)
-        depth, K, R_T_cam, grid = plane_scene()
-        rgb = torch.rand(1, 3, 64, 64)
-        out = unproject_rgbd(rgb, depth, K, R_T_cam, grid)
-        occ = occupancy_from_depth(depth, K, R_T_cam, grid)
-        torch.testing.assert_close(out[:, :1], occ)
-        torch.testing.assert_close(out[:, 1:], occ * unproject_rgb(rgb, K, R_T_cam, grid))
-        assert (out[:, 1:, 4] > 0).any() and (out[:, 1:, :4] == 0).all()
-
-    def test_gradcheck(self) -> None:
-        torch.manual_seed(6)
-        depth, K, R_T_cam, grid = plane_scene()
-        depth, K = depth[:, :8, :8].double(), intrinsics(3.0, 3.5, 3.5, dtype=torch.float64)
-        rgb = torch.rand(1, 3, 8, 8, dtype=torch.float64, requires_grad=True)
-        small = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (4, 4, 4))
-        fn = lambda x: unproject_rgbd(x, depth, K, R_T_cam.double(), small)  # noqa: E731
-        assert torch.autograd.gradcheck(fn, (rgb,))
+def dense_rgbd(rgb: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, R_T_cam: torch.Tensor,
+               grid: VoxelGridSpec) -> torch.Tensor:
+    """``cat[occ, occ * unproject_rgb(rgb)]`` over the whole grid: the reference of the sparse gather."""
+    occ = occupancy_from_depth(depth.to(rgb.dtype), K, R_T_cam, grid)
+    return torch.cat((occ, occ * unproject_rgb(rgb, K, R_T_cam, grid)), dim=1)
 
 
 class TestUnprojectRgbdOccupied:
@@ -377,7 +338,7 @@ class TestUnprojectRgbdOccupied:
         depth = torch.stack([depth[0], depth[0] * 0.9]).to(dtype)
         depth[1, :10] = 0  # invalid pixels
         args = (rgb, depth, K.expand(B, -1, -1).to(dtype), R_T_cam.expand(B, -1, -1).to(dtype), grid)
-        dense, sparse = unproject_rgbd(*args), unproject_rgbd_occupied(*args)
+        dense, sparse = dense_rgbd(*args), unproject_rgbd_occupied(*args)
         assert sparse.shape == dense.shape and sparse.dtype == dense.dtype
         assert (dense[:, 0] > 0).sum() > 10
         torch.testing.assert_close(sparse, dense, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)

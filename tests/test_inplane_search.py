@@ -1,7 +1,9 @@
-"""2.5DQ-Nets' in-plane rotation search (threedq.quantization.inplane) and 2D prototype banks.
+"""2.5DQ-Nets' in-plane rotation search and 2D prototype banks: the yaw search of one-slice volumes.
 
-References are independent of the code under test: a float64 numpy rotate-and-compare loop (its own bilinear
-sampler), exact quarter turns (``torch.rot90``) and rotated copies with known angles.
+A 2D crop ``[C, H, W]`` (row y down) is the one-slice volume ``[C, 1, H, W]``, whose yaw is an in-plane rotation,
+clockwise as displayed (content at +x moves towards +y). References are independent of the code under test: a
+float64 numpy rotate-and-compare loop (its own bilinear sampler), exact quarter turns (``torch.rot90``) and rotated
+copies with known angles.
 """
 
 from __future__ import annotations
@@ -12,12 +14,24 @@ import numpy as np
 import pytest
 import torch
 
+from threedq.geometry.rotate import rotate_yaw
 from threedq.metrics import cluster_confusion, hungarian_accuracy
-from threedq.quantization.inplane import all_pairs_inplane_max, best_prototype_and_angle, rotate_inplane
 from threedq.quantization.prototypes import PrototypeBank, fit_prototype_bank
+from threedq.quantization.rotation_search import all_pairs_rotation_max, best_prototype_and_yaw
 
 A = 36
 METHODS = ("exact", "fast")
+
+
+def best_prototype_and_angle(objects: torch.Tensor, prototypes: torch.Tensor, num_angles: int = A,
+                             method: str = "fast"):
+    """The in-plane search of ``[N, C, H, W]`` crops: the yaw search of their one-slice volumes."""
+    return best_prototype_and_yaw(objects.unsqueeze(2), prototypes.unsqueeze(2), num_angles, method)
+
+
+def rotate_inplane(images: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """``[N, C, H, W]`` crops turned in the image plane: the yaw of their one-slice volumes."""
+    return rotate_yaw(images.unsqueeze(2), angle).squeeze(-3)
 
 
 def blobs2d(n: int, channels: int = 4, size: int = 16, gaussians: int = 4, seed: int = 0) -> torch.Tensor:
@@ -79,22 +93,16 @@ class TestInplaneSearch:
         assert res.prototype.shape == res.angle.shape == res.score.shape == (n,)
         assert res.scores.shape == (n, k, a)
         assert int(res.angle.max()) < a and int(res.prototype.max()) < k
-        sim, ang = all_pairs_inplane_max(blobs2d(n), blobs2d(k, seed=1), a, method)
+        sim, ang = all_pairs_rotation_max(blobs2d(n).unsqueeze(2), blobs2d(k, seed=1).unsqueeze(2), a, method)
         assert sim.shape == ang.shape == (n, k)
 
     def test_exception(self) -> None:
-        with pytest.raises(ValueError, match=r"objects must have shape \[N, C, H, W\]"):
-            best_prototype_and_angle(torch.rand(2, 4, 1, 8, 8), torch.rand(3, 4, 8, 8))
         with pytest.raises(ValueError, match="prototypes must be a floating-point"):
             best_prototype_and_angle(torch.rand(2, 4, 8, 8), torch.ones(3, 4, 8, 8, dtype=torch.long))
         with pytest.raises(ValueError, match="one shape"):
             best_prototype_and_angle(torch.rand(2, 4, 8, 8), torch.rand(3, 4, 6, 6))
         with pytest.raises(ValueError, match="method"):
             best_prototype_and_angle(torch.rand(2, 4, 8, 8), torch.rand(3, 4, 8, 8), method="slow")
-        with pytest.raises(ValueError, match="gallery must have shape"):
-            all_pairs_inplane_max(torch.rand(2, 4, 8, 8), torch.rand(3, 8, 8))
-        with pytest.raises(ValueError, match="images must have shape"):
-            rotate_inplane(torch.rand(4, 8, 8), torch.zeros(4))
 
     @pytest.mark.parametrize("method", METHODS)
     def test_quarter_turn_recovered(self, method: str) -> None:

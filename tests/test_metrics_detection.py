@@ -416,7 +416,7 @@ class TestDetectionMAP:
 
     def test_states_are_cat_and_sum(self) -> None:
         metric = DetectionMAP()
-        for name in ("det_scores", "det_tp", "det_labels", "gt_labels"):
+        for name in ("det_scores", "det_tp"):
             assert metric._reductions[name].__name__ == "dim_zero_cat"
         assert metric._reductions["num_gt"].__name__ == "dim_zero_sum"
         assert metric.full_state_update is False
@@ -429,26 +429,6 @@ class TestDetectionMAP:
         metric.update([_frame(torch.tensor([UNIT]), [0.9])], [{"boxes": torch.tensor([UNIT])}])
         metric.reset()
         assert metric.num_gt.item() == 0 and metric.det_scores == []
-
-    def test_class_aware(self) -> None:
-        far = [5.0, 5, 5, 6, 6, 6]
-        preds = [{"boxes": torch.tensor([UNIT, far, far]), "scores": torch.tensor([0.9, 0.8, 0.7]),
-                  "labels": torch.tensor([1, 0, 2])}]
-        targets = [{"boxes": torch.tensor([UNIT, far]), "labels": torch.tensor([0, 0])}]
-        agnostic = DetectionMAP(iou_thresholds=(0.5,))
-        agnostic.update(preds, targets)
-        # Labels ignored: TP TP FP -> AP 1.
-        assert agnostic.compute()["map_50"].item() == pytest.approx(1.0)
-        aware = DetectionMAP(iou_thresholds=(0.5,), class_aware=True)
-        aware.update(preds, targets)
-        # Class 0 (the only GT class): its single detection (far, 0.8) finds 1 of 2 GT -> AP 1/2; class 1 and 2
-        # have no GT and do not enter the mean.
-        assert aware.compute()["map_50"].item() == pytest.approx(0.5)
-        # Two GT classes: mean over both.
-        targets2 = [{"boxes": torch.tensor([UNIT, far]), "labels": torch.tensor([1, 0])}]
-        aware2 = DetectionMAP(iou_thresholds=(0.5,), class_aware=True)
-        aware2.update(preds, targets2)
-        assert aware2.compute()["map_50"].item() == pytest.approx(1.0)
 
     def test_exception(self) -> None:
         with pytest.raises(ValueError, match="iou_thresholds"):
@@ -469,6 +449,4 @@ class TestDetectionMAP:
             metric.update([_frame(torch.tensor([UNIT]), [0.9, 0.1])], [{"boxes": torch.tensor([UNIT])}])
         with pytest.raises(TypeError, match="list of dicts"):
             metric.update(good, [{"boxes": torch.tensor([UNIT])}])  # type: ignore[arg-type]
-        with pytest.raises(ValueError, match=r"targets\[0\] lacks the key 'labels'"):
-            DetectionMAP(class_aware=True).update([{**good, "labels": torch.tensor([0])}], [{"boxes": torch.tensor([UNIT])}])
         assert metric.det_scores == [] and metric.num_gt.item() == 0  # bad batches left no trace

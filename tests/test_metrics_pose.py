@@ -64,9 +64,6 @@ class TestRelativeYawErrors:
         assert relative_yaw_errors(right, gt, _zeros(3), _zeros(3), [1]).abs().max().item() < 1e-12
         # Pairs (0,1), (0,2), (1,2): the wrong sign doubles each relative yaw: 60, 200 -> 160, 140 deg.
         assert _deg(relative_yaw_errors(wrong, gt, _zeros(3), _zeros(3), [1])) == [60.0, 140.0, 160.0]
-        # The "orientation" convention is the mirror image.
-        assert relative_yaw_errors(wrong, gt, _zeros(3), _zeros(3), [1], convention="orientation").max() < 1e-12
-        assert relative_yaw_errors(right, gt, _zeros(3), _zeros(3), [1], convention="orientation").max() > 1.0
 
     def test_sign_convention_with_rotate_yaw(self) -> None:
         """Objects are rotated copies of one shape; their alignment yaw comes from the real matcher."""
@@ -103,22 +100,6 @@ class TestRelativeYawErrors:
         errors = relative_yaw_errors(est, gt, cats, _zeros(n), [1, 2])
         assert _deg(errors) == [30.0]  # only the order-1 pair
 
-    def test_modulo_four_fold(self) -> None:
-        gt = _rad([0.0, 20.0, 50.0])
-        est = -gt + _rad([0.0, 95.0, -183.0])  # 90 deg steps of a 4-fold shape are no error
-        errors = relative_yaw_errors(est, gt, _zeros(3), _zeros(3), [4], mode="modulo")
-        # Pair errors mod 90 deg: 95 -> 5, -183 -> 3, 95 + 183 = 278 -> 8.
-        assert _deg(errors) == [3.0, 5.0, 8.0]
-        assert relative_yaw_errors(est, gt, _zeros(3), _zeros(3), [4]).numel() == 0  # excluded by default
-        assert _deg(relative_yaw_errors(est, gt, _zeros(3), _zeros(3), [1], mode="modulo")) == [82.0, 95.0, 177.0]
-
-    def test_modulo_two_fold_and_continuous(self) -> None:
-        gt = _rad([0.0, 0.0, 0.0, 0.0])
-        est = _rad([0.0, 187.0, 0.0, 187.0])
-        cats = torch.tensor([0, 0, 1, 1])
-        errors = relative_yaw_errors(est, gt, cats, _zeros(4), [2, 0], mode="modulo")
-        assert _deg(errors) == [7.0]  # category 1 (continuous) is always excluded
-
     def test_cap_is_deterministic_and_order_independent(self) -> None:
         g = torch.Generator().manual_seed(3)
         gt = torch.rand(200, generator=g, dtype=torch.float64) * 6
@@ -146,10 +127,6 @@ class TestRelativeYawErrors:
             relative_yaw_errors(torch.tensor([0.0, float("nan"), 0.0]), x, i, i, [1])
         with pytest.raises(ValueError, match="integer"):
             relative_yaw_errors(x, x, x, i, [1])
-        with pytest.raises(ValueError, match="mode"):
-            relative_yaw_errors(x, x, i, i, [1], mode="ignore")  # type: ignore[arg-type]
-        with pytest.raises(ValueError, match="convention"):
-            relative_yaw_errors(x, x, i, i, [1], convention="world")  # type: ignore[arg-type]
         with pytest.raises(ValueError, match="symmetry_order"):
             relative_yaw_errors(x, x, i, i, [-1])
 
@@ -166,11 +143,11 @@ class TestRelativeYawErrorMetric:
 
     def test_equals_functional(self) -> None:
         est, gt, cats, clusters = self._case()
-        metric = RelativeYawError(symmetry_order=[1, 4, 0], mode="modulo")
+        metric = RelativeYawError(symmetry_order=[1, 4, 0])
         for s in range(0, 40, 9):
             metric.update(est[s : s + 9], gt[s : s + 9], cats[s : s + 9], clusters[s : s + 9])
         out = metric.compute()
-        expected = relative_yaw_error(est, gt, cats, clusters, [1, 4, 0], mode="modulo")
+        expected = relative_yaw_error(est, gt, cats, clusters, [1, 4, 0])
         assert out.keys() == expected.keys() == {"median_deg", "acc_10", "acc_20", "num_pairs"}
         for key in out:
             assert torch.equal(out[key], expected[key])
@@ -201,17 +178,14 @@ class TestRelativeYawErrorMetric:
     def test_thresholds(self) -> None:
         gt = _rad([0.0, 0.0, 0.0])
         est = _rad([0.0, 10.0, 25.0])
-        metric = RelativeYawError([1], thresholds_deg=(5.0, 10.0, 30.0))
+        metric = RelativeYawError([1])
         metric.update(est, gt, _zeros(3), _zeros(3))
         out = metric.compute()  # errors 10, 25, 15
-        assert out["acc_5"].item() == 0.0
         assert out["acc_10"].item() == pytest.approx(1 / 3)  # inclusive: exactly 10 deg counts
-        assert out["acc_30"].item() == 1.0
+        assert out["acc_20"].item() == pytest.approx(2 / 3)
         assert out["median_deg"].item() == pytest.approx(15.0)
 
     def test_exception(self) -> None:
-        with pytest.raises(ValueError, match="mode"):
-            RelativeYawError([1], mode="all")  # type: ignore[arg-type]
         with pytest.raises(ValueError, match="max_pairs_per_group"):
             RelativeYawError([1], max_pairs_per_group=0)
         metric = RelativeYawError([1, 2])

@@ -1,4 +1,4 @@
-"""Tests for threedq.contrastive.mining: retrieval, patch matching, verification and the correspondence miner."""
+"""Tests for threedq.contrastive.miner: retrieval, patch matching, verification and the correspondence miner."""
 
 from __future__ import annotations
 
@@ -11,10 +11,8 @@ import torch.nn.functional as F
 from threedq.contrastive import (
     calibrate_context_cosine,
     context_offsets,
-    csls_scores,
     match_patch,
     mine_correspondences,
-    mutual_neighbours,
     patch_grid,
     retrieve_targets,
     rotate_patch_positions,
@@ -194,143 +192,6 @@ class TestRetrieveTargets:
             retrieve_targets(q, t, top_k=0)
         with pytest.raises(ValueError, match=r"query_crops must have shape \[N, C, Z, Y, X\]"):
             retrieve_targets(q[0], t)
-
-
-class TestCslsScores:
-    """Cross-domain similarity local scaling (Conneau et al. 2018) of a query x target similarity matrix."""
-
-    @staticmethod
-    def naive(sim: torch.Tensor, k: int) -> torch.Tensor:
-        """Loops in float64: each row's and column's mean over its k highest finite entries."""
-        n, m = sim.shape
-        s = sim.double()
-
-        def mean_top(values: list[float]) -> float:
-            finite = sorted((v for v in values if math.isfinite(v)), reverse=True)[:k]
-            return sum(finite) / len(finite) if finite else 0.0
-
-        r_q = [mean_top([s[q, t].item() for t in range(m)]) for q in range(n)]
-        r_t = [mean_top([s[q, t].item() for q in range(n)]) for t in range(m)]
-        out = torch.empty(n, m, dtype=torch.float64)
-        for q in range(n):
-            for t in range(m):
-                out[q, t] = 2 * s[q, t] - r_q[q] - r_t[t]
-        return out
-
-    @pytest.mark.parametrize("k", [1, 3, 10])
-    def test_against_naive_loops(self, k: int) -> None:
-        g = torch.Generator().manual_seed(0)
-        sim = torch.rand(5, 7, generator=g, dtype=torch.float64) * 2 - 1
-        sim[1, 3] = sim[4, 0] = float("-inf")  # excluded pairs: left out of the means, kept -inf
-        out = csls_scores(sim, k)
-        ref = self.naive(sim, k)
-        assert out[1, 3] == out[4, 0] == float("-inf")
-        finite = torch.isfinite(ref)
-        torch.testing.assert_close(out[finite], ref[finite], rtol=0, atol=1e-12)
-
-    def test_hand_computed(self) -> None:
-        # target 1 is a hub (close to every query); query 0's own match is target 0
-        sim = torch.tensor([[0.8, 0.9], [0.1, 0.88], [0.2, 0.87]], dtype=torch.float64)
-        # k = 2: r_q = (0.85, 0.49, 0.535), r_t = (0.5, 0.89)
-        expected = torch.tensor([[1.6 - 0.85 - 0.5, 1.8 - 0.85 - 0.89],
-                                 [0.2 - 0.49 - 0.5, 1.76 - 0.49 - 0.89],
-                                 [0.4 - 0.535 - 0.5, 1.74 - 0.535 - 0.89]], dtype=torch.float64)
-        torch.testing.assert_close(csls_scores(sim, 2), expected, rtol=0, atol=1e-12)
-        assert csls_scores(sim, 2)[0].argmax() == 0 and sim[0].argmax() == 1  # the hub loses query 0
-
-    def test_a_row_with_nothing_admissible(self) -> None:
-        sim = torch.tensor([[float("-inf"), float("-inf")], [0.5, 0.2]])
-        out = csls_scores(sim, 2)
-        assert torch.isinf(out[0]).all() and torch.isfinite(out[1]).all()
-
-    def test_exception(self) -> None:
-        with pytest.raises(ValueError, match="k"):
-            csls_scores(torch.zeros(2, 2), 0)
-
-    def test_retrieval_ranks_by_csls_of_the_full_matrix(self) -> None:
-        """``retrieve_targets(csls_k=k)``: the top targets and scores of CSLS over the whole rotation-max matrix (the
-        means see every target, not only the top ones), exclusions kept out; the planted target still first."""
-        from threedq.quantization.rotation_search import all_pairs_rotation_max
-
-        queries, targets, _ = planted(90)
-        targets = torch.cat([targets, F.normalize(queries.mean(dim=0, keepdim=True), dim=1)])  # a hub: target 4
-        exclude = torch.zeros(3, 5, dtype=torch.bool)
-        exclude[1, 3] = True
-        idx, sim, angle = retrieve_targets(queries, targets, top_k=3, exclude=exclude, csls_k=2)
-        full, full_angle = all_pairs_rotation_max(queries, targets, A, "fast")
-        ref = csls_scores(full.masked_fill(exclude, float("-inf")), 2)
-        torch.testing.assert_close(sim, ref.topk(3, dim=1).values)
-        assert torch.equal(idx, ref.topk(3, dim=1).indices) and torch.equal(angle, full_angle.gather(1, idx))
-        assert idx[0, 0] == 2 and 3 not in idx[1].tolist()
-        with pytest.raises(ValueError, match="csls_k"):
-            retrieve_targets(queries, targets, csls_k=0)
-
-
-class TestMutualNeighbours:
-    """Mutual k-nearest neighbours of a query x target similarity matrix."""
-
-    @staticmethod
-    def naive(sim: torch.Tensor, k: int) -> torch.Tensor:
-        """Loops: t is among q's k best (by rank, ties at the k-th value included) and q among t's, both finite."""
-        n, m = sim.shape
-        out = torch.zeros(n, m, dtype=torch.bool)
-        for q in range(n):
-            for t in range(m):
-                v = sim[q, t].item()
-                if not math.isfinite(v):
-                    continue
-                better_t = sum(1 for u in range(m) if sim[q, u].item() > v)  # targets strictly ahead for q
-                better_q = sum(1 for p in range(n) if sim[p, t].item() > v)  # queries strictly ahead for t
-                out[q, t] = better_t < k and better_q < k
-        return out
-
-    @pytest.mark.parametrize("k", [1, 2, 4, 10])
-    def test_against_naive_loops(self, k: int) -> None:
-        g = torch.Generator().manual_seed(1)
-        sim = torch.rand(6, 9, generator=g, dtype=torch.float64) * 2 - 1
-        sim[0, 2] = sim[5, 8] = float("-inf")
-        sim[3, 4] = sim[3, 5]  # a tie in a row
-        assert torch.equal(mutual_neighbours(sim, k), self.naive(sim, k))
-
-    def test_hand_computed(self) -> None:
-        # target 2 is close to nothing: no query's best, and its own best query (0) has a better target (0)
-        sim = torch.tensor([[0.9, 0.2, 0.30],
-                            [0.1, 0.8, 0.25],
-                            [0.3, 0.7, 0.10]])
-        assert mutual_neighbours(sim, 1).tolist() == [[True, False, False], [False, True, False], [False, False, False]]
-        sim[1, 2] = 0.35  # now query 1's second target and target 2's best query: mutual at k = 2, not at k = 1
-        assert not mutual_neighbours(sim, 1)[1, 2] and mutual_neighbours(sim, 2)[1, 2]
-
-    def test_excluded_and_empty(self) -> None:
-        sim = torch.tensor([[float("-inf"), 0.5], [0.4, float("-inf")]])
-        assert mutual_neighbours(sim, 1).tolist() == [[False, True], [True, False]]
-        assert mutual_neighbours(torch.zeros(0, 3), 2).shape == (0, 3)
-        with pytest.raises(ValueError, match="k"):
-            mutual_neighbours(sim, 0)
-
-    @pytest.mark.parametrize("csls_k", [None, 2])
-    def test_retrieval_admits_only_mutual_neighbours(self, csls_k: int | None) -> None:
-        """``retrieve_targets(mutual_k=k)``: the scores of the unrestricted retrieval (plain or CSLS, computed on the
-        full matrix) on the mutual pairs of the plain cosine, ``-inf`` in every other slot."""
-        from threedq.quantization.rotation_search import all_pairs_rotation_max
-
-        queries, targets, _ = planted(90)
-        targets = torch.cat([targets, F.normalize(queries.mean(dim=0, keepdim=True), dim=1)])
-        exclude = torch.zeros(3, 5, dtype=torch.bool)
-        exclude[1, 3] = True
-        idx, sim, angle = retrieve_targets(queries, targets, top_k=5, exclude=exclude, csls_k=csls_k, mutual_k=2)
-        full, full_angle = all_pairs_rotation_max(queries, targets, A, "fast")
-        full = full.masked_fill(exclude, float("-inf"))
-        mutual = mutual_neighbours(full, 2)
-        ref = (csls_scores(full, csls_k) if csls_k else full).masked_fill(~mutual, float("-inf"))
-        torch.testing.assert_close(sim, ref.topk(5, dim=1).values)
-        finite = torch.isfinite(sim)
-        assert finite.sum() == mutual.sum()  # every mutual pair retrieved (top_k = all targets), nothing else
-        assert mutual.gather(1, idx)[finite].all()
-        assert torch.equal(angle, full_angle.gather(1, idx))
-        assert idx[0, 0] == 2  # the planted target is each other's nearest
-        with pytest.raises(ValueError, match="mutual_k"):
-            retrieve_targets(queries, targets, mutual_k=0)
 
 
 class TestMatchPatch:
@@ -551,7 +412,7 @@ class TestMineCorrespondences:
     def test_ranked_by_retrieval_verifies_only_what_can_be_kept(self, keep: int, monkeypatch: pytest.MonkeyPatch) -> None:
         """Verification stops once ``keep`` pairs passed (pairs from the most similar down): the kept pairs equal
         those of verifying every pair, and fewer pairs are verified when few are kept."""
-        import threedq.contrastive.mining as mining
+        import threedq.contrastive.miner as mining
 
         queries, targets = unit(6, 4, S, S, S, seed=4), unit(9, 4, S, S, S, seed=5)
         kwargs = dict(top_k=6, keep=keep, min_score=0.3, min_cosine=0.0, rank_by="retrieval", yaw_window=1)
@@ -598,56 +459,6 @@ class TestMineCorrespondences:
             mine_correspondences(queries, targets, min_score=2.0)
 
 
-class TestRetrievalCrops:
-    """``retrieval_crops``: the object-level retrieval (targets, yaw window) on other crops of the same objects."""
-
-    def test_same_crops_equal_the_default(self) -> None:
-        queries, targets, _ = planted(90)
-        kw = dict(top_k=3, keep=5, min_score=0.0, yaw_window=1, rank_by="retrieval")
-        plain = mine_correspondences(queries, targets, **kw)
-        same = mine_correspondences(queries, targets, retrieval_crops=(queries.clone(), targets.clone()), **kw)
-        assert set(plain) == set(same)
-        for k in plain:
-            torch.testing.assert_close(same[k], plain[k], rtol=0, atol=0)
-
-    def test_the_retrieval_crops_choose_the_target(self) -> None:
-        """top_k 1: the retrieval crops send query 0 to target 1, whose features hold no match; sent to the planted
-        target 2 it is found."""
-        queries, targets, b = planted(90)
-        r_q, r_t = unit(3, 2, S, S, S, seed=7), unit(4, 2, S, S, S, seed=8)
-        r_t[1] = r_q[0]
-        wrong = mine_correspondences(queries, targets, top_k=1, retrieval_crops=(r_q, r_t))
-        assert 2 not in wrong["target_index"].tolist()
-        r_t = unit(4, 2, S, S, S, seed=8)
-        r_t[2] = r_q[0]
-        right = mine_correspondences(queries, targets, top_k=1, retrieval_crops=(r_q, r_t))
-        assert right["query_index"].tolist() == [0] and right["target_index"].tolist() == [2]
-
-    @pytest.mark.parametrize(("degrees", "found"), [(90, True), (270, False)])
-    def test_the_retrieval_crops_set_the_yaw_window(self, degrees: int, found: bool) -> None:
-        """The planted target matches at 90 degrees; retrieval crops rotated by ``degrees`` centre a 0-step window
-        there: at 90 the pair is mined at exactly the planted yaw, at 270 the patch is not searched where it lies."""
-        queries, targets, b = planted(90)
-        r_q = unit(3, 2, S, S, S, seed=7)
-        r_t = unit(4, 2, S, S, S, seed=8)
-        r_t[2] = rotate_yaw(r_q[:1], torch.tensor([math.radians(degrees)]))[0]
-        out = mine_correspondences(queries, targets, top_k=4, yaw_window=0, retrieval_crops=(r_q, r_t))
-        pairs = list(zip(out["query_index"].tolist(), out["target_index"].tolist(), out["yaw"].tolist()))
-        assert ((0, 2, b) in pairs) == found
-        assert all(p[:2] != (0, 2) for p in pairs) != found
-
-    def test_errors(self) -> None:
-        queries, targets, _ = planted(90)
-        with pytest.raises(ValueError, match="pair"):
-            mine_correspondences(queries, targets, retrieval_crops=queries)
-        with pytest.raises(ValueError, match="must hold the 3 query and 4 target objects"):
-            mine_correspondences(queries, targets, retrieval_crops=(queries, targets[:3]))
-        with pytest.raises(ValueError, match=r"retrieval_crops\[1\] must have shape"):
-            mine_correspondences(queries, targets, retrieval_crops=(queries, targets[0]))
-        with pytest.raises(ValueError, match="share"):
-            mine_correspondences(queries, targets, retrieval_crops=(queries, targets[:, :2]))
-
-
 class TestCalibrateContextCosine:
     def test_identical_features_give_one(self) -> None:
         crops = torch.zeros(4, 8, 8, 8, 8)
@@ -666,7 +477,7 @@ class TestCalibrateContextCosine:
     def test_bf16_cosines_of_a_gpu_autocast(self, monkeypatch: pytest.MonkeyPatch) -> None:
         # under a GPU's bf16 autocast the einsum returns bf16, which torch.quantile refuses (found on an H200,
         # 2026-12-04); emulated here by an einsum that rounds to bf16 as CUDA's autocast does
-        import threedq.contrastive.mining as mining_mod
+        import threedq.contrastive.miner as mining_mod
 
         crops = unit(6, 16, 8, 8, 8)
         ref = calibrate_context_cosine(crops, torch.arange(6), generator=torch.Generator().manual_seed(0))

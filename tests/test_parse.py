@@ -46,17 +46,15 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory, tiny_dataset: Path) -> Pa
 
 @pytest.fixture(scope="module")
 def tiny_run_plain(tmp_path_factory: pytest.TempPathFactory, tiny_dataset: Path) -> Path:
-    """One EM round whose prototype bank compares plain crops (``occupancy_floor: null``, the paper's) cut as cubes
-    about each box (``crop_shape: cube``, not the paper's); no mining."""
+    """One EM round whose prototype bank compares plain crops (``occupancy_floor: null``, the paper's); no mining."""
     from threedq.pipeline.em import run_em
     from threedq.pipeline.lightning_cli import resolve_config
 
     tmp = tmp_path_factory.mktemp("tiny_run_plain")
     q = tmp / "quantizer.yaml"
     text = resolve_config("stages/quantizer.yaml").read_text()
-    q.write_text(text.replace("    occupancy_floor: 0.2\n", "    occupancy_floor: null\n")
-                 .replace("    crop_shape: hull\n", "    crop_shape: cube\n"))
-    assert "occupancy_floor: null" in q.read_text() and "crop_shape: cube" in q.read_text()
+    q.write_text(text.replace("    occupancy_floor: 0.2\n", "    occupancy_floor: null\n"))
+    assert "occupancy_floor: null" in q.read_text()
     work = tmp / "em"
     run_em(rounds=1, work_dir=str(work), extra_configs=[_em_config(tmp, tiny_dataset)], boxes="gt",
            frozen_precision="32-true", quantizer_config=str(q), mining_config="none")
@@ -96,17 +94,15 @@ class TestResolveRun:
 
 
 class TestParse:
-    @pytest.mark.parametrize("run, floor, shape", [("tiny_run", 0.2, "hull"), ("tiny_run_plain", None, "cube")])
-    def test_matches_the_evaluation(self, run: str, floor: float | None, shape: str, tiny_dataset: Path,
+    @pytest.mark.parametrize("run, floor", [("tiny_run", 0.2), ("tiny_run_plain", None)])
+    def test_matches_the_evaluation(self, run: str, floor: float | None, tiny_dataset: Path,
                                     request: pytest.FixtureRequest) -> None:
         """Given the evaluation's boxes and views, the parse's prototype ids and yaw indices are the evaluation's, with
-        the default bank of occupancy-weighted hull crops and with plain cube crops (the parse reads the weighting and
-        the crop shape from the quantizer checkpoint)."""
+        the default bank of occupancy-weighted crops and with plain crops (the parse reads the weighting from the
+        quantizer checkpoint)."""
         tiny_run = request.getfixturevalue(run)
         parser = SceneParser(resolve_run(tiny_run))
-        assert (parser.occupancy_floor, parser.crop_shape) == (floor, shape)
-        report = (tiny_run / "r01_eval" / "results.md").read_text()
-        assert ("crops of a cube of each box's largest extent" in report) == (shape == "cube")
+        assert parser.occupancy_floor == floor
         evaluated = json.loads((tiny_run / "r01_eval" / "objects_test.json").read_text())["objects"]
         files = load_index(tiny_dataset).files("test")
         recs = [load_scene(tiny_dataset / f) for f in files]

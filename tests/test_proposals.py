@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -250,15 +249,10 @@ def test_tiny_dataset_end_to_end_and_cache(tiny_dataset: Path, tmp_path: Path, m
         propose_dataset(tiny_dataset, "train", cache, params=ProposalParams(voxel_size=0.05), progress=False)
     assert len(calls) == len(files)
 
-    # corrupt cache: a clear error naming the file, or recomputed with a warning
+    # corrupt cache: a clear error naming the file
     cache.write_bytes(b"not an npz")
     with pytest.raises(ValueError, match="props.npz"):
         propose_dataset(tiny_dataset, "train", cache, progress=False)
-    with warnings.catch_warnings(record=True) as w:
-        warnings.simplefilter("always")
-        propose_dataset(tiny_dataset, "train", cache, recompute_corrupt=True, progress=False)
-    assert any("props.npz" in str(x.message) for x in w)
-    assert list(propose_dataset(tiny_dataset, "train", cache, progress=False)) == files
 
     with pytest.raises(ValueError, match="split"):
         propose_dataset(tiny_dataset, "nope", tmp_path / "x.npz", progress=False)

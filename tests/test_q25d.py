@@ -135,8 +135,6 @@ def test_eval_rows_with_and_without_baselines(run: Run, tmp_path: Path) -> None:
     assert "ResNet-18 (layer4" not in md2 and "ImageNet ResNet-18," not in md2
     if "paper_precision_at_k" in rn:  # the paper protocol's columns filled from the gallery view's features
         assert f"| {rn['precision_at_k']:.3f} | {rn['paper_precision_at_k']:.3f} | {rn['same_object_top1']:.3f} |" in md
-    md3 = eval_markdown({**res, "resnet": {**rn, **backbone_fields(MobileNetV2()), "input_size": 448}})
-    assert f"| {stand_in} (448 px input, features.18, 1280 channels, pooled in the projected GT box;" in md3
 
     out = tmp_path / "without"
     res = run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(out), baselines=False, curve_k=[2])
@@ -160,9 +158,6 @@ def test_bad_baseline_files_are_one_line_input_errors(run: Run, tmp_path: Path) 
     torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, bad)
     with pytest.raises(InputError, match=r"bad.pth: field 'bn1.weight': missing"):
         run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "b"), weights=str(bad))
-    with pytest.raises(InputError, match="--imagenet_input_size 8: expected an integer of at least 32"):
-        run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "d"), weights=str(run.weights),
-                 imagenet_input_size=8)
     torch.save({"features.0.0.weight": torch.zeros(32, 3, 3, 3)}, bad)  # looks like MobileNetV2, is not
     with pytest.raises(InputError, match=r"bad.pth: field 'features.0.1.weight': missing \(311 MobileNetV2"):
         run_eval(str(run.quantizer), extra_configs=[str(run.config)], out=str(tmp_path / "c"), weights=str(bad))
@@ -184,8 +179,8 @@ def test_imagenet_features_of_the_gallery_view(run: Run) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny depthwise convolutions: as fast on one thread, not slowed by other jobs' load
     try:
-        a = collect_resnet_features(net, loader, input_size=64, progress=False)
-        b = collect_resnet_features(net, loader, input_size=64, progress=False, view=1)
+        a = collect_resnet_features(net, loader, progress=False)
+        b = collect_resnet_features(net, loader, progress=False, view=1)
     finally:
         torch.set_num_threads(threads)
     n = sum(int(s["box_mask"].sum()) for s in ds)
@@ -193,7 +188,7 @@ def test_imagenet_features_of_the_gallery_view(run: Run) -> None:
     assert torch.equal(a["labels"], b["labels"])
     assert (a["features"] - b["features"]).abs().max() > 1e-2 * a["features"].abs().max()  # (untrained: tiny values)
     with pytest.raises(ValueError, match="view 2: the loader's samples hold 2 view"):
-        collect_resnet_features(net, loader, input_size=64, progress=False, view=2)
+        collect_resnet_features(net, loader, progress=False, view=2)
 
 
 def _eval_test_folder(run: Run, tmp_path: Path, folder: Path, *options: str) -> Path:

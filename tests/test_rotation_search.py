@@ -1,4 +1,4 @@
-"""Tests for threedq.quantization.rotation_search: polar resampling, rFFT yaw correlation and the fast rotation search."""
+"""Tests for threedq.quantization.rotation_search: polar resampling, the polar spectrum and the fast rotation search."""
 
 from __future__ import annotations
 
@@ -17,7 +17,6 @@ from threedq.quantization.rotation_search import (
     cylindrical_resample,
     polar_interpolation_matrix,
     polar_spectrum,
-    yaw_correlation,
 )
 
 A = 36
@@ -161,50 +160,17 @@ class TestCylindricalResample:
         assert torch.autograd.gradcheck(lambda t: cylindrical_resample(t, 6), (x,))
 
 
-class TestYawCorrelation:
-    def test_smoke(self) -> None:
-        out = yaw_correlation(torch.rand(2, 3, 36), torch.rand(4, 3, 36))
-        assert out.shape == (2, 4, 36) and out.dtype == torch.float32
-
-    def test_exception(self) -> None:
-        with pytest.raises(ValueError, match="agree in all but the first dim"):
-            yaw_correlation(torch.rand(2, 3, 36), torch.rand(2, 4, 36))
-        with pytest.raises(ValueError, match="floating-point"):
-            yaw_correlation(torch.zeros(2, 3, 8, dtype=torch.long), torch.zeros(2, 3, 8, dtype=torch.long))
-
-    @pytest.mark.parametrize("num_angles", [1, 2, 7, 36])
-    @pytest.mark.parametrize("chunk", [None, 2])
-    def test_cardinality_and_roll_reference(self, num_angles: int, chunk: int | None) -> None:
-        a = torch.randn(3, 2, 5, num_angles, dtype=torch.float64)
-        b = torch.randn(4, 2, 5, num_angles, dtype=torch.float64)
-        out = yaw_correlation(a, b, chunk=chunk)
-        ref = torch.stack([torch.roll(a, s, -1).flatten(1) @ b.flatten(1).T for s in range(num_angles)], dim=-1)
-        assert out.shape == (3, 4, num_angles)
-        torch.testing.assert_close(out, ref)
-
-    def test_feature_bf16(self) -> None:
-        gen = torch.Generator().manual_seed(0)
-        a, b = torch.randn(3, 64, 36, generator=gen), torch.randn(4, 64, 36, generator=gen)
-        ref = yaw_correlation(a.double(), b.double())
-        out = yaw_correlation(a, b, compute_dtype=torch.bfloat16)
-        assert out.dtype == torch.float32
-        assert (out.double() - ref).abs().max() < 0.02 * ref.abs().max()
-
-    def test_gradcheck(self) -> None:
-        a = torch.randn(2, 3, 6, dtype=torch.float64, requires_grad=True)
-        b = torch.randn(3, 3, 6, dtype=torch.float64, requires_grad=True)
-        assert torch.autograd.gradcheck(yaw_correlation, (a, b))
-
-
 class TestPolarSpectrum:
     def test_feature_equals_correlation_of_cylinders(self) -> None:
-        # without band limit, the fused resampling + DFT gives exactly yaw_correlation(cylindrical_resample(.))
+        # without band limit, the fused resampling + DFT gives exactly the correlation of the resampled cylinders
+        # along the angle: <roll(cx_n, s), cy_m> at every shift s
         x, y = torch.randn(3, 2, 3, 8, 8, dtype=torch.float64), torch.randn(4, 2, 3, 8, 8, dtype=torch.float64)
         cx, cy = cylindrical_resample(x, 12), cylindrical_resample(y, 12)
         qs = polar_spectrum(x, 12, bandlimit=False)
         torch.testing.assert_close(qs.norm, cx.flatten(1).norm(dim=1))
         sim, angle = all_pairs_rotation_max(x, y, 12, bandlimit=False)
-        corr = yaw_correlation(cx, cy) / (cx.flatten(1).norm(dim=1)[:, None, None] * cy.flatten(1).norm(dim=1)[:, None])
+        corr = torch.stack([torch.roll(cx, s, -1).flatten(1) @ cy.flatten(1).T for s in range(12)], dim=-1)
+        corr = corr / (cx.flatten(1).norm(dim=1)[:, None, None] * cy.flatten(1).norm(dim=1)[:, None])
         torch.testing.assert_close(sim, corr.max(dim=2).values)
         assert torch.equal(angle, corr.argmax(dim=2))
 

@@ -153,14 +153,14 @@ class TestSelfLabelTargets:
 
 class TestLabellingRule:
     """A planted case: the bank holds the crop of an object; a detection on it is positive, one on the floor
-    negative, and one on an object that is also like its surroundings is vetoed (negative) unless positive_wins."""
+    negative, and one on an object that is also like its surroundings is vetoed (negative)."""
 
-    def _stage(self, positive_wins: bool = False, **kwargs: Any) -> SelfLabelling:
+    def _stage(self, **kwargs: Any) -> SelfLabelling:
         from threedq.quantization.prototypes import PrototypeBank
 
         kwargs = {"proposal_positives": False, "spare_proposals": False, **kwargs}  # each switch tested alone
         st = SelfLabelling(grid_min=(-1.28, -1.28, -0.32), grid_max=(1.28, 1.28, 0.96), grid_resolution=(32, 32, 16),
-                           feature_dim=8, crop_size=4, num_angles=4, positive_wins=positive_wins, **kwargs)  # fmt: skip
+                           feature_dim=8, crop_size=4, num_angles=4, **kwargs)  # fmt: skip
         st.bank = PrototypeBank(2, 8, 4, num_angles=4, method="exact")
         return st
 
@@ -195,31 +195,15 @@ class TestLabellingRule:
         assert rows[0, 0] == 1 and torch.allclose(rows[0, 1:], boxes[0])
         assert rows[1, 0] == 0 and torch.allclose(rows[1, 1:], boxes[1])
 
-    def test_veto_and_positive_wins(self) -> None:
-        vol, boxes = self._scene()
-        # the bank also holds the floor's crop: the floor box is above both thresholds
-        for wins, kind in ((False, 0.0), (True, 1.0)):
-            st = self._stage(positive_wins=wins)
-            from threedq.geometry import crop_boxes
+    def test_veto(self) -> None:
+        from threedq.geometry import crop_boxes
 
-            st.bank.add(crop_boxes(vol, boxes[1:][None], st.feature_grid, 4)[0], threshold=2.0)
-            rows = self._label(st, vol, boxes)
-            assert rows[1, 0] == kind
-
-    def test_proposal_candidates(self) -> None:
         vol, boxes = self._scene()
-        floor_only = boxes[1:]  # the detector misses the object; a pseudo-box stands on it
-        plain = self._label(self._stage(), vol, boxes, floor_only, boxes[:1])
-        assert plain.shape == (1, 7) and plain[0, 0] == 0
-        rows = self._label(self._stage(proposal_candidates=True), vol, boxes, floor_only, boxes[:1])
-        assert rows.shape == (2, 7)
-        assert rows[0, 0] == 0 and torch.allclose(rows[0, 1:], boxes[1])
-        assert rows[1, 0] == 1 and torch.allclose(rows[1, 1:], boxes[0])
-        # a pseudo-box a detection snaps to is not a second candidate: one positive, the pseudo-box's own box
-        loose = torch.cat([boxes[:1] + torch.tensor([0.08, 0.0, 0.0, 0.08, 0.0, 0.0]), boxes[1:]])
-        rows = self._label(self._stage(proposal_candidates=True), vol, boxes, loose, boxes[:1])
-        assert rows.shape == (2, 7) and int((rows[:, 0] == 1).sum()) == 1
-        assert torch.allclose(rows[rows[:, 0] == 1][0, 1:], boxes[0])
+        # the bank also holds the floor's crop: the floor box is above both thresholds, and negative
+        st = self._stage()
+        st.bank.add(crop_boxes(vol, boxes[1:][None], st.feature_grid, 4)[0], threshold=2.0)
+        rows = self._label(st, vol, boxes)
+        assert rows[1, 0] == 0
 
     def test_spare_proposals_rows(self) -> None:
         vol, boxes = self._scene()
@@ -266,31 +250,17 @@ class TestLabellingRule:
         with pytest.raises(ValueError, match="occupancy"):
             st._label_batch(vol, gt_batch, None)
 
-    def test_cube_bank(self) -> None:
-        # a bank fitted on cube crops (the quantizer's crop_shape, read from its checkpoint) scores the candidates'
-        # cube crops: a flat candidate's score is the bank's assignment of its cube region, not of its hull
-        from threedq.geometry import crop_boxes, crop_region
-
-        vol, boxes = self._scene()
-        st = self._stage()
-        st.crop_shape = "cube"
-        st.bank.add(crop_boxes(vol, boxes[:1][None], st.feature_grid, 4)[0], threshold=2.0)  # a cube box: hull = cube
-        det = torch.cat([boxes[:1], torch.tensor([[-0.8, -0.8, 0.0, -0.32, -0.32, 0.16]])])  # the object, its lower third
-        st.detect = lambda logits, box, thr=None: [{"boxes": det.clone(), "scores": torch.ones(len(det))}]  # type: ignore
-        gt_batch = {"aabb": boxes[None], "box_mask": torch.ones(1, 2, dtype=torch.bool)}
-        _, diag = st._label_batch(vol, gt_batch, None)[0]
-        cut = lambda shape: st.bank.assign(  # noqa: E731
-            crop_boxes(vol, crop_region(det, shape)[None], st.feature_grid, 4)[0]).score
-        torch.testing.assert_close(diag["proto"], cut("cube"))
-        assert diag["proto"][0] > 0.999 and abs(float(diag["proto"][1] - cut("hull")[1])) > 0.05
-
     def test_bad_arguments(self) -> None:
-        with pytest.raises(ValueError, match="positive_threshold"):
-            SelfLabelling(feature_dim=8, positive_threshold=1.5)
+        from jsonargparse import ArgumentError, ArgumentParser
+
+        parser = ArgumentParser(exit_on_error=False)
+        parser.add_class_arguments(SelfLabelling, "model")
+        for name, bad in (("positive_threshold", 1.5), ("negative_threshold", -2.0), ("candidate_threshold", 1.5),
+                          ("pool_scenes", 0), ("batch_size", 0), ("score_threshold", -0.1)):
+            with pytest.raises(ArgumentError, match=name):  # the annotations validate
+                parser.parse_object({"model": {"feature_dim": 8, name: bad}})
         with pytest.raises(ValueError, match="freeze_encoder"):
             SelfLabelling(feature_dim=8, freeze_encoder=False)
-        with pytest.raises(ValueError, match="pool_scenes"):
-            SelfLabelling(feature_dim=8, pool_scenes=0)
 
 
 def test_short_fit_and_resume(tmp_path: Path, tiny_dataset: Path) -> None:

@@ -59,10 +59,6 @@ class TestTable:
         assert line[col["few-shot"]].strip() == "-"  # not the prototype-propagated few-shot: the extra table's
         assert f"| {label} | 0.500 | 0.550 | 0.450 | 0.200 |" in md  # the extra table: ResNetRet, ResNetClass, bank
         assert "random encoder (1 seed)" in md and f"{stand_in} (1 seed)" not in md
-        big = {**rows[1], "input_size": 448, "cosine/strict": 0.65}  # another input size: its own line in both tables
-        md = sb.table([*rows, big])
-        big_label = f"| {stand_in}, features.18 pooled in the projected GT box, 448 px input (no rotation search) |"
-        assert f"{big_label} 0.650" in md and f"{big_label} 0.500" in md
         alone = sb.table([rows[1]])  # an ImageNet-only file still makes a table
         assert label in alone and "test cpu" in alone
 
@@ -81,9 +77,9 @@ class TestRandomStage:
 @pytest.mark.parametrize("name", list(sb.DATASETS))
 def test_data_configs_name_the_shape_only_generator(name: str) -> None:
     from threedq.data.catalog import HELD_OUT_NAMES, SHAPE_ONLY_NAMES
-    from threedq.pipeline.lightning_cli import resolve_config
+    from threedq.pipeline.lightning_cli import load_config
 
-    args = yaml.safe_load(resolve_config(sb.DATASETS[name]).read_text())["data"]["init_args"]
+    args = load_config(sb.DATASETS[name])["data"]["init_args"]  # with its base's keys
     assert args["color_mode"] == "random"
     assert tuple(args["categories"]) == (SHAPE_ONLY_NAMES if name == "shapes" else HELD_OUT_NAMES)
     if name == "unseen":
@@ -165,11 +161,11 @@ class TestImagenetRow:
         dm.setup("test")
         torch.manual_seed(0)
         net = MobileNetV2().eval()
-        q = collect_resnet_features(net, split_loader(dm, "test", gallery=True), 64, progress=False)
+        q = collect_resnet_features(net, split_loader(dm, "test", gallery=True), progress=False)
         n = q["labels"].shape[0]
         sym = list(dm.index.symmetry_order)
-        row = sb.imagenet_row(net, dm, len(dm.index.categories), sym, input_size=64)  # alone: no encoder row's labels
-        assert row["objects"] == q["labels"].shape[0] and row["input_size"] == 64
+        row = sb.imagenet_row(net, dm, len(dm.index.categories), sym)  # alone: no encoder row's labels
+        assert row["objects"] == q["labels"].shape[0]
         for key in ("cosine/strict", "cosine/paper", "cosine/top1", "probe/learned", "no_rot/hungarian_acc"):
             assert 0.0 <= row[key] <= 1.0, key
         for key in ("ret_acc", "class_acc"):  # undefined (NaN) where no category has more objects than its 2 shots
@@ -183,7 +179,7 @@ class TestImagenetRow:
             hits.append(sum(int(q["labels"][j] == q["labels"][i]) for j in order) / k)
         assert row["cosine/strict"] == pytest.approx(sum(hits) / n)
         with pytest.raises(RuntimeError, match="test objects differ"):
-            sb.imagenet_row(net, dm, 100, sym, labels=q["labels"].flip(0) + 1, input_size=64)
+            sb.imagenet_row(net, dm, 100, sym, labels=q["labels"].flip(0) + 1)
 
 
 class TestWithInputOccupancy:

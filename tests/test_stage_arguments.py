@@ -18,7 +18,7 @@ from threedq.stages.self_labelling import INHERITED_FROM_DETECTOR, SelfLabelling
 from threedq.stages.supervised import SupervisedCeiling
 from threedq.stages.viewpred import ViewPrediction
 
-from threedq.pipeline.lightning_cli import packaged_configs_dir
+from threedq.pipeline.lightning_cli import load_config, packaged_configs_dir
 
 STAGES = [ViewPrediction, Quantizer, Mining, SupervisedCeiling, Detector, SelfLabelling]
 SMALL = {"grid_resolution": (16, 16, 8), "feature_dim": 8}
@@ -63,8 +63,7 @@ class TestStageArguments:
             detector = _declared_defaults(Detector)
             expected.update({n: detector[n] for n in INHERITED_FROM_DETECTOR})
         for name, default in expected.items():
-            if name in ("grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "feature_stride",
-                        "encoder_input"):
+            if name in ("grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "feature_stride"):
                 continue  # the resolved grid and widths (checked below)
             got = stage.hparams[name]
             assert (list(got) if isinstance(got, tuple) else got) == \
@@ -72,7 +71,6 @@ class TestStageArguments:
         assert stage.hparams["grid_resolution"] == [16, 16, 8] and stage.hparams["feature_dim"] == 8
         assert stage.hparams["encoder_channels"] == [64, 128, 256]  # none given, no checkpoint: the paper's
         assert stage.hparams["feature_stride"] == 2  # likewise
-        assert stage.hparams["encoder_input"] == "occupancy_colour"  # likewise
         assert stage.hparams["grid_min"] == list(stage.grid.bounds_min)
 
     def test_a_parents_argument_by_keyword_reaches_the_parent(self, cls: type) -> None:
@@ -92,17 +90,15 @@ def _stage_configs() -> list[str]:
 #: prediction trains (the other stages take them from their encoder) and which correspondence source a mining config
 #: runs.
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
-#: A variant config's own choices: what it exists to set, on top of its stage's tuned config.
-_MINERS_CANDIDATES = {"candidates_per_query", "occupancy_mutual_k", "candidates_from"}
-VARIANT_CHOICES = {"stages/mining_checked.yaml": {"verify_by_prototypes", "positives", "retrieval_occupancy_floor",
-                                                  *_MINERS_CANDIDATES},
-                   "stages/mining_colour_jitter.yaml": {"colour_jitter"},
-                   "stages/mining_occupancy_pairs.yaml": {"candidates_from"}}
+#: A variant config (one with ``base:``) holds only what it exists to set on top of its base; its own choices.
+VARIANT_CHOICES = {"stages/detector_gt.yaml": set(), "stages/mining_occupancy_pairs.yaml": {"candidates_from"},
+                   "stages/mining_paper.yaml": {"candidates_from", "candidates_per_query", "positives", "query_pool",
+                                                "target_pool", "yaw_window", "rank_by"}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
 def test_class_defaults_equal_the_tuned_config(config: str) -> None:
-    model = yaml.safe_load((packaged_configs_dir() / config).read_text())["model"]
+    model = load_config(config)["model"]
     module, name = model["class_path"].rsplit(".", 1)
     defaults = _declared_defaults(getattr(importlib.import_module(module), name))
     differ = {k: (defaults.get(k, "<not an argument>"), v) for k, v in (model.get("init_args") or {}).items()
@@ -111,19 +107,18 @@ def test_class_defaults_equal_the_tuned_config(config: str) -> None:
     assert not differ, f"{config}: class default vs config value: {differ}"
 
 
-def test_a_variant_config_differs_from_its_stage_config_only_in_its_choices() -> None:
-    """Each variant (``stages/mining_checked.yaml``, ``stages/mining_colour_jitter.yaml``,
-    ``stages/mining_occupancy_pairs.yaml``) is ``stages/mining.yaml`` plus its own settings, nothing else."""
+def test_a_variant_config_holds_only_its_choices() -> None:
+    """Each variant names its stage's config as its base and sets its own choices and run folder, nothing else (the
+    detector's GT variant: its boxes)."""
+    variants = sorted(str(p.relative_to(packaged_configs_dir())) for p in (packaged_configs_dir() / "stages").glob(
+        "*.yaml") if "base" in (yaml.safe_load(p.read_text()) or {}))
+    assert variants == sorted(VARIANT_CHOICES)
     for variant, own in VARIANT_CHOICES.items():
-        base = yaml.safe_load((packaged_configs_dir() / "stages/mining.yaml").read_text())
         cfg = yaml.safe_load((packaged_configs_dir() / variant).read_text())
-        args = cfg["model"]["init_args"]
-        assert set(args) == set(base["model"]["init_args"]) | own
-        assert {k: v for k, v in args.items() if k not in own} == \
-            {k: v for k, v in base["model"]["init_args"].items() if k not in own}
-        assert cfg["data"] == base["data"] and cfg["seed_everything"] == base["seed_everything"]
-        assert {k: v for k, v in cfg["trainer"].items() if k != "default_root_dir"} == \
-            {k: v for k, v in base["trainer"].items() if k != "default_root_dir"}
+        assert cfg["base"] == Path(variant).stem.split("_")[0] + ".yaml"
+        assert set(cfg) <= {"base", "model", "data", "trainer"} and set(cfg["trainer"]) == {"default_root_dir"}
+        assert set((cfg.get("model") or {}).get("init_args") or {}) == own
+        assert (cfg.get("data") or {"init_args": {"boxes": "gt"}}) == {"init_args": {"boxes": "gt"}}
 
 
 class TestSelfLabellingInheritsTheDetector:

@@ -92,44 +92,27 @@ def test_tables_name_a_crop_region_other_than_the_hull() -> None:
 
 
 
-def test_em_report_says_when_the_pairs_came_from_labels() -> None:
-    """A run with the ``oracle_pairs`` diagnostic is marked as such above its mining table; a run without is not.
-    The table names the queries and boxes each refresh's pairs use, and the input geometry's check where it ran."""
-    import copy
+def test_em_report_names_where_the_pairs_came_from() -> None:
+    """The mining table names the queries and boxes each refresh's pairs use and the pair source; the context
+    threshold only where the miner's patch check read it."""
     import json
     from pathlib import Path
 
     from threedq.pipeline.tables import em_markdown
 
-    results = Path(__file__).resolve().parents[1] / "benchmarks/results"
-    path = results / "cap_csls_amd_2026-12-05/metrics_scene_csls10_seed0.json"
-    summary = json.loads(path.read_text())
-    plain = em_markdown(summary)
-    assert "Pairs from labels" not in plain
+    summary = json.loads((Path(__file__).resolve().parents[1] / "docs/results/metrics.json").read_text())
     f = summary["mining_results"][0]["refreshes"][0]  # the pairs' spread over the pool, a column of its own
-    row = next(line for line in plain.splitlines() if line.startswith("| 1 | 1 | "))
-    assert row.split(" | ")[4] == f"{f['distinct_queries']} / {f['distinct_boxes']}"
-    assert row.split(" | ")[3] == f"{f['pairs']}"
-    f["occupancy_mutual_k"] = 10  # a run whose candidates the input geometry checked says so in the pairs cell
-    f["candidates_from"] = "features"
-    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
-    assert row.split(" | ")[3] == f"{f['pairs']} (checked: mutual 10-NN by input occupancy)"
-    assert row.split(" | ")[9] == f"{f['min_cosine']:.3f}"
-    f["candidates_from"] = "occupancy"  # and one whose candidates the input proposed
-    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
-    assert row.split(" | ")[3] == f"{f['pairs']} (from the input occupancy: mutual 10-NN)"
-    assert row.split(" | ")[9] == "- (no patch check)"  # the context threshold reads nothing then
-    f["candidates_from"] = "input"
-    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
-    assert row.split(" | ")[3] == f"{f['pairs']} (from the input crops, occupancy and colour: mutual 10-NN)"
+
+    def row() -> list[str]:
+        return next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | ")).split(" | ")
+
+    assert row()[4] == f"{f['distinct_queries']} / {f['distinct_boxes']}"
+    f["candidates_from"], f["occupancy_mutual_k"] = "input", 10
+    assert row()[3] == f"{f['pairs']} (from the input crops, occupancy and colour: mutual 10-NN)"
+    assert row()[9] == "- (no patch check)"  # the context threshold reads nothing then
+    f["candidates_from"] = "occupancy"
+    assert row()[3] == f"{f['pairs']} (from the input occupancy: mutual 10-NN)"
+    del f["candidates_from"], f["occupancy_mutual_k"]  # the paper's miner on the learned features
+    assert row()[3] == f"{f['pairs']}" and row()[9] == f"{f['min_cosine']:.3f}"
     del f["distinct_boxes"]  # a run from before the field
-    row = next(line for line in em_markdown(summary).splitlines() if line.startswith("| 1 | 1 | "))
-    assert row.split(" | ")[4] == "-"
-    marked = copy.deepcopy(summary)
-    for m in marked["mining_results"]:
-        for f in m["refreshes"]:
-            f["oracle_pairs"] = "gt"
-    report = em_markdown(marked)
-    head = report.index("## Correspondence mining per round")
-    assert report.index("**Pairs from labels** (`oracle_pairs: gt`)") > head
-    assert report.count("Pairs from labels") == 1
+    assert row()[4] == "-"

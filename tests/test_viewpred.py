@@ -62,6 +62,16 @@ class TestViewPrediction:
         assert last["loss"] < first["loss"] / 2.5
         assert last["occ_bacc"] > 0.9
 
+    def test_the_loss_weighs_its_terms(self, batch: dict[str, torch.Tensor]) -> None:
+        """``view_prediction_loss`` reports the RGB loss it weighted: rgb_weight * rgb_loss + occ_weight * occ."""
+        torch.manual_seed(0)
+        stage = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0, rgb_weight=7.0, occ_weight=3.0)
+        with torch.no_grad():
+            out = stage(batch)
+            r = stage.view_prediction_loss(out["features"], out["occ_logits"], batch, 1)
+        assert torch.isfinite(r["rgb_loss"]) and torch.isfinite(r["occ_loss"]) and r["rgb_loss"] > 0
+        torch.testing.assert_close(r["loss"], 7.0 * r["rgb_loss"] + 3.0 * r["occ_loss"])
+
     def test_figure(self, batch: dict[str, torch.Tensor]) -> None:
         m = ViewPrediction(**SMALL)
         r = m._step(batch)
@@ -104,45 +114,13 @@ class TestBalancedRgbLoss:
         assert not torch.allclose(rb["loss"], rp["loss"])
 
     def test_bad_settings(self) -> None:
-        with pytest.raises(ValueError, match="rgb_loss"):
-            ViewPrediction(**SMALL, rgb_loss="l2")
-        with pytest.raises(ValueError, match="ground_margin"):
-            ViewPrediction(**SMALL, ground_margin=float("nan"))
+        from jsonargparse import ArgumentError, ArgumentParser
 
-
-class TestShapeChannels:
-    """``shape_channels``: the RGB loss's gradient stops at the first ``k`` feature channels; the loss's value does not
-    change."""
-
-    def _grads(self, batch: dict[str, torch.Tensor], k: int, rgb_weight: float, occ_weight: float) -> tuple:
-        torch.manual_seed(0)
-        m = ViewPrediction(**SMALL, shape_channels=k, rgb_weight=rgb_weight, occ_weight=occ_weight)
-        with torch.no_grad():
-            feats = m(batch)["features"]
-        feats = feats.clone().requires_grad_(True)
-        r = m.view_prediction_loss(feats, m.occ_head(feats), batch, 1)
-        r["loss"].backward()
-        return r["loss"].detach(), feats.grad.flatten(2).abs().amax(2)[0]  # [C] largest gradient per channel
-
-    def test_rgb_gradient_stops_at_the_shape_channels(self, batch: dict[str, torch.Tensor]) -> None:
-        _, g = self._grads(batch, 8, rgb_weight=1.0, occ_weight=0.0)
-        assert torch.all(g[:8] == 0) and torch.all(g[8:] > 0)
-        _, g0 = self._grads(batch, 0, rgb_weight=1.0, occ_weight=0.0)  # the paper's: every channel gets it
-        assert torch.all(g0 > 0)
-
-    def test_occupancy_gradient_reaches_every_channel(self, batch: dict[str, torch.Tensor]) -> None:
-        _, g = self._grads(batch, 8, rgb_weight=0.0, occ_weight=1.0)
-        assert torch.all(g > 0)
-
-    def test_the_loss_is_unchanged(self, batch: dict[str, torch.Tensor]) -> None:
-        a, _ = self._grads(batch, 0, rgb_weight=30.0, occ_weight=1.0)
-        b, _ = self._grads(batch, 16, rgb_weight=30.0, occ_weight=1.0)
-        assert torch.equal(a, b)
-
-    def test_bad_count_refused(self) -> None:
-        for k in (-1, 33):
-            with pytest.raises(ValueError, match="shape_channels"):
-                ViewPrediction(**SMALL, shape_channels=k)
+        parser = ArgumentParser(exit_on_error=False)
+        parser.add_class_arguments(ViewPrediction, "model")
+        for name, bad in (("rgb_loss", "l2"), ("ground_margin", -0.01)):
+            with pytest.raises(ArgumentError, match=name):  # the annotations validate
+                parser.parse_object({"model": {name: bad}})
 
 
 class TestTargetViews:
@@ -165,49 +143,6 @@ class TestTargetViews:
         assert torch.allclose(one["l1"], two["l1"], atol=1e-6)
         assert torch.allclose(one["l1_mean_colour"], two["l1_mean_colour"], atol=1e-6)
         assert torch.equal(two["pred"][0], two["pred"][1])
-
-
-class TestOccupancyViews:
-    """``occupancy_views``: the last k views of a sample label occupancy only; the decoded target is the one before."""
-
-    @pytest.fixture(scope="class")
-    def four(self, tiny_dataset: Path) -> dict[str, torch.Tensor]:
-        return first_batch(tiny_dataset, 1, 3)
-
-    def test_rgb_from_the_first_target_occupancy_from_every_view(self, four: dict[str, torch.Tensor]) -> None:
-        torch.manual_seed(5)
-        m = ViewPrediction(**SMALL, occupancy_views=2).eval()
-        two = {k: (v[:, :2] if k in ("rgb", "depth", "K", "R_T_cam") else v) for k, v in four.items()}
-        ref = ViewPrediction(**SMALL).eval()
-        ref.load_state_dict(m.state_dict())
-        with torch.no_grad():
-            feats = m(four)["features"]
-            r = m.view_prediction_loss(feats, m.occ_head(feats), four, 1)
-            r2 = ref.view_prediction_loss(feats, ref.occ_head(feats), two, 1)
-            occ, free = m.occupancy_labels(four["depth"], four["K"], four["R_T_cam"])
-        assert r["pred"].shape[0] == 1  # one decoded target, not three
-        assert torch.equal(r["pred"], r2["pred"]) and torch.equal(r["target"], r2["target"])
-        assert torch.equal(r["l1"], r2["l1"])  # the plain L1 reads only the decoded target
-        assert torch.equal(r["occ"], occ) and torch.equal(r["free"], free)  # labels fused over all four views
-        # the two extra views add labelled voxels: occupied or free where two views alone label neither
-        labelled, labelled2 = (r["occ"] + r["free"]).sum(), (r2["occ"] + r2["free"]).sum()
-        assert labelled > labelled2
-
-    def test_step_counts_the_decoded_targets(self, four: dict[str, torch.Tensor]) -> None:
-        m = ViewPrediction(**SMALL, occupancy_views=1).eval()
-        with torch.no_grad():
-            r = m._step(four)
-        assert r["pred"].shape[0] == 2  # views 1 and 2 decoded, view 3 labels occupancy only
-
-    def test_no_target_left_is_refused(self, four: dict[str, torch.Tensor]) -> None:
-        m = ViewPrediction(**SMALL, occupancy_views=3).eval()
-        with torch.no_grad(), pytest.raises(ValueError, match="occupancy_views.*num_target_views"):
-            m._step(four)
-
-    def test_bad_count_refused(self) -> None:
-        for k in (-1, 1.5, True):
-            with pytest.raises(ValueError, match="occupancy_views"):
-                ViewPrediction(**SMALL, occupancy_views=k)
 
 
 class TestEncoderContract:
@@ -369,92 +304,3 @@ class TestGridTravelsWithEncoder:
 
         s = EncoderStage()
         assert s.grid.resolution == DEFAULT_GRID["grid_resolution"] and s.feature_dim == DEFAULT_GRID["feature_dim"]
-
-
-class TestLrSchedule:
-    """``lr_schedule``: the learning rate of every optimizer step of a real fit, against the half cosine by hand."""
-
-    class _Record(L.Callback):
-        def __init__(self) -> None:
-            self.lrs: list[float] = []
-
-        def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
-            self.lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
-
-    def _fit(self, tiny_dataset: Path, root: Path, schedule: str, max_steps: int, ckpt_path: str | None = None,
-             callbacks_extra: tuple = (), **trainer) -> list[float]:
-        L.seed_everything(0, verbose=False)
-        m = ViewPrediction(lr=2e-3, lr_schedule=schedule, **SMALL)
-        dm = SceneFolderDataModule(str(tiny_dataset), batch_size=1, num_input_views=1, num_target_views=1)
-        rec = self._Record()
-        t = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-                      enable_model_summary=False, limit_val_batches=0, callbacks=[rec, *callbacks_extra], default_root_dir=root,
-                      **trainer)
-        t.fit(m, dm, ckpt_path=ckpt_path)
-        return rec.lrs
-
-    def test_constant_is_the_default(self) -> None:
-        m = ViewPrediction(**SMALL)
-        assert m.hparams.lr_schedule == "constant"
-        assert isinstance(m.configure_optimizers(), torch.optim.Adam)  # no scheduler, nothing reads the trainer
-
-    def test_cosine_against_hand_computed(self, tiny_dataset: Path, tmp_path: Path) -> None:
-        lrs = self._fit(tiny_dataset, tmp_path, "cosine", 4, enable_checkpointing=False)
-        # step s of T = 4: 2e-3 * (1 + cos(pi s / 4)) / 2
-        assert lrs == pytest.approx([2e-3, 2e-3 * (1 + 0.5**0.5) / 2, 1e-3, 2e-3 * (1 - 0.5**0.5) / 2], rel=1e-6)
-
-    def test_resumed_fit_goes_on_along_the_curve(self, tiny_dataset: Path, tmp_path: Path) -> None:
-        """A fit resumed from the checkpoint of its step 2 of 4 takes the uninterrupted run's rates from there on."""
-        every2 = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ck", every_n_train_steps=2, save_top_k=-1)
-        full = self._fit(tiny_dataset, tmp_path / "full", "cosine", 4, callbacks_extra=[every2])
-        ckpt = next(p for p in (tmp_path / "ck").glob("*.ckpt") if "step=2" in p.name)
-        rest = self._fit(tiny_dataset, tmp_path / "resumed", "cosine", 4, ckpt_path=str(ckpt),
-                         enable_checkpointing=False)
-        assert len(full) == 4 and rest == pytest.approx(full[2:], rel=1e-9)
-
-    def test_unknown_schedule_refused(self) -> None:
-        with pytest.raises(ValueError, match="lr_schedule: expected 'constant' or 'cosine', got 'step'"):
-            ViewPrediction(lr_schedule="step", **SMALL)
-
-
-class TestRgbWarmup:
-    """``rgb_warmup_steps``: the RGB term's weight rises linearly from 0 to ``rgb_weight`` over the first steps."""
-
-    @pytest.mark.parametrize("step, scale", [(0, 0.0), (25, 0.25), (99, 0.99), (100, 1.0), (400, 1.0)])
-    def test_the_training_loss_against_a_hand_computed_weight(self, step: int, scale: float,
-                                                              monkeypatch: pytest.MonkeyPatch) -> None:
-        stage = ViewPrediction(grid_resolution=(16, 16, 8), feature_dim=8, image_every_n_steps=0, rgb_weight=30.0,
-                               occ_weight=2.0, rgb_warmup_steps=100)
-        monkeypatch.setattr(ViewPrediction, "global_step", property(lambda self: step))
-        rgb, occ = torch.tensor(0.1, dtype=torch.float64), torch.tensor(0.7, dtype=torch.float64)
-        r = {"loss": 30.0 * rgb + 2.0 * occ, "rgb_loss": rgb, "occ_loss": occ}
-        torch.testing.assert_close(stage.training_loss(r), scale * 30.0 * rgb + 2.0 * occ)
-
-    def test_off_by_default_and_refused_when_bad(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        stage = ViewPrediction(grid_resolution=(16, 16, 8), feature_dim=8, image_every_n_steps=0)
-        assert stage.hparams.rgb_warmup_steps == 0
-        r = {"loss": torch.tensor(5.0), "rgb_loss": torch.tensor(0.1)}
-        assert stage.training_loss(r) is r["loss"]  # step 0, no warm-up: the loss as computed
-        for bad in (-1, 2.5, True):
-            with pytest.raises(ValueError, match="rgb_warmup_steps"):
-                ViewPrediction(grid_resolution=(16, 16, 8), feature_dim=8, rgb_warmup_steps=bad)
-
-    def test_the_step_returns_the_unweighted_rgb_loss(self, batch: dict[str, torch.Tensor]) -> None:
-        """``view_prediction_loss`` reports the RGB loss it weighted: rgb_weight * rgb_loss + occ_weight * occ."""
-        torch.manual_seed(0)
-        stage = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0, rgb_weight=7.0, occ_weight=3.0)
-        with torch.no_grad():
-            out = stage(batch)
-            r = stage.view_prediction_loss(out["features"], out["occ_logits"], batch, 1)
-        assert torch.isfinite(r["rgb_loss"]) and torch.isfinite(r["occ_loss"]) and r["rgb_loss"] > 0
-        torch.testing.assert_close(r["loss"], 7.0 * r["rgb_loss"] + 3.0 * r["occ_loss"])
-
-    def test_a_training_step_at_step_0_is_the_occupancy_term_alone(self, batch: dict[str, torch.Tensor]) -> None:
-        """The whole path of a training step (``_step`` then ``training_loss``), not a hand-made dict."""
-        torch.manual_seed(0)
-        stage = ViewPrediction(grid_resolution=(32, 32, 16), image_every_n_steps=0, rgb_weight=7.0, occ_weight=3.0,
-                               rgb_warmup_steps=10)
-        with torch.no_grad():
-            r = stage._step(batch)
-            torch.testing.assert_close(stage.training_loss(r), 3.0 * r["occ_loss"])
-        assert r["rgb_loss"] > 0

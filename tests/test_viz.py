@@ -36,7 +36,7 @@ class TestPng:
         fig = new_figure(figsize=(2, 1), dpi=50)
         fig.add_subplot(1, 1, 1).plot([0, 1], [0, 1])
         assert _decode(write_png(tmp_path / "b.png", fig).read_bytes()).shape == (50, 100, 3)
-        assert _decode(figure_png(fig, dpi=100, tight=False)).shape == (100, 200, 3)
+        assert _decode(figure_png(fig, dpi=100)).shape == (100, 200, 3)
         write_png(tmp_path / "c.png", rgb_png(img))
         assert (tmp_path / "c.png").read_bytes() == rgb_png(img)
         assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png", "c.png"]  # no temporary file left

@@ -63,14 +63,14 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
-def npz_bytes(arrays: Mapping[str, np.ndarray], compress: bool = True) -> bytes:
-    """Serialise arrays to the bytes of an ``.npz`` archive readable by ``numpy.load``.
+def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """Serialise arrays to the bytes of a compressed ``.npz`` archive readable by ``numpy.load``.
 
     Unlike ``numpy.savez_compressed`` the archive is deterministic: entries are written in the given
     order with a fixed timestamp, so the same arrays always give the same bytes.
     """
     buf = io.BytesIO()
-    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    method = zipfile.ZIP_DEFLATED
     with zipfile.ZipFile(buf, mode="w", compression=method) as zf:
         for name, array in arrays.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
@@ -78,5 +78,5 @@ def npz_bytes(arrays: Mapping[str, np.ndarray], compress: bool = True) -> bytes:
             info.external_attr = 0o644 << 16
             member = io.BytesIO()
             np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
-            zf.writestr(info, member.getvalue(), compress_type=method, compresslevel=6 if compress else None)
+            zf.writestr(info, member.getvalue(), compress_type=method, compresslevel=6)
     return buf.getvalue()

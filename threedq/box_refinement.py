@@ -9,9 +9,8 @@ again (two detections snapped onto one observed box become one). A detection no 
 regressed box: the detector still finds what the geometry misses (an object the ground-plane split cuts, a
 partly hidden one); the geometry places what the detector finds.
 
-Why (``docs/studies/detector.md``, "Where the detector loses IoU 0.5"): where a detector box meets an object, its height and
-centre are the error (|log z ratio| 0.08-0.14, centre 2.7-6.1 cm), which the single-view pseudo-boxes do not make
-(they extend every box to the fitted ground plane: 0.00, 0.7-1.4 cm).
+Why (``docs/studies/detector.md``, "Where the detector loses IoU 0.5"): where a detector box meets an object, its
+height and centre are the error, which the single-view pseudo-boxes (extended to the fitted ground plane) do not make.
 
 The observed boxes of one set of views are kept in memory per process (keyed by the bytes of the depth maps,
 intrinsics and poses and the bounds), so an evaluation that sees the same scenes every round computes them once.
@@ -40,8 +39,8 @@ __all__ = ["OBSERVED_PARAMS", "add_flat_boxes", "observed_boxes", "refine_boxes"
 
 #: The pseudo-box parameters of the views a detector sees: the packaged defaults, every view used, a voxel seen
 #: by one view counted (the training pseudo-boxes ask for two views of a voxel; one input view cannot give two), and
-#: the ground margin measured from the ground's own spread in the depth maps (``ground_margin=None``, at least 5 mm:
-#: the fixed 1.5 cm cut 2-3 cm flat objects down to slivers, and these boxes are how the detector reports them, see
+#: the ground margin measured from the ground's own spread in the depth maps (``ground_margin=None``, at least 5 mm,
+#: so that 2-3 cm flat objects keep their height: these boxes are how the detector reports them, see
 #: :func:`add_flat_boxes`).
 OBSERVED_PARAMS = ProposalParams(view_stride=1, min_views=1, ground_margin=None, min_height=None)
 

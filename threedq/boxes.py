@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["aabb_iomin_3d", "aabb_iou_3d", "best_aabb_iou", "aabb_to_corners", "box_corners", "boxes_to_aabb", "nms_3d"]
+__all__ = ["aabb_iomin_3d", "aabb_iou_3d", "best_aabb_iou", "box_corners", "boxes_to_aabb", "nms_3d"]
 
 _SIGNS = np.array([[(i & 1), (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=np.float64) - 0.5
 
@@ -56,18 +56,6 @@ def boxes_to_aabb(boxes: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor
     if isinstance(corners, np.ndarray):
         return np.concatenate([corners.min(axis=-2), corners.max(axis=-2)], axis=-1)
     return torch.cat([corners.amin(dim=-2), corners.amax(dim=-2)], dim=-1)
-
-
-def aabb_to_corners(aabb: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
-    """Corners ``[..., 8, 3]`` of axis-aligned boxes ``[..., 6]`` (same corner order as :func:`box_corners`)."""
-    t, was_numpy = _as_tensor(aabb)
-    if t.shape[-1] != 6:
-        raise ValueError(f"aabb: expected shape [..., 6], got {tuple(t.shape)}")
-    centre = (t[..., :3] + t[..., 3:]) / 2
-    size = t[..., 3:] - t[..., :3]
-    boxes = torch.cat([centre, size, torch.zeros_like(size[..., :1])], dim=-1)
-    out = box_corners(boxes)
-    return out.numpy() if was_numpy else out
 
 
 def _check_aabb_rows(t: torch.Tensor, name: str) -> None:

@@ -25,7 +25,7 @@ LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
 
 #: name -> (help, module, function that runs it). A subcommand's module is imported only when its parser is built, so
-#: ``threedq data ...`` starts without importing Lightning (about 3 s against 7 s on 2 vCPUs).
+#: ``threedq data ...`` starts without importing Lightning.
 _COMMANDS = {
     "data": ("generate, show, check, import or index a dataset", "threedq.pipeline.data_commands", "run_data"),
     "em": ("run the stages in order (view prediction, EM rounds, evaluation)", "threedq.pipeline.em", "run_em"),
@@ -48,8 +48,7 @@ def build_parser(command: str | None = None) -> ArgumentParser:
 
     ``command``: build the parser of that subcommand only (the other subcommands' modules are not imported); ``None``
     or a name that is no subcommand: every subcommand by name and help line only, without its options and without
-    importing its module (``threedq --help`` and an unknown command list every choice in 0.3 s instead of about 9;
-    ``threedq <command> --help`` shows the options).
+    importing its module (``threedq <command> --help`` shows the options).
     """
     parser = ArgumentParser(prog="threedq", description=__doc__.split("\n\n")[0] if __doc__ else None,
                             exit_on_error=False)  # a parse error is one line (main), not the usage
@@ -83,11 +82,9 @@ def one_blas_thread() -> None:
     """Run numpy's and scipy's BLAS on one thread from now on in this process, unless ``OPENBLAS_NUM_THREADS`` is set.
 
     threedq's BLAS calls through numpy are small (RANSAC ground planes, 3 x 3 fits) and come between torch
-    operations, whose OpenMP threads are still spinning when OpenBLAS wakes its own: on 2 cores the two pools fight.
-    ``above_ground_mask`` of a view-prediction step (the balanced loss's foreground) took 21.7 ms against 6.1 ms with
-    one BLAS thread, the same masks bit for bit (``docs/benchmarks.md``, "numpy's BLAS on one thread"). torch's own
-    threads are untouched. threadpoolctl (what scikit-learn uses for this) sets the limit on the BLAS libraries
-    loaded; a process that imports threedq as a library can call this too.
+    operations, whose OpenMP threads are still spinning when OpenBLAS wakes its own: the two pools fight
+    (``docs/benchmarks.md``, "numpy's BLAS on one thread"). torch's own threads are untouched; threadpoolctl sets the
+    limit on the BLAS libraries loaded. A process that imports threedq as a library can call this too.
     """
     if os.environ.get("OPENBLAS_NUM_THREADS"):
         return

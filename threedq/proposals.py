@@ -39,18 +39,9 @@ Pipeline of :func:`propose_boxes` (only ``depth``, ``K``, ``world_T_cam`` and th
    to it) times ``1 - exp(-voxels / score_voxel_scale)`` (small components rank below large ones).
    Proposals are sorted by decreasing score; no NMS is needed (components are disjoint).
 
-Splitting touching objects by colour was not implemented: on clevr_veggie (objects at least 2 cm apart)
-merged objects were not observed at the default 2 cm voxels.
-
-Measured with the defaults on ``clevr_veggie`` (128x128, 28 views, 1-3 objects; IoU of axis-aligned boxes
-against ``boxes_to_aabb`` of the ground truth; AP: greedy VOC matching over the split, all-point): the
-whole test split (250 scenes, 487 objects): recall@0.25 1.000, recall@0.5 0.994, recall@0.7 0.953, mean
-best IoU 0.853, 1.95 proposals per scene, AP@0.25 1.000, AP@0.5 0.994, AP@0.7 0.941; on test scenes
-100-249, not used for tuning: recall@0.5 0.990, AP@0.5 0.990. About 0.2 s per scene on one CPU core
-when measured (``view_stride=2``, the data module's: the same AP@0.5 at about 0.1 s, now 0.08 s on a 2 vCPU Xeon,
-``benchmarks/bench_proposals.py``). Plain point extents without ``dilation``,
-``footprint="min_area_rect"`` or ``round_inflate`` reach only recall@0.5 0.94 and AP@0.5 0.90 (test
-scenes 0-99): round objects and toy airplanes (split into parts) are the failures they fix.
+Touching objects are not split (one component, one box). ``dilation``, ``footprint="min_area_rect"`` and
+``round_inflate`` are what round objects and objects of thin parts (a toy airplane) need; the defaults are tuned on
+the embedded data (AP@0.5 of the pseudo-boxes against the GT boxes' hulls).
 
 :func:`threedq.data.proposal_cache.propose_dataset` runs this over a split of a dataset folder and caches
 the result in a box file (:mod:`threedq.data.box_files`).
@@ -84,7 +75,40 @@ Bounds = tuple[tuple[float, float, float], tuple[float, float, float]]
 
 @dataclass(frozen=True)
 class ProposalParams:
-    """The keyword parameters of :func:`propose_boxes` (defaults tuned on clevr_veggie, AP@0.5).
+    """The keyword parameters of :func:`propose_boxes` (defaults tuned on the embedded data).
+
+    Attributes:
+        view_stride: use views ``0, s, 2s, ...``.
+        pixel_stride: use every ``s``-th pixel row and column.
+        voxel_size: voxel edge, metres (at least; see ``min_voxel_pixels``).
+        min_voxel_pixels: the voxel edge is raised to this many pixel footprints when the depth maps are
+            coarse: ``max(voxel_size, min_voxel_pixels * pixel_stride * median(z / f))`` over the
+            above-ground points (``z`` their depth, ``f`` the focal length in pixels), so that views'
+            samples of a surface still fall in shared voxels. 0 = always ``voxel_size``.
+        ground_margin: points less than this above the ground plane (or below it) are ground. ``None``:
+            measured per scene, ``max(min_ground_margin, 3 sigma)`` with ``sigma`` the robust spread of the ground
+            points' heights about the fitted plane (:func:`~threedq.geometry.ground.ground_spread`): the ground's
+            own thickness in the depth maps, so a clean depth map (a renderer's) keeps objects 1-2 cm tall and a
+            noisy sensor's floor stays ground. The observed boxes a detector is refined against use it
+            (:data:`threedq.box_refinement.OBSERVED_PARAMS`; ``docs/studies/detector.md``); the training pseudo-boxes
+            keep the fixed 1.5 cm (the detector ignores boxes flatter than its ``min_box_height`` in any case).
+        min_ground_margin: the least measured ground margin, metres.
+        ransac_iters, ransac_threshold, ransac_sample, max_ground_tilt_deg: ground-plane RANSAC
+            (see :func:`fit_ground_plane`).
+        min_views: a voxel counts as occupied when points of at least this many views fall in it.
+        dilation: voxels of binary dilation before labelling components (bridges gaps; 0 = none).
+        min_component_voxels: smaller components are dropped.
+        min_height: components whose top is less than this above the ground plane (under the box centre)
+            are dropped. ``None``: the ground margin used plus ``min_rise``.
+        min_rise: see ``min_height``.
+        extent_percentile: per-axis percentile of the points used as the box extents (0 = min/max).
+        xy_padding: the box grows by this much on each side in x and y, metres.
+        footprint: ``"min_area_rect"`` (axis-aligned hull of the footprint's minimum-area rectangle) or
+            ``"aabb"`` (the points' extents) for x and y.
+        round_inflate: scale of the xy extents of round footprints (1 = none), see the module docstring.
+        extend_to_ground: extend each box's ``zmin`` down to the ground plane under its centre.
+        score_voxel_scale: voxel count at which the size factor of the score is ``1 - 1/e``.
+        seed: RANSAC seed.
 
     Convention: lengths in metres, angles in degrees, world z up.
     """
@@ -261,100 +285,10 @@ def _footprint_xy(
     return lo, hi
 
 
-def _empty() -> tuple[np.ndarray, np.ndarray]:
-    return np.zeros((0, 6), np.float32), np.zeros((0,), np.float32)
-
-
-def propose_boxes(
-    record: SceneRecord,
-    *,
-    bounds: Bounds | None = None,
-    view_stride: int = ProposalParams.view_stride,
-    pixel_stride: int = ProposalParams.pixel_stride,
-    voxel_size: float = ProposalParams.voxel_size,
-    min_voxel_pixels: float = ProposalParams.min_voxel_pixels,
-    ground_margin: float | None = ProposalParams.ground_margin,
-    min_ground_margin: float = ProposalParams.min_ground_margin,
-    ransac_iters: int = ProposalParams.ransac_iters,
-    ransac_threshold: float = ProposalParams.ransac_threshold,
-    ransac_sample: int = ProposalParams.ransac_sample,
-    max_ground_tilt_deg: float = ProposalParams.max_ground_tilt_deg,
-    min_views: int = ProposalParams.min_views,
-    dilation: int = ProposalParams.dilation,
-    min_component_voxels: int = ProposalParams.min_component_voxels,
-    min_height: float | None = ProposalParams.min_height,
-    min_rise: float = ProposalParams.min_rise,
-    extent_percentile: float = ProposalParams.extent_percentile,
-    xy_padding: float = ProposalParams.xy_padding,
-    footprint: str = ProposalParams.footprint,
-    round_inflate: float = ProposalParams.round_inflate,
-    extend_to_ground: bool = ProposalParams.extend_to_ground,
-    score_voxel_scale: float = ProposalParams.score_voxel_scale,
-    seed: int = ProposalParams.seed,
+def _propose(
+    record: SceneRecord, bnd: tuple[np.ndarray, np.ndarray] | None, p: ProposalParams
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Class-agnostic 3D box proposals of one scene from its depth maps and poses (see the module docstring).
-
-    Args:
-        record: the scene; only ``depth`` ``[V,H,W]``, ``K`` ``[V,3,3]`` and ``world_T_cam`` ``[V,4,4]`` are read
-            (``rgb`` only for a shape check). Labels (``instance``, ``boxes``, ``categories``) are never read.
-        bounds: ``((xmin, ymin, zmin), (xmax, ymax, zmax))`` scene bounds (``DatasetIndex.scene_bounds``);
-            points outside are ignored. ``None``: no cropping (the grid spans the above-ground points).
-        view_stride: use views ``0, s, 2s, ...``.
-        pixel_stride: use every ``s``-th pixel row and column.
-        voxel_size: voxel edge, metres (at least; see ``min_voxel_pixels``).
-        min_voxel_pixels: the voxel edge is raised to this many pixel footprints when the depth maps are
-            coarse: ``max(voxel_size, min_voxel_pixels * pixel_stride * median(z / f))`` over the
-            above-ground points (``z`` their depth, ``f`` the focal length in pixels), so that views'
-            samples of a surface still fall in shared voxels. 0 = always ``voxel_size``.
-        ground_margin: points less than this above the ground plane (or below it) are ground. ``None``:
-            measured per scene, ``max(min_ground_margin, 3 sigma)`` with ``sigma`` the robust spread of the ground
-            points' heights about the fitted plane (:func:`~threedq.geometry.ground.ground_spread`): the ground's
-            own thickness in the depth maps, so a clean depth map (a renderer's) keeps objects 1-2 cm tall and a
-            noisy sensor's floor stays ground. The observed boxes a detector is refined against use it
-            (:data:`threedq.box_refinement.OBSERVED_PARAMS`: single-view pseudo-boxes of the shifted data mAP@0.5
-            0.613 -> 0.744, the embedded data's unchanged; ``docs/studies/detector.md``); the training pseudo-boxes keep the
-            fixed 1.5 cm (the detector ignores boxes flatter than its ``min_box_height`` in any case).
-        min_ground_margin: the least measured ground margin, metres.
-        ransac_iters, ransac_threshold, ransac_sample, max_ground_tilt_deg: ground-plane RANSAC
-            (see :func:`fit_ground_plane`).
-        min_views: a voxel counts as occupied when points of at least this many views fall in it.
-        dilation: voxels of binary dilation before labelling components (bridges gaps; 0 = none).
-        min_component_voxels: smaller components are dropped.
-        min_height: components whose top is less than this above the ground plane (under the box centre)
-            are dropped. ``None``: the ground margin used plus ``min_rise``.
-        min_rise: see ``min_height``.
-        extent_percentile: per-axis percentile of the points used as the box extents (0 = min/max).
-        xy_padding: the box grows by this much on each side in x and y, metres.
-        footprint: ``"min_area_rect"`` (axis-aligned hull of the footprint's minimum-area rectangle) or
-            ``"aabb"`` (the points' extents) for x and y.
-        round_inflate: scale of the xy extents of round footprints (1 = none), see the module docstring.
-        extend_to_ground: extend each box's ``zmin`` down to the ground plane under its centre.
-        score_voxel_scale: voxel count at which the size factor of the score is ``1 - 1/e``.
-        seed: RANSAC seed.
-
-    Returns:
-        ``aabb`` ``[P,6]`` float32 ``(xmin, ymin, zmin, xmax, ymax, zmax)`` and ``scores`` ``[P]`` float32 in
-        ``(0, 1]``, sorted by decreasing score. A scene without valid depth, or without a ground plane,
-        or with nothing above it gives ``P = 0``.
-
-    Raises:
-        ValueError: naming the field, for malformed input (e.g. NaN depth) or parameters.
-
-    Convention: world frame in metres, z up; depth is camera z-depth with 0 = invalid; OpenCV camera
-    axes, ``world_T_cam`` camera-to-world; integer pixel centres.
-    """
-    p = ProposalParams(
-        view_stride=view_stride, pixel_stride=pixel_stride, voxel_size=voxel_size,
-        min_voxel_pixels=min_voxel_pixels, ground_margin=ground_margin, min_ground_margin=min_ground_margin,
-        ransac_iters=ransac_iters, min_rise=min_rise,
-        ransac_threshold=ransac_threshold, ransac_sample=ransac_sample, max_ground_tilt_deg=max_ground_tilt_deg,
-        min_views=min_views, dilation=dilation, min_component_voxels=min_component_voxels, min_height=min_height,
-        extent_percentile=extent_percentile, xy_padding=xy_padding, footprint=footprint,
-        round_inflate=round_inflate, extend_to_ground=extend_to_ground, score_voxel_scale=score_voxel_scale,
-        seed=seed,
-    )  # fmt: skip
-    _check_record(record)
-    bnd = _check_bounds(bounds)
+    """:func:`propose_boxes` of a checked record with checked bounds ``bnd`` and parameters ``p``."""
     views = np.arange(0, record.depth.shape[0], p.view_stride)
     depth, K, pose = record.depth[views], record.K[views], record.world_T_cam[views]
     n_views = len(views)
@@ -369,56 +303,29 @@ def propose_boxes(
     if plane is None:
         return _empty()
     n, d, _ = plane
-    height = pts @ n + d
-    margin = p.ground_margin
-    if margin is None:  # the ground's own spread about the plane (0 for exact depth)
-        margin = max(p.min_ground_margin, 3.0 * ground_spread(height, p.ransac_threshold))
-    min_height = margin + p.min_rise if p.min_height is None else p.min_height
-    keep = height > margin
-    if bnd is not None:
-        keep &= np.all((pts >= bnd[0]) & (pts <= bnd[1]), axis=1)
-    pts, view, zf = pts[keep], view[keep], zf[keep]
+    pts, view, zf, min_height = _above_ground(pts, view, zf, n, d, bnd, p)
     if pts.shape[0] == 0:
         return _empty()
     vs = max(p.voxel_size, p.min_voxel_pixels * p.pixel_stride * float(np.median(zf)))
-
-    # voxelise; occupancy needs support from >= min_views distinct views
-    origin = bnd[0] if bnd is not None else pts.min(axis=0)
-    ijk = np.floor((pts - origin) / vs).astype(np.int64)
-    ijk = np.maximum(ijk, 0)
-    shape = ijk.max(axis=0) + 1
-    if bnd is not None:
-        shape = np.minimum(shape, np.ceil((bnd[1] - bnd[0]) / vs).astype(np.int64))
-        ijk = np.minimum(ijk, shape - 1)
-    cells = int(np.prod(shape))
-    if cells > _MAX_GRID_CELLS:
-        raise ValueError(
-            f"voxel_size: a grid of {shape.tolist()} voxels is too large ({cells} > {_MAX_GRID_CELLS}); "
-            "pass scene bounds or a larger voxel_size"
-        )
-    # work in the occupied sub-box (plus the dilation's margin): components and boxes do not depend on the
-    # empty voxels around it, and dilating and labelling the whole bounds' grid dominated the cost
-    lo_ijk = np.maximum(ijk.min(axis=0) - p.dilation, 0)
-    ijk = ijk - lo_ijk
-    shape = np.minimum(shape - lo_ijk, ijk.max(axis=0) + 1 + p.dilation)
-    cells = int(np.prod(shape))
-    flat = np.ravel_multi_index(ijk.T, shape)
-    pairs = np.unique(flat * n_views + view)
-    vox_of_pair = pairs // n_views
-    uniq_vox, views_per_vox = np.unique(vox_of_pair, return_counts=True)
-    occ_vox = uniq_vox[views_per_vox >= p.min_views]
-    if occ_vox.size == 0:
+    flat, shape = _voxel_indices(pts, bnd, vs, p.dilation)
+    comps = _components(flat, view, n_views, shape, p.min_views, p.dilation)
+    if comps is None:
         return _empty()
-    occ = np.zeros(cells, dtype=bool)
-    occ[occ_vox] = True
-    occ = occ.reshape(shape)
-    struct = np.ones((3, 3, 3), dtype=bool)
-    grown = ndimage.binary_dilation(occ, structure=struct, iterations=p.dilation) if p.dilation > 0 else occ
-    labels_grid, n_comp = ndimage.label(grown, structure=struct)
-    if n_comp == 0:
-        return _empty()
-    labels_grid = np.where(occ, labels_grid, 0).reshape(-1)
+    labels_grid, n_comp, occ_vox = comps
+    return _component_boxes(pts, view, flat, labels_grid, n_comp, occ_vox, n_views, n, d, min_height, p)
 
+
+def _component_boxes(
+    pts: np.ndarray, view: np.ndarray, flat: np.ndarray, labels_grid: np.ndarray, n_comp: int, occ_vox: np.ndarray,
+    n_views: int, n: np.ndarray, d: float, min_height: float, p: ProposalParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One box per large enough component that rises ``min_height`` above the ground (steps 6-7), sorted by
+    decreasing score: ``aabb`` ``[P,6]`` and ``scores`` ``[P]`` float32.
+
+    Args:
+        pts: ``[N,3]`` above-ground points; ``view`` ``[N]`` their view index; ``flat`` ``[N]`` their flat voxel
+            index; ``labels_grid`` the voxels' component labels (0 = none); ``occ_vox`` the occupied voxels.
+    """
     point_label = labels_grid[flat]  # 0 for points in unoccupied (rejected) voxels
     sel = point_label > 0
     point_label, pts_l, view_l = point_label[sel], pts[sel], view[sel]
@@ -432,28 +339,163 @@ def propose_boxes(
         s0, s1 = starts[lab - 1], starts[lab]
         if s1 <= s0 or vox_count[lab] < p.min_component_voxels:
             continue
-        cp = pts_l[s0:s1]
-        if p.extent_percentile > 0:
-            lo = np.percentile(cp, p.extent_percentile, axis=0)
-            hi = np.percentile(cp, 100 - p.extent_percentile, axis=0)
-        else:
-            lo, hi = cp.min(axis=0), cp.max(axis=0)
-        if p.footprint == "min_area_rect" or p.round_inflate != 1.0:
-            lo[:2], hi[:2] = _footprint_xy(cp[:, :2], lo[:2], hi[:2], p.footprint, p.round_inflate)
-        lo[:2] -= p.xy_padding
-        hi[:2] += p.xy_padding
-        zg = float(_plane_z(n, d, np.array((lo[0] + hi[0]) / 2), np.array((lo[1] + hi[1]) / 2)))
-        if hi[2] - zg < min_height:
-            continue
-        if p.extend_to_ground:
-            lo[2] = min(lo[2], zg)
-        seen = np.unique(view_l[s0:s1]).size / n_views
-        size_factor = 1.0 - math.exp(-vox_count[lab] / p.score_voxel_scale)
-        boxes.append(np.concatenate([lo, hi]))
-        scores.append(max(seen * size_factor, 1e-6))
+        box = _component_box(pts_l[s0:s1], view_l[s0:s1], vox_count[lab], n_views, n, d, min_height, p)
+        if box is not None:
+            boxes.append(box[0])
+            scores.append(box[1])
     if not boxes:
         return _empty()
     aabb = np.asarray(boxes, dtype=np.float32)
     sc = np.asarray(scores, dtype=np.float32)
     order = np.argsort(-sc, kind="stable")
     return aabb[order], sc[order]
+
+
+def _above_ground(
+    pts: np.ndarray, view: np.ndarray, zf: np.ndarray, n: np.ndarray, d: float,
+    bnd: tuple[np.ndarray, np.ndarray] | None, p: ProposalParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The points above the ground margin and inside the bounds (step 3 of the module docstring).
+
+    Args:
+        pts: ``[N,3]`` world points; ``view`` ``[N]`` their view index; ``zf`` ``[N]`` their depth over the focal
+            length (metres per pixel).
+        n, d: the ground plane ``n . x + d = 0`` (``n`` ``[3]`` unit, pointing up).
+        bnd: the scene bounds, or ``None``.
+
+    Returns:
+        The kept ``pts``, ``view`` and ``zf``, and the least height of a component's top (``min_height``, or the
+        ground margin used plus ``min_rise``).
+    """
+    height = pts @ n + d
+    margin = p.ground_margin
+    if margin is None:  # the ground's own spread about the plane (0 for exact depth)
+        margin = max(p.min_ground_margin, 3.0 * ground_spread(height, p.ransac_threshold))
+    min_height = margin + p.min_rise if p.min_height is None else p.min_height
+    keep = height > margin
+    if bnd is not None:
+        keep &= np.all((pts >= bnd[0]) & (pts <= bnd[1]), axis=1)
+    return pts[keep], view[keep], zf[keep], min_height
+
+
+def _voxel_indices(
+    pts: np.ndarray, bnd: tuple[np.ndarray, np.ndarray] | None, vs: float, dilation: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel of each point ``[N,3]`` in a grid of edge ``vs`` anchored at the bounds' minimum (or the points').
+
+    The grid is cut to the occupied sub-box plus ``dilation`` voxels: components and boxes do not depend on the
+    empty voxels around it, and dilating and labelling the whole bounds' grid would dominate the cost.
+
+    Returns:
+        The points' flat voxel indices ``[N]`` and the sub-box's shape ``[3]``.
+
+    Raises:
+        ValueError: the full grid would exceed ``_MAX_GRID_CELLS`` voxels (naming ``voxel_size``).
+    """
+    origin = bnd[0] if bnd is not None else pts.min(axis=0)
+    ijk = np.floor((pts - origin) / vs).astype(np.int64)
+    ijk = np.maximum(ijk, 0)
+    shape = ijk.max(axis=0) + 1
+    if bnd is not None:
+        shape = np.minimum(shape, np.ceil((bnd[1] - bnd[0]) / vs).astype(np.int64))
+        ijk = np.minimum(ijk, shape - 1)
+    cells = int(np.prod(shape))
+    if cells > _MAX_GRID_CELLS:
+        raise ValueError(
+            f"voxel_size: a grid of {shape.tolist()} voxels is too large ({cells} > {_MAX_GRID_CELLS}); "
+            "pass scene bounds or a larger voxel_size"
+        )
+    lo_ijk = np.maximum(ijk.min(axis=0) - dilation, 0)
+    ijk = ijk - lo_ijk
+    shape = np.minimum(shape - lo_ijk, ijk.max(axis=0) + 1 + dilation)
+    return np.ravel_multi_index(ijk.T, shape), shape
+
+
+def _components(
+    flat: np.ndarray, view: np.ndarray, n_views: int, shape: np.ndarray, min_views: int, dilation: int
+) -> tuple[np.ndarray, int, np.ndarray] | None:
+    """Connected components of the voxels seen by at least ``min_views`` distinct views (steps 4-5).
+
+    Args:
+        flat: ``[N]`` flat voxel index of each point in a grid of ``shape``; ``view`` ``[N]`` its view index.
+
+    Returns:
+        The component label of every voxel (flat ``[cells]``; 0 = unoccupied, including voxels only the
+        dilation filled), the number of components and the occupied voxels' flat indices; ``None`` when no
+        voxel is occupied or no component is found.
+    """
+    cells = int(np.prod(shape))
+    pairs = np.unique(flat * n_views + view)
+    vox_of_pair = pairs // n_views
+    uniq_vox, views_per_vox = np.unique(vox_of_pair, return_counts=True)
+    occ_vox = uniq_vox[views_per_vox >= min_views]
+    if occ_vox.size == 0:
+        return None
+    occ = np.zeros(cells, dtype=bool)
+    occ[occ_vox] = True
+    occ = occ.reshape(shape)
+    struct = np.ones((3, 3, 3), dtype=bool)
+    grown = ndimage.binary_dilation(occ, structure=struct, iterations=dilation) if dilation > 0 else occ
+    labels_grid, n_comp = ndimage.label(grown, structure=struct)
+    if n_comp == 0:
+        return None
+    return np.where(occ, labels_grid, 0).reshape(-1), n_comp, occ_vox
+
+
+def _component_box(
+    cp: np.ndarray, cview: np.ndarray, voxels: int, n_views: int, n: np.ndarray, d: float, min_height: float,
+    p: ProposalParams,
+) -> tuple[np.ndarray, float] | None:
+    """The axis-aligned box ``[6]`` and score of one component (steps 6-7), or ``None`` when its top is less than
+    ``min_height`` above the ground plane ``n . x + d = 0`` under the box centre.
+
+    Args:
+        cp: ``[N,3]`` the component's points; ``cview`` ``[N]`` their view indices; ``voxels`` its voxel count.
+    """
+    if p.extent_percentile > 0:
+        lo = np.percentile(cp, p.extent_percentile, axis=0)
+        hi = np.percentile(cp, 100 - p.extent_percentile, axis=0)
+    else:
+        lo, hi = cp.min(axis=0), cp.max(axis=0)
+    if p.footprint == "min_area_rect" or p.round_inflate != 1.0:
+        lo[:2], hi[:2] = _footprint_xy(cp[:, :2], lo[:2], hi[:2], p.footprint, p.round_inflate)
+    lo[:2] -= p.xy_padding
+    hi[:2] += p.xy_padding
+    zg = float(_plane_z(n, d, np.array((lo[0] + hi[0]) / 2), np.array((lo[1] + hi[1]) / 2)))
+    if hi[2] - zg < min_height:
+        return None
+    if p.extend_to_ground:
+        lo[2] = min(lo[2], zg)
+    seen = np.unique(cview).size / n_views
+    size_factor = 1.0 - math.exp(-voxels / p.score_voxel_scale)
+    return np.concatenate([lo, hi]), max(seen * size_factor, 1e-6)
+
+
+def _empty() -> tuple[np.ndarray, np.ndarray]:
+    return np.zeros((0, 6), np.float32), np.zeros((0,), np.float32)
+
+
+def propose_boxes(record: SceneRecord, *, bounds: Bounds | None = None, **params: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Class-agnostic 3D box proposals of one scene from its depth maps and poses (see the module docstring).
+
+    Args:
+        record: the scene; only ``depth`` ``[V,H,W]``, ``K`` ``[V,3,3]`` and ``world_T_cam`` ``[V,4,4]`` are read
+            (``rgb`` only for a shape check). Labels (``instance``, ``boxes``, ``categories``) are never read.
+        bounds: ``((xmin, ymin, zmin), (xmax, ymax, zmax))`` scene bounds (``DatasetIndex.scene_bounds``);
+            points outside are ignored. ``None``: no cropping (the grid spans the above-ground points).
+        **params: the :class:`ProposalParams` fields to set (the others at their defaults).
+
+    Returns:
+        ``aabb`` ``[P,6]`` float32 ``(xmin, ymin, zmin, xmax, ymax, zmax)`` and ``scores`` ``[P]`` float32 in
+        ``(0, 1]``, sorted by decreasing score. A scene without valid depth, or without a ground plane,
+        or with nothing above it gives ``P = 0``.
+
+    Raises:
+        ValueError: naming the field, for malformed input (e.g. NaN depth) or parameters.
+
+    Convention: world frame in metres, z up; depth is camera z-depth with 0 = invalid; OpenCV camera
+    axes, ``world_T_cam`` camera-to-world; integer pixel centres.
+    """
+    p = ProposalParams(**params)
+    _check_record(record)
+    return _propose(record, _check_bounds(bounds), p)

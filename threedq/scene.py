@@ -262,8 +262,7 @@ def _read_npz(path: Path, keys: tuple[str, ...], optional: tuple[str, ...] = ())
 
 def load_scene_boxes(path: str | Path) -> np.ndarray:
     """The ``boxes`` array of a scene ``.npz`` as stored (``[G, 7]`` ``(cx, cy, cz, sx, sy, sz, yaw)``), reading
-    nothing else (0.26 ms a scene of the embedded data here, where :func:`load_scene` takes 14 ms to decompress its
-    28 views). Not validated; errors as :func:`load_scene`'s.
+    nothing else (not the views). Not validated; errors as :func:`load_scene`'s.
 
     Convention: world frame in metres, z up; yaw counter-clockwise about +z.
     """

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from threedq.contrastive import info_nce_plain, info_nce_streamed
-from threedq.stages.mining import shape_agreement, shape_cells
+from threedq.stages.positives import shape_agreement, shape_cells
 
 dev = torch.device("cuda")  # the lent GPU (this script is the device check, not library code)
 g = torch.Generator().manual_seed(0)

@@ -20,9 +20,7 @@ export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
 python3 -c "import torch, lightning, kornia; print(torch.__version__, lightning.__version__, kornia.__version__)"
 timeout 60 python3 benchmarks/device_check/cuda_vs_cpu.py 2>&1 | tee $OUT/cuda_vs_cpu.txt
 timeout 100 python3 benchmarks/bench_infonce.py --device cuda > $OUT/bench_infonce.txt 2>&1
-# device_copy.py puts the repository first on sys.path; run a copy so that the installed threedq is imported
-mkdir -p /tmp/dc/x && cp benchmarks/device_copy.py /tmp/dc/x/
-python3 /tmp/dc/x/device_copy.py unpack .devdata/p128 data/clevr_veggie --workers 16 2>&1 | tail -c 100
+python3 benchmarks/device_copy.py unpack .devdata/p128 data/clevr_veggie --workers 16 2>&1 | tail -c 100
 left=$((BUDGET - SECONDS)); echo "main job, $left s"
 /usr/bin/time -v -o $OUT/em.time timeout $left \
   threedq em --rounds 4 --work_dir runs/gpu --extra_configs trainer/gpu.yaml $VP > $OUT/em.log 2>&1

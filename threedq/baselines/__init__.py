@@ -6,12 +6,10 @@
 """
 
 from threedq.baselines.descriptor import colour_size_descriptor, descriptor_similarity
-from threedq.baselines.pointcloud import PointCloudPrototypes, occupied_points, rotation_aware_similarity
+from threedq.baselines.pointcloud import PointCloudPrototypes
 
 __all__ = [
     "PointCloudPrototypes",
     "colour_size_descriptor",
     "descriptor_similarity",
-    "occupied_points",
-    "rotation_aware_similarity",
 ]

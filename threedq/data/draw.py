@@ -201,6 +201,76 @@ def upscale_nearest(img: np.ndarray, upscale: int) -> np.ndarray:
     return cv2.resize(img, (img.shape[1] * upscale, img.shape[0] * upscale), interpolation=cv2.INTER_NEAREST)
 
 
+def _box_colours(
+    colour: tuple[int, int, int] | Sequence[tuple[int, int, int]] | None, labels: Sequence[str] | None, M: int
+) -> list[tuple[int, int, int]]:
+    """The ``M`` RGB colours of :func:`draw_boxes`'s boxes: one per label (or box id), one for all, or as given."""
+    if colour is None:
+        return [distinct_colour(labels[m] if labels is not None else m + 1) for m in range(M)]
+    if len(colour) == 3 and all(np.isscalar(c) for c in colour):
+        return [tuple(int(c) for c in colour)] * M  # type: ignore[union-attr]
+    if len(colour) != M:
+        raise ValueError(f"colour: expected one RGB triple or {M} of them, got {len(colour)}")
+    return [tuple(int(c) for c in col) for col in colour]  # type: ignore[union-attr]
+
+
+def _draw_wireframe(
+    out: np.ndarray,
+    corners: np.ndarray,
+    K: np.ndarray,
+    pose: np.ndarray,
+    col: tuple[int, int, int],
+    s: int,
+    thickness: int,
+    near: float,
+    heading: bool,
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Draw one box's edges (and its yaw tick with ``heading``) on ``out``, upscaled ``s`` times, in place.
+
+    Args:
+        out: ``[H, W, 3]`` uint8 upscaled image, drawn on.
+        corners: ``[8, 3]`` world-frame corners of the box; ``K`` ``[3, 3]`` intrinsics of the original image;
+            ``pose`` ``[4, 4]`` camera-to-world.
+
+    Returns:
+        The end points (``[2]`` output-pixel coordinates) of the drawn edge segments and of the visible
+        segments of the top face, after near-plane and image clipping.
+    """
+    H, W = out.shape[:2]
+    shift = 4  # cv2 fixed-point fractional bits: sub-pixel line placement
+    lo = np.array([-2.0 * thickness, -2.0 * thickness])
+    hi = np.array([W - 1 + 2.0 * thickness, H - 1 + 2.0 * thickness])
+    offset = (s - 1) / 2.0
+
+    def to_out(p: np.ndarray) -> np.ndarray:
+        return p * s + offset
+
+    def fixed(p: np.ndarray) -> tuple[int, int]:
+        return int(round(p[0] * (1 << shift))), int(round(p[1] * (1 << shift)))
+
+    cam = _to_camera(corners, pose)
+    drawn: list[np.ndarray] = []
+    top: list[np.ndarray] = []
+    for edges, sink in ((BOX_EDGES, drawn), (_TOP_EDGES, top)):
+        for p, q in _visible_segments(cam, K, edges, near):
+            clipped = _clip_segment_2d(to_out(p), to_out(q), lo, hi)
+            if clipped is None:
+                continue
+            sink.extend(clipped)
+            if sink is drawn:
+                cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, thickness, cv2.LINE_AA, shift)
+    if heading:
+        ends = np.stack([corners.mean(axis=0), corners[[1, 3, 5, 7]].mean(axis=0)])
+        ends_cam = _to_camera(ends, pose)
+        if np.all(ends_cam[:, 2] > near):
+            h = ends_cam @ K.T
+            uv = h[:, :2] / h[:, 2:3]
+            clipped = _clip_segment_2d(to_out(uv[0]), to_out(uv[1]), lo, hi)
+            if clipped is not None:
+                cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, max(1, thickness - 1), cv2.LINE_AA, shift)
+    return drawn, top
+
+
 def draw_boxes(
     rgb: np.ndarray,
     boxes: np.ndarray,
@@ -258,55 +328,17 @@ def draw_boxes(
         raise ValueError(f"labels: expected {M} names (one per box), got {len(labels)}")
     if scores is not None and len(scores) != M:
         raise ValueError(f"scores: expected {M} values (one per box), got {len(scores)}")
-    if colour is None:
-        colours = [distinct_colour(labels[m] if labels is not None else m + 1) for m in range(M)]
-    elif len(colour) == 3 and all(np.isscalar(c) for c in colour):
-        colours = [tuple(int(c) for c in colour)] * M  # type: ignore[union-attr]
-    else:
-        if len(colour) != M:
-            raise ValueError(f"colour: expected one RGB triple or {M} of them, got {len(colour)}")
-        colours = [tuple(int(c) for c in col) for col in colour]  # type: ignore[union-attr]
+    colours = _box_colours(colour, labels, M)
 
     out = upscale_nearest(rgb, upscale)
-    s = int(upscale)
     H, W = out.shape[:2]
-    shift = 4  # cv2 fixed-point fractional bits: sub-pixel line placement
-    lo = np.array([-2.0 * thickness, -2.0 * thickness])
-    hi = np.array([W - 1 + 2.0 * thickness, H - 1 + 2.0 * thickness])
-    offset = (s - 1) / 2.0
-
-    def to_out(p: np.ndarray) -> np.ndarray:
-        return p * s + offset
-
-    def fixed(p: np.ndarray) -> tuple[int, int]:
-        return int(round(p[0] * (1 << shift))), int(round(p[1] * (1 << shift)))
-
     if M == 0:
         return out
     corners = box_corners(boxes)  # [M, 8, 3]
     placed: list[tuple[int, int, int, int]] = []
     for m in range(M):
-        cam = _to_camera(corners[m], pose)
         col = colours[m]
-        drawn: list[np.ndarray] = []
-        top: list[np.ndarray] = []
-        for edges, sink in ((BOX_EDGES, drawn), (_TOP_EDGES, top)):
-            for p, q in _visible_segments(cam, K, edges, near):
-                clipped = _clip_segment_2d(to_out(p), to_out(q), lo, hi)
-                if clipped is None:
-                    continue
-                sink.extend(clipped)
-                if sink is drawn:
-                    cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, thickness, cv2.LINE_AA, shift)
-        if heading:
-            ends = np.stack([corners[m].mean(axis=0), corners[m][[1, 3, 5, 7]].mean(axis=0)])
-            ends_cam = _to_camera(ends, pose)
-            if np.all(ends_cam[:, 2] > near):
-                h = ends_cam @ K.T
-                uv = h[:, :2] / h[:, 2:3]
-                clipped = _clip_segment_2d(to_out(uv[0]), to_out(uv[1]), lo, hi)
-                if clipped is not None:
-                    cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, max(1, thickness - 1), cv2.LINE_AA, shift)
+        drawn, top = _draw_wireframe(out, corners[m], K, pose, col, int(upscale), thickness, near, heading)
         text = "" if labels is None else str(labels[m])
         if scores is not None:
             text = f"{text} {float(scores[m]):.2f}".strip()
@@ -318,22 +350,14 @@ def draw_boxes(
     return out
 
 
-def colorize_depth(
-    depth: np.ndarray,
-    vmin: float | None = None,
-    vmax: float | None = None,
-    colormap: int = cv2.COLORMAP_VIRIDIS,
-    percentile: float = 1.0,
-) -> np.ndarray:
-    """Colourise a depth map with a perceptual colormap.
+def colorize_depth(depth: np.ndarray) -> np.ndarray:
+    """Colourise a depth map with viridis (near dark blue, far yellow).
+
+    The valid depths between their 1st and 99th percentiles span the colormap (values outside are clamped), so a few
+    stray far pixels (a window, the horizon) do not flatten the picture.
 
     Args:
         depth: ``[H, W]`` metric depth; ``0`` (or non-finite) is invalid.
-        vmin, vmax: depth range mapped to the colormap ends (values outside are clamped); default the
-            valid range of this image, robustly: its ``percentile`` and ``100 - percentile`` percentiles.
-        colormap: an OpenCV colormap id (default viridis: near dark blue, far yellow).
-        percentile: tail of valid depths (in percent) ignored at each end when picking the default range,
-            so a few stray far pixels (a window, the horizon) do not flatten the picture; 0 = min/max.
 
     Returns:
         ``[H, W, 3]`` uint8 RGB image; invalid pixels are black.
@@ -347,14 +371,11 @@ def colorize_depth(
     out = np.zeros((*d.shape, 3), dtype=np.uint8)
     if not np.any(valid):
         return out
-    p = min(max(float(percentile), 0.0), 50.0)
-    auto_lo, auto_hi = (float(x) for x in np.percentile(d[valid], [p, 100.0 - p]))
-    lo = auto_lo if vmin is None else float(vmin)
-    hi = auto_hi if vmax is None else float(vmax)
+    lo, hi = (float(x) for x in np.percentile(d[valid], [1.0, 99.0]))
     scaled = np.zeros(d.shape, dtype=np.float64)
     scaled[valid] = np.clip((d[valid] - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
     grey = np.clip(np.round(scaled * 255), 0, 255).astype(np.uint8)
-    coloured = cv2.cvtColor(cv2.applyColorMap(grey, colormap), cv2.COLOR_BGR2RGB)
+    coloured = cv2.cvtColor(cv2.applyColorMap(grey, cv2.COLORMAP_VIRIDIS), cv2.COLOR_BGR2RGB)
     out[valid] = coloured[valid]
     return out
 

@@ -83,8 +83,7 @@ _WORKER: dict[str, Any] = {}
 
 def _init_worker(out: str, config_dict: dict[str, Any], raster_threads: int) -> None:
     # Mesa's llvmpipe rasterises with one thread per core by default; with several workers that
-    # oversubscribes the cores (measured: 2 workers x 2 threads on 2 cores ~1.6x slower than x 1).
-    # Read once, when the GL driver loads, i.e. below; a user's own setting wins.
+    # oversubscribes the cores. Read once, when the GL driver loads, i.e. below; a user's own setting wins.
     os.environ.setdefault("LP_NUM_THREADS", str(raster_threads))
     _WORKER.clear()
     _WORKER["out"] = Path(out)
@@ -116,6 +115,97 @@ def _remove_stale_temporaries(folder: Path, min_age_s: float = 3600.0) -> None:
                     p.unlink()
             except OSError:
                 pass
+
+
+def _checked_arguments(
+    num_scenes: int,
+    seed: int,
+    config: GeneratorConfig | None,
+    split_fractions: tuple[float, float, float],
+    test_seed: int | None,
+    splits: Sequence[str],
+    workers: int,
+) -> tuple[GeneratorConfig, tuple[str, ...], tuple[float, ...]]:
+    """Validate :func:`generate_dataset`'s arguments.
+
+    Returns:
+        The config (``None`` replaced by ``GeneratorConfig()``), the requested splits in canonical order and
+        the three split fractions as floats.
+
+    Raises:
+        ValueError: a bad argument (the message names it).
+    """
+    config = GeneratorConfig() if config is None else config
+    if not isinstance(config, GeneratorConfig):
+        raise ValueError(f"config: expected a GeneratorConfig, got {type(config).__name__}")  # noqa: TRY004 - the API promises ValueError naming the argument
+    if not _is_int(num_scenes) or num_scenes < 1:
+        raise ValueError(f"num_scenes: expected an int >= 1, got {num_scenes!r}")
+    if not _is_int(seed) or seed < 0:
+        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
+    if test_seed is not None and (not _is_int(test_seed) or test_seed < 0):
+        raise ValueError(f"test_seed: expected an int >= 0 or None, got {test_seed!r}")
+    if not _is_int(workers) or workers < 1:
+        raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
+    if isinstance(splits, str) or not all(isinstance(s, str) for s in splits):
+        raise ValueError(f"splits: expected a sequence of split names, got {splits!r}")
+    splits = tuple(splits)
+    if not splits or any(s not in SPLITS for s in splits) or len(set(splits)) != len(splits):
+        raise ValueError(f"splits: expected distinct names from {SPLITS}, got {splits!r}")
+    splits = tuple(s for s in SPLITS if s in splits)  # canonical order
+    try:
+        fractions = tuple(float(f) for f in split_fractions)
+    except (TypeError, ValueError):
+        raise ValueError(f"split_fractions: expected 3 numbers (train, val, test), got {split_fractions!r}") from None
+    if len(fractions) != 3 or not all(math.isfinite(f) and f >= 0 for f in fractions):
+        raise ValueError(
+            f"split_fractions: expected 3 non-negative numbers (train, val, test), got {split_fractions!r}"
+        )
+    if sum(fractions[SPLIT_CODES[s]] for s in splits) <= 0:
+        raise ValueError(f"split_fractions: the requested splits {splits} all have fraction 0")
+    return config, splits, fractions
+
+
+def _render_tasks(
+    tasks: list[_Task], out: Path, config: GeneratorConfig, config_hash: str, workers: int, progress: bool
+) -> None:
+    """Keep or (re)write every task's scene file, in this process or in a "spawn" pool of ``workers``."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), disable=not progress, desc="threedq scenes", unit="scene", dynamic_ncols=True)
+    kept = 0
+    try:
+        n_proc = min(workers, len(tasks))
+        main_file = unspawnable_main()
+        if n_proc > 1 and main_file is not None:
+            warnings.warn(
+                f"workers={workers}: the main script {main_file!r} is not a file; rendering in-process", stacklevel=3
+            )
+            n_proc = 1
+        if n_proc <= 1:
+            renderer: list[Renderer] = []
+
+            def get_renderer() -> Renderer:
+                if not renderer:
+                    renderer.append(make_renderer(config))
+                return renderer[0]
+
+            try:
+                for task in tasks:
+                    kept += _run_task(task, out, config, config_hash, get_renderer)[2] == "kept"
+                    bar.update(1)
+            finally:
+                for r in renderer:
+                    r.release()
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            threads = max(1, (os.cpu_count() or 1) // n_proc)
+            with ctx.Pool(n_proc, initializer=_init_worker, initargs=(str(out), config.to_dict(), threads)) as pool:
+                for _, _, status in pool.imap_unordered(_worker_task, tasks, chunksize=1):
+                    kept += status == "kept"
+                    bar.update(1)
+                    bar.set_postfix(kept=kept, refresh=False)
+    finally:
+        bar.close()
 
 
 def generate_dataset(
@@ -152,33 +242,9 @@ def generate_dataset(
 
     Convention: see :mod:`threedq.data.layout`; files are ``out/<split>/scene_<index:06d>.npz``.
     """
-    config = GeneratorConfig() if config is None else config
-    if not isinstance(config, GeneratorConfig):
-        raise ValueError(f"config: expected a GeneratorConfig, got {type(config).__name__}")  # noqa: TRY004 - the API promises ValueError naming the argument
-    if not _is_int(num_scenes) or num_scenes < 1:
-        raise ValueError(f"num_scenes: expected an int >= 1, got {num_scenes!r}")
-    if not _is_int(seed) or seed < 0:
-        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
-    if test_seed is not None and (not _is_int(test_seed) or test_seed < 0):
-        raise ValueError(f"test_seed: expected an int >= 0 or None, got {test_seed!r}")
-    if not _is_int(workers) or workers < 1:
-        raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
-    if isinstance(splits, str) or not all(isinstance(s, str) for s in splits):
-        raise ValueError(f"splits: expected a sequence of split names, got {splits!r}")
-    splits = tuple(splits)
-    if not splits or any(s not in SPLITS for s in splits) or len(set(splits)) != len(splits):
-        raise ValueError(f"splits: expected distinct names from {SPLITS}, got {splits!r}")
-    splits = tuple(s for s in SPLITS if s in splits)  # canonical order
-    try:
-        fractions = tuple(float(f) for f in split_fractions)
-    except (TypeError, ValueError):
-        raise ValueError(f"split_fractions: expected 3 numbers (train, val, test), got {split_fractions!r}") from None
-    if len(fractions) != 3 or not all(math.isfinite(f) and f >= 0 for f in fractions):
-        raise ValueError(
-            f"split_fractions: expected 3 non-negative numbers (train, val, test), got {split_fractions!r}"
-        )
-    if sum(fractions[SPLIT_CODES[s]] for s in splits) <= 0:
-        raise ValueError(f"split_fractions: the requested splits {splits} all have fraction 0")
+    config, splits, fractions = _checked_arguments(
+        num_scenes, seed, config, split_fractions, test_seed, splits, workers
+    )
 
     out = Path(out)
     eff_test_seed = derive_test_seed(seed) if test_seed is None else int(test_seed)
@@ -192,43 +258,7 @@ def generate_dataset(
             _remove_stale_temporaries(out / s)
         config_hash = config.hash()
 
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(tasks), disable=not progress, desc="threedq scenes", unit="scene", dynamic_ncols=True)
-        kept = 0
-        try:
-            n_proc = min(workers, len(tasks))
-            main_file = unspawnable_main()
-            if n_proc > 1 and main_file is not None:
-                warnings.warn(
-                    f"workers={workers}: the main script {main_file!r} is not a file; rendering in-process", stacklevel=2
-                )
-                n_proc = 1
-            if n_proc <= 1:
-                renderer: list[Renderer] = []
-
-                def get_renderer() -> Renderer:
-                    if not renderer:
-                        renderer.append(make_renderer(config))
-                    return renderer[0]
-
-                try:
-                    for task in tasks:
-                        kept += _run_task(task, out, config, config_hash, get_renderer)[2] == "kept"
-                        bar.update(1)
-                finally:
-                    for r in renderer:
-                        r.release()
-            else:
-                ctx = multiprocessing.get_context("spawn")
-                threads = max(1, (os.cpu_count() or 1) // n_proc)
-                with ctx.Pool(n_proc, initializer=_init_worker, initargs=(str(out), config.to_dict(), threads)) as pool:
-                    for _, _, status in pool.imap_unordered(_worker_task, tasks, chunksize=1):
-                        kept += status == "kept"
-                        bar.update(1)
-                        bar.set_postfix(kept=kept, refresh=False)
-        finally:
-            bar.close()
+        _render_tasks(tasks, out, config, config_hash, workers, progress)
 
         index = DatasetIndex(
             categories=list(config.category_names),

@@ -4,8 +4,7 @@ The primitives come from ``trimesh.creation`` (box, 48-sided cylinder, 3-times s
 with their vertices split at sharp edges so that faces keep flat normals there. Scanned meshes
 (16384 faces) are decimated to at most ``max_faces`` faces (default 4096) by quadric edge collapse
 (``trimesh``'s ``simplify_quadric_decimation``, i.e. the ``fast_simplification`` package): at the
-generator's resolutions an object spans tens of pixels and the full scans cost ~4x the render time
-for no visible difference.
+generator's resolutions an object spans tens of pixels.
 
 Every category mesh is normalised so that its axis-aligned bounding box is centred at x = y = 0, its
 bottom is at z = 0 and its largest extent is 1. The generator then scales it uniformly, yaws it

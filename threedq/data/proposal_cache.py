@@ -40,10 +40,8 @@ def propose_dataset(
     cache_path: str | Path,
     *,
     params: ProposalParams | None = None,
-    use_bounds: bool = True,
     max_scenes: int | None = None,
     save_every: int = 50,
-    recompute_corrupt: bool = False,
     progress: bool = True,
     workers: int = 1,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -56,12 +54,10 @@ def propose_dataset(
             :data:`PROPOSALS_VERSION`) is reused: its scenes are not recomputed, missing ones are added
             (so an interrupted run resumes). A cache made with other parameters is recomputed from
             scratch and overwritten (with a warning).
-        params: :class:`ProposalParams` (``None`` = defaults).
-        use_bounds: crop to the ``scene_bounds`` of ``index.json``.
+        params: :class:`ProposalParams` (``None`` = defaults); the points are cropped to the ``scene_bounds`` of
+            ``index.json``.
         max_scenes: only the first ``max_scenes`` scenes of the split (``None`` = all).
         save_every: the cache is rewritten (atomically) after every this many newly computed scenes.
-        recompute_corrupt: a corrupt cache raises ``ValueError`` naming the file (default), or with
-            ``True`` is recomputed with a warning.
         progress: show a tqdm progress bar.
         workers: processes computing scenes at once ("spawn" pool, one thread each; 1 = in this process, as for
             fewer than :data:`MIN_POOL_SCENES` missing scenes or a main script that is not a file). The boxes and
@@ -94,20 +90,13 @@ def propose_dataset(
         if isinstance(max_scenes, bool) or not isinstance(max_scenes, int) or max_scenes < 0:
             raise ValueError(f"max_scenes: expected an int >= 0 or None, got {max_scenes!r}")
         files = files[:max_scenes]
-    bounds = index.scene_bounds if use_bounds else None
+    bounds = index.scene_bounds
     pjson = _params_json(params, bounds)
 
     def read_cache(warn: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         if not cache_path.exists():
             return {}
-        try:
-            cached_params, cached = load_boxes_file_with_params(cache_path)
-        except ValueError as e:
-            if not recompute_corrupt:
-                raise
-            if warn:
-                warnings.warn(f"{e}; recomputing it", stacklevel=3)
-            return {}
+        cached_params, cached = load_boxes_file_with_params(cache_path)  # a corrupt file: ValueError naming it
         if cached_params != pjson:
             if warn:
                 warnings.warn(f"{cache_path}: made with other parameters; recomputing it", stacklevel=3)

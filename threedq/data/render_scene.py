@@ -21,9 +21,9 @@ from threedq.scene import SceneRecord
 __all__ = ["make_renderer", "render_scene"]
 
 
-def make_renderer(config: GeneratorConfig, backend: str | None = None) -> Renderer:
+def make_renderer(config: GeneratorConfig) -> Renderer:
     """A :class:`~threedq.data.render.Renderer` set up for ``config`` (ground, shadows)."""
-    return Renderer(backend=backend, ground_size=config.ground_size, shadows=config.shadows)
+    return Renderer(ground_size=config.ground_size, shadows=config.shadows)
 
 
 def render_scene(layout: SceneLayout, renderer: Renderer) -> SceneRecord:

@@ -53,11 +53,6 @@ def _check_depth(depth: Tensor) -> None:
 def transform_points(a_T_b: Tensor, points: Tensor) -> Tensor:
     """Apply rigid (or any homogeneous) transforms to point sets (``kornia.geometry.linalg.transform_points``).
 
-    Alone at ``[4, 131072, 3]`` kornia's op measures 1.0-1.45x of a local ``baddbmm`` (it allocates more:
-    homogeneous copies), but its hot-path callers (:func:`~threedq.geometry.unproject_rgb`,
-    :func:`depth_to_points`, :func:`~threedq.geometry.occupancy_from_depth`) are not measurably slower with it
-    (0.90-1.01x of the all-local route, ``benchmarks/bench_geometry_kornia.py``), so it stays kornia's.
-
     Args:
         a_T_b: ``[B, 4, 4]`` transforms from frame b to frame a.
         points: ``[B, N, 3]`` points in frame b.
@@ -99,8 +94,7 @@ def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     """Project camera-frame points to pixels.
 
     A local op: ``kornia.geometry.camera.perspective.project_points`` ignores the skew ``K[0, 1]`` (kornia's
-    functional pinhole model is zero-skew) and leaves points with ``|z| <= 1e-8`` undivided; it is also
-    1.2x slower here (``[4, 131072, 3]``, ``benchmarks/bench_geometry_kornia.py``).
+    functional pinhole model is zero-skew) and leaves points with ``|z| <= 1e-8`` undivided.
 
     Args:
         points_cam: ``[B, N, 3]`` points in the camera frame.
@@ -128,8 +122,7 @@ def unproject_depth(depth: Tensor, K: Tensor) -> Tensor:
     """Back-project every pixel of a depth map to a camera-frame point.
 
     A local op on kornia's ``create_meshgrid``: ``kornia.geometry.depth.depth_to_3d_v2`` and
-    ``unproject_points`` ignore the skew ``K[0, 1]``, which this back-projection honours (and are 1.2-1.4x
-    slower at ``[4, 128, 128]``, ``benchmarks/bench_geometry_kornia.py``).
+    ``unproject_points`` ignore the skew ``K[0, 1]``, which this back-projection honours.
 
     Args:
         depth: ``[B, H, W]`` metric z-depth.

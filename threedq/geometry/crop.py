@@ -3,7 +3,7 @@
 Convention:
     Boxes are axis-aligned in the reference frame R (metres, z up): ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
     Volumes are ``[B, C, Z, Y, X]`` on a cell-centred :class:`VoxelGridSpec`; sampling is a local ``grid_sample``
-    with ``align_corners=False`` (kornia's 3D crops are slower here; see :func:`crop_boxes`).
+    with ``align_corners=False``.
 """
 
 from __future__ import annotations
@@ -51,14 +51,10 @@ def sample_volume(volume: Tensor, coords: Tensor) -> Tensor:
     """``F.grid_sample(volume, coords)`` (trilinear, zero padding, ``align_corners=False``), its points spread over
     the CPU's threads when the batch is smaller than their number.
 
-    ATen's CPU kernel for 5-D inputs gives each thread whole batch elements, so one volume's samples (a scene's box
-    crops) run on one core whatever the machine has. Without autograd, each volume's points are cut into as many
-    chunks as it takes to give every thread one, each chunk sampling the same volume (a view for one volume, a copy
-    per chunk for several): every output value is computed by the same arithmetic as in one call, so the result is
-    bitwise ``F.grid_sample``'s (``tests/test_geometry_crop.py``); one scene's fifteen 16^3 crops of a
-    ``[1, 32, 16, 32, 32]`` grid take 26 instead of 42 ms on 2 cores (``benchmarks/bench_geometry_kornia.py``).
-    With autograd (a volume or points that require a gradient) it is one ``F.grid_sample`` call, whose backward
-    accumulates in its own order.
+    ATen's CPU kernel for 5-D inputs gives each thread whole batch elements, so one volume's samples run on one
+    core. Without autograd, each volume's points are cut into as many chunks as it takes to give every thread one,
+    each chunk sampling the same volume: every output value is computed by the same arithmetic as in one call, so
+    the result is bitwise ``F.grid_sample``'s. With autograd it is one ``F.grid_sample`` call.
 
     Args:
         volume: ``[B, C, Z, Y, X]``.
@@ -103,17 +99,10 @@ def crop_boxes(
       :func:`sample_volume` call (``grid_sample``, its points spread over the threads);
     * otherwise :func:`_gather_crops`, which evaluates ``grid_sample``'s CPU arithmetic (the same weights, the
       eight corners added in its order) with each corner a gather of whole channel rows: a box's sample points
-      lie on a lattice, so each axis's indices and weights are computed once per box, and the channels are
-      read as vectors where ATen's kernel loops over them one voxel at a time. On the main job's
-      ``[4, 32, 16, 32, 32]`` features 1.6x faster in float32 and 3.2x in bf16, 2.2x and 4.4x when ``mask`` leaves
-      the padding slots out (``benchmarks/bench_crop_boxes.py``; ``tests/test_geometry_crop.py`` checks the two
-      bitwise against each other).
+      lie on a lattice, so each axis's indices and weights are computed once per box.
 
-    A local op: kornia's ``crop_by_boxes3d`` wants integer voxel boxes of one size per batch, and
-    ``crop_by_transform_mat3d`` / ``warp_affine3d`` (which sample our cell-centred points only with
-    ``align_corners=True``: their 3D normalisation is corner-aligned) take one box per batch element, so the
-    volume is copied per box: 1.2x slower for 3 boxes of the ``[4, 32, 16, 32, 32]`` features (12.8 vs 10.9 ms)
-    and 2x for the ``[4, 4, 32, 64, 64]`` input (4.2 vs 2.1 ms; ``benchmarks/bench_geometry_kornia.py``).
+    A local op: kornia's ``crop_by_boxes3d`` wants integer voxel boxes of one size per batch, and its affine 3D
+    warps are corner-aligned and take one box per batch element.
 
     Args:
         volume: ``[B, C, Z, Y, X]`` feature volume on ``grid``.
@@ -175,8 +164,7 @@ def _sampled_crops(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: tup
     return crops.view(batch, crops.shape[1], n_boxes, *size).transpose(1, 2).contiguous()
 
 
-#: when :func:`_gather_crops` beats ``grid_sample`` (``benchmarks/bench_crop_boxes.py``): volumes of at least this many
-#: channels, whose table (the volume with its border) has at most this many cells per sample point (the table is
+#: when :func:`_gather_crops` beats ``grid_sample``: volumes of at least this many channels, whose table (the volume with its border) has at most this many cells per sample point (the table is
 #: built whole, the samples read only the boxes' part of it)
 _GATHER_MIN_CHANNELS = 16
 _GATHER_MAX_CELLS_PER_POINT = 4
@@ -267,8 +255,7 @@ def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
     of a 0.2 x 0.6 m box stretches the object 3x along x, and a hull rotated by a yaw no longer matches the hull of
     the same object seen at another yaw. ``square`` makes the horizontal extent square (the rotation search turns crops
     about z, so a rotated crop is the same object rotated); ``cube`` makes all three equal. A departure from the paper,
-    which crops the hull (``hull``, the default everywhere). (A cube standing on the box's base instead of about its
-    centre was measured and dropped: docs/studies/quantizer.md, "A cube standing on the box's base".)
+    which crops the hull (``hull``, the default everywhere).
 
     Args:
         boxes: ``[..., 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.

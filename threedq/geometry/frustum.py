@@ -54,13 +54,6 @@ def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
         Pixel centres at integer coordinates: pixel ``u`` covers ``[u - 0.5, u + 0.5)``, so the image edge is at
         ``-0.5`` and a continuous coordinate ``c`` maps to ``(c + 0.5) * s - 0.5``; a 3D point keeps its relative
         position ``(u + 0.5) / W`` in the image.
-
-    Example:
-        >>> K = torch.tensor([[100.0, 0.0, 63.5], [0.0, 100.0, 63.5], [0.0, 0.0, 1.0]])
-        >>> scale_intrinsics(K, 0.5, 0.5)
-        tensor([[50.0000,  0.0000, 31.5000],
-                [ 0.0000, 50.0000, 31.5000],
-                [ 0.0000,  0.0000,  1.0000]])
     """
     if K.ndim < 2 or K.shape[-2:] != (3, 3):
         raise ValueError(f"K must have shape [..., 3, 3], got {tuple(K.shape)}")
@@ -134,9 +127,7 @@ def resample_to_frustum(
     A local op: kornia has no frustum resampler. With depth planes uniform in z the map from frustum sample
     ``(d, v, u)`` to voxel index is not projective (``z_d K^-1 (u, v, 1)`` has ``u * z_d`` terms), so
     ``kornia.geometry.transform.warp_perspective3d`` cannot express it, and kornia's pinhole unprojection
-    (``unproject_meshgrid``) drops the skew that :func:`frustum_points` honours; building the points with
-    kornia (``unproject_meshgrid`` + ``transform_points``) is also 1.08x slower at ``[2, 32, 16, 32, 32]`` to
-    ``32 x 64 x 64`` (``benchmarks/bench_geometry_kornia.py``).
+    (``unproject_meshgrid``) drops the skew that :func:`frustum_points` honours.
 
     Args:
         volume: ``[B, C, Z, Y, X]`` volume on ``grid`` (e.g. the encoder's features on ``grid.half()``).
@@ -158,14 +149,6 @@ def resample_to_frustum(
     Convention:
         Sample ``(d, v, u)`` is at pixel centre ``(u, v)`` (integer pixel coordinates, OpenCV axes) and camera
         z-depth ``z_d = near + (d + 0.5) * (far - near) / D``; one ``grid_sample`` with ``align_corners=False``.
-
-    Example:
-        >>> grid = VoxelGridSpec((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), (8, 8, 8))
-        >>> K = torch.tensor([[[8.0, 0.0, 3.5], [0.0, 8.0, 3.5], [0.0, 0.0, 1.0]]])
-        >>> R_T_cam = torch.eye(4)[None].clone()
-        >>> R_T_cam[0, 2, 3] = -2.0  # camera 2 m behind the grid centre, looking along +z
-        >>> resample_to_frustum(torch.rand(1, 5, 8, 8, 8), grid, K, R_T_cam, (8, 8), (1.0, 3.0), 16).shape
-        torch.Size([1, 5, 16, 8, 8])
     """
     coords, sample_dtype = _frustum_coords(volume, grid, K, R_T_cam, image_size, depth_range, num_planes)
     out = F.grid_sample(
@@ -221,13 +204,10 @@ def frustum_depth_max(
 
     Bit for bit, values and gradient, ``depth_max_pool(resample_to_frustum(...), pool)``
     (:func:`threedq.nets.depth_max_pool`, itself ``F.max_pool3d`` over ``(pool, 1, 1)`` windows). Most of a camera's
-    frustum lies outside the grid (about three quarters of the view decoder's samples on the embedded data), where
-    every sample is an exact zero; a window of ``pool`` samples (one pixel, one group of planes) with no sample within
-    half a voxel of the grid is zero, and is neither sampled nor stored. The other windows' samples are taken by one
-    ``grid_sample`` in the order the whole frustum's would be (plane, then pixel), so the volume's gradient sums the
-    same terms in the same order. About 1.3x faster than the two steps on a CPU (forward and backward) at the decoder's
-    ``[2, 32, 16, 32, 32]`` features to ``32 x 64 x 64`` samples (``docs/benchmarks.md``, "The view decoder's depth
-    max-pool").
+    frustum lies outside the grid, where every sample is an exact zero; a window of ``pool`` samples (one pixel, one
+    group of planes) with no sample within half a voxel of the grid is zero, and is neither sampled nor stored. The
+    other windows' samples are taken by one ``grid_sample`` in the order the whole frustum's would be (plane, then
+    pixel), so the volume's gradient sums the same terms in the same order.
 
     Args:
         volume, grid, K, R_T_cam, image_size, depth_range, num_planes: as for :func:`resample_to_frustum`.

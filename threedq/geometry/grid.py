@@ -53,11 +53,6 @@ class VoxelGridSpec:
         R is right-handed, z up, metres. Volumes are ``[B, C, Z, Y, X]`` = ``[B, C, nz, ny, nx]``; voxel
         ``(k, j, i)`` has its centre at ``bounds_min + (index + 0.5) * voxel_size`` (cell-centred,
         ``align_corners=False``). The grid covers the half-open box ``[bounds_min, bounds_max)``.
-
-    Example:
-        >>> grid = VoxelGridSpec((-1.0, -1.0, 0.0), (1.0, 1.0, 1.0), (8, 8, 4))
-        >>> grid.volume_shape, grid.voxel_size
-        ((4, 8, 8), (0.25, 0.25, 0.25))
     """
 
     bounds_min: tuple[float, float, float]
@@ -136,24 +131,6 @@ class VoxelGridSpec:
         _check_points(points)
         lo, hi = self._bounds(points)
         return 2.0 * (points - lo) / (hi - lo) - 1.0
-
-    def world_to_index(self, points: Tensor) -> Tensor:
-        """Map points in R to continuous voxel indices.
-
-        Args:
-            points: ``[..., 3]`` points ``(x, y, z)`` in R.
-
-        Returns:
-            ``[..., 3]`` float indices ``(i, j, k)`` (x, y, z index).
-
-        Convention:
-            The centre of voxel ``i`` maps to exactly ``i``; voxel ``i`` spans ``[i - 0.5, i + 0.5)``, so the
-            containing voxel is ``floor(index + 0.5)``.
-        """
-        _check_points(points)
-        lo, hi = self._bounds(points)
-        res = torch.tensor(self.resolution, device=points.device, dtype=lo.dtype)
-        return (points - lo) * (res / (hi - lo)) - 0.5
 
     def contains(self, points: Tensor) -> Tensor:
         """Whether points lie inside the grid.

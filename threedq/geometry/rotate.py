@@ -3,7 +3,7 @@
 Convention:
     Volumes are ``[N, C, Z, Y, X]`` in the reference frame R (z up). Yaw is in radians, counter-clockwise
     seen from above (from +z looking down): content at +x moves towards +y. Sampling is a local
-    ``grid_sample`` with ``align_corners=False`` (kornia's warps are slower here; see :func:`rotate_yaw`).
+    ``grid_sample`` with ``align_corners=False``.
 """
 
 from __future__ import annotations
@@ -24,15 +24,9 @@ def rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
     bilinearly interpolated within its z-slice (z is unchanged, so this equals trilinear sampling), zero
     outside the volume. All ``A`` angles are sampled in one ``grid_sample`` call without copying the input.
 
-    A local op. kornia reproduces it exactly only with ``kornia.geometry.transform.rotate`` (2D) on the
-    ``(C, Z)``-folded slices at angle ``-degrees(yaw)`` (its positive angle turns counter-clockwise as displayed,
-    y down) with ``align_corners=False``, but that takes one angle per image, so ``A`` angles cost ``A`` calls (or
-    ``A`` copies of the input): kornia's rotate is 1.26x slower here for 36 yaws of ``[50, 32, 16, 16, 16]``
-    (752 vs 597 ms) and 2x for one yaw per crop (17.9 vs 9.0 ms). ``rotate3d`` / ``affine3d`` / ``warp_affine3d``
-    normalise pixel coordinates corner-aligned whatever ``align_corners`` says, so with ``align_corners=False``
-    a non-square (``X != Y``) slice is mis-scaled; ``align_corners=True`` does sample our cell-centred points
-    (a singleton X or Y axis then clamps instead of padding with zeros), but trilinear 3D sampling of an
-    ``A``-fold batch is 2.8x slower (1887 vs 667 ms). Numbers: ``benchmarks/bench_geometry_kornia.py``, 2 threads.
+    A local op: kornia's 2D ``rotate`` (on the ``(C, Z)``-folded slices at ``-degrees(yaw)``) reproduces it but
+    takes one angle per image, so ``A`` angles cost ``A`` calls or copies; its 3D warps normalise corner-aligned
+    whatever ``align_corners`` says (``benchmarks/bench_geometry_kornia.py`` compares them).
 
     Args:
         volume: ``[N, C, Z, Y, X]`` volumes.

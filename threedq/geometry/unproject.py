@@ -25,7 +25,7 @@ from .camera import (
 )
 from .grid import VoxelGridSpec
 
-__all__ = ["free_space_from_depth", "occupancy_from_depth", "sample_image_at_points", "unproject_rgb", "unproject_rgbd",
+__all__ = ["free_space_from_depth", "occupancy_from_depth", "sample_image_at_points", "unproject_rgb",
            "unproject_rgbd_occupied"]
 
 #: Voxels whose camera depth is at most this (metres) count as behind the camera.
@@ -45,11 +45,8 @@ def _check_grid(grid: VoxelGridSpec) -> None:
 def _voxelize(points: Tensor, keep: Tensor, grid: VoxelGridSpec) -> Tensor:
     """Scatter points into a 0/1 volume.
 
-    One axis at a time: each coordinate's cell ``floor((p - bounds_min) / voxel_size)`` (the same float operations
-    as on the ``[B, N, 3]`` points at once, so the same cells), tested against the grid and folded into a flat int32
-    index (int64 beyond 2^31 cells): a third of the memory traffic of the ``[B, N, 3]`` int64 cells, which the
-    free-space labels' half a million ray samples a step made the cost of the labels (the labels' column of
-    ``benchmarks/bench_viewpred_step.py``). Non-finite points fail the range test and are dropped.
+    One axis at a time: each coordinate's cell ``floor((p - bounds_min) / voxel_size)``, tested against the grid and
+    folded into a flat int32 index (int64 beyond 2^31 cells). Non-finite points fail the range test and are dropped.
 
     Args:
         points: ``[B, N, 3]`` points in R.
@@ -220,42 +217,20 @@ def free_space_from_depth(
     return seen * (1.0 - occupied)
 
 
-def unproject_rgbd(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelGridSpec) -> Tensor:
-    """The 3D encoder input: occupancy and occupancy-masked unprojected RGB.
+def unproject_rgbd_occupied(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelGridSpec) -> Tensor:
+    """The 3D encoder input ``cat[occ, occ * unproject_rgb(rgb)]``, the image gathered only at occupied voxels.
+
+    A depth map occupies at most ``H * W`` voxels, a small part of a large grid, so this skips most of the projection
+    and sampling.
 
     Args:
-        rgb: ``[B, 3, H, W]`` float image.
-        depth: ``[B, H, W]`` metric z-depth, 0 = invalid.
-        K: ``[B, 3, 3]`` pinhole intrinsics.
-        R_T_cam: ``[B, 4, 4]`` camera-to-R poses.
-        grid: the voxel grid in R.
+        rgb: ``[B, 3, H, W]`` float image; depth ``[B, H, W]`` metric z-depth, 0 = invalid; K ``[B, 3, 3]``;
+            R_T_cam ``[B, 4, 4]`` camera-to-R poses; grid: the voxel grid in R.
 
     Returns:
-        ``[B, 4, Z, Y, X]`` = ``cat[occ, occ * unproject_rgb(rgb)]`` (dtype of ``rgb``).
+        ``[B, 4, Z, Y, X]`` (dtype of ``rgb``).
 
-    Convention:
-        As :func:`unproject_rgb` and :func:`occupancy_from_depth`.
-    """
-    if rgb.ndim != 4 or rgb.shape[1] != 3:
-        raise ValueError(f"rgb must have shape [B, 3, H, W], got {tuple(rgb.shape)}")
-    if depth.ndim != 3 or depth.shape != (rgb.shape[0], *rgb.shape[2:]):
-        raise ValueError(
-            f"depth must have shape [B, H, W] = {(rgb.shape[0], *rgb.shape[2:])} to match rgb, got {tuple(depth.shape)}"
-        )
-    occ = occupancy_from_depth(depth.to(rgb.dtype), K, R_T_cam, grid)
-    return torch.cat((occ, occ * unproject_rgb(rgb, K, R_T_cam, grid)), dim=1)
-
-
-def unproject_rgbd_occupied(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelGridSpec) -> Tensor:
-    """:func:`unproject_rgbd`, with the image gathered only at occupied voxels (the others are zero anyway).
-
-    A depth map occupies at most ``H * W`` voxels, a small part of a large grid (at 144^3 and 256^2, 65k of 3M), so
-    this skips most of the projection and sampling; the values are those of :func:`unproject_rgbd`.
-
-    Returns:
-        ``[B, 4, Z, Y, X]`` = ``cat[occ, occ * rgb]``.
-
-    Convention: as :func:`unproject_rgbd`.
+    Convention: as :func:`unproject_rgb` and :func:`occupancy_from_depth`.
     """
     if rgb.ndim != 4 or rgb.shape[1] != 3:
         raise ValueError(f"rgb must have shape [B, 3, H, W], got {tuple(rgb.shape)}")

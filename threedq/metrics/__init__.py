@@ -1,13 +1,6 @@
 """Metrics of the paper's evaluation (torchmetrics ``Metric``s with DDP-correct states, plus functional forms)."""
 
-from threedq.metrics.clustering import (
-    ClusterPurity,
-    HungarianAccuracy,
-    cluster_confusion,
-    hungarian_accuracy,
-    matching,
-    purity,
-)
+from threedq.metrics.clustering import HungarianAccuracy, cluster_confusion, hungarian_accuracy, matching
 from threedq.metrics.detection import DetectionMAP, assign_detections, average_precision, match_detections
 from threedq.metrics.fewshot import (
     FewShotAccuracy,
@@ -30,7 +23,6 @@ from threedq.metrics.retrieval import (
 
 __all__ = [
     "PROTOCOLS",
-    "ClusterPurity",
     "DetectionMAP",
     "FewShotAccuracy",
     "HungarianAccuracy",
@@ -46,7 +38,6 @@ __all__ = [
     "nearest_shot_accuracy",
     "match_detections",
     "matching",
-    "purity",
     "relative_yaw_error",
     "relative_yaw_errors",
     "per_class_precision_at_k",

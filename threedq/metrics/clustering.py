@@ -7,9 +7,6 @@ number of correctly labelled objects, and divides that number by the number of o
 prototypes than categories (the paper uses ``K = 50``) only ``C`` prototypes are matched and the objects of
 every other prototype count as wrong; with fewer prototypes than categories the objects of the ``C - K``
 unmatched categories count as wrong.
-
-:func:`purity` (each prototype takes its majority category, several prototypes may share one) is a
-different, more lenient number: it is what the authors' code logged, not what the paper reports.
 """
 
 from __future__ import annotations
@@ -21,14 +18,7 @@ from scipy.optimize import linear_sum_assignment
 from torch import Tensor
 from torchmetrics import Metric
 
-__all__ = [
-    "ClusterPurity",
-    "HungarianAccuracy",
-    "cluster_confusion",
-    "hungarian_accuracy",
-    "matching",
-    "purity",
-]
+__all__ = ["HungarianAccuracy", "cluster_confusion", "hungarian_accuracy", "matching"]
 
 
 def _check_ids(values: Tensor, name: str, upper: int | None) -> None:
@@ -79,11 +69,6 @@ def cluster_confusion(clusters: Tensor, labels: Tensor, num_clusters: int, num_c
         ValueError: if the inputs are not 1-D integer tensors of one length with ids in range.
 
     Convention: rows are prototypes (clusters), columns are true categories.
-
-    Example:
-        >>> cluster_confusion(torch.tensor([0, 0, 1]), torch.tensor([1, 1, 0]), 2, 2)
-        tensor([[0, 2],
-                [1, 0]])
     """
     _check_pair(clusters, labels, num_clusters, num_classes)
     flat = clusters.long() * num_classes + labels.long()
@@ -109,10 +94,6 @@ def matching(confusion: Tensor) -> tuple[Tensor, Tensor]:
 
     Convention: rows are prototypes, columns are categories; ties between equally good assignments are
     broken by scipy's solver (deterministic).
-
-    Example:
-        >>> matching(torch.tensor([[0, 5], [3, 1], [2, 0]]))
-        (tensor([0, 1]), tensor([1, 0]))
     """
     _check_confusion(confusion)
     rows, cols = linear_sum_assignment(confusion.detach().cpu().double().numpy(), maximize=True)
@@ -135,10 +116,6 @@ def hungarian_accuracy(confusion: Tensor) -> Tensor:
 
     Convention: one-to-one matching; with ``K > C`` the objects of the ``K - C`` unmatched prototypes count
     as wrong, with ``K < C`` the objects of the ``C - K`` unmatched categories count as wrong.
-
-    Example:
-        >>> hungarian_accuracy(torch.tensor([[0, 5], [3, 1], [2, 0]]))
-        tensor(0.7273)
     """
     _check_confusion(confusion)
     total = float(confusion.sum())
@@ -147,36 +124,6 @@ def hungarian_accuracy(confusion: Tensor) -> Tensor:
     rows, cols = matching(confusion)
     matched = float(confusion.detach().cpu().double()[rows, cols].sum())
     return torch.tensor(matched / total, dtype=torch.float32, device=confusion.device)
-
-
-def purity(confusion: Tensor) -> Tensor:
-    """Cluster purity: every prototype takes its majority category (NOT the paper's Hungarian accuracy).
-
-    Several prototypes may take the same category, so ``purity >= hungarian_accuracy`` and it tends to 1 as
-    ``K`` grows (one object per prototype gives 1). The authors' code logged this number; report it only
-    next to, never instead of, :func:`hungarian_accuracy`.
-
-    Args:
-        confusion: ``[K, C]`` non-negative counts (rows prototypes, columns categories).
-
-    Returns:
-        Scalar float32 tensor: ``sum_k max_c confusion[k, c] / N``; ``nan`` when ``N == 0``.
-
-    Raises:
-        ValueError: if ``confusion`` is not a 2-D matrix of non-negative counts.
-
-    Convention: rows are prototypes, columns are categories; many-to-one.
-
-    Example:
-        >>> purity(torch.tensor([[0, 5], [3, 1], [2, 0]]))
-        tensor(0.9091)
-    """
-    _check_confusion(confusion)
-    total = float(confusion.sum())
-    if total == 0 or confusion.shape[1] == 0:
-        return torch.tensor(float("nan"), device=confusion.device)
-    majority = float(confusion.double().max(dim=1).values.sum())
-    return torch.tensor(majority / total, dtype=torch.float32, device=confusion.device)
 
 
 class HungarianAccuracy(Metric):
@@ -194,12 +141,6 @@ class HungarianAccuracy(Metric):
     ids in ``[0, C)``; ``compute()`` returns :func:`hungarian_accuracy` of the summed confusion matrix
     (``nan`` before any object). Each object must be fed exactly once over all processes: a
     ``DistributedSampler`` that pads with repeated samples counts those twice.
-
-    Example:
-        >>> metric = HungarianAccuracy(num_clusters=3, num_classes=2)
-        >>> metric.update(torch.tensor([0, 0, 1, 2]), torch.tensor([1, 1, 0, 0]))
-        >>> metric.compute()
-        tensor(0.7500)
     """
 
     is_differentiable = False
@@ -236,23 +177,3 @@ class HungarianAccuracy(Metric):
     def compute(self) -> Tensor:
         """Hungarian-matched accuracy of all objects seen (scalar tensor)."""
         return hungarian_accuracy(self.confusion)
-
-
-class ClusterPurity(HungarianAccuracy):
-    """Cluster purity over all objects seen (each prototype takes its majority category).
-
-    Same state and ``update`` as :class:`HungarianAccuracy`; ``compute()`` returns :func:`purity`, which is
-    NOT the paper's number (it is many-to-one and reaches 1 with one object per prototype).
-
-    Convention: as :class:`HungarianAccuracy`.
-
-    Example:
-        >>> metric = ClusterPurity(num_clusters=3, num_classes=2)
-        >>> metric.update(torch.tensor([0, 0, 1, 2]), torch.tensor([1, 1, 0, 0]))
-        >>> metric.compute()
-        tensor(1.)
-    """
-
-    def compute(self) -> Tensor:
-        """Purity of all objects seen (scalar tensor)."""
-        return purity(self.confusion)

@@ -15,7 +15,6 @@ dataset-level number.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -71,10 +70,6 @@ def average_precision(scores: Tensor, is_true_positive: Tensor, num_gt: int) -> 
     Convention: detections of equal score enter the curve together (one PR point per distinct score), so the
     result does not depend on their order; with distinct scores this is exactly the PASCAL VOC 2010+
     all-point AP.
-
-    Example:
-        >>> average_precision(torch.tensor([0.9, 0.8, 0.7]), torch.tensor([False, True, True]), 3)  # 2 * (1/3 * 2/3)
-        0.4444444444444444
     """
     _check_scores(scores, "scores")
     _check_scores(is_true_positive.to(torch.float64) if isinstance(is_true_positive, Tensor) else is_true_positive,
@@ -112,12 +107,6 @@ def match_detections(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tensor, 
 
     Returns:
         ``[P]`` bool true-positive flags, in the input order of the detections.
-
-    Example:
-        >>> gt = torch.tensor([[0.0, 0, 0, 1, 1, 1]])
-        >>> pred = torch.tensor([[0.0, 0, 0, 1, 1, 1], [0.05, 0, 0, 1.05, 1, 1]])
-        >>> match_detections(pred, torch.tensor([0.6, 0.9]), gt, 0.5)
-        tensor([False,  True])
     """
     return assign_detections(pred_boxes, pred_scores, gt_boxes, iou_threshold) >= 0
 
@@ -150,12 +139,6 @@ def assign_detections(pred_boxes: Tensor, pred_scores: Tensor, gt_boxes: Tensor,
     Convention: greedy by score, best free GT (COCO-style). The PASCAL VOC devkit differs slightly: it takes
     the best GT among all of them and counts the detection as false positive if that one is already taken.
     Equal scores are visited in index order, equal IoUs go to the lower GT index.
-
-    Example:
-        >>> gt = torch.tensor([[0.0, 0, 0, 1, 1, 1]])
-        >>> pred = torch.tensor([[0.0, 0, 0, 1, 1, 1], [0.05, 0, 0, 1.05, 1, 1]])
-        >>> assign_detections(pred, torch.tensor([0.6, 0.9]), gt, 0.5)
-        tensor([-1,  0])
     """
     _check_aabb_rows(pred_boxes, "pred_boxes")
     _check_scores(pred_scores, "pred_scores", pred_boxes.shape[0])
@@ -193,14 +176,6 @@ def _check_frame_list(items: Any, name: str, keys: tuple[str, ...]) -> None:
                 raise ValueError(f"{name}[{i}] lacks the key {k!r} (needs {list(keys)})")
 
 
-def _check_labels(labels: Any, name: str, length: int) -> None:
-    if not isinstance(labels, Tensor) or labels.ndim != 1 or labels.shape[0] != length:
-        shape = tuple(labels.shape) if isinstance(labels, Tensor) else type(labels).__name__
-        raise ValueError(f"{name}: expected a 1-D integer tensor of shape [{length}], got {shape}")
-    if labels.is_floating_point() or labels.is_complex() or labels.dtype == torch.bool:
-        raise ValueError(f"{name}: expected an integer tensor, got {labels.dtype}")
-
-
 class DetectionMAP(Metric):
     """Dataset-level 3D detection mAP of axis-aligned boxes at several IoU thresholds.
 
@@ -208,9 +183,9 @@ class DetectionMAP(Metric):
     GT boxes seen; this is NOT the mean of per-frame APs that the original authors computed (that average is
     wrong: it weighs frames instead of objects and never compares scores across frames).
 
-    At ``update`` each frame is matched (:func:`match_detections`) once per threshold; the states are the
-    per-detection scores, true-positive flags (``[P, T]`` flattened row-major) and labels, the GT labels
-    (all ``dist_reduce_fx="cat"``), and the GT count (``"sum"``). ``compute`` sorts globally and calls
+    At ``update`` each frame is matched (:func:`match_detections`) once per threshold, class-agnostic; the states
+    are the per-detection scores and true-positive flags (``[P, T]`` flattened row-major; ``dist_reduce_fx="cat"``)
+    and the GT count (``"sum"``). ``compute`` sorts globally and calls
     :func:`average_precision`. The list states are 1-D and of the metric's float dtype (float32 unless
     changed with ``set_dtype(torch.float64)``; scores are thus rounded to float32 by default), like the empty
     tensor torchmetrics substitutes on a process that saw no frame, so the all-gather never mixes dtypes or
@@ -218,10 +193,6 @@ class DetectionMAP(Metric):
 
     Args:
         iou_thresholds: IoU thresholds in ``(0, 1]``; result keys are ``map_<100 t>`` (``0.25`` -> ``map_25``).
-        class_aware: when true, ``update`` needs a ``"labels"`` ``[*]`` int tensor in every pred and target
-            dict; detections only match GT boxes of their label, AP is computed per class and averaged over
-            the classes present in the GT (detections of classes without GT are ignored). When false (default)
-            labels are ignored and the AP is class-agnostic.
         **kwargs: passed to :class:`torchmetrics.Metric`.
 
     Convention: ``update(preds, targets)`` with one entry per frame/scene, ``preds[i] = {"boxes": [P, 6],
@@ -229,15 +200,6 @@ class DetectionMAP(Metric):
     ``(xmin, ymin, zmin, xmax, ymax, zmax)``. ``compute()`` returns ``{"map_25": ..., "map_50": ...,
     "num_gt": ..., "num_det": ...}`` (APs as float32 scalars, ``nan`` without GT boxes; counts int64). Each
     frame must be fed exactly once over all processes.
-
-    Example:
-        >>> metric = DetectionMAP(iou_thresholds=(0.25, 0.5))
-        >>> gt = torch.tensor([[0.0, 0, 0, 1, 1, 1]])
-        >>> metric.update([{"boxes": torch.tensor([[0.0, 0, 0, 1.5, 1, 1]]), "scores": torch.tensor([0.9])}],
-        ...               [{"boxes": gt}])
-        >>> result = metric.compute()  # the detection has IoU 2/3 with the GT box
-        >>> result["map_25"].item(), result["map_50"].item(), result["num_gt"].item()
-        (1.0, 1.0, 1)
     """
 
     is_differentiable = False
@@ -248,13 +210,9 @@ class DetectionMAP(Metric):
 
     det_scores: list[Tensor]
     det_tp: list[Tensor]
-    det_labels: list[Tensor]
-    gt_labels: list[Tensor]
     num_gt: Tensor
 
-    def __init__(
-        self, iou_thresholds: Sequence[float] = (0.25, 0.5), class_aware: bool = False, **kwargs: Any
-    ) -> None:
+    def __init__(self, iou_thresholds: Sequence[float] = (0.25, 0.5), **kwargs: Any) -> None:
         super().__init__(**kwargs)
         if isinstance(iou_thresholds, (str, bytes)) or not isinstance(iou_thresholds, Sequence) or not iou_thresholds:
             raise ValueError(f"iou_thresholds must be a non-empty sequence of numbers, got {iou_thresholds!r}")
@@ -262,33 +220,24 @@ class DetectionMAP(Metric):
         self.keys = tuple(_threshold_key(t) for t in self.iou_thresholds)
         if len(set(self.keys)) != len(self.keys):
             raise ValueError(f"iou_thresholds must be distinct, got {list(iou_thresholds)}")
-        if not isinstance(class_aware, bool):
-            raise TypeError(f"class_aware must be a bool, got {class_aware!r}")
-        self.class_aware = class_aware
         self.add_state("det_scores", default=[], dist_reduce_fx="cat")
         self.add_state("det_tp", default=[], dist_reduce_fx="cat")
-        self.add_state("det_labels", default=[], dist_reduce_fx="cat")
-        self.add_state("gt_labels", default=[], dist_reduce_fx="cat")
         self.add_state("num_gt", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
 
     def update(self, preds: Sequence[Mapping[str, Tensor]], targets: Sequence[Mapping[str, Tensor]]) -> None:
         """Add frames.
 
         Args:
-            preds: one dict per frame: ``"boxes"`` ``[P, 6]``, ``"scores"`` ``[P]`` (and ``"labels"`` ``[P]``
-                int when ``class_aware``).
-            targets: one dict per frame, same length and order: ``"boxes"`` ``[G, 6]`` (and ``"labels"``
-                ``[G]`` int when ``class_aware``).
+            preds: one dict per frame: ``"boxes"`` ``[P, 6]``, ``"scores"`` ``[P]``.
+            targets: one dict per frame, same length and order: ``"boxes"`` ``[G, 6]``.
 
         Raises:
             TypeError: if ``preds`` / ``targets`` are not lists of dicts.
             ValueError: on a missing key, lists of different lengths, or a bad tensor (the message names it,
                 e.g. ``preds[3]['boxes']``). Every frame is checked before any is added.
         """
-        pred_keys = ("boxes", "scores", "labels") if self.class_aware else ("boxes", "scores")
-        gt_keys = ("boxes", "labels") if self.class_aware else ("boxes",)
-        _check_frame_list(preds, "preds", pred_keys)
-        _check_frame_list(targets, "targets", gt_keys)
+        _check_frame_list(preds, "preds", ("boxes", "scores"))
+        _check_frame_list(targets, "targets", ("boxes",))
         if len(preds) != len(targets):
             raise ValueError(f"preds and targets must have one entry per frame each, got {len(preds)} and {len(targets)}")
         # Validate every frame before touching the state, so a bad batch leaves the metric unchanged.
@@ -298,26 +247,16 @@ class DetectionMAP(Metric):
             _check_aabb_rows(boxes, f"preds[{i}]['boxes']")
             _check_scores(scores, f"preds[{i}]['scores']", boxes.shape[0])
             _check_aabb_rows(gt, f"targets[{i}]['boxes']")
-            if self.class_aware:
-                _check_labels(p["labels"], f"preds[{i}]['labels']", boxes.shape[0])
-                _check_labels(t["labels"], f"targets[{i}]['labels']", gt.shape[0])
-                pl, gl = p["labels"].detach().long(), t["labels"].detach().long()
-            else:
-                pl = torch.zeros(boxes.shape[0], dtype=torch.long, device=boxes.device)
-                gl = torch.zeros(gt.shape[0], dtype=torch.long, device=gt.device)
-            frames.append((boxes.detach(), scores.detach(), gt.detach(), pl, gl))
+            frames.append((boxes.detach(), scores.detach(), gt.detach()))
         dev = self.num_gt.device
-        for boxes, scores, gt, pl, gl in frames:
+        for boxes, scores, gt in frames:
             tp = torch.zeros(boxes.shape[0], len(self.iou_thresholds), dtype=torch.bool, device=boxes.device)
-            for c in torch.unique(pl).tolist():
-                pm, gm = pl == c, gl == c
+            if boxes.shape[0]:
                 for k, thr in enumerate(self.iou_thresholds):
-                    tp[pm, k] = match_detections(boxes[pm], scores[pm], gt[gm], thr)
+                    tp[:, k] = match_detections(boxes, scores, gt, thr)
             # 1-D states of the metric's dtype: see the class docstring (DDP gather of a process without data).
             self.det_scores.append(scores.to(dev, self.dtype))
             self.det_tp.append(tp.reshape(-1).to(dev, self.dtype))
-            self.det_labels.append(pl.to(dev, self.dtype))
-            self.gt_labels.append(gl.to(dev, self.dtype))
             self.num_gt += gt.shape[0]
 
     def compute(self) -> dict[str, Tensor]:
@@ -331,19 +270,10 @@ class DetectionMAP(Metric):
             return dim_zero_cat(state).cpu().to(torch.float64)
 
         scores, tp = cat(self.det_scores), cat(self.det_tp).reshape(-1, nt).round().to(torch.bool)
-        det_labels, gt_labels = cat(self.det_labels).round().long(), cat(self.gt_labels).round().long()
         num_gt = int(self.num_gt)
         out: dict[str, Tensor] = {}
         for k, key in enumerate(self.keys):
-            if not self.class_aware:
-                ap = average_precision(scores, tp[:, k], num_gt)
-            else:
-                classes, counts = torch.unique(gt_labels, return_counts=True)
-                aps = []
-                for c, n in zip(classes.tolist(), counts.tolist()):
-                    m = det_labels == c
-                    aps.append(average_precision(scores[m], tp[m, k], n))
-                ap = float(np.mean(aps)) if aps else math.nan
+            ap = average_precision(scores, tp[:, k], num_gt)
             out[key] = torch.tensor(ap, dtype=torch.float32, device=dev)
         out["num_gt"] = torch.tensor(num_gt, dtype=torch.long, device=dev)
         out["num_det"] = torch.tensor(scores.shape[0], dtype=torch.long, device=dev)

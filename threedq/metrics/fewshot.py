@@ -55,10 +55,6 @@ def select_labelled(labels: Tensor, shots: int, seed: int = 0, clusters: Tensor 
         ValueError: if ``shots < 1``.
 
     Convention: categories are visited in increasing id; a category absent from ``labels`` gets no example.
-
-    Example:
-        >>> select_labelled(torch.tensor([0, 0, 0, 1]), shots=2, seed=0).numel()
-        3
     """
     _check_shots(shots)
     labels = labels.long().cpu()
@@ -117,11 +113,6 @@ def few_shot_accuracy(
 
     Convention: a prototype takes the majority label of its labelled members, ties going to the smallest
     label id; accuracy is micro-averaged over objects (not per category).
-
-    Example:
-        >>> out = few_shot_accuracy(torch.tensor([0, 0, 0, 1, 1]), torch.tensor([0, 0, 0, 1, 1]), shots=1)
-        >>> out["accuracy"], out["cluster_labels"]
-        (tensor(1.), tensor([0, 1]))
     """
     _check_pair(clusters, labels, num_clusters, None)
     _check_shots(shots)
@@ -169,12 +160,6 @@ class FewShotAccuracy(Metric):
     Convention: ``update(clusters [N] long, labels [N] long)``, ids in ``[0, K)`` and ``[0, C)``; ``compute()``
     returns the accuracy on the not-labelled objects (scalar; ``nan`` before any object). The result does
     not depend on the order of objects (nor on DDP rank order), but each object must be fed exactly once.
-
-    Example:
-        >>> metric = FewShotAccuracy(num_clusters=2, num_classes=2, shots=1)
-        >>> metric.update(torch.tensor([0, 0, 0, 0]), torch.tensor([0, 0, 1, 1]))  # one label of each: a tie
-        >>> metric.compute()  # prototype 0 takes label 0: of the 2 unlabelled objects, the label-0 one is right
-        tensor(0.5000)
     """
 
     is_differentiable = False

@@ -1,4 +1,4 @@
-"""Relative yaw error of objects assigned to the same prototype (the paper claims poses, but never measured them).
+"""Relative yaw error of objects assigned to the same prototype.
 
 Matching an object to a prototype also yields a yaw (Eq. 1 of the paper: the rotation ``R`` that best aligns
 the object's crop with the prototype). A prototype's canonical pose is arbitrary, so an absolute yaw cannot
@@ -6,25 +6,23 @@ be scored; what can is whether two objects of one category put into the same pro
 *relative* yaw. For every such pair the error is the circular difference between the estimated and the true
 relative yaw, in ``[0, pi]``.
 
-Sign convention (``convention="alignment"``, the default, as produced by ``rotation_max_similarity`` and the
-argmin of Eq. 1): ``y_o`` is the yaw that, applied to object ``o``'s crop with
-:func:`threedq.geometry.rotate_yaw` (counter-clockwise about +z seen from above), aligns it with its
-prototype. If the object is the prototype turned by ``theta_o`` then ``y_o = -theta_o``, so the estimated
-orientation of ``o`` relative to ``p`` is ``theta_o - theta_p = -(y_o - y_p)``, which must equal the true
-``g_o - g_p``::
+Sign convention (as produced by ``rotation_max_similarity`` and the argmin of Eq. 1): ``y_o`` is the yaw that,
+applied to object ``o``'s crop with :func:`threedq.geometry.rotate_yaw` (counter-clockwise about +z seen from
+above), aligns it with its prototype. If the object is the prototype turned by ``theta_o`` then
+``y_o = -theta_o``, so the estimated orientation of ``o`` relative to ``p`` is ``-(y_o - y_p)``, which must equal
+the true ``g_o - g_p``::
 
     error(o, p) = | wrap( -(y_o - y_p) - (g_o - g_p) ) | = | wrap( (y_p + g_p) - (y_o + g_o) ) |
 
-i.e. perfect estimates are exactly those with ``y_o = const - g_o``. With ``convention="orientation"``
-(``y_o`` is the object's own yaw relative to the prototype) the estimated relative yaw is ``y_o - y_p`` and
-perfect estimates are ``y_o = g_o + const``.
+i.e. perfect estimates are exactly those with ``y_o = const - g_o``. Only asymmetric categories (symmetry order
+1) give pairs.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, Literal
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -33,22 +31,16 @@ from torchmetrics.utilities import dim_zero_cat
 
 __all__ = ["RelativeYawError", "relative_yaw_error", "relative_yaw_errors"]
 
-Mode = Literal["exclude_symmetric", "modulo"]
-Convention = Literal["alignment", "orientation"]
-_MODES = ("exclude_symmetric", "modulo")
-_CONVENTIONS = ("alignment", "orientation")
+#: accuracy thresholds of the summary, degrees (inclusive)
+THRESHOLDS_DEG = (10.0, 20.0)
 
 
-def _check_options(symmetry_order: Sequence[int], mode: str, convention: str, max_pairs_per_group: int) -> None:
+def _check_options(symmetry_order: Sequence[int], max_pairs_per_group: int) -> None:
     if isinstance(symmetry_order, (str, bytes)) or not isinstance(symmetry_order, Sequence):
         raise TypeError(f"symmetry_order must be a sequence of ints, one per category, got {symmetry_order!r}")
     for o in symmetry_order:
         if not isinstance(o, int) or isinstance(o, bool) or o < 0:
             raise ValueError(f"symmetry_order entries must be ints >= 0 (0 = continuous), got {list(symmetry_order)}")
-    if mode not in _MODES:
-        raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
-    if convention not in _CONVENTIONS:
-        raise ValueError(f"convention must be one of {_CONVENTIONS}, got {convention!r}")
     if not isinstance(max_pairs_per_group, int) or isinstance(max_pairs_per_group, bool) or max_pairs_per_group < 1:
         raise ValueError(f"max_pairs_per_group must be a positive int, got {max_pairs_per_group!r}")
 
@@ -93,65 +85,43 @@ def relative_yaw_errors(
     categories: Tensor,
     clusters: Tensor,
     symmetry_order: Sequence[int],
-    mode: Mode = "exclude_symmetric",
-    convention: Convention = "alignment",
     max_pairs_per_group: int = 5000,
     seed: int = 0,
 ) -> Tensor:
-    """Relative yaw error of every pair of objects with the same prototype and the same category.
+    """Relative yaw error of every pair of objects of an asymmetric category with the same prototype.
 
     Objects are grouped by (prototype, category). A group of ``m`` objects gives its ``m (m - 1) / 2``
     unordered pairs; if that exceeds ``max_pairs_per_group``, exactly ``max_pairs_per_group`` pairs
     ``(i, j != i)`` are drawn uniformly with replacement from a ``torch.Generator`` seeded with ``seed``
     (groups visited in increasing ``cluster * num_categories + category``, members ordered by their
-    residual ``y +- g``), so the result is deterministic and independent of the order of the objects.
-    Large groups therefore weigh at most ``max_pairs_per_group`` pairs.
+    residual ``y + g``), so the result is deterministic and independent of the order of the objects.
 
     Args:
-        est_yaw: ``[N]`` estimated yaw ``y_o`` in radians (any range).
-        gt_yaw: ``[N]`` ground-truth yaw ``g_o`` in radians, in the frame the crops were cut in.
+        est_yaw: ``[N]`` estimated (alignment) yaw ``y_o`` in radians (any range).
+        gt_yaw: ``[N]`` ground-truth yaw ``g_o`` in radians, in the (z-up) frame the crops were cut in.
         categories: ``[N]`` true category ids in ``[0, len(symmetry_order))``.
         clusters: ``[N]`` prototype ids (``>= 0``).
         symmetry_order: per category, how many yaws in ``[0, 2 pi)`` map the shape onto itself: 1 =
-            asymmetric, ``n >= 2`` = n-fold (2 = 180 deg, 4 = 90 deg), 0 = continuous.
-        mode: ``"exclude_symmetric"``: only categories of order 1 give pairs. ``"modulo"``: order ``n >= 1``
-            categories give pairs whose error is taken modulo ``2 pi / n`` (in ``[0, pi / n]``); order 0 is
-            always excluded.
-        convention: ``"alignment"`` (default): ``rotate_yaw(crop_o, y_o)`` aligns ``o`` with its prototype.
-            ``"orientation"``: ``y_o`` is ``o``'s yaw relative to its prototype.
+            asymmetric, ``n >= 2`` = n-fold, 0 = continuous; only order-1 categories give pairs.
         max_pairs_per_group: cap on the pairs of one (prototype, category) group.
         seed: seed of the pair sampling of capped groups.
 
     Returns:
-        ``[P]`` float64 errors in radians, in ``[0, pi]`` (``[0, pi / n]`` for an n-fold category in
-        ``"modulo"`` mode), grouped by (prototype, category).
+        ``[P]`` float64 errors in radians, in ``[0, pi]``, grouped by (prototype, category).
 
     Raises:
         ValueError: on malformed inputs or options.
-
-    Convention:
-        Yaw is counter-clockwise about +z seen from above, radians. With ``"alignment"`` the estimated
-        relative orientation of ``o`` w.r.t. ``p`` is ``-(y_o - y_p)`` and the error is
-        ``|wrap((y_p + g_p) - (y_o + g_o))|``; with ``"orientation"`` it is ``y_o - y_p`` and the error is
-        ``|wrap((y_o - g_o) - (y_p - g_p))|``. ``g`` must be measured in the same (z-up) frame as the crop
-        that was rotated, e.g. world yaw minus that scene's reference-frame yaw.
-
-    Example:
-        >>> g = torch.tensor([0.0, 1.0, 2.0])
-        >>> y = 0.5 - g  # alignment yaws of rotated copies of one shape: perfect
-        >>> relative_yaw_errors(y, g, torch.tensor([0, 0, 0]), torch.tensor([3, 3, 3]), [1]).abs().max() < 1e-12
-        tensor(True)
     """
-    _check_options(symmetry_order, mode, convention, max_pairs_per_group)
+    _check_options(symmetry_order, max_pairs_per_group)
     _check_inputs(est_yaw, gt_yaw, categories, clusters, len(symmetry_order))
     est, gt = est_yaw.detach().cpu().double(), gt_yaw.detach().cpu().double()
     cats, clus = categories.detach().cpu().long(), clusters.detach().cpu().long()
     orders = torch.tensor(list(symmetry_order), dtype=torch.long)
 
-    residual = est + gt if convention == "alignment" else est - gt  # constant within a group when perfect
+    residual = est + gt  # constant within a group when perfect
     order_o = orders[cats] if cats.numel() else torch.zeros(0, dtype=torch.long)
-    keep = order_o == 1 if mode == "exclude_symmetric" else order_o >= 1
-    residual, cats, clus, order_o = residual[keep], cats[keep], clus[keep], order_o[keep]
+    keep = order_o == 1
+    residual, cats, clus = residual[keep], cats[keep], clus[keep]
     if residual.numel() < 2:
         return torch.zeros(0, dtype=torch.float64)
 
@@ -159,7 +129,7 @@ def relative_yaw_errors(
     key = clus * len(symmetry_order) + cats
     by_residual = torch.sort(residual, stable=True).indices
     perm = by_residual[torch.sort(key[by_residual], stable=True).indices]
-    residual, key, order_o = residual[perm], key[perm], order_o[perm]
+    residual, key = residual[perm], key[perm]
     _, counts = torch.unique_consecutive(key, return_counts=True)
 
     gen = torch.Generator().manual_seed(seed)
@@ -175,13 +145,12 @@ def relative_yaw_errors(
                 i = torch.randint(m, (max_pairs_per_group,), generator=gen)
                 j = torch.randint(m - 1, (max_pairs_per_group,), generator=gen)
                 j = j + (j >= i).long()  # uniform over j != i
-            period = 2 * math.pi / int(order_o[start])
-            errors.append(_circular_distance(r[j] - r[i], period))
+            errors.append(_circular_distance(r[j] - r[i], 2 * math.pi))
         start += m
     return torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
 
 
-def _summary(errors: Tensor, thresholds_deg: Sequence[float]) -> dict[str, Tensor]:
+def _summary(errors: Tensor) -> dict[str, Tensor]:
     deg = torch.rad2deg(errors)
     n = deg.numel()
     out: dict[str, Tensor] = {}
@@ -191,7 +160,7 @@ def _summary(errors: Tensor, thresholds_deg: Sequence[float]) -> dict[str, Tenso
         out["median_deg"] = median.float()
     else:
         out["median_deg"] = torch.tensor(float("nan"))
-    for t in thresholds_deg:
+    for t in THRESHOLDS_DEG:
         # 1e-6 deg of slack: an estimate exactly one 10-deg bin off counts as within 10 deg.
         out[f"acc_{t:g}"] = (deg <= t + 1e-6).double().mean().float() if n else torch.tensor(float("nan"))
     out["num_pairs"] = torch.tensor(n, dtype=torch.long)
@@ -204,45 +173,19 @@ def relative_yaw_error(
     categories: Tensor,
     clusters: Tensor,
     symmetry_order: Sequence[int],
-    mode: Mode = "exclude_symmetric",
-    convention: Convention = "alignment",
     max_pairs_per_group: int = 5000,
     seed: int = 0,
-    thresholds_deg: Sequence[float] = (10.0, 20.0),
 ) -> dict[str, Tensor]:
-    """Summary of :func:`relative_yaw_errors`: median error in degrees, accuracy within thresholds, pairs.
-
-    Args:
-        est_yaw: ``[N]`` estimated yaw in radians (see ``convention``).
-        gt_yaw: ``[N]`` ground-truth yaw in radians.
-        categories: ``[N]`` true category ids.
-        clusters: ``[N]`` prototype ids.
-        symmetry_order: per category: 1 asymmetric, ``n >= 2`` n-fold, 0 continuous.
-        mode: ``"exclude_symmetric"`` or ``"modulo"`` (see :func:`relative_yaw_errors`).
-        convention: ``"alignment"`` or ``"orientation"`` (see :func:`relative_yaw_errors`).
-        max_pairs_per_group: cap on the pairs of one (prototype, category) group.
-        seed: seed of the pair sampling of capped groups.
-        thresholds_deg: accuracy thresholds in degrees (inclusive).
+    """Summary of :func:`relative_yaw_errors` (same arguments): median error in degrees, accuracy within
+    :data:`THRESHOLDS_DEG`, pairs.
 
     Returns:
-        ``{"median_deg": float32 scalar, "acc_10": float32, "acc_20": float32, "num_pairs": int64}`` (one
-        ``acc_{t:g}`` key per threshold); ``median_deg`` and the accuracies are ``nan`` without pairs.
-
-    Raises:
-        ValueError: on malformed inputs or options.
-
-    Convention: as :func:`relative_yaw_errors`; the median of an even count averages the two middle values.
-
-    Example:
-        >>> g = torch.tensor([0.0, 1.0, 2.0])
-        >>> out = relative_yaw_error(-g, g, torch.tensor([0, 0, 0]), torch.tensor([0, 0, 0]), [1])
-        >>> out["acc_10"], out["num_pairs"]
-        (tensor(1.), tensor(3))
+        ``{"median_deg": float32 scalar, "acc_10": float32, "acc_20": float32, "num_pairs": int64}``;
+        ``median_deg`` and the accuracies are ``nan`` without pairs. The median of an even count averages the two
+        middle values.
     """
-    errors = relative_yaw_errors(
-        est_yaw, gt_yaw, categories, clusters, symmetry_order, mode, convention, max_pairs_per_group, seed
-    )
-    return _summary(errors, thresholds_deg)
+    return _summary(relative_yaw_errors(est_yaw, gt_yaw, categories, clusters, symmetry_order, max_pairs_per_group,
+                                        seed))
 
 
 class RelativeYawError(Metric):
@@ -255,24 +198,14 @@ class RelativeYawError(Metric):
     Args:
         symmetry_order: per category: 1 asymmetric, ``n >= 2`` n-fold, 0 continuous (``DatasetIndex.
             symmetry_order``).
-        mode: ``"exclude_symmetric"`` (default: only order-1 categories) or ``"modulo"``.
-        convention: ``"alignment"`` (default) or ``"orientation"``, the meaning of the estimated yaw.
         max_pairs_per_group: cap on the pairs of one (prototype, category) group.
         seed: seed of the pair sampling of capped groups.
-        thresholds_deg: accuracy thresholds in degrees.
         **kwargs: passed to :class:`torchmetrics.Metric`.
 
     Convention: ``update(est_yaw [N] float, gt_yaw [N] float, categories [N] long, clusters [N] long)``, yaws in
     radians counter-clockwise about +z; see :func:`relative_yaw_errors` for the sign convention.
     ``compute()`` returns the dict of :func:`relative_yaw_error` (log it with ``log_dict``, not ``log``).
     The result does not depend on the order of objects; each object must be fed exactly once.
-
-    Example:
-        >>> metric = RelativeYawError(symmetry_order=[1, 0])
-        >>> g = torch.tensor([0.0, 1.0, 2.0, 0.5])
-        >>> metric.update(0.3 - g, g, torch.tensor([0, 0, 0, 1]), torch.tensor([0, 0, 0, 0]))
-        >>> metric.compute()["num_pairs"]  # category 1 is continuous: excluded
-        tensor(3)
     """
 
     is_differentiable = False
@@ -287,21 +220,15 @@ class RelativeYawError(Metric):
     def __init__(
         self,
         symmetry_order: Sequence[int],
-        mode: Mode = "exclude_symmetric",
-        convention: Convention = "alignment",
         max_pairs_per_group: int = 5000,
         seed: int = 0,
-        thresholds_deg: Sequence[float] = (10.0, 20.0),
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
-        _check_options(symmetry_order, mode, convention, max_pairs_per_group)
+        _check_options(symmetry_order, max_pairs_per_group)
         self.symmetry_order = [int(o) for o in symmetry_order]
-        self.mode = mode
-        self.convention = convention
         self.max_pairs_per_group = max_pairs_per_group
         self.seed = seed
-        self.thresholds_deg = tuple(float(t) for t in thresholds_deg)
         for name in ("est_yaw", "gt_yaw", "categories", "clusters"):
             self.add_state(name, default=[], dist_reduce_fx="cat")
 
@@ -309,7 +236,7 @@ class RelativeYawError(Metric):
         """Add a batch of objects.
 
         Args:
-            est_yaw: ``[N]`` estimated yaw in radians (see ``convention``).
+            est_yaw: ``[N]`` estimated (alignment) yaw in radians.
             gt_yaw: ``[N]`` ground-truth yaw in radians, in the frame the crops were cut in.
             categories: ``[N]`` true category ids in ``[0, len(symmetry_order))``.
             clusters: ``[N]`` prototype ids (``>= 0``).
@@ -323,10 +250,9 @@ class RelativeYawError(Metric):
     def compute(self) -> dict[str, Tensor]:
         """``{"median_deg", "acc_<t>" per threshold, "num_pairs"}`` over all objects seen."""
         if isinstance(self.est_yaw, list) and not self.est_yaw:
-            return _summary(torch.zeros(0, dtype=torch.float64), self.thresholds_deg)
+            return _summary(torch.zeros(0, dtype=torch.float64))
         errors = relative_yaw_errors(
             dim_zero_cat(self.est_yaw), dim_zero_cat(self.gt_yaw), dim_zero_cat(self.categories),
-            dim_zero_cat(self.clusters), self.symmetry_order, self.mode, self.convention,
-            self.max_pairs_per_group, self.seed,
+            dim_zero_cat(self.clusters), self.symmetry_order, self.max_pairs_per_group, self.seed,
         )
-        return _summary(errors, self.thresholds_deg)
+        return _summary(errors)

@@ -141,7 +141,6 @@ class ViewDecoder(nn.Module):
                 f"pooled frustum must have shape [B, {self.in_channels}, {groups}, h, w], got {tuple(pooled.shape)}"
             )
         # the first 3D conv in float32 even under autocast: its bf16 weight gradient comes out NaN on oneDNN CPU
-        # (torch 2.13; seen on the first backward of view prediction with trainer.precision=bf16-mixed)
         with torch.autocast(pooled.device.type, enabled=False):
             x = self.act(self.conv3d(pooled.float()))  # [B, hidden, D / pool, h, w]
         x = x.reshape(x.shape[0], -1, x.shape[-2], x.shape[-1])  # [B, hidden * D / pool, h, w], channel-major

@@ -3,7 +3,7 @@
 * 2.5DQ-Nets (supplement; Tables 1 and 4, Fig. 3a): a trained :class:`~threedq.stages.q25d.Q25D` checkpoint
   (``--q25d``) crops every object out of its 2D feature map; a K-prototype bank is fitted on the training
   split's crops by :func:`~threedq.quantization.prototypes.fit_prototype_bank` (the same EM as every bank here;
-  one-slice crops make its yaw search an in-plane search, :mod:`threedq.quantization.inplane`) and the test
+  one-slice crops make its yaw search an in-plane search) and the test
   crops are scored by :func:`~threedq.pipeline.evaluation.quantization_metrics` (Hungarian, few-shot).
 * ImageNet ResNet-18 (Tables 1 and 2): torchvision ResNet-18 weights from a file (``--weights``), ``layer4``
   features average-pooled in each projected GT box (:func:`~threedq.baselines.imagenet.object_features`); or, where
@@ -96,8 +96,7 @@ def collect_q25d_crops(model: Q25D, loader: torch.utils.data.DataLoader, progres
 
 @torch.no_grad()
 def collect_resnet_features(
-    net: torch.nn.Module, loader: torch.utils.data.DataLoader, input_size: int = 224, progress: bool = True,
-    view: int = 0,
+    net: torch.nn.Module, loader: torch.utils.data.DataLoader, progress: bool = True, view: int = 0,
 ) -> dict[str, Tensor]:
     """ImageNet box-pooled features of every GT object of ``loader`` in one view.
 
@@ -124,7 +123,7 @@ def collect_resnet_features(
             raise ValueError(f"view {view}: the loader's samples hold {rgb.shape[1]} view(s)")
         rgb = rgb[:, view]
         boxes2d, visible = project_boxes_2d(boxes, K[:, view], pose[:, view], rgb.shape[-2:])
-        f = object_features(net, rgb, boxes2d, input_size)
+        f = object_features(net, rgb, boxes2d)
         mask = batch["box_mask"].to(device)
         out["features"].append(f[mask].cpu())
         out["labels"].append(batch["categories"][batch["box_mask"]])

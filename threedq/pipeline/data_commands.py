@@ -179,7 +179,7 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
                    "max_dt": args.max_dt}
         try:
             summary = import_captures(args.format, args.src, args.out, split=args.split, max_views=args.max_views,
-                                      max_depth=args.max_depth, parser_options=options, progress=args.progress)
+                                      max_depth=args.max_depth, reader_options=options, progress=args.progress)
         except InputError:
             raise
         except ValueError as e:  # an option that does not apply to the format

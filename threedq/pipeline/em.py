@@ -59,11 +59,13 @@ import json
 import platform
 import shutil
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import torch
+from jsonargparse.typing import NonNegativeInt
 
 from threedq.atomic_io import atomic_write_json, atomic_write_text
 from threedq.data.box_files import load_boxes_file
@@ -75,6 +77,7 @@ from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.lightning_cli import (
     DEFAULT_DATA_CONFIG, ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint,
 )
+from threedq.pipeline.presets import stage_presets
 from threedq.pipeline.overrides import stage_overrides
 from threedq.pipeline.precision import bf16_is_native as _bf16_is_native
 from threedq.pipeline.report import evaluate_quantizer
@@ -122,11 +125,8 @@ def _remove_torn_writes(work: Path) -> None:
 def _frees_its_stage(fn: Callable[..., Any]) -> Callable[..., Any]:
     """Run ``fn`` (one stage or evaluation through a ``ThreeDQCLI``), then free what it built.
 
-    A stage's LightningModule, Trainer, DataModule and CLI reference one another, so when ``fn`` returns they are
-    garbage only the cyclic collector frees, and it runs on counts of Python objects, not on bytes: a module holding
-    large tensors (a self-labelling stage's pool grids, 1.4 GiB on the embedded data) outlived its stage by several
-    stages, and a four-round run's memory grew by 1-2 GiB a round (peak 16.3-19.1 GiB where one round needs about
-    10; ``docs/studies/budget.md``). Collecting after every stage keeps one stage's memory at a time (plus the crop cache).
+    A stage's LightningModule, Trainer, DataModule and CLI reference one another, so only the cyclic collector frees
+    them, and it runs on object counts, not bytes: collecting after every stage keeps one stage's memory at a time.
     """
 
     @functools.wraps(fn)
@@ -141,12 +141,8 @@ def _frees_its_stage(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 @contextlib.contextmanager
 def _old_objects_frozen() -> Iterator[None]:
-    """Leave the objects that exist before the run (imported modules and their data: about 430k objects) out of the
-    collections :func:`_frees_its_stage` runs, and hand them back to the collector when the run ends.
-
-    A full collection then walks the run's own objects only: 14 collections of a tiny ``run_em(rounds=2)`` took 3.2 s
-    of its 13.4 with everything walked, 0.2 s frozen (``gc.freeze``; the tests run dozens of such runs).
-    """
+    """Leave the objects that exist before the run (imported modules and their data) out of the collections
+    :func:`_frees_its_stage` runs (``gc.freeze``), and hand them back to the collector when the run ends."""
     gc.collect()  # garbage from before the run is freed now, not frozen with the rest
     gc.freeze()
     try:
@@ -304,8 +300,250 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
     return rows
 
 
+def _precisions(frozen_precision: str) -> tuple[str, dict[str, Any]]:
+    """The precision of the stages reading a frozen encoder (``auto`` resolved: bf16 where it is native) and the
+    trainer overrides of mining (none, or fp32 where bf16 would be emulated)."""
+    mining_trainer: dict[str, Any] = {}  # mining keeps its config's precision (bf16-mixed) ...
+    if frozen_precision == "auto":
+        native = _bf16_is_native()
+        frozen_precision = "bf16-mixed" if native else "32-true"
+        if not native:  # ... unless bf16 would be emulated here (about 2x the float32 time)
+            mining_trainer = {"precision": "32-true"}
+    return frozen_precision, mining_trainer
+
+
+@dataclass(frozen=True)
+class _RunConfigs:
+    """The resolved configs of every stage of a run, each stage's own followed by the data and extra configs.
+
+    ``m`` is empty when mining is off (``mine``), ``sl`` when self-labelling is off (``relabel``), ``d`` without
+    detection; ``vp_overrides`` are the view-prediction stage's overrides.
+    """
+
+    vp: list[Path]
+    q: list[Path]
+    m: list[Path]
+    sl: list[Path]
+    d: list[Path]
+    vp_overrides: list[str]
+    mine: bool
+    relabel: bool
+
+
+def _resolve_configs(
+    config: str, quantizer_config: str, detector_config: str, mining_config: str | None,
+    self_labelling_config: str | None, data_config: str | None, extra_configs: list[str] | str | None,
+    detection: bool, max_steps: int | None,
+) -> _RunConfigs:
+    """Resolve the configs of every stage (see :func:`run_em`'s arguments) and check now, not when each stage starts,
+    every argument the rounds hand a stage against the stage's class."""
+    if isinstance(extra_configs, (str, Path)):
+        extra_configs = [str(extra_configs)]
+    extra = [resolve_config(c) for c in ([data_config] if data_config else []) + list(extra_configs or [])]
+    vp_configs = [resolve_config(config), *extra]
+    q_configs = [resolve_config(quantizer_config), *extra]
+    if mining_config is None:  # the data's preset (threedq.pipeline.presets)
+        mining_config = stage_presets(extra).get("mining", "stages/mining.yaml")
+    mine = mining_config not in ("", "none")
+    m_configs = [resolve_config(mining_config), *extra] if mine else []
+    relabel = detection and self_labelling_config not in (None, "", "none")
+    sl_configs = [resolve_config(self_labelling_config), *extra] if relabel else []
+    overrides = stage_overrides(vp_configs, trainer={"max_steps": max_steps} if max_steps is not None else None)
+    d_configs = [resolve_config(detector_config), *extra] if detection else []
+    for cfgs, model_args, data_args in ((d_configs, ("encoder_ckpt",), ()),
+                                        (q_configs, ("encoder_ckpt", "init_bank_ckpt"), ("boxes",)),
+                                        (m_configs, ("encoder_ckpt", "em_round"), ("boxes",)),
+                                        (sl_configs, ("encoder_ckpt", "bank_ckpt", "detector_ckpt"), ())):
+        if cfgs:
+            stage_overrides(cfgs, model=dict.fromkeys(model_args), data=dict.fromkeys(data_args))
+    return _RunConfigs(vp_configs, q_configs, m_configs, sl_configs, d_configs, overrides, mine, relabel)
+
+
+def _warm_start_detector(
+    cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, prec: dict[str, Any], resume: bool, crop_cache: CropCache,
+    boxes: str, rounds: int,
+) -> tuple[StageRecord, dict[str, Any], tuple[str, ...], dict[str, Any]]:
+    """Train the detector on label-free pseudo-boxes and evaluate it.
+
+    Returns:
+        Its stage record, its evaluation, the splits whose detections the rounds read, and round 1's DataModule
+        boxes (the detections handed on with ``boxes="detections"``, else empty: GT).
+    """
+    d_configs = cfg.d
+    det = _fit_stage("detector", d_configs, layout.detector,
+                     stage_overrides(d_configs, model={"encoder_ckpt": vp_ckpt}, trainer=prec), resume, crop_cache)
+    # detections of every split only when the rounds take their boxes from the detector
+    det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
+    det_eval = _evaluate_detector(d_configs, det.path, layout.detector_eval, det_splits,
+                                  stage_overrides(d_configs, trainer=prec),
+                                  crop_cache=crop_cache)
+    print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
+          f"detector {det_eval['detector']['map_50']:.3f}")
+    boxes_of_round: dict[str, Any] = {}
+    if boxes == "detections" and rounds:
+        _check_handed_on(layout.detector_eval, ("train", "test"))
+        boxes_of_round = {"boxes": layout.detections(layout.detector_eval)}
+    return det, det_eval, det_splits, boxes_of_round
+
+
+def _round0(
+    cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, boxes_of_round: dict[str, Any], prec: dict[str, Any],
+    resume: bool, crop_cache: CropCache,
+) -> dict[str, Any]:
+    """The paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes, evaluated
+    (the grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM).
+    """
+    q_configs = cfg.q
+    q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, layout.round(0, "quantizer"),
+                    stage_overrides(q_configs, model={"encoder_ckpt": vp_ckpt}, data=boxes_of_round,
+                                    trainer={**_QUANTIZER_FIT, **prec}), resume,
+                    crop_cache)
+    return _evaluate_round(q_configs, q0.path, layout.round(0, "eval"), final=False,
+                           overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
+                           crop_cache=crop_cache)
+
+
+@dataclass
+class _Rounds:
+    """What the EM rounds produced: per round its evaluation, mining result and self-labelling result."""
+
+    results: list[dict[str, Any]] = field(default_factory=list)
+    mining: list[MiningResult] = field(default_factory=list)
+    self_labels: list[SelfLabellingResult] = field(default_factory=list)
+
+
+def _run_rounds(
+    rounds: int, cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, det_ckpt: Path | None,
+    det_eval: dict[str, Any] | None, det_splits: tuple[str, ...], boxes_of_round: dict[str, Any], boxes: str,
+    bank_warm_start: bool, prec: dict[str, Any], mining_trainer: dict[str, Any], resume: bool, crop_cache: CropCache,
+) -> _Rounds:
+    """Rounds 1..``rounds``: mining (fine-tunes the encoder), quantizer, its evaluation (the last round's with the
+    baselines), self-labelling of the detector and its evaluation (the next round's boxes)."""
+    out = _Rounds()
+    prev_bank: Path | None = None
+    encoder = vp_ckpt
+    for r in range(1, rounds + 1):
+        if cfg.mine:
+            m = _fit_stage(f"round {r} mining", cfg.m, layout.round(r, "mining"),
+                           stage_overrides(cfg.m, model={"encoder_ckpt": encoder, "em_round": r},
+                                           data=boxes_of_round, trainer=mining_trainer), resume,
+                           crop_cache)
+            encoder = m.path
+            out.mining.append(MiningResult(m, _mining_diagnostics(layout.round(r, "mining"))))
+            # the encoder is new: the previous one's grids and crops will not be asked for again
+            crop_cache.drop("features")
+            crop_cache.drop("grid")
+        q_model: dict[str, Any] = {"encoder_ckpt": encoder}
+        if prev_bank is not None and bank_warm_start:
+            q_model["init_bank_ckpt"] = prev_bank
+        q_over = stage_overrides(cfg.q, model=q_model, data=boxes_of_round, trainer={**_QUANTIZER_FIT, **prec})
+        q = _fit_stage(f"round {r} quantizer", cfg.q, layout.round(r, "quantizer"), q_over, resume, crop_cache)
+        prev_bank = q.path
+        out.results.append(_evaluate_round(cfg.q, prev_bank, layout.round(r, "eval"), final=r == rounds,
+                                           overrides=stage_overrides(cfg.q, data=boxes_of_round, trainer=prec),
+                                           crop_cache=crop_cache))
+        if cfg.relabel:
+            assert det_ckpt is not None and det_eval is not None
+            det_ckpt = _self_label_round(r, rounds, cfg, layout, encoder, prev_bank, det_ckpt, det_eval, det_splits,
+                                         prec, resume, crop_cache, out.self_labels)
+            if boxes == "detections" and r < rounds:
+                _check_handed_on(layout.round(r, "detector_eval"), ("train", "test"))
+                boxes_of_round = {"boxes": layout.detections(layout.round(r, "detector_eval"))}
+        q_res = out.results[-1]["quantization"]["threedq"]
+        c = feature_cells(out.results[-1]["retrieval"])
+        print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
+              f"{precision_label(out.results[-1]['retrieval'])} {c['precision_at_10']:.3f} (strict), "
+              f"{fmt(c['precision_at_10_paper'])} (paper protocol)")
+    if rounds:
+        print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
+              f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")
+    return out
+
+
+def _self_label_round(
+    r: int, rounds: int, cfg: _RunConfigs, layout: RunLayout, encoder: Path, bank: Path, det_ckpt: Path,
+    det_eval: dict[str, Any], det_splits: tuple[str, ...], prec: dict[str, Any], resume: bool, crop_cache: CropCache,
+    self_label_results: list[SelfLabellingResult],
+) -> Path:
+    """Round ``r``'s self-labelling of the detector with the round's encoder and prototype ``bank``, and the
+    evaluation of the self-labelled detector; appends the result to ``self_label_results`` and returns the new
+    detector checkpoint."""
+    run = layout.round(r, "self_labelling")
+    sl_model = {"encoder_ckpt": encoder, "bank_ckpt": bank}
+    sl = _fit_stage(f"round {r} self-labelling", cfg.sl, run,
+                    stage_overrides(cfg.sl, model={**sl_model, "detector_ckpt": det_ckpt}, trainer=prec),
+                    resume, crop_cache)
+    det_ckpt = sl.path
+    # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
+    splits = det_splits if r < rounds else ("test",)
+    sl_eval = _evaluate_detector(cfg.sl, det_ckpt, layout.round(r, "detector_eval"), splits,
+                                 stage_overrides(cfg.sl, model={**sl_model, "detector_ckpt": None},
+                                                 trainer=prec), crop_cache)
+    labels = run / "self_labels" / "labels.json"
+    self_label_results.append(SelfLabellingResult(
+        sl, json.loads(labels.read_text()) if labels.is_file() else None, sl_eval))
+    before = self_label_results[-2].map_50 if r > 1 else float(det_eval["detector"]["map_50"])
+    print(f"[em] round {r} self-labelling: detection mAP@0.5 {self_label_results[-1].map_50:.3f} "
+          f"(before: {before:.3f})")
+    return det_ckpt
+
+
+def _summary(
+    work: Path, layout: RunLayout, rounds: int, cfg: _RunConfigs, data_config: str | None, vp: StageRecord,
+    vp_eval: dict[str, Any], det: StageRecord | None, det_eval: dict[str, Any] | None, boxes: str,
+    bank_warm_start: bool, frozen_precision: str, mining_trainer: dict[str, Any], round0: dict[str, Any] | None,
+    rounds_run: _Rounds, crop_cache: CropCache,
+) -> dict[str, Any]:
+    """The run's ``metrics.json``: every stage's and round's results, Table 3, the configs and the machine."""
+    mine, relabel = cfg.mine, cfg.relabel
+    round_results, self_label_results = rounds_run.results, rounds_run.self_labels
+    return {
+        "work_dir": str(work),
+        "rounds": rounds,
+        "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
+        if rounds else [],
+        "self_labelling_config": _config_label(cfg.sl[0], work) if relabel else None,
+        "self_label_results": [x.to_json() for x in self_label_results],
+        "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
+        "round0_result": round0,
+        "mining_config": _config_label(cfg.m[0], work) if mine else None,
+        "data_config": _config_label(resolve_config(data_config or DEFAULT_DATA_CONFIG), work),
+        "mining_results": [x.to_json() for x in rounds_run.mining],
+        "viewpred": vp.to_json(),
+        "viewpred_eval": vp_eval,
+        "detector": det.to_json() if det else None,
+        "detector_eval": det_eval,
+        "boxes": boxes,
+        "bank_warm_start": bank_warm_start,
+        "frozen_precision": frozen_precision,
+        "mining_precision": mining_trainer.get("precision", "its config's"),
+        "round_results": round_results,
+        "final_eval_dir": str(layout.round(rounds, "eval")) if rounds else None,
+        # how much this process's crop cache saved (a resumed run computes again what the killed one had held)
+        "crop_cache": {"reused": crop_cache.hits, "computed": crop_cache.misses,
+                       "gib": round(crop_cache.nbytes / 2**30, 3)},
+        "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),
+        "torch": torch.__version__,
+    }
+
+
+def _write_report(work: Path, summary: dict[str, Any]) -> None:
+    """Write ``metrics.json``, ``table3.png`` (with Table 3 rows) and ``report.md`` to ``work``; print the final
+    round's precision@k and where they are."""
+    round_results = summary["round_results"]
+    atomic_write_json(work / "metrics.json", summary)
+    if summary["table3"]:
+        write_png(work / "table3.png", table3_figure(summary["table3"]))
+    atomic_write_text(work / "report.md", em_markdown(summary))
+    if round_results:
+        p = round_results[-1]["retrieval"]["precision_at_k"]
+        k = round_results[-1]["retrieval"]["k"]
+        print(f"[em] precision@{k}: " + ", ".join(f"{name} {v:.3f}" for name, v in p.items()))
+    print(f"[em] wrote {work / 'report.md'} and {work / 'metrics.json'}")
+
+
 def run_em(
-    rounds: int = 4,
+    rounds: NonNegativeInt = 4,
     work_dir: str = "runs/em",
     resume: bool = False,
     config: str = "stages/viewpred.yaml",
@@ -316,7 +554,7 @@ def run_em(
     data_config: str | None = None,
     extra_configs: list[str] | str | None = None,
     max_steps: int | None = None,
-    mining_config: str | None = "stages/mining.yaml",
+    mining_config: str | None = None,
     self_labelling_config: str | None = "stages/self_labelling.yaml",
     viewpred_ckpt: str | None = None,
     frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
@@ -343,9 +581,11 @@ def run_em(
             path or a list (``--extra_configs my.yaml``, ``--extra_configs '[a.yaml, b.yaml]'``, ``--extra_configs+ x``).
         max_steps: override the training steps of the view-prediction stage.
         mining_config: the correspondence-learning stage config run at the start of every round, fine-tuning
-            the encoder that the round's quantizer then uses (``stages/mining.yaml``: cross-scene mining;
-            ``stages/vc_moco.yaml`` or ``stages/vc.yaml``: the view-contrastive baselines); ``none``: no
-            fine-tuning, every round quantizes the view-prediction features.
+            the encoder that the round's quantizer then uses; default: the data's preset
+            (:func:`~threedq.pipeline.presets.stage_presets`: ``stages/mining.yaml`` on the embedded data,
+            ``stages/mining_occupancy_pairs.yaml`` on the shape-only data and scene folders);
+            ``stages/vc_moco.yaml`` or ``stages/vc.yaml``: the view-contrastive baselines; ``none``: no fine-tuning,
+            every round quantizes the view-prediction features.
         self_labelling_config: the detector self-labelling stage config run at the end of every round (with the
             round's encoder and prototypes; the next round takes its boxes from the self-labelled detector);
             ``none``: the detector stays the warm start. Needs ``detection``.
@@ -353,193 +593,45 @@ def run_em(
             encoder on a dataset of your own: the detector is still warm-started from this dataset's own label-free
             pseudo-boxes and self-labelled on it). It is evaluated on this dataset's test split and copied nowhere.
         frozen_precision: Lightning precision of the stages that read a frozen encoder (the detector, the quantizer,
-            self-labelling and every evaluation after view prediction): ``bf16-mixed`` (the encoder's forward about
-            2x faster on CPUs with bf16 instructions and on GPUs), ``32-true``, or ``auto`` (default: bf16 where the
-            CPU has bf16 instructions (AVX512-BF16 or AMX on x86) or the GPU supports it, else fp32; on a CPU
-            without them mining, whose config asks for ``bf16-mixed``, runs in fp32 too). View prediction keeps its config's
-            precision. Whatever is asked, a stage on a CPU without bf16 instructions runs bf16 as fp32 (the CLI's
-            rule, :func:`~threedq.pipeline.precision.cpu_precision`: emulated bf16 costs 2x to 60x).
+            self-labelling and every evaluation after view prediction): ``bf16-mixed``, ``32-true``, or ``auto``
+            (bf16 where the CPU has bf16 instructions or the GPU supports it, else fp32, mining included). View
+            prediction keeps its config's precision; a CPU without bf16 instructions runs bf16 as fp32
+            (:func:`~threedq.pipeline.precision.cpu_precision`).
         bank_warm_start: from round 2 on, each round's quantizer refines the previous round's prototype bank (true,
-            the default until 2026-12-05) or fits an empty bank on the round's encoder, as rounds 0 and 1 do (false,
-            the default since; with the quantizer config's ``em_restarts: 4`` each round keeps the lowest-loss of
-            four fits). A bank carried over from an earlier encoder's features can stay in a worse fit than a fresh
-            one (``benchmarks/bank_fit_spread.py``; docs/studies/quantizer.md, "A fresh bank every round";
-            docs/studies/mined-pairs.md, "The input's pairs as the default": round-4 Hungarian accuracy +0.040 on
-            the embedded data and +0.010 on the shape-only data, 2 seeds each).
+            the paper's loop) or fits an empty bank on the round's encoder, as rounds 0 and 1 do (false;
+            docs/studies/quantizer.md, "A fresh bank every round").
     """
-    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
-        raise InputError(f"--rounds: expected an int >= 0, got {rounds!r}")
-    if boxes not in ("gt", "detections"):
-        raise InputError(f"--boxes: expected 'gt' or 'detections', got {boxes!r}")
     if boxes == "detections" and not detection:
         raise InputError("--boxes: 'detections' needs --detection true")
-    if not isinstance(bank_warm_start, bool):
-        raise InputError(f"--bank_warm_start: expected true or false, got {bank_warm_start!r}")
-    if frozen_precision not in ("auto", "bf16-mixed", "32-true"):
-        raise InputError(f"--frozen_precision: expected 'auto', 'bf16-mixed' or '32-true', got {frozen_precision!r}")
-    mining_trainer: dict[str, Any] = {}  # mining keeps its config's precision (bf16-mixed) ...
-    if frozen_precision == "auto":
-        native = _bf16_is_native()
-        frozen_precision = "bf16-mixed" if native else "32-true"
-        if not native:  # ... unless bf16 would be emulated here (about 2x the float32 time)
-            mining_trainer = {"precision": "32-true"}
+    frozen_precision, mining_trainer = _precisions(frozen_precision)
     prec = {"precision": frozen_precision}  # the trainer of every stage reading a frozen encoder
     work = output_folder("--work_dir", work_dir)
     layout = RunLayout(work)
     with hold_folder(work, check_below=True), _old_objects_frozen():  # one run per work folder (a second is refused)
         if resume:
             _remove_torn_writes(work)
-        if isinstance(extra_configs, (str, Path)):
-            extra_configs = [str(extra_configs)]
-        extra = [resolve_config(c) for c in ([data_config] if data_config else []) + list(extra_configs or [])]
-        vp_configs = [resolve_config(config), *extra]
-        q_configs = [resolve_config(quantizer_config), *extra]
-        mine = mining_config not in (None, "", "none")
-        m_configs = [resolve_config(mining_config), *extra] if mine else []
-        relabel = detection and self_labelling_config not in (None, "", "none")
-        sl_configs = [resolve_config(self_labelling_config), *extra] if relabel else []
-        overrides = stage_overrides(vp_configs, trainer={"max_steps": max_steps} if max_steps is not None else None)
-        d_configs = [resolve_config(detector_config), *extra] if detection else []
-        # every argument the rounds hand a stage is checked against the stage's class now, not when the stage starts
-        for cfgs, model_args, data_args in ((d_configs, ("encoder_ckpt",), ()),
-                                            (q_configs, ("encoder_ckpt", "init_bank_ckpt"), ("boxes",)),
-                                            (m_configs, ("encoder_ckpt", "bank_ckpt"), ("boxes",)),
-                                            (sl_configs, ("encoder_ckpt", "bank_ckpt", "detector_ckpt"), ())):
-            if cfgs:
-                stage_overrides(cfgs, model=dict.fromkeys(model_args), data=dict.fromkeys(data_args))
-        if viewpred_ckpt is not None:
-            vp = _given_viewpred(viewpred_ckpt)
-        else:
-            vp = _fit_stage("viewpred", vp_configs, layout.viewpred, overrides, resume)
-        vp_ckpt = vp.path
-        vp_eval = _evaluate_viewpred(vp_configs, vp_ckpt, layout.viewpred_eval)
+        cfg = _resolve_configs(config, quantizer_config, detector_config, mining_config, self_labelling_config,
+                               data_config, extra_configs, detection, max_steps)
+        vp = (_given_viewpred(viewpred_ckpt) if viewpred_ckpt is not None
+              else _fit_stage("viewpred", cfg.vp, layout.viewpred, cfg.vp_overrides, resume))
+        vp_eval = _evaluate_viewpred(cfg.vp, vp.path, layout.viewpred_eval)
         # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
         # encoded once per encoder. The warm-start detector's evaluation leaves the grids of every split that round 1's
         # mining pool reads; a round's quantizer encodes the training scenes its evaluation (the final one's banks),
         # self-labelling, detector evaluation and the next round's mining pool then read. After a mining stage the
         # encoder is new, and the older grids and crops are dropped.
         crop_cache = CropCache()
-        det, det_eval = None, None
-        boxes_of_round: dict[str, Any] = {}  # the DataModule's boxes of the round (GT unless detections are handed on)
-        if detection:
-            det = _fit_stage("detector", d_configs, layout.detector,
-                             stage_overrides(d_configs, model={"encoder_ckpt": vp_ckpt}, trainer=prec), resume, crop_cache)
-            # detections of every split only when the rounds take their boxes from the detector
-            det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-            det_eval = _evaluate_detector(d_configs, det.path, layout.detector_eval, det_splits,
-                                          stage_overrides(d_configs, trainer=prec),
-                                          crop_cache=crop_cache)
-            print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
-                  f"detector {det_eval['detector']['map_50']:.3f}")
-            if boxes == "detections" and rounds:
-                _check_handed_on(layout.detector_eval, ("train", "test"))
-                boxes_of_round = {"boxes": layout.detections(layout.detector_eval)}
-        round0 = None
-        if rounds:
-            # the paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes (the
-            # grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM)
-            q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, layout.round(0, "quantizer"),
-                            stage_overrides(q_configs, model={"encoder_ckpt": vp_ckpt}, data=boxes_of_round,
-                                            trainer={**_QUANTIZER_FIT, **prec}), resume,
-                            crop_cache)
-            round0 = _evaluate_round(q_configs, q0.path, layout.round(0, "eval"), final=False,
-                                     overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
-                                     crop_cache=crop_cache)
-        round_results: list[dict[str, Any]] = []
-        mining_results: list[MiningResult] = []
-        self_label_results: list[SelfLabellingResult] = []
-        det_ckpt = det.path if det else None
-        prev_bank: Path | None = None
-        encoder = vp_ckpt
-        for r in range(1, rounds + 1):
-            if mine:
-                # the bank the encoder was last quantized with (round 1: round 0's), for the mining stage's
-                # verify_by_prototypes (unused when that is off)
-                bank_of_encoder = str(prev_bank if prev_bank is not None else q0.path)
-                m = _fit_stage(f"round {r} mining", m_configs, layout.round(r, "mining"),
-                               stage_overrides(m_configs, model={"encoder_ckpt": encoder, "bank_ckpt": bank_of_encoder,
-                                                                   "em_round": r},
-                                               data=boxes_of_round, trainer=mining_trainer), resume,
-                               crop_cache)
-                encoder = m.path
-                mining_results.append(MiningResult(m, _mining_diagnostics(layout.round(r, "mining"))))
-                # the encoder is new: the previous one's grids and crops will not be asked for again
-                crop_cache.drop("features")
-                crop_cache.drop("grid")
-            q_model: dict[str, Any] = {"encoder_ckpt": encoder}
-            if prev_bank is not None and bank_warm_start:
-                q_model["init_bank_ckpt"] = prev_bank
-            q_over = stage_overrides(q_configs, model=q_model, data=boxes_of_round, trainer={**_QUANTIZER_FIT, **prec})
-            q = _fit_stage(f"round {r} quantizer", q_configs, layout.round(r, "quantizer"), q_over, resume, crop_cache)
-            prev_bank = q.path
-            round_results.append(_evaluate_round(q_configs, prev_bank, layout.round(r, "eval"), final=r == rounds,
-                                                overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
-                                                crop_cache=crop_cache))
-            if relabel:
-                assert det_ckpt is not None
-                run = layout.round(r, "self_labelling")
-                sl_model = {"encoder_ckpt": encoder, "bank_ckpt": prev_bank}
-                sl = _fit_stage(f"round {r} self-labelling", sl_configs, run,
-                                stage_overrides(sl_configs, model={**sl_model, "detector_ckpt": det_ckpt}, trainer=prec),
-                                resume, crop_cache)
-                det_ckpt = sl.path
-                # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
-                splits = det_splits if r < rounds else ("test",)
-                sl_eval = _evaluate_detector(sl_configs, det_ckpt, layout.round(r, "detector_eval"), splits,
-                                             stage_overrides(sl_configs, model={**sl_model, "detector_ckpt": None},
-                                                             trainer=prec), crop_cache)
-                labels = run / "self_labels" / "labels.json"
-                self_label_results.append(SelfLabellingResult(
-                    sl, json.loads(labels.read_text()) if labels.is_file() else None, sl_eval))
-                before = self_label_results[-2].map_50 if r > 1 else float(det_eval["detector"]["map_50"])
-                print(f"[em] round {r} self-labelling: detection mAP@0.5 {self_label_results[-1].map_50:.3f} "
-                      f"(before: {before:.3f})")
-                if boxes == "detections" and r < rounds:
-                    _check_handed_on(layout.round(r, "detector_eval"), ("train", "test"))
-                    boxes_of_round = {"boxes": layout.detections(layout.round(r, "detector_eval"))}
-            q_res = round_results[-1]["quantization"]["threedq"]
-            c = feature_cells(round_results[-1]["retrieval"])
-            print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
-                  f"{precision_label(round_results[-1]['retrieval'])} {c['precision_at_10']:.3f} (strict), "
-                  f"{fmt(c['precision_at_10_paper'])} (paper protocol)")
-        if rounds:
-            print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
-                  f"and random-encoder crops; {crop_cache.nbytes / 2**30:.2f} GiB held)")
-        summary = {
-            "work_dir": str(work),
-            "rounds": rounds,
-            "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
-            if rounds else [],
-            "self_labelling_config": _config_label(sl_configs[0], work) if relabel else None,
-            "self_label_results": [x.to_json() for x in self_label_results],
-            "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
-            "round0_result": round0,
-            "mining_config": _config_label(m_configs[0], work) if mine else None,
-            "data_config": _config_label(resolve_config(data_config or DEFAULT_DATA_CONFIG), work),
-            "mining_results": [x.to_json() for x in mining_results],
-            "viewpred": vp.to_json(),
-            "viewpred_eval": vp_eval,
-            "detector": det.to_json() if det else None,
-            "detector_eval": det_eval,
-            "boxes": boxes,
-            "bank_warm_start": bank_warm_start,
-            "frozen_precision": frozen_precision,
-            "mining_precision": mining_trainer.get("precision", "its config's"),
-            "round_results": round_results,
-            "final_eval_dir": str(layout.round(rounds, "eval")) if rounds else None,
-            # how much this process's crop cache saved (a resumed run computes again what the killed one had held)
-            "crop_cache": {"reused": crop_cache.hits, "computed": crop_cache.misses,
-                           "gib": round(crop_cache.nbytes / 2**30, 3)},
-            "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),
-            "torch": torch.__version__,
-        }
-        atomic_write_json(work / "metrics.json", summary)
-        if summary["table3"]:
-            write_png(work / "table3.png", table3_figure(summary["table3"]))
-        atomic_write_text(work / "report.md", em_markdown(summary))
-        if round_results:
-            p = round_results[-1]["retrieval"]["precision_at_k"]
-            k = round_results[-1]["retrieval"]["k"]
-            print(f"[em] precision@{k}: " + ", ".join(f"{name} {v:.3f}" for name, v in p.items()))
-        print(f"[em] wrote {work / 'report.md'} and {work / 'metrics.json'}")
+        # the DataModule's boxes of the round: GT unless detections are handed on
+        det, det_eval, det_splits, boxes_of_round = (
+            _warm_start_detector(cfg, layout, vp.path, prec, resume, crop_cache, boxes, rounds) if detection
+            else (None, None, ("test",), {})
+        )  # fmt: skip
+        round0 = _round0(cfg, layout, vp.path, boxes_of_round, prec, resume, crop_cache) if rounds else None
+        rounds_run = _run_rounds(
+            rounds, cfg, layout, vp.path, det.path if det else None, det_eval, det_splits, boxes_of_round, boxes,
+            bank_warm_start, prec, mining_trainer, resume, crop_cache,
+        )  # fmt: skip
+        summary = _summary(work, layout, rounds, cfg, data_config, vp, vp_eval, det, det_eval, boxes, bank_warm_start,
+                           frozen_precision, mining_trainer, round0, rounds_run, crop_cache)
+        _write_report(work, summary)
         return summary

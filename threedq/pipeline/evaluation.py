@@ -40,7 +40,6 @@ __all__ = [
     "SEARCH_LABELS",
     "collect_object_crops",
     "stage_crop_shape",
-    "evaluate_features",
     "probe_table",
     "quantization_metrics",
     "retrieval_table",
@@ -296,21 +295,6 @@ def probe_table(train: dict[str, Tensor], test: dict[str, Tensor]) -> dict[str, 
     acc = {name: float(linear_probe(tr[name], train["labels"][keep], te[name], test["labels"])["accuracy"])
            for name in te if name in tr}
     return {"train_objects": int(keep.sum()), "test_objects": int(test["labels"].shape[0]), "accuracy": acc}
-
-
-def evaluate_features(
-    stage: EncoderStage,
-    loader: torch.utils.data.DataLoader,
-    num_input_views: int = 1,
-    k: int = 10,
-    num_angles: int = 36,
-    search: str = RETRIEVAL_SEARCH,
-    progress: bool = True,
-) -> dict[str, Any]:
-    """Crop every object of ``loader`` and score learned, raw and random-encoder crops with :func:`retrieval_table`."""
-    crops = collect_object_crops(stage, loader, num_input_views=num_input_views, progress=progress)
-    table, _ = retrieval_table(crops, k, num_angles, search)
-    return {**table, "num_input_views": num_input_views}
 
 
 def quantization_metrics(

@@ -17,7 +17,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import lightning as L
 import torch
@@ -36,7 +36,7 @@ from threedq.stages.checkpoint import AtomicCheckpointIO, LastStepCheckpoint, ch
 __all__ = [
     "DEFAULT_DATA_CONFIG", "ThreeDQCLI", "ConfigError", "OldClassPathError", "dataset_num_classes",
     "dataset_symmetry_order", "default_data", "packaged_configs_dir",
-    "resolve_config", "resolve_config_args", "test_checkpoint",
+    "config_chain", "expand_configs", "load_config", "resolve_config", "resolve_config_args", "test_checkpoint",
 ]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
@@ -236,11 +236,22 @@ def explain_parse_error(message: str, args: Sequence[str]) -> str:
 _OLD_CLASS_PATH = re.compile(r"((?:stages|datamodules)\.[A-Za-z_][\w.]*)$")
 
 
+#: modules renamed so that each data module is named as its format's reader (:mod:`threedq.data.formats`)
+RENAMED_MODULES = {"threedq.datamodules.tum_rgbd": "threedq.datamodules.tum",
+                   "threedq.datamodules.kinect_open3d": "threedq.datamodules.open3d",
+                   "threedq.datamodules.camera_rig": "threedq.datamodules.rig"}
+
+
 def _refuse_old(value: str, where: str) -> None:
-    m = _OLD_CLASS_PATH.match(value.strip().strip("'\""))
+    path = value.strip().strip("'\"")
+    m = _OLD_CLASS_PATH.match(path)
     if m:
         old = m.group(1)
         raise OldClassPathError(f"{where}: field 'class_path': '{old}' is the path before threedq 0.2; use 'threedq.{old}'")
+    module, _, name = path.rpartition(".")
+    if module in RENAMED_MODULES:
+        raise OldClassPathError(f"{where}: field 'class_path': '{path}' was renamed; use "
+                                f"'{RENAMED_MODULES[module]}.{name}'")
 
 
 def check_class_paths(yaml_text: str, where: str) -> None:
@@ -259,18 +270,66 @@ def _is_class_key(key: str) -> bool:
     return key in ("--model", "--data") or key.endswith(".class_path")
 
 
+def config_chain(path: str | Path) -> list[Path]:
+    """The config files that ``path`` stands for, base first: a config may name the config it changes with a
+    top-level ``base:`` key (a path relative to its own folder, else to the packaged configs), and then holds only the
+    keys it changes; its base may have a base in turn.
+
+    Raises:
+        ConfigError: a ``base`` that is not a path, or a chain that comes back to a config it holds.
+    """
+    chain: list[Path] = []
+    p = resolve_config(path)
+    while True:
+        check_config_file(p)
+        if p.resolve() in (c.resolve() for c in chain):
+            raise ConfigError(f"{p}: field 'base': the configs' bases form a loop")
+        chain.insert(0, p)
+        doc = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+        base = doc.get("base")
+        if base is None:
+            return chain
+        if not isinstance(base, str) or not base:
+            raise ConfigError(f"{p}: field 'base': expected the path of the config this one changes, got {base!r}")
+        sibling = p.parent / base
+        p = sibling if sibling.is_file() else resolve_config(base)
+
+
+def load_config(path: str | Path) -> dict[str, Any]:
+    """The config ``path`` as it runs: its bases' keys with its own on top, mapping by mapping (``base`` dropped)."""
+
+    def merge(under: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+        out = dict(under)
+        for k, v in over.items():
+            out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        return out
+
+    doc: dict[str, Any] = {}
+    for p in config_chain(path):
+        doc = merge(doc, yaml.safe_load(p.read_text(encoding="utf-8")) or {})
+    doc.pop("base", None)
+    return doc
+
+
+def expand_configs(paths: Sequence[str | Path]) -> list[Path]:
+    """Every config of ``paths`` with its bases before it (:func:`config_chain`), in order."""
+    return [c for p in paths for c in config_chain(p)]
+
+
 def resolve_config_args(argv: Sequence[str]) -> list[str]:
-    """``argv`` with every ``--config`` resolved (:func:`resolve_config`) and every class path checked."""
+    """``argv`` with every ``--config`` resolved (:func:`resolve_config`), preceded by its bases (:func:`config_chain`),
+    and every class path checked."""
     out: list[str] = []
     prev = ""
     for a in argv:
         if prev == "--config":
-            path = resolve_config(a)
-            check_config_file(path)
+            *bases, path = config_chain(a)
+            for b in bases:  # out ends with this "--config"
+                out += [str(b), "--config"]
             a = str(path)
         elif a.startswith("--config="):
-            path = resolve_config(a.split("=", 1)[1])
-            check_config_file(path)
+            *bases, path = config_chain(a.split("=", 1)[1])
+            out += [f"--config={b}" for b in bases]
             a = "--config=" + str(path)
         elif _is_class_key(prev):
             _refuse_old(a, f"command line {prev}")
@@ -308,6 +367,11 @@ class ThreeDQCLI(LightningCLI):
         your own may define them), once it is built; a stage without such an argument is not given it. A config
         cannot set a linked argument: the dataset decides it."""
         parser.set_defaults({"data": default_data()})
+        parser.add_argument("--presets", type=Optional[dict[str, str]], default=None,
+                            help="a data config's stage presets (read by threedq em; see threedq.pipeline.presets)")
+        parser.add_argument("--base", type=Optional[str], default=None,
+                            help="the config a config file changes (read before it; see threedq.pipeline.lightning_cli."
+                                 "config_chain)")
         for key, compute in zip(LINKED_FROM_DATA, (dataset_num_classes, dataset_symmetry_order)):
             parser.link_arguments("data", f"model.init_args.{key}", compute_fn=compute, apply_on="instantiate")
 
@@ -347,9 +411,8 @@ class ThreeDQCLI(LightningCLI):
 
     def subcommands(self) -> dict[str, set[str]]:  # type: ignore[override]  # Lightning's is a staticmethod
         """Lightning's subcommands (``fit``, ``validate``, ``test``, ``predict``) and the trainer arguments each
-        skips; a command line that starts with one of them gets that one's parser only. Building a subcommand's
-        parser (every argument of the model, data and trainer classes) is most of a stage's start-up: 0.3-0.5 s of
-        each of the 7 stages of a ``threedq em`` run, for parsers it never uses."""
+        skips; a command line that starts with one of them gets that one's parser only (building a subcommand's parser
+        is most of a stage's start-up)."""
         every = LightningCLI.subcommands()
         first = self._args[0] if self._args else None
         return {first: every[first]} if first in every else every
@@ -407,8 +470,7 @@ class ThreeDQCLI(LightningCLI):
         folder), is refused before anything is built or written.
 
         A bf16 ``trainer.precision`` on a CPU without bf16 instructions becomes ``32-true``, with one line saying so
-        (:func:`~threedq.pipeline.precision.cpu_precision`: there bf16 is emulated at 2x to 60x the float32 time);
-        the saved ``config.yaml`` names the precision the run used."""
+        (:func:`~threedq.pipeline.precision.cpu_precision`); the saved ``config.yaml`` names the precision the run used."""
         trainer = self._get(self.config, "trainer", default=None)
         if trainer is not None:
             precision, note = cpu_precision(trainer.get("precision"), _runs_on_cpu(trainer))

@@ -20,7 +20,7 @@ import lightning as L
 import yaml
 
 from threedq.errors import InputError
-from threedq.pipeline.lightning_cli import default_data
+from threedq.pipeline.lightning_cli import default_data, expand_configs
 
 __all__ = ["class_of", "stage_overrides"]
 
@@ -32,7 +32,7 @@ def class_of(configs: Sequence[str | Path], key: str) -> type | None:
     configs set (later configs override earlier ones; for ``data`` the CLI's default dataset when none sets one,
     :data:`~threedq.pipeline.lightning_cli.DEFAULT_DATA_CONFIG`); ``None`` when none sets one or it does not import."""
     path = default_data()["class_path"] if key == "data" else None
-    for config in configs:
+    for config in expand_configs(configs):  # a variant's bases first
         doc = yaml.safe_load(Path(config).read_text()) or {}
         section = doc.get(key) if isinstance(doc, dict) else None
         if isinstance(section, dict) and isinstance(section.get("class_path"), str):

@@ -49,7 +49,7 @@ from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_bytes
 from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
-from threedq.geometry import crop_boxes, crop_region, rotate_yaw, unproject_rgbd_occupied, yaw_angles
+from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.pipeline.run_layout import RunLayout
 from threedq.quantization.prototypes import PrototypeBank, prototype_crops
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
@@ -62,7 +62,7 @@ from threedq.stages.checkpoint import (
     encoder_state_from_checkpoint,
 )
 from threedq.stages.detector import Detector
-from threedq.stages.quantizer import bank_crop_shape, bank_occupancy_floor, load_bank_state
+from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 
 __all__ = [
     "RunArtifacts",
@@ -179,13 +179,11 @@ class SceneParser(torch.nn.Module):
     Args:
         artifacts: from :func:`resolve_run`.
         score_threshold: objectness of the boxes kept (default: the detector's hand-on threshold).
-        channels_last: run the encoders in ``channels_last_3d`` (numerically the same).
         precision: ``"fp32"`` or ``"bf16"`` (autocast of the encoder and the detector head; crops and the rotation
             search stay fp32). ``benchmarks/bench_parse.py`` measures the speed and how often the parse changes.
     """
 
-    def __init__(self, artifacts: RunArtifacts, score_threshold: float | None = None, channels_last: bool = True,
-                 precision: str = "fp32") -> None:
+    def __init__(self, artifacts: RunArtifacts, score_threshold: float | None = None, precision: str = "fp32") -> None:
         super().__init__()
         if precision not in ("fp32", "bf16"):
             raise InputError(f"precision: expected 'fp32' or 'bf16', got {precision!r}")
@@ -195,7 +193,7 @@ class SceneParser(torch.nn.Module):
         _checked_grid(q_hp, det_hp, artifacts.prototypes, artifacts.detector)
         names = set(stage_arguments(Detector)) - {"encoder_ckpt"}
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in det_hp.items() if k in names}
-        kw.update(channels_last=channels_last, freeze_encoder=True, image_every_n_steps=0,
+        kw.update(channels_last=True, freeze_encoder=True, image_every_n_steps=0,
                   anchor_size=load_checkpoint(artifacts.detector).anchor)  # the anchor buffer (older files: hparams)
         self.detector = Detector(**kw)
         state = checkpoint_state(artifacts.detector)
@@ -221,7 +219,7 @@ class SceneParser(torch.nn.Module):
         self.q_stage: EncoderStage | None = None
         if not same:
             g = {k: (tuple(v) if isinstance(v, list) else v) for k, v in self.detector.grid_fields.items()}
-            self.q_stage = EncoderStage(**g, freeze_encoder=True, channels_last=channels_last)
+            self.q_stage = EncoderStage(**g, freeze_encoder=True, channels_last=True)
             try:
                 self.q_stage.encoder.load_state_dict(enc)
             except RuntimeError as e:
@@ -231,11 +229,6 @@ class SceneParser(torch.nn.Module):
         self.num_angles = int(q_hp["num_angles"])
         #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`; None: plain cosine)
         self.occupancy_floor = bank_occupancy_floor(artifacts.prototypes)
-        #: the region the bank's crops were cut from around each box (:func:`~threedq.geometry.crop_region`)
-        try:
-            self.crop_shape = bank_crop_shape(artifacts.prototypes)
-        except ValueError as e:
-            raise InputError(str(e)) from None
         self.fingerprint = bank_fingerprint(self.bank)
         self.eval()
 
@@ -298,7 +291,7 @@ class SceneParser(torch.nn.Module):
         for b, d in enumerate(dets):
             n = d["boxes"].shape[0]
             aabb[b, :n], mask[b, :n] = d["boxes"], True
-        region = crop_region(aabb, self.crop_shape)
+        region = aabb  # each box's own region, as the bank's crops were cut
         crops = crop_boxes(q_feats, region, det.feature_grid, self.crop_size, mask=mask)
         if self.occupancy_floor is not None:  # the input occupancy (union over the views) weights the crops
             occ = x[:, :1].reshape(B, V, 1, *x.shape[2:]).amax(1)
@@ -553,7 +546,7 @@ def prototype_appearance(parser: SceneParser, root: Path, files: list[str], view
             for j in range(B):
                 if res["aabb"][j].shape[0] == 0:
                     continue
-                region = crop_region(res["aabb"][j][None].to(raw_grid), parser.crop_shape)
+                region = res["aabb"][j][None].to(raw_grid)
                 raw = crop_boxes(raw_grid[j : j + 1], region, det.grid, s)[0].cpu()
                 aligned = rotate_yaw(raw, yaw[res["angle"][j]])
                 for n, k in enumerate(res["prototype"][j].tolist()):

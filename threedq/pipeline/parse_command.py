@@ -11,10 +11,11 @@ import re
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
+from jsonargparse.typing import NonNegativeInt, PositiveInt
 from tqdm import tqdm
 
 from threedq.errors import InputError
@@ -32,7 +33,12 @@ from threedq.pipeline.parse import (
     resolve_run,
 )
 from threedq.pipeline.renders import load_view_decoder, prototype_gallery, replaced_render
-from threedq.scene import SceneValidationError, load_scene
+from threedq.scene import SceneRecord, SceneValidationError, load_scene
+
+if TYPE_CHECKING:
+    from torch import Tensor
+
+    from threedq.stages.viewpred import ViewPrediction
 
 __all__ = ["run_parse"]
 
@@ -48,6 +54,99 @@ def _scene_name(file: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(Path(file).with_suffix("")))
 
 
+def _load_batch(
+    root: Path,
+    batch: list[str],
+    views: list[int],
+    box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None,
+    boxes: str | None,
+    failed: list[str],
+) -> tuple[list[SceneRecord], list[list[int]], list[str]]:
+    """Load a batch of scene files and check their input views.
+
+    A scene that cannot be loaded, whose views are out of range, or that the boxes file (``boxes``, loaded as
+    ``box_sets``) does not cover is skipped: its one-line reason is appended to ``failed`` and printed.
+
+    Returns:
+        The loaded records, their chosen view indices and the files they came from (``batch`` order).
+    """
+    recs, chosen, ok_files = [], [], []
+    for f in batch:
+        src = root / f
+        try:
+            if box_sets is not None and f not in box_sets:
+                raise SceneValidationError(str(boxes), f, "the boxes file has no boxes for this scene")
+            rec = load_scene(src)
+            chosen.append(check_views(list(views), rec, str(src)))
+            recs.append(rec)
+            ok_files.append(f)
+        except (SceneValidationError, ValueError, OSError) as e:
+            failed.append(str(e).splitlines()[0] if str(e) else f"{src}: {type(e).__name__}")
+            print(f"threedq parse: skipped {failed[-1]}", file=sys.stderr)
+    return recs, chosen, ok_files
+
+
+def _write_pictures(
+    outp: Path,
+    name: str,
+    rec: SceneRecord,
+    v: list[int],
+    doc: dict[str, Any],
+    features: Tensor,
+    parser: SceneParser,
+    appearance: dict[str, Tensor] | None,
+    names: dict[int, str],
+    decoder: ViewPrediction | None,
+    pictures: bool,
+    gallery_done: bool,
+) -> bool:
+    """Write one parsed scene's pictures to ``outp``; returns whether ``gallery.png`` is written by now.
+
+    ``<name>.png`` with ``pictures``; with a ``decoder``, ``gallery.png`` (unless ``gallery_done``) and
+    ``<name>_replaced.png`` (decoded from the first view that was not an input, if there is one).
+    """
+    if pictures:
+        _png(outp / f"{name}.png", parse_figure(rec, v, doc, parser, appearance))
+    if decoder is not None:
+        if not gallery_done:
+            _png(outp / "gallery.png", prototype_gallery(parser, decoder, rec, appearance, names, view=v[0]))
+            gallery_done = True
+        others = [i for i in range(rec.num_views) if i not in v]
+        if others:
+            _png(outp / f"{name}_replaced.png", replaced_render(parser, decoder, rec, doc, features, others[0]))
+    return gallery_done
+
+
+def _write_summary(
+    outp: Path,
+    files: list[str],
+    parsed: list[dict[str, Any]],
+    failed: list[str],
+    names: dict[int, str],
+    t0: float,
+    models: dict[str, Any],
+) -> dict[str, Any]:
+    """Write ``outp/summary.json``, print a one-line account of the run and return the summary.
+
+    The summary holds the scene count, parsed and failed scenes, objects, named prototypes, seconds since
+    ``t0``, the models and one entry per parsed file.
+    """
+    summary = {
+        "scenes": len(files),
+        "parsed": len(parsed),
+        "failed": failed,
+        "objects": sum(p["objects"] for p in parsed),
+        "named_prototypes": len(names),
+        "seconds": round(time.time() - t0, 2),
+        "models": models,
+        "files": parsed,
+    }
+    atomic_write_json(outp / "summary.json", summary)
+    print(f"threedq parse: {len(parsed)} of {len(files)} scene(s) parsed, {summary['objects']} object(s), "
+          f"{len(failed)} failed; wrote {outp}")  # fmt: skip
+    return summary
+
+
 def run_parse(
     scenes: str,
     out: str,
@@ -60,10 +159,10 @@ def run_parse(
     boxes: str | None = None,
     score_threshold: float | None = None,
     precision: str = "fp32",
-    batch_size: int = 4,
+    batch_size: PositiveInt = 4,
     pictures: bool = True,
     renders: bool = False,
-    appearance_scenes: int = 100,
+    appearance_scenes: NonNegativeInt = 100,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Parse scenes with a trained run: boxes, prototype id (C), yaw (R), similarity and name per object.
@@ -94,8 +193,6 @@ def run_parse(
     Returns:
         the summary (also written as ``summary.json``): scenes parsed, failed (one line each), objects, seconds.
     """
-    if batch_size < 1:
-        raise InputError(f"batch_size: expected >= 1, got {batch_size}")
     if not views:
         raise InputError("views: expected at least one view index")
     outp = Path(out)
@@ -120,48 +217,17 @@ def run_parse(
         t0 = time.time()
         bar = tqdm(total=len(files), desc="threedq parse", unit="scene", disable=not progress, dynamic_ncols=True)
         for s in range(0, len(files), batch_size):
-            recs, chosen, ok_files = [], [], []
-            for f in files[s : s + batch_size]:
-                src = root / f
-                try:
-                    if box_sets is not None and f not in box_sets:
-                        raise SceneValidationError(str(boxes), f, "the boxes file has no boxes for this scene")
-                    rec = load_scene(src)
-                    chosen.append(check_views(list(views), rec, str(src)))
-                    recs.append(rec)
-                    ok_files.append(f)
-                except (SceneValidationError, ValueError, OSError) as e:
-                    failed.append(str(e).splitlines()[0] if str(e) else f"{src}: {type(e).__name__}")
-                    print(f"threedq parse: skipped {failed[-1]}", file=sys.stderr)
+            recs, chosen, ok_files = _load_batch(root, files[s : s + batch_size], views, box_sets, boxes, failed)
             given = None if box_sets is None else [box_sets[f] for f in ok_files]
             for f, rec, v, res in zip(ok_files, recs, chosen, parse_records(parser, recs, chosen, names, batch_size, given)):
                 features = res.pop("_features")
                 doc = {"scene": str(root / f), **res, "models": artifacts.to_dict(), "score_threshold": parser.score_threshold}
                 name = _scene_name(f)
                 atomic_write_json(outp / f"{name}.json", doc)
-                if pictures:
-                    _png(outp / f"{name}.png", parse_figure(rec, v, doc, parser, appearance))
-                if decoder is not None:
-                    if not gallery_done:
-                        _png(outp / "gallery.png", prototype_gallery(parser, decoder, rec, appearance, names, view=v[0]))
-                        gallery_done = True
-                    others = [i for i in range(rec.num_views) if i not in v]
-                    if others:
-                        _png(outp / f"{name}_replaced.png", replaced_render(parser, decoder, rec, doc, features, others[0]))
+                gallery_done = _write_pictures(
+                    outp, name, rec, v, doc, features, parser, appearance, names, decoder, pictures, gallery_done
+                )
                 parsed.append({"scene": str(root / f), "json": f"{name}.json", "objects": len(doc["objects"])})
             bar.update(len(files[s : s + batch_size]))
         bar.close()
-        summary = {
-            "scenes": len(files),
-            "parsed": len(parsed),
-            "failed": failed,
-            "objects": sum(p["objects"] for p in parsed),
-            "named_prototypes": len(names),
-            "seconds": round(time.time() - t0, 2),
-            "models": artifacts.to_dict(),
-            "files": parsed,
-        }
-        atomic_write_json(outp / "summary.json", summary)
-        print(f"threedq parse: {len(parsed)} of {len(files)} scene(s) parsed, {summary['objects']} object(s), "
-              f"{len(failed)} failed; wrote {outp}")  # fmt: skip
-        return summary
+        return _write_summary(outp, files, parsed, failed, names, t0, artifacts.to_dict())

@@ -1,11 +1,9 @@
 """Where bf16 runs natively, and the trainer precision a run gets on a CPU where it does not.
 
 oneDNN runs bf16 convolutions on any x86 CPU, but only a CPU with bf16 instructions (AVX512-BF16 or AMX-BF16) runs
-them natively; elsewhere it converts or falls back to reference kernels. One view-prediction training step under
-bf16 autocast (``benchmarks/bench_viewpred_step.py``, ``docs/benchmarks.md``) took 2x the float32 time on an Intel
-Xeon with AVX-512 but without AVX512-BF16, and about 60x (58 s against 0.94 s) on an AMD EPYC with AVX2 only.
-So a bf16 precision asked for by a config (``configs/stages/mining.yaml``, ``vc.yaml``, ``vc_moco.yaml`` ask for
-``bf16-mixed``: about 2x faster where it is native) runs in float32 on such a CPU (:func:`cpu_precision`).
+them natively; elsewhere it converts or falls back to reference kernels, several times slower than float32
+(``docs/benchmarks.md``). So a bf16 precision asked for by a config (``configs/stages/mining.yaml``, ``vc.yaml``,
+``vc_moco.yaml`` ask for ``bf16-mixed``) runs in float32 on such a CPU (:func:`cpu_precision`).
 """
 
 from __future__ import annotations

@@ -36,12 +36,12 @@ from threedq.stages.viewpred import ViewPrediction
 __all__ = ["load_view_decoder", "orbit_poses", "prototype_gallery", "replaced_render"]
 
 
-def load_view_decoder(path: str | Path, channels_last: bool = True) -> ViewPrediction:
+def load_view_decoder(path: str | Path) -> ViewPrediction:
     """The view-prediction stage of a checkpoint (decoder weights loaded; its encoder is not used here)."""
     hp = checkpoint_hparams(path)
     names = set(stage_arguments(ViewPrediction)) - {"encoder_ckpt"}
     kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in hp.items() if k in names}
-    vp = ViewPrediction(**{**kw, "channels_last": channels_last, "image_every_n_steps": 0})
+    vp = ViewPrediction(**{**kw, "channels_last": True, "image_every_n_steps": 0})
     state = {k: v for k, v in checkpoint_state(path).items() if k.startswith("decoder.")}
     if not state:
         raise InputError(f"{path}: field 'state_dict': no 'decoder.*' weights (not a view-prediction checkpoint)")

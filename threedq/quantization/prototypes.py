@@ -55,8 +55,8 @@ class PrototypeBank(nn.Module):
             below this (paper: 0.8).
         method: rotation search implementation, ``"fast"`` or ``"exact"``.
         depth: D, the crops' extent along the rotation axis (default ``size``: ``S^3`` crops); ``depth=1``
-            holds 2D prototypes ``[C, 1, S, S]`` whose yaw search is an in-plane rotation search (2.5DQ-Nets,
-            :mod:`threedq.quantization.inplane`).
+            holds 2D prototypes ``[C, 1, S, S]`` whose yaw search is an in-plane rotation search (2.5DQ-Nets: an
+            image crop's angle index ``a`` turns it by ``2 pi a / A`` clockwise as displayed, row y down).
     """
 
     def __init__(

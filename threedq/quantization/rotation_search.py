@@ -27,13 +27,11 @@ Pipeline of the ``"fast"`` methods:
    ``A`` interpolations of the crop.
 
 Precision: fp32 (or fp64) inputs are computed in their dtype. ``compute_dtype=torch.bfloat16`` runs the
-resampling and the per-frequency GEMMs in bf16 (about 2-4x faster on CPUs with native bf16 matmul): inputs
-are rounded to bf16 (random errors that average out over the long contractions) and each GEMM output is
-rounded to bf16 (CPU matmul has no fp32 output for bf16 operands); the frequency-0 term (which carries most of
-every cosine and does not depend on the angle) is computed from fp32 copies with an fp32 output, and the
-inverse DFT, norms and scores are fp32. Measured on 32 x 16^3 crops: cosines within 2e-3 (mean 1e-4) of
-fp64, the best yaw unchanged for >99% of all pairs (the rest are near-ties of unrelated crops), retrieval top-1
-unchanged. fp32 is within 5e-7 of fp64.
+resampling and the per-frequency GEMMs in bf16 (faster on CPUs with native bf16 matmul): inputs are rounded to
+bf16 (random errors that average out over the long contractions) and each GEMM output is rounded to bf16 (CPU
+matmul has no fp32 output for bf16 operands); the frequency-0 term (which carries most of every cosine and does
+not depend on the angle) is computed from fp32 copies with an fp32 output, and the inverse DFT, norms and scores
+are fp32.
 
 Area weighting: polar samples are denser near the axis. Sample ``(i, a)`` stands for the polar cell of area
 ``(2 pi / A) * (rho / R) * r_i`` voxels^2 (``rho`` the inscribed radius, ``r_i = (i + 0.5) rho / R``); the
@@ -76,7 +74,6 @@ __all__ = [
     "polar_interpolation_matrix",
     "polar_spectrum",
     "rotation_max_similarity",
-    "yaw_correlation",
 ]
 
 #: The two kernels of every rotation search: ``"fast"`` (polar spectrum + FFT over the angle, cosine over the
@@ -307,7 +304,7 @@ def _fourier_matrix_f64(
 @dataclass(frozen=True)
 class _SpectrumPlan:
     blocks: tuple[_Block, ...]
-    matrix: Tensor | None  # [K_total, Y * X] (None for plain cylinders)
+    matrix: Tensor  # [K_total, Y * X]
     lag_basis: Tensor  # [A, K]
     num_angles: int
 
@@ -461,35 +458,25 @@ def _correlate(q: PolarSpectrum, g: PolarSpectrum, chunk: int) -> Iterator[tuple
 
     Per frequency block ``conj(Q) G`` (``Q = Qr + i Qi``, ``G = Gr + i Gi``, contracted over the block):
     ``Re = [Qr Qi] . [Gr Gi]`` (one GEMM over the whole block), ``Im = Qr . Gi - Qi . Gr`` (two half-width
-    GEMMs), all operands strided views of the coefficient tensors (no copies). Without autograd the GEMMs write
-    into buffers reused across chunks (``c`` is overwritten by the next chunk: consume it before resuming);
-    with autograd, functional ops. (Gauss's 3-multiplication form was tried: ~10% faster in fp32, slower in
-    bf16 on CPU, so not used.)
+    GEMMs), all operands strided views of the coefficient tensors (no copies). The GEMMs write into buffers reused
+    across chunks (``c`` is overwritten by the next chunk: consume it before resuming).
     """
     lag = q.plan.lag_basis
     num_out, n_total, m = lag.shape[1], len(q), len(g)
     acc = lag.dtype
     low = q.coef.dtype != acc
-    track = torch.is_grad_enabled() and (q.coef.requires_grad or g.coef.requires_grad)
     gallery = [g.block(i) for i in range(len(q.plan.blocks))]
     halves = [_halves(gb) if b.complex else None for b, gb in zip(q.plan.blocks, gallery)]
     buf = buf32 = cbuf = None
     for start in range(0, n_total, chunk):
         n = min(chunk, n_total - start)
-        if not track and (buf32 is None or buf32.shape[1] != n):
+        if buf32 is None or buf32.shape[1] != n:
             buf32 = torch.empty(num_out, n, m, device=lag.device, dtype=acc)
             buf = torch.empty(num_out, n, m, device=lag.device, dtype=q.coef.dtype) if low else buf32
             cbuf = torch.empty(lag.shape[0], n, m, device=lag.device, dtype=acc)
-        rows: list[Tensor] = []
         k = 0
         for i, (b, gb) in enumerate(zip(q.plan.blocks, gallery)):
             qb = q.block(i, start, start + n)  # [n, W] view
-            if track:
-                rows.append(qb @ gb.T)
-                if b.complex:
-                    (qr, qi), (gr, gi) = _halves(qb), halves[i]
-                    rows.append(qr @ gi.T - qi @ gr.T)
-                continue
             target = buf32 if qb.dtype == acc else buf
             torch.mm(qb, gb.T, out=target[k])  # Re = [Qr Qi] . [Gr Gi] (the whole block)
             if b.complex:
@@ -497,77 +484,9 @@ def _correlate(q: PolarSpectrum, g: PolarSpectrum, chunk: int) -> Iterator[tuple
                 torch.mm(qr, gi.T, out=target[k + 1])
                 target[k + 1].addmm_(qi, gr.T, alpha=-1)  # Im = Qr . Gi - Qi . Gr
             k += 1 + b.complex
-        if low and not track:
+        if low:
             buf32[1:].copy_(buf[1:])  # one conversion; row 0 (the DC term) was computed in float32
-        if track:
-            c = (lag @ torch.stack([r.to(acc) for r in rows]).view(num_out, -1)).view(-1, n, m)
-        else:
-            c = torch.mm(lag, buf32.view(num_out, -1), out=cbuf.view(lag.shape[0], -1)).view(-1, n, m)
-        yield start, c
-
-
-def yaw_correlation(
-    a_cyl: Tensor, b_cyl: Tensor, *, chunk: int | None = None, compute_dtype: torch.dtype | None = None
-) -> Tensor:
-    """Inner products of every ``a`` rotated by every angle step with every ``b``, via rFFT along the angle.
-
-    ``out[n, m, s] = sum_{d, t} a[n, d, t - s] * b[m, d, t]`` (indices mod ``A``), i.e. ``<roll(a_n, s), b_m>``,
-    contracting all middle dims ``d``. Correlation theorem: the rFFTs ``Q, G`` along the angle give
-    ``out = irfft(sum_d conj(Q_f) G_f)``; the sum over ``d`` is one real GEMM per frequency (complex parts
-    real-ified), so the cost is ``~2 A`` real GEMMs over ``D`` instead of ``A`` GEMMs over ``D * A``.
-
-    Precision: float64/float32 inputs are computed in their dtype. With ``compute_dtype`` bfloat16/float16
-    (or such inputs), the FFT runs in float32, the coefficients are rounded to the low precision and each
-    per-frequency GEMM accumulates in float32 but ROUNDS ITS OUTPUT to the low precision (CPU matmul has no
-    float32 output for bf16 inputs), relative error ~2^-9 of each frequency's term; the DC term is computed
-    in float32 and the result is float32. Expect ~1e-3 relative error on the non-constant part.
-
-    Args:
-        a_cyl: ``[N, ..., A]`` (e.g. ``[N, C, Z, R, A]`` from ``cylindrical_resample``).
-        b_cyl: ``[M, ..., A]`` with the same middle dims and ``A``.
-        chunk: rows of ``a`` per GEMM (default: bounded scratch of ~64 MiB).
-        compute_dtype: GEMM dtype (default: the dtype of ``a_cyl``).
-
-    Returns:
-        ``[N, M, A]`` inner products (float32 for low-precision compute, else the input dtype).
-        Differentiable w.r.t. both inputs (linear).
-
-    Convention:
-        Shift ``s`` = rotating ``a`` by ``s`` angle steps (``2 pi s / A`` counter-clockwise seen from above)
-        before the inner product with ``b``.
-    """
-    if not isinstance(a_cyl, Tensor) or not isinstance(b_cyl, Tensor) or a_cyl.ndim < 2 or b_cyl.ndim < 2:
-        raise ValueError("a_cyl and b_cyl must be tensors of shape [N, ..., A] and [M, ..., A]")
-    if a_cyl.shape[1:] != b_cyl.shape[1:]:
-        raise ValueError(
-            f"a_cyl and b_cyl must agree in all but the first dim, got {tuple(a_cyl.shape)} and {tuple(b_cyl.shape)}"
-        )
-    if not a_cyl.is_floating_point() or not b_cyl.is_floating_point():
-        raise ValueError("a_cyl and b_cyl must be floating-point tensors")
-    num_angles = a_cyl.shape[-1]
-    compute_dtype = _resolve_compute_dtype(a_cyl.dtype, compute_dtype)
-    acc = _acc_dtype(torch.promote_types(compute_dtype, torch.promote_types(a_cyl.dtype, b_cyl.dtype)))
-    fft_dtype = _acc_dtype(acc)
-    blocks = _frequency_blocks(num_angles, [num_angles // 2])  # one "ring": d runs over all middle dims
-    plan = _SpectrumPlan(blocks, None, _lag_basis_f64(blocks, num_angles).to(device=a_cyl.device, dtype=acc), num_angles)
-
-    def spectrum(x: Tensor) -> PolarSpectrum:
-        z = torch.fft.rfft(x.reshape(x.shape[0], -1, num_angles).to(fft_dtype), dim=-1, norm="ortho")  # [N, D, F]
-        rows = []
-        for b in blocks:
-            if b.complex:
-                zf = z[:, :, b.freq] * math.sqrt(2.0)
-                rows.extend((zf.real, zf.imag))
-            else:
-                rows.append(z[:, :, b.freq].real)
-        coef = torch.stack(rows, dim=1)  # [N, K, D]
-        return PolarSpectrum(coef.to(compute_dtype), coef[:, : blocks[0].width], plan, coef.new_empty(0))
-
-    qa, gb = spectrum(a_cyl), spectrum(b_cyl)
-    n, m = a_cyl.shape[0], b_cyl.shape[0]
-    chunk = chunk or _auto_chunk(n, m, num_angles)
-    parts = [c.permute(1, 2, 0).clone() for _, c in _correlate(qa, gb, chunk)]  # clone: buffers are reused
-    return torch.cat(parts, dim=0)  # [N, M, A]
+        yield start, torch.mm(lag, buf32.view(num_out, -1), out=cbuf.view(lag.shape[0], -1)).view(-1, n, m)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -649,8 +568,8 @@ def best_prototype_and_yaw(
         method: ``"fast"`` or ``"exact"``.
         num_radii: ``"fast"`` only: polar rings (default ``ceil(min(Y, X) / 2)``).
         bandlimit: ``"fast"`` only: drop angular frequencies above ``ceil(pi r)`` per ring.
-        compute_dtype: ``"fast"`` only: e.g. ``torch.bfloat16`` (~2x faster on CPUs with bf16 matmul, see
-            ``yaw_correlation`` for the precision); default the objects' dtype.
+        compute_dtype: ``"fast"`` only: e.g. ``torch.bfloat16`` (faster on CPUs with bf16 matmul; see
+            the module docstring for the precision); default the objects' dtype.
         chunk: objects per GEMM (default: ~64 MiB of scratch for ``"fast"``, 16 for ``"exact"``).
         objects_spectrum: ``"fast"`` only: ``polar_spectrum(objects, ...)`` computed earlier with the same settings
             (an EM that assigns the same objects to changing prototypes computes it once); the result is the one of
@@ -704,7 +623,7 @@ def rotation_max_similarity(
     ``method="exact"``: each query is rotated by every candidate yaw (``rotate_yaw``: trilinear, about its
     vertical centre line), flattened and L2-normalised, then compared with every flattened, L2-normalised
     gallery crop. ``method="fast"`` is :func:`all_pairs_rotation_max` (cylindrical resampling + rFFT over the
-    angle; cosine over the inscribed cylinder, ~10-30x faster on CPU).
+    angle; cosine over the inscribed cylinder, much faster on CPU).
 
     Args:
         query: ``[N, C, S, S, S]`` crops.
@@ -751,7 +670,7 @@ def all_pairs_rotation_max(
 
     Same semantics as :func:`rotation_max_similarity` (``method="exact"`` calls it): the
     maximum over ``A`` yaws of ``cos(rotate(query_n, a), gallery_m)``. ``"fast"`` computes the cosine over the
-    inscribed cylinder from polar spectra (one GEMM per angular frequency, see ``yaw_correlation``); with
+    inscribed cylinder from polar spectra (one GEMM per angular frequency, see the module docstring); with
     ``query is gallery`` the spectrum is computed once.
 
     Args:

@@ -10,8 +10,8 @@
 
 Convention: crops are ``[4, S, S, S]`` raw ``(occ, occ * rgb)`` volumes, drawn as bird's-eye views (x right, y up);
 images ``[H, W, 3]`` uint8 RGB (picture grids are drawn
-with OpenCV: a matplotlib axes per tile cost about 1 s a figure); the one plot, :func:`per_category_figure`, is a
-matplotlib ``Figure``; both go to :func:`~threedq.viz.png.write_png`.
+with OpenCV); the one plot, :func:`per_category_figure`, is a matplotlib ``Figure``; both go to
+:func:`~threedq.viz.png.write_png`.
 """
 
 from __future__ import annotations

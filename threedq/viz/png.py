@@ -30,10 +30,9 @@ def new_figure(**kwargs: Any) -> Any:
     return fig
 
 
-def figure_png(fig: Any, dpi: float | None = None, tight: bool = True) -> bytes:
-    """PNG bytes of a figure from :func:`new_figure` (laid out tightly unless ``tight`` is False)."""
-    if tight:
-        fig.tight_layout()
+def figure_png(fig: Any, dpi: float | None = None) -> bytes:
+    """PNG bytes of a figure from :func:`new_figure`, laid out tightly."""
+    fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", **({} if dpi is None else {"dpi": dpi}))
     return buf.getvalue()

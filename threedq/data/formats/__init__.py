@@ -1,6 +1,6 @@
-"""Parsers of on-disk RGB-D capture formats, one module per format, each producing the canonical scene record.
+"""Readers of on-disk RGB-D capture formats, one module per format, each producing the canonical scene record.
 
-A parser (``parse_<format>(folder, ...) -> Capture``, the expected directory tree in its module docstring)
+A reader (``read_<format>(folder, ...) -> Capture``, the expected directory tree in its module docstring)
 reads one capture in its own frame; :func:`~threedq.data.formats.normalise.normalise_capture` makes it a
 canonical :class:`~threedq.scene.SceneRecord` (z up, centred, subsampled views, ``canonical_T_capture`` in
 ``meta``); :func:`~threedq.data.formats.importer.import_captures` writes a dataset folder of them.

@@ -42,7 +42,7 @@ from threedq.data.formats.capture import (
 )
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "parse_bigbird", "register_depth"]
+__all__ = ["MARKER", "read_bigbird", "register_depth"]
 
 MARKER = "calibration.h5"
 DEPTH_UNITS_PER_METRE = 10000.0
@@ -108,7 +108,7 @@ def _load_view(
     return rgb, depth, K, str(depth_path)
 
 
-def parse_bigbird(
+def read_bigbird(
     folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
 ) -> Capture:
     """Read one BigBIRD object folder (tree in the module docstring).

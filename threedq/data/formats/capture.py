@@ -1,6 +1,6 @@
-"""What every capture parser returns (:class:`Capture`) and the readers the parsers share.
+"""What every capture reader returns (:class:`Capture`) and the file readers they share.
 
-A parser reads one on-disk capture into a :class:`Capture`: the views in the capture's own world frame,
+A reader reads one on-disk capture into a :class:`Capture`: the views in the capture's own world frame,
 metric depth, one ``K`` per view (colour and depth already on the same pixel grid) and the frames it
 skipped, each with the file and field at fault. :func:`threedq.data.formats.normalise.normalise_capture`
 then turns a capture into the canonical :class:`~threedq.scene.SceneRecord` (z up, centred).
@@ -46,7 +46,7 @@ _RIGID_TOL = 1e-4
 
 @dataclass
 class FrameSkip:
-    """One frame the parser left out: the file and field at fault and why (one line)."""
+    """One frame the reader left out: the file and field at fault and why (one line)."""
 
     source: str
     field: str

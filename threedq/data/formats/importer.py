@@ -68,7 +68,7 @@ def find_captures(fmt: str, src: str | Path) -> list[Path]:
     return found
 
 
-def _parser_kwargs(fmt: str, options: dict[str, Any]) -> dict[str, Any]:
+def _reader_kwargs(fmt: str, options: dict[str, Any]) -> dict[str, Any]:
     params = inspect.signature(FORMATS[fmt][0]).parameters
     given = {k: v for k, v in options.items() if v is not None}
     allowed = [p for p in params if p not in ("folder", "max_views")]
@@ -85,7 +85,7 @@ def import_captures(
     split: str = "train",
     max_views: int = 28,
     max_depth: float = 10.0,
-    parser_options: dict[str, Any] | None = None,
+    reader_options: dict[str, Any] | None = None,
     progress: bool = True,
 ) -> ImportSummary:
     """Import every capture of ``src`` into the dataset folder ``out`` (see the module docstring).
@@ -97,7 +97,7 @@ def import_captures(
         split: the split the scenes go to (``train``, ``val`` or ``test``).
         max_views: views kept per scene (farthest camera positions).
         max_depth: depth beyond this many metres becomes 0.
-        parser_options: keyword arguments of the format's parser (``None`` values are dropped).
+        reader_options: keyword arguments of the format's reader (``None`` values are dropped).
         progress: show a tqdm progress bar.
 
     Returns:
@@ -110,7 +110,7 @@ def import_captures(
     if split not in ("train", "val", "test"):
         raise ValueError(f"split: expected train, val or test, got {split!r}")
     captures = find_captures(fmt, src)
-    kwargs = _parser_kwargs(fmt, parser_options or {})
+    kwargs = _reader_kwargs(fmt, reader_options or {})
     out = Path(out)
     old = load_index(out) if (out / INDEX_NAME).is_file() else None
     categories = list(old.categories) if old else []

@@ -38,7 +38,7 @@ from threedq.data.formats.capture import (
 )
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "OPENGL_T_OPENCV", "parse_nerfstudio"]
+__all__ = ["MARKER", "OPENGL_T_OPENCV", "read_nerfstudio"]
 
 MARKER = "transforms.json"
 #: maps OpenCV camera coordinates to OpenGL camera coordinates (and back: it is its own inverse)
@@ -60,7 +60,7 @@ def _camera(frame: dict[str, Any], top: dict[str, Any], source: str) -> np.ndarr
     return np.array([[vals["fl_x"], 0, vals["cx"] - 0.5], [0, vals["fl_y"], vals["cy"] - 0.5], [0, 0, 1]])
 
 
-def parse_nerfstudio(
+def read_nerfstudio(
     folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
 ) -> Capture:
     """Read a ``transforms.json`` capture with depth (tree in the module docstring).

@@ -111,44 +111,16 @@ def normalise_capture(
     K = capture.K[keep].astype(np.float64)
     depth = depth[keep]
 
-    up = -poses[:, :3, 1].mean(axis=0)
-    R0 = rotation_between(up, [0, 0, 1]) if np.linalg.norm(up) > 1e-6 else np.eye(3)
-    T0 = np.eye(4)
-    T0[:3, :3] = R0
-    pts = _points(depth, K, T0 @ poses, fit_stride)
-    centres = (T0 @ poses)[:, :3, 3]
-    plane = fit_ground_plane(pts, camera_centres=centres, threshold=plane_threshold, max_tilt_deg=max_tilt_deg)
-    if plane is None:
-        raise SceneValidationError(capture.source, "depth", "no support plane found in the fused depth")
-    n, d, _ = plane
-    R1 = rotation_between(n, [0, 0, 1])
-    R = R1 @ R0
-    height = pts @ n + d
-    sel = (height > margin) & (height < object_max_height)
-    if np.count_nonzero(sel) < 10:  # nothing stands on the plane: centre on the plane itself
-        sel = np.abs(height) <= plane_threshold
-    above, above_h = pts[sel] @ R1.T, height[sel]
-    xy = above[:, :2]
-    lo, hi = np.percentile(xy, 2, axis=0), np.percentile(xy, 98, axis=0)
-    cxy = (lo + hi) / 2
-    c_T = np.eye(4)
-    c_T[:3, :3] = R
-    c_T[:3, 3] = [-cxy[0], -cxy[1], d]
+    c_T, lo, hi, cxy, above_h = _canonical_frame(
+        capture.source, depth, K, poses, fit_stride, plane_threshold, max_tilt_deg, margin, object_max_height
+    )
     world_T_cam = c_T @ poses
 
     boxes = np.zeros((0, 7))
     cats = np.zeros((0,), np.int64)
     if capture.objects is not None and len(capture.objects.categories):
         boxes, cats = _canonical_boxes(capture, c_T, categories)
-    half = np.maximum(np.abs(lo - cxy), np.abs(hi - cxy))
-    zmax = float(np.percentile(above_h, 98))
-    bmin = np.array([-half[0], -half[1], 0.0])
-    bmax = np.array([half[0], half[1], max(zmax, margin)])
-    if boxes.shape[0]:
-        corners = box_corners(boxes).reshape(-1, 3)
-        bmin, bmax = np.minimum(bmin, corners.min(0)), np.maximum(bmax, corners.max(0))
-    bmin, bmax = bmin - margin, bmax + margin
-    bmin[2] = min(bmin[2], -margin)
+    bmin, bmax = _scene_bounds(lo, hi, cxy, above_h, boxes, margin)
     meta = {
         "source": capture.source,
         "source_format": capture.format,
@@ -167,6 +139,79 @@ def normalise_capture(
         categories=cats,
         meta=meta,
     )
+
+
+def _canonical_frame(
+    source: str,
+    depth: np.ndarray,
+    K: np.ndarray,
+    poses: np.ndarray,
+    fit_stride: int,
+    plane_threshold: float,
+    max_tilt_deg: float,
+    margin: float,
+    object_max_height: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fit the support plane and centre on what stands on it (steps 3-4 of the module docstring).
+
+    Args:
+        source: the capture's name (for the error).
+        depth: ``[V,H,W]`` cleaned depth of the kept views; ``K`` ``[V,3,3]``; ``poses`` ``[V,4,4]`` world_T_cam.
+
+    Returns:
+        ``canonical_T_capture`` ``[4,4]``; ``lo``, ``hi`` ``[2]`` (2nd/98th percentiles of the x-y of the
+        points standing on the plane, in the plane-aligned frame before centring), their midpoint ``cxy`` ``[2]``
+        and those points' heights above the plane ``[N]``.
+
+    Raises:
+        SceneValidationError: no support plane was found.
+    """
+    up = -poses[:, :3, 1].mean(axis=0)
+    R0 = rotation_between(up, [0, 0, 1]) if np.linalg.norm(up) > 1e-6 else np.eye(3)
+    T0 = np.eye(4)
+    T0[:3, :3] = R0
+    pts = _points(depth, K, T0 @ poses, fit_stride)
+    centres = (T0 @ poses)[:, :3, 3]
+    plane = fit_ground_plane(pts, camera_centres=centres, threshold=plane_threshold, max_tilt_deg=max_tilt_deg)
+    if plane is None:
+        raise SceneValidationError(source, "depth", "no support plane found in the fused depth")
+    n, d, _ = plane
+    R1 = rotation_between(n, [0, 0, 1])
+    R = R1 @ R0
+    height = pts @ n + d
+    sel = (height > margin) & (height < object_max_height)
+    if np.count_nonzero(sel) < 10:  # nothing stands on the plane: centre on the plane itself
+        sel = np.abs(height) <= plane_threshold
+    above, above_h = pts[sel] @ R1.T, height[sel]
+    xy = above[:, :2]
+    lo, hi = np.percentile(xy, 2, axis=0), np.percentile(xy, 98, axis=0)
+    cxy = (lo + hi) / 2
+    c_T = np.eye(4)
+    c_T[:3, :3] = R
+    c_T[:3, 3] = [-cxy[0], -cxy[1], d]
+    return c_T, lo, hi, cxy, above_h
+
+
+def _scene_bounds(
+    lo: np.ndarray, hi: np.ndarray, cxy: np.ndarray, above_h: np.ndarray, boxes: np.ndarray, margin: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Canonical scene bounds ``(min [3], max [3])`` from what stands on the plane and the annotated boxes.
+
+    ``lo``/``hi`` are the 2nd/98th percentiles ``[2]`` of the (x, y) of the points above the plane (before
+    centring), ``cxy`` their midpoint, ``above_h`` those points' heights; ``boxes`` ``[M,7]`` canonical boxes.
+    The x-y extent is symmetric about the origin, z runs from the plane to the 98th percentile height, the
+    boxes' corners are included, and everything is padded by ``margin`` (z at least ``-margin`` below).
+    """
+    half = np.maximum(np.abs(lo - cxy), np.abs(hi - cxy))
+    zmax = float(np.percentile(above_h, 98))
+    bmin = np.array([-half[0], -half[1], 0.0])
+    bmax = np.array([half[0], half[1], max(zmax, margin)])
+    if boxes.shape[0]:
+        corners = box_corners(boxes).reshape(-1, 3)
+        bmin, bmax = np.minimum(bmin, corners.min(0)), np.maximum(bmax, corners.max(0))
+    bmin, bmax = bmin - margin, bmax + margin
+    bmin[2] = min(bmin[2], -margin)
+    return bmin, bmax
 
 
 def _canonical_boxes(capture: Capture, c_T: np.ndarray, categories: list[str]) -> tuple[np.ndarray, np.ndarray]:

@@ -39,7 +39,7 @@ from threedq.data.formats.capture import (
 )
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "parse_open3d", "read_log"]
+__all__ = ["MARKER", "read_open3d", "read_log"]
 
 MARKER = "trajectory.log"
 
@@ -81,7 +81,7 @@ def _intrinsics(folder: Path) -> np.ndarray:
     raise SceneValidationError(str(folder / "camera_intrinsic.json"), "intrinsic_matrix", "no such file")
 
 
-def parse_open3d(
+def read_open3d(
     folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
 ) -> Capture:
     """Read an Open3D/Kinect capture folder (tree in the module docstring).

@@ -10,11 +10,11 @@ from threedq.data.formats.capture import Capture
 __all__ = ["FORMATS"]
 
 FORMATS: dict[str, tuple[Callable[..., Capture], str]] = {
-    "tum": (tum.parse_tum, tum.MARKER),
-    "scannet": (scannet.parse_scannet, scannet.MARKER),
-    "nerfstudio": (nerfstudio.parse_nerfstudio, nerfstudio.MARKER),
-    "replica": (replica.parse_replica, replica.MARKER),
-    "bigbird": (bigbird.parse_bigbird, bigbird.MARKER),
-    "open3d": (open3d.parse_open3d, open3d.MARKER),
-    "rig": (rig.parse_rig, rig.MARKER),
+    "tum": (tum.read_tum, tum.MARKER),
+    "scannet": (scannet.read_scannet, scannet.MARKER),
+    "nerfstudio": (nerfstudio.read_nerfstudio, nerfstudio.MARKER),
+    "replica": (replica.read_replica, replica.MARKER),
+    "bigbird": (bigbird.read_bigbird, bigbird.MARKER),
+    "open3d": (open3d.read_open3d, open3d.MARKER),
+    "rig": (rig.read_rig, rig.MARKER),
 }

@@ -36,7 +36,7 @@ from threedq.data.formats.capture import (
 )
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "REPLICA_CAMERA", "parse_replica"]
+__all__ = ["MARKER", "REPLICA_CAMERA", "read_replica"]
 
 MARKER = "traj.txt"
 REPLICA_CAMERA = {"w": 1200, "h": 680, "fx": 600.0, "fy": 600.0, "cx": 599.5, "cy": 339.5, "scale": 6553.5}
@@ -55,7 +55,7 @@ def _camera(folder: Path) -> dict[str, float]:
     return {k: float(v) for k, v in REPLICA_CAMERA.items()}
 
 
-def parse_replica(
+def read_replica(
     folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
 ) -> Capture:
     """Read one NICE-SLAM Replica scene (tree in the module docstring).

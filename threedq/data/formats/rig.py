@@ -50,7 +50,7 @@ from threedq.data.formats.capture import (
 )
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "decode_carla_depth", "parse_rig"]
+__all__ = ["MARKER", "decode_carla_depth", "read_rig"]
 
 MARKER = "rig.yaml"
 CARLA_FAR_M = 1000.0
@@ -107,7 +107,7 @@ def _read_depth(path_stem: Path, enc: str, units: float) -> tuple[np.ndarray, Pa
     return read_depth_png(p, units), p
 
 
-def parse_rig(folder: str | Path, max_views: int | None = None) -> Capture:
+def read_rig(folder: str | Path, max_views: int | None = None) -> Capture:
     """Read a recorded rig capture (tree and ``rig.yaml`` in the module docstring).
 
     Args:

@@ -39,7 +39,7 @@ from threedq.data.formats.capture import (
 )
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "parse_scannet", "register_colour"]
+__all__ = ["MARKER", "read_scannet", "register_colour"]
 
 MARKER = "intrinsic/intrinsic_depth.txt"
 
@@ -71,7 +71,7 @@ def _frame_ids(folder: Path) -> list[str]:
     return sorted(ids, key=int)
 
 
-def parse_scannet(
+def read_scannet(
     folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
 ) -> Capture:
     """Read a SensReader export (tree in the module docstring).

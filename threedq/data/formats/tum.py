@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from threedq.data.formats.capture import Capture, Frame, FrameSkip, load_frames, read_depth_png, read_objects, read_rgb
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "TUM_INTRINSICS", "parse_tum"]
+__all__ = ["MARKER", "TUM_INTRINSICS", "read_tum"]
 
 MARKER = "rgb.txt"
 DEPTH_UNITS_PER_METRE = 5000.0
@@ -85,7 +85,7 @@ def _intrinsics(folder: Path, intrinsics: tuple[float, float, float, float] | No
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
 
 
-def parse_tum(
+def read_tum(
     folder: str | Path,
     intrinsics: tuple[float, float, float, float] | None = None,
     max_dt: float = 0.02,

@@ -43,10 +43,8 @@ from threedq.quantization.rotation_search import all_pairs_rotation_max
 __all__ = [
     "calibrate_context_cosine",
     "context_offsets",
-    "csls_scores",
     "match_patch",
     "mine_correspondences",
-    "mutual_neighbours",
     "patch_grid",
     "retrieve_targets",
     "rotate_patch_positions",
@@ -272,22 +270,8 @@ def retrieve_targets(
     exclude: Tensor | None = None,
     *,
     method: str = "fast",
-    csls_k: int | None = None,
-    mutual_k: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The ``top_k`` targets of highest rotation-max cosine for every query (object-level retrieval).
-
-    With ``csls_k``, targets are retrieved and scored by cross-domain similarity local scaling (CSLS; Conneau et
-    al., "Word translation without parallel data", ICLR 2018) instead: ``2 cos(q, t) - r_q - r_t``, where ``r_q`` is
-    the mean of query ``q``'s ``csls_k`` highest cosines over the targets and ``r_t`` that of target ``t`` over the
-    queries (excluded pairs left out of both). A box that is close to everything (a hub: empty floor, a
-    near-duplicate) has a high ``r`` and loses its lead; a pair that is each other's close neighbour keeps it.
-
-    With ``mutual_k``, only mutual nearest neighbours may be retrieved: target ``t`` for query ``q`` when ``t`` is
-    among ``q``'s ``mutual_k`` targets of highest rotation-max cosine and ``q`` among ``t``'s ``mutual_k`` queries of
-    highest cosine (the plain cosine, excluded pairs left out; ties at the ``k``-th value admitted). Fewer targets
-    are then matched patch by patch; with ``csls_k=10``, ``mutual_k=10`` kept the very same mined pairs in every pool
-    measured, in about half the mining time (docs/studies/mined-pairs.md, "Mutual nearest neighbours").
 
     Args:
         query_crops: ``[N, C, S, S, S]`` feature crops.
@@ -297,13 +281,10 @@ def retrieve_targets(
         exclude: optional ``[N, M]`` bool, True where a target must not be retrieved for a query (same object,
             same scene, or the query itself when ``target_crops`` is ``query_crops``); set to ``-inf``.
         method: ``"fast"`` (cylinder cosine, polar spectra) or ``"exact"``, see ``all_pairs_rotation_max``.
-        csls_k: neighbours of the CSLS means (None: plain cosine, the paper's).
-        mutual_k: admit only mutual ``mutual_k``-nearest neighbours (None: every target, the paper's).
 
     Returns:
-        ``idx`` ``[N, k]`` long target indices, best first; ``sim`` ``[N, k]`` their rotation-max cosines, or their
-        CSLS scores with ``csls_k`` (``-inf`` marks a slot with no admissible target left, excluded or not mutual);
-        ``angle`` ``[N, k]`` long yaw indices.
+        ``idx`` ``[N, k]`` long target indices, best first; ``sim`` ``[N, k]`` their rotation-max cosines (``-inf``
+        marks a slot with no admissible target left); ``angle`` ``[N, k]`` long yaw indices.
 
     Convention:
         As ``all_pairs_rotation_max``: rotating query ``n`` by ``2 pi angle / A`` aligns it with target ``idx``.
@@ -317,10 +298,6 @@ def retrieve_targets(
         )
     _check_int("top_k", top_k)
     _check_int("num_angles", num_angles)
-    if csls_k is not None:
-        _check_int("csls_k", csls_k)
-    if mutual_k is not None:
-        _check_int("mutual_k", mutual_k)
     n, m = query_crops.shape[0], target_crops.shape[0]
     bad = not isinstance(exclude, Tensor) or exclude.dtype != torch.bool or exclude.shape != (n, m)
     if exclude is not None and bad:
@@ -333,55 +310,8 @@ def retrieve_targets(
     sim, angle = all_pairs_rotation_max(query_crops, target_crops, num_angles, method)
     if exclude is not None:
         sim = sim.masked_fill(exclude.to(sim.device), float("-inf"))
-    mutual = mutual_neighbours(sim, mutual_k) if mutual_k is not None else None
-    if csls_k is not None:
-        sim = csls_scores(sim, csls_k)
-    if mutual is not None:
-        sim = sim.masked_fill(~mutual, float("-inf"))
     top_sim, idx = sim.topk(k, dim=1)
     return idx, top_sim, angle.gather(1, idx)
-
-
-def _mean_top(sim: Tensor, k: int) -> Tensor:
-    """Mean of the ``k`` highest finite entries of each row of ``sim`` ``[N, M]`` (0 for a row with none)."""
-    top = sim.topk(min(k, sim.shape[1]), dim=1).values
-    finite = torch.isfinite(top)
-    return top.where(finite, torch.zeros_like(top)).sum(dim=1) / finite.sum(dim=1).clamp(min=1)
-
-
-def mutual_neighbours(sim: Tensor, k: int) -> Tensor:
-    """Mutual ``k``-nearest neighbours of a query x target similarity matrix.
-
-    Args:
-        sim: ``[N, M]`` similarities; ``-inf`` marks an excluded pair (never a neighbour).
-        k: neighbours on each side.
-
-    Returns:
-        ``[N, M]`` bool: ``sim[q, t]`` is finite, at least the ``k``-th highest of row ``q`` and at least the ``k``-th
-        highest of column ``t`` (ties at the ``k``-th value count as neighbours).
-    """
-    _check_int("k", k)
-    if sim.numel() == 0:
-        return torch.zeros_like(sim, dtype=torch.bool)
-    row_kth = sim.topk(min(k, sim.shape[1]), dim=1).values[:, -1:]
-    col_kth = sim.topk(min(k, sim.shape[0]), dim=0).values[-1:, :]
-    return torch.isfinite(sim) & (sim >= row_kth) & (sim >= col_kth)
-
-
-def csls_scores(sim: Tensor, k: int) -> Tensor:
-    """Cross-domain similarity local scaling of a query x target similarity matrix.
-
-    Args:
-        sim: ``[N, M]`` similarities; ``-inf`` marks an excluded pair (left out of the means, kept ``-inf``).
-        k: neighbours of each mean.
-
-    Returns:
-        ``[N, M]``: ``2 sim[q, t] - r_q - r_t`` with ``r_q`` the mean of row ``q``'s ``k`` highest entries and ``r_t``
-        that of column ``t``'s.
-    """
-    _check_int("k", k)
-    r_q, r_t = _mean_top(sim, k), _mean_top(sim.t(), k)
-    return 2 * sim - r_q[:, None] - r_t[None, :]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -694,6 +624,162 @@ def calibrate_context_cosine(
     return float(cos.float().quantile(quantile))  # einsum gives bf16 under a GPU's autocast; quantile needs float
 
 
+def _checked_mining_inputs(
+    query_crops: Tensor, target_crops: Tensor, keep: int, patch: int, grid: int, context_distance: int,
+    min_cosine: float, min_score: float, min_context_fraction: float, query_positions: Tensor | None,
+    yaw_window: int | None, rank_by: str,
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Check :func:`mine_correspondences`'s arguments.
+
+    Returns:
+        ``query_crops``, ``target_crops``, ``query_positions`` (long, on the crops' device, or None).
+
+    Raises:
+        ValueError: naming the argument.
+    """
+    query_crops = _check_volume(query_crops, "query_crops", 5)
+    target_crops = _check_volume(target_crops, "target_crops", 5)
+    _check_int("keep", keep)
+    _check_int("patch", patch)
+    _check_int("grid", grid)
+    _check_int("context_distance", context_distance)
+    for name, v, lo in (("min_cosine", min_cosine, -1.0), ("min_score", min_score, 0.0),
+                        ("min_context_fraction", min_context_fraction, 0.0)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= 1.0:
+            raise ValueError(f"{name} must be a number in [{lo:g}, 1], got {v!r}")
+    n = query_crops.shape[0]
+    size = query_crops.shape[2:]
+    if query_positions is not None:
+        if (not isinstance(query_positions, Tensor) or query_positions.shape != (n, 3)
+                or query_positions.is_floating_point() or query_positions.dtype == torch.bool):
+            qp = query_positions
+            got = tuple(qp.shape) if isinstance(qp, Tensor) else type(qp).__name__
+            raise ValueError(f"query_positions must be an integer tensor of shape [{n}, 3], got {got}")
+        query_positions = query_positions.to(device=query_crops.device, dtype=torch.long)
+        if not _inside(query_positions, size, patch).all():
+            raise ValueError(f"query_positions must be {patch}^3 patch positions inside crops of size {tuple(size)}")
+    if yaw_window is not None:
+        _check_int("yaw_window", yaw_window, minimum=0)
+    if rank_by not in ("score", "retrieval"):
+        raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
+    return query_crops, target_crops, query_positions
+
+
+def _default_query_positions(
+    query_crops: Tensor, patch: int, grid: int, context_distance: int, min_context_fraction: float
+) -> Tensor:
+    """The default query patch of each crop ``[N, C, S, S, S]`` -> ``[N, 3]`` long: :func:`salient_positions` among
+    the search grid's positions that keep ``min_context_fraction`` of the context ring inside the crop (all grid
+    positions if none does)."""
+    dev = query_crops.device
+    size = query_crops.shape[2:]
+    starts = [torch.tensor(patch_grid(s, grid, patch), device=dev) for s in size]
+    cands = torch.stack(torch.meshgrid(*starts, indexing="ij"), dim=-1).reshape(-1, 3)
+    ring = context_offsets(context_distance, dev)
+    frac = _inside(cands[:, None] + ring, size, patch).float().mean(dim=1)
+    good = cands[frac >= min_context_fraction]
+    return salient_positions(query_crops, good if good.shape[0] else cands, patch)
+
+
+def _match_queries(
+    query_crops: Tensor, target_crops: Tensor, query_positions: Tensor, idx: Tensor, sim: Tensor, ret_angle: Tensor,
+    num_angles: int, patch: int, grid: int, yaw_window: int | None,
+) -> list[tuple[Tensor, ...]]:
+    """Match each query's patch in its retrieved targets (:func:`match_patch`).
+
+    Args:
+        idx, sim, ret_angle: ``[N, K]`` :func:`retrieve_targets` output (non-finite ``sim``: no target).
+
+    Returns:
+        Per query with a target, ``(query index [K'], target index [K'], yaw [K'], aligned position [K', 3],
+        match cosine [K'], retrieval similarity [K'])``.
+    """
+    n = query_crops.shape[0]
+    dev = query_crops.device
+    rows: list[tuple[Tensor, ...]] = []
+    for q in range(n):
+        valid = torch.isfinite(sim[q])
+        t_idx = idx[q][valid]
+        if t_idx.numel() == 0:
+            continue
+        allowed = None
+        if yaw_window is not None:
+            b0 = torch.remainder(-ret_angle[q][valid], num_angles)  # [K]: target yaw implied by the retrieval
+            d = torch.remainder(torch.arange(num_angles, device=dev)[None] - b0[:, None], num_angles)
+            allowed = torch.minimum(d, num_angles - d) <= yaw_window
+        yaw, pos, cos = match_patch(query_crops[q], query_positions[q], target_crops[t_idx], num_angles, patch, grid,
+                                    allowed)
+        rows.append((torch.full_like(t_idx, q), t_idx, yaw, pos, cos, sim[q][valid]))
+    return rows
+
+
+def _no_pairs(query_crops: Tensor) -> dict[str, Tensor]:
+    """:func:`mine_correspondences`'s result without pairs (``P = 0``)."""
+    dev = query_crops.device
+    empty = torch.zeros(0, dtype=torch.long, device=dev)
+    fz = torch.zeros(0, dtype=query_crops.dtype, device=dev)
+    return {"query_index": empty, "target_index": empty.clone(), "query_pos": empty.view(0, 3),
+            "target_pos": empty.view(0, 3).clone(), "target_pos_aligned": empty.view(0, 3).clone(),
+            "yaw": empty.clone(), "match_cosine": fz, "score": fz.clone(), "retrieval_sim": fz.clone()}
+
+
+def _verify_pairs(
+    query_crops: Tensor, target_crops: Tensor, qi: Tensor, ti: Tensor, qpos: Tensor, pos: Tensor, yaw: Tensor,
+    cos: Tensor, rsim: Tensor, num_angles: int, patch: int, context_distance: int, min_cosine: float,
+    min_score: float, keep: int, rank_by: str,
+) -> Tensor:
+    """Verification scores ``[P]`` of the matched pairs (:func:`verify_match`); ``-inf`` for pairs left unverified.
+
+    Args:
+        qi, ti: ``[P]`` query and target indices; ``qpos``, ``pos`` ``[P, 3]`` the query patch and its match in
+            the aligned target; ``yaw`` ``[P]`` the match's yaw index; ``cos`` ``[P]`` the match cosine (its dtype
+            is the scores'); ``rsim`` ``[P]`` retrieval similarity.
+    """
+    dev = query_crops.device
+    # Verified in chunks of pairs (gathering the crops of all N * top_k pairs at once would hold them all). Ranked by
+    # retrieval, the pairs are verified from the most similar down, and only until ``keep`` of them have passed and
+    # the next pair is strictly less similar: the pairs left unverified could not be kept, so the result is the one
+    # of verifying them all (score -inf marks them), at a fraction of the cost.
+    n_pairs = qi.numel()
+    visit = torch.argsort(rsim, descending=True, stable=True) if rank_by == "retrieval" else torch.arange(n_pairs, device=dev)
+    score = torch.full_like(cos, float("-inf"))
+    passed = 0
+    for i in range(0, n_pairs, _VERIFY_PAIRS):
+        sl = visit[i : i + _VERIFY_PAIRS]
+        score[sl] = _verify_batch(query_crops[qi[sl]], qpos[sl], target_crops[ti[sl]].to(query_crops.dtype), pos[sl],
+                                  yaw[sl], num_angles, patch, context_distance, float(min_cosine), 1)[0].to(score.dtype)
+        passed += int((score[sl] >= min_score).sum())
+        done = i + sl.numel()
+        if rank_by == "retrieval" and passed >= keep and done < n_pairs and rsim[visit[done]] < rsim[visit[done - 1]]:
+            break
+    return score
+
+
+def _ranked_pairs(
+    qi: Tensor, ti: Tensor, qpos: Tensor, pos: Tensor, yaw: Tensor, cos: Tensor, score: Tensor, rsim: Tensor,
+    num_angles: int, patch: int, target_size: Sequence[int], keep: int, min_score: float, rank_by: str,
+) -> dict[str, Tensor]:
+    """The ``keep`` best pairs with score ``>= min_score`` in ``rank_by`` order, as :func:`mine_correspondences`
+    returns them (``target_pos`` mapped to the unrotated target crop of size ``target_size``)."""
+    first, second = (score, cos) if rank_by == "score" else (rsim, score)
+    order = torch.argsort(second, descending=True, stable=True)
+    order = order[torch.argsort(first[order], descending=True, stable=True)]
+    order = order[score[order] >= min_score][:keep]
+    yaw_rad = yaw[order].to(torch.float64) * (2.0 * math.pi / num_angles)
+    target_pos = rotate_patch_positions(pos[order], -yaw_rad, target_size, patch)
+    return {
+        "query_index": qi[order],
+        "target_index": ti[order],
+        "query_pos": qpos[order],
+        "target_pos": target_pos,
+        "target_pos_aligned": pos[order],
+        "yaw": yaw[order],
+        "match_cosine": cos[order],
+        "score": score[order],
+        "retrieval_sim": rsim[order],
+    }
+
+
 @torch.no_grad()
 def mine_correspondences(
     query_crops: Tensor,
@@ -713,9 +799,6 @@ def mine_correspondences(
     method: str = "fast",
     yaw_window: int | None = None,
     rank_by: str = "score",
-    csls_k: int | None = None,
-    mutual_k: int | None = None,
-    retrieval_crops: tuple[Tensor, Tensor] | None = None,
 ) -> dict[str, Tensor]:
     """Mine verified patch correspondences between query crops and retrieved target crops.
 
@@ -752,15 +835,6 @@ def mine_correspondences(
         rank_by: order of the verified pairs before the ``keep`` best are taken: ``"score"`` (verification
             score, ties by match cosine; ArtMiner's) or ``"retrieval"`` (object-level rotation-max similarity,
             ties by verification score).
-        csls_k: retrieve the targets, and rank by retrieval, with CSLS scores instead of the plain rotation-max
-            cosine (:func:`retrieve_targets`, :func:`csls_scores`); None: the cosine.
-        mutual_k: retrieve only mutual ``mutual_k``-nearest neighbours by the plain cosine
-            (:func:`retrieve_targets`, :func:`mutual_neighbours`); None: every target.
-        retrieval_crops: optional ``([N, C', S', S', S'], [M, C', S', S', S'])`` crops of the same query and target
-            objects on which the object-level retrieval runs instead (its targets, similarity for ``rank_by
-            "retrieval"`` and yaw for ``yaw_window``), e.g. the feature crops weighted by their input occupancy
-            (:func:`threedq.quantization.prototype_crops`); patches are matched and verified on ``query_crops`` and
-            ``target_crops`` all the same. None: retrieve on those (the paper's).
 
     Returns:
         A dict of ``P <= keep`` rows, best first: ``query_index`` ``[P]`` long, ``target_index`` ``[P]`` long,
@@ -772,105 +846,20 @@ def mine_correspondences(
         ``rotate_yaw(target, 2 pi yaw / A)`` aligns the target with the query around the patch (the opposite
         sign of the retrieval angle); positions are patch starts ``(z, y, x)``.
     """
-    query_crops = _check_volume(query_crops, "query_crops", 5)
-    target_crops = _check_volume(target_crops, "target_crops", 5)
-    _check_int("keep", keep)
-    _check_int("patch", patch)
-    _check_int("grid", grid)
-    _check_int("context_distance", context_distance)
-    for name, v, lo in (("min_cosine", min_cosine, -1.0), ("min_score", min_score, 0.0),
-                        ("min_context_fraction", min_context_fraction, 0.0)):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= 1.0:
-            raise ValueError(f"{name} must be a number in [{lo:g}, 1], got {v!r}")
-    n = query_crops.shape[0]
-    dev = query_crops.device
-    size = query_crops.shape[2:]
-    if query_positions is not None:
-        if (not isinstance(query_positions, Tensor) or query_positions.shape != (n, 3)
-                or query_positions.is_floating_point() or query_positions.dtype == torch.bool):
-            qp = query_positions
-            got = tuple(qp.shape) if isinstance(qp, Tensor) else type(qp).__name__
-            raise ValueError(f"query_positions must be an integer tensor of shape [{n}, 3], got {got}")
-        query_positions = query_positions.to(device=dev, dtype=torch.long)
-        if not _inside(query_positions, size, patch).all():
-            raise ValueError(f"query_positions must be {patch}^3 patch positions inside crops of size {tuple(size)}")
-    if yaw_window is not None:
-        _check_int("yaw_window", yaw_window, minimum=0)
-    if rank_by not in ("score", "retrieval"):
-        raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
-    r_query, r_target = query_crops, target_crops
-    if retrieval_crops is not None:
-        if not isinstance(retrieval_crops, (tuple, list)) or len(retrieval_crops) != 2:
-            raise ValueError("retrieval_crops must be a pair (query crops, target crops) or None")
-        r_query = _check_volume(retrieval_crops[0], "retrieval_crops[0]", 5)
-        r_target = _check_volume(retrieval_crops[1], "retrieval_crops[1]", 5)
-        if r_query.shape[0] != n or r_target.shape[0] != target_crops.shape[0]:
-            raise ValueError(
-                f"retrieval_crops must hold the {n} query and {target_crops.shape[0]} target objects, got "
-                f"{r_query.shape[0]} and {r_target.shape[0]}"
-            )
-    idx, sim, ret_angle = retrieve_targets(r_query, r_target, top_k, num_angles, exclude, method=method,
-                                           csls_k=csls_k, mutual_k=mutual_k)
+    query_crops, target_crops, query_positions = _checked_mining_inputs(
+        query_crops, target_crops, keep, patch, grid, context_distance, min_cosine, min_score, min_context_fraction,
+        query_positions, yaw_window, rank_by,
+    )  # fmt: skip
+    idx, sim, ret_angle = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method)
     if query_positions is None:
-        starts = [torch.tensor(patch_grid(s, grid, patch), device=dev) for s in size]
-        cands = torch.stack(torch.meshgrid(*starts, indexing="ij"), dim=-1).reshape(-1, 3)
-        ring = context_offsets(context_distance, dev)
-        frac = _inside(cands[:, None] + ring, size, patch).float().mean(dim=1)
-        good = cands[frac >= min_context_fraction]
-        query_positions = salient_positions(query_crops, good if good.shape[0] else cands, patch)
-
-    rows: list[tuple[Tensor, ...]] = []
-    for q in range(n):
-        valid = torch.isfinite(sim[q])
-        t_idx = idx[q][valid]
-        if t_idx.numel() == 0:
-            continue
-        allowed = None
-        if yaw_window is not None:
-            b0 = torch.remainder(-ret_angle[q][valid], num_angles)  # [K]: target yaw implied by the retrieval
-            d = torch.remainder(torch.arange(num_angles, device=dev)[None] - b0[:, None], num_angles)
-            allowed = torch.minimum(d, num_angles - d) <= yaw_window
-        yaw, pos, cos = match_patch(query_crops[q], query_positions[q], target_crops[t_idx], num_angles, patch, grid,
-                                    allowed)
-        rows.append((torch.full_like(t_idx, q), t_idx, yaw, pos, cos, sim[q][valid]))
+        query_positions = _default_query_positions(query_crops, patch, grid, context_distance, min_context_fraction)
+    rows = _match_queries(query_crops, target_crops, query_positions, idx, sim, ret_angle, num_angles, patch, grid,
+                          yaw_window)
     if not rows:
-        empty = torch.zeros(0, dtype=torch.long, device=dev)
-        fz = torch.zeros(0, dtype=query_crops.dtype, device=dev)
-        return {"query_index": empty, "target_index": empty.clone(), "query_pos": empty.view(0, 3),
-                "target_pos": empty.view(0, 3).clone(), "target_pos_aligned": empty.view(0, 3).clone(),
-                "yaw": empty.clone(), "match_cosine": fz, "score": fz.clone(), "retrieval_sim": fz.clone()}
+        return _no_pairs(query_crops)
     qi, ti, yaw, pos, cos, rsim = (torch.cat(c) for c in zip(*rows))
     qpos = query_positions[qi]
-    # Verified in chunks of pairs (gathering the crops of all N * top_k pairs at once would hold them all). Ranked by
-    # retrieval, the pairs are verified from the most similar down, and only until ``keep`` of them have passed and
-    # the next pair is strictly less similar: the pairs left unverified could not be kept, so the result is the one
-    # of verifying them all (score -inf marks them), at a fraction of the cost.
-    n_pairs = qi.numel()
-    visit = torch.argsort(rsim, descending=True, stable=True) if rank_by == "retrieval" else torch.arange(n_pairs, device=dev)
-    score = torch.full_like(cos, float("-inf"))
-    passed = 0
-    for i in range(0, n_pairs, _VERIFY_PAIRS):
-        sl = visit[i : i + _VERIFY_PAIRS]
-        score[sl] = _verify_batch(query_crops[qi[sl]], qpos[sl], target_crops[ti[sl]].to(query_crops.dtype), pos[sl],
-                                  yaw[sl], num_angles, patch, context_distance, float(min_cosine), 1)[0].to(score.dtype)
-        passed += int((score[sl] >= min_score).sum())
-        done = i + sl.numel()
-        if rank_by == "retrieval" and passed >= keep and done < n_pairs and rsim[visit[done]] < rsim[visit[done - 1]]:
-            break
-    first, second = (score, cos) if rank_by == "score" else (rsim, score)
-    order = torch.argsort(second, descending=True, stable=True)
-    order = order[torch.argsort(first[order], descending=True, stable=True)]
-    order = order[score[order] >= min_score][:keep]
-    yaw_rad = yaw[order].to(torch.float64) * (2.0 * math.pi / num_angles)
-    target_pos = rotate_patch_positions(pos[order], -yaw_rad, target_crops.shape[2:], patch)
-    return {
-        "query_index": qi[order],
-        "target_index": ti[order],
-        "query_pos": qpos[order],
-        "target_pos": target_pos,
-        "target_pos_aligned": pos[order],
-        "yaw": yaw[order],
-        "match_cosine": cos[order],
-        "score": score[order],
-        "retrieval_sim": rsim[order],
-    }
+    score = _verify_pairs(query_crops, target_crops, qi, ti, qpos, pos, yaw, cos, rsim, num_angles, patch,
+                          context_distance, min_cosine, min_score, keep, rank_by)
+    return _ranked_pairs(qi, ti, qpos, pos, yaw, cos, score, rsim, num_angles, patch, target_crops.shape[2:], keep,
+                         min_score, rank_by)
