@@ -139,6 +139,6 @@ def test_data_fingerprint(tmp_path: Path) -> None:
     (tmp_path / "scenes" / "a.npz").write_bytes(b"abd")
     assert rp.data_fingerprint(tmp_path) != first
     assert rp.data_fingerprint(tmp_path / "none") is None
-    info = {"data_sha256": first, "cpu_flags": ["avx2", "avx512_bf16"]}
-    assert first[:12] in rp._provenance(info) and "avx512_bf16" in rp._provenance(info)
+    info = {"data_sha256": first, "cpu_flags": ["aes", "avx2", "avx512_bf16"]}
+    assert first[:12] in rp._provenance(info) and "avx2, avx512_bf16 (all in run.json)" in rp._provenance(info)
     assert "not recorded" in rp._provenance({})

@@ -114,11 +114,17 @@ def _run_line(info: dict[str, Any]) -> str:
             f"**{_minutes(info['wall_seconds'])}** for `{info['timed']}`{peak}. {_provenance(info)}")
 
 
+#: the instruction sets that change which kernels (and so which float and bf16 numbers) torch runs, named on the page
+NUMERIC_FLAGS = ("amx_bf16", "avx512_bf16", "avx512_fp16", "avx512_vnni", "avx512_f", "avx2", "fma3")
+
+
 def _provenance(info: dict[str, Any]) -> str:
     """What a reader on another CPU type compares: the dataset's bytes and the CPU's instruction sets."""
     data = f"dataset fingerprint `{info['data_sha256'][:12]}`" if info.get("data_sha256") else \
         "dataset fingerprint not recorded"
-    flags = f"CPU flags {', '.join(info['cpu_flags'])}" if info.get("cpu_flags") else "CPU flags not recorded"
+    shown = [f for f in info.get("cpu_flags") or () if f in NUMERIC_FLAGS]
+    flags = (f"CPU flags {', '.join(shown) or 'none of ' + ', '.join(NUMERIC_FLAGS)} (all in run.json)"
+             if info.get("cpu_flags") else "CPU flags not recorded")
     return (f"Its {data}, {flags}: the generator's scenes and bf16 arithmetic differ by CPU type, so another CPU "
             "gives other numbers for one seed")
 
