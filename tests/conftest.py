@@ -79,3 +79,15 @@ def turntable():
     from capture_writers import turntable_scene
 
     return turntable_scene((36, 48))
+
+
+def refused(cls: type, **init_args: object) -> str:
+    """The one-line error the CLI's parser gives for the arguments ``init_args`` of the stage or DataModule ``cls``:
+    the annotations (jsonargparse's restricted types, ``Literal``) validate each argument's range."""
+    from jsonargparse import ArgumentError, ArgumentParser
+
+    parser = ArgumentParser(exit_on_error=False)
+    parser.add_class_arguments(cls, "model")
+    with pytest.raises(ArgumentError) as e:
+        parser.parse_object({"model": init_args})
+    return str(e.value)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import refused as refused_by
 from conftest import tiny_data_yaml
 from threedq.geometry import rotate_yaw
 from threedq.stages.mining import Mining, gt_box_iou, implied_yaw_error_deg
@@ -89,14 +90,8 @@ def test_mined_pairs_figure() -> None:
 
 
 def refused(**init_args: object) -> str:
-    """The one-line error the CLI's parser gives for the stage arguments ``init_args`` (the annotations validate)."""
-    from jsonargparse import ArgumentError, ArgumentParser
-
-    parser = ArgumentParser(exit_on_error=False)
-    parser.add_class_arguments(Mining, "model")
-    with pytest.raises(ArgumentError) as e:
-        parser.parse_object({"model": {"grid_resolution": [32, 32, 16], **init_args}})
-    return str(e.value)
+    """The parser's error for the mining stage's ``init_args`` on the tiny grid."""
+    return refused_by(Mining, grid_resolution=[32, 32, 16], **init_args)
 
 
 class TestMiningArguments:

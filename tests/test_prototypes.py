@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import refused as refused_by
 from conftest import tiny_data_yaml
 
 from threedq.geometry import rotate_yaw
@@ -189,16 +190,10 @@ class TestRestarts:
 
 
 def refused(**init_args: object) -> str:
-    """The one-line error the CLI's parser gives for the quantizer arguments ``init_args`` (annotations validate)."""
-    from jsonargparse import ArgumentError, ArgumentParser
-
+    """The parser's error for the quantizer's ``init_args`` on the tiny grid."""
     from threedq.stages.quantizer import Quantizer
 
-    parser = ArgumentParser(exit_on_error=False)
-    parser.add_class_arguments(Quantizer, "model")
-    with pytest.raises(ArgumentError) as e:
-        parser.parse_object({"model": {"grid_resolution": [32, 32, 16], **init_args}})
-    return str(e.value)
+    return refused_by(Quantizer, grid_resolution=[32, 32, 16], **init_args)
 
 
 class TestPrototypeCrops:

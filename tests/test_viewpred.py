@@ -114,13 +114,10 @@ class TestBalancedRgbLoss:
         assert not torch.allclose(rb["loss"], rp["loss"])
 
     def test_bad_settings(self) -> None:
-        from jsonargparse import ArgumentError, ArgumentParser
+        from conftest import refused
 
-        parser = ArgumentParser(exit_on_error=False)
-        parser.add_class_arguments(ViewPrediction, "model")
         for name, bad in (("rgb_loss", "l2"), ("ground_margin", -0.01)):
-            with pytest.raises(ArgumentError, match=name):  # the annotations validate
-                parser.parse_object({"model": {name: bad}})
+            assert name in refused(ViewPrediction, **{name: bad})
 
 
 class TestTargetViews:

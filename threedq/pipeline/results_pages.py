@@ -418,8 +418,8 @@ def _timing_lines(m: dict[str, Any], info: dict[str, Any]) -> list[str]:
     return lines
 
 
-def results_page(m: dict[str, Any], info: dict[str, Any]) -> str:
-    """``docs/results.md``: today's numbers of the main job, whole."""
+def results_page(m: dict[str, Any], info: dict[str, Any], root: str | Path = ROOT) -> str:
+    """``docs/results.md``: today's numbers of the main job, whole (the presets' table from the rows under ``root``)."""
     rl = _final(m)
     n = len(m["round_results"])
     lines = [
@@ -500,7 +500,7 @@ def results_page(m: dict[str, Any], info: dict[str, Any]) -> str:
         "",
         *_viewpred_lines(m),
         "",
-        *_preset_lines(),
+        *_preset_lines(root),
         "## Time of each stage",
         "",
         f"From the run's records (`stage.json`, each evaluation's `seconds`); the whole job ran from "
@@ -512,9 +512,9 @@ def results_page(m: dict[str, Any], info: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _preset_lines() -> list[str]:
+def _preset_lines(root: str | Path) -> list[str]:
     """The section on the data configs' stage presets (:mod:`threedq.pipeline.presets`), where the rows are here."""
-    table = preset_results_markdown(ROOT)
+    table = preset_results_markdown(root)
     if not table:
         return []
     return ["## Stage presets: which miner serves which kind of data", "",
@@ -696,7 +696,7 @@ def expected_pages(root: str | Path = ROOT) -> dict[Path, str]:
     root = Path(root)
     if (root / RESULTS_DIR / "metrics.json").is_file():
         m, info = load_results(root / RESULTS_DIR)
-        page, fidelity = results_page(m, info), fidelity_blocks(m, info)
+        page, fidelity = results_page(m, info, root), fidelity_blocks(m, info)
         if (root / RESULTS_DIR / "fidelity_gt.json").is_file():
             gt_doc = json.loads((root / RESULTS_DIR / "fidelity_gt.json").read_text())
             fidelity["fidelity-gt"] = fidelity_gt_block(gt_doc)
