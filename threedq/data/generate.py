@@ -1,7 +1,8 @@
 """The resumable, multi-process writer of the embedded dataset: :func:`generate_dataset`.
 
 Each scene is sampled (:func:`threedq.data.layout.sample_scene`, seeded per scene as
-:mod:`threedq.data.splits` describes), rendered (:func:`threedq.data.render_scene.render_scene`) and
+:mod:`threedq.data.splits` describes), rendered (:func:`threedq.data.render_scene.render_scene`), given the
+capture conditions of ``config.capture_level`` if it is above 0 (:mod:`threedq.data.sensor`) and
 written as a canonical :class:`threedq.scene.SceneRecord` to ``out/<split>/scene_<index:06d>.npz``;
 ``out/index.json`` lists the scenes at the end. Scenes are rendered in-process or by a "spawn" pool of
 workers with one GL context each; the files do not depend on the worker count or the scheduling.
@@ -24,12 +25,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from threedq.data.generator_config import GENERATOR_VERSION, GeneratorConfig, _is_int
 from threedq.data.layout import sample_scene
 from threedq.data.render import Renderer
 from threedq.data.render_scene import make_renderer, render_scene
+from threedq.data.sensor import apply_capture
 from threedq.data.spawn import refuse_in_spawned_main, unspawnable_main
-from threedq.data.splits import SPLIT_CODES, SPLITS, derive_test_seed, scene_file, scene_seed_sequence, split_sizes
+from threedq.data.splits import (
+    SPLIT_CODES,
+    SPLITS,
+    capture_seed_sequence,
+    derive_test_seed,
+    scene_file,
+    scene_seed_sequence,
+    split_sizes,
+)
 from threedq.locks import exclusive
 from threedq.scene import DatasetIndex, SceneValidationError, load_scene, save_index, save_scene
 
@@ -72,6 +84,9 @@ def _run_task(task: _Task, out: Path, config: GeneratorConfig, config_hash: str,
     layout = sample_scene(config, scene_seed_sequence(task.seed, task.split, task.index))
     layout.meta.update(expected)
     record = render_scene(layout, renderer_fn())
+    if config.capture_level > 0:
+        rng = np.random.default_rng(capture_seed_sequence(task.seed, task.split, task.index))
+        record = apply_capture(record, rng, config.capture_level, config.capture_effects)
     save_scene(path, record)
     return task.split, task.index, "written"
 

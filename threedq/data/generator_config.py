@@ -18,6 +18,7 @@ from typing import Any
 
 from threedq.data.catalog import CATEGORY_NAMES, category_by_name
 from threedq.data.meshes import DEFAULT_MAX_FACES
+from threedq.data.sensor import effect_names
 
 __all__ = ["COLOR_MODES", "DEFAULT_SCENE_BOUNDS", "GENERATOR_VERSION", "GeneratorConfig"]
 
@@ -96,6 +97,8 @@ class GeneratorConfig:
     ground_size: float = 12.0
     mesh_faces: int = DEFAULT_MAX_FACES
     color_mode: str = "category"
+    capture_level: float = 0.0
+    capture_effects: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         def put(name: str, value: Any) -> None:
@@ -169,6 +172,15 @@ class GeneratorConfig:
         put("mesh_faces", int(self.mesh_faces))
         if self.color_mode not in COLOR_MODES:
             raise ValueError(f"color_mode: expected one of {', '.join(COLOR_MODES)}, got {self.color_mode!r}")
+        lvl = self.capture_level
+        if isinstance(lvl, bool) or not isinstance(lvl, numbers.Real) or not math.isfinite(lvl) or lvl < 0:
+            raise ValueError(f"capture_level: expected a finite number >= 0, got {lvl!r}")
+        put("capture_level", float(lvl))
+        if self.capture_effects is not None:
+            effects = effect_names(self.capture_effects, "capture_effects")
+            if not effects:
+                raise ValueError("capture_effects: empty; give at least one name (or None for all)")
+            put("capture_effects", effects)
         if not isinstance(self.shadows, bool):
             raise ValueError(f"shadows: expected a bool, got {self.shadows!r}")  # noqa: TRY004 - the API promises ValueError naming the argument
         # Every box must fit the bounds whatever is drawn: a normalised mesh has extents <= 1, so its
@@ -202,6 +214,9 @@ class GeneratorConfig:
         d["scene_bounds"] = [list(self.scene_bounds[0]), list(self.scene_bounds[1])]
         if d["color_mode"] == "category":
             del d["color_mode"]  # the default is left out, so that the datasets made before the option keep their hash
+        for name, default in (("capture_level", 0.0), ("capture_effects", None)):
+            if d[name] == default:
+                del d[name]  # likewise
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod
@@ -212,7 +227,8 @@ class GeneratorConfig:
         if unknown:
             raise ValueError(f"config: unknown generator option(s) {unknown}")
         kw = dict(d)
-        for k in ("image_size", "scale_range", "elevation_range_deg", "distance_range", "categories"):
+        for k in ("image_size", "scale_range", "elevation_range_deg", "distance_range", "categories",
+                  "capture_effects"):
             if kw.get(k) is not None:
                 kw[k] = tuple(kw[k])
         if "scene_bounds" in kw:

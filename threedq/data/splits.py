@@ -3,7 +3,9 @@
 Randomness: scene ``i`` of split ``s`` draws everything from
 ``np.random.default_rng(np.random.SeedSequence([seed_s, code_s, i]))`` with split codes train 0, val 1,
 test 2, ``seed_s = seed`` for train and val and ``test_seed`` for test. So every scene is independent of
-every other scene, of the number of scenes, of the worker count and of the scheduling.
+every other scene, of the number of scenes, of the worker count and of the scheduling. The capture conditions
+(:mod:`threedq.data.sensor`) of scene ``i`` draw from their own stream,
+``np.random.SeedSequence([seed_s, code_s, i, 0x5E4502])``, so a set with them has the layouts of the clean set.
 
 Files: scene ``i`` of split ``s`` is ``<dataset>/<s>/scene_<i:06d>.npz``.
 """
@@ -15,16 +17,30 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["SPLITS", "SPLIT_CODES", "derive_test_seed", "scene_file", "scene_seed_sequence", "split_sizes"]
+__all__ = [
+    "SPLITS",
+    "SPLIT_CODES",
+    "capture_seed_sequence",
+    "derive_test_seed",
+    "scene_file",
+    "scene_seed_sequence",
+    "split_sizes",
+]
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 SPLIT_CODES: dict[str, int] = {"train": 0, "val": 1, "test": 2}
 _TEST_SEED_SALT = 0x7E57_5EED
+_CAPTURE_SALT = 0x5E4502
 
 
 def scene_seed_sequence(seed: int, split: str, index: int) -> np.random.SeedSequence:
     """The seed sequence of scene ``index`` of ``split`` (``seed`` is the split's seed: ``test_seed`` for test)."""
     return np.random.SeedSequence([int(seed), SPLIT_CODES[split], int(index)])
+
+
+def capture_seed_sequence(seed: int, split: str, index: int) -> np.random.SeedSequence:
+    """The seed sequence of the capture conditions of scene ``index`` of ``split`` (apart from its layout's)."""
+    return np.random.SeedSequence([int(seed), SPLIT_CODES[split], int(index), _CAPTURE_SALT])
 
 
 def derive_test_seed(seed: int) -> int:

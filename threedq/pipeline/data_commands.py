@@ -20,6 +20,7 @@ from threedq.data.formats.importer import import_captures
 from threedq.data.formats.registry import FORMATS
 from threedq.data.generate import generate_dataset
 from threedq.data.generator_config import GeneratorConfig
+from threedq.data.sensor import EFFECTS
 from threedq.errors import InputError
 from threedq.scene import SceneValidationError, load_index, load_scene
 
@@ -81,6 +82,12 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     gen.add_argument("--fov_deg", type=float, default=d.fov_deg, help="horizontal field of view, degrees")
     gen.add_argument("--elevation_range_deg", type=tuple[float, float], default=d.elevation_range_deg,
                      help="camera elevation above the ground (low, high), degrees")
+    gen.add_argument("--capture_level", type=float, default=0.0,
+                     help="sensor-like capture conditions (depth noise, quantisation, dropout, exposure, pose drift, "
+                     "gravity tilt; threedq.data.sensor): 0 = clean renders, 1 = a typical RGB-D camera, 2 = twice "
+                     "that; the layouts are those of the clean set of the same seed")
+    gen.add_argument("--capture_effects", type=list[str] | None, default=None,
+                     help="which capture conditions to apply (default all: " + ", ".join(EFFECTS) + ")")
     gen.add_argument("--workers", type=int, default=2, help="rendering processes")
     gen.add_argument("--progress", type=bool, default=True)
 
@@ -144,6 +151,8 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
                 distance_range=tuple(args.distance_range),
                 fov_deg=args.fov_deg,
                 elevation_range_deg=tuple(args.elevation_range_deg),
+                capture_level=args.capture_level,
+                capture_effects=tuple(args.capture_effects) if args.capture_effects is not None else None,
             )
             index = generate_dataset(
                 out,

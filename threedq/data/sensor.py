@@ -1,0 +1,364 @@
+"""Capture conditions of a consumer RGB-D sensor, applied to clean rendered views.
+
+Each effect is a pure function on numpy arrays: it returns new arrays and never modifies its input. The
+random ones draw only from the ``numpy.random.Generator`` they are given. ``level`` scales an effect: 0 leaves
+the arrays unchanged, 1 is a Kinect-like structured-light camera, 2 doubles every magnitude.
+
+========================  ====================================================================================
+effect                    what it does at level 1
+========================  ====================================================================================
+``axial_noise``           Gaussian depth noise, sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2 m (Nguyen, Izadi and
+                          Lovell 2012)
+``quantise_disparity``    depth rounded in disparity space: steps of about 2.85e-3 z^2 m (Khoshelham and
+                          Elberink 2012)
+``drop_depth``            no depth at about half of the pixels beside a depth jump of more than 5 cm and at
+                          about 2% of the other pixels, in small clusters
+``exposure``              per-view white balance (+-15% per channel) times an overall gain (+-20%), plus pixel
+                          noise (std 1% of the full range)
+``pose_drift``            each camera pose off by about 1 degree and 1 cm, correlated over a few views
+``tilt_gravity``          the world frame of the poses tilted by 2 degrees about a random horizontal axis
+========================  ====================================================================================
+
+:func:`apply_capture` applies a set of them to a :class:`~threedq.scene.SceneRecord` (or a dict of its arrays).
+Boxes, intrinsics and instance masks are kept: the effects model what a sensor and its tracker report, not
+what is in the scene.
+
+Convention: metres; depth is camera-frame z (OpenCV axes, z forward), 0 = no measurement; poses are
+camera-to-world ``[V, 4, 4]``; world z up (see :mod:`threedq.scene`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import numbers
+from collections.abc import Iterable
+from statistics import NormalDist
+from typing import Any
+
+import cv2
+import numpy as np
+
+from threedq.scene import SceneRecord
+
+__all__ = [
+    "EFFECTS",
+    "apply_capture",
+    "axial_noise",
+    "drop_depth",
+    "effect_names",
+    "exposure",
+    "pose_drift",
+    "quantise_disparity",
+    "tilt_gravity",
+]
+
+#: The effects, in the order :func:`apply_capture` applies them.
+#: Dropout comes first, so that it finds the jumps of the scene's geometry rather than those of the noise.
+EFFECTS: tuple[str, ...] = ("drop_depth", "axial_noise", "quantise_disparity", "exposure", "pose_drift", "tilt_gravity")
+
+_EDGE_JUMP_M = 0.05  # pixels beside a depth jump larger than this lose their depth more often
+_DROP_CLUSTER_PX = 1.5  # std of the Gaussian that smooths the dropout field: clusters of a few pixels
+_DRIFT_VIEWS = 3.0  # std (in views) of the Gaussian that correlates the pose errors along the sequence
+
+
+# -- argument checks ----------------------------------------------------------------------------------------
+def _level(level: Any) -> float:
+    if isinstance(level, bool) or not isinstance(level, numbers.Real) or not math.isfinite(level) or level < 0:
+        raise ValueError(f"level: expected a finite number >= 0, got {level!r}")
+    return float(level)
+
+
+def _depth(depth: Any) -> np.ndarray:
+    depth = np.asarray(depth)
+    if depth.ndim < 2 or not np.issubdtype(depth.dtype, np.floating):
+        raise ValueError(f"depth: expected a float array [..., H, W] of metres, got {depth.dtype} {list(depth.shape)}")
+    return depth
+
+
+def _poses(poses: Any) -> np.ndarray:
+    poses = np.asarray(poses)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.issubdtype(poses.dtype, np.floating):
+        raise ValueError(f"poses: expected a float array [V, 4, 4], got {poses.dtype} {list(poses.shape)}")
+    return poses
+
+
+def _rotation(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``[..., 3, 3]`` of rotation vectors ``[..., 3]`` (axis times angle, radians; Rodrigues)."""
+    angle = np.linalg.norm(rotvec, axis=-1)[..., None, None]
+    axis = rotvec / np.maximum(angle[..., 0], 1e-12)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    zero = np.zeros_like(x)
+    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(*axis.shape[:-1], 3, 3)
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
+
+
+# -- depth --------------------------------------------------------------------------------------------------
+def axial_noise(depth: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
+    """Add Gaussian depth noise whose std grows with distance.
+
+    sigma(z) = level * (0.0012 + 0.0019 * (z - 0.4)^2) metres (Nguyen, Izadi and Lovell 2012). Pixels without
+    depth (0) stay 0; a noisy value below 0 becomes 0.
+
+    Args:
+        depth: ``[..., H, W]`` float, metres.
+        rng: the random stream drawn from.
+        level: scale of sigma (>= 0).
+
+    Returns:
+        ``[..., H, W]``, the dtype of ``depth``.
+
+    Convention: metres, camera-frame z (z forward), 0 = no measurement.
+    """
+    depth, level = _depth(depth), _level(level)
+    if level == 0:
+        return depth.copy()
+    z = depth.astype(np.float64)
+    sigma = level * (0.0012 + 0.0019 * (z - 0.4) ** 2)
+    noisy = np.maximum(z + sigma * rng.standard_normal(z.shape), 0.0)
+    return np.where(z > 0, noisy, 0.0).astype(depth.dtype)
+
+
+def quantise_disparity(depth: np.ndarray, level: float) -> np.ndarray:
+    """Round depth to the steps of a disparity-measuring sensor: about ``level * 2.85e-3 * z^2`` metres.
+
+    The disparity ``1 / z`` is rounded to multiples of ``q = level * 2.85e-3`` per metre, so that the depth step
+    ``1 / (k q) - 1 / ((k + 1) q)`` is about ``q z^2`` (Khoshelham and Elberink 2012). Pixels without depth (0)
+    stay 0, and so does a depth too far to have a non-zero disparity step.
+
+    Args:
+        depth: ``[..., H, W]`` float, metres.
+        level: scale of the step (>= 0; 0 returns a copy of ``depth``).
+
+    Returns:
+        ``[..., H, W]``, the dtype of ``depth``.
+
+    Convention: metres, camera-frame z (z forward), 0 = no measurement.
+    """
+    depth, level = _depth(depth), _level(level)
+    if level == 0:
+        return depth.copy()
+    q = level * 2.85e-3
+    z = depth.astype(np.float64)
+    steps = np.round(np.divide(1.0, z, out=np.zeros_like(z), where=z > 0) / q)
+    return np.divide(1.0, steps * q, out=np.zeros_like(z), where=steps > 0).astype(depth.dtype)
+
+
+def _beside_jump(depth: np.ndarray) -> np.ndarray:
+    """``[..., H, W]`` bool: pixels beside a depth jump of more than 5 cm.
+
+    Along a row or column, the pixel's depth is compared with the plane through its two neighbours: disparity
+    ``1 / z`` is linear in the pixel coordinates on a plane, so the jump is the second difference of the
+    disparity, ``|d[i-1] - 2 d[i] + d[i+1]| * z[i]^2`` metres. A slanted floor has none; at an occluding edge it
+    is about the depth step, on both sides. Pixels without depth, or next to one, and border pixels are never
+    beside a jump.
+    """
+    z = depth.astype(np.float64)
+    d = np.divide(1.0, z, out=np.zeros_like(z), where=z > 0)
+    edge = np.zeros(depth.shape, dtype=bool)
+    for axis in (-1, -2):
+        a, b = np.moveaxis(d, axis, -1), np.moveaxis(z, axis, -1)
+        valid = (a[..., :-2] > 0) & (a[..., 1:-1] > 0) & (a[..., 2:] > 0)
+        jump = np.abs(a[..., :-2] - 2 * a[..., 1:-1] + a[..., 2:]) * b[..., 1:-1] ** 2 > _EDGE_JUMP_M
+        np.moveaxis(edge, axis, -1)[..., 1:-1] |= valid & jump  # a view: writes go to ``edge``
+    return edge
+
+
+def drop_depth(depth: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
+    """Remove depth (set 0) in small clusters, mostly beside depth jumps.
+
+    A white-noise field is smoothed with a Gaussian (std 1.5 pixels) and scaled to unit variance; a pixel loses its
+    depth where the field exceeds the threshold that a fraction ``p`` of a standard normal exceeds, with
+    ``p = min(1, 0.5 * level)`` beside a jump of more than 5 cm (an occluding edge: measured against the plane
+    through the pixel's neighbours along its row or column, so that a slanted floor has none) and
+    ``p = min(1, 0.02 * level)`` elsewhere. Pixels without depth stay 0.
+
+    Args:
+        depth: ``[..., H, W]`` float, metres.
+        rng: the random stream drawn from.
+        level: scale of the dropout fractions (>= 0).
+
+    Returns:
+        ``[..., H, W]``, the dtype of ``depth``.
+
+    Convention: metres, camera-frame z (z forward), 0 = no measurement.
+    """
+    depth, level = _depth(depth), _level(level)
+    if level == 0:
+        return depth.copy()
+    H, W = depth.shape[-2:]
+    noise = rng.standard_normal((int(np.prod(depth.shape[:-2], dtype=np.int64)), H, W)).astype(np.float32)
+    kernel = cv2.getGaussianKernel(int(2 * math.ceil(3 * _DROP_CLUSTER_PX) + 1), _DROP_CLUSTER_PX)
+    unit = float((kernel**2).sum())  # std of the smoothed field away from the border
+    field = np.stack([cv2.sepFilter2D(n, -1, kernel, kernel) / unit for n in noise]).reshape(depth.shape)
+
+    def threshold(p: float) -> float:
+        return math.inf if p <= 0 else -math.inf if p >= 1 else NormalDist().inv_cdf(1 - p)
+
+    limit = np.where(_beside_jump(depth), threshold(min(1.0, 0.5 * level)), threshold(min(1.0, 0.02 * level)))
+    return np.where(field > limit, 0, depth).astype(depth.dtype)
+
+
+# -- colour -------------------------------------------------------------------------------------------------
+def exposure(rgb: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
+    """Change each view's exposure and white balance and add pixel noise.
+
+    View ``v`` channel ``c`` is multiplied by ``g_v * w_vc`` with an overall gain ``g_v`` uniform in
+    ``1 +- 0.2 * level`` and a white balance ``w_vc`` uniform in ``1 +- 0.15 * level`` (both at least 0);
+    then Gaussian noise of std ``0.01 * level`` of the full range is added and the result clipped to the range.
+
+    Args:
+        rgb: ``[V, H, W, 3]``, uint8 (0..255) or float (0..1).
+        rng: the random stream drawn from.
+        level: scale of the gains' spread and of the noise (>= 0).
+
+    Returns:
+        ``[V, H, W, 3]``, the dtype of ``rgb`` (uint8 rounded).
+
+    Convention: colour channels last, RGB order.
+    """
+    rgb, level = np.asarray(rgb), _level(level)
+    if rgb.ndim != 4 or rgb.shape[-1] != 3 or not (rgb.dtype == np.uint8 or np.issubdtype(rgb.dtype, np.floating)):
+        raise ValueError(f"rgb: expected a uint8 or float array [V, H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
+    if level == 0:
+        return rgb.copy()
+    full = 255.0 if rgb.dtype == np.uint8 else 1.0
+    V = rgb.shape[0]
+    gain = np.maximum(1 + 0.2 * level * rng.uniform(-1, 1, (V, 1)), 0)
+    balance = np.maximum(1 + 0.15 * level * rng.uniform(-1, 1, (V, 3)), 0)
+    out = rgb.astype(np.float64) * (gain * balance)[:, None, None, :]
+    out = np.clip(out + 0.01 * level * full * rng.standard_normal(rgb.shape), 0, full)
+    return np.round(out).astype(np.uint8) if rgb.dtype == np.uint8 else out.astype(rgb.dtype)
+
+
+# -- poses --------------------------------------------------------------------------------------------------
+def pose_drift(poses: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
+    """Perturb each camera pose by a small rigid motion that drifts smoothly along the view sequence.
+
+    A rotation vector and a translation per view are white noise smoothed over the view index with a Gaussian
+    (std 3 views) and scaled to a root-mean-square angle of ``level`` degrees and length of ``level`` cm; views
+    close in the sequence get similar errors. The motion acts in the camera frame: ``world_T_cam @ [R | t]``, so
+    each camera turns about its own centre and its centre moves by ``|t|``.
+
+    Args:
+        poses: ``[V, 4, 4]`` float, camera-to-world.
+        rng: the random stream drawn from.
+        level: scale of the errors (>= 0).
+
+    Returns:
+        ``[V, 4, 4]``, the dtype of ``poses``; rigid (orthonormal rotation, det +1, last row ``[0, 0, 0, 1]``).
+
+    Convention: metres, radians inside (degrees in this text), camera-to-world poses, OpenCV camera axes.
+    """
+    poses, level = _poses(poses), _level(level)
+    if level == 0:
+        return poses.copy()
+    V = poses.shape[0]
+    radius = math.ceil(3 * _DRIFT_VIEWS)
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / _DRIFT_VIEWS) ** 2)
+    kernel /= np.sqrt((kernel**2).sum())  # unit variance after smoothing
+    white = rng.standard_normal((V + 2 * radius, 6))
+    smooth = np.stack([np.convolve(white[:, j], kernel, mode="valid") for j in range(6)], axis=1)  # [V, 6]
+    rotvec = smooth[:, :3] * math.radians(level) / math.sqrt(3)  # rms angle = level degrees
+    shift = smooth[:, 3:] * 0.01 * level / math.sqrt(3)  # rms length = level cm
+    delta = np.tile(np.eye(4), (V, 1, 1))
+    delta[:, :3, :3] = _rotation(rotvec)
+    delta[:, :3, 3] = shift
+    return (poses.astype(np.float64) @ delta).astype(poses.dtype)
+
+
+def tilt_gravity(poses: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
+    """Tilt the world frame of a scene's poses: one rotation of ``2 * level`` degrees about a random horizontal axis.
+
+    Every pose becomes ``G @ world_T_cam``, with ``G`` the rotation about the axis ``(cos a, sin a, 0)`` through the
+    world origin (``a`` uniform); the geometry the views see, unprojected with the new poses, is the old geometry
+    rotated by ``G``, so a horizontal floor's normal leaves +z by ``2 * level`` degrees.
+
+    Args:
+        poses: ``[V, 4, 4]`` float, camera-to-world.
+        rng: the random stream drawn from.
+        level: scale of the tilt (>= 0).
+
+    Returns:
+        ``[V, 4, 4]``, the dtype of ``poses``; rigid.
+
+    Convention: metres, world z up, camera-to-world poses.
+    """
+    poses, level = _poses(poses), _level(level)
+    if level == 0:
+        return poses.copy()
+    a = rng.uniform(0, 2 * math.pi)
+    G = np.eye(4)
+    G[:3, :3] = _rotation(np.array([math.cos(a), math.sin(a), 0.0]) * math.radians(2.0 * level))
+    return (G @ poses.astype(np.float64)).astype(poses.dtype)
+
+
+# -- all of them --------------------------------------------------------------------------------------------
+def effect_names(effects: Iterable[str] | None, argument: str = "effects") -> tuple[str, ...]:
+    """``effects`` checked and in the order of :data:`EFFECTS` (``None`` = all); a ``ValueError`` names ``argument``."""
+    if effects is None:
+        return EFFECTS
+    if isinstance(effects, str) or not all(isinstance(e, str) for e in effects):
+        raise ValueError(f"{argument}: expected a collection of effect names or None, got {effects!r}")
+    effects = set(effects)
+    unknown = sorted(effects - set(EFFECTS))
+    if unknown:
+        raise ValueError(f"{argument}: unknown effect(s) {unknown}; expected names from {', '.join(EFFECTS)}")
+    return tuple(e for e in EFFECTS if e in effects)
+
+
+#: effect name -> (the array it changes, the function called as ``f(array, rng, level)``)
+_APPLY = {
+    "axial_noise": ("depth", axial_noise),
+    "quantise_disparity": ("depth", lambda depth, rng, level: quantise_disparity(depth, level)),
+    "drop_depth": ("depth", drop_depth),
+    "exposure": ("rgb", exposure),
+    "pose_drift": ("world_T_cam", pose_drift),
+    "tilt_gravity": ("world_T_cam", tilt_gravity),
+}
+
+
+def apply_capture(
+    scene: SceneRecord | dict[str, np.ndarray],
+    rng: np.random.Generator,
+    level: float,
+    effects: Iterable[str] | None = None,
+) -> SceneRecord | dict[str, np.ndarray]:
+    """Apply the chosen effects, in the order of :data:`EFFECTS`, to a scene's rgb, depth and poses.
+
+    Each effect draws from its own child stream of ``rng`` (``rng.spawn``), so the draws of one effect do not depend
+    on which others are switched on.
+
+    Args:
+        scene: a :class:`~threedq.scene.SceneRecord`, or a dict with ``rgb`` ``[V, H, W, 3]``, ``depth``
+            ``[V, H, W]`` and ``world_T_cam`` ``[V, 4, 4]`` (other keys are passed on).
+        rng: the random stream drawn from.
+        level: scale of every effect (>= 0; 0 returns copies).
+        effects: names from :data:`EFFECTS` (``None`` = all).
+
+    Returns:
+        The same kind as ``scene`` with new arrays (the input is not modified). A record's ``meta`` gains
+        ``capture: {"level", "effects"}`` when ``level > 0``.
+
+    Convention: see the module docstring.
+    """
+    level, effects = _level(level), effect_names(effects)
+    if isinstance(scene, SceneRecord):
+        given = {f.name: getattr(scene, f.name) for f in dataclasses.fields(scene)}
+    else:
+        given = dict(scene)
+    for key in ("rgb", "depth", "world_T_cam"):
+        if key not in given:
+            raise ValueError(f"scene: missing '{key}'")
+    arrays = {k: v.copy() if isinstance(v, np.ndarray) else copy.deepcopy(v) for k, v in given.items()}
+    if level > 0:
+        streams = dict(zip(EFFECTS, rng.spawn(len(EFFECTS))))
+        for name in effects:
+            key, effect = _APPLY[name]
+            arrays[key] = effect(arrays[key], streams[name], level)
+    if not isinstance(scene, SceneRecord):
+        return arrays
+    if level > 0:
+        arrays["meta"]["capture"] = {"level": level, "effects": list(effects)}
+    return SceneRecord(**arrays)
