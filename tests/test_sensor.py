@@ -421,3 +421,49 @@ def test_generator_at_level_1_keeps_the_layout(tmp_path):
         assert not np.array_equal(noisy.world_T_cam, clean.world_T_cam)
         assert noisy.meta["capture"]["level"] == 1.0 and "capture" not in clean.meta
         assert noisy.meta["object_names"] == clean.meta["object_names"]
+
+
+class TestDegradeDataset:
+    """``threedq data degrade``: a copy of a dataset folder with capture conditions, its layouts kept."""
+
+    def test_copy_keeps_layouts_and_resumes(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        from threedq.data.sensor import degrade_dataset
+        from threedq.scene import load_index, load_scene
+
+        out = tmp_path / "noisy"
+        files = load_index(tiny_dataset).files()
+        assert degrade_dataset(tiny_dataset, out, 1.0, seed=3) == len(files)
+        assert load_index(out).files() == files
+        for rel in files[:3]:
+            clean, noisy = load_scene(tiny_dataset / rel), load_scene(out / rel)
+            assert np.array_equal(clean.boxes, noisy.boxes) and np.array_equal(clean.K, noisy.K)
+            assert not np.array_equal(clean.depth, noisy.depth) and not np.array_equal(clean.world_T_cam,
+                                                                                       noisy.world_T_cam)
+        first = (out / files[0]).read_bytes()
+        (out / files[0]).unlink()  # a killed run: the missing scene is written again, the same bytes
+        assert degrade_dataset(tiny_dataset, out, 1.0, seed=3) == 1
+        assert (out / files[0]).read_bytes() == first
+        again = tmp_path / "again"  # one scene's draws depend on its seed and path alone
+        degrade_dataset(tiny_dataset, again, 1.0, seed=3)
+        assert (again / files[1]).read_bytes() == (out / files[1]).read_bytes()
+
+    def test_bad_input(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        from threedq.data.sensor import degrade_dataset
+        from threedq.scene import SceneValidationError
+
+        with pytest.raises(ValueError, match="out: .* is the source folder"):
+            degrade_dataset(tiny_dataset, tiny_dataset, 1.0)
+        with pytest.raises(ValueError, match="level"):
+            degrade_dataset(tiny_dataset, tmp_path / "x", -1.0)
+        with pytest.raises(SceneValidationError, match="index.json"):
+            degrade_dataset(tmp_path / "none", tmp_path / "y", 1.0)
+
+    def test_the_command(self, tiny_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+        from threedq.cli import main
+
+        out = tmp_path / "noisy"
+        assert main(["data", "degrade", str(tiny_dataset), "--out", str(out), "--progress", "false"]) == 0
+        assert "capture level 1" in capsys.readouterr().out and (out / "index.json").is_file()
+        assert main(["data", "degrade", str(tiny_dataset), "--out", str(tmp_path / "z"),
+                     "--capture_effects", "[blur]", "--progress", "false"]) == 2
+        assert "--capture_effects: unknown effect" in capsys.readouterr().err

@@ -33,7 +33,9 @@ import copy
 import dataclasses
 import math
 import numbers
+import zlib
 from collections.abc import Iterable
+from pathlib import Path
 from statistics import NormalDist
 from typing import Any
 
@@ -46,6 +48,7 @@ __all__ = [
     "EFFECTS",
     "apply_capture",
     "axial_noise",
+    "degrade_dataset",
     "drop_depth",
     "effect_names",
     "exposure",
@@ -362,3 +365,43 @@ def apply_capture(
     if level > 0:
         arrays["meta"]["capture"] = {"level": level, "effects": list(effects)}
     return SceneRecord(**arrays)
+
+
+def degrade_dataset(src: str | Path, out: str | Path, level: float, effects: Iterable[str] | None = None,
+                    seed: int = 0, progress: bool = False) -> int:
+    """Write a copy of the dataset folder ``src`` to ``out`` with capture conditions (:func:`apply_capture`).
+
+    Each scene keeps its relative path and its layout (boxes, categories, instances, intrinsics); its random stream
+    is seeded by ``seed`` and the file's relative path, so a scene degrades the same way in every run and whatever
+    else the folder holds. Scenes already written to ``out`` are kept (a killed run resumes); each is written
+    atomically, and ``out/index.json`` (``src``'s) last.
+
+    Args:
+        src: a dataset folder (``index.json`` and its scenes); out: the folder written (not ``src``).
+        level, effects: as :func:`apply_capture`; seed: the copy's seed; progress: a bar over the scenes.
+
+    Returns:
+        The number of scenes written now.
+
+    Raises:
+        ValueError: ``out`` is ``src``, a bad level or effect name; errors of a missing or corrupt scene name the file.
+    """
+    from tqdm import tqdm
+
+    from threedq.scene import load_index, load_scene, save_index, save_scene
+
+    src, out = Path(src), Path(out)
+    level, effects = _level(level), effect_names(effects)
+    if out.resolve() == src.resolve():
+        raise ValueError(f"out: {out} is the source folder; write the copy elsewhere")
+    index = load_index(src)
+    written = 0
+    for entry in tqdm(index.scenes, desc="threedq degrade", unit="scene", disable=not progress):
+        rel = entry["file"]
+        if (out / rel).is_file():
+            continue
+        rng = np.random.default_rng([seed, zlib.crc32(rel.encode())])
+        save_scene(out / rel, apply_capture(load_scene(src / rel), rng, level, effects))
+        written += 1
+    save_index(out, index)
+    return written

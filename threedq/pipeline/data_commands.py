@@ -20,7 +20,7 @@ from threedq.data.formats.importer import import_captures
 from threedq.data.formats.registry import FORMATS
 from threedq.data.generate import generate_dataset
 from threedq.data.generator_config import GeneratorConfig
-from threedq.data.sensor import EFFECTS
+from threedq.data.sensor import EFFECTS, degrade_dataset
 from threedq.errors import InputError
 from threedq.scene import SceneValidationError, load_index, load_scene
 
@@ -91,6 +91,17 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     gen.add_argument("--workers", type=int, default=2, help="rendering processes")
     gen.add_argument("--progress", type=bool, default=True)
 
+    deg = ArgumentParser(description="Write a copy of a dataset folder with sensor-like capture conditions "
+                         "(threedq.data.sensor): what a sensor and its tracker would make of the same scenes.")
+    deg.add_argument("dir", help="dataset folder")
+    deg.add_argument("--out", required=True, help="the copy's folder (a killed run resumes)")
+    deg.add_argument("--capture_level", type=float, default=1.0,
+                     help="1 = a typical RGB-D camera and tracker, 2 = twice that")
+    deg.add_argument("--capture_effects", type=list[str] | None, default=None,
+                     help="which capture conditions to apply (default all: " + ", ".join(EFFECTS) + ")")
+    deg.add_argument("--seed", type=int, default=0, help="seed of the copy's draws (with each scene's path)")
+    deg.add_argument("--progress", type=bool, default=True)
+
     show = ArgumentParser(description="Draw a contact sheet (rgb, depth, instances, GT boxes) of a dataset.")
     show.add_argument("dir", help="dataset folder")
     show.add_argument("--out", required=True, help="PNG to write")
@@ -125,6 +136,7 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
 
     return [
         ("generate", gen, "generate the embedded dataset"),
+        ("degrade", deg, "write a copy of a dataset with sensor-like capture conditions"),
         ("show", show, "draw a contact sheet PNG"),
         ("check", check, "validate a dataset folder"),
         ("import", imp, "import captures of an on-disk RGB-D format"),
@@ -171,6 +183,15 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
             raise _option_error(e, _GENERATE_OPTIONS) from e
         counts = {s: len(index.files(s)) for s in ("train", "val", "test")}
         print(f"wrote {sum(counts.values())} scenes to {args.out} ({', '.join(f'{k} {v}' for k, v in counts.items())})")
+        return 0
+    if action == "degrade":
+        out = output_folder("--out", args.out)
+        try:
+            n = degrade_dataset(args.dir, out, args.capture_level, args.capture_effects, seed=args.seed,
+                                progress=args.progress)
+        except ValueError as e:  # a bad level or effect name, or --out the source folder
+            raise _option_error(e, {"level": "capture_level", "effects": "capture_effects", "out": "out"}) from e
+        print(f"wrote {n} scenes to {out} (capture level {args.capture_level:g})")
         return 0
     if action == "show":
         if Path(args.out).is_dir():
