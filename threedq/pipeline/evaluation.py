@@ -39,7 +39,6 @@ __all__ = [
     "RETRIEVAL_SEARCH",
     "SEARCH_LABELS",
     "collect_object_crops",
-    "stage_crop_shape",
     "probe_table",
     "quantization_metrics",
     "retrieval_table",
@@ -58,13 +57,6 @@ FEATURE_SETS = (("learned", "learned"), ("raw_rgb_occupancy", "raw"), ("random_e
 DESCRIPTOR = "colour_size_descriptor"
 #: What the paper protocol's gallery is, as tables say it.
 GALLERY_VIEW = "each scene's second fixed view (the first view after the input views)"
-
-
-def stage_crop_shape(stage: Any) -> str:
-    """The region a stage cuts its object crops from (a quantizer's ``crop_shape`` hyperparameter; ``hull``, the
-    paper's, for a stage without one)."""
-    hp = getattr(stage, "hparams", None)
-    return (hp.get("crop_shape") if hp is not None else None) or "hull"
 
 
 def _random_encoder_crops(
@@ -125,7 +117,7 @@ def collect_object_crops(
     random_encoder_seed: int | None = 0,
     progress: bool = True,
     gallery: bool = False,
-    crop_shape: str | None = None,
+    crop_shape: str = "hull",
 ) -> dict[str, Tensor]:
     """Crop every GT object of every scene of ``loader`` out of three volumes.
 
@@ -139,7 +131,7 @@ def collect_object_crops(
             ``num_input_views``, which the loader must hold: :func:`~threedq.pipeline.report.split_loader` with
             ``gallery=True``): the paper protocol's gallery, row ``i`` the twin of query ``i``.
         crop_shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull`` (the
-            paper's), ``square`` or ``cube``; None: the stage's own (a quantizer's ``crop_shape``; else ``hull``).
+            paper's), ``square`` or ``cube`` (the stages cut the hull).
             ``aabb`` is returned as given either way.
 
     Returns:
@@ -150,7 +142,6 @@ def collect_object_crops(
 
     Convention: boxes axis-aligned in R (z up), cropped as their tight hull (or the ``crop_shape`` region about it).
     """
-    crop_shape = stage_crop_shape(stage) if crop_shape is None else crop_shape
     if crop_shape not in CROP_SHAPES:
         raise ValueError(f"crop_shape must be one of {CROP_SHAPES}, got {crop_shape!r}")
     was_training = stage.training

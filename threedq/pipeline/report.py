@@ -46,7 +46,6 @@ from threedq.stages.checkpoint import require_stage
 from threedq.baselines.pointcloud import PointCloudPrototypes
 from threedq.pipeline.evaluation import (
     RETRIEVAL_SEARCH,
-    stage_crop_shape,
     collect_object_crops,
     probe_table,
     quantization_metrics,
@@ -375,7 +374,7 @@ def evaluate_quantizer(
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels = test["labels"]
     retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search, coarse_labels=coarse_labels(cats, labels))
-    shape = stage_crop_shape(model)
+    shape = "hull"  # the region the stages cut around each box
     retrieval["crop_shape"] = shape
     probe = probe_table(train, test) if baselines and int((train["labels"] >= 0).sum()) > 0 else None
     # the threedq row is what the stage's own test_step measured (trainer.test); the baselines below are fitted here
