@@ -47,6 +47,9 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
             :data:`threedq.data.catalog.SHAPE_ONLY_NAMES` or the held-out meshes).
         color_mode: ``"category"`` (catalogue colours) or ``"random"`` (a random palette colour per instance: the
             category is the shape alone); see :class:`~threedq.data.generator_config.GeneratorConfig`.
+        sensor_captures: as :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`'s, off here: the
+            generator renders clean depth and exact poses (``true`` for a copy with capture conditions, ``threedq
+            data degrade``).
         **kwargs: the arguments of :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
 
@@ -65,9 +68,10 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         generator_workers: PositiveInt = 2,
         categories: list[str] | None = None,
         color_mode: Literal["category", "random"] = "category",
+        sensor_captures: bool = False,
         **kwargs: Any,
     ) -> None:
-        super().__init__(data_dir=data_dir, max_objects=max_objects, **kwargs)
+        super().__init__(data_dir=data_dir, max_objects=max_objects, sensor_captures=sensor_captures, **kwargs)
         self.num_scenes = num_scenes
         self.split_fractions = tuple(split_fractions)
         self.generator_seed = generator_seed

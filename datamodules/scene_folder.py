@@ -35,8 +35,9 @@ from threedq.data.box_files import load_boxes_file
 from threedq.data.proposal_cache import propose_dataset
 from threedq.data.samplers import ContiguousDistributedSampler, EpochShuffleSampler
 from threedq.metrics.detection import assign_detections
+from threedq.geometry.floor_alignment import align_to_floor
 from threedq.proposals import ProposalParams
-from threedq.scene import DatasetIndex, SceneValidationError, load_index, load_scene
+from threedq.scene import DatasetIndex, SceneRecord, SceneValidationError, load_index, load_scene
 
 __all__ = ["SceneDataset", "SceneFolderDataModule", "detections_as_objects", "fixed_views"]
 
@@ -96,6 +97,23 @@ class _ViewCache:
 
 
 _VIEW_CACHE = _ViewCache()
+#: the pseudo-boxes of clean renders: every second view, a voxel seen by 2 views, a fixed 1.5 cm ground margin
+RENDER_PROPOSALS = ProposalParams(view_stride=2)
+#: the pseudo-boxes of sensor captures: the poses corrected by the floor, a voxel seen by 3 views (a noisy floor's
+#: stray points rarely agree in 3), the ground margin measured per scene (3 sigma of the floor's own spread)
+SENSOR_PROPOSALS = ProposalParams(view_stride=2, min_views=3, ground_margin=None, align_floor=True)
+#: (resolved path, mtime, size) -> a scene's floor-aligned poses ``[V, 4, 4]`` (a few KB a scene)
+_FLOOR_POSES: dict[tuple[str, int, int], np.ndarray] = {}
+
+
+def floor_aligned_poses(path: Path, rec: SceneRecord) -> np.ndarray:
+    """A scene's poses corrected by its floor (:func:`~threedq.geometry.floor_alignment.align_to_floor`), computed once
+    per scene file (its size and modification time) and process."""
+    st = path.stat()
+    key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
+    if key not in _FLOOR_POSES:
+        _FLOOR_POSES[key] = align_to_floor(rec.depth, rec.K, rec.world_T_cam).world_T_cam
+    return _FLOOR_POSES[key]
 
 
 def _cores(most: int) -> int:
@@ -132,6 +150,8 @@ class SceneDataset(Dataset):
         keep_unmatched: keep boxes that match no GT object (category -1; training needs no labels);
             ``False`` keeps only matched ones (metrics).
         max_boxes: boxes per scene are padded to this many when ``box_sets`` is given (highest scores kept).
+        align_floor: correct each scene's poses by the floor its views see
+            (:func:`~threedq.geometry.floor_alignment.align_to_floor`; computed once per scene file and process).
     """
 
     def __init__(
@@ -148,6 +168,7 @@ class SceneDataset(Dataset):
         match_iou: float = 0.5,
         keep_unmatched: bool = True,
         max_boxes: int = 8,
+        align_floor: bool = False,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
@@ -174,6 +195,7 @@ class SceneDataset(Dataset):
         self.match_iou = match_iou
         self.keep_unmatched = keep_unmatched
         self.max_boxes = max_boxes
+        self.align_floor = bool(align_floor)
 
     def __len__(self) -> int:
         return len(self.files)
@@ -253,7 +275,7 @@ class SceneDataset(Dataset):
             try:
                 st = path.stat()
                 key = (str(path.resolve()), st.st_mtime_ns, st.st_size, repr(bounds), ncat, self.seed, i,
-                       self.num_input_views + self.num_target_views, self.max_objects)
+                       self.num_input_views + self.num_target_views, self.max_objects, self.align_floor)
             except OSError:
                 key = None  # load_scene names the missing file
             hit = _VIEW_CACHE.get(key) if key is not None else None
@@ -265,9 +287,10 @@ class SceneDataset(Dataset):
                 str(path), "boxes", f"{rec.num_objects} objects but max_objects is {self.max_objects}"
             )
         views = self._choose_views(i, rec.num_views, path, epoch)
+        poses = floor_aligned_poses(path, rec) if self.align_floor else rec.world_T_cam
         v = _SceneViews(
             rgb=rec.rgb[views], depth=rec.depth[views].astype(np.float32), K=rec.K[views].astype(np.float32),
-            world_T_cam=rec.world_T_cam[views].astype(np.float32), view_ids=views.astype(np.int64),
+            world_T_cam=poses[views].astype(np.float32), view_ids=views.astype(np.int64),
             instance=None if rec.instance is None else rec.instance[views], boxes=rec.boxes, categories=rec.categories,
         )
         if key is not None:
@@ -352,6 +375,12 @@ class SceneFolderDataModule(L.LightningDataModule):
         proposal_workers: processes computing the pseudo-boxes of a split (:func:`~threedq.data.proposal_cache.
             propose_dataset`'s ``workers``; the boxes do not depend on it); ``None``: one per CPU core this process
             may use, at most 8.
+        sensor_captures: the depth and poses come from a sensor and a tracker (noise, holes, pose drift, a tilted
+            gravity), not a renderer: every sample's poses are corrected by the floor its views see
+            (:func:`~threedq.geometry.floor_alignment.align_to_floor`), and the pseudo-boxes take the same poses,
+            voxels seen by 3 views and a ground margin measured per scene (:data:`SENSOR_PROPOSALS`;
+            ``docs/robustness.md``). On clean renders neither changes anything that matters: no pose is corrected
+            and the pseudo-boxes agree.
 
     With boxes other than GT, the train split keeps every box; val and test keep only the boxes matched
     to a GT object, so that the label-based metrics are defined (the unmatched ones are counted by the
@@ -376,8 +405,10 @@ class SceneFolderDataModule(L.LightningDataModule):
         max_boxes: PositiveInt = 8,
         train_random_views: bool = True,
         proposal_workers: PositiveInt | None = None,
+        sensor_captures: bool = True,
     ) -> None:
         super().__init__()
+        self.sensor_captures = bool(sensor_captures)
         if boxes not in ("gt", "proposals") and "{split}" not in boxes:
             raise ValueError(f"boxes: expected 'gt', 'proposals' or a path containing '{{split}}', got {boxes!r}")
         self.boxes = boxes
@@ -427,6 +458,7 @@ class SceneFolderDataModule(L.LightningDataModule):
                     match_iou=self.match_iou,
                     keep_unmatched=split == "train",
                     max_boxes=self.max_boxes,
+                    align_floor=self.sensor_captures,
                 )
 
     def box_sets(self, split: str) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
@@ -442,7 +474,8 @@ class SceneFolderDataModule(L.LightningDataModule):
         what the detector's warm start learns from), computed once and cached in ``<data_dir>/proposals/<split>.npz``.
         """
         cache = self.data_dir / "proposals" / f"{split}.npz"
-        return propose_dataset(self.data_dir, split, cache, params=ProposalParams(view_stride=2), progress=progress,
+        params = SENSOR_PROPOSALS if self.sensor_captures else RENDER_PROPOSALS
+        return propose_dataset(self.data_dir, split, cache, params=params, progress=progress,
                                workers=self.proposal_workers)
 
     def fixed_view_dataset(self, split: str, gallery: bool = False, with_boxes: bool = True) -> SceneDataset:
@@ -455,7 +488,7 @@ class SceneFolderDataModule(L.LightningDataModule):
             self.data_dir, self.index, split, num_input_views=self.num_input_views,
             num_target_views=1 if gallery else 0, max_objects=self.max_objects, random_views=False, seed=self.seed,
             box_sets=self.box_sets(split) if with_boxes else None, match_iou=self.match_iou,
-            keep_unmatched=split == "train", max_boxes=self.max_boxes,
+            keep_unmatched=split == "train", max_boxes=self.max_boxes, align_floor=self.sensor_captures,
         )  # fmt: skip
 
     def box_extents(self, split: str = "train") -> np.ndarray:

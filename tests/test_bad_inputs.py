@@ -821,6 +821,29 @@ def test_rounds_refuse_detections_with_too_few_boxes(tmp_path: Path) -> None:
         _check_handed_on(tmp_path, ("train", "test"))
 
 
+def test_too_few_detected_objects_are_the_boxes_fault_with_their_numbers(tmp_path: Path) -> None:
+    """Too few test objects to evaluate: with GT boxes the index holds too few; with handed-on boxes the message
+    names the boxes file and what they found (count, median extent), not the index."""
+    from types import SimpleNamespace
+
+    from threedq.data.box_files import load_boxes_file, save_boxes_file
+    from threedq.pipeline.report import _too_few_objects
+
+    big = np.array([[0, 0, 0, 1.3, 1.4, 0.3]], np.float32)  # one box the size of the object area
+    save_boxes_file(tmp_path / "detections_test.npz", {"test/a.npz": (big, np.ones(1, np.float32)),
+                                                       "test/b.npz": (big[:0], np.ones(0, np.float32))})
+    boxes = str(tmp_path / "detections_{split}.npz")
+    dm = SimpleNamespace(data_dir=tmp_path / "data", boxes=boxes,
+                         box_sets=lambda split: load_boxes_file(boxes.format(split=split)))
+    msg = _too_few_objects(dm, 1)
+    assert msg.startswith(f"{tmp_path / 'detections_test.npz'}: field 'boxes': 1 box(es) in 2 test scene(s), "
+                          "median extent 1.30 x 1.40 x 0.30 m, of which 1 match")
+    assert "index.json" not in msg
+    gt = SimpleNamespace(data_dir=tmp_path / "data", boxes="gt")
+    assert _too_few_objects(gt, 1).startswith(f"{tmp_path / 'data' / 'index.json'}: field 'scenes': the test split "
+                                              "holds 1 object(s)")
+
+
 def test_data_config_is_composed_after_the_stage_config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``threedq eval --data_config d.yaml --extra_configs x.yaml``: the stage config, then the data, then the extras."""
     from threedq.cli import build_parser

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
-from threedq.datamodules.scene_folder import SceneDataset, SceneFolderDataModule
+from threedq.datamodules.scene_folder import SENSOR_PROPOSALS, SceneDataset, SceneFolderDataModule
 from threedq.boxes import boxes_to_aabb
 from threedq.scene import SceneValidationError, load_index, load_scene
 
@@ -35,6 +35,36 @@ class TestSceneFolderDataModule:
         assert torch.all((batch["categories"] >= 0) == batch["box_mask"])
         assert torch.all(batch["boxes"][~batch["box_mask"]] == 0)
 
+    def test_sensor_captures_level_the_floor(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        """A copy whose every pose is tilted by 3 degrees (a tracker's gravity): with ``sensor_captures`` the samples'
+        floor is level at z = 0 again; without, the tilt stays. The embedded data's DataModule leaves it off."""
+        import math
+
+        from scipy.spatial.transform import Rotation
+
+        from threedq.geometry.camera import depth_to_points
+        from threedq.geometry.ground import fit_ground_plane
+        from threedq.scene import save_scene
+
+        data = tmp_path / "tilted"
+        shutil.copytree(tiny_dataset, data)
+        G = np.eye(4)
+        G[:3, :3] = Rotation.from_rotvec([math.radians(3.0), 0.0, 0.0]).as_matrix()
+        for f in load_index(data).files("test"):
+            rec = load_scene(data / f)
+            rec.world_T_cam = (G @ rec.world_T_cam.astype(np.float64)).astype(np.float32)
+            save_scene(data / f, rec)
+
+        def floor_tilt(sensor: bool) -> float:
+            dm = SceneFolderDataModule(str(data), num_input_views=4, num_target_views=0, sensor_captures=sensor)
+            sample = dm.fixed_view_dataset("test", with_boxes=False)[0]
+            pts, valid = depth_to_points(sample["depth"], sample["K"], sample["R_T_cam"])
+            n, _, _ = fit_ground_plane(pts[valid].double().numpy(), camera_centres=sample["R_T_cam"][:, :3, 3].numpy())
+            return math.degrees(math.acos(min(1.0, n[2])))
+
+        assert abs(floor_tilt(False) - 3.0) < 0.3 and floor_tilt(True) < 0.3
+        assert not ClevrVeggieDataModule(str(data)).sensor_captures and SceneFolderDataModule(str(data)).sensor_captures
+
     def test_matches_record(self, tiny_dataset: Path) -> None:
         index = load_index(tiny_dataset)
         ds = SceneDataset(tiny_dataset, index, "val", num_input_views=1, num_target_views=1, seed=3)
@@ -55,7 +85,6 @@ class TestSceneFolderDataModule:
 
     def test_fixed_view_dataset_and_pseudo_boxes(self, tiny_dataset: Path, tmp_path: Path) -> None:
         from threedq.data.proposal_cache import propose_dataset
-        from threedq.proposals import ProposalParams
 
         data = tmp_path / "data"
         shutil.copytree(tiny_dataset, data)
@@ -73,12 +102,13 @@ class TestSceneFolderDataModule:
         # the pseudo-boxes: the proposals of every second view, written once to the split's cache
         boxes = dm.pseudo_boxes("test")
         assert (data / "proposals" / "test.npz").is_file()
-        direct = propose_dataset(data, "test", tmp_path / "ref.npz", params=ProposalParams(view_stride=2), progress=False)
+        direct = propose_dataset(data, "test", tmp_path / "ref.npz", params=SENSOR_PROPOSALS, progress=False)
         assert sorted(boxes) == sorted(direct) == sorted(dm.index.files("test"))
         for f in boxes:
             assert np.allclose(boxes[f][0], direct[f][0]) and np.allclose(boxes[f][1], direct[f][1])
         # boxes="proposals": the samples carry those boxes (a training split keeps the ones matching no object)
-        dp = SceneFolderDataModule(str(data), num_input_views=2, boxes="proposals")
+        # (read as renders: at 32 x 32 px the sensor preset's measured ground margin leaves these tiny scenes no box)
+        dp = SceneFolderDataModule(str(data), num_input_views=2, boxes="proposals", sensor_captures=False)
         train = dp.pseudo_boxes("train")
         s0 = dp.fixed_view_dataset("train")[0]
         n = len(train[dp.index.files("train")[0]][0])

@@ -296,3 +296,19 @@ class TestImportThenParse:
         want = (c_T_w[:3, :3] @ rec.boxes[:, :3].astype(np.float64).T).T + c_T_w[:3, 3]
         assert got.shape == want.shape
         np.testing.assert_allclose(got, want, atol=0.02)
+
+
+def test_parse_reads_captures_as_the_run_read_its_data(tmp_path: Path) -> None:
+    """``threedq parse`` corrects the poses by the floor where the run's data was read as sensor captures (its final
+    quantizer's saved config says so), else not."""
+    from threedq.pipeline.parse_command import _run_reads_sensor_captures
+
+    run = tmp_path / "run"
+    assert not _run_reads_sensor_captures(None) and not _run_reads_sensor_captures(run)
+    for r, sensor in ((1, "false"), (2, "true")):
+        (run / f"r0{r}_quantizer").mkdir(parents=True)
+        (run / f"r0{r}_quantizer" / "config.yaml").write_text(
+            f"data:\n  class_path: x\n  init_args:\n    sensor_captures: {sensor}\n")
+    assert _run_reads_sensor_captures(run)  # the last round's
+    (run / "r02_quantizer" / "config.yaml").write_text("data:\n  init_args:\n    data_dir: d\n")
+    assert not _run_reads_sensor_captures(run)

@@ -118,6 +118,13 @@ class TestValidate:
         rec.depth[0, 0, 0] = -1
         _expect(rec, "depth", "negative")
 
+    def test_a_view_without_depth(self) -> None:
+        rec = make_record()
+        rec.depth[1] = 0  # a sensor frame that returned nothing
+        _expect(rec, "depth", "view 1 has no valid depth at all")
+        rec.depth[1, 5, 5] = 2.0  # one valid pixel is a view
+        validate_scene(rec)
+
     def test_shape_mismatch_between_views(self) -> None:
         rec = make_record()
         rec.depth = rec.depth[:2]

@@ -447,10 +447,27 @@ class TestDegradeDataset:
         degrade_dataset(tiny_dataset, again, 1.0, seed=3)
         assert (again / files[1]).read_bytes() == (out / files[1]).read_bytes()
 
+    def test_some_splits(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        from threedq.data.sensor import degrade_dataset
+        from threedq.scene import load_index
+
+        out = tmp_path / "noisy_test"
+        index = load_index(tiny_dataset)
+        assert degrade_dataset(tiny_dataset, out, 1.0, splits=["test"]) == len(index.files())
+        assert load_index(out).files() == index.files()
+        for rel in index.files("train") + index.files("val"):  # copied as they are
+            assert (out / rel).read_bytes() == (tiny_dataset / rel).read_bytes()
+        everything = tmp_path / "noisy_all"  # the degraded split's scenes as a copy of every split has them
+        degrade_dataset(tiny_dataset, everything, 1.0)
+        for rel in index.files("test"):
+            assert (out / rel).read_bytes() == (everything / rel).read_bytes() != (tiny_dataset / rel).read_bytes()
+
     def test_bad_input(self, tiny_dataset: Path, tmp_path: Path) -> None:
         from threedq.data.sensor import degrade_dataset
         from threedq.scene import SceneValidationError
 
+        with pytest.raises(ValueError, match="splits: .*'tset'.* not among the splits of .*index.json"):
+            degrade_dataset(tiny_dataset, tmp_path / "s", 1.0, splits=["tset"])
         with pytest.raises(ValueError, match="out: .* is the source folder"):
             degrade_dataset(tiny_dataset, tiny_dataset, 1.0)
         with pytest.raises(ValueError, match="level"):

@@ -52,6 +52,7 @@ Convention: world frame in metres, z up (see :mod:`threedq.scene`); boxes are ax
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -59,6 +60,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from threedq.geometry.floor_alignment import align_to_floor
 from threedq.geometry.ground import fit_ground_plane, ground_spread
 from threedq.scene import SceneRecord
 
@@ -95,7 +97,8 @@ class ProposalParams:
         min_ground_margin: the least measured ground margin, metres.
         ransac_iters, ransac_threshold, ransac_sample, max_ground_tilt_deg: ground-plane RANSAC
             (see :func:`fit_ground_plane`).
-        min_views: a voxel counts as occupied when points of at least this many views fall in it.
+        min_views: a voxel counts as occupied when points of at least this many views fall in it (at most the
+            number of views used).
         dilation: voxels of binary dilation before labelling components (bridges gaps; 0 = none).
         min_component_voxels: smaller components are dropped.
         min_height: components whose top is less than this above the ground plane (under the box centre)
@@ -108,6 +111,9 @@ class ProposalParams:
         round_inflate: scale of the xy extents of round footprints (1 = none), see the module docstring.
         extend_to_ground: extend each box's ``zmin`` down to the ground plane under its centre.
         score_voxel_scale: voxel count at which the size factor of the score is ``1 - 1/e``.
+        align_floor: first correct the poses by the floor each view sees
+            (:func:`~threedq.geometry.floor_alignment.align_to_floor`: a tracker's tilt and height errors), for
+            sensor captures; the boxes are then in the corrected frame, as the DataModule's samples are.
         seed: RANSAC seed.
 
     Convention: lengths in metres, angles in degrees, world z up.
@@ -134,6 +140,7 @@ class ProposalParams:
     round_inflate: float = 1.2
     extend_to_ground: bool = True
     score_voxel_scale: float = 50.0
+    align_floor: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -173,8 +180,9 @@ class ProposalParams:
             put(name, float(v))
         if self.footprint not in _FOOTPRINTS:
             raise ValueError(f"footprint: expected one of {_FOOTPRINTS}, got {self.footprint!r}")
-        if not isinstance(self.extend_to_ground, bool):
-            raise ValueError(f"extend_to_ground: expected a bool, got {self.extend_to_ground!r}")  # noqa: TRY004 - ValueError naming the field
+        for name in ("extend_to_ground", "align_floor"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: expected a bool, got {getattr(self, name)!r}")  # noqa: TRY004 - ValueError naming the field
 
 
 # --------------------------------------------------------------------------------------------------
@@ -308,7 +316,7 @@ def _propose(
         return _empty()
     vs = max(p.voxel_size, p.min_voxel_pixels * p.pixel_stride * float(np.median(zf)))
     flat, shape = _voxel_indices(pts, bnd, vs, p.dilation)
-    comps = _components(flat, view, n_views, shape, p.min_views, p.dilation)
+    comps = _components(flat, view, n_views, shape, min(p.min_views, n_views), p.dilation)
     if comps is None:
         return _empty()
     labels_grid, n_comp, occ_vox = comps
@@ -498,4 +506,7 @@ def propose_boxes(record: SceneRecord, *, bounds: Bounds | None = None, **params
     """
     p = ProposalParams(**params)
     _check_record(record)
+    if p.align_floor:
+        record = dataclasses.replace(record, world_T_cam=align_to_floor(record.depth, record.K,
+                                                                        record.world_T_cam).world_T_cam)
     return _propose(record, _check_bounds(bounds), p)

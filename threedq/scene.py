@@ -163,6 +163,10 @@ def validate_scene(
     _check_finite(source, "depth", depth)
     if np.any(depth < 0):
         raise SceneValidationError(source, "depth", f"{int(np.count_nonzero(depth < 0))} negative value(s)")
+    blank = np.nonzero(~np.any(depth > 0, axis=(1, 2)))[0]
+    if blank.size:
+        raise SceneValidationError(source, "depth", f"view {int(blank[0])} has no valid depth at all (every pixel 0; "
+                                   f"{blank.size} such view(s)); drop the view(s) from the capture")
     if K.shape != (V, 3, 3):
         raise SceneValidationError(source, "K", f"expected shape {[V, 3, 3]}, got {list(K.shape)}")
     _check_finite(source, "K", K)

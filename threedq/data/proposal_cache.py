@@ -31,6 +31,8 @@ def _params_json(params: ProposalParams, bounds: Bounds | None) -> str:
     d: dict[str, Any] = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in asdict(params).items()}
     d["bounds"] = None if bounds is None else [list(map(float, bounds[0])), list(map(float, bounds[1]))]
     d["version"] = PROPOSALS_VERSION
+    if not d["align_floor"]:  # the caches written before the option keep their key
+        del d["align_floor"]
     return json.dumps(d, sort_keys=True)
 
 

@@ -368,7 +368,7 @@ def apply_capture(
 
 
 def degrade_dataset(src: str | Path, out: str | Path, level: float, effects: Iterable[str] | None = None,
-                    seed: int = 0, progress: bool = False) -> int:
+                    seed: int = 0, progress: bool = False, splits: Iterable[str] | None = None) -> int:
     """Write a copy of the dataset folder ``src`` to ``out`` with capture conditions (:func:`apply_capture`).
 
     Each scene keeps its relative path and its layout (boxes, categories, instances, intrinsics); its random stream
@@ -379,13 +379,19 @@ def degrade_dataset(src: str | Path, out: str | Path, level: float, effects: Ite
     Args:
         src: a dataset folder (``index.json`` and its scenes); out: the folder written (not ``src``).
         level, effects: as :func:`apply_capture`; seed: the copy's seed; progress: a bar over the scenes.
+        splits: degrade only the scenes of these splits (e.g. ``["test"]``: a trained model meets a noisy test
+            set); the others are copied unchanged (hard links where the file system allows). ``None``: all.
 
     Returns:
-        The number of scenes written now.
+        The number of scenes written now (degraded or copied).
 
     Raises:
-        ValueError: ``out`` is ``src``, a bad level or effect name; errors of a missing or corrupt scene name the file.
+        ValueError: ``out`` is ``src``, a bad level or effect name, a split the index does not hold; errors of a
+            missing or corrupt scene name the file.
     """
+    import os
+    import shutil
+
     from tqdm import tqdm
 
     from threedq.scene import load_index, load_scene, save_index, save_scene
@@ -395,13 +401,28 @@ def degrade_dataset(src: str | Path, out: str | Path, level: float, effects: Ite
     if out.resolve() == src.resolve():
         raise ValueError(f"out: {out} is the source folder; write the copy elsewhere")
     index = load_index(src)
+    held = {e.get("split") for e in index.scenes}
+    if splits is not None:
+        splits = set(splits)
+        if not splits or not splits <= held:
+            raise ValueError(f"splits: {sorted(splits)} not among the splits of {src / 'index.json'} ({sorted(held)})")
     written = 0
     for entry in tqdm(index.scenes, desc="threedq degrade", unit="scene", disable=not progress):
         rel = entry["file"]
         if (out / rel).is_file():
             continue
-        rng = np.random.default_rng([seed, zlib.crc32(rel.encode())])
-        save_scene(out / rel, apply_capture(load_scene(src / rel), rng, level, effects))
+        if splits is not None and entry.get("split") not in splits:
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            tmp = out / (rel + ".tmp")
+            tmp.unlink(missing_ok=True)
+            try:
+                os.link(src / rel, tmp)
+            except OSError:  # another file system, or links not allowed
+                shutil.copyfile(src / rel, tmp)
+            os.replace(tmp, out / rel)
+        else:
+            rng = np.random.default_rng([seed, zlib.crc32(rel.encode())])
+            save_scene(out / rel, apply_capture(load_scene(src / rel), rng, level, effects))
         written += 1
     save_index(out, index)
     return written

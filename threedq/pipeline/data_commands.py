@@ -100,6 +100,9 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     deg.add_argument("--capture_effects", type=list[str] | None, default=None,
                      help="which capture conditions to apply (default all: " + ", ".join(EFFECTS) + ")")
     deg.add_argument("--seed", type=int, default=0, help="seed of the copy's draws (with each scene's path)")
+    deg.add_argument("--splits", type=list[str] | None, default=None,
+                     help="degrade only these splits (e.g. [test]: a trained model meets a noisy test set); the "
+                     "others are copied unchanged (default: all)")
     deg.add_argument("--progress", type=bool, default=True)
 
     show = ArgumentParser(description="Draw a contact sheet (rgb, depth, instances, GT boxes) of a dataset.")
@@ -188,10 +191,12 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
         out = output_folder("--out", args.out)
         try:
             n = degrade_dataset(args.dir, out, args.capture_level, args.capture_effects, seed=args.seed,
-                                progress=args.progress)
-        except ValueError as e:  # a bad level or effect name, or --out the source folder
-            raise _option_error(e, {"level": "capture_level", "effects": "capture_effects", "out": "out"}) from e
-        print(f"wrote {n} scenes to {out} (capture level {args.capture_level:g})")
+                                progress=args.progress, splits=args.splits)
+        except ValueError as e:  # a bad level, effect or split name, or --out the source folder
+            raise _option_error(e, {"level": "capture_level", "effects": "capture_effects", "out": "out",
+                                    "splits": "splits"}) from e
+        print(f"wrote {n} scenes to {out} (capture level {args.capture_level:g}); read it as sensor captures: a data "
+              f"config with SceneFolderDataModule (data_dir: {out}), or sensor_captures: true for another DataModule")
         return 0
     if action == "show":
         if Path(args.out).is_dir():

@@ -132,18 +132,24 @@ def precision_recall(
 
 
 def single_view_pseudo_boxes(data_dir: str | Path, views: dict[str, list[int]], bounds: Any = None,
-                             progress: bool = True) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+                             progress: bool = True, align_floor: bool = False,
+                             ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The label-free pseudo-boxes of each scene from only the views a detector sees (``{file -> view indices}``).
 
     The detector's fair reference: the pseudo-boxes it is trained on fuse every view of a training scene, while
     at test time it sees one. These are :func:`~threedq.box_refinement.observed_boxes` (a voxel seen by one view
-    counts), the boxes the detector's ``refine_iou`` snaps its detections to; cached per process.
+    counts), the boxes the detector's ``refine_iou`` snaps its detections to; cached per process. ``align_floor``:
+    with the poses the DataModule's samples have (sensor captures: corrected by the floor).
     """
+    from threedq.datamodules.scene_folder import floor_aligned_poses
+
     out = {}
     for f, v in tqdm(sorted(views.items()), desc="single-view pseudo-boxes", disable=not progress, leave=False):
-        rec = load_scene(Path(data_dir) / f, validate=False)
+        path = Path(data_dir) / f
+        rec = load_scene(path, validate=False)
         idx = np.asarray(v, dtype=np.int64)
-        out[f] = observed_boxes(rec.depth[idx], rec.K[idx], rec.world_T_cam[idx], bounds)
+        poses = floor_aligned_poses(path, rec) if align_floor else rec.world_T_cam
+        out[f] = observed_boxes(rec.depth[idx], rec.K[idx], poses[idx], bounds)
     return out
 
 
@@ -208,7 +214,8 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
             result["detector"]["boxes_kept_at_score_threshold"] = kept
             # the fair reference: pseudo-boxes from only the views the detector saw; and where IoU is lost, per size
             fg = stage.feature_grid  # the bounds the detector's refinement uses, so both are the same boxes
-            single = single_view_pseudo_boxes(dm.data_dir, views, (fg.bounds_min, fg.bounds_max), progress=progress)
+            single = single_view_pseudo_boxes(dm.data_dir, views, (fg.bounds_min, fg.bounds_max), progress=progress,
+                                              align_floor=getattr(dm, "sensor_captures", False))
             result["pseudo_boxes_single_view"] = box_sets_map(gt, single, progress=progress)
             # objects under the detector's min_box_height: it is not trained on them (the grid cannot resolve them)
             flat = float(stage.min_box_height) if stage.min_box_height > 0 else None

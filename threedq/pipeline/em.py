@@ -88,7 +88,7 @@ from threedq.stages.checkpoint import require_stage
 from threedq.viz.curves import table3_figure
 from threedq.viz.png import write_png
 
-__all__ = ["run_em"]
+__all__ = ["evaluate_run_on", "run_em"]
 
 ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer", "self_labelling")
 #: How a round fits its quantizer: one epoch over the training boxes, no validation pass (the round's evaluation
@@ -635,3 +635,57 @@ def run_em(
                            frozen_precision, mining_trainer, round0, rounds_run, crop_cache)
         _write_report(work, summary)
         return summary
+
+
+def evaluate_run_on(
+    run: str | Path, out: str | Path, data_config: str | None = None, detector_config: str = "stages/detector.yaml",
+    quantizer_config: str = "stages/quantizer.yaml", self_labelling_config: str = "stages/self_labelling.yaml",
+    frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
+) -> dict[str, Any]:
+    """Evaluate a finished run's last detector and last quantizer (encoder and prototype bank) on a dataset, training
+    nothing: what the trained model makes of other captures of the same kind of scenes (e.g. a noisy copy,
+    ``threedq data degrade``).
+
+    The detector is scored as a round's detector evaluation is (the dataset's own label-free pseudo-boxes beside it)
+    and hands on its detections of every split; the quantizer's bank then assigns the test objects among them as a
+    round's evaluation does (retrieval, Hungarian, few-shot, yaw).
+
+    Args:
+        run: a ``threedq em`` work folder with at least one finished round.
+        out: the folder written: ``detector_eval/`` and ``eval/`` (each kept once finished, as in a run).
+        data_config: the dataset (default: the embedded data); detector_config, quantizer_config,
+            self_labelling_config: the stage configs the run used.
+        frozen_precision: as :func:`run_em`'s.
+
+    Returns:
+        ``{"detector_eval": ..., "round_eval": ...}``, the two evaluations' results.
+
+    Raises:
+        InputError: ``run`` has no finished detector or quantizer.
+    """
+    layout = RunLayout(Path(run))
+    det_ckpt, q_ckpt = layout.final_detector(), layout.final_quantizer()
+    if det_ckpt is None or q_ckpt is None:
+        raise InputError(f"{run}: no finished {'detector' if det_ckpt is None else 'quantizer'} (stage.json and "
+                         "checkpoints/last.ckpt); evaluate a threedq em run with at least one finished round")
+    prec = {"precision": _precisions(frozen_precision)[0]}
+    cfg = _resolve_configs("stages/viewpred.yaml", quantizer_config, detector_config, "none", self_labelling_config,
+                           data_config, None, True, None)
+    out = output_folder("--out", out)
+    det_dir, eval_dir = out / "detector_eval", out / "eval"
+    crop_cache = CropCache()
+    relabelled = layout.rounds("self_labelling")
+    if relabelled and det_ckpt.parent.parent == layout.round(relabelled[-1], "self_labelling"):
+        r = relabelled[-1]  # a self-labelled detector is built with its round's encoder and bank, as em evaluates it
+        encoder = layout.finished(layout.round(r, "mining")) or layout.checkpoint(layout.viewpred)
+        model = {"encoder_ckpt": encoder, "bank_ckpt": layout.finished(layout.round(r, "quantizer")),
+                 "detector_ckpt": None}
+        det_eval = _evaluate_detector(cfg.sl, det_ckpt, det_dir, ("train", "val", "test"),
+                                      stage_overrides(cfg.sl, model=model, trainer=prec), crop_cache=crop_cache)
+    else:
+        det_eval = _evaluate_detector(cfg.d, det_ckpt, det_dir, ("train", "val", "test"),
+                                      stage_overrides(cfg.d, trainer=prec), crop_cache=crop_cache)
+    boxes = {"boxes": RunLayout.detections(det_dir)}
+    round_eval = _evaluate_round(cfg.q, q_ckpt, eval_dir, final=False,
+                                 overrides=stage_overrides(cfg.q, data=boxes, trainer=prec), crop_cache=crop_cache)
+    return {"detector_eval": det_eval, "round_eval": round_eval}

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
+import yaml
 from jsonargparse.typing import NonNegativeInt, PositiveInt
 from tqdm import tqdm
 
@@ -32,7 +33,9 @@ from threedq.pipeline.parse import (
     parse_records,
     resolve_run,
 )
+from threedq.datamodules.scene_folder import floor_aligned_poses
 from threedq.pipeline.renders import load_view_decoder, prototype_gallery, replaced_render
+from threedq.pipeline.run_layout import RunLayout
 from threedq.scene import SceneRecord, SceneValidationError, load_scene
 
 if TYPE_CHECKING:
@@ -54,6 +57,19 @@ def _scene_name(file: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(Path(file).with_suffix("")))
 
 
+def _run_reads_sensor_captures(run: str | Path | None) -> bool:
+    """Whether a ``threedq em`` run read its data as sensor captures (its final quantizer's saved config)."""
+    if run is None:
+        return False
+    layout = RunLayout(Path(run))
+    done = layout.rounds("quantizer")
+    cfg = layout.round(done[-1], "quantizer") / "config.yaml" if done else None
+    if cfg is None or not cfg.is_file():
+        return False
+    data = (yaml.safe_load(cfg.read_text()) or {}).get("data") or {}
+    return bool((data.get("init_args") or {}).get("sensor_captures", False))
+
+
 def _load_batch(
     root: Path,
     batch: list[str],
@@ -61,11 +77,13 @@ def _load_batch(
     box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None,
     boxes: str | None,
     failed: list[str],
+    align_floor: bool = False,
 ) -> tuple[list[SceneRecord], list[list[int]], list[str]]:
     """Load a batch of scene files and check their input views.
 
     A scene that cannot be loaded, whose views are out of range, or that the boxes file (``boxes``, loaded as
     ``box_sets``) does not cover is skipped: its one-line reason is appended to ``failed`` and printed.
+    ``align_floor``: each record's poses corrected by its floor (sensor captures).
 
     Returns:
         The loaded records, their chosen view indices and the files they came from (``batch`` order).
@@ -77,6 +95,8 @@ def _load_batch(
             if box_sets is not None and f not in box_sets:
                 raise SceneValidationError(str(boxes), f, "the boxes file has no boxes for this scene")
             rec = load_scene(src)
+            if align_floor:
+                rec.world_T_cam = floor_aligned_poses(src, rec)
             chosen.append(check_views(list(views), rec, str(src)))
             recs.append(rec)
             ok_files.append(f)
@@ -163,6 +183,7 @@ def run_parse(
     pictures: bool = True,
     renders: bool = False,
     appearance_scenes: NonNegativeInt = 100,
+    sensor_captures: bool | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Parse scenes with a trained run: boxes, prototype id (C), yaw (R), similarity and name per object.
@@ -188,6 +209,9 @@ def run_parse(
             per scene ``<scene>_replaced.png`` (a view that was not an input: real, decoded, and decoded with the
             objects replaced by their prototypes at the inferred yaw).
         appearance_scenes: training scenes used once to picture the prototypes in the bird's-eye view (0: none).
+        sensor_captures: correct each scene's poses by the floor its views see first, as a DataModule reading sensor
+            captures does (:func:`~threedq.geometry.floor_alignment.align_to_floor`); default: as the run's data
+            was read (its final quantizer's ``config.yaml``), else off.
         progress: show a progress bar.
 
     Returns:
@@ -199,6 +223,8 @@ def run_parse(
     if outp.exists() and not outp.is_dir():
         raise InputError(f"out: {outp} exists and is not a folder")
     artifacts = resolve_run(run, encoder, detector, prototypes)
+    if sensor_captures is None:
+        sensor_captures = _run_reads_sensor_captures(run)
     root, files = find_scenes(scenes, split)
     parser = SceneParser(artifacts, score_threshold=score_threshold, precision=precision)
     names = load_names(artifacts.prototypes, parser.bank)
@@ -217,7 +243,8 @@ def run_parse(
         t0 = time.time()
         bar = tqdm(total=len(files), desc="threedq parse", unit="scene", disable=not progress, dynamic_ncols=True)
         for s in range(0, len(files), batch_size):
-            recs, chosen, ok_files = _load_batch(root, files[s : s + batch_size], views, box_sets, boxes, failed)
+            recs, chosen, ok_files = _load_batch(root, files[s : s + batch_size], views, box_sets, boxes, failed,
+                                                 sensor_captures)
             given = None if box_sets is None else [box_sets[f] for f in ok_files]
             for f, rec, v, res in zip(ok_files, recs, chosen, parse_records(parser, recs, chosen, names, batch_size, given)):
                 features = res.pop("_features")

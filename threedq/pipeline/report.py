@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import DataLoader
@@ -189,9 +190,29 @@ def _collect_crops(model: Any, dm: Any, num_input_views: int, need_train: bool, 
     test, no_paper = collect_with_gallery(model, dm, "test", num_input_views, random_encoder_seed, progress)
     n = test["labels"].shape[0]
     if n < 2:
-        raise InputError(f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': the test split holds {n} "
-                         "object(s); the evaluation (retrieval, clustering) needs at least 2")
+        raise InputError(_too_few_objects(dm, n))
     return train, test, no_paper
+
+
+def _too_few_objects(dm: Any, n: int) -> str:
+    """Why the test split gives fewer than 2 objects to evaluate: the index holds too few, or the boxes handed on
+    (detections, proposals) match too few of them; in the second case with the boxes' own numbers."""
+    boxes = getattr(dm, "boxes", "gt")
+    need = "the evaluation (retrieval, clustering) needs at least 2"
+    if boxes == "gt":
+        return f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': the test split holds {n} object(s); {need}"
+    where = (f"{dm.data_dir} (the label-free proposals of the test split)" if boxes == "proposals"
+             else boxes.format(split="test"))
+    found = dm.box_sets("test")
+    aabb = [a for a, _ in found.values() if len(a)]
+    total = sum(len(a) for a in aabb)
+    size = ""
+    if total:
+        ext = np.median(np.concatenate(aabb)[:, 3:] - np.concatenate(aabb)[:, :3], axis=0)
+        size = f", median extent {ext[0]:.2f} x {ext[1]:.2f} x {ext[2]:.2f} m"
+    return (f"{where}: field 'boxes': {total} box(es) in {len(found)} test scene(s){size}, of which {n} match a "
+            f"ground-truth object at IoU 0.5; {need}: the boxes found too few objects (the scenes' index is not "
+            "at fault); look at the detections, or evaluate on GT boxes (--boxes gt)")
 
 
 def _baseline_rows(train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int, em_iterations: int,

@@ -1,0 +1,256 @@
+"""Robustness to capture conditions: the main job's model, and one adaptation round, on noisy copies of the embedded data.
+
+For each condition (a capture level with every effect, or one effect alone at level 1; ``threedq.data.sensor``):
+
+- ``frozen``: the main job's last detector and quantizer on a copy whose **test** split is degraded (the training
+  split stays as the main job saw it): what a trained model makes of sensor captures
+  (:func:`threedq.pipeline.em.evaluate_run_on`);
+- ``adapted`` (the conditions given to ``--adapt``): ``threedq em --rounds 1 --viewpred_ckpt <main job's>`` on a copy
+  whose every split is degraded: a user's first run on their own noisy captures (the detector is warm-started from
+  the noisy data's own pseudo-boxes, then one round of mining, quantization and self-labelling).
+
+Each measured row goes to ``--rows`` (JSONL, one line per condition, mode and seed; a row already there is not
+measured again); the table (``--md``) and the curve picture (``--png``) are drawn from every row of the file::
+
+    python benchmarks/robustness.py --main_run runs/em --work runs/robustness \\
+        --rows benchmarks/results/robustness/rows.jsonl --md docs/robustness_table.md --png docs/img/robustness.png
+    python benchmarks/robustness.py --rows benchmarks/results/robustness/rows.jsonl --png docs/img/robustness.png \\
+        --conditions   # no condition: redraw the table and picture from the rows
+
+Convention: a condition is ``level<L>`` (every effect at level L; ``level0`` is the clean data) or an effect's name
+(that effect alone at level 1); metrics on the test split, mAP against the GT boxes' hulls at IoU 0.5, yaw error the
+median relative yaw error on asymmetric categories in degrees.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from threedq.data.sensor import EFFECTS, degrade_dataset
+from threedq.machine import cpu_name
+
+LEVELS = ("level0", "level0.5", "level1", "level2")
+#: (row key, table heading)
+METRICS = (
+    ("pseudo_map_50", "pseudo-boxes mAP@0.5"),
+    ("detector_map_50", "detector mAP@0.5"),
+    ("precision_at_10", "p@10 strict"),
+    ("precision_at_10_paper", "p@10 paper"),
+    ("hungarian_acc", "Hungarian K=50"),
+    ("fewshot_acc", "few-shot"),
+    ("yaw_median_deg", "yaw error (deg)"),
+)
+DATA_CONFIG = """data:
+  class_path: threedq.datamodules.clevr_veggie.ClevrVeggieDataModule
+  init_args:
+    data_dir: {data_dir}
+    sensor_captures: {sensor}
+"""
+
+
+def condition(name: str) -> tuple[float, list[str] | None]:
+    """``(level, effects)`` of a condition name (see the module's convention)."""
+    if name.startswith("level"):
+        return float(name.removeprefix("level")), None
+    if name not in EFFECTS:
+        raise SystemExit(f"robustness: condition {name!r}: expected level<L> or one of {', '.join(EFFECTS)}")
+    return 1.0, [name]
+
+
+def noisy_copy(clean: Path, work: Path, name: str, splits: list[str] | None, sensor: bool) -> Path:
+    """The dataset folder of a condition (the clean one for level 0) and a data config naming it, read as sensor
+    captures or not (``sensor_captures``)."""
+    level, effects = condition(name)
+    if level == 0:  # the clean scenes, linked: the copy's own proposal caches leave the clean folder's alone
+        data = work / "data_level0"
+        for f in [clean / "index.json", *clean.glob("*/*.npz")]:
+            dst = data / f.relative_to(clean)
+            if not dst.exists():
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.link(f, dst)
+    else:
+        data = work / f"data_{name}_{'all' if splits is None else '_'.join(splits)}"
+        t0 = time.time()
+        n = degrade_dataset(clean, data, level, effects, splits=splits)
+        if n:
+            print(f"[robustness] {data}: {n} scenes written in {time.time() - t0:.0f} s", flush=True)
+    cfg = work / f"{data.name}_{'sensor' if sensor else 'render'}.yaml"
+    cfg.write_text(DATA_CONFIG.format(data_dir=data.resolve(), sensor=str(sensor).lower()))
+    return cfg
+
+
+def frozen_row(main_run: Path, work: Path, clean: Path, name: str, sensor: bool) -> dict[str, Any]:
+    """The main job's model on the condition's noisy test split."""
+    from threedq.pipeline.em import evaluate_run_on
+    from threedq.pipeline.tables import feature_cells
+
+    cfg = noisy_copy(clean, work, name, ["test"], sensor)
+    t0 = time.time()
+    r = evaluate_run_on(main_run, work / f"frozen_{name}_{cfg.stem.rsplit('_', 1)[1]}", data_config=str(cfg))
+    q = r["round_eval"]["quantization"]["threedq"]
+    cells = feature_cells(r["round_eval"]["retrieval"])
+    return {"pseudo_map_50": r["detector_eval"]["pseudo_boxes"]["map_50"],
+            "detector_map_50": r["detector_eval"]["detector"]["map_50"],
+            "precision_at_10": cells["precision_at_10"], "precision_at_10_paper": cells["precision_at_10_paper"],
+            "hungarian_acc": q["hungarian_acc"], "fewshot_acc": q["fewshot_acc"], "yaw_median_deg": q["yaw_median_deg"],
+            "seconds": round(time.time() - t0, 1)}
+
+
+def adapted_row(main_run: Path, work: Path, clean: Path, name: str, seed: int, sensor: bool) -> dict[str, Any]:
+    """``threedq em --rounds 1 --viewpred_ckpt`` on the condition's noisy copy (every split), one seed."""
+    cfg = noisy_copy(clean, work, name, None, sensor)
+    seed_cfg = work / f"seed{seed}.yaml"
+    seed_cfg.write_text(f"seed_everything: {seed}\n")
+    run = work / f"adapted_{name}_{cfg.stem.rsplit('_', 1)[1]}_s{seed}"
+    t0 = time.time()
+    cmd = ["threedq", "em", "--rounds", "1", "--work_dir", str(run), "--resume", "true",
+           "--viewpred_ckpt", str(main_run / "00_viewpred" / "checkpoints" / "last.ckpt"),
+           "--data_config", str(cfg), "--extra_configs", str(seed_cfg)]
+    print("[robustness] " + " ".join(cmd), flush=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    (run.parent / f"{run.name}.log").write_text(proc.stdout + proc.stderr)
+    if proc.returncode:
+        # a stage that finds too few objects stops the run with one line: that line is the row's result
+        last = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        return {"failed": last, "seconds": round(time.time() - t0, 1)}
+    m = json.loads((run / "metrics.json").read_text())
+    last_round = m["table3"][-1]
+    q = m["round_results"][-1]["quantization"]["threedq"]
+    return {"pseudo_map_50": m["detector_eval"]["pseudo_boxes"]["map_50"],
+            "warm_start_map_50": m["detector_eval"]["detector"]["map_50"],
+            "detector_map_50": last_round["map_50"],
+            "precision_at_10": last_round["precision_at_10"],
+            "precision_at_10_paper": last_round["precision_at_10_paper"],
+            "hungarian_acc": q["hungarian_acc"], "fewshot_acc": q["fewshot_acc"], "yaw_median_deg": q["yaw_median_deg"],
+            "seconds": round(time.time() - t0, 1)}
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.is_file() else []
+
+
+def _fmt(v: Any) -> str:
+    return "–" if v is None else (f"{v:.1f}" if isinstance(v, float) and v > 1.5 else f"{v:.3f}")
+
+
+def _read_as(sensor: bool) -> str:
+    return "sensor captures" if sensor else "renders"
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """Markdown: one line per condition and mode, the mean over seeds (and their range where there are several)."""
+    order = {n: i for i, n in enumerate((*LEVELS, *EFFECTS))}
+    keys = sorted({(r["mode"], r["sensor_captures"], r["condition"]) for r in rows},
+                  key=lambda k: (k[0] != "frozen", k[1], order.get(k[2], 99)))
+    out = ["| mode | read as | condition | seeds | " + " | ".join(h for _, h in METRICS) + " |",
+           "|---|---|---|---|" + "---|" * len(METRICS)]
+    for mode, sensor, cond in keys:
+        group = [r for r in rows if (r["mode"], r["sensor_captures"], r["condition"]) == (mode, sensor, cond)]
+        ok = [r for r in group if "failed" not in r]
+        seeds = ", ".join(str(r["seed"]) for r in group)
+        if not ok:
+            out.append(f"| {mode} | {_read_as(sensor)} | {cond} | {seeds} | stopped: {group[0]['failed']} |"
+                       + " |" * (len(METRICS) - 1))
+            continue
+        cells = []
+        for k, _ in METRICS:
+            vals = [r[k] for r in ok if r.get(k) is not None]
+            if not vals:
+                cells.append("–")
+                continue
+            mean = sum(vals) / len(vals)
+            cells.append(_fmt(mean) + (f" ({_fmt(min(vals))}-{_fmt(max(vals))})" if len(vals) > 1 else ""))
+        out.append(f"| {mode} | {_read_as(sensor)} | {cond} | {seeds} | " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
+
+
+def curve_png(rows: list[dict[str, Any]], path: Path) -> None:
+    """Each metric against the capture level (every effect), as a share of its clean value: the main job's model and
+    one adaptation round; solid read as sensor captures, dashed read as renders."""
+    from threedq.viz.png import figure_png, new_figure, write_png
+
+    fig = new_figure(figsize=(12, 4.5))
+    colours = dict(zip([k for k, _ in METRICS], ["C0", "C1", "C2", "C3", "C4", "C5", "C6"]))
+    for ax_i, mode in enumerate(("frozen", "adapted")):
+        ax = fig.add_subplot(1, 2, ax_i + 1)
+        for sensor in (False, True):
+            level_rows = [r for r in rows if r["mode"] == mode and r["sensor_captures"] == sensor
+                          and r["condition"] in LEVELS and "failed" not in r]
+            clean = [r for r in rows if r["mode"] == mode and r["condition"] == "level0" and "failed" not in r]
+            if not level_rows or not clean:
+                continue
+            for k, label in METRICS:
+                if k == "yaw_median_deg":
+                    continue
+                base = sum(r[k] for r in clean) / len(clean)
+                xs = sorted({condition(r["condition"])[0] for r in level_rows})
+                ys = []
+                for x in xs:
+                    vals = [r[k] for r in level_rows if condition(r["condition"])[0] == x]
+                    ys.append(sum(vals) / len(vals) / base)
+                ax.plot(xs, ys, marker="o", color=colours[k], ls="-" if sensor else "--",
+                        label=f"{label} ({_read_as(sensor)})")
+        ax.axhline(0.9, color="grey", lw=0.8, ls=":")
+        ax.set_xlabel("capture level (1 = a Kinect-class sensor and a good SLAM run)")
+        ax.set_ylabel("share of the clean value")
+        ax.set_title("the main job's model" if mode == "frozen" else "one adaptation round on the noisy data")
+        ax.set_ylim(0, 1.25)
+        ax.legend(fontsize=6, ncol=2)
+    write_png(path, figure_png(fig))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--main_run", type=Path, default=Path("runs/em"), help="the main job's work dir")
+    ap.add_argument("--clean", type=Path, default=Path("data/clevr_veggie"), help="the embedded data's folder")
+    ap.add_argument("--work", type=Path, default=Path("runs/robustness"))
+    ap.add_argument("--conditions", nargs="*", default=[*LEVELS, *EFFECTS])
+    ap.add_argument("--adapt", nargs="*", default=["level0", "level1", "level2"],
+                    help="conditions also run with one adaptation round")
+    ap.add_argument("--seeds", nargs="*", type=int, default=[0], help="seeds of the adaptation rounds")
+    ap.add_argument("--sensor_captures", nargs="*", default=["true"], choices=["true", "false"],
+                    help="read the copies as sensor captures (the DataModule's sensor_captures), or not, or both")
+    ap.add_argument("--rows", type=Path, default=Path("benchmarks/results/robustness/rows.jsonl"))
+    ap.add_argument("--md", type=Path, default=None, help="write the table here too")
+    ap.add_argument("--png", type=Path, default=None, help="draw the curves here")
+    args = ap.parse_args(argv)
+    for name in args.conditions + args.adapt:
+        condition(name)
+    args.work.mkdir(parents=True, exist_ok=True)
+    args.rows.parent.mkdir(parents=True, exist_ok=True)
+    rows = read_rows(args.rows)
+    done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"]) for r in rows}
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    todo = []
+    for sensor in [s == "true" for s in args.sensor_captures]:
+        todo += [("frozen", c, 0, sensor) for c in args.conditions]
+        todo += [("adapted", c, s, sensor) for c in args.conditions if c in args.adapt for s in args.seeds]
+    for mode, name, seed, sensor in todo:
+        if (mode, name, seed, sensor) in done:
+            continue
+        row = (frozen_row(args.main_run, args.work, args.clean, name, sensor) if mode == "frozen"
+               else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor))
+        row = {"mode": mode, "condition": name, "seed": seed, "sensor_captures": sensor, **row, "machine": cpu_name(),
+               "commit": commit, "date": time.strftime("%Y-%m-%d")}
+        with args.rows.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+        rows.append(row)
+        print(f"[robustness] {mode} {name} seed {seed}: " + json.dumps(row), flush=True)
+    text = table(rows)
+    print(text)
+    if args.md:
+        args.md.write_text(text)
+    if args.png:
+        curve_png(rows, args.png)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

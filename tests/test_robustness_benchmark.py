@@ -1,0 +1,73 @@
+"""``benchmarks/robustness.py``: condition names, the table's means and ranges over seeds, the curve picture, and the
+adaptation row read from a hand-written ``threedq em`` work dir."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import load_benchmark
+
+robustness = load_benchmark("robustness")
+
+METRICS = ("pseudo_map_50", "detector_map_50", "precision_at_10", "precision_at_10_paper", "hungarian_acc",
+           "fewshot_acc", "yaw_median_deg")
+
+
+def _row(mode: str, cond: str, seed: int, sensor: bool, value: float) -> dict:
+    return {"mode": mode, "condition": cond, "seed": seed, "sensor_captures": sensor, **dict.fromkeys(METRICS, value)}
+
+
+class TestRobustnessBenchmark:
+    def test_conditions(self) -> None:
+        assert robustness.condition("level0.5") == (0.5, None)
+        assert robustness.condition("pose_drift") == (1.0, ["pose_drift"])
+        with pytest.raises(SystemExit, match="condition 'blur'"):
+            robustness.condition("blur")
+
+    def test_table_mean_and_range_over_seeds(self) -> None:
+        rows = [_row("adapted", "level1", 0, True, 0.4), _row("adapted", "level1", 1, True, 0.6),
+                _row("frozen", "level0", 0, False, 0.9),
+                {"mode": "adapted", "condition": "level2", "seed": 0, "sensor_captures": False,
+                 "failed": "threedq: error: too few boxes"}]
+        lines = robustness.table(rows).splitlines()
+        assert lines[2].startswith("| frozen | renders | level0 | 0 | 0.900 |")  # frozen first
+        assert "| adapted | sensor captures | level1 | 0, 1 | 0.500 (0.400-0.600) |" in lines[4]
+        assert "stopped: threedq: error: too few boxes" in lines[3]
+
+    def test_curve_png(self, tmp_path: Path) -> None:
+        rows = [_row(m, c, 0, s, v) for m in ("frozen", "adapted") for s in (False, True)
+                for c, v in (("level0", 0.8), ("level1", 0.6), ("level2", 0.4))]
+        robustness.curve_png(rows, tmp_path / "c.png")
+        assert (tmp_path / "c.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    def test_adapted_row_reads_the_run(self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        """The adaptation row: pseudo-boxes and warm start from the detector evaluation, the rest from the last
+        round (the run itself replaced by a hand-written metrics.json)."""
+        clean, work = tmp_path / "clean", tmp_path / "work"
+        (clean / "train").mkdir(parents=True)
+        (clean / "index.json").write_text("{}")
+        (clean / "train" / "a.npz").write_bytes(b"scene")
+        work.mkdir()
+
+        def fake_run(cmd, **kwargs):
+            run = Path(cmd[cmd.index("--work_dir") + 1])
+            run.mkdir(parents=True)
+            (run / "metrics.json").write_text(json.dumps({
+                "detector_eval": {"pseudo_boxes": {"map_50": 0.9}, "detector": {"map_50": 0.7}},
+                "table3": [{"map_50": 0.7}, {"map_50": 0.8, "precision_at_10": 0.4, "precision_at_10_paper": 0.45}],
+                "round_results": [{"quantization": {"threedq": {"hungarian_acc": 0.5, "fewshot_acc": 0.55,
+                                                                "yaw_median_deg": 12.0}}}]}))
+            return type("P", (), {"returncode": 0, "stdout": "", "stderr": ""})()
+
+        monkeypatch.setattr(robustness.subprocess, "run", fake_run)
+        row = robustness.adapted_row(tmp_path / "main", work, clean, "level0", 1, True)
+        assert {k: row[k] for k in ("pseudo_map_50", "warm_start_map_50", "detector_map_50", "precision_at_10",
+                                    "hungarian_acc", "yaw_median_deg")} == {
+            "pseudo_map_50": 0.9, "warm_start_map_50": 0.7, "detector_map_50": 0.8, "precision_at_10": 0.4,
+            "hungarian_acc": 0.5, "yaw_median_deg": 12.0}
+        assert "sensor_captures: true" in (work / "data_level0_sensor.yaml").read_text()
+        # level 0 is the clean folder, linked (its proposal caches are the copy's own)
+        assert (work / "data_level0" / "train" / "a.npz").read_bytes() == b"scene"
+        assert (work / "data_level0" / "train" / "a.npz").stat().st_ino == (clean / "train" / "a.npz").stat().st_ino
