@@ -100,8 +100,10 @@ _VIEW_CACHE = _ViewCache()
 #: the pseudo-boxes of clean renders: every second view, a voxel seen by 2 views, a fixed 1.5 cm ground margin
 RENDER_PROPOSALS = ProposalParams(view_stride=2)
 #: the pseudo-boxes of sensor captures: the poses corrected by the floor, a voxel seen by 3 views (a noisy floor's
-#: stray points rarely agree in 3), the ground margin measured per scene (3 sigma of the floor's own spread)
-SENSOR_PROPOSALS = ProposalParams(view_stride=2, min_views=3, ground_margin=None, align_floor=True)
+#: stray points rarely agree in 3), the ground margin measured per scene (3 sigma of the floor's own spread, at least
+#: the renders' 1.5 cm)
+SENSOR_PROPOSALS = ProposalParams(view_stride=2, min_views=3, ground_margin=None, min_ground_margin=0.015,
+                                  align_floor=True)
 #: (resolved path, mtime, size) -> a scene's floor-aligned poses ``[V, 4, 4]`` (a few KB a scene)
 _FLOOR_POSES: dict[tuple[str, int, int], np.ndarray] = {}
 

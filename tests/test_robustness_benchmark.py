@@ -4,6 +4,7 @@ adaptation row read from a hand-written ``threedq em`` work dir."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -71,3 +72,23 @@ class TestRobustnessBenchmark:
         # level 0 is the clean folder, linked (its proposal caches are the copy's own)
         assert (work / "data_level0" / "train" / "a.npz").read_bytes() == b"scene"
         assert (work / "data_level0" / "train" / "a.npz").stat().st_ino == (clean / "train" / "a.npz").stat().st_ino
+
+
+def test_pseudo_box_rows_on_the_tiny_data(tiny_dataset: Path, tmp_path: Path) -> None:
+    """The quick first-stage table: per condition, both parameter sets; level 0's renders row is the DataModule's own
+    pseudo-boxes (the same parameters) scored against the GT hulls."""
+    from threedq.datamodules.scene_folder import SceneFolderDataModule
+    from threedq.pipeline.detection_eval import box_sets_map, gt_hulls
+    from threedq.scene import load_index
+
+    tiny_dataset = Path(shutil.copytree(tiny_dataset, tmp_path / "data"))  # the DataModule caches into its folder
+    rows = robustness.pseudo_box_rows(tiny_dataset, ["level0", "pose_drift"], scenes=2)
+    assert [(r["condition"], r["read_as"]) for r in rows] == [
+        ("level0", "renders"), ("level0", "sensor captures"), ("pose_drift", "renders"), ("pose_drift", "sensor captures")]
+    files = load_index(tiny_dataset).files("test")[:2]
+    dm = SceneFolderDataModule(str(tiny_dataset), sensor_captures=False)
+    boxes = dm.pseudo_boxes("test")
+    ref = box_sets_map(gt_hulls(tiny_dataset, files), {f: boxes[f] for f in files}, progress=False)
+    assert rows[0]["map_50"] == pytest.approx(ref["map_50"]) and rows[0]["map_25"] == pytest.approx(ref["map_25"])
+    table = robustness.pseudo_box_table(rows, 2).splitlines()
+    assert table[0].startswith("| condition (2 test scenes) |") and table[3].startswith("| pose_drift | ")
