@@ -312,3 +312,34 @@ def test_parse_reads_captures_as_the_run_read_its_data(tmp_path: Path) -> None:
     assert _run_reads_sensor_captures(run)  # the last round's
     (run / "r02_quantizer" / "config.yaml").write_text("data:\n  init_args:\n    data_dir: d\n")
     assert not _run_reads_sensor_captures(run)
+
+
+class TestView:
+    """``threedq view`` of a run ``threedq em`` wrote, and ``threedq parse --view``."""
+
+    def test_recording_of_the_run(self, tmp_path: Path, tiny_run: Path, tiny_dataset: Path) -> None:
+        pytest.importorskip("rerun")
+        from test_view import _read_back
+
+        from threedq.pipeline.view import run_view
+
+        counts = run_view(str(tiny_run), save=str(tmp_path / "run.rrd"), progress=False)
+        got = _read_back(tmp_path / "run.rrd")
+        for r in (0, 1):
+            objects = json.loads((tiny_run / f"r{r:02d}_eval" / "objects_test.json").read_text())["objects"]
+            assert counts["boxes"][r] == len(objects)
+            for f in load_index(tiny_dataset).files("test"):
+                mine = [o for o in objects if o["scene"] == f]
+                rows = [row for rr_, row in got.get(f"/scenes/{Path(f).stem}/detections", []) if rr_ == r]
+                labels = rows[0]["Boxes3D:labels"] if rows and "Boxes3D:labels" in rows[0] else []
+                assert sorted(labels) == sorted(f"p{o['prototype']:02d} 1.00" for o in mine)
+
+    def test_parse_then_view(self, tmp_path: Path, tiny_run: Path, tiny_dataset: Path, monkeypatch) -> None:
+        from threedq.pipeline import view
+
+        calls = []
+        monkeypatch.setattr(view, "run_view", lambda run, **kw: calls.append(run))
+        f = load_index(tiny_dataset).files("test")[0]
+        run_parse(str(tiny_dataset / f), str(tmp_path / "p"), run=str(tiny_run), pictures=False, view=True,
+                  progress=False)
+        assert calls == [str(tmp_path / "p")]

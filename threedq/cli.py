@@ -4,7 +4,8 @@
   (LightningCLI, subclass mode for model and data, YAML under ``configs/``).
 * ``threedq data generate|show|check|import|index`` — :mod:`threedq.pipeline.data_commands`.
 * ``threedq em`` — :func:`threedq.pipeline.em.run_em`; ``threedq eval`` — :func:`threedq.pipeline.report.run_eval`.
-* ``threedq parse`` — :func:`threedq.pipeline.parse_command.run_parse`; ``threedq label`` — :func:`threedq.pipeline.naming.run_label`.
+* ``threedq parse`` — :func:`threedq.pipeline.parse_command.run_parse`; ``threedq label`` — :func:`threedq.pipeline.naming.run_label`;
+  ``threedq view`` — :func:`threedq.pipeline.view.run_view`.
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ _COMMANDS = {
               "run_parse"),
     "label": ("name a few objects (labels.yaml); names propagate to the prototypes", "threedq.pipeline.naming",
               "run_label"),
+    "view": ("look at a run in 3D (Rerun): scenes, each round's detections, prototypes, metrics",
+             "threedq.pipeline.view", "run_view"),
 }
 
 
@@ -119,6 +122,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0 if summary["parsed"] or not summary["scenes"] else 1
         if cfg.command == "label":
             _command_function("label")(**dict(cfg.label.items()))
+            return 0
+        if cfg.command == "view":
+            _command_function("view")(**dict(cfg.view.items()))
             return 0
         build_parser().print_help()
         return 2

@@ -1,4 +1,5 @@
-"""Geometry core: voxel grids, cameras, unprojection, box crops, yaw rotation and the ground plane.
+"""Geometry core: voxel grids, cameras, unprojection, box crops, yaw rotation, the ground plane and
+fused point clouds.
 
 Convention:
     Metres; reference frame R right-handed with z up; yaw counter-clockwise about +z seen from above,
@@ -20,9 +21,12 @@ from .grid import *  # noqa: F403
 from .ground import *  # noqa: F403
 from .ground import __all__ as _ground_all
 from .grid import __all__ as _grid_all
+from .point_cloud import *  # noqa: F403
+from .point_cloud import __all__ as _point_cloud_all
 from .rotate import *  # noqa: F403
 from .rotate import __all__ as _rotate_all
 from .unproject import *  # noqa: F403
 from .unproject import __all__ as _unproject_all
 
-__all__ = [*_grid_all, *_camera_all, *_unproject_all, *_crop_all, *_rotate_all, *_frustum_all, *_ground_all, *_boxes2d_all]
+__all__ = [*_grid_all, *_camera_all, *_unproject_all, *_crop_all, *_rotate_all, *_frustum_all, *_ground_all, *_boxes2d_all,
+           *_point_cloud_all]

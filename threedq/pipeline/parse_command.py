@@ -184,6 +184,7 @@ def run_parse(
     renders: bool = False,
     appearance_scenes: NonNegativeInt = 100,
     sensor_captures: bool | None = None,
+    view: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Parse scenes with a trained run: boxes, prototype id (C), yaw (R), similarity and name per object.
@@ -212,6 +213,8 @@ def run_parse(
         sensor_captures: correct each scene's poses by the floor its views see first, as a DataModule reading sensor
             captures does (:func:`~threedq.geometry.floor_alignment.align_to_floor`); default: as the run's data
             was read (its final quantizer's ``config.yaml``), else off.
+        view: open the parse in Rerun's viewer when done (:func:`threedq.pipeline.view.run_view`; ``threedq view
+            --run OUT --save FILE`` writes it to a file instead).
         progress: show a progress bar.
 
     Returns:
@@ -257,4 +260,9 @@ def run_parse(
                 parsed.append({"scene": str(root / f), "json": f"{name}.json", "objects": len(doc["objects"])})
             bar.update(len(files[s : s + batch_size]))
         bar.close()
-        return _write_summary(outp, files, parsed, failed, names, t0, artifacts.to_dict())
+        summary = _write_summary(outp, files, parsed, failed, names, t0, artifacts.to_dict())
+    if view and parsed:
+        from threedq.pipeline.view import run_view
+
+        run_view(str(outp), progress=progress)
+    return summary
