@@ -257,6 +257,15 @@ class TestRecording:
             run_view(str(run), save=str(tmp_path / "x.rrd"))
         assert not (tmp_path / "x.rrd").exists()
 
+    def test_no_display(self, tiny_dataset, tmp_path, monkeypatch):
+        """Without a display the native viewer cannot start: one line naming the alternatives, nothing spawned."""
+        run, _ = _fake_run(tmp_path, tiny_dataset)
+        monkeypatch.delenv("DISPLAY", raising=False)
+        monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+        monkeypatch.setattr("sys.platform", "linux")
+        with pytest.raises(InputError, match="no display .* --save run.rrd, or serve the web viewer with --serve true"):
+            run_view(str(run))
+
     def test_command_line(self, tiny_dataset, tmp_path, capsys):
         from threedq.cli import main
 

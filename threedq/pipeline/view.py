@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -422,11 +423,14 @@ def run_view(
         rr.serve_web_viewer(web_port=port, open_browser=False, connect_to=grpc)
         url = f"http://localhost:{port}/?url={quote(grpc, safe='')}"
     else:
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise InputError("no display for Rerun's native viewer (DISPLAY and WAYLAND_DISPLAY are unset): write a "
+                             "file with --save run.rrd, or serve the web viewer with --serve true")
         try:
             rec.spawn()
         except Exception as e:  # noqa: BLE001 - no display, no viewer binary: one line and the alternatives
             raise InputError(f"could not start Rerun's viewer ({e}); write a file with --save run.rrd, or serve "
-                             f"the web viewer with --serve") from None
+                             f"the web viewer with --serve true") from None
     counts = record(view, rec, points_per_scene, voxel_size, max_scenes, progress)
     rec.flush()
     if save:
