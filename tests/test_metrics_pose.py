@@ -100,6 +100,18 @@ class TestRelativeYawErrors:
         errors = relative_yaw_errors(est, gt, cats, _zeros(n), [1, 2])
         assert _deg(errors) == [30.0]  # only the order-1 pair
 
+    def test_modulo_the_period_of_a_symmetric_category(self) -> None:
+        """A 4-fold category (a cube): a pair estimated a quarter turn plus 5 deg off is 5 deg off; the asymmetric
+        category beside it gives no pair at order 4, and a continuous symmetry has no yaw to score."""
+        gt = _rad([0.0, 30.0, 0.0, 30.0])
+        est = _rad([0.0, -30.0 + 95.0, 0.0, 0.0])  # object 1 off by 95 deg, object 3 off by 30 deg
+        cats = torch.tensor([0, 0, 1, 1])
+        assert _deg(relative_yaw_errors(est, gt, cats, _zeros(4), [4, 1], order=4)) == [5.0]
+        assert _deg(relative_yaw_errors(est, gt, cats, _zeros(4), [4, 2], order=2)) == [30.0]  # 30 mod 180
+        assert _deg(relative_yaw_errors(est, gt, cats, _zeros(4), [4, 1])) == [30.0]
+        with pytest.raises(ValueError, match="order must be an int >= 1"):
+            relative_yaw_errors(est, gt, cats, _zeros(4), [4, 1], order=0)
+
     def test_cap_is_deterministic_and_order_independent(self) -> None:
         g = torch.Generator().manual_seed(3)
         gt = torch.rand(200, generator=g, dtype=torch.float64) * 6

@@ -343,3 +343,21 @@ class TestView:
         run_parse(str(tiny_dataset / f), str(tmp_path / "p"), run=str(tiny_run), pictures=False, view=True,
                   progress=False)
         assert calls == [str(tmp_path / "p")]
+
+
+def test_yaw_confidence(tmp_path: Path, tiny_run: Path, tiny_dataset: Path) -> None:
+    """Each parsed object carries a yaw_confidence, >= 0 (its yaw is the argmax of the search at its prototype);
+    the margin excludes the yaws within 30 degrees (3 steps of 36) of the chosen one."""
+    from threedq.pipeline.parse import yaw_margin_steps
+    from threedq.quantization import yaw_margin
+
+    f = load_index(tiny_dataset).files("test")[0]
+    summary = run_parse(str(tiny_dataset / f), str(tmp_path / "p"), run=str(tiny_run), pictures=False,
+                        score_threshold=0.0, progress=False)
+    doc = json.loads((tmp_path / "p" / summary["files"][0]["json"]).read_text())
+    conf = [o["yaw_confidence"] for o in doc["objects"]]
+    assert conf and all(c >= 0 for c in conf)
+    assert yaw_margin_steps(36) == 3 and yaw_margin_steps(12) == 1
+    scores = torch.tensor([[0.2] * 36])
+    scores[0, 5], scores[0, 20] = 0.9, 0.5
+    assert math.isclose(float(yaw_margin(scores, torch.tensor([5]), yaw_margin_steps(36))[0]), 0.4, abs_tol=1e-6)

@@ -17,6 +17,7 @@ from threedq.quantization.rotation_search import (
     cylindrical_resample,
     polar_interpolation_matrix,
     polar_spectrum,
+    yaw_margin,
 )
 
 A = 36
@@ -291,3 +292,48 @@ class TestAllPairsRotationMax:
         rows = torch.arange(30)
         assert torch.equal(fast_angle[rows, top_fast], exact_angle[rows, top_exact])
         assert torch.equal(exact_angle[rows, k], a)
+
+
+class TestYawMargin:
+    def test_smoke(self):
+        m = yaw_margin(torch.rand(3, 12), torch.zeros(3, dtype=torch.long), 1)
+        assert m.shape == (3,)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="scores, angle"):
+            yaw_margin(torch.rand(3, 12), torch.zeros(2, dtype=torch.long), 1)
+        with pytest.raises(ValueError, match="exclude"):
+            yaw_margin(torch.rand(3, 12), torch.zeros(3, dtype=torch.long), 6)
+        with pytest.raises(ValueError, match="exclude"):
+            yaw_margin(torch.rand(3, 12), torch.zeros(3, dtype=torch.long), -1)
+
+    def test_hand_computed(self):
+        s = torch.tensor([[0.9, 0.85, 0.1, 0.2, 0.3, 0.86],   # neighbours (within 1 step) do not count: 0.9 - 0.3
+                          [0.5, 0.1, 0.1, 0.5, 0.1, 0.1]])    # a half-turn symmetric score: margin 0
+        m = yaw_margin(s, torch.tensor([0, 0]), 1)
+        assert torch.allclose(m, torch.tensor([0.6, 0.0]))
+
+    def test_against_naive_loop(self):
+        g = torch.Generator().manual_seed(0)
+        s = torch.rand(20, 36, generator=g, dtype=torch.float64)
+        angle = s.argmax(1)
+        m = yaw_margin(s, angle, 3)
+        for n in range(20):
+            others = [float(s[n, b]) for b in range(36) if min((b - angle[n]) % 36, (angle[n] - b) % 36) > 3]
+            assert math.isclose(float(m[n]), float(s[n, angle[n]]) - max(others), abs_tol=1e-12)
+        assert (m >= 0).all()
+
+    def test_rotated_copy_is_confident_symmetric_is_not(self):
+        """An L-shaped crop against itself turned by 90 degrees: the search finds the turn with a clear margin;
+        a cylinder matches every yaw as well: margin near 0."""
+        crop = torch.zeros(1, 1, 8, 16, 16, dtype=torch.float64)
+        crop[..., 3:5, 4:12] = 1
+        crop[..., 4:12, 4:6] = 1
+        turned = rotate_yaw(crop, torch.tensor([math.pi / 2], dtype=torch.float64))
+        res = best_prototype_and_yaw(turned, crop, 36, method="exact")
+        assert int(res.angle[0]) == 27  # turning it back by -90 deg (270) aligns it
+        assert float(yaw_margin(res.scores[:, 0], res.angle, 3)[0]) > 0.2
+        yy, xx = torch.meshgrid(torch.arange(16.0), torch.arange(16.0), indexing="ij")
+        disc = (((yy - 7.5) ** 2 + (xx - 7.5) ** 2) < 25).double().expand(1, 1, 8, 16, 16).clone()
+        res = best_prototype_and_yaw(disc, disc, 36, method="exact")
+        assert float(yaw_margin(res.scores[:, 0], res.angle, 3)[0]) < 0.02

@@ -87,8 +87,10 @@ def relative_yaw_errors(
     symmetry_order: Sequence[int],
     max_pairs_per_group: int = 5000,
     seed: int = 0,
+    order: int = 1,
 ) -> Tensor:
-    """Relative yaw error of every pair of objects of an asymmetric category with the same prototype.
+    """Relative yaw error of every pair of objects of an asymmetric category with the same prototype (``order`` 1),
+    or of an ``order``-fold symmetric category, modulo its period ``2 pi / order``.
 
     Objects are grouped by (prototype, category). A group of ``m`` objects gives its ``m (m - 1) / 2``
     unordered pairs; if that exceeds ``max_pairs_per_group``, exactly ``max_pairs_per_group`` pairs
@@ -105,22 +107,26 @@ def relative_yaw_errors(
             asymmetric, ``n >= 2`` = n-fold, 0 = continuous; only order-1 categories give pairs.
         max_pairs_per_group: cap on the pairs of one (prototype, category) group.
         seed: seed of the pair sampling of capped groups.
+        order: the symmetry order whose categories give pairs (``>= 1``); the error is taken modulo
+            ``2 pi / order`` (a cube's relative yaw is only known up to quarter turns).
 
     Returns:
-        ``[P]`` float64 errors in radians, in ``[0, pi]``, grouped by (prototype, category).
+        ``[P]`` float64 errors in radians, in ``[0, pi / order]``, grouped by (prototype, category).
 
     Raises:
         ValueError: on malformed inputs or options.
     """
     _check_options(symmetry_order, max_pairs_per_group)
     _check_inputs(est_yaw, gt_yaw, categories, clusters, len(symmetry_order))
+    if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+        raise ValueError(f"order must be an int >= 1 (a continuous symmetry has no yaw to score), got {order!r}")
     est, gt = est_yaw.detach().cpu().double(), gt_yaw.detach().cpu().double()
     cats, clus = categories.detach().cpu().long(), clusters.detach().cpu().long()
     orders = torch.tensor(list(symmetry_order), dtype=torch.long)
 
     residual = est + gt  # constant within a group when perfect
     order_o = orders[cats] if cats.numel() else torch.zeros(0, dtype=torch.long)
-    keep = order_o == 1
+    keep = order_o == order
     residual, cats, clus = residual[keep], cats[keep], clus[keep]
     if residual.numel() < 2:
         return torch.zeros(0, dtype=torch.float64)
@@ -145,7 +151,7 @@ def relative_yaw_errors(
                 i = torch.randint(m, (max_pairs_per_group,), generator=gen)
                 j = torch.randint(m - 1, (max_pairs_per_group,), generator=gen)
                 j = j + (j >= i).long()  # uniform over j != i
-            errors.append(_circular_distance(r[j] - r[i], 2 * math.pi))
+            errors.append(_circular_distance(r[j] - r[i], 2 * math.pi / order))
         start += m
     return torch.cat(errors) if errors else torch.zeros(0, dtype=torch.float64)
 
@@ -175,6 +181,7 @@ def relative_yaw_error(
     symmetry_order: Sequence[int],
     max_pairs_per_group: int = 5000,
     seed: int = 0,
+    order: int = 1,
 ) -> dict[str, Tensor]:
     """Summary of :func:`relative_yaw_errors` (same arguments): median error in degrees, accuracy within
     :data:`THRESHOLDS_DEG`, pairs.
@@ -185,7 +192,7 @@ def relative_yaw_error(
         middle values.
     """
     return _summary(relative_yaw_errors(est_yaw, gt_yaw, categories, clusters, symmetry_order, max_pairs_per_group,
-                                        seed))
+                                        seed, order))
 
 
 class RelativeYawError(Metric):

@@ -3,8 +3,10 @@
 Per scene: encode the input view(s) into the feature grid, detect 3D boxes (the run's final detector, at its
 hand-on score threshold, 3D NMS), crop each box out of the features the prototypes were fitted on, and match
 the crop against every prototype at every yaw (the bank's rotation search, the same call as the evaluation's).
-The result per object: its box, the detector's score, the prototype id ``C``, the yaw ``R`` and the cosine
-similarity, and a name when the prototypes were named (``threedq label``).
+The result per object: its box, the detector's score, the prototype id ``C``, the yaw ``R``, the cosine
+similarity, the confidence in the yaw (``yaw_confidence``: the search's best similarity minus its best at any yaw
+more than 30 degrees away; near 0, another pose fits as well) and a name when the prototypes were named
+(``threedq label``).
 
 What a run folder (``threedq em``'s ``work_dir``) provides, found by :func:`resolve_run`::
 
@@ -45,21 +47,22 @@ import yaml
 from torch import Tensor
 from tqdm import tqdm
 
-from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_bytes
 from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
+from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.pipeline.run_layout import RunLayout
 from threedq.quantization.prototypes import PrototypeBank, prototype_crops
+from threedq.quantization.rotation_search import yaw_margin
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
 from threedq.stages.base import EncoderStage, stage_arguments
 from threedq.stages.checkpoint import (
     DEFAULT_GRID,
     checkpoint_hparams,
     checkpoint_state,
-    load_checkpoint,
     encoder_state_from_checkpoint,
+    load_checkpoint,
 )
 from threedq.stages.detector import Detector
 from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
@@ -247,7 +250,7 @@ class SceneParser(torch.nn.Module):
 
         Returns:
             per scene lists: ``aabb`` ``[P, 6]``, ``score`` ``[P]``, ``prototype`` ``[P]``, ``angle`` ``[P]``,
-            ``similarity`` ``[P]``; and ``features`` ``[B, C, Z', Y', X']`` (the prototypes' feature space),
+            ``similarity`` ``[P]``, ``yaw_confidence`` ``[P]`` (:func:`yaw_margin_steps`); and ``features`` ``[B, C, Z', Y', X']`` (the prototypes' feature space),
             ``timings`` (seconds per part).
         """
         t: dict[str, float] = {}
@@ -301,9 +304,12 @@ class SceneParser(torch.nn.Module):
         if crops.shape[0]:
             res = self.bank.assign(crops)
             proto, angle, sim = res.prototype, res.angle, res.score
+            chosen = res.scores.amax(2).argmax(1)  # the chosen prototype's row among the active ones
+            margin = yaw_margin(res.scores[torch.arange(chosen.shape[0]), chosen].float(), angle,
+                                yaw_margin_steps(self.num_angles))
         else:
             proto = angle = torch.zeros(0, dtype=torch.long, device=feats.device)
-            sim = feats.new_zeros(0)
+            sim = margin = feats.new_zeros(0)
         t["search"] = time.perf_counter() - t0
         counts = mask.sum(1).tolist()
         split = lambda x: list(torch.split(x.cpu(), counts))  # noqa: E731
@@ -313,9 +319,16 @@ class SceneParser(torch.nn.Module):
             "prototype": split(proto),
             "angle": split(angle),
             "similarity": split(sim.float()),
+            "yaw_confidence": split(margin.float()),
             "features": q_feats,
             "timings": t,
         }
+
+
+def yaw_margin_steps(num_angles: int) -> int:
+    """The yaws within 30 degrees of the chosen one count as the same pose for an object's ``yaw_confidence``: the
+    search's best similarity minus its best at any yaw more than 30 degrees away (:func:`yaw_margin`)."""
+    return max(1, round(num_angles * 30 / 360))
 
 
 # ---------------------------------------------------------------------------------------------- scenes
@@ -401,6 +414,7 @@ def _scene_json(rec: SceneRecord, views: list[int], res: dict[str, Any], j: int,
             "angle_index": a,
             "yaw_deg": round((-math.degrees(float(yaw[a]))) % 360.0, 3),
             "similarity": round(float(res["similarity"][j][n]), 5),
+            "yaw_confidence": round(float(res["yaw_confidence"][j][n]), 5),
             "name": names.get(k),
         }
         if c_T is not None:

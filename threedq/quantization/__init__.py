@@ -16,6 +16,7 @@ from threedq.quantization.rotation_search import (
     all_pairs_rotation_max,
     best_prototype_and_yaw,
     rotation_max_similarity,
+    yaw_margin,
 )
 
 __all__ = [
@@ -29,4 +30,5 @@ __all__ = [
     "quantization_loss",
     "rotation_max_similarity",
     "run_prototype_em",
+    "yaw_margin",
 ]

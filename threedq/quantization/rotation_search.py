@@ -74,6 +74,7 @@ __all__ = [
     "polar_interpolation_matrix",
     "polar_spectrum",
     "rotation_max_similarity",
+    "yaw_margin",
 ]
 
 #: The two kernels of every rotation search: ``"fast"`` (polar spectrum + FFT over the angle, cosine over the
@@ -710,3 +711,31 @@ def all_pairs_rotation_max(
             torch.mul(best, inv_q[rows, None] * inv_g[None], out=sim[rows])
             angle[start : start + best.shape[0]] = arg
     return sim, angle
+
+
+def yaw_margin(scores: Tensor, angle: Tensor, exclude: int) -> Tensor:
+    """How clearly the rotation search's best yaw wins: its score minus the best score of every yaw more than
+    ``exclude`` steps away from it (circularly). A margin near 0 says another, distant yaw matches as well (a shape
+    symmetric about the vertical, or a guess); a large one, that the pose is pinned down.
+
+    Args:
+        scores: ``[N, A]`` the search's similarity at each of ``A`` yaws (one prototype per object).
+        angle: ``[N]`` the chosen yaw index of each object.
+        exclude: steps on either side of the chosen yaw that count as the same pose (``A > 2 * exclude + 1``).
+
+    Returns:
+        ``[N]`` margins, ``>= 0`` when ``angle`` is the argmax, in the scores' units (cosine similarity).
+
+    Convention: yaw ``a`` is ``2 pi a / A``; steps are counted circularly (``A - 1`` is next to ``0``).
+    """
+    if scores.dim() != 2 or angle.shape != scores.shape[:1]:
+        raise ValueError(f"scores, angle: expected [N, A] and [N], got {tuple(scores.shape)} and {tuple(angle.shape)}")
+    a = scores.shape[1]
+    if isinstance(exclude, bool) or not isinstance(exclude, int) or exclude < 0 or a <= 2 * exclude + 1:
+        raise ValueError(f"exclude: expected an int >= 0 with {a} yaws > 2 * exclude + 1, got {exclude!r}")
+    steps = torch.arange(a, device=scores.device)
+    dist = (steps[None] - angle[:, None]).remainder(a)
+    far = torch.minimum(dist, a - dist) > exclude
+    best = scores.gather(1, angle[:, None])[:, 0]
+    other = scores.masked_fill(~far, float("-inf")).amax(1)
+    return best - other

@@ -1,0 +1,216 @@
+"""Pose benchmark: how well does the prototype match give each object's yaw, on categories seen and unseen?
+
+For each dataset (``--datasets``: ``embedded`` = ``configs/data/clevr_veggie.yaml``, ``shapes`` =
+``configs/data/shapes.yaml``, ``unseen`` = ``configs/data/shapes_unseen.yaml``: 8 categories no encoder trained on),
+GT boxes, one input view per scene, each encoder (``--encoder NAME=CKPT``; a repeated NAME is another seed) is
+scored by a K = 50 rotation-aware bank (36 yaws, occupancy-weighted crops, the quantizer's) fitted label-free on the
+evaluated test objects themselves, two bank seeds. Per row:
+
+* the median relative yaw error of same-prototype pairs of one asymmetric category, accuracy within 10 / 20 deg
+  (:func:`threedq.metrics.pose.relative_yaw_error`), and of the 2-fold and 4-fold categories modulo their period;
+* the same median over the objects whose ``yaw_confidence`` (:func:`threedq.quantization.yaw_margin`, as ``threedq
+  parse`` reports it) is above the median: does the confidence tell a pose from a guess?
+* ``pairs``: the yaw the features find directly between two objects of one asymmetric category (the rotation search
+  of one crop against the other, no bank): what the features know of the yaw before a prototype averages them;
+* Hungarian accuracy of the bank (does the pose come at the price of the clusters?).
+
+References, once per dataset: random yaws (the first encoder's clusters), the raw ``cat[occ, occ * rgb]`` crops'
+bank, point-cloud registration (K = 50, input occupancy) and the input occupancy alone between two objects of one
+category (``pairs``).
+
+One JSON line per (dataset, row, seed) goes to ``--rows``; the markdown table (mean and range over seeds) is printed.
+
+    python benchmarks/pose.py --encoder "main job=runs/em/r04_quantizer/checkpoints/last.ckpt" \\
+        --encoder "main job=runs/em_s1/r04_quantizer/checkpoints/last.ckpt" --rows pose_rows.jsonl
+    python benchmarks/pose.py --table_only --rows benchmarks/results/pose/rows.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from threedq.machine import cpu_name
+
+DATASETS = {"embedded": "data/clevr_veggie.yaml", "shapes": "data/shapes.yaml", "unseen": "data/shapes_unseen.yaml"}
+K, NUM_ANGLES, EM_ITERATIONS, BANK_SEEDS, OCCUPANCY_FLOOR = 50, 36, 10, (0, 1), 0.2
+PAIRS = 800  # same-category pairs drawn for the direct search (seeded)
+
+
+def yaw_summary(angles: torch.Tensor, clusters: torch.Tensor, test: dict, sym: list[int]) -> dict[str, float]:
+    """Median relative yaw error (asymmetric, and 2- and 4-fold modulo the period) and accuracy within 10 / 20 deg."""
+    from threedq.geometry import yaw_angles
+    from threedq.metrics.pose import relative_yaw_error
+
+    est = yaw_angles(NUM_ANGLES, dtype=torch.float64)[angles]
+    gt = test["boxes"][:, 6].double()
+    out: dict[str, float] = {}
+    for order, name in ((1, "asym"), (2, "2fold"), (4, "4fold")):
+        r = relative_yaw_error(est, gt, test["labels"], clusters, sym, order=order)
+        out[f"{name}_median_deg"] = float(r["median_deg"])
+        if order == 1:
+            out["asym_acc_10"], out["asym_acc_20"] = float(r["acc_10"]), float(r["acc_20"])
+            out["asym_pairs"] = int(r["num_pairs"])
+    return out
+
+
+def pair_yaw_error(crops: torch.Tensor, test: dict, sym: list[int], seed: int = 0) -> float:
+    """Median error of the yaw the rotation search finds directly between two objects of one asymmetric category."""
+    from threedq.geometry import yaw_angles
+    from threedq.quantization.rotation_search import best_prototype_and_yaw
+
+    labels, gt = test["labels"], test["boxes"][:, 6].double()
+    asym = [i for i in range(labels.shape[0]) if sym[int(labels[i])] == 1]
+    pairs = [(i, j) for a, i in enumerate(asym) for j in asym[a + 1 :] if labels[i] == labels[j]]
+    if not pairs:
+        return float("nan")
+    pick = torch.randperm(len(pairs), generator=torch.Generator().manual_seed(seed))[:PAIRS].tolist()
+    i = torch.tensor([pairs[p][0] for p in pick])
+    j = torch.tensor([pairs[p][1] for p in pick])
+    yaw = yaw_angles(NUM_ANGLES, dtype=torch.float64)
+    errs = []
+    for a, b in zip(i.tolist(), j.tolist()):
+        step = best_prototype_and_yaw(crops[a : a + 1], crops[b : b + 1], NUM_ANGLES).angle[0]
+        # turning a by yaw[step] aligns it with b: the estimate of g_a - g_b is -yaw[step]
+        e = (-yaw[step] - (gt[a] - gt[b]) + math.pi) % (2 * math.pi) - math.pi
+        errs.append(abs(float(e)))
+    return math.degrees(float(torch.tensor(errs).median()))
+
+
+def bank_rows(crops: torch.Tensor, test: dict, sym: list[int], num_classes: int) -> tuple[dict[str, float], Any]:
+    """Mean over the bank seeds of a K = 50 bank fitted on the test crops themselves (labels unused)."""
+    from threedq.metrics import cluster_confusion, hungarian_accuracy
+    from threedq.pipeline.parse import yaw_margin_steps
+    from threedq.quantization import fit_prototype_bank, yaw_margin
+
+    acc: dict[str, list[float]] = {}
+    first = None
+    for seed in BANK_SEEDS:
+        bank = fit_prototype_bank(crops, min(K, crops.shape[0]), iterations=EM_ITERATIONS, num_angles=NUM_ANGLES,
+                                  seed=seed)
+        res = bank.assign(crops)
+        if first is None:
+            first = res
+        m = yaw_summary(res.angle, res.prototype, test, sym)
+        chosen = res.scores.amax(2).argmax(1)
+        margin = yaw_margin(res.scores[torch.arange(chosen.shape[0]), chosen], res.angle, yaw_margin_steps(NUM_ANGLES))
+        sure = margin >= margin.median()
+        sub = {k: v[sure] for k, v in test.items() if torch.is_tensor(v) and v.shape[:1] == margin.shape}
+        m["confident_asym_median_deg"] = yaw_summary(res.angle[sure], res.prototype[sure], sub, sym)["asym_median_deg"]
+        conf = cluster_confusion(res.prototype, test["labels"], min(K, crops.shape[0]), num_classes)
+        m["hungarian_acc"] = float(hungarian_accuracy(conf))
+        for k, v in m.items():
+            acc.setdefault(k, []).append(v)
+    return {k: sum(v) / len(v) for k, v in acc.items()}, first
+
+
+def measure(datasets: list[str], encoders: list[str], rows_path: Path) -> list[dict[str, Any]]:
+    from shape_benchmark import load_datamodule, object_crops
+    from threedq.stages.viewpred import ViewPrediction
+
+    from threedq.quantization.prototypes import prototype_crops
+
+    machine = {"cpu": cpu_name(), "torch": torch.__version__, "date": time.strftime("%Y-%m-%d")}
+    rows = []
+    for ds in datasets:
+        dm = load_datamodule(DATASETS[ds])
+        sym, num_classes = list(dm.index.symmetry_order), len(dm.index.categories)
+        seen: dict[str, int] = {}
+        first_clusters = None
+        for spec in encoders:
+            name, _, ckpt = spec.partition("=")
+            seen[name] = seen.get(name, -1) + 1
+            t0 = time.perf_counter()
+            test, _ = object_crops(ViewPrediction(encoder_ckpt=ckpt).eval(), dm)
+            crops = prototype_crops(test["learned"], test["raw"], OCCUPANCY_FLOOR)
+            row, res = bank_rows(crops, test, sym, num_classes)
+            row["pairs_asym_median_deg"] = pair_yaw_error(crops, test, sym)
+            new = [{"dataset": ds, "row": name, "seed": seen[name], "objects": int(test["labels"].shape[0]), **row,
+                    "seconds": round(time.perf_counter() - t0, 1), **machine}]
+            if first_clusters is None:  # the references, once per dataset
+                first_clusters = res.prototype
+                refs = {"raw crops (bank)": bank_rows(test["raw"], test, sym, num_classes)[0]}
+                refs["raw crops (bank)"]["pairs_asym_median_deg"] = pair_yaw_error(test["raw"], test, sym)
+                refs["input occupancy (pairs)"] = {"pairs_asym_median_deg": pair_yaw_error(test["raw"][:, :1],
+                                                                                           test, sym)}
+                rand = torch.randint(0, NUM_ANGLES, res.angle.shape, generator=torch.Generator().manual_seed(0))
+                refs["random yaw"] = yaw_summary(rand, first_clusters, test, sym)
+                refs["point-cloud registration"] = _pointcloud(test, sym)
+                new += [{"dataset": ds, "row": ref, "seed": 0, "objects": int(test["labels"].shape[0]), **r, **machine}
+                        for ref, r in refs.items()]
+            with rows_path.open("a") as f:
+                f.writelines(json.dumps(r) + "\n" for r in new)
+            rows += new
+            print(f"{ds}: {name} seed {seen[name]}: yaw {row['asym_median_deg']:.1f} deg, pairs "
+                  f"{row['pairs_asym_median_deg']:.1f}, confident half {row['confident_asym_median_deg']:.1f}",
+                  flush=True)
+    return rows
+
+
+def _pointcloud(test: dict, sym: list[int]) -> dict[str, float]:
+    from threedq.baselines.pointcloud import PointCloudPrototypes
+
+    acc: dict[str, list[float]] = {}
+    for seed in BANK_SEEDS:
+        pc = PointCloudPrototypes(num_angles=NUM_ANGLES, threshold=0.25)
+        occ = test["raw"][:, :1]
+        pc.fit(occ, K=min(K, occ.shape[0]), iterations=EM_ITERATIONS, seed=seed)
+        proto, angle, _ = pc.assign(occ)
+        for k, v in yaw_summary(angle, proto, test, sym).items():
+            acc.setdefault(k, []).append(v)
+    return {k: sum(v) / len(v) for k, v in acc.items()}
+
+
+COLUMNS = (("asym_median_deg", "yaw, asymmetric (median deg)"), ("asym_acc_10", "within 10 deg"),
+           ("asym_acc_20", "within 20 deg"), ("confident_asym_median_deg", "confident half (deg)"),
+           ("pairs_asym_median_deg", "pairs, direct search (deg)"), ("2fold_median_deg", "2-fold mod 180 (deg)"),
+           ("4fold_median_deg", "4-fold mod 90 (deg)"), ("hungarian_acc", "Hungarian"))
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """Markdown: one line per (dataset, row), the mean (and range) over its seeds."""
+    out = ["| dataset | row | seeds | objects | " + " | ".join(h for _, h in COLUMNS) + " |",
+           "|" + "---|" * (4 + len(COLUMNS))]
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["dataset"], r["row"]), []).append(r)
+    for (ds, name), rs in groups.items():
+        cells = []
+        for key, _ in COLUMNS:
+            v = [r[key] for r in rs if key in r and r[key] == r[key]]
+            digits = 2 if "acc" in key else (1 if "deg" in key else 3)
+            if not v:
+                cells.append("")
+            elif len(v) == 1:
+                cells.append(f"{v[0]:.{digits}f}")
+            else:
+                cells.append(f"{sum(v) / len(v):.{digits}f} ({min(v):.{digits}f}-{max(v):.{digits}f})")
+        out.append(f"| {ds} | {name} | {len(rs)} | {rs[0]['objects']} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument("--encoder", action="append", default=[], help="NAME=CKPT (a repeated NAME: another seed)")
+    ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
+    ap.add_argument("--rows", type=Path, default=Path("pose_rows.jsonl"))
+    ap.add_argument("--table_only", action="store_true", help="print the table of --rows, measure nothing")
+    args = ap.parse_args()
+    if not args.table_only:
+        if not args.encoder:
+            ap.error("--encoder: give at least one NAME=CKPT")
+        measure(args.datasets, args.encoder, args.rows)
+    rows = [json.loads(line) for line in args.rows.read_text().splitlines() if line.strip()]
+    print(f"\n{rows[0]['date']}, {rows[0]['cpu']}, torch {rows[0]['torch']}; GT boxes, one input view, K = {K}, "
+          f"{NUM_ANGLES} yaws, banks fitted on the test objects (labels unused), {len(BANK_SEEDS)} bank seeds\n")
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
