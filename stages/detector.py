@@ -42,6 +42,10 @@ from threedq.viz.png import write_png
 
 __all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes"]
 
+#: The most boxes of one scene that enter 3D NMS (the highest scores): NMS builds an N x N overlap matrix. Never reached
+#: on the default 32 x 32 x 16 feature grid (16,384 cells); on the paper's 72^3 grid an untrained head scores tens of
+#: thousands of cells above the evaluation's threshold, whose matrix would take over 20 GB.
+PRE_NMS_TOP_K = 16_384
 
 
 class _ResBlock3d(nn.Module):
@@ -374,6 +378,9 @@ class Detector(EncoderStage):
         for i, (s, b) in enumerate(zip(scores, boxes)):
             keep = s >= thr
             s, b = s[keep], b[keep]
+            if s.shape[0] > PRE_NMS_TOP_K:  # the highest-scoring ones, in their cell order (NMS's order of ties)
+                top = torch.topk(s, PRE_NMS_TOP_K).indices.sort().values
+                s, b = s[top], b[top]
             k = nms_3d(b, s, self.hparams.nms_iou, self.hparams.nms_iomin)[: self.hparams.max_detections]
             b, s = b[k], s[k]
             if refine:

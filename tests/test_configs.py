@@ -39,6 +39,10 @@ NEEDS = {
     "stages/vc.yaml": ("encoder_ckpt",),
     "stages/vc_moco.yaml": ("encoder_ckpt",),
     "stages/self_labelling.yaml": ("encoder_ckpt", "detector_ckpt", "bank_ckpt"),
+    "paper/detector.yaml": ("encoder_ckpt",),
+    "paper/quantizer.yaml": ("encoder_ckpt",),
+    "paper/mining.yaml": ("encoder_ckpt",),
+    "paper/self_labelling.yaml": ("encoder_ckpt", "detector_ckpt", "bank_ckpt"),
 }
 TINY_GRID = "--model.init_args.grid_resolution=[32, 32, 16]"
 
@@ -68,9 +72,9 @@ def _run_args(config: str, data_dir: Path, root: Path, ckpts: dict[str, Path]) -
         args.append(f"--model.init_args.{key}={ckpts[key]}")
     if "encoder_ckpt" in NEEDS.get(config, ()):
         args.append(TINY_GRID)  # a bare encoder state dict carries no grid
-    if config in ("stages/self_labelling.yaml", "stages/mining_checked.yaml"):
+    if config in ("stages/self_labelling.yaml", "paper/self_labelling.yaml"):
         args += ["--model.init_args.crop_size=8", "--model.init_args.num_angles=8"]  # the tiny bank's
-    if config.startswith("stages/mining"):  # the tiny scenes' 32x32 views give no pseudo-boxes to fuse
+    if config.startswith(("stages/mining", "paper/mining")):  # the tiny 32x32 views give no pseudo-boxes to fuse
         args.append("--model.init_args.pool_min_scene_iou=null")
     return args
 

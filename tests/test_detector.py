@@ -320,3 +320,31 @@ class TestBoxesOption:
         dm = SceneFolderDataModule(str(tiny_dataset), boxes=str(tmp_path / "missing_{split}.npz"))
         with pytest.raises(FileNotFoundError, match="missing_train.npz"):
             dm.setup()
+
+
+class TestPreNmsCap:
+    def test_nms_sees_only_the_highest_scores(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        """With more boxes above the threshold than the cap, detect() equals NMS over the cap's highest-scoring
+        cells (naive reference: sort, cut, NMS); under the cap it is NMS over all of them."""
+        import threedq.stages.detector as det_module
+        from threedq.boxes import nms_3d
+
+        m = Detector(anchor_size=(0.5, 0.5, 0.5), **SMALL)
+        shape = m.centres.shape[:3]
+        g = torch.Generator().manual_seed(0)
+        logits = torch.randn(1, 1, *shape, generator=g) * 3
+        box = torch.randn(1, 6, *shape, generator=g) * 0.3
+        full = m.detect(logits, box, 0.05)[0]
+        scores = torch.sigmoid(logits).flatten()
+        boxes = decode_boxes(m.centres, box, m.anchor).flatten(1, 3)[0]
+        above = scores >= 0.05
+        cap = int(above.sum()) // 3
+        monkeypatch.setattr(det_module, "PRE_NMS_TOP_K", cap)
+        capped = m.detect(logits, box, 0.05)[0]
+        s, b = scores[above], boxes[above]
+        top = torch.sort(torch.topk(s, cap).indices).values
+        k = nms_3d(b[top], s[top], m.hparams.nms_iou, m.hparams.nms_iomin)[: m.hparams.max_detections]
+        torch.testing.assert_close(capped["scores"], s[top][k])
+        torch.testing.assert_close(capped["boxes"], b[top][k])
+        monkeypatch.setattr(det_module, "PRE_NMS_TOP_K", 10**9)
+        torch.testing.assert_close(m.detect(logits, box, 0.05)[0]["scores"], full["scores"])

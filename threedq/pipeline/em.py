@@ -59,9 +59,9 @@ import json
 import platform
 import shutil
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import torch
@@ -71,20 +71,24 @@ from threedq.atomic_io import atomic_write_json, atomic_write_text
 from threedq.data.box_files import load_boxes_file
 from threedq.errors import InputError
 from threedq.locks import hold_folder
-from threedq.stages.crop_cache import CropCache
 from threedq.pipeline.data_commands import output_folder
 from threedq.pipeline.detection_eval import evaluate_detection
 from threedq.pipeline.lightning_cli import (
-    DEFAULT_DATA_CONFIG, ThreeDQCLI, packaged_configs_dir, resolve_config, test_checkpoint,
+    DEFAULT_DATA_CONFIG,
+    ThreeDQCLI,
+    packaged_configs_dir,
+    resolve_config,
+    test_checkpoint,
 )
-from threedq.pipeline.presets import stage_presets
 from threedq.pipeline.overrides import stage_overrides
 from threedq.pipeline.precision import bf16_is_native as _bf16_is_native
+from threedq.pipeline.presets import stage_presets
 from threedq.pipeline.report import evaluate_quantizer
 from threedq.pipeline.results import MiningResult, SelfLabellingResult, StageRecord
 from threedq.pipeline.run_layout import RunLayout
 from threedq.pipeline.tables import em_markdown, feature_cells, fewshot_cell, fmt, precision_label
 from threedq.stages.checkpoint import require_stage
+from threedq.stages.crop_cache import CropCache
 from threedq.viz.curves import table3_figure
 from threedq.viz.png import write_png
 
@@ -330,6 +334,25 @@ class _RunConfigs:
     relabel: bool
 
 
+#: ``threedq em --preset paper``: the configs that replace each default (configs/paper/, the 256 px embedded data).
+PAPER_PRESET = {"config": "paper/viewpred.yaml", "quantizer_config": "paper/quantizer.yaml",
+                "detector_config": "paper/detector.yaml", "mining_config": "paper/mining.yaml",
+                "self_labelling_config": "paper/self_labelling.yaml", "data_config": "data/clevr_veggie_256.yaml"}
+_DEFAULT_CONFIGS = {"config": "stages/viewpred.yaml", "quantizer_config": "stages/quantizer.yaml",
+                    "detector_config": "stages/detector.yaml", "mining_config": None,
+                    "self_labelling_config": "stages/self_labelling.yaml", "data_config": None}
+
+
+def _preset(preset: str, *given: str | None) -> tuple[str | None, ...]:
+    """The stage and data configs of ``preset``, in :data:`PAPER_PRESET`'s order: with ``paper`` each one still at
+    its default is the paper's; one given explicitly stays."""
+    if preset == "default":
+        return given
+    if preset != "paper":
+        raise InputError(f"--preset: expected 'default' or 'paper', got {preset!r}")
+    return tuple(PAPER_PRESET[k] if g == _DEFAULT_CONFIGS[k] else g for k, g in zip(PAPER_PRESET, given))
+
+
 def _resolve_configs(
     config: str, quantizer_config: str, detector_config: str, mining_config: str | None,
     self_labelling_config: str | None, data_config: str | None, extra_configs: list[str] | str | None,
@@ -559,6 +582,7 @@ def run_em(
     viewpred_ckpt: str | None = None,
     frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
     bank_warm_start: bool = False,
+    preset: Literal["default", "paper"] = "default",
 ) -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
@@ -600,9 +624,13 @@ def run_em(
         bank_warm_start: from round 2 on, each round's quantizer refines the previous round's prototype bank (true,
             the paper's loop) or fits an empty bank on the round's encoder, as rounds 0 and 1 do (false;
             docs/studies/quantizer.md, "A fresh bank every round").
+        preset: ``paper``: every stage config and the data config left at its default become the paper's sizes
+            (:data:`PAPER_PRESET`: 144^3 grid, 256 px views, pools of 1000; docs/paper-scale.md).
     """
     if boxes == "detections" and not detection:
         raise InputError("--boxes: 'detections' needs --detection true")
+    config, quantizer_config, detector_config, mining_config, self_labelling_config, data_config = _preset(
+        preset, config, quantizer_config, detector_config, mining_config, self_labelling_config, data_config)
     frozen_precision, mining_trainer = _precisions(frozen_precision)
     prec = {"precision": frozen_precision}  # the trainer of every stage reading a frozen encoder
     work = output_folder("--work_dir", work_dir)
