@@ -8,8 +8,8 @@ evaluated test objects themselves, two bank seeds. Per row:
 
 * the median relative yaw error of same-prototype pairs of one asymmetric category, accuracy within 10 / 20 deg
   (:func:`threedq.metrics.pose.relative_yaw_error`), and of the 2-fold and 4-fold categories modulo their period;
-* the same median over the objects whose ``yaw_confidence`` (:func:`threedq.quantization.yaw_margin`, as ``threedq
-  parse`` reports it) is above the median: does the confidence tell a pose from a guess?
+* the same median over the objects whose ``yaw_confidence`` (:func:`threedq.quantization.yaw_confidence`, as
+  ``threedq parse`` reports it) is above the median: does the confidence tell a pose from a guess?
 * ``pairs``: the yaw the features find directly between two objects of one asymmetric category (the rotation search
   of one crop against the other, no bank): what the features know of the yaw before a prototype averages them;
 * Hungarian accuracy of the bank (does the pose come at the price of the clusters?).
@@ -87,7 +87,7 @@ def bank_rows(crops: torch.Tensor, test: dict, sym: list[int], num_classes: int)
     """Mean over the bank seeds of a K = 50 bank fitted on the test crops themselves (labels unused)."""
     from threedq.metrics import cluster_confusion, hungarian_accuracy
     from threedq.pipeline.parse import yaw_margin_steps
-    from threedq.quantization import fit_prototype_bank, yaw_margin
+    from threedq.quantization import fit_prototype_bank, yaw_confidence
 
     acc: dict[str, list[float]] = {}
     first = None
@@ -98,8 +98,7 @@ def bank_rows(crops: torch.Tensor, test: dict, sym: list[int], num_classes: int)
         if first is None:
             first = res
         m = yaw_summary(res.angle, res.prototype, test, sym)
-        chosen = res.scores.amax(2).argmax(1)
-        margin = yaw_margin(res.scores[torch.arange(chosen.shape[0]), chosen], res.angle, yaw_margin_steps(NUM_ANGLES))
+        margin = yaw_confidence(res, yaw_margin_steps(NUM_ANGLES))
         sure = margin >= margin.median()
         sub = {k: v[sure] for k, v in test.items() if torch.is_tensor(v) and v.shape[:1] == margin.shape}
         m["confident_asym_median_deg"] = yaw_summary(res.angle[sure], res.prototype[sure], sub, sym)["asym_median_deg"]

@@ -17,6 +17,7 @@ from threedq.quantization.rotation_search import (
     cylindrical_resample,
     polar_interpolation_matrix,
     polar_spectrum,
+    yaw_confidence,
     yaw_margin,
 )
 
@@ -322,6 +323,14 @@ class TestYawMargin:
             others = [float(s[n, b]) for b in range(36) if min((b - angle[n]) % 36, (angle[n] - b) % 36) > 3]
             assert math.isclose(float(m[n]), float(s[n, angle[n]]) - max(others), abs_tol=1e-12)
         assert (m >= 0).all()
+
+    def test_confidence_reads_the_chosen_prototype(self):
+        """yaw_confidence is yaw_margin on the row of the prototype the search chose (here the second of two)."""
+        scores = torch.full((1, 2, 12), 0.1)
+        scores[0, 0, 4] = 0.7  # a prototype not chosen, with a clear peak
+        scores[0, 1, 2], scores[0, 1, 7] = 0.9, 0.85  # the chosen one: a rival 5 steps away
+        res = RotationSearchResult(torch.tensor([1]), torch.tensor([2]), torch.tensor([0.9]), scores)
+        assert torch.allclose(yaw_confidence(res, 1), torch.tensor([0.05]))
 
     def test_rotated_copy_is_confident_symmetric_is_not(self):
         """An L-shaped crop against itself turned by 90 degrees: the search finds the turn with a clear margin;

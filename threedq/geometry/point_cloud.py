@@ -58,9 +58,10 @@ def fuse_views(
     voxel_size: float = 0.02,
     max_points: int | None = None,
     seed: int = 0,
+    bounds: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Back-project every valid depth pixel of every view into R, thin the union on a voxel grid and, when more
-    than ``max_points`` voxels remain, keep a random ``max_points`` of them (drawn with ``seed``).
+    """Back-project every valid depth pixel of every view into R, thin the union on a voxel grid, keep the voxels
+    inside ``bounds`` and, when more than ``max_points`` remain, a random ``max_points`` of them (drawn with ``seed``).
 
     Args:
         rgb: ``[V, H, W, 3]`` uint8.
@@ -70,6 +71,7 @@ def fuse_views(
         voxel_size: see :func:`voxel_downsample`.
         max_points: the most points returned (None: all voxels).
         seed: the draw of the kept points.
+        bounds: ``(xmin, ymin, zmin, xmax, ymax, zmax)`` of the region kept (None: everything).
 
     Returns:
         ``[M, 3]`` float32 positions and ``[M, 3]`` uint8 colours.
@@ -83,6 +85,9 @@ def fuse_views(
     points = pts.numpy().reshape(-1, 3)[valid_np]
     colours = np.asarray(rgb, np.uint8).reshape(-1, 3)[valid_np]
     points, colours = voxel_downsample(points, colours, voxel_size)
+    if bounds is not None:
+        inside = points_in_aabb(points, bounds)
+        points, colours = points[inside], colours[inside]
     if max_points is not None and points.shape[0] > max_points:
         keep = np.sort(np.random.default_rng(seed).choice(points.shape[0], max_points, replace=False))
         points, colours = points[keep], colours[keep]

@@ -55,6 +55,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import gc
+import inspect
 import json
 import platform
 import shutil
@@ -338,9 +339,6 @@ class _RunConfigs:
 PAPER_PRESET = {"config": "paper/viewpred.yaml", "quantizer_config": "paper/quantizer.yaml",
                 "detector_config": "paper/detector.yaml", "mining_config": "paper/mining.yaml",
                 "self_labelling_config": "paper/self_labelling.yaml", "data_config": "data/clevr_veggie_256.yaml"}
-_DEFAULT_CONFIGS = {"config": "stages/viewpred.yaml", "quantizer_config": "stages/quantizer.yaml",
-                    "detector_config": "stages/detector.yaml", "mining_config": None,
-                    "self_labelling_config": "stages/self_labelling.yaml", "data_config": None}
 
 
 def _preset(preset: str, *given: str | None) -> tuple[str | None, ...]:
@@ -664,6 +662,10 @@ def run_em(
         _write_report(work, summary)
         return summary
 
+
+
+#: run_em's default of each config :data:`PAPER_PRESET` replaces.
+_DEFAULT_CONFIGS = {k: inspect.signature(run_em).parameters[k].default for k in PAPER_PRESET}
 
 def evaluate_run_on(
     run: str | Path, out: str | Path, data_config: str | None = None, detector_config: str = "stages/detector.yaml",

@@ -54,7 +54,7 @@ from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.pipeline.run_layout import RunLayout
 from threedq.quantization.prototypes import PrototypeBank, prototype_crops
-from threedq.quantization.rotation_search import yaw_margin
+from threedq.quantization.rotation_search import yaw_confidence
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
 from threedq.stages.base import EncoderStage, stage_arguments
 from threedq.stages.checkpoint import (
@@ -250,7 +250,8 @@ class SceneParser(torch.nn.Module):
 
         Returns:
             per scene lists: ``aabb`` ``[P, 6]``, ``score`` ``[P]``, ``prototype`` ``[P]``, ``angle`` ``[P]``,
-            ``similarity`` ``[P]``, ``yaw_confidence`` ``[P]`` (:func:`yaw_margin_steps`); and ``features`` ``[B, C, Z', Y', X']`` (the prototypes' feature space),
+            ``similarity`` ``[P]``, ``yaw_confidence`` ``[P]`` (:func:`yaw_margin_steps`); and ``features``
+            ``[B, C, Z', Y', X']`` (the prototypes' feature space),
             ``timings`` (seconds per part).
         """
         t: dict[str, float] = {}
@@ -304,9 +305,7 @@ class SceneParser(torch.nn.Module):
         if crops.shape[0]:
             res = self.bank.assign(crops)
             proto, angle, sim = res.prototype, res.angle, res.score
-            chosen = res.scores.amax(2).argmax(1)  # the chosen prototype's row among the active ones
-            margin = yaw_margin(res.scores[torch.arange(chosen.shape[0]), chosen].float(), angle,
-                                yaw_margin_steps(self.num_angles))
+            margin = yaw_confidence(res, yaw_margin_steps(self.num_angles))
         else:
             proto = angle = torch.zeros(0, dtype=torch.long, device=feats.device)
             sim = margin = feats.new_zeros(0)
@@ -327,7 +326,8 @@ class SceneParser(torch.nn.Module):
 
 def yaw_margin_steps(num_angles: int) -> int:
     """The yaws within 30 degrees of the chosen one count as the same pose for an object's ``yaw_confidence``: the
-    search's best similarity minus its best at any yaw more than 30 degrees away (:func:`yaw_margin`)."""
+    search's best similarity minus its best at any yaw more than 30 degrees away
+    (:func:`~threedq.quantization.yaw_confidence`)."""
     return max(1, round(num_angles * 30 / 360))
 
 

@@ -229,10 +229,16 @@ def _frusta(K: np.ndarray, world_T_cam: np.ndarray, hw: tuple[int, int], depth: 
     return strips
 
 
-def aligned_member_points(points: np.ndarray, aabb: np.ndarray, angle_index: int, num_angles: int) -> np.ndarray:
-    """An object's points (those in its box, above its floor) relative to the box's bottom centre, turned by
+def member_mask(points: np.ndarray, aabb: np.ndarray) -> np.ndarray:
+    """``[N]`` bool: an object's points, those in its box above its floor (1 cm over the box's bottom)."""
+    return points_in_aabb(points, aabb) & (points[:, 2] > aabb[2] + 0.01)
+
+
+def aligned_member_points(points: np.ndarray, aabb: np.ndarray, angle_index: int, num_angles: int,
+                          mask: np.ndarray | None = None) -> np.ndarray:
+    """An object's points (:func:`member_mask`, or ``mask`` when given) relative to the box's bottom centre, turned by
     ``360 a / num_angles`` degrees counter-clockwise about +z: into its prototype's pose."""
-    inside = points[points_in_aabb(points, aabb) & (points[:, 2] > aabb[2] + 0.01)]
+    inside = points[member_mask(points, aabb) if mask is None else mask]
     centre = np.array([(aabb[0] + aabb[3]) / 2, (aabb[1] + aabb[4]) / 2, aabb[2]])
     t = 2 * math.pi * angle_index / num_angles
     rot = np.array([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]])
@@ -297,13 +303,9 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
         name = Path(s).stem
         base = f"scenes/{name}"
         rec.log(base, rr.Transform3D(translation=_grid_place(i, len(loaded), spacing)), static=True)
-        points, colours = fuse_views(recd.rgb, recd.depth, recd.K, recd.world_T_cam, voxel_size, None, i)
-        if view.bounds is not None:  # the region the grid covers, not the floor out to the horizon
-            inside = points_in_aabb(points, np.r_[view.bounds[0], view.bounds[1]])
-            points, colours = points[inside], colours[inside]
-        if points.shape[0] > points_per_scene:
-            keep = np.sort(np.random.default_rng(i).choice(points.shape[0], points_per_scene, replace=False))
-            points, colours = points[keep], colours[keep]
+        region = None if view.bounds is None else np.r_[view.bounds[0], view.bounds[1]]  # not the floor to the horizon
+        points, colours = fuse_views(recd.rgb, recd.depth, recd.K, recd.world_T_cam, voxel_size, points_per_scene, i,
+                                     region)
         rec.log(f"{base}/points", rr.Points3D(points, colors=colours, radii=rr.Radius.ui_points(2.0)), static=True)
         rec.log(f"{base}/cameras", rr.LineStrips3D(_frusta(recd.K, recd.world_T_cam, recd.image_size),
                                                    colors=[(170, 170, 170)], radii=rr.Radius.ui_points(0.5)),
@@ -339,10 +341,10 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
                                               colors=[c for c, h in zip(colours_k, has) if h]))
             counts["boxes"][r] += len(a)
             for n in np.flatnonzero(has):
-                pts_n = aligned_member_points(points, a[n], int(obj.angle_index[n]), view.num_angles)
-                if len(pts_n):
-                    cols_n = colours[points_in_aabb(points, a[n]) & (points[:, 2] > a[n, 2] + 0.01)]
-                    members[r].setdefault(int(obj.prototype[n]), []).append((pts_n, cols_n))
+                mask = member_mask(points, a[n])
+                if mask.any():
+                    pts_n = aligned_member_points(points, a[n], int(obj.angle_index[n]), view.num_angles, mask)
+                    members[r].setdefault(int(obj.prototype[n]), []).append((pts_n, colours[mask]))
         rec.reset_time()
     ids = sorted(set().union(*(set(m) for m in members.values())))
     for k in ids:  # a prototype id keeps its place in every round

@@ -16,6 +16,7 @@ from threedq.quantization.rotation_search import (
     all_pairs_rotation_max,
     best_prototype_and_yaw,
     rotation_max_similarity,
+    yaw_confidence,
     yaw_margin,
 )
 
@@ -30,5 +31,6 @@ __all__ = [
     "quantization_loss",
     "rotation_max_similarity",
     "run_prototype_em",
+    "yaw_confidence",
     "yaw_margin",
 ]

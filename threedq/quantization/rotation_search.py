@@ -74,6 +74,7 @@ __all__ = [
     "polar_interpolation_matrix",
     "polar_spectrum",
     "rotation_max_similarity",
+    "yaw_confidence",
     "yaw_margin",
 ]
 
@@ -739,3 +740,18 @@ def yaw_margin(scores: Tensor, angle: Tensor, exclude: int) -> Tensor:
     best = scores.gather(1, angle[:, None])[:, 0]
     other = scores.masked_fill(~far, float("-inf")).amax(1)
     return best - other
+
+
+def yaw_confidence(result: RotationSearchResult, exclude: int) -> Tensor:
+    """:func:`yaw_margin` of each object at the prototype the search chose for it.
+
+    Args:
+        result: a search's result with its ``scores`` ``[N, K, A]`` (K the prototypes searched).
+        exclude: as :func:`yaw_margin`'s.
+
+    Returns:
+        ``[N]`` float32 margins.
+    """
+    chosen = result.scores.amax(2).argmax(1)  # the chosen prototype's row among those searched (the argmax over K * A)
+    rows = result.scores[torch.arange(chosen.shape[0], device=chosen.device), chosen].float()
+    return yaw_margin(rows, result.angle, exclude)
