@@ -6,17 +6,24 @@ and what would the whole run cost on a GPU?
    grid, the image size, the widths, the pools, the queue, K and the yaws are the preset's), the round on GT boxes
    (``--boxes gt``: a detector of a few steps hands on no box above its 0.9 threshold). It runs under
    ``/usr/bin/time -v`` (the peak memory of the whole run) and reads each stage's seconds from the run's
-   ``metrics.json``.
-2. **FLOPs per step.** One view-prediction training step of the preset (batch 2, one input and one target view) is
+   ``metrics.json``. A Lightning callback (:class:`StepProbe`, added to every stage by an extra config) counts each
+   trained stage's FLOPs on its second step (forward and backward, ``torch.utils.flop_counter.FlopCounterMode``) and
+   times its third (the first holds one-off work: the scenes a stage encodes for its pools and caches).
+2. **Each stage's peak memory** (``--stage_memory``). For each stage of the finished smoke run, a copy of the run
+   without that stage and the ones after it is resumed (``--resume true``) under ``/usr/bin/time -v`` and stopped
+   when the stage has finished: the peak resident memory of a run that has to carry only that stage (with what it
+   loads to start: the checkpoints it reads, the scenes it encodes).
+3. **FLOPs per step.** One view-prediction training step of the preset (batch 2, one input and one target view) is
    counted with ``torch.utils.flop_counter.FlopCounterMode`` (forward and backward), and timed on this CPU.
-3. **Estimate.** The 100,000 view-prediction steps of the paper at 10% and 35% of a GPU's peak (a V100's fp32
+4. **Estimate.** The 100,000 view-prediction steps of the paper at 10% and 35% of a GPU's peak (a V100's fp32
    15.7 TFLOPS, as the paper trained; an H100 SXM's dense bf16 989 TFLOPS, as ``trainer/gpu.yaml``'s bf16-mixed
    would run), beside the share of the V100's peak that the paper's own 24 h implies. The shares are assumptions:
    no GPU has run the preset (``benchmarks/device_check/``).
 
 Usage::
 
-    python benchmarks/paper_scale.py --work runs/paper_smoke      # about 20 min on 2 cores
+    python benchmarks/paper_scale.py --work runs/paper_smoke      # about 5 min on 2 cores
+    python benchmarks/paper_scale.py --work runs/paper_smoke --stage_memory     # about 10 min more
     python benchmarks/paper_scale.py --work runs/paper_smoke --flops_only
 """
 
@@ -24,14 +31,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
+import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import lightning.pytorch as pl
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from threedq.machine import cpu_name
 
@@ -41,25 +52,93 @@ EFFICIENCIES = (0.10, 0.35)  # shares of peak a 3D-convolution training step may
 PAPER_STEPS, PAPER_HOURS = 100_000, 24.0
 
 
+#: the smoke run's folders in the order the run makes them, with the file that marks each finished
+STAGES = (("view prediction", "00_viewpred", "stage.json"), ("its evaluation", "01_viewpred_eval", "metrics.json"),
+          ("detector warm start", "02_detector", "stage.json"),
+          ("its evaluation (every split)", "03_detector_eval", "results.json"),
+          ("round 0 quantizer", "r00_quantizer", "stage.json"), ("round 0 evaluation", "r00_eval", "results.json"),
+          ("mining", "r01_mining", "stage.json"), ("round 1 quantizer", "r01_quantizer", "stage.json"),
+          ("round 1 evaluation", "r01_eval", "results.json"), ("self-labelling", "r01_self_labelling", "stage.json"),
+          ("its detector evaluation", "r01_detector_eval", "results.json"))
+
+
+class StepProbe(pl.Callback):
+    """Counts the FLOPs of a stage's second training step (forward and backward) and times its third (the first holds
+    one-off work: the scenes a stage encodes for its pools and caches); appends one JSON line per stage (its run
+    folder's name) to ``out``."""
+
+    def __init__(self, out: str) -> None:
+        self.out = out
+        self.calls = 0
+        self.counter: FlopCounterMode | None = None
+        self.rows: dict[str, float] = {}
+        self.t0 = 0.0
+
+    def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, idx: int) -> None:
+        self.calls += 1
+        if self.calls == 2:
+            self.counter = FlopCounterMode(display=False)
+            self.counter.__enter__()
+        self.t0 = time.perf_counter()
+
+    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
+                           idx: int) -> None:
+        seconds = time.perf_counter() - self.t0
+        if self.counter is not None:
+            self.counter.__exit__(None, None, None)
+            self.rows["tflop"] = self.counter.get_total_flops() / 1e12
+            self.counter = None
+        elif self.calls == 3:
+            self.rows["s_per_step"] = seconds
+
+    def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        row = {"stage": Path(trainer.default_root_dir).name, **self.rows}
+        with open(self.out, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+def _run_args(work: Path) -> list[str]:
+    return ["threedq", "em", "--preset", "paper", "--rounds", "1", "--work_dir", str(work / "em"), "--data_config",
+            str(work / "data.yaml"), "--extra_configs", str(work / "steps.yaml"), "--resume", "true",
+            "--boxes", "gt"]  # a detector of a few steps hands on no box above 0.9: the round's stages take GT boxes
+
+
+def _env() -> dict[str, str]:
+    """The environment of a smoke run: this folder on the path, for :class:`StepProbe`'s class path."""
+    here = str(Path(__file__).resolve().parent)
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [here, os.environ.get("PYTHONPATH")]))}
+
+
+def _peak_gib(stderr: str) -> float | None:
+    rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", stderr)
+    return round(int(rss.group(1)) / 2**20, 2) if rss else None
+
+
+def _steps_yaml(steps: int, probe: Path | None) -> str:
+    """The extra config that cuts every stage to ``steps`` steps (with :class:`StepProbe` writing to ``probe``)."""
+    text = (f"trainer:\n  max_steps: {steps}\n  limit_val_batches: 1\n  check_val_every_n_epoch: 1\n"
+            "  enable_progress_bar: false\n")
+    if probe is not None:
+        text += f"  callbacks:\n    - class_path: paper_scale.StepProbe\n      init_args:\n        out: {probe}\n"
+    return text
+
+
 def smoke(work: Path, scenes: int, steps: int) -> dict[str, Any]:
     """The preset's ``threedq em --rounds 1`` at full size with ``steps`` steps per stage: seconds per stage, peak
     resident memory of the run, exit status."""
     work.mkdir(parents=True, exist_ok=True)
     data = work / "data.yaml"
-    data.write_text(f"base: data/clevr_veggie_256.yaml\ndata:\n  init_args:\n    data_dir: {work / 'data'}\n"
+    data.write_text(f"base: data/clevr_veggie_256.yaml\ndata:\n  init_args:\n    data_dir: {(work / 'data').resolve()}\n"
                     f"    num_scenes: {scenes}\n    split_fractions: [0.5, 0.125, 0.375]\n")
     short = work / "steps.yaml"
-    short.write_text(f"trainer:\n  max_steps: {steps}\n  limit_val_batches: 1\n  check_val_every_n_epoch: 1\n"
-                     "  enable_progress_bar: false\n")
-    cmd = ["/usr/bin/time", "-v", "threedq", "em", "--preset", "paper", "--rounds", "1", "--work_dir",
-           str(work / "em"), "--data_config", str(data), "--extra_configs", str(short), "--resume", "true",
-           "--boxes", "gt"]  # a detector of a few steps hands on no box above 0.9: the round's stages take GT boxes
+    probe = work / "steps.jsonl"
+    probe.unlink(missing_ok=True)
+    short.write_text(_steps_yaml(steps, probe))
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)  # its exit status is reported
+    proc = subprocess.run(["/usr/bin/time", "-v", *_run_args(work)], capture_output=True, text=True, check=False,
+                          env=_env())  # its exit status is reported
     wall = time.perf_counter() - t0
-    rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr)
-    out: dict[str, Any] = {"returncode": proc.returncode, "wall_s": round(wall, 1),
-                           "peak_gib": round(int(rss.group(1)) / 2**20, 2) if rss else None}
+    out: dict[str, Any] = {"returncode": proc.returncode, "wall_s": round(wall, 1), "peak_gib": _peak_gib(proc.stderr)}
     metrics = work / "em" / "metrics.json"
     if proc.returncode != 0 or not metrics.is_file():
         out["error"] = proc.stderr[-3000:]
@@ -73,16 +152,45 @@ def smoke(work: Path, scenes: int, steps: int) -> dict[str, Any]:
         "self-labelling": m["self_label_results"][0]["seconds"],
     }  # fmt: skip
     out["round1"] = {k: m["table3"][-1][k] for k in ("map_50", "precision_at_10", "hungarian_acc")}
+    out["steps"] = {r["stage"]: r for r in map(json.loads, probe.read_text().splitlines())} if probe.is_file() else {}
     return out
 
 
-def viewpred_step_flops(repeats: int = 2) -> dict[str, float]:
-    """FLOPs (forward + backward) and CPU seconds of one view-prediction training step of the preset."""
+def stage_memory(work: Path, steps: int) -> dict[str, float | None]:
+    """Each stage's peak resident memory (GiB): a copy of the finished smoke run without the stage and the ones after
+    it, resumed until the stage's marker file appears."""
+    import psutil
+
+    peaks: dict[str, float | None] = {}
+    for i, (name, folder, marker) in enumerate(STAGES):
+        part = work / "stage_memory"
+        shutil.rmtree(part, ignore_errors=True)
+        part.mkdir(parents=True)
+        for _, earlier, _ in STAGES[:i]:  # hard links: the resumed run replaces files atomically, never edits them
+            shutil.copytree(work / "em" / earlier, part / "em" / earlier, copy_function=os.link)
+        shutil.copy(work / "data.yaml", part / "data.yaml")
+        (part / "steps.yaml").write_text(_steps_yaml(steps, None))
+        proc = subprocess.Popen(["/usr/bin/time", "-v", *_run_args(part)], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True, env=_env())
+        done = part / "em" / folder / marker
+        while proc.poll() is None and not done.is_file():
+            time.sleep(0.2)
+        if proc.poll() is None:  # the stage has finished: stop the run before the next one starts
+            for child in psutil.Process(proc.pid).children():
+                child.terminate()
+        _, err = proc.communicate()
+        peaks[name] = _peak_gib(err) if done.is_file() else None
+        print(f"  {name}: {peaks[name]} GiB", flush=True)
+    shutil.rmtree(work / "stage_memory", ignore_errors=True)
+    return peaks
+
+
+def _preset_viewpred_step() -> tuple[Any, dict[str, torch.Tensor]]:
+    """The preset's view-prediction stage (untrained) and one batch of its data (2 scenes of 256 px views)."""
     import tempfile
 
     from threedq.datamodules.scene_folder import SceneFolderDataModule
     from threedq.stages.viewpred import ViewPrediction
-    from torch.utils.flop_counter import FlopCounterMode
 
     from threedq.data.generate import generate_dataset
     from threedq.data.generator_config import GeneratorConfig
@@ -96,6 +204,12 @@ def viewpred_step_flops(repeats: int = 2) -> dict[str, float]:
         dm = SceneFolderDataModule(tmp, batch_size=2, num_target_views=1)
         dm.setup()
         batch = next(iter(dm.train_dataloader()))
+    return model, batch
+
+
+def viewpred_step_flops(repeats: int = 2) -> dict[str, float]:
+    """FLOPs (forward + backward) and CPU seconds of one view-prediction training step of the preset."""
+    model, batch = _preset_viewpred_step()
     opt = torch.optim.Adam(model.parameters(), 1e-3)
     counter = FlopCounterMode(display=False)
     with counter:
@@ -109,7 +223,37 @@ def viewpred_step_flops(repeats: int = 2) -> dict[str, float]:
         model._step(batch)["loss"].backward()
         opt.step()
         times.append(time.perf_counter() - t0)
-    return {"tflop_per_step": flops / 1e12, "cpu_s_per_step": min(times), "batch": int(batch["rgb"].shape[0])}
+    return {"tflop_per_step": flops / 1e12, "cpu_s_per_step": min(times) if times else float("nan"), "batch": int(batch["rgb"].shape[0])}
+
+
+def timed_steps(minutes: float, device: str, bf16: bool) -> dict[str, Any]:
+    """Train the preset's view prediction on one batch for ``minutes`` on ``device`` (bf16 autocast, as
+    ``trainer/gpu.yaml``'s bf16-mixed, or fp32): the median seconds of a step after the first (data loading
+    excluded), the steps done and the peak memory (the device's allocator on a GPU, resident memory on the CPU)."""
+    import resource
+    import statistics
+
+    model, batch = _preset_viewpred_step()
+    model.to(device)
+    batch = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+    opt = torch.optim.Adam(model.parameters(), 1e-3)
+    cuda = device.startswith("cuda")
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    times: list[float] = []
+    end = time.perf_counter() + 60 * minutes
+    while time.perf_counter() < end or len(times) < 3:
+        t0 = time.perf_counter()
+        opt.zero_grad()
+        with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
+            loss = model._step(batch)["loss"]
+        loss.backward()
+        opt.step()
+        sync()
+        times.append(time.perf_counter() - t0)
+    peak = (torch.cuda.max_memory_allocated() if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+    name = torch.cuda.get_device_name() if cuda else cpu_name()
+    return {"device": name, "steps": len(times), "s_per_step": statistics.median(times[1:]),
+            "peak_gib": round(peak / 2**30, 2), "precision": "bf16-mixed" if bf16 else "fp32"}
 
 
 def estimate_table(tflop: float) -> str:
@@ -129,10 +273,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--work", type=Path, default=Path("runs/paper_smoke"))
     ap.add_argument("--scenes", type=int, default=16)
-    ap.add_argument("--steps", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=3, help="steps per stage (the probe times the third)")
     ap.add_argument("--flops_only", action="store_true", help="only the FLOPs and the estimate, no smoke run")
+    ap.add_argument("--stage_memory", action="store_true", help="also each stage's peak memory, on its own")
+    ap.add_argument("--minutes", type=float, help="only train the preset's view prediction for this long on --device "
+                    "and set its step time beside the estimate (benchmarks/device_check/paper.sh on a GPU)")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
+                    help="bf16 autocast (default: on a GPU, as trainer/gpu.yaml)")
     args = ap.parse_args()
     print(f"{time.strftime('%Y-%m-%d')}, {cpu_name()}, {torch.get_num_threads()} threads, torch {torch.__version__}")
+    if args.minutes is not None:
+        bf16 = args.device.startswith("cuda") if args.bf16 is None else args.bf16
+        t = timed_steps(args.minutes, args.device, bf16)
+        f = viewpred_step_flops(repeats=0)
+        print(f"\nview prediction of the preset on {t['device']} ({t['precision']}, batch {f['batch']}, one batch "
+              f"repeated): {t['steps']} steps in {args.minutes:g} min, median {t['s_per_step']:.3f} s a step, "
+              f"peak {t['peak_gib']} GiB; {f['tflop_per_step'] / t['s_per_step']:.1f} TFLOPS sustained; the paper's "
+              f"100k steps at this rate: {t['s_per_step'] * PAPER_STEPS / 3600:.1f} h\n")
+        print(estimate_table(f["tflop_per_step"]))
+        return
     f = viewpred_step_flops()
     print(f"\nview prediction, one training step of the preset (batch {f['batch']}, 144^3 grid, 256 px): "
           f"{f['tflop_per_step']:.2f} TFLOP forward + backward, {f['cpu_s_per_step']:.1f} s on this CPU\n")
@@ -145,9 +305,19 @@ def main() -> None:
     if "error" in s:
         print(s["error"], file=sys.stderr)
         sys.exit(1)
-    print("\n| stage | seconds |\n|---|---|")
+    print("\n| stage | seconds (with set-up) |\n|---|---|")
     for name, sec in s["stages"].items():
         print(f"| {name} | {sec:.1f} |")
+    print("\nthe trained stages' steps (FLOPs of the second step, forward and backward; seconds of the third):\n")
+    print("| stage | TFLOP per step | s per step |\n|---|---|---|")
+    for folder, row in s["steps"].items():
+        print(f"| {folder} | {row.get('tflop', float('nan')):.3f} | {row.get('s_per_step', float('nan')):.2f} |")
+    if args.stage_memory:
+        print("\neach stage's peak resident memory, resumed on its own:\n")
+        peaks = stage_memory(args.work, args.steps)
+        print("| stage | peak GiB |\n|---|---|")
+        for name, gib in peaks.items():
+            print(f"| {name} | {gib} |")
     print(f"\nround 1 on the smoke data (no measure of quality at {args.steps} steps): {s['round1']}")
 
 

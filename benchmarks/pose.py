@@ -2,9 +2,12 @@
 
 For each dataset (``--datasets``: ``embedded`` = ``configs/data/clevr_veggie.yaml``, ``shapes`` =
 ``configs/data/shapes.yaml``, ``unseen`` = ``configs/data/shapes_unseen.yaml``: 8 categories no encoder trained on),
-GT boxes, one input view per scene, each encoder (``--encoder NAME=CKPT``; a repeated NAME is another seed) is
-scored by a K = 50 rotation-aware bank (36 yaws, occupancy-weighted crops, the quantizer's) fitted label-free on the
-evaluated test objects themselves, two bank seeds. Per row:
+each encoder (``--encoder NAME=CKPT``; a repeated NAME is another seed) is scored by a K = 50 rotation-aware bank
+(36 yaws, occupancy-weighted crops, the quantizer's) fitted label-free on the evaluated test objects themselves, two
+bank seeds, once per number of input views (``--input_views``: each object cropped from the grid that this many of
+its scene's fixed views fill; the paper's protocol is one) and per box source: GT boxes, and with ``--run RUN`` the
+boxes the detector of that ``threedq em`` run finds from each scene's first input view, as a run's evaluation
+detects (the detections that match a GT object at IoU >= 0.5 are scored with its category and yaw). Per row:
 
 * the median relative yaw error of same-prototype pairs of one asymmetric category, accuracy within 10 / 20 deg
   (:func:`threedq.metrics.pose.relative_yaw_error`), and of the 2-fold and 4-fold categories modulo their period;
@@ -22,6 +25,8 @@ One JSON line per (dataset, row, seed) goes to ``--rows``; the markdown table (m
 
     python benchmarks/pose.py --encoder "main job=runs/em/r04_quantizer/checkpoints/last.ckpt" \\
         --encoder "main job=runs/em_s1/r04_quantizer/checkpoints/last.ckpt" --rows pose_rows.jsonl
+    python benchmarks/pose.py --encoder "main job=runs/em/r04_quantizer/checkpoints/last.ckpt" --input_views 1 3 \
+        --run runs/em --rows pose_rows.jsonl
     python benchmarks/pose.py --table_only --rows benchmarks/results/pose/rows.jsonl
 """
 
@@ -109,30 +114,71 @@ def bank_rows(crops: torch.Tensor, test: dict, sym: list[int], num_classes: int)
     return {k: sum(v) / len(v) for k, v in acc.items()}, first
 
 
-def measure(datasets: list[str], encoders: list[str], rows_path: Path) -> list[dict[str, Any]]:
-    from shape_benchmark import load_datamodule, object_crops
+def detected_boxes(run: Path, dm: Any, out: Path) -> str:
+    """Write the boxes the detector of ``run`` finds on the test split (each scene's first fixed view, the run's
+    hand-on threshold) to the boxes file ``out``; returns its path."""
+    from threedq.data.box_files import save_boxes_file
+    from threedq.pipeline.parse import SceneParser, resolve_run
+    from threedq.pipeline.report import split_loader
+
+    parser = SceneParser(resolve_run(str(run), None, None, None))
+    views, dm.num_input_views = dm.num_input_views, 1
+    loader = split_loader(dm, "test")
+    dm.num_input_views = views
+    boxes: dict[str, tuple[Any, Any]] = {}
+    files = loader.dataset.files
+    with torch.no_grad():
+        for batch in loader:
+            res = parser(batch)
+            for i, a, sc in zip(batch["scene_index"].tolist(), res["aabb"], res["score"]):
+                boxes[files[i]] = (a.numpy(), sc.numpy())
+    save_boxes_file(out, boxes)
+    return str(out)
+
+
+def object_crops(stage: Any, dm: Any, views: int, boxes: str) -> dict[str, torch.Tensor]:
+    """The test objects' crops from ``views`` fixed input views, at the GT boxes or a boxes file's matched boxes."""
+    from threedq.pipeline.evaluation import collect_object_crops
+    from threedq.pipeline.report import split_loader
+
+    dm.num_input_views, dm.boxes = views, boxes
+    with torch.no_grad():
+        return collect_object_crops(stage, split_loader(dm, "test"), views, random_encoder_seed=None, progress=False)
+
+
+def measure(datasets: list[str], encoders: list[str], rows_path: Path, input_views: list[int],
+            run: Path | None) -> list[dict[str, Any]]:
+    import tempfile
+
+    from shape_benchmark import load_datamodule
     from threedq.stages.viewpred import ViewPrediction
 
     from threedq.quantization.prototypes import prototype_crops
 
     machine = {"cpu": cpu_name(), "torch": torch.__version__, "date": time.strftime("%Y-%m-%d")}
     rows = []
+    tmp = Path(tempfile.mkdtemp(prefix="pose_boxes_"))
     for ds in datasets:
         dm = load_datamodule(DATASETS[ds])
         sym, num_classes = list(dm.index.symmetry_order), len(dm.index.categories)
-        seen: dict[str, int] = {}
+        sources = {"GT": "gt"}
+        if run is not None:
+            sources["detected"] = detected_boxes(run, dm, tmp / f"{ds}.npz")
+        seen: dict[tuple[str, int, str], int] = {}
         first_clusters = None
-        for spec in encoders:
+        for spec, views, (box_name, boxes) in ((e, v, b) for e in encoders for v in input_views for b in sources.items()):
             name, _, ckpt = spec.partition("=")
-            seen[name] = seen.get(name, -1) + 1
+            key = (name, views, box_name)
+            seen[key] = seen.get(key, -1) + 1
             t0 = time.perf_counter()
-            test, _ = object_crops(ViewPrediction(encoder_ckpt=ckpt).eval(), dm)
+            test = object_crops(ViewPrediction(encoder_ckpt=ckpt).eval(), dm, views, boxes)
             crops = prototype_crops(test["learned"], test["raw"], OCCUPANCY_FLOOR)
             row, res = bank_rows(crops, test, sym, num_classes)
             row["pairs_asym_median_deg"] = pair_yaw_error(crops, test, sym)
-            new = [{"dataset": ds, "row": name, "seed": seen[name], "objects": int(test["labels"].shape[0]), **row,
-                    "seconds": round(time.perf_counter() - t0, 1), **machine}]
-            if first_clusters is None:  # the references, once per dataset
+            where = {"input_views": views, "boxes": box_name}
+            new = [{"dataset": ds, "row": name, **where, "seed": seen[key], "objects": int(test["labels"].shape[0]),
+                    **row, "seconds": round(time.perf_counter() - t0, 1), **machine}]
+            if first_clusters is None:  # the references, once per dataset (the first encoder's crops)
                 first_clusters = res.prototype
                 refs = {"raw crops (bank)": bank_rows(test["raw"], test, sym, num_classes)[0]}
                 refs["raw crops (bank)"]["pairs_asym_median_deg"] = pair_yaw_error(test["raw"], test, sym)
@@ -141,12 +187,12 @@ def measure(datasets: list[str], encoders: list[str], rows_path: Path) -> list[d
                 rand = torch.randint(0, NUM_ANGLES, res.angle.shape, generator=torch.Generator().manual_seed(0))
                 refs["random yaw"] = yaw_summary(rand, first_clusters, test, sym)
                 refs["point-cloud registration"] = _pointcloud(test, sym)
-                new += [{"dataset": ds, "row": ref, "seed": 0, "objects": int(test["labels"].shape[0]), **r, **machine}
-                        for ref, r in refs.items()]
+                new += [{"dataset": ds, "row": ref, **where, "seed": 0, "objects": int(test["labels"].shape[0]), **r,
+                         **machine} for ref, r in refs.items()]
             with rows_path.open("a") as f:
                 f.writelines(json.dumps(r) + "\n" for r in new)
             rows += new
-            print(f"{ds}: {name} seed {seen[name]}: yaw {row['asym_median_deg']:.1f} deg, pairs "
+            print(f"{ds}: {name} seed {seen[key]}, {views} view(s), {box_name} boxes: yaw {row['asym_median_deg']:.1f} deg, pairs "
                   f"{row['pairs_asym_median_deg']:.1f}, confident half {row['confident_asym_median_deg']:.1f}",
                   flush=True)
     return rows
@@ -173,13 +219,13 @@ COLUMNS = (("asym_median_deg", "yaw, asymmetric (median deg)"), ("asym_acc_10", 
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    """Markdown: one line per (dataset, row), the mean (and range) over its seeds."""
-    out = ["| dataset | row | seeds | objects | " + " | ".join(h for _, h in COLUMNS) + " |",
-           "|" + "---|" * (4 + len(COLUMNS))]
-    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    """Markdown: one line per (dataset, boxes, input views, row), the mean (and range) over its seeds."""
+    out = ["| dataset | boxes | input views | row | seeds | objects | " + " | ".join(h for _, h in COLUMNS) + " |",
+           "|" + "---|" * (6 + len(COLUMNS))]
+    groups: dict[tuple[str, str, int, str], list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault((r["dataset"], r["row"]), []).append(r)
-    for (ds, name), rs in groups.items():
+        groups.setdefault((r["dataset"], r.get("boxes", "GT"), r.get("input_views", 1), r["row"]), []).append(r)
+    for (ds, boxes, views, name), rs in sorted(groups.items(), key=lambda g: g[0][:3]):
         cells = []
         for key, _ in COLUMNS:
             v = [r[key] for r in rs if key in r and r[key] == r[key]]
@@ -190,7 +236,7 @@ def table(rows: list[dict[str, Any]]) -> str:
                 cells.append(f"{v[0]:.{digits}f}")
             else:
                 cells.append(f"{sum(v) / len(v):.{digits}f} ({min(v):.{digits}f}-{max(v):.{digits}f})")
-        out.append(f"| {ds} | {name} | {len(rs)} | {rs[0]['objects']} | " + " | ".join(cells) + " |")
+        out.append(f"| {ds} | {boxes} | {views} | {name} | {len(rs)} | {rs[0]['objects']} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
 
@@ -198,15 +244,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--encoder", action="append", default=[], help="NAME=CKPT (a repeated NAME: another seed)")
     ap.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
+    ap.add_argument("--input_views", type=int, nargs="+", default=[1], help="a row per number of input views")
+    ap.add_argument("--run", type=Path, help="also score on the boxes this threedq em run's detector finds")
     ap.add_argument("--rows", type=Path, default=Path("pose_rows.jsonl"))
     ap.add_argument("--table_only", action="store_true", help="print the table of --rows, measure nothing")
     args = ap.parse_args()
     if not args.table_only:
         if not args.encoder:
             ap.error("--encoder: give at least one NAME=CKPT")
-        measure(args.datasets, args.encoder, args.rows)
+        measure(args.datasets, args.encoder, args.rows, args.input_views, args.run)
     rows = [json.loads(line) for line in args.rows.read_text().splitlines() if line.strip()]
-    print(f"\n{rows[0]['date']}, {rows[0]['cpu']}, torch {rows[0]['torch']}; GT boxes, one input view, K = {K}, "
+    print(f"\n{rows[0]['date']}, {rows[0]['cpu']}, torch {rows[0]['torch']}; K = {K}, "
           f"{NUM_ANGLES} yaws, banks fitted on the test objects (labels unused), {len(BANK_SEEDS)} bank seeds\n")
     print(table(rows))
 

@@ -54,7 +54,7 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
     """
 
     #: the embedded categories are shape and colour (a red cube is not a blue one): the default miner's pairs
-    PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining.yaml"}
+    PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining.yaml", "quantizer": "stages/quantizer.yaml"}
 
     def __init__(
         self,

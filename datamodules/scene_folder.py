@@ -390,8 +390,9 @@ class SceneFolderDataModule(L.LightningDataModule):
     """
 
     #: the stage configs that serve this kind of data (threedq.pipeline.presets): objects of one kind come in many
-    #: colours, so the mining pairs compare the input occupancy alone
-    PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining_occupancy_pairs.yaml"}
+    #: colours, so the mining pairs compare the input occupancy alone; each object is cropped from 3 views
+    PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining_occupancy_pairs.yaml",
+                                         "quantizer": "stages/quantizer_multiview.yaml"}
 
     def __init__(
         self,

@@ -33,6 +33,7 @@ NEEDS = {
     "stages/detector.yaml": ("encoder_ckpt",),
     "stages/detector_gt.yaml": ("encoder_ckpt",),
     "stages/quantizer.yaml": ("encoder_ckpt",),
+    "stages/quantizer_multiview.yaml": ("encoder_ckpt",),
     "stages/mining.yaml": ("encoder_ckpt",),
     "stages/mining_occupancy_pairs.yaml": ("encoder_ckpt",),
     "stages/mining_paper.yaml": ("encoder_ckpt",),

@@ -170,6 +170,25 @@ class TestParse:
         assert find_scenes(tiny_dataset, "test")[1] == load_index(tiny_dataset).files("test")
 
 
+    def test_default_views_are_the_banks(self, tmp_path: Path, tiny_run: Path, tiny_dataset: Path,
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+        """Without ``views``, a scene is read from as many views as the run's bank was fitted on, spread over its
+        views: view 0 alone for the tiny run's one, 3 of the 4 views where the run's data read 3."""
+        import json
+
+        from threedq.pipeline import parse_command
+
+        f = load_index(tiny_dataset).files("test")[0]
+        def views(out: str) -> list[int]:
+            run_parse(str(tiny_dataset / f), str(tmp_path / out), run=str(tiny_run), pictures=False, progress=False)
+            doc = next(p for p in (tmp_path / out).glob("*.json") if p.name != "summary.json")
+            return json.loads(doc.read_text())["input_views"]
+
+        assert views("one") == [0]
+        monkeypatch.setattr(parse_command, "_run_data_args", lambda run: {"num_input_views": 3})
+        assert views("three") == [0, 2, 3]
+
+
 def parser_active(run: Path) -> torch.Tensor:
     return SceneParser(resolve_run(run)).bank.active
 
@@ -299,19 +318,38 @@ class TestImportThenParse:
 
 
 def test_parse_reads_captures_as_the_run_read_its_data(tmp_path: Path) -> None:
-    """``threedq parse`` corrects the poses by the floor where the run's data was read as sensor captures (its final
-    quantizer's saved config says so), else not."""
-    from threedq.pipeline.parse_command import _run_reads_sensor_captures
+    """``threedq parse`` reads scenes as the run's data was read (its final quantizer's saved config): the poses
+    corrected by the floor where they were sensor captures, and as many input views as its bank was fitted on."""
+    from threedq.pipeline.parse_command import _run_data_args
 
     run = tmp_path / "run"
-    assert not _run_reads_sensor_captures(None) and not _run_reads_sensor_captures(run)
+    assert _run_data_args(None) == {} and _run_data_args(run) == {}
     for r, sensor in ((1, "false"), (2, "true")):
         (run / f"r0{r}_quantizer").mkdir(parents=True)
         (run / f"r0{r}_quantizer" / "config.yaml").write_text(
-            f"data:\n  class_path: x\n  init_args:\n    sensor_captures: {sensor}\n")
-    assert _run_reads_sensor_captures(run)  # the last round's
+            f"data:\n  class_path: x\n  init_args:\n    sensor_captures: {sensor}\n    num_input_views: {r + 1}\n")
+    assert _run_data_args(run) == {"sensor_captures": True, "num_input_views": 3}  # the last round's
     (run / "r02_quantizer" / "config.yaml").write_text("data:\n  init_args:\n    data_dir: d\n")
-    assert not _run_reads_sensor_captures(run)
+    assert _run_data_args(run) == {"data_dir": "d"}
+
+
+class TestSpreadViews:
+    def test_hand_computed(self) -> None:
+        from threedq.pipeline.parse_command import spread_views
+
+        assert spread_views(28, 1) == [0]
+        assert spread_views(28, 3) == [0, 14, 27]  # 13.5 rounds to 14 (half to even)
+        assert spread_views(9, 3) == [0, 4, 8]
+        assert spread_views(10, 4) == [0, 3, 6, 9]
+        assert spread_views(2, 3) == [0, 1]  # a scene with fewer views gives all of them
+
+    def test_distinct_and_in_range(self) -> None:
+        from threedq.pipeline.parse_command import spread_views
+
+        for v in range(1, 40):
+            for n in range(1, 6):
+                got = spread_views(v, n)
+                assert len(got) == min(v, n) and len(set(got)) == len(got) and 0 <= min(got) and max(got) < v
 
 
 class TestView:

@@ -53,6 +53,9 @@ class TestTable:
         rows = [{"dataset": "unseen", "row": "enc", "seed": s, "objects": 9, "asym_median_deg": v, "asym_acc_10": a}
                 for s, v, a in ((0, 10.0, 0.5), (1, 20.0, 0.7))]
         rows.append({"dataset": "unseen", "row": "random yaw", "seed": 0, "objects": 9, "asym_median_deg": 88.0})
+        rows.append({"dataset": "unseen", "row": "enc", "input_views": 3, "boxes": "detected", "seed": 0, "objects": 7,
+                     "asym_median_deg": 12.0})
         md = pose.table(rows).splitlines()
-        assert md[2].startswith("| unseen | enc | 2 | 9 | 15.0 (10.0-20.0) | 0.60 (0.50-0.70) |")
-        assert md[3].startswith("| unseen | random yaw | 1 | 9 | 88.0 |  |")
+        assert md[2].startswith("| unseen | GT | 1 | enc | 2 | 9 | 15.0 (10.0-20.0) | 0.60 (0.50-0.70) |")
+        assert md[3].startswith("| unseen | GT | 1 | random yaw | 1 | 9 | 88.0 |  |")
+        assert md[4].startswith("| unseen | detected | 3 | enc | 1 | 7 | 12.0 |")

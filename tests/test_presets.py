@@ -12,19 +12,31 @@ from threedq.pipeline.presets import stage_presets
 
 
 class TestStagePresets:
+    EMBEDDED = {"mining": "stages/mining.yaml", "quantizer": "stages/quantizer.yaml"}
+    SHAPES = {"mining": "stages/mining_occupancy_pairs.yaml", "quantizer": "stages/quantizer_multiview.yaml"}
+
     def test_the_shipped_data_configs(self) -> None:
-        assert stage_presets([]) == {"mining": "stages/mining.yaml"}  # the default data: the embedded scenes
-        assert stage_presets(["data/clevr_veggie.yaml"]) == {"mining": "stages/mining.yaml"}
+        assert stage_presets([]) == self.EMBEDDED  # the default data: the embedded scenes
+        assert stage_presets(["data/clevr_veggie.yaml"]) == self.EMBEDDED
         for shapes in ("data/shapes.yaml", "data/shapes_unseen.yaml"):
-            assert stage_presets([shapes]) == {"mining": "stages/mining_occupancy_pairs.yaml"}
+            assert stage_presets([shapes]) == self.SHAPES
 
     def test_a_scene_folder_of_ones_own_takes_its_class_preset(self, tmp_path: Path) -> None:
         own = tmp_path / "desk.yaml"
         own.write_text("data:\n  class_path: threedq.datamodules.scene_folder.SceneFolderDataModule\n"
                        "  init_args:\n    data_dir: data/desk\n")
-        assert stage_presets([own]) == {"mining": "stages/mining_occupancy_pairs.yaml"}
+        assert stage_presets([own]) == self.SHAPES
         own.write_text(own.read_text() + "presets:\n  mining: stages/mining.yaml\n")  # the config's own wins
-        assert stage_presets([own]) == {"mining": "stages/mining.yaml"}
+        assert stage_presets([own]) == {**self.SHAPES, "mining": "stages/mining.yaml"}
+
+    def test_the_multiview_quantizer_is_its_base_with_three_views(self) -> None:
+        from threedq.pipeline.lightning_cli import load_config
+
+        base, multi = load_config("stages/quantizer.yaml"), load_config("stages/quantizer_multiview.yaml")
+        assert multi["data"]["init_args"]["num_input_views"] == 3
+        multi["data"]["init_args"]["num_input_views"] = 1
+        multi["trainer"]["default_root_dir"] = base["trainer"]["default_root_dir"]
+        assert multi == base
 
     @pytest.mark.parametrize("presets, field", [("[a, b]", "presets"), ("{viewpred: x.yaml}", "presets.viewpred"),
                                                 ("{mining: 3}", "presets.mining")])
@@ -48,6 +60,18 @@ class TestStagePresets:
         assert mining("data/shapes.yaml") == ["mining_occupancy_pairs.yaml", "shapes.yaml"]
         assert mining("data/shapes.yaml", "stages/mining.yaml") == ["mining.yaml", "shapes.yaml"]
         assert mining("data/shapes.yaml", "none") == []
+
+    def test_em_quantizes_with_the_data_configs_preset(self) -> None:
+        from threedq.pipeline.em import _resolve_configs
+
+        def quantizer(data_config: str | None, quantizer_config: str | None = None) -> list[str]:
+            cfg = _resolve_configs("stages/viewpred.yaml", quantizer_config, "stages/detector.yaml", "none",
+                                   "stages/self_labelling.yaml", data_config, None, True, None)
+            return [p.name for p in cfg.q]
+
+        assert quantizer(None) == ["quantizer.yaml"]
+        assert quantizer("data/shapes.yaml") == ["quantizer_multiview.yaml", "shapes.yaml"]
+        assert quantizer("data/shapes.yaml", "stages/quantizer.yaml") == ["quantizer.yaml", "shapes.yaml"]
 
 
 class TestConfigChain:

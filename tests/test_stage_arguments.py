@@ -91,9 +91,13 @@ def _stage_configs() -> list[str]:
 #: runs.
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
 #: A variant config (one with ``base:``) holds only what it exists to set on top of its base; its own choices.
-VARIANT_CHOICES = {"stages/detector_gt.yaml": set(), "stages/mining_occupancy_pairs.yaml": {"candidates_from"},
+VARIANT_CHOICES = {"stages/detector_gt.yaml": set(), "stages/quantizer_multiview.yaml": set(),
+                   "stages/mining_occupancy_pairs.yaml": {"candidates_from"},
                    "stages/mining_paper.yaml": {"candidates_from", "candidates_per_query", "positives", "query_pool",
                                                 "target_pool", "yaw_window", "rank_by"}}
+
+#: the data arguments a variant sets (the detector's GT variant: ``boxes: gt``)
+VARIANT_DATA = {"stages/quantizer_multiview.yaml": {"num_input_views": 3}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
@@ -108,8 +112,8 @@ def test_class_defaults_equal_the_tuned_config(config: str) -> None:
 
 
 def test_a_variant_config_holds_only_its_choices() -> None:
-    """Each variant names its stage's config as its base and sets its own choices and run folder, nothing else (the
-    detector's GT variant: its boxes)."""
+    """Each variant names its stage's config as its base and sets its own choices and run folder, nothing else (of the
+    data, the detector's GT variant its boxes, the quantizer's multi-view variant its input views)."""
     variants = sorted(str(p.relative_to(packaged_configs_dir())) for p in (packaged_configs_dir() / "stages").glob(
         "*.yaml") if "base" in (yaml.safe_load(p.read_text()) or {}))
     assert variants == sorted(VARIANT_CHOICES)
@@ -118,7 +122,8 @@ def test_a_variant_config_holds_only_its_choices() -> None:
         assert cfg["base"] == Path(variant).stem.split("_")[0] + ".yaml"
         assert set(cfg) <= {"base", "model", "data", "trainer"} and set(cfg["trainer"]) == {"default_root_dir"}
         assert set((cfg.get("model") or {}).get("init_args") or {}) == own
-        assert (cfg.get("data") or {"init_args": {"boxes": "gt"}}) == {"init_args": {"boxes": "gt"}}
+        data = VARIANT_DATA.get(variant, {"boxes": "gt"})
+        assert (cfg.get("data") or {"init_args": data}) == {"init_args": data}
 
 
 class TestSelfLabellingInheritsTheDetector:

@@ -8,16 +8,9 @@
 # A checkpoint of this machine's view prediction (e.g. runs/em/00_viewpred/checkpoints/last.ckpt copied into a
 # carried folder) skips the 85 s of view prediction there and leaves more of the budget to the rounds.
 # Writes to $OUT: cuda_vs_cpu.txt, bench_infonce.txt, em.log, em.time, run.tgz (the run folder without checkpoints).
-export PYTHONUNBUFFERED=1
 BUDGET=${1:-420}
 VP=${2:+--viewpred_ckpt $2}
-nvidia-smi -L
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-  .whl/*.whl || exit 1
-python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --target /tmp/site . \
-  || exit 1
-export PYTHONPATH=/tmp/site PATH=/tmp/site/bin:$PATH
-python3 -c "import torch, lightning, kornia; print(torch.__version__, lightning.__version__, kornia.__version__)"
+source benchmarks/device_check/setup.sh || exit 1
 timeout 60 python3 benchmarks/device_check/cuda_vs_cpu.py 2>&1 | tee $OUT/cuda_vs_cpu.txt
 timeout 100 python3 benchmarks/bench_infonce.py --device cuda > $OUT/bench_infonce.txt 2>&1
 python3 benchmarks/device_copy.py unpack .devdata/p128 data/clevr_veggie --workers 16 2>&1 | tail -c 100

@@ -352,7 +352,7 @@ def _preset(preset: str, *given: str | None) -> tuple[str | None, ...]:
 
 
 def _resolve_configs(
-    config: str, quantizer_config: str, detector_config: str, mining_config: str | None,
+    config: str, quantizer_config: str | None, detector_config: str, mining_config: str | None,
     self_labelling_config: str | None, data_config: str | None, extra_configs: list[str] | str | None,
     detection: bool, max_steps: int | None,
 ) -> _RunConfigs:
@@ -362,9 +362,12 @@ def _resolve_configs(
         extra_configs = [str(extra_configs)]
     extra = [resolve_config(c) for c in ([data_config] if data_config else []) + list(extra_configs or [])]
     vp_configs = [resolve_config(config), *extra]
+    presets = stage_presets(extra) if quantizer_config is None or mining_config is None else {}
+    if quantizer_config is None:  # the data's preset (threedq.pipeline.presets)
+        quantizer_config = presets.get("quantizer", "stages/quantizer.yaml")
     q_configs = [resolve_config(quantizer_config), *extra]
-    if mining_config is None:  # the data's preset (threedq.pipeline.presets)
-        mining_config = stage_presets(extra).get("mining", "stages/mining.yaml")
+    if mining_config is None:
+        mining_config = presets.get("mining", "stages/mining.yaml")
     mine = mining_config not in ("", "none")
     m_configs = [resolve_config(mining_config), *extra] if mine else []
     relabel = detection and self_labelling_config not in (None, "", "none")
@@ -528,6 +531,7 @@ def _summary(
         "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
         "round0_result": round0,
         "mining_config": _config_label(cfg.m[0], work) if mine else None,
+        "quantizer_config": _config_label(cfg.q[0], work),
         "data_config": _config_label(resolve_config(data_config or DEFAULT_DATA_CONFIG), work),
         "mining_results": [x.to_json() for x in rounds_run.mining],
         "viewpred": vp.to_json(),
@@ -568,7 +572,7 @@ def run_em(
     work_dir: str = "runs/em",
     resume: bool = False,
     config: str = "stages/viewpred.yaml",
-    quantizer_config: str = "stages/quantizer.yaml",
+    quantizer_config: str | None = None,
     detector_config: str = "stages/detector.yaml",
     detection: bool = True,
     boxes: Literal["detections", "gt"] = "detections",
@@ -590,7 +594,9 @@ def run_em(
         resume: continue a killed run: finished stages and evaluations are kept, the interrupted stage restarts from
             its beginning (the numbers are those of an uninterrupted run).
         config: the view-prediction stage config (a path, or one inside the packaged configs/).
-        quantizer_config: the quantizer stage config.
+        quantizer_config: the quantizer stage config (default: the data's preset,
+            :func:`~threedq.pipeline.presets.stage_presets`: ``stages/quantizer.yaml`` on the embedded data,
+            ``stages/quantizer_multiview.yaml`` on the shape-only data and users' scene folders and captures).
         detector_config: the detector stage config (trained from label-free pseudo-boxes by default).
         detection: train and evaluate the detector before the rounds.
         boxes: object boxes of the rounds: ``detections`` (the paper's protocol: the boxes the current detector
@@ -669,7 +675,7 @@ _DEFAULT_CONFIGS = {k: inspect.signature(run_em).parameters[k].default for k in 
 
 def evaluate_run_on(
     run: str | Path, out: str | Path, data_config: str | None = None, detector_config: str = "stages/detector.yaml",
-    quantizer_config: str = "stages/quantizer.yaml", self_labelling_config: str = "stages/self_labelling.yaml",
+    quantizer_config: str | None = None, self_labelling_config: str = "stages/self_labelling.yaml",
     frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
 ) -> dict[str, Any]:
     """Evaluate a finished run's last detector and last quantizer (encoder and prototype bank) on a dataset, training
@@ -683,8 +689,8 @@ def evaluate_run_on(
     Args:
         run: a ``threedq em`` work folder with at least one finished round.
         out: the folder written: ``detector_eval/`` and ``eval/`` (each kept once finished, as in a run).
-        data_config: the dataset (default: the embedded data); detector_config, quantizer_config,
-            self_labelling_config: the stage configs the run used.
+        data_config: the dataset (default: the embedded data); detector_config, quantizer_config (default: the
+            data's preset), self_labelling_config: the stage configs the run used.
         frozen_precision: as :func:`run_em`'s.
 
     Returns:

@@ -57,29 +57,39 @@ def _scene_name(file: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(Path(file).with_suffix("")))
 
 
-def _run_reads_sensor_captures(run: str | Path | None) -> bool:
-    """Whether a ``threedq em`` run read its data as sensor captures (its final quantizer's saved config)."""
+def _run_data_args(run: str | Path | None) -> dict[str, Any]:
+    """How a ``threedq em`` run read its data: the ``data.init_args`` of its final quantizer's saved config (``{}``
+    without one)."""
     if run is None:
-        return False
+        return {}
     layout = RunLayout(Path(run))
     done = layout.rounds("quantizer")
     cfg = layout.round(done[-1], "quantizer") / "config.yaml" if done else None
     if cfg is None or not cfg.is_file():
-        return False
+        return {}
     data = (yaml.safe_load(cfg.read_text()) or {}).get("data") or {}
-    return bool((data.get("init_args") or {}).get("sensor_captures", False))
+    return data.get("init_args") or {}
+
+
+def spread_views(num_views: int, n: int) -> list[int]:
+    """``n`` view indices spread evenly over a scene's ``num_views`` views (first and last included; all of them when
+    the scene has at most ``n``)."""
+    if num_views <= n:
+        return list(range(num_views))
+    return sorted({round(i * (num_views - 1) / (n - 1)) for i in range(n)}) if n > 1 else [0]
 
 
 def _load_batch(
     root: Path,
     batch: list[str],
-    views: list[int],
+    views: list[int] | int,
     box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None,
     boxes: str | None,
     failed: list[str],
     align_floor: bool = False,
 ) -> tuple[list[SceneRecord], list[list[int]], list[str]]:
-    """Load a batch of scene files and check their input views.
+    """Load a batch of scene files and check their input views (a list: the same indices for every scene; a number
+    ``n``: :func:`spread_views` of each scene).
 
     A scene that cannot be loaded, whose views are out of range, or that the boxes file (``boxes``, loaded as
     ``box_sets``) does not cover is skipped: its one-line reason is appended to ``failed`` and printed.
@@ -97,7 +107,8 @@ def _load_batch(
             rec = load_scene(src)
             if align_floor:
                 rec.world_T_cam = floor_aligned_poses(src, rec)
-            chosen.append(check_views(list(views), rec, str(src)))
+            chosen.append(check_views(spread_views(rec.num_views, views) if isinstance(views, int) else list(views),
+                                      rec, str(src)))
             recs.append(rec)
             ok_files.append(f)
         except (SceneValidationError, ValueError, OSError) as e:
@@ -174,7 +185,7 @@ def run_parse(
     encoder: str | None = None,
     detector: str | None = None,
     prototypes: str | None = None,
-    views: list[int] = [0],  # noqa: B006 - jsonargparse shows the default
+    views: list[int] | None = None,
     split: str | None = None,
     boxes: str | None = None,
     score_threshold: float | None = None,
@@ -197,7 +208,10 @@ def run_parse(
         encoder: overrides the run's encoder of the prototypes (a stage checkpoint).
         detector: overrides the run's detector (a detector or self-labelling checkpoint).
         prototypes: overrides the run's prototype bank (a quantizer checkpoint).
-        views: the views that are inputs, the same for every scene (negative counts from the end).
+        views: the views that are inputs, the same for every scene (negative counts from the end); default: as many
+            as the run's prototype bank was fitted on (its final quantizer's ``num_input_views``: 1 for the embedded
+            data, 3 for the shape-only data and scene folders, ``threedq.pipeline.presets``), spread evenly over each
+            scene's views (view 0 alone for one).
         split: with a dataset folder, parse only this split.
         boxes: a boxes file (``{scene file: (aabb, scores)}``, the layout of ``detections_<split>.npz``; scene files
             relative to the dataset folder) whose boxes are matched instead of the detector's.
@@ -220,14 +234,16 @@ def run_parse(
     Returns:
         the summary (also written as ``summary.json``): scenes parsed, failed (one line each), objects, seconds.
     """
-    if not views:
+    if views is not None and not views:
         raise InputError("views: expected at least one view index")
     outp = Path(out)
     if outp.exists() and not outp.is_dir():
         raise InputError(f"out: {outp} exists and is not a folder")
     artifacts = resolve_run(run, encoder, detector, prototypes)
+    run_data = _run_data_args(run)
     if sensor_captures is None:
-        sensor_captures = _run_reads_sensor_captures(run)
+        sensor_captures = bool(run_data.get("sensor_captures", False))
+    chosen_views: list[int] | int = list(views) if views is not None else int(run_data.get("num_input_views", 1))
     root, files = find_scenes(scenes, split)
     parser = SceneParser(artifacts, score_threshold=score_threshold, precision=precision)
     names = load_names(artifacts.prototypes, parser.bank)
@@ -246,8 +262,8 @@ def run_parse(
         t0 = time.time()
         bar = tqdm(total=len(files), desc="threedq parse", unit="scene", disable=not progress, dynamic_ncols=True)
         for s in range(0, len(files), batch_size):
-            recs, chosen, ok_files = _load_batch(root, files[s : s + batch_size], views, box_sets, boxes, failed,
-                                                 sensor_captures)
+            recs, chosen, ok_files = _load_batch(root, files[s : s + batch_size], chosen_views, box_sets, boxes,
+                                                 failed, sensor_captures)
             given = None if box_sets is None else [box_sets[f] for f in ok_files]
             for f, rec, v, res in zip(ok_files, recs, chosen, parse_records(parser, recs, chosen, names, batch_size, given)):
                 features = res.pop("_features")

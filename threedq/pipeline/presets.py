@@ -2,11 +2,13 @@
 
 Whether colour names a category cannot be read from unlabelled scenes, so the data says it. A DataModule class names
 its presets (``PRESETS``: stage -> config; threedq's scene folders, captures included, take the mining preset for
-objects of one kind in any colour; the embedded data, whose categories are shape and colour, keeps the default
-miner), and a data config may name its own with a top-level ``presets:`` mapping, which wins:
+objects of one kind in any colour and the quantizer that crops each object from 3 views, whose yaw holds on shapes
+the features never trained on; the embedded data, whose categories are shape and colour, keeps the default miner
+and the paper's one view), and a data config may name its own with a top-level ``presets:`` mapping, which wins:
 
     presets:
       mining: stages/mining_occupancy_pairs.yaml
+      quantizer: stages/quantizer_multiview.yaml
 
 ``threedq em --data_config X`` runs X's presets unless a ``--<stage>_config`` is given.
 """
@@ -24,7 +26,7 @@ from threedq.pipeline.overrides import class_of
 __all__ = ["STAGES", "stage_presets"]
 
 #: the stages a preset can name
-STAGES = ("mining",)
+STAGES = ("mining", "quantizer")
 
 
 def stage_presets(configs: Sequence[str | Path]) -> dict[str, str]:
