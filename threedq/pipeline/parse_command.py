@@ -79,6 +79,13 @@ def spread_views(num_views: int, n: int) -> list[int]:
     return sorted({round(i * (num_views - 1) / (n - 1)) for i in range(n)}) if n > 1 else [0]
 
 
+def _view_decoder(artifacts: Any) -> Any:
+    """The run's view decoder, for ``renders``."""
+    if artifacts.viewpred is None:
+        raise FileNotFoundError("renders: the run has no view-prediction checkpoint (00_viewpred) to decode with")
+    return load_view_decoder(artifacts.viewpred)
+
+
 def _load_batch(
     root: Path,
     batch: list[str],
@@ -241,19 +248,14 @@ def run_parse(
         raise InputError(f"out: {outp} exists and is not a folder")
     artifacts = resolve_run(run, encoder, detector, prototypes)
     run_data = _run_data_args(run)
-    if sensor_captures is None:
-        sensor_captures = bool(run_data.get("sensor_captures", False))
+    sensor_captures = bool(run_data.get("sensor_captures", False)) if sensor_captures is None else sensor_captures
     chosen_views: list[int] | int = list(views) if views is not None else int(run_data.get("num_input_views", 1))
     root, files = find_scenes(scenes, split)
     parser = SceneParser(artifacts, score_threshold=score_threshold, precision=precision)
     names = load_names(artifacts.prototypes, parser.bank)
     box_sets = load_boxes_file(boxes) if boxes else None
     appearance = load_or_make_appearance(parser, appearance_scenes, progress) if pictures or renders else None
-    decoder = None
-    if renders:
-        if artifacts.viewpred is None:
-            raise FileNotFoundError("renders: the run has no view-prediction checkpoint (00_viewpred) to decode with")
-        decoder = load_view_decoder(artifacts.viewpred)
+    decoder = _view_decoder(artifacts) if renders else None
     with hold_folder(outp):  # one run writes this folder at a time
         outp.mkdir(parents=True, exist_ok=True)
         failed: list[str] = []
