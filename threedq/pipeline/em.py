@@ -362,8 +362,8 @@ def _resolve_configs(
         extra_configs = [str(extra_configs)]
     extra = [resolve_config(c) for c in ([data_config] if data_config else []) + list(extra_configs or [])]
     vp_configs = [resolve_config(config), *extra]
-    presets = stage_presets(extra) if quantizer_config is None or mining_config is None else {}
-    if quantizer_config is None:  # the data's preset (threedq.pipeline.presets)
+    presets = stage_presets(extra)  # the data's (threedq.pipeline.presets), for a stage config not given
+    if quantizer_config is None:
         quantizer_config = presets.get("quantizer", "stages/quantizer.yaml")
     q_configs = [resolve_config(quantizer_config), *extra]
     if mining_config is None:
