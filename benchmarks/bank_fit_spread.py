@@ -1,20 +1,12 @@
 """How much of a round's Hungarian accuracy is the bank's fit, and how much the encoder?
 
-For each ``threedq em`` run folder given, this script takes one round's encoder and prototype bank (the round's
-``rNN_eval/config.yaml`` and ``rNN_quantizer`` checkpoint, as Table 3 scores them), crops the training split's boxes
-(what the round's quantizer fitted) and the test split's boxes matched to GT objects (what Table 3 scores) once, and
-scores:
-- the loop's bank as fitted (Table 3's Hungarian accuracy for that round, up to the crops' order);
-- fresh banks fitted on the same training crops from the initialisation orders of ``--seeds`` (K, iterations,
-  threshold, free-slot filling and similarity of the round's quantizer), each with its quantization loss.
-
-The fresh fits' spread is the part of the Hungarian accuracy one encoder leaves to the fit
-(docs/studies/quantizer.md, "Restarts of an empty bank"), so two arms' encoders are compared by their fits' means
-rather than by one fit each. GT labels are used for scoring only.
+For each ``threedq em`` run folder given, takes one round's encoder and prototype bank, crops the training split's
+boxes and the test split's boxes matched to GT objects once, and scores the loop's bank as fitted and fresh banks
+fitted on the same training crops from the initialisation orders of ``--seeds`` (the round's quantizer settings),
+each with its quantization loss. GT labels are used for scoring only. Prints a markdown table (one row per run) and
+appends one JSON line per run to ``--out``.
 
     python benchmarks/bank_fit_spread.py runs/em runs/em_s1 --round 4 --seeds 0,1,2,3 --out runs/bank_fit_spread.jsonl
-
-Prints a markdown table (one row per run) and appends one JSON line per run to ``--out``.
 """
 
 from __future__ import annotations

@@ -1,34 +1,36 @@
-"""What a ``threedq em`` run costs besides its training: stage start-up and pictures, on the test suite's tiny data.
+"""What a ``threedq`` run costs besides its training, one question a run (``--op``), median seconds:
 
-Prints a markdown table: the median seconds of
-
-* a whole ``run_em(rounds=2)`` on 12 generated scenes of 4 views at 32x32 (the tests' tiny dataset; GT boxes, no
-  mining; 2 steps per stage): almost all of it is fixed cost, which every end-to-end test pays;
-* one stage's start-up through ``ThreeDQCLI`` (``fit --print_config``: parsers built, the config parsed, nothing
-  trained), with the parser of the named subcommand only (what ``ThreeDQCLI`` builds) and with all four of
-  Lightning's (what ``LightningCLI`` builds);
-* the retrieval and prototype-alignment pictures of an evaluation, drawn and encoded as PNG (60 crops of 16^3; the
-  script runs on older commits too, where they were matplotlib figures written at 150 dpi).
+* ``em`` (default): a whole ``run_em(rounds=2)`` on the tests' tiny dataset (12 scenes, 2 steps per stage); one
+  stage's start-up through ``ThreeDQCLI`` (``fit --print_config``), with the named subcommand's parser only and with
+  all four of Lightning's; and an evaluation's retrieval and prototype-alignment pictures (60 crops of 16^3);
+* ``cli_start``: how long a command takes to reach its work, ``threedq --help``, ``threedq em --help``, ``threedq data
+  check <missing folder>`` and ``threedq fit --config <missing file>``, each as a new interpreter (``python -m
+  threedq ...``) and as a fork of one that has imported threedq (``tests/forkserver.py``).
 
     python benchmarks/bench_em_overhead.py [--repeats 3]
+    python benchmarks/bench_em_overhead.py --op cli_start [--repeats 5]
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import io
 import os
 import shutil
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from _common import machine, table
 
-from threedq.machine import cpu_name
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _median_s(fn, repeats: int) -> float:
@@ -40,12 +42,38 @@ def _median_s(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--repeats", type=int, default=3)
-    args = ap.parse_args()
-    torch.set_num_threads(min(2, os.cpu_count() or 1))
+def fork_server_class() -> type:
+    """``tests/forkserver.py``'s ``ForkServer``, loaded from its file (the tests are no package)."""
+    spec = importlib.util.spec_from_file_location("forkserver", ROOT / "tests" / "forkserver.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["forkserver"] = module
+    spec.loader.exec_module(module)
+    return module.ForkServer
 
+
+def cli_start(repeats: int) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        commands = [["--help"], ["em", "--help"], ["data", "check", str(Path(tmp) / "missing")],
+                    ["fit", "--config", str(Path(tmp) / "missing.yaml")]]
+        rows = []
+        t0 = time.perf_counter()
+        with fork_server_class()() as server:
+            server.run(["--help"], cwd=tmp)  # waits for the server's imports
+            start = time.perf_counter() - t0
+            for argv in commands:
+                new, forked = [], []
+                for _ in range(repeats):  # interleaved
+                    new.append(_median_s(lambda: subprocess.run([sys.executable, "-m", "threedq", *argv], cwd=tmp,
+                                                                capture_output=True), 1))
+                    forked.append(_median_s(lambda: server.run(argv, cwd=tmp), 1))
+                rows.append((f"`{' '.join(['threedq', *argv]).replace(tmp, '<tmp>')}`",
+                             f"{statistics.median(new):.2f}", f"{statistics.median(forked):.2f}"))
+    print(f"# threedq command start-up, {machine()}, median of {repeats}\n")
+    print(f"The fork server's own start (its imports, once): {start:.2f} s\n")
+    print(table(["command", "new interpreter (s)", "forked (s)"], rows))
+
+
+def em_overhead(repeats: int) -> None:
     from lightning.pytorch.cli import LightningCLI
 
     from threedq.data.generate import generate_dataset
@@ -87,12 +115,12 @@ def main() -> None:
                 cls(args=["fit", "--config", "stages/viewpred.yaml", "--config", str(cfg), "--print_config"])
 
         em()  # warm-up: imports, first-use caches
-        rows.append(("`run_em(rounds=2)`, tiny data (7 stages, 7 evaluations)", _median_s(em, args.repeats)))
+        rows.append(("`run_em(rounds=2)`, tiny data (7 stages, 7 evaluations)", _median_s(em, repeats)))
         start(ThreeDQCLI)
         rows.append(("one stage's start-up, the named subcommand's parser (ThreeDQCLI)",
-                     _median_s(lambda: start(ThreeDQCLI), args.repeats)))
+                     _median_s(lambda: start(ThreeDQCLI), repeats)))
         rows.append(("one stage's start-up, all four subcommands' parsers (LightningCLI's way)",
-                     _median_s(lambda: start(AllSubcommands), args.repeats)))
+                     _median_s(lambda: start(AllSubcommands), repeats)))
     g = torch.Generator().manual_seed(0)
     test = {"raw": torch.rand(60, 4, 16, 16, 16, generator=g), "labels": torch.randint(0, 5, (60,), generator=g)}
     cats = [f"category {i}" for i in range(5)]
@@ -100,12 +128,21 @@ def main() -> None:
     clusters, angles = torch.randint(0, 4, (60,), generator=g), torch.randint(0, 36, (60,), generator=g)
     rows.append(("retrieval + prototype-alignment pictures, 60 crops", _median_s(
         lambda: (png(retrieval_figure(test, sim, cats)), png(alignment_figure(test, clusters, angles, 36, cats))),
-        args.repeats)))
-    print(f"# threedq em overhead, {torch.get_num_threads()} threads, cpu ({cpu_name()}), torch {torch.__version__}, "
-          f"median of {args.repeats}\n")
-    print("| what | seconds |\n|---|---|")
-    for what, s in rows:
-        print(f"| {what} | {s:.2f} |")
+        repeats)))
+    print(f"# threedq em overhead, {machine()}, median of {repeats}\n")
+    print(table(["what", "seconds"], [(what, f"{s:.2f}") for what, s in rows]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--op", choices=["em", "cli_start"], default="em")
+    ap.add_argument("--repeats", type=int, default=None, help="default: em 3, cli_start 5")
+    args = ap.parse_args()
+    if args.op == "cli_start":
+        cli_start(args.repeats or 5)
+    else:
+        torch.set_num_threads(min(2, os.cpu_count() or 1))
+        em_overhead(args.repeats or 3)
 
 
 if __name__ == "__main__":

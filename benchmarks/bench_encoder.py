@@ -1,29 +1,23 @@
 """Step time and achieved GFLOP/s of the 3D lifting U-Net (``threedq.nets.UNet3D``).
 
-Prints a markdown table: for each input grid, batch size, precision (fp32 / bf16 autocast), memory layout
-(contiguous / ``channels_last_3d``) and pass (forward in inference mode / forward+backward in training mode), the
-median wall time of a few repeats after warm-up and the achieved GFLOP/s.
-
-FLOPs are counted analytically from the convolution shapes seen in one forward pass: a Conv3d costs
-``B * C_out * prod(out spatial) * C_in * prod(kernel)`` MACs, a ConvTranspose3d ``B * C_in * prod(in spatial) *
-C_out * prod(kernel)`` MACs; forward FLOPs = 2 * MACs (BatchNorm, LeakyReLU, concatenation and the L2 norm are
-ignored, < 1 %); forward+backward is counted as 3 x forward (input and weight gradients each cost one forward).
-
-Usage::
+Prints a markdown table: per input grid, batch size, precision (fp32 / bf16 autocast), memory layout and pass
+(inference forward / training forward + backward), the median wall time and the achieved GFLOP/s. FLOPs are counted
+from the convolution shapes of one forward pass (2 x MACs; forward + backward = 3 x forward).
 
     python benchmarks/bench_encoder.py            # CPU, all configs (a few minutes on 2 cores)
     python benchmarks/bench_encoder.py --quick    # fewer configs
     python benchmarks/bench_encoder.py --device cuda
 
 Convention:
-    Grids are written ``X x Y x Z`` (``nx x ny x nz``); the input tensor is ``[B, 4, Z, Y, X]`` and the features
-    ``[B, 32, Z/2, Y/2, X/2]``.
+    Grids are written ``X x Y x Z``; the input is ``[B, 4, Z, Y, X]``, the features ``[B, 32, Z/2, Y/2, X/2]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
+import math
 import os
 import statistics
 import time
@@ -31,6 +25,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
+from _common import sync, table
 from torch import Tensor, nn
 
 from threedq.machine import cpu_name
@@ -45,8 +40,6 @@ PAPER_GRID = (144, 144, 144)
 
 @dataclass(frozen=True)
 class Config:
-    """One benchmark configuration."""
-
     grid: tuple[int, int, int]  # (nx, ny, nz)
     batch: int
     bf16: bool
@@ -56,8 +49,6 @@ class Config:
 
 @dataclass
 class Result:
-    """Timing of one configuration."""
-
     config: Config
     median_s: float
     min_s: float
@@ -66,30 +57,16 @@ class Result:
 
 
 def conv_macs(model: nn.Module, x: Tensor) -> int:
-    """Multiply-accumulates of all (transposed) 3D convolutions in one forward pass of ``model`` on ``x``.
-
-    Args:
-        model: the network.
-        x: ``[B, C, Z, Y, X]`` input.
-
-    Returns:
-        MAC count from the layer shapes (analytic, not measured).
-
-    Convention:
-        Conv3d: ``B * C_out * prod(out) * C_in / groups * prod(k)``; ConvTranspose3d: ``B * C_in * prod(in) *
-        C_out / groups * prod(k)``.
-    """
+    """Multiply-accumulates of all (transposed) 3D convolutions in one forward pass of ``model`` on ``x``
+    (``[B, C, Z, Y, X]``), from the layer shapes: Conv3d ``B * C_out * prod(out) * C_in / groups * prod(k)``,
+    ConvTranspose3d ``B * C_in * prod(in) * C_out / groups * prod(k)``."""
     total = 0
 
     def hook(module: nn.Module, inputs: tuple[Tensor, ...], output: Tensor) -> None:
         nonlocal total
-        kernel = 1
-        for k in module.kernel_size:  # type: ignore[union-attr]
-            kernel *= k
-        groups = module.groups  # type: ignore[union-attr]
+        kernel, groups = math.prod(module.kernel_size), module.groups  # type: ignore[union-attr]
         if isinstance(module, nn.ConvTranspose3d):
-            inp = inputs[0]
-            total += inp.numel() * (module.out_channels // groups) * kernel
+            total += inputs[0].numel() * (module.out_channels // groups) * kernel
         else:
             total += output.numel() * (module.in_channels // groups) * kernel  # type: ignore[union-attr]
 
@@ -106,12 +83,6 @@ def conv_macs(model: nn.Module, x: Tensor) -> int:
     return total
 
 
-def synchronize(device: torch.device) -> None:
-    """Wait for queued kernels (no-op on CPU)."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def bf16_supported(device: torch.device) -> bool:
     """Whether bf16 autocast is worth benchmarking on ``device``."""
     if device.type == "cuda":
@@ -124,13 +95,8 @@ def bf16_supported(device: torch.device) -> bool:
 
 def make_step(model: nn.Module, x: Tensor, config: Config, device: torch.device) -> Callable[[], None]:
     """A closure running one forward (inference) or forward+backward (training) pass."""
-    autocast: Callable[[], contextlib.AbstractContextManager[None]]
-    if config.bf16:
-
-        def autocast() -> contextlib.AbstractContextManager[None]:
-            return torch.autocast(device.type, dtype=torch.bfloat16)
-    else:
-        autocast = contextlib.nullcontext
+    def autocast() -> contextlib.AbstractContextManager[None]:
+        return torch.autocast(device.type, dtype=torch.bfloat16) if config.bf16 else contextlib.nullcontext()
 
     if config.backward:
         model.train()
@@ -155,12 +121,12 @@ def time_step(step: Callable[[], None], device: torch.device, warmup: int, repea
     """Wall times (s) of ``repeats`` calls after ``warmup`` untimed calls."""
     for _ in range(warmup):
         step()
-    synchronize(device)
+    sync(device)
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         step()
-        synchronize(device)
+        sync(device)
         times.append(time.perf_counter() - start)
     return times
 
@@ -184,30 +150,18 @@ def run_config(config: Config, device: torch.device, warmup: int, repeats: int) 
 
 def configs(grids: tuple[tuple[int, int, int], ...], batches: tuple[int, ...], bf16: bool) -> Iterator[Config]:
     """All combinations, grouped by grid and batch."""
-    for grid in grids:
-        for batch in batches:
-            for backward in (False, True):
-                for use_bf16 in (False, True) if bf16 else (False,):
-                    for channels_last in (False, True):
-                        yield Config(grid, batch, use_bf16, channels_last, backward)
+    for grid, batch, backward, use_bf16, channels_last in itertools.product(
+            grids, batches, (False, True), (False, True) if bf16 else (False,), (False, True)):
+        yield Config(grid, batch, use_bf16, channels_last, backward)
 
 
 def format_row(r: Result, show_peak: bool) -> str:
     """One markdown table row."""
     c = r.config
     nx, ny, nz = c.grid
-    cells = [
-        f"{nx}x{ny}x{nz}",
-        f"{nx // 2}x{ny // 2}x{nz // 2}",
-        str(c.batch),
-        "bf16 autocast" if c.bf16 else "fp32",
-        "channels_last_3d" if c.channels_last else "contiguous",
-        "fwd+bwd" if c.backward else "fwd",
-        f"{r.median_s * 1e3:.1f}",
-        f"{r.min_s * 1e3:.1f}",
-        f"{r.gflop:.1f}",
-        f"{r.gflop / r.median_s:.0f}",
-    ]
+    cells = [f"{nx}x{ny}x{nz}", f"{nx // 2}x{ny // 2}x{nz // 2}", str(c.batch), "bf16 autocast" if c.bf16 else "fp32",
+             "channels_last_3d" if c.channels_last else "contiguous", "fwd+bwd" if c.backward else "fwd",
+             f"{r.median_s * 1e3:.1f}", f"{r.min_s * 1e3:.1f}", f"{r.gflop:.1f}", f"{r.gflop / r.median_s:.0f}"]
     if show_peak:
         cells.append(f"{r.peak_mib:.0f}" if r.peak_mib is not None else "-")
     return "| " + " | ".join(cells) + " |"
@@ -229,9 +183,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: CPUs available)")
     parser.add_argument("--warmup", type=int, default=None, help="untimed calls per config (default 2, quick 1)")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per config (default 5, quick 3)")
-    parser.add_argument(
-        "--budget-s", type=float, default=240.0, help="skip the 144^3 runs if they would push the total past this"
-    )
+    parser.add_argument("--budget-s", type=float, default=240.0,
+                        help="skip the 144^3 runs if they would push the total past this")
     args = parser.parse_args(argv)
 
     device = torch.device(args.device)
@@ -254,14 +207,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"load average at start: {load_average()} (other processes on a shared machine inflate the times)")
     print("fwd = eval + inference_mode; fwd+bwd = train mode, grads of mean(output), no optimizer step.")
     print("GFLOP: analytic from conv shapes, 2*MACs forward, fwd+bwd counted as 3x forward; BN/LReLU/norm ignored.")
-    print()
-    header = "| input XxYxZ | features | B | precision | layout | pass | median ms | min ms | GFLOP | GFLOP/s |"
-    rule = "|---|---|---|---|---|---|---|---|---|---|"
-    if show_peak:
-        header += " peak MiB |"
-        rule += "---|"
-    print(header)
-    print(rule, flush=True)
+    print("\n" + table(["input XxYxZ", "features", "B", "precision", "layout", "pass", "median ms", "min ms", "GFLOP",
+                        "GFLOP/s"] + ["peak MiB"] * show_peak), flush=True)
 
     start = time.perf_counter()
     fwd_b1: dict[tuple[bool, bool], float] = {}
@@ -285,17 +232,14 @@ def main(argv: list[str] | None = None) -> None:
             estimate = per_call * (warmup + repeats + 1)
             elapsed = time.perf_counter() - start
             if elapsed + estimate > args.budget_s:
-                notes.append(
-                    f"skipped 144^3 {'bf16' if config.bf16 else 'fp32'}"
-                    f"{' channels_last_3d' if config.channels_last else ''} {'fwd+bwd' if config.backward else 'fwd'}:"
-                    f" ~{estimate:.0f} s estimated, {elapsed:.0f} s of the {args.budget_s:.0f} s budget used"
-                )
+                layout, kind = " channels_last_3d" if config.channels_last else "", "fwd+bwd" if config.backward else "fwd"
+                notes.append(f"skipped 144^3 {'bf16' if config.bf16 else 'fp32'}{layout} {kind}: ~{estimate:.0f} s "
+                             f"estimated, {elapsed:.0f} s of the {args.budget_s:.0f} s budget used")
                 continue
             print(format_row(run_config(config, device, warmup, repeats), show_peak), flush=True)
         if device.type == "cpu":
             notes.append("144^3 (the paper's grid) is run forward-only at batch 1 on CPU.")
-    print()
-    print(f"total benchmark time: {time.perf_counter() - start:.0f} s; load average at end: {load_average()}")
+    print(f"\ntotal benchmark time: {time.perf_counter() - start:.0f} s; load average at end: {load_average()}")
     for note in notes:
         print(f"note: {note}")
 

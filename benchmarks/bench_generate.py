@@ -1,12 +1,7 @@
-"""Benchmark of the embedded dataset generator: scenes per second, including rendering and writing.
-
-Usage::
+"""Benchmark of the embedded dataset generator: scenes per second, including rendering and writing, into a temporary
+folder; prints a markdown table (scenes, views, resolution, workers, seconds, scenes/s, views/s, MB written).
 
     python benchmarks/bench_generate.py --scenes 1000 --workers 2
-
-Generates a fresh dataset into a temporary folder (deleted afterwards) and prints a markdown table:
-scenes, views, resolution, workers, seconds, scenes/s, views/s, MB written. Target on a 2-core
-machine: 1000 scenes x 28 views at 128x128 with 2 workers in <= 180 s.
 """
 
 from __future__ import annotations

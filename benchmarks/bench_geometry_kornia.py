@@ -1,28 +1,9 @@
 """Geometry core: local implementations vs kornia, at the main job's sizes.
 
-For every op of ``threedq.geometry`` that kornia could take over, this times
-
-* ``local``: the local implementation (``_local_*`` below: the code ``threedq.geometry`` had before the kornia
-  swap, or the local op it keeps);
-* ``kornia``: the kornia route (the ``kornia.geometry`` function named in the table; for the composite hot paths,
-  the same body with every sub-op that kornia has swapped in);
-* ``threedq``: what ``threedq.geometry`` ships now (``crop_boxes``: the local ``grid_sample`` with one volume's
-  points spread over the threads, :func:`threedq.geometry.sample_volume`, bitwise the local route);
-
-and checks first that the routes agree (``max |diff|``). An op moves to kornia only where kornia reproduces our
-convention and is at most 10% slower on the hot path. K has zero skew here so the zero-skew kornia pinhole
-functions can be timed at all; ``threedq.geometry`` honours skew, which they do not.
-
-Sizes (main job, ``configs/stages/viewpred.yaml`` and ``quantizer.yaml``): input grid 64 x 64 x 32 (features on its
-half, 32 x 32 x 16 with 32 channels), 128 x 128 views, 4 views per call (2 for the frustum, as the batch size),
-3 boxes per scene (15 in a self-labelling batch of 8 scenes), crops 16^3, rotation search 36 yaws of 50 crops [32, 16, 16, 16].
-
-Timing: ``torch.set_num_threads(2)``, forward only under ``torch.no_grad()``, two warm-up calls, then rounds that run
-the three routes of a row in a shuffled order (so a busy machine, or the page faults of the previous call's freed
-memory, hit them alike); the median of the rounds is shown. Run it on an idle machine: another process on the same
-cores shows up as 2-10x slower rows.
-
-Usage::
+For every op of ``threedq.geometry`` that kornia could take over, times ``local`` (``_local_*`` below), ``kornia`` (the
+``kornia.geometry`` function named in the table, swapped into the same body for composite ops) and ``threedq`` (what
+``threedq.geometry`` ships) after checking that they agree (``max |diff|``); K has zero skew (kornia's pinhole
+functions have none). 2 threads, forward only, two warm-up calls, then rounds of the three routes in a shuffled order.
 
     python benchmarks/bench_geometry_kornia.py            # about 2.5 minutes on 2 cores
     python benchmarks/bench_geometry_kornia.py --quick    # fewer rounds, no rotate3d
@@ -40,6 +21,7 @@ import random
 import statistics
 import time
 from collections.abc import Callable
+from functools import partial
 
 import kornia
 import torch
@@ -53,13 +35,11 @@ from kornia.geometry.linalg import transform_points as k_transform_points
 from kornia.geometry.transform import rotate as k_rotate
 from kornia.geometry.transform import rotate3d as k_rotate3d
 from kornia.geometry.transform import warp_affine3d
+from _common import machine, table
 from torch import Tensor
 
 import threedq.geometry as G
 from threedq.geometry.unproject import BEHIND_EPS, _voxelize
-from threedq.machine import cpu_name
-
-# --------------------------------------------------------------------------------------------- local references
 
 
 def _local_invert_rigid(a_T_b: Tensor) -> Tensor:
@@ -72,15 +52,16 @@ def _local_invert_rigid(a_T_b: Tensor) -> Tensor:
     return out
 
 
+_kornia_invert_rigid = inverse_transformation
+_kornia_transform_points = k_transform_points
+_kornia_unproject_depth = depth_to_3d_v2
+
+
 def _local_yaw_matrix(yaw: Tensor) -> Tensor:
     c, s = torch.cos(yaw), torch.sin(yaw)
     zero, one = torch.zeros_like(yaw), torch.ones_like(yaw)
-    rows = (
-        torch.stack((c, -s, zero), dim=-1),
-        torch.stack((s, c, zero), dim=-1),
-        torch.stack((zero, zero, one), dim=-1),
-    )
-    return torch.stack(rows, dim=-2)
+    rows = ((c, -s, zero), (s, c, zero), (zero, zero, one))
+    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
 
 
 def _local_transform_points(a_T_b: Tensor, points: Tensor) -> Tensor:
@@ -94,6 +75,10 @@ def _local_project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     z_safe = torch.where(z.abs() > 1e-8, z, torch.full_like(z, 1e-8))
     xy = points_cam[..., :2] / z_safe[..., None]
     return xy @ K[:, :2, :2].transpose(-1, -2) + K[:, None, :2, 2], z
+
+
+def _kornia_yaw_matrix(yaw: Tensor) -> Tensor:
+    return axis_angle_to_rotation_matrix(torch.stack((0 * yaw, 0 * yaw, yaw), -1))
 
 
 def _kornia_project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
@@ -117,12 +102,8 @@ def _depth_to_points(depth: Tensor, K: Tensor, pose: Tensor, unproject: Callable
     return transform(pose, unproject(clean, K).flatten(1, 2)), valid.flatten(1)
 
 
-def _local_depth_to_points(depth: Tensor, K: Tensor, pose: Tensor):
-    return _depth_to_points(depth, K, pose, _local_unproject_depth, _local_transform_points)
-
-
-def _kornia_depth_to_points(depth: Tensor, K: Tensor, pose: Tensor):
-    return _depth_to_points(depth, K, pose, depth_to_3d_v2, k_transform_points)
+_local_depth_to_points = partial(_depth_to_points, unproject=_local_unproject_depth, transform=_local_transform_points)
+_kornia_depth_to_points = partial(_depth_to_points, unproject=depth_to_3d_v2, transform=k_transform_points)
 
 
 def _unproject_rgb(rgb, K, pose, grid, invert: Callable, transform: Callable, project: Callable) -> Tensor:
@@ -137,19 +118,17 @@ def _unproject_rgb(rgb, K, pose, grid, invert: Callable, transform: Callable, pr
     return (sampled[:, :, 0] * visible[:, None].to(rgb.dtype)).view(batch, channels, *grid.volume_shape)
 
 
-def _local_unproject_rgb(rgb, K, pose, grid):
-    return _unproject_rgb(rgb, K, pose, grid, _local_invert_rigid, _local_transform_points, _local_project)
+_local_unproject_rgb = partial(_unproject_rgb, invert=_local_invert_rigid, transform=_local_transform_points,
+                               project=_local_project)
+_kornia_unproject_rgb = partial(_unproject_rgb, invert=inverse_transformation, transform=k_transform_points,
+                                project=_kornia_project)
 
 
-def _kornia_unproject_rgb(rgb, K, pose, grid):
-    return _unproject_rgb(rgb, K, pose, grid, inverse_transformation, k_transform_points, _kornia_project)
-
-
-def _local_occupancy(depth, K, pose, grid):
+def _local_occupancy_from_depth(depth, K, pose, grid):
     return _voxelize(*_local_depth_to_points(depth, K, pose), grid)
 
 
-def _kornia_occupancy(depth, K, pose, grid):
+def _kornia_occupancy_from_depth(depth, K, pose, grid):
     return _voxelize(*_kornia_depth_to_points(depth, K, pose), grid)
 
 
@@ -167,14 +146,14 @@ def _free_space(depth, K, pose, grid, samples, rays_fn: Callable, occupancy: Cal
     return _voxelize(points, keep, grid) * (1.0 - occupancy(depth, K, pose, grid))
 
 
-def _local_free_space(depth, K, pose, grid, samples=32):
-    rays = lambda d, k: _local_unproject_depth(torch.ones_like(d), k)  # noqa: E731
-    return _free_space(depth, K, pose, grid, samples, rays, _local_occupancy)
+def _local_free_space_from_depth(depth, K, pose, grid, samples=32):
+    rays = lambda d, k: _local_unproject_depth(torch.ones_like(d), k)
+    return _free_space(depth, K, pose, grid, samples, rays, _local_occupancy_from_depth)
 
 
-def _kornia_free_space(depth, K, pose, grid, samples=32):
-    rays = lambda d, k: unproject_meshgrid(d.shape[-2], d.shape[-1], k, device=d.device, dtype=d.dtype)  # noqa: E731
-    return _free_space(depth, K, pose, grid, samples, rays, _kornia_occupancy)
+def _kornia_free_space_from_depth(depth, K, pose, grid, samples=32):
+    rays = lambda d, k: unproject_meshgrid(d.shape[-2], d.shape[-1], k, device=d.device, dtype=d.dtype)
+    return _free_space(depth, K, pose, grid, samples, rays, _kornia_occupancy_from_depth)
 
 
 def _frustum(volume, grid, K, pose, size, depth_range, planes, rays_fn: Callable, transform: Callable) -> Tensor:
@@ -197,8 +176,7 @@ def _local_rays(K, size):
     return torch.stack((x, y.expand_as(x), torch.ones_like(x)), dim=-1)
 
 
-def _local_frustum_previous(volume, grid, K, pose, size, depth_range, planes):
-    """The shipped local resample_to_frustum body (rays rotated once, then scaled per plane)."""
+def _local_resample_to_frustum(volume, grid, K, pose, size, depth_range, planes):
     rays_R = _local_rays(K, size) @ pose[:, None, :3, :3].transpose(-1, -2)
     near, far = depth_range
     z = near + (torch.arange(planes, dtype=K.dtype) + 0.5) * ((far - near) / planes)
@@ -207,8 +185,8 @@ def _local_frustum_previous(volume, grid, K, pose, size, depth_range, planes):
                          align_corners=False)
 
 
-def _kornia_frustum(volume, grid, K, pose, size, depth_range, planes):
-    rays = lambda k, s: unproject_meshgrid(s[0], s[1], k, dtype=k.dtype)  # noqa: E731
+def _kornia_resample_to_frustum(volume, grid, K, pose, size, depth_range, planes):
+    rays = lambda k, s: unproject_meshgrid(s[0], s[1], k, dtype=k.dtype)
     return _frustum(volume, grid, K, pose, size, depth_range, planes, rays, k_transform_points)
 
 
@@ -218,9 +196,8 @@ def _local_rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
     n_angles = angles.shape[1]
     c, s = torch.cos(angles), torch.sin(angles)
     zero = torch.zeros_like(c)
-    theta = torch.stack(
-        (torch.stack((c, s * (ny / nx), zero), dim=-1), torch.stack((-s * (nx / ny), c, zero), dim=-1)), dim=-2
-    )
+    theta = torch.stack((torch.stack((c, s * (ny / nx), zero), dim=-1), torch.stack((-s * (nx / ny), c, zero), dim=-1)),
+                        dim=-2)
     coords = F.affine_grid(theta.reshape(n * n_angles, 2, 3), [n * n_angles, 1, ny, nx], align_corners=False)
     coords = coords.reshape(n, n_angles * ny, nx, 2)
     slices = volume.reshape(n, channels * nz, ny, nx)
@@ -228,12 +205,9 @@ def _local_rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
     return out.view(n, channels, nz, n_angles, ny, nx).permute(0, 3, 1, 2, 4, 5).contiguous()
 
 
-def _kornia_rotate_yaw_2d(volume: Tensor, yaw: Tensor) -> Tensor:
-    """kornia 2D ``rotate`` of the (C, Z)-folded slices, one call per angle (``rotate`` takes one angle per image).
-
-    Exact for our convention: kornia's positive angle is counter-clockwise *as displayed* (y down), ours moves +x
-    towards +y, hence ``-degrees(yaw)``; its 2D normalisation honours ``align_corners=False``.
-    """
+def _kornia_rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
+    """kornia 2D ``rotate`` of the (C, Z)-folded slices, one call per angle; its positive angle is counter-clockwise
+    as displayed (y down), hence ``-degrees(yaw)``."""
     n, channels, nz, ny, nx = volume.shape
     slices = volume.reshape(n, channels * nz, ny, nx)
     outs = [k_rotate(slices, torch.rad2deg(-yaw[:, a]), align_corners=False) for a in range(yaw.shape[1])]
@@ -241,12 +215,8 @@ def _kornia_rotate_yaw_2d(volume: Tensor, yaw: Tensor) -> Tensor:
 
 
 def _kornia_rotate_yaw_3d(volume: Tensor, yaw: Tensor) -> Tensor:
-    """kornia ``rotate3d`` about +z (axis-angle ``(0, 0, degrees(yaw))``), one call per angle.
-
-    Exact only with ``align_corners=True``: kornia's 3D normalisation is corner-aligned whatever the flag, so
-    ``align_corners=False`` mis-scales a non-square X != Y slice. In voxel-index space both flags sample the same
-    points with the same zero padding, so ``True`` reproduces our cell-centred rotation (for X, Y > 1).
-    """
+    """kornia ``rotate3d`` about +z, one call per angle; exact only with ``align_corners=True`` (its 3D normalisation
+    is corner-aligned whatever the flag)."""
     outs = []
     for a in range(yaw.shape[1]):
         roll = torch.rad2deg(yaw[:, a])
@@ -270,11 +240,8 @@ def _local_crop_boxes(volume: Tensor, boxes: Tensor, grid: G.VoxelGridSpec, size
 
 
 def _kornia_crop_boxes(volume: Tensor, boxes: Tensor, grid: G.VoxelGridSpec, size: int) -> Tensor:
-    """kornia ``warp_affine3d`` (what ``crop_by_transform_mat3d`` calls), one batch element per box.
-
-    The voxel-index affine map (output cell -> input voxel index) with ``align_corners=True`` samples exactly our
-    cell-centred points; ``crop_by_boxes3d`` itself wants integer voxel boxes of one size per batch.
-    """
+    """kornia ``warp_affine3d`` (what ``crop_by_transform_mat3d`` calls), one batch element per box: the voxel-index
+    affine map with ``align_corners=True`` samples our cell-centred points."""
     batch, channels = volume.shape[:2]
     n_boxes = boxes.shape[1]
     bmin = torch.tensor(grid.bounds_min, dtype=volume.dtype)
@@ -287,9 +254,6 @@ def _kornia_crop_boxes(volume: Tensor, boxes: Tensor, grid: G.VoxelGridSpec, siz
     src = volume[:, None].expand(batch, n_boxes, *volume.shape[1:]).reshape(batch * n_boxes, *volume.shape[1:])
     out = warp_affine3d(src, src_to_dst.reshape(-1, 3, 4), (size, size, size), align_corners=True)
     return out.view(batch, n_boxes, channels, size, size, size)
-
-
-# -------------------------------------------------------------------------------------------------- scene data
 
 
 def _look_at(eye: tuple[float, float, float], target=(0.0, 0.0, 0.3)) -> Tensor:
@@ -307,17 +271,13 @@ def _look_at(eye: tuple[float, float, float], target=(0.0, 0.0, 0.3)) -> Tensor:
 def _views(n: int, size: int = 128) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """``n`` cameras 3 m around the grid (zero skew), an RGB+1 image and a depth map that hits the grid."""
     torch.manual_seed(0)
-    poses = torch.stack(
-        [_look_at((3.0 * math.cos(a), 3.0 * math.sin(a), 1.6)) for a in torch.linspace(0.3, 5.5, n).tolist()]
-    )
+    angles = torch.linspace(0.3, 5.5, n).tolist()
+    poses = torch.stack([_look_at((3.0 * math.cos(a), 3.0 * math.sin(a), 1.6)) for a in angles])
     K = torch.tensor([[110.0, 0.0, (size - 1) / 2], [0.0, 110.0, (size - 1) / 2], [0.0, 0.0, 1.0]]).repeat(n, 1, 1)
     rgb = torch.cat((torch.rand(n, 3, size, size), torch.ones(n, 1, size, size)), 1)
     depth = 2.6 + 0.8 * torch.rand(n, size, size)
     depth[:, ::9, ::7] = 0.0
     return rgb, depth, K, poses
-
-
-# ------------------------------------------------------------------------------------------------------ timing
 
 
 def _max_diff(a, b) -> float:
@@ -344,15 +304,37 @@ def _time(fns: list[Callable[[], object]], rounds: int, warmup: int, inner: int)
     return [statistics.median(s) for s in samples]
 
 
-def _fmt(ms: float | None) -> str:
-    if ms is None:
-        return "-"
+def _fmt(ms: float) -> str:
     return f"{ms:.4f}" if ms < 0.1 else f"{ms:.2f}" if ms < 100 else f"{ms:.0f}"
 
 
+#: op -> (the kornia function(s) of its kornia route, the route ``threedq.geometry`` ships)
+KORNIA = {
+    "invert_rigid": ("linalg.inverse_transformation", "kornia"),
+    "yaw_matrix": ("conversions.axis_angle_to_rotation_matrix", "kornia"),
+    "transform_points": ("linalg.transform_points", "kornia"),
+    "project": ("camera.perspective.project_points (no skew)", "local"),
+    "unproject_depth": ("depth.depth_to_3d_v2 (no skew)", "local"),
+    "depth_to_points": ("depth_to_3d_v2 + transform_points", "local"),
+    "unproject_rgb": ("inverse_transformation + transform_points + project_points", "mixed"),
+    "occupancy_from_depth": ("depth_to_3d_v2 + transform_points", "local"),
+    "free_space_from_depth": ("unproject_meshgrid + depth_to_3d_v2 + transform_points", "local"),
+    "resample_to_frustum": ("unproject_meshgrid + transform_points", "local"),
+    "crop_boxes": ("transform.warp_affine3d", "local"),
+    "rotate_yaw": ("transform.rotate (2D, folded slices)", "local"),
+}
+
+
 def _rows(quick: bool) -> list[tuple]:
-    """The benchmark rows: ``(op, shape, local, kornia, threedq, kornia function, ships, inner, rounds)``."""
+    """The benchmark rows: ``(op, shape, kornia function, ships, (local, kornia, threedq), inner, rounds)``."""
     rounds, big_rounds = (5, 3) if quick else (21, 7)
+
+    def row(op: str, shape: str, *args: object, inner: int = 1, n: int = rounds, k3d: bool = False) -> tuple:
+        kornia = _kornia_rotate_yaw_3d if k3d else globals()[f"_kornia_{op}"]
+        fns = tuple((lambda f=f: f(*args)) for f in (globals()[f"_local_{op}"], kornia, getattr(G, op)))
+        kname, ships = ("transform.rotate3d (align_corners=True)", "local") if k3d else KORNIA[op]
+        return op, shape, kname, ships, fns, inner, n
+
     grid = G.VoxelGridSpec((-1.28, -1.28, -0.32), (1.28, 1.28, 0.96), (64, 64, 32))
     fgrid = grid.half()
     rgb, depth, K, poses = _views(4)
@@ -370,73 +352,32 @@ def _rows(quick: bool) -> list[tuple]:
     centre15 = torch.rand(8, 15, 3) * torch.tensor([2.4, 2.4, 0.8]) + torch.tensor([-1.2, -1.2, -0.3])
     half15 = (torch.rand(8, 15, 3) * 0.6 + 0.3) / 2
     boxes15 = torch.cat((centre15 - half15, centre15 + half15), -1)
-    k_half = G.scale_intrinsics(K[:2], 0.5, 0.5)
-    frustum_args = (k_half, poses[:2], (64, 64), (1.2, 5.2), 32)
+    frustum_args = (G.scale_intrinsics(K[:2], 0.5, 0.5), poses[:2], (64, 64), (1.2, 5.2), 32)
     n_crops = 10 if quick else 50
     crops = torch.randn(n_crops, 32, 16, 16, 16)
     yaws = yaw36[None].expand(n_crops, -1).contiguous()
-    ds = depth[:, ::2, ::2]
-    ks = K * torch.tensor([0.5, 0.5, 1.0])[:, None]
-
-    rows: list[tuple] = [
-        ("invert_rigid", "[4, 4, 4]", lambda: _local_invert_rigid(poses), lambda: inverse_transformation(poses),
-         lambda: G.invert_rigid(poses), "linalg.inverse_transformation", "kornia", 200, rounds),
-        ("yaw_matrix", "[36]", lambda: _local_yaw_matrix(yaw36),
-         lambda: axis_angle_to_rotation_matrix(torch.stack((0 * yaw36, 0 * yaw36, yaw36), -1)),
-         lambda: G.yaw_matrix(yaw36), "conversions.axis_angle_to_rotation_matrix", "kornia", 200, rounds),
-        ("transform_points", "[4, 131072, 3]", lambda: _local_transform_points(cam_T_R, centres),
-         lambda: k_transform_points(cam_T_R, centres), lambda: G.transform_points(cam_T_R, centres),
-         "linalg.transform_points", "kornia", 1, rounds),
-        ("project", "[4, 131072, 3]", lambda: _local_project(points_cam, K), lambda: _kornia_project(points_cam, K),
-         lambda: G.project(points_cam, K), "camera.perspective.project_points (no skew)", "local", 1, rounds),
-        ("unproject_depth", "[4, 128, 128]", lambda: _local_unproject_depth(depth, K),
-         lambda: depth_to_3d_v2(depth, K), lambda: G.unproject_depth(depth, K), "depth.depth_to_3d_v2 (no skew)",
-         "local", 1, rounds),
-        ("depth_to_points", "[4, 128, 128]", lambda: _local_depth_to_points(depth, K, poses),
-         lambda: _kornia_depth_to_points(depth, K, poses), lambda: G.depth_to_points(depth, K, poses),
-         "depth_to_3d_v2 + transform_points", "local", 1, rounds),
-        ("unproject_rgb", "[4, 4, 128, 128] -> 64x64x32", lambda: _local_unproject_rgb(rgb, K, poses, grid),
-         lambda: _kornia_unproject_rgb(rgb, K, poses, grid), lambda: G.unproject_rgb(rgb, K, poses, grid),
-         "inverse_transformation + transform_points + project_points", "mixed", 1, rounds),
-        ("occupancy_from_depth", "[4, 128, 128] -> 64x64x32", lambda: _local_occupancy(depth, K, poses, grid),
-         lambda: _kornia_occupancy(depth, K, poses, grid), lambda: G.occupancy_from_depth(depth, K, poses, grid),
-         "depth_to_3d_v2 + transform_points", "local", 1, rounds),
-        ("free_space_from_depth", "[4, 64, 64] x 32 -> 32x32x16", lambda: _local_free_space(ds, ks, poses, fgrid),
-         lambda: _kornia_free_space(ds, ks, poses, fgrid), lambda: G.free_space_from_depth(ds, ks, poses, fgrid),
-         "unproject_meshgrid + depth_to_3d_v2 + transform_points", "local", 1, rounds),
-        ("resample_to_frustum", "[2, 32, 16, 32, 32] -> 32x64x64",
-         lambda: _local_frustum_previous(feats2, fgrid, *frustum_args),
-         lambda: _kornia_frustum(feats2, fgrid, *frustum_args),
-         lambda: G.resample_to_frustum(feats2, fgrid, *frustum_args),
-         "unproject_meshgrid + transform_points", "local", 1, rounds),
-        ("crop_boxes", "[4, 32, 16, 32, 32], 3 boxes, 16^3", lambda: _local_crop_boxes(feats4, boxes, fgrid, 16),
-         lambda: _kornia_crop_boxes(feats4, boxes, fgrid, 16), lambda: G.crop_boxes(feats4, boxes, fgrid, 16),
-         "transform.warp_affine3d", "local", 1, rounds),
-        ("crop_boxes", "[8, 32, 16, 32, 32], 15 boxes, 16^3", lambda: _local_crop_boxes(feats8, boxes15, fgrid, 16),
-         lambda: _kornia_crop_boxes(feats8, boxes15, fgrid, 16), lambda: G.crop_boxes(feats8, boxes15, fgrid, 16),
-         "transform.warp_affine3d", "local", 1, rounds),
-        ("crop_boxes", "[1, 32, 16, 32, 32], 15 boxes, 16^3 (one scene)",
-         lambda: _local_crop_boxes(feats8[:1], boxes15[:1], fgrid, 16),
-         lambda: _kornia_crop_boxes(feats8[:1], boxes15[:1], fgrid, 16),
-         lambda: G.crop_boxes(feats8[:1], boxes15[:1], fgrid, 16), "transform.warp_affine3d", "local", 1, rounds),
-        ("crop_boxes", "[4, 4, 32, 64, 64], 3 boxes, 16^3", lambda: _local_crop_boxes(raw4, boxes, grid, 16),
-         lambda: _kornia_crop_boxes(raw4, boxes, grid, 16), lambda: G.crop_boxes(raw4, boxes, grid, 16),
-         "transform.warp_affine3d", "local", 1, rounds),
-        ("rotate_yaw", f"36 x [{n_crops}, 32, 16, 16, 16]", lambda: _local_rotate_yaw(crops, yaws),
-         lambda: _kornia_rotate_yaw_2d(crops, yaws), lambda: G.rotate_yaw(crops, yaws),
-         "transform.rotate (2D, folded slices)", "local", 1, big_rounds),
+    ds, ks = depth[:, ::2, ::2], K * torch.tensor([0.5, 0.5, 1.0])[:, None]
+    crops_shape = f"[{n_crops}, 32, 16, 16, 16]"
+    rows = [
+        row("invert_rigid", "[4, 4, 4]", poses, inner=200),
+        row("yaw_matrix", "[36]", yaw36, inner=200),
+        row("transform_points", "[4, 131072, 3]", cam_T_R, centres),
+        row("project", "[4, 131072, 3]", points_cam, K),
+        row("unproject_depth", "[4, 128, 128]", depth, K),
+        row("depth_to_points", "[4, 128, 128]", depth, K, poses),
+        row("unproject_rgb", "[4, 4, 128, 128] -> 64x64x32", rgb, K, poses, grid),
+        row("occupancy_from_depth", "[4, 128, 128] -> 64x64x32", depth, K, poses, grid),
+        row("free_space_from_depth", "[4, 64, 64] x 32 -> 32x32x16", ds, ks, poses, fgrid),
+        row("resample_to_frustum", "[2, 32, 16, 32, 32] -> 32x64x64", feats2, fgrid, *frustum_args),
+        row("crop_boxes", "[4, 32, 16, 32, 32], 3 boxes, 16^3", feats4, boxes, fgrid, 16),
+        row("crop_boxes", "[8, 32, 16, 32, 32], 15 boxes, 16^3", feats8, boxes15, fgrid, 16),
+        row("crop_boxes", "[1, 32, 16, 32, 32], 15 boxes, 16^3 (one scene)", feats8[:1], boxes15[:1], fgrid, 16),
+        row("crop_boxes", "[4, 4, 32, 64, 64], 3 boxes, 16^3", raw4, boxes, grid, 16),
+        row("rotate_yaw", f"36 x {crops_shape}", crops, yaws, n=big_rounds),
+        row("rotate_yaw", f"1 x {crops_shape}", crops, yaws[:, 3:4]),
     ]
-    rows.append(
-        ("rotate_yaw", f"1 x [{n_crops}, 32, 16, 16, 16]", lambda: _local_rotate_yaw(crops, yaws[:, 3:4]),
-         lambda: _kornia_rotate_yaw_2d(crops, yaws[:, 3:4]), lambda: G.rotate_yaw(crops, yaws[:, 3:4]),
-         "transform.rotate (2D, folded slices)", "local", 1, rounds)
-    )
     if not quick:
-        rows.append(
-            ("rotate_yaw", f"36 x [{n_crops}, 32, 16, 16, 16]", lambda: _local_rotate_yaw(crops, yaws),
-             lambda: _kornia_rotate_yaw_3d(crops, yaws), lambda: G.rotate_yaw(crops, yaws),
-             "transform.rotate3d (align_corners=True)", "local", 1, big_rounds)
-        )
+        rows.append(row("rotate_yaw", f"36 x {crops_shape}", crops, yaws, n=big_rounds, k3d=True))
     return rows
 
 
@@ -446,14 +387,11 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(2)
     rows = _rows(args.quick)
-    print(f"threedq.geometry vs kornia {kornia.__version__}, torch {torch.__version__}, "
-          f"{torch.get_num_threads()} threads, {cpu_name()}")
-    print()
-    print("| op | shape | local ms | kornia ms | threedq ms | kornia / local | max abs diff | kornia function "
-          "| ships |")
-    print("|---|---|---:|---:|---:|---:|---:|---|---|")
+    print(f"threedq.geometry vs kornia {kornia.__version__}, {machine()}\n")
+    print(table(["op", "shape", "local ms", "kornia ms", "threedq ms", "kornia / local", "max abs diff",
+                 "kornia function", "ships"]))
     with torch.no_grad():
-        for op, shape, local_fn, kornia_fn, ours_fn, kname, ships, inner, n_rounds in rows:
+        for op, shape, kname, ships, (local_fn, kornia_fn, ours_fn), inner, n_rounds in rows:
             diff = max(_max_diff(local_fn(), kornia_fn()), _max_diff(local_fn(), ours_fn()))
             t_local, t_kornia, t_ours = _time([local_fn, kornia_fn, ours_fn], n_rounds, 2, inner)
             print(f"| {op} | {shape} | {_fmt(t_local)} | {_fmt(t_kornia)} | {_fmt(t_ours)} | "

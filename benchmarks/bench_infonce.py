@@ -1,13 +1,9 @@
 """InfoNCE against a MoCo queue, forward + backward: plain (``[P, 1 + Q]`` logits) vs streamed over the queue.
 
-``threedq.contrastive.info_nce_plain`` concatenates the logits and calls ``F.cross_entropy``;
-``threedq.contrastive.info_nce_streamed`` walks the queue in chunks with an online log-sum-exp (``[P, chunk]``
-scratch), by default finishing the query gradient in the same pass, or with ``recompute=True`` recomputing
-the chunk logits in backward. Each variant runs in a fresh subprocess (fp32, ``torch.set_num_threads``): the
-median wall time of forward + backward over a few repeats after warm-ups, and the extra memory, i.e. the
-growth of the peak resident set (``VmHWM`` in ``/proc/self/status``, reset once the inputs are made) over the
-runs (on CUDA: ``torch.cuda.max_memory_allocated`` minus the memory allocated before the runs).
-Targets for 1024 queries vs a 100k x 32 queue on 2 cores: <= 0.2 s and <= 64 MiB extra.
+``threedq.contrastive.info_nce_plain`` against ``info_nce_streamed`` (chunks with an online log-sum-exp; by default the
+query gradient in the same pass, or ``recompute=True``). Each variant runs in a fresh subprocess: the median wall time
+of forward + backward, and the extra memory (growth of the peak resident set, ``VmHWM``; on CUDA
+``torch.cuda.max_memory_allocated`` minus the memory before the runs).
 
     python benchmarks/bench_infonce.py                    # CPU, and CUDA when there is one
     python benchmarks/bench_infonce.py --device cpu --chunks 256 1024

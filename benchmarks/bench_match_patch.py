@@ -1,9 +1,7 @@
 """Time the miner's patch search (:func:`threedq.contrastive.miner.match_patch`) with and without a yaw window.
 
-The mining stage searches a query's 2^3 patch in each of its 30 retrieved targets only at the yaws next to the
-object-level retrieval's (``yaw_window: 1``: 3 of 36). The search interpolates only those yaws; before, it
-interpolated all 36 and masked 33 of them. Prints median milliseconds per query (30 random 32 x 16^3 targets) for
-all 36 yaws and for windows of 1, 3 and 5 yaws, and checks that the window search equals the masked full search.
+Prints median milliseconds per query (30 random 32 x 16^3 targets) for all 36 yaws and for windows of 1, 3 and 5
+yaws, and checks that the window search equals the masked full search.
 
     python benchmarks/bench_match_patch.py [--repeats 7]
 """

@@ -1,22 +1,10 @@
 """Per-scene latency of ``threedq parse`` by part, at the default scale and at the paper's, and bf16's agreement.
 
-Parts (:meth:`threedq.pipeline.parse.SceneParser.forward`, one scene, one input view): unproject the RGB-D view
-into the grid, encode (3D U-Net), detect (head + 3D NMS), crop the boxes to 16^3, rotation search against
-K = 50 prototypes x 36 yaws. Scales:
-
-* default: the embedded data's (128 x 128 view, 64 x 64 x 32 grid -> 32 x 32 x 16 x 32 features);
-* paper: 256 x 256 view, 144^3 grid -> 72^3 x 32 features (the paper reports 0.8 s per inference step, V100).
-
-Timings use random weights (the cost does not depend on them) and 3 objects per scene (detection at threshold 0.5
-on the random head, then the 3 highest boxes are matched, as in a typical embedded scene). Modes: fp32; fp32 under
-``torch.inference_mode``; bf16 autocast (encoder and head; crops and the search stay fp32), each with
-``channels_last_3d`` as the parse uses it.
-
-With ``--run`` (a ``threedq em`` folder) and ``--scenes`` (its dataset), it also parses the test split in fp32 and
-in bf16 on the same boxes (fp32's detections) and prints how often prototype id and yaw agree (the bar:
->= 99%), and how often bf16's own detections equal fp32's.
-
-Usage::
+Parts (:meth:`threedq.pipeline.parse.SceneParser.forward`, one scene, one input view): unproject, encode, detect,
+crop, rotation search against K = 50 prototypes x 36 yaws. Scales: default (128 px view, 64 x 64 x 32 grid) and paper
+(256 px, 144^3). Random weights, 3 objects per scene; modes fp32, fp32 under ``torch.inference_mode`` and bf16
+autocast, each with ``channels_last_3d``. With ``--run`` and ``--scenes`` it also parses the test split in fp32 and
+bf16 on the same boxes and prints how often prototype id and yaw agree.
 
     python benchmarks/bench_parse.py                                  # both scales, ~2 min on 2 cores
     python benchmarks/bench_parse.py --run runs/em --scenes data/clevr_veggie

@@ -1,23 +1,11 @@
 """Rotation search: naive vs prototypes-prerotated vs cylindrical + rFFT (``threedq.quantization.rotation_search``).
 
-Prints markdown tables, all measured in ONE process side by side (compare ratios, not absolute times, on a
-shared machine):
-
-(a) Prototype assignment, 1000 objects x 50 prototypes x 36 yaw on 32 x 16^3 fp32 crops:
-    * naive: every object rotated by every yaw (``rotate_yaw``), L2-normalised, one GEMM with the prototypes
-      (``best_prototype_and_yaw(method="exact")``); measured on a subset of objects and scaled linearly;
-    * prerotated: the 50 prototypes rotated by every ``-yaw`` (1800 copies) + one GEMM with all objects;
-    * fast: ``best_prototype_and_yaw(method="fast")`` in fp32 and bf16 (with / without the per-ring band limit).
-    Agreement = fraction of the naive-measured objects for which the method picks the same prototype and the same
-    angle as naive (and, in brackets, the angle within one step).
-(b) Retrieval 1000 queries x 1000 gallery x 36 yaw: exact ``rotation_max_similarity`` (chunked; measured on a
-    subset of queries and scaled) vs ``all_pairs_rotation_max(method="fast")``; top-1 agreement with exact on the
-    measured queries.
-
-Two data sets: "random" (i.i.d. Gaussian features, L2-normalised per voxel like the encoder output: every pair is
-a near-tie, so argmax agreement mostly measures interpolation noise) and "structured" (distinct smooth asymmetric
-blob crops; objects/queries are copies rotated by a known multiple of 10 deg plus 5% noise; the meaningful
-agreement).
+Markdown tables measured in one process (compare ratios, not absolute times): (a) prototype assignment, 1000 objects x
+50 prototypes x 36 yaws on 32 x 16^3 crops (naive on a subset, scaled linearly; prerotated prototypes + one GEMM;
+``method="fast"`` in fp32 and bf16, with and without the band limit), agreement with naive; (b) retrieval 1000 x 1000
+x 36 yaws, exact ``rotation_max_similarity`` (a subset, scaled) vs ``all_pairs_rotation_max(method="fast")``, top-1
+agreement. Data: "random" (Gaussian, L2-normalised per voxel) and "structured" (smooth asymmetric blobs, objects
+rotated by a known multiple of 10 deg plus 5% noise).
 
 Usage::
 
@@ -42,46 +30,22 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from _common import sync, table
 from torch import Tensor
 
 from threedq.geometry import rotate_yaw, yaw_angles
 from threedq.machine import cpu_name
-from threedq.quantization.rotation_search import rotation_max_similarity
-from threedq.quantization.rotation_search import all_pairs_rotation_max, best_prototype_and_yaw
+from threedq.quantization.rotation_search import all_pairs_rotation_max, best_prototype_and_yaw, rotation_max_similarity
 
 A = 36
 C = 32
 S = 16
 
 
-def sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def timed(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: int = 1) -> tuple[float, Any]:
-    """Median wall time (s) over ``repeats`` runs after ``warmup`` runs, and the last result."""
-    out = None
-    for _ in range(warmup):
-        out = fn()
-    sync(device)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        sync(device)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
-
-
-def interleaved(
-    methods: dict[str, Callable[[], Any]], device: torch.device, repeats: int, warmups: dict[str, Callable[[], Any]]
-) -> dict[str, tuple[float, float, Any]]:
-    """Round-robin timing: after one warm-up each, ``repeats`` rounds that run every method once.
-
-    Returns ``label -> (min s, median s, last result)``. On a shared machine the load changes over minutes;
-    interleaving exposes every method to the same phases and the minimum is the least-contended run.
-    """
+def interleaved(methods: dict[str, Callable[[], Any]], device: torch.device, repeats: int,
+                warmups: dict[str, Callable[[], Any]]) -> dict[str, tuple[float, float, Any]]:
+    """Round-robin timing: after one warm-up each (``warmups[label]`` where given), ``repeats`` rounds that run every
+    method once. Returns ``label -> (min s, median s, last result)``."""
     for label, fn in methods.items():
         warmups.get(label, fn)()
     sync(device)
@@ -158,22 +122,16 @@ def agreement(proto: Tensor, angle: Tensor, ref_proto: Tensor, ref_angle: Tensor
     return f"{same.float().mean().item():.3f} ({near.float().mean().item():.3f})"
 
 
-def fmt_s(t: float) -> str:
-    return f"{t * 1000:.0f} ms" if t < 1 else f"{t:.2f} s"
-
-
 def fmt_t(t_min: float, t_med: float) -> str:
-    return f"{fmt_s(t_min)} ({fmt_s(t_med)})"
+    t_min, t_med = (f"{t * 1000:.0f} ms" if t < 1 else f"{t:.2f} s" for t in (t_min, t_med))
+    return f"{t_min} ({t_med})"
 
 
 def prototype_table(device: torch.device, args: argparse.Namespace) -> list[str]:
     n, k, sub = args.objects, args.prototypes, args.naive_objects
     scale = n / sub
-    rows = [
-        ("| method | random: time min (median) | x naive (min) | agrees w/ naive (+-1 step) | structured: agrees w/ "
-         "naive | structured: = truth |"),
-        "|---|---|---|---|---|---|",
-    ]
+    rows = [table(["method", "random: time min (median)", "x naive (min)", "agrees w/ naive (+-1 step)",
+                   "structured: agrees w/ naive", "structured: = truth"])]
     rnd_p, rnd_o = random_crops(k, device, 1), random_crops(n, device, 2)
     st_p = blob_crops(k, device, 3)
     idx = torch.randint(k, (n,), generator=torch.Generator().manual_seed(4)).to(device)
@@ -196,16 +154,9 @@ def prototype_table(device: torch.device, args: argparse.Namespace) -> list[str]
         for band in (True, False):
             label = f"fast: cylindrical + rFFT, {name}" + ("" if band else ", no band limit")
             fns[label] = lambda o, p, dtype=dtype, band=band: fast(o, p, dtype, band)
-    timing = interleaved(
-        {label: (lambda fn=fn: fn(rnd_o, rnd_p)) for label, fn in fns.items()},
-        device,
-        args.repeats,
-        warmups={naive_label: lambda: naive(rnd_o[:2], rnd_p)},
-    )
-    t_naive = timing[naive_label][0] * scale
-    ref_r = timing[naive_label][2]
-    ref_s = naive(st_o[:sub], st_p)
-    truth = (idx, st_a)
+    timing = interleaved({label: (lambda fn=fn: fn(rnd_o, rnd_p)) for label, fn in fns.items()}, device,
+                         args.repeats, warmups={naive_label: lambda: naive(rnd_o[:2], rnd_p)})
+    t_naive, ref_r, ref_s = timing[naive_label][0] * scale, timing[naive_label][2], naive(st_o[:sub], st_p)
     for label, fn in fns.items():
         t_min, t_med, (p_r, a_r) = timing[label]
         if label == naive_label:
@@ -214,23 +165,17 @@ def prototype_table(device: torch.device, args: argparse.Namespace) -> list[str]
             truth_cell = agreement(p_s, a_s, idx[:sub], st_a[:sub])
         else:
             p_s, a_s = fn(st_o, st_p)
-            truth_cell = agreement(p_s, a_s, *truth)
-        rows.append(
-            f"| {label} | {fmt_t(t_min, t_med)} | {t_naive / t_min:.0f}x | "
-            f"{agreement(p_r[:sub], a_r[:sub], *ref_r)} | {agreement(p_s[:sub], a_s[:sub], *ref_s)} | {truth_cell} |"
-        )
+            truth_cell = agreement(p_s, a_s, idx, st_a)
+        agree = f"{agreement(p_r[:sub], a_r[:sub], *ref_r)} | {agreement(p_s[:sub], a_s[:sub], *ref_s)}"
+        rows.append(f"| {label} | {fmt_t(t_min, t_med)} | {t_naive / t_min:.0f}x | {agree} | {truth_cell} |")
     return rows
 
 
 def retrieval_table(device: torch.device, args: argparse.Namespace) -> list[str]:
     n = m = args.gallery
-    sub = args.exact_queries
-    scale = n / sub
-    rows = [
-        ("| method | random: time min (median) | x exact (min) | top-1 = exact | structured: top-1 = exact | "
-         "structured: top-1 = truth | structured: angle at top-1 = exact |"),
-        "|---|---|---|---|---|---|---|",
-    ]
+    sub, scale = args.exact_queries, n / args.exact_queries
+    rows = [table(["method", "random: time min (median)", "x exact (min)", "top-1 = exact", "structured: top-1 = exact",
+                   "structured: top-1 = truth", "structured: angle at top-1 = exact"])]
     rnd_q, rnd_g = random_crops(n, device, 6), random_crops(m, device, 7)
     st_g = blob_crops(m, device, 8)
     perm = torch.randperm(m, generator=torch.Generator().manual_seed(9)).to(device)
@@ -243,15 +188,11 @@ def retrieval_table(device: torch.device, args: argparse.Namespace) -> list[str]
     for dtype, name in ((None, "fp32"), (torch.bfloat16, "bf16")):
         for band in (True, False):
             label = f"fast: all_pairs_rotation_max, {name}" + ("" if band else ", no band limit")
-            fns[label] = lambda q, g, dtype=dtype, band=band: all_pairs_rotation_max(
-                q, g, A, "fast", compute_dtype=dtype, bandlimit=band
-            )
-    timing = interleaved(
-        {label: (lambda fn=fn: fn(rnd_q, rnd_g)) for label, fn in fns.items()},
-        device,
-        args.repeats,
-        warmups={exact_label: lambda: rotation_max_similarity(rnd_q[:2], rnd_g, A, chunk=16)},
-    )
+            fns[label] = lambda q, g, dtype=dtype, band=band: all_pairs_rotation_max(q, g, A, "fast",
+                                                                                    compute_dtype=dtype, bandlimit=band)
+    warm = {exact_label: lambda: rotation_max_similarity(rnd_q[:2], rnd_g, A, chunk=16)}
+    timing = interleaved({label: (lambda fn=fn: fn(rnd_q, rnd_g)) for label, fn in fns.items()}, device, args.repeats,
+                         warmups=warm)
     t_exact = timing[exact_label][0] * scale
     top_r = timing[exact_label][2][0].argmax(dim=1)
     sim_s, ang_s = rotation_max_similarity(st_q[:sub], st_g, A, chunk=16)
@@ -268,21 +209,18 @@ def retrieval_table(device: torch.device, args: argparse.Namespace) -> list[str]
         ft_r, ft_s = fs_r.argmax(dim=1), fs_s[:sub].argmax(dim=1)
         angle_ok = (fa_s[rows_sub, ft_s] == ang_s[rows_sub, top_s]) & (ft_s == top_s)
         truth = (ft_s == perm[:sub]) if ft_all is None else (ft_all == perm)
-        rows.append(
-            f"| {label} | {fmt_t(t_min, t_med)} | {t_exact / t_min:.0f}x | "
-            f"{(ft_r[:sub] == top_r).float().mean().item():.3f} | {(ft_s == top_s).float().mean().item():.3f} | "
-            f"{truth.float().mean().item():.3f} | {angle_ok.float().mean().item():.3f} |"
-        )
+        rate = lambda x: f"{x.float().mean().item():.3f}"
+        rows.append(f"| {label} | {fmt_t(t_min, t_med)} | {t_exact / t_min:.0f}x | {rate(ft_r[:sub] == top_r)} | "
+                    f"{rate(ft_s == top_s)} | {rate(truth)} | {rate(angle_ok)} |")
     return rows
 
 
 def matmul_gflops(device: torch.device) -> str:
-    """Achieved fp32 / bf16 GEMM GFLOP/s right now (2048^3): how loaded the machine is (idle roofs on the
-    reference 2-vCPU Zen 5: ~210 fp32, ~900 bf16)."""
+    """Achieved fp32 / bf16 GEMM GFLOP/s right now (2048^3): how loaded the machine is."""
     out = []
     for dtype in (torch.float32, torch.bfloat16):
         a = torch.randn(2048, 2048, device=device).to(dtype)
-        t, _ = timed(lambda a=a: a @ a, device, 3)
+        t = interleaved({"": lambda a=a: a @ a}, device, 3, {})[""][1]
         out.append(f"{str(dtype).removeprefix('torch.')} {2 * 2048**3 / t / 1e9:.0f}")
     return ", ".join(out)
 

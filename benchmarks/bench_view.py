@@ -1,10 +1,5 @@
-"""How long ``threedq view --save`` takes to record a run and how big the recording is, by the point budget.
-
-Each row records the run's split (every scene, every round with an evaluation, the prototypes, the metrics) into a
-temporary ``.rrd`` with :func:`threedq.pipeline.view.run_view` and prints the wall time, the file's size and what it
-holds. The bar: the main job's run in under 30 s on 2 cores, under 100 MB.
-
-Usage::
+"""How long ``threedq view --save`` takes to record a run and how big the recording is, by the point budget
+(:func:`threedq.pipeline.view.run_view` into a temporary ``.rrd``: wall time, size and what it holds).
 
     python benchmarks/bench_view.py --run runs/em                     # 2000 and 6000 points per scene
     python benchmarks/bench_view.py --run runs/em --points 6000 20000

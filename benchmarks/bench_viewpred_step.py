@@ -1,18 +1,14 @@
 """Time one view-prediction training step (forward, backward, Adam) and its parts.
 
-Prints a markdown table: for fp32 and bf16 autocast, with and without channels_last_3d, the median time
-of a whole step and of its parts (unprojection + occupancy input, encoder forward, occupancy/free-space
-labels, frustum resampling + decoder, backward + Adam) on synthetic scenes rendered by the embedded
-generator at the default config (batch 2, 1 input + 1 target view, 128x128, 64x64x32 grid).
+Prints a markdown table: for fp32 and bf16 autocast, with and without channels_last_3d, the median time of a whole
+step and of its parts on scenes rendered by the embedded generator (batch 2, 1 input + 1 target view, 128x128).
 
     python benchmarks/bench_viewpred_step.py [--repeats 5] [--grid 64 64 32] [--device cpu] [--channels 64 128 256]
         [--fp32_only] [--decoder 32 8] [--channels_last_only] [--compile] [--feature_stride 2 1]
 
-``--decoder PLANES POOL`` (repeatable) sets the frustum's depth planes and the decoder's depth max-pool
-(``num_planes``, ``pool``; default 32 8, the main job's). ``--compile`` adds, per configuration, a row whose encoder
-is wrapped in ``torch.compile`` (inductor; its compile time printed beside it, paid in the warm-ups).
-``--feature_stride`` (one row each) sets the encoder's output stride: 2, the paper's features at half the grid's
-resolution, or 1, features on the input grid (``feature_stride`` of every stage).
+``--decoder PLANES POOL`` (repeatable): the frustum's depth planes and the decoder's depth max-pool. ``--compile``
+adds a row per configuration with the encoder under ``torch.compile``. ``--feature_stride`` (a row each): the
+encoder's output stride.
 """
 
 from __future__ import annotations

@@ -1,23 +1,13 @@
 """Where a detector loses IoU: objects found per size band, from an existing run's detection files.
 
-For each detector evaluation folder given (``<run>/03_detector_eval``, ``<run>/rNN_detector_eval``: its
-``detections_test.npz`` holds the boxes above the detector's score threshold, the ones handed on), and for the
-label-free pseudo-boxes of the dataset (every view, as the detector is trained on) and the pseudo-boxes from only
-the view(s) the detector sees (its fair reference), print per size band of the GT boxes (largest extent): the share
-of objects found at IoU 0.25 and 0.5, the median best IoU, the median centre error of the best box in the plane and
-in height (signed), the median |log size ratio| per axis; and the mAP of the single-view pseudo-boxes. The same
-numbers ``threedq em`` now writes into ``detector_eval/results.json`` (``by_size``); this script re-scores runs made
-before that, on any dataset.
+For each detector evaluation folder given (its ``detections_test.npz``), the dataset's label-free pseudo-boxes and the
+pseudo-boxes of the view(s) the detector sees, prints per size band of the GT boxes: the share found at IoU 0.25 and
+0.5, the median best IoU, centre errors and |log size ratio| per axis; and the single-view pseudo-boxes' mAP.
+``--snap IOU ...`` adds rows with each detected box replaced by the single-view pseudo-box it overlaps most (at least
+IOU). ``--num_input_views`` and ``--seed`` must be the DataModule's.
 
     python benchmarks/detection_by_size.py --data_dir data/shifted runs/shifted/03_detector_eval \\
         --out benchmarks/results/detection_by_size_shifted.json
-
-``--snap IOU ...`` adds, per detector, the same rows after each detected box is replaced by the single-view
-pseudo-box it overlaps most, when that overlap is at least IOU (a probe of refining detections against the observed
-view, not a stage of threedq).
-
-``--num_input_views`` and ``--seed`` must be the DataModule's (defaults: the packaged configs' 1 and 0), so the
-single view is the one the detector saw.
 """
 
 from __future__ import annotations

@@ -1,20 +1,10 @@
 """A cut, compact copy of a scene folder for a machine that takes little data (a lent GPU's 64 MiB upload).
 
-``pack`` keeps, per scene, only the views a study reads and stores them compactly; ``unpack`` turns the copy back
-into a threedq scene folder (``index.json`` + validated ``.npz`` scenes) on the other machine:
-
-* train scenes keep ``--train_views`` views drawn per scene from ``--view_seed`` (view prediction draws its input and
-  target views among them);
-* val and test scenes keep the two fixed views of the retrieval protocols (the query view and the paper protocol's
-  gallery view of :meth:`~threedq.datamodules.scene_folder.SceneFolderDataModule.fixed_view_dataset` for the
-  DataModule seed ``--seed``), stored in the order that makes the copy's fixed-view loader (same seed) pick the
-  same view as query and the same as gallery: GT-box scores on the copy use the original's views;
-* RGB is stored as lossless WebP, depth as 16-bit PNG in millimetres (0 stays invalid; depth is rounded to the
-  millimetre, at most 0.5 mm off); instance masks are left out.
-
-On the embedded data (1000 scenes, 6 training views) the copy takes 31 MB at 256x256 and 17 MB at 128x128, against
-1.1 GB / 140 MB for the folders. The device's own CPU type would render other bytes from the same seed, so a copy
-made here is what keeps a study's data identical across machines.
+``pack`` keeps, per scene, only the views a study reads: ``--train_views`` views of each training scene drawn from
+``--view_seed``; the two fixed views of the retrieval protocols of each val and test scene (for the DataModule seed
+``--seed``), in the order that makes the copy's fixed-view loader pick the same query and gallery views. RGB is stored
+as lossless WebP, depth as 16-bit PNG in millimetres (0 stays invalid); instance masks are left out. ``unpack`` turns
+the copy back into a threedq scene folder (``index.json`` + validated ``.npz`` scenes).
 
     python benchmarks/device_copy.py pack data/clevr_veggie_256 .devdata/p256 --train_views 6
     python benchmarks/device_copy.py unpack .devdata/p256 /tmp/clevr_veggie_256 --workers 16   # on the device

@@ -1,19 +1,12 @@
 """Resident memory of a ``threedq em`` run, stage by stage (Linux: it reads ``/proc``).
 
-Runs a command (by default the main job), samples the resident memory (RSS) of its whole process tree (data
-workers and generators included) every ``--interval`` seconds, and when the command ends gives each sample to the
-stage of the run folder that was running then: a stage ends when its marker is written (``stage.json`` of a
-trained stage, ``results.json`` or ``metrics.json`` of an evaluation), so a sample belongs to the first stage,
-in order of those ends, that ended after it. Prints a markdown table (stage, when it ended, peak GiB) and the whole
-run's peak, and draws the per-stage peaks as a bar chart (``--png``; ``--compare`` adds the bars of an earlier
-run's table, a JSON file this script wrote with ``--json``).
+Runs a command (by default the main job), samples the RSS of its whole process tree every ``--interval`` seconds, and
+gives each sample to the first stage of the run folder whose marker (``stage.json``, ``results.json`` or
+``metrics.json``) was written after it. Prints a markdown table (stage, when it ended, peak GiB) and the run's peak,
+and draws the per-stage peaks (``--png``; ``--compare`` adds the bars of an earlier run's ``--json``).
 
     python benchmarks/em_memory.py --work_dir runs/em --json runs/em_memory.json --png docs/img/em_memory.png \\
         -- threedq em --rounds 4
-
-The stage of a sample is read from the folder after the run, so stages that a resumed run skipped (finished earlier)
-get no samples. The sampling reads one ``/proc/<pid>/status`` per process of the tree; at 1 s it costs well under
-1% of a core.
 """
 
 from __future__ import annotations

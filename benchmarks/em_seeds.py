@@ -1,12 +1,9 @@
 """Several ``threedq em`` runs per arm (one per seed) side by side: Table 3 per round, the mean and range over seeds.
 
-A change to the loop is a claim only where its difference is larger than the seeds' spread (round-4 precision@10
-moves by 0.03-0.04 between seeds of one recipe). This script reads the ``metrics.json`` that every ``threedq em`` run
-writes (Table 3's rows; few-shot accuracy from the round results; the mining stage's seconds from
-``rNN_mining/stage.json``), or the rows kept of such runs in ``benchmarks/results/<folder>/rows.jsonl``, so it
-measures nothing itself and repeats no evaluation. Per arm and round it prints the mean (range) over the arm's runs,
-then for each run whether every round's strict and paper-protocol precision@10 stayed at or above its round 0 (the
-view-prediction encoder on the same boxes), and with ``--png`` draws the per-seed curves.
+Reads each run's ``metrics.json`` (Table 3's rows, few-shot accuracy, the mining stage's seconds from
+``rNN_mining/stage.json``) or the rows kept in ``benchmarks/results/<folder>/rows.jsonl``; measures nothing itself.
+Per arm and round it prints the mean (range) over the arm's runs, then per run whether every round's strict and
+paper-protocol precision@10 stayed at or above its round 0, and with ``--png`` draws the per-seed curves.
 
     python benchmarks/em_seeds.py --arm "base=runs/em_s0 runs/em_s1" --arm "vp reg.=runs/vp_s0 runs/vp_s1" \\
         --png docs/img/em_seeds.png
@@ -16,11 +13,10 @@ view-prediction encoder on the same boxes), and with ``--png`` draws the per-see
         --arm "new=runs/new_s0 runs/new_s1"
 
 A run is a work dir, a copy of its ``metrics.json`` (any name ending ``.json``), or ``ROWS.jsonl#RUN``: the row of a
-results folder whose ``run`` is ``RUN`` (the name of the ``metrics.json`` it was cut from). ``--rows`` takes every
-row of a file, one arm per data set and arm.
+results folder whose ``run`` is ``RUN``. ``--rows`` takes every row of a file, one arm per data set and arm.
 
-Convention: rounds as in Table 3 (0 = the view-prediction encoder, 1..R = after each EM round); a value a run
-does not have (a round it did not reach, few-shot with too few categories) is left out of the mean.
+Convention: rounds as in Table 3 (0 = the view-prediction encoder, 1..R = after each EM round); a value a run does
+not have is left out of the mean.
 """
 
 from __future__ import annotations
@@ -30,23 +26,14 @@ import json
 from pathlib import Path
 from typing import Any
 
+from _common import read_rows  # a results folder's rows.jsonl: one row per run, each metric a list over its rounds
+
 from threedq.machine import cpu_name
 
 #: (column, name in the table)
-METRICS = (
-    ("precision_at_10", "strict p@10"),
-    ("precision_at_10_paper", "paper p@10"),
-    ("same_object_top1", "same-object top-1"),
-    ("hungarian_acc", "Hungarian"),
-    ("fewshot_acc", "few-shot"),
-    ("map_50", "mAP@0.5"),
-    ("mining_seconds", "mining s"),
-)
-
-
-def read_rows(path: str | Path) -> list[dict[str, Any]]:
-    """The rows of a results folder's ``rows.jsonl``: one per run, each metric a list over its ``rounds``."""
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+METRICS = (("precision_at_10", "strict p@10"), ("precision_at_10_paper", "paper p@10"),
+           ("same_object_top1", "same-object top-1"), ("hungarian_acc", "Hungarian"), ("fewshot_acc", "few-shot"),
+           ("map_50", "mAP@0.5"), ("mining_seconds", "mining s"))
 
 
 def read_run(work_dir: str | Path) -> dict[int, dict[str, float | None]]:

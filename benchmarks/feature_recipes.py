@@ -1,38 +1,10 @@
-"""Feature recipe study: view-prediction recipes vs. what the learned 3D features retrieve.
+"""Feature recipe study: view-prediction recipes vs what the learned 3D features retrieve.
 
-Each recipe (``--variant NAME=OVERRIDES``: extra LightningCLI overrides of ``configs/stages/viewpred.yaml``) is
-trained from scratch once per seed (``--seeds``) up to the largest of ``--eval_steps`` (a recipe's own
-``--trainer.max_steps=N`` stops it earlier; ``--config stages/supervised.yaml`` first trains that stage instead,
-e.g. the label-supervised ceiling); at every step of
-``--eval_steps`` the encoder is scored on the test split's GT boxes (the learning rate is constant, so step ``s``
-of a long run is a run of ``s`` steps):
-
-* rotation-max precision@10 under both protocols of ``threedq.pipeline.evaluation.retrieval_table`` (``strict``:
-  leave-one-out over one view; ``paper``: gallery = the same objects from each scene's second fixed view, twin
-  counted) and the same-object top-1 rate, each for two similarities: the paper's cosine over the whole crop and
-  the occupancy-weighted cosine (:func:`threedq.geometry.occupancy_weighted`, a departure: voxels near observed
-  surface count more);
-* with ``--probe``: the linear probe on the voxel-averaged crops (labels train the probe only);
-* with ``--cluster``: the quantizer's K-prototype EM (K = 50, 10 iterations, 36 yaws) fitted on the training split's
-  GT crops with each similarity (the quantizer's ``occupancy_floor`` None / 0.2) and scored on the test split:
-  Hungarian and few-shot accuracy and the median relative yaw error, the mean of EM seeds 0 and 1;
-* the raw ``cat[occ, occ*rgb]`` crops and the six-number colour + size descriptor on the same objects;
-* seconds per training step (the trainer's fit time / steps, evaluation excluded).
-
-One JSON line per (recipe, seed, step) is appended to ``--out`` as soon as it is measured (a killed study keeps
-its rows; ``--table_only`` prints the table of an existing file). The table gives, per recipe and step, the
-mean and the range over the seeds; ``--png PATH`` also draws each recipe's numbers against its steps, a line per
-seed (e.g. ``docs/img/feature_recipes_long_cpu.png``). ``--jobs N`` trains N (recipe, seed) pairs at once in subprocesses (on a GPU;
-on a 2-core CPU keep 1: two trainings halve each other's speed and spoil ``s/step``). Run it from a folder holding
-the embedded data (``data/clevr_veggie``, made by ``threedq em`` or ``threedq fit``) or pass ``--data_dir``.
-A ``{seed}`` in a recipe's overrides becomes the run's seed. The mining stage (the fine-tuning levers)
-is a recipe too: ``--variant "mined=--config stages/mining.yaml --model.init_args.encoder_ckpt=VP.ckpt
---model.init_args.seed={seed}"`` fine-tunes a given view-prediction encoder per seed (its steps count from 0).
-``--data_config data/shapes.yaml`` trains and scores on another dataset (the shape-only data of
-``benchmarks/shape_benchmark.py``). ``--score NAME=CKPT`` scores existing checkpoints the same way instead of training (e.g. the main job's encoders on
-another dataset: ``--data_dir data/shifted --score rgbocc=runs/em/00_viewpred/checkpoints/last.ckpt``).
-``--crop_shapes hull square cube`` (with ``--score``) scores each checkpoint once per region cut around each box
-(:func:`threedq.geometry.crop_region`: the paper's hull, a horizontal square, a cube), a row each, from one encoding.
+Each recipe (``--variant NAME=OVERRIDES`` of ``configs/stages/viewpred.yaml``; a leading ``--config stages/X.yaml``
+trains that stage; ``{seed}`` becomes the seed) is trained per seed up to the largest ``--eval_steps`` and scored at
+each on the test split's GT boxes: retrieval (cosine and occupancy-weighted), ``--probe``, ``--cluster`` (K = 50
+banks), the references and seconds per step. One JSON line per (recipe, seed, step) is appended to ``--out``; the
+table is printed (``--png``: curves drawn). ``--score NAME=CKPT`` scores checkpoints instead of training.
 
     python benchmarks/feature_recipes.py --seeds 0 1 --eval_steps 500 1000 2000 \\
         --variant default= --variant "3 targets=--data.init_args.num_target_views=3"
@@ -42,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
 import subprocess
 import sys
@@ -50,14 +21,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from _common import append_row, read_rows
+
 from threedq.geometry import CROP_SHAPES
 from threedq.machine import cpu_name
 
-DEFAULT_VARIANTS = [
-    "default=",
-    "3 targets=--data.init_args.num_target_views=3",
-    "batch 4=--data.init_args.batch_size=4",
-]
+DEFAULT_VARIANTS = ["default=", "3 targets=--data.init_args.num_target_views=3",
+                    "batch 4=--data.init_args.batch_size=4"]
 #: (name in the rows, similarity applied to the learned crops before the rotation search)
 SIMILARITIES = ("cosine", "occupancy")
 
@@ -72,15 +42,15 @@ def _score(crops: dict, similarity: str) -> dict[str, Any]:
             c[key] = occupancy_weighted(c[key], c[raw][:, :1])
         c = {k: v for k, v in c.items() if k in ("learned", "gallery_learned", "labels")}
     table, _ = retrieval_table(c)
-    p = table["protocols"]
-    out = {f"{similarity}/strict": p["strict"]["precision_at_k"]["learned"],
-           f"{similarity}/paper": p["paper"]["precision_at_k"]["learned"],
-           f"{similarity}/top1": p["paper"]["same_object_top1"]["learned"]}
+    p, out = table["protocols"], {}
+    refs = (("learned", similarity),)
     if similarity == "cosine":
-        for name, key in (("raw_rgb_occupancy", "raw"), ("colour_size_descriptor", "descriptor")):
-            out[f"{key}/strict"] = p["strict"]["precision_at_k"][name]
-            out[f"{key}/paper"] = p["paper"]["precision_at_k"][name]
-            out[f"{key}/top1"] = p["paper"]["same_object_top1"][name]
+        refs += (("raw_rgb_occupancy", "raw"), ("colour_size_descriptor", "descriptor"))
+    for name, key in refs:
+        out.update({f"{key}/strict": p["strict"]["precision_at_k"][name],
+                    f"{key}/paper": p["paper"]["precision_at_k"][name],
+                    f"{key}/top1": p["paper"]["same_object_top1"][name]})
+    if similarity == "cosine":
         out["pool"] = table["num_objects"]
         out["ceiling/strict"], out["ceiling/paper"] = p["strict"]["ceiling"], p["paper"]["ceiling"]
     return out
@@ -93,27 +63,23 @@ CLUSTER_SIMILARITIES = (("cosine", None), ("occupancy", 0.2))
 def _cluster(train: dict, test: dict, num_classes: int, em_seeds: tuple[int, ...] = (0, 1),
              symmetry_order: list[int] | None = None) -> dict[str, float]:
     """Hungarian and few-shot accuracy and the median relative yaw error of K = 50 banks fitted on ``train``'s learned
-    crops, per similarity (mean over ``em_seeds``); the quantizer stage's EM
-    (:func:`~threedq.quantization.prototypes.fit_prototype_bank`) and its metrics. ``symmetry_order``: per category
-    (None: every category asymmetric)."""
+    crops, per similarity (mean over ``em_seeds``). ``symmetry_order``: per category (None: all asymmetric)."""
     from threedq.pipeline.evaluation import quantization_metrics
     from threedq.quantization.prototypes import fit_prototype_bank, prototype_crops
 
     out: dict[str, float] = {}
     K = min(50, int(train["labels"].shape[0]))
+    sym = list(symmetry_order) if symmetry_order is not None else [1] * num_classes
     for name, floor in CLUSTER_SIMILARITIES:
         acc: dict[str, list[float]] = {"hungarian": [], "fewshot": [], "yaw_median_deg": []}
         for seed in em_seeds:
             bank = fit_prototype_bank(prototype_crops(train["learned"], train["raw"], floor), K, seed=seed)
             res = bank.assign(prototype_crops(test["learned"], test["raw"], floor))
-            sym = list(symmetry_order) if symmetry_order is not None else [1] * num_classes
             m = quantization_metrics(res.prototype, res.angle, 36, K, test["labels"], test["boxes"][:, 6], num_classes,
                                      sym, seed=seed)
-            acc["hungarian"].append(m["hungarian_acc"])
-            acc["fewshot"].append(m["fewshot_acc"])
-            acc["yaw_median_deg"].append(m["yaw_median_deg"])
-        for k, v in acc.items():
-            out[f"{name}/{k}"] = sum(v) / len(v)
+            for k, v in acc.items():
+                v.append(m[k if k == "yaw_median_deg" else f"{k}_acc"])
+        out.update({f"{name}/{k}": sum(v) / len(v) for k, v in acc.items()})
     return out
 
 
@@ -133,13 +99,8 @@ def _channels(crops: dict, channels: slice | None) -> dict:
 
 def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_shape: str = "hull",
                   channels: slice | None = None) -> dict[str, Any]:
-    """Every number of one row for ``stage``'s encoder on the test split's GT boxes.
-
-    Scored on one input view per scene, the protocols' view, whatever a recipe trains on (a recipe with
-    ``--data.init_args.num_input_views=2`` trains on two, is scored on one). ``crop_shape``: the region cropped
-    around each box (:func:`threedq.geometry.crop_region`), for the learned and the raw crops alike. ``channels``:
-    score only these channels of the learned crops.
-    """
+    """Every number of one row for ``stage``'s encoder on the test split's GT boxes, one input view per scene;
+    ``crop_shape``: the region around each box (:func:`threedq.geometry.crop_region`); ``channels``: those scored."""
     import copy
 
     import torch
@@ -156,15 +117,14 @@ def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_
                                      progress=False, gallery=True, crop_shape=crop_shape)
         crops = _channels(crops, channels)
         row: dict[str, Any] = {"crop": crop_shape}
-        for sim in SIMILARITIES:
-            row.update(_score(crops, sim))
+        row.update({k: v for sim in SIMILARITIES for k, v in _score(crops, sim).items()})
         if probe or cluster:
             train = _channels(collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None,
                                                    progress=False, crop_shape=crop_shape), channels)
         if probe:
             acc = probe_table(train, crops)["accuracy"]
-            row["probe/learned"], row["probe/raw"] = acc["learned"], acc["raw_rgb_occupancy"]
-            row["probe/descriptor"] = acc["colour_size_descriptor"]
+            row.update({"probe/learned": acc["learned"], "probe/raw": acc["raw_rgb_occupancy"],
+                        "probe/descriptor": acc["colour_size_descriptor"]})
         if cluster:
             row.update(_cluster(train, crops, len(dm.index.categories), symmetry_order=list(dm.index.symmetry_order)))
     return row
@@ -190,19 +150,15 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
     overrides = [o.replace("{seed}", str(seed)) for o in overrides]  # e.g. the mining stage's pool seed
     steps = sorted(set(eval_steps))
     extra = [f"--data.init_args.data_dir={data_dir}"] if data_dir else []
+    config_args = ["--config", str(config)]
     if data_config:  # another dataset, composed after the stage config as `threedq fit --config` composes it
         from threedq.pipeline.lightning_cli import resolve_config
 
-        config_args = ["--config", str(config), "--config", str(resolve_config(data_config))]
-    else:
-        config_args = ["--config", str(config)]
-    cli = ThreeDQCLI(
-        args=[*config_args, f"--seed_everything={seed}", f"--trainer.max_steps={steps[-1]}",
-              f"--trainer.default_root_dir={root / name.replace(' ', '_') / f'seed{seed}'}", *quiet,
-              "--trainer.check_val_every_n_epoch=100000", "--trainer.enable_progress_bar=false",
-              "--trainer.enable_checkpointing=false", *extra, *overrides],
-        run=False,
-    )
+        config_args += ["--config", str(resolve_config(data_config))]
+    cli = ThreeDQCLI(args=[*config_args, f"--seed_everything={seed}", f"--trainer.max_steps={steps[-1]}",
+                           f"--trainer.default_root_dir={root / name.replace(' ', '_') / f'seed{seed}'}", *quiet,
+                           "--trainer.check_val_every_n_epoch=100000", "--trainer.enable_progress_bar=false",
+                           "--trainer.enable_checkpointing=false", *extra, *overrides], run=False)
     timer = {"train_s": 0.0, "t0": time.perf_counter()}
 
     class Evaluate(L.Callback):
@@ -212,10 +168,10 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
             timer["train_s"] += time.perf_counter() - timer["t0"]
             t = time.perf_counter()
             row = {"variant": name, "overrides": overrides, "seed": seed, "steps": trainer.global_step,
-                   "s_per_step": timer["train_s"] / trainer.global_step, **score_encoder(stage, cli.datamodule, probe, cluster),
+                   "s_per_step": timer["train_s"] / trainer.global_step,
+                   **score_encoder(stage, cli.datamodule, probe, cluster),
                    "eval_s": round(time.perf_counter() - t, 1), "device": _device_name(stage.device)}
-            with out.open("a") as f:
-                f.write(json.dumps(row) + "\n")
+            append_row(out, row)
             print(f"{name} seed {seed} step {trainer.global_step}: paper {row['cosine/paper']:.3f} "
                   f"(occupancy {row['occupancy/paper']:.3f}) top-1 {row['cosine/top1']:.3f}", flush=True)
             timer["t0"] = time.perf_counter()
@@ -224,16 +180,10 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
     cli.trainer.fit(cli.model, cli.datamodule)
 
 
-def _variant_name(name: str, crop_shape: str) -> str:
-    return name if crop_shape == "hull" else f"{name}, {crop_shape} crop"
-
-
 def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool, cluster: bool = False,
                       crop_shapes: tuple[str, ...] = ("hull",), channels: slice | None = None) -> None:
     """One row per ``NAME=CKPT`` and crop shape: the checkpoint's encoder scored as :func:`score_encoder` does (no
-    training). The shapes and the ``channels`` row share one encoding of each scene (a crop cache holds the grids:
-    about 2 MiB a scene).
-    ``channels``: one more row per checkpoint and shape on these channels of the learned crops alone."""
+    training); ``channels``: one more row per checkpoint and shape on these channels of the learned crops alone."""
     from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
     from threedq.datamodules.scene_folder import SceneFolderDataModule
     from threedq.stages.crop_cache import CropCache
@@ -250,12 +200,12 @@ def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: 
             stage.use_crop_cache(CropCache())
         for shape in crop_shapes:
             for sl in (None, channels) if channels is not None else (None,):
-                variant = _variant_name(name, shape) + ("" if sl is None else f", channels {sl.start}:{sl.stop}")
+                variant = (name if shape == "hull" else f"{name}, {shape} crop") + (
+                    "" if sl is None else f", channels {sl.start}:{sl.stop}")
                 row = {"variant": variant, "overrides": [ckpt], "seed": None, "steps": 0,
                        "s_per_step": float("nan"), **score_encoder(stage, dm, probe, cluster, shape, sl),
                        "device": _device_name(stage.device), "data_dir": data_dir}
-                with out.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
+                append_row(out, row)
                 print(f"{row['variant']}: strict {row['cosine/strict']:.3f} paper {row['cosine/paper']:.3f} "
                       f"(occupancy {row['occupancy/paper']:.3f}) top-1 {row['cosine/top1']:.3f}", flush=True)
         stage.use_crop_cache(None)  # the next checkpoint's grids replace these (about 2 MiB a scene)
@@ -298,8 +248,8 @@ def table(rows: list[dict[str, Any]]) -> str:
         per_recipe: dict[str, list[str]] = {}  # recipes on other data (e.g. another image size) have own references
         for name in dict.fromkeys(r["variant"] for r in rows):
             own = [r for r in rows if r.get("crop", "hull") == shape and r["variant"] == name]
-            cells = [_cell([r[f"{key}/{m}"] for r in own if f"{key}/{m}" in r][:1]) for m in ("strict", "paper", "top1")]
-            per_recipe[name] = [*cells, _cell([r[f"probe/{key}"] for r in own if f"probe/{key}" in r][:1])]
+            keys = [f"{key}/{m}" for m in ("strict", "paper", "top1")] + [f"probe/{key}"]
+            per_recipe[name] = [_cell([r[k] for r in own if k in r][:1]) for k in keys]
         groups: dict[tuple[str, ...], list[str]] = {}  # equal references, the recipes that have them
         for name, cells in per_recipe.items():
             if cells != ["-"] * 4:
@@ -320,8 +270,7 @@ CURVE_PANELS = [("cosine/paper", "precision@10, paper protocol"), ("cosine/stric
 
 
 def curve_points(rows: list[dict[str, Any]], key: str) -> dict[str, dict[Any, list[tuple[int, float]]]]:
-    """Per recipe and seed, ``(steps, value)`` of ``key`` sorted by steps (trained recipes only: scored
-    checkpoints have no steps)."""
+    """Per recipe and seed, ``(steps, value)`` of ``key`` sorted by steps (trained recipes only)."""
     out: dict[str, dict[Any, list[tuple[int, float]]]] = {}
     for r in rows:
         if r.get("steps") and key in r:
@@ -330,32 +279,26 @@ def curve_points(rows: list[dict[str, Any]], key: str) -> dict[str, dict[Any, li
 
 
 def curves_figure(rows: list[dict[str, Any]]) -> Any:
-    """Each recipe's numbers against its training steps, a line per seed, one colour a recipe; the raw crops'
-    number on the same objects dashed, the six-number descriptor's dotted (:func:`curve_references`)."""
+    """Each recipe's numbers against its training steps, a line per seed, one colour a recipe, with the
+    :func:`curve_references`."""
     from threedq.viz.curves import runs_figure
 
-    panels = []
-    for key, title in CURVE_PANELS:
-        if not any(key in r for r in rows):
-            continue
-        curves = {v: list(seeds.values()) for v, seeds in curve_points(rows, key).items()}
-        panels.append((title, curves, curve_references(rows, key)))
+    panels = [(title, {v: list(seeds.values()) for v, seeds in curve_points(rows, key).items()},
+               curve_references(rows, key)) for key, title in CURVE_PANELS if any(key in r for r in rows)]
     return runs_figure(panels, "view-prediction steps")
 
 
 def curve_references(rows: list[dict[str, Any]], key: str) -> list[tuple[float, str, str, str | None]]:
-    """The reference lines of ``key``'s panel: the raw crops (dashed) and the descriptor (dotted) on the same objects,
-    ``(y, linestyle, label, recipe)``: one grey line (recipe None) where every recipe's rows share the value, else
-    a line per value (recipes scored on other data, e.g. another image size), in the recipe's colour where only one
-    recipe has it."""
+    """The reference lines of ``key``'s panel, ``(y, linestyle, label, recipe)``: the raw crops (dashed) and the
+    descriptor (dotted) on the same objects; one grey line (recipe None) where every recipe's rows share the value,
+    else a line per value, in the recipe's colour where only one recipe has it."""
     metric = key.split("/", 1)[1] if key.startswith("cosine/") else None
     references: list[tuple[float, str, str, str | None]] = []
     for source, style, label in (("raw", "--", "raw crops"), ("descriptor", ":", "descriptor")):
         ref = f"{source}/{metric}" if metric else f"probe/{source}"
         first: dict[str, float] = {}
-        for r in rows:
-            if ref in r and r.get("crop", "hull") == "hull":
-                first.setdefault(r["variant"], r[ref])
+        for r in (r for r in rows if ref in r and r.get("crop", "hull") == "hull"):
+            first.setdefault(r["variant"], r[ref])
         by_value: dict[float, list[str]] = {}
         for name, y in first.items():
             by_value.setdefault(y, []).append(name)
@@ -416,9 +359,8 @@ def main() -> None:
     elif not args.table_only:
         jobs = [(spec, seed) for spec in (args.variant or DEFAULT_VARIANTS) for seed in args.seeds]
         common = ["--eval_steps", *map(str, args.eval_steps), "--root", str(args.root), "--out", str(args.out)]
-        common += [f"--common={args.common}"] if args.common else []
-        common += (["--probe"] if args.probe else []) + (["--cluster"] if args.cluster else [])
-        common += ["--data_dir", args.data_dir] if args.data_dir else []
+        common += ([f"--common={args.common}"] if args.common else []) + (["--probe"] if args.probe else [])
+        common += (["--cluster"] if args.cluster else []) + (["--data_dir", args.data_dir] if args.data_dir else [])
         common += ["--data_config", args.data_config] if args.data_config else []
         running: list[subprocess.Popen] = []
         for spec, seed in jobs:
@@ -432,7 +374,7 @@ def main() -> None:
         failed = [p.args for p in running if p.wait() != 0]
         if failed:
             print(f"failed: {failed}", file=sys.stderr)
-    rows = [json.loads(line) for line in args.out.read_text().splitlines() if line.strip()]
+    rows = read_rows(args.out)
     print(f"\nmachine: {rows[0]['device'] if rows else cpu_name()}  date: {time.strftime('%Y-%m-%d')}  "
           f"precision@10 of the test split's GT boxes\n")
     print(table(rows))

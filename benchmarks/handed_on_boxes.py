@@ -1,18 +1,18 @@
-"""What the boxes a ``threedq em`` round hands on to mining are, measured against GT (for measuring only).
+"""The boxes a ``threedq em`` round hands on to mining, measured against GT (for measuring only), one question a run:
 
-Reads a detections file (``<work_dir>/03_detector_eval/detections_train.npz`` for round 1, ``rNN_detector_eval/`` for
-later rounds) and the dataset, takes each scene's ``max_boxes`` boxes of highest score as the rounds do, matches them to
-the GT objects by the rule of the mAP at IoU 0.5 (``assign_detections``), and sorts the unmatched ones:
+Reads detections files (``03_detector_eval/detections_train.npz`` for round 1, ``rNN_detector_eval/`` later) and the
+dataset and takes each scene's ``max_boxes`` highest boxes.
 
-* ``duplicate``: IoU >= 0.5 with a GT object another box already took;
-* ``partial``: best IoU in [0.1, 0.5): on an object, but cut smaller or larger than it (with their volume against
-  that object's GT box, and whether they touch two objects);
-* ``off``: IoU < 0.1 with every GT object.
-
-Also, per class: the fraction of boxes whose input view sees more than 10% of the pixels of their projection at a
-depth 5 cm nearer than the box's nearest corner (something in front: occluded).
+* ``--op kinds`` (default): matches them to GT at IoU 0.5 (``assign_detections``) and sorts the unmatched:
+  ``duplicate`` (IoU >= 0.5 with a GT object already taken), ``partial`` (best IoU in [0.1, 0.5)) and ``off``
+  (IoU < 0.1); per class also the fraction of occluded boxes (something in front in the input view).
+* ``--op pool_check``: scores each by the mining pool's two label-free checks, its best 3D IoU with the input view's
+  pseudo-boxes (``pool_min_observed_iou``) and with the scene's fused pseudo-boxes (``pool_min_scene_iou``); per
+  threshold the boxes kept and the share on a GT object at IoU 0.5. Rows go to ``--out`` as JSON lines.
 
     python benchmarks/handed_on_boxes.py runs/em/03_detector_eval/detections_train.npz --data_dir data/clevr_veggie
+    python benchmarks/handed_on_boxes.py --op pool_check runs/em/03_detector_eval/detections_train.npz \\
+        --data_dir data/clevr_veggie
 """
 
 from __future__ import annotations
@@ -24,8 +24,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import append_row, machine, table
 
 from threedq.machine import cpu_name
+
+#: the feature grid's bounds of ``configs/stages/viewpred.yaml`` (what the detector and the pool's input check use)
+GRID_BOUNDS = ((-1.28, -1.28, -0.32), (1.28, 1.28, 0.96))
 
 
 def occluded_fraction(aabb: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, pose: torch.Tensor,
@@ -75,19 +79,49 @@ def handed_on_samples(detections: Path, data_dir: Path, split: str = "train", ma
             yield ds.files[i], s, m, aabb
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("detections", type=Path, help="a detections_<split>.npz a round hands on")
-    ap.add_argument("--data_dir", type=Path, required=True, help="the dataset folder (holds index.json)")
-    ap.add_argument("--split", default="train")
-    ap.add_argument("--max_boxes", type=int, default=8, help="boxes per scene the rounds take (highest scores)")
-    args = ap.parse_args()
+def box_scores(detections: Path, data_dir: Path, split: str = "train", max_boxes: int = 8,
+               bounds: tuple = GRID_BOUNDS) -> dict[str, np.ndarray]:
+    """Per handed-on box (scenes in index order, each scene's boxes by decreasing score): ``on_object`` (matches a
+    GT object; measuring only), ``input_iou`` and ``scene_iou`` (the two checks' best IoUs, 0 where there is no
+    pseudo-box)."""
+    from threedq.box_refinement import observed_boxes
+    from threedq.boxes import best_aabb_iou
+    from threedq.data.box_files import load_boxes_file
 
+    fused = load_boxes_file(data_dir / "proposals" / f"{split}.npz")
+    cols: dict[str, list[float]] = {"on_object": [], "input_iou": [], "scene_iou": []}
+
+    def best(boxes: torch.Tensor, others: np.ndarray) -> torch.Tensor:
+        return best_aabb_iou(boxes, torch.as_tensor(others, dtype=torch.float32).reshape(-1, 6))
+
+    for name, s, m, aabb in handed_on_samples(detections, data_dir, split, max_boxes):
+        obs, _ = observed_boxes(s["depth"][:1], s["K"][:1], s["R_T_cam"][:1], bounds)
+        cols["on_object"] += (s["categories"][m] >= 0).float().tolist()
+        cols["input_iou"] += best(aabb, obs).tolist()
+        cols["scene_iou"] += best(aabb, fused[name][0]).tolist()
+    return {k: np.asarray(v, np.float64) for k, v in cols.items()}
+
+
+def check_table(scores: dict[str, np.ndarray], input_iou: float = 0.5,
+                scene_thresholds: tuple[float, ...] = (0.5, 0.6, 0.7, 0.8)) -> list[dict]:
+    """Rows (check, kept, kept share, on GT objects among the kept): every box, the input check alone, and the input
+    check with each scene threshold."""
+    on, inp, scn = scores["on_object"], scores["input_iou"], scores["scene_iou"]
+    rows = []
+    for name, keep in [("every box", np.ones_like(on, bool)), (f"input view >= {input_iou}", inp >= input_iou)] + [
+            (f"input view >= {input_iou}, scene >= {t}", (inp >= input_iou) & (scn >= t)) for t in scene_thresholds]:
+        rows.append({"check": name, "kept": int(keep.sum()), "kept_share": float(keep.mean()) if len(on) else 0.0,
+                     "on_objects": float(on[keep].mean()) if keep.any() else float("nan")})
+    return rows
+
+
+def kinds(detections: Path, args: argparse.Namespace) -> None:
+    """The table of ``--op kinds`` for one detections file."""
     from threedq.boxes import aabb_iou_3d
 
-    kinds: dict[str, list[tuple[float, float, int]]] = {k: [] for k in ("matched", "duplicate", "partial", "off")}
+    found: dict[str, list[tuple[float, float, int]]] = {k: [] for k in ("matched", "duplicate", "partial", "off")}
     scenes = 0
-    for _, s, m, aabb in handed_on_samples(args.detections, args.data_dir, args.split, args.max_boxes):
+    for _, s, m, aabb in handed_on_samples(detections, args.data_dir, args.split, args.max_boxes):
         scenes += 1
         gt = s["gt_aabb"][s["gt_mask"]].float()  # the scene's GT boxes, which every sample carries beside its own
         iou = aabb_iou_3d(aabb, gt) if gt.shape[0] else torch.zeros(len(aabb), 1)
@@ -99,19 +133,45 @@ def main() -> None:
             kind = ("matched" if s["categories"][m][j] >= 0 else "duplicate" if best >= 0.5 else
                     "partial" if best >= 0.1 else "off")
             ratio = float(vol[j] / gvol[iou[j].argmax()]) if gt.shape[0] else float("nan")
-            kinds[kind].append((float(occl[j]), ratio, int((iou[j] > 0.05).sum())))
-    n = sum(len(v) for v in kinds.values())
-    print(f"machine: {cpu_name()}  date: {time.strftime('%Y-%m-%d')}  {args.detections}: {n} boxes, {scenes} scenes with boxes")
-    print("| boxes | count | share | occluded > 10% | volume / GT's < 0.7 | 0.7-1.4 | >= 1.4 | "
-          "touching 2+ GT objects |")
-    print("|---|---|---|---|---|---|---|---|")
-    for kind, rows in kinds.items():
-        if not rows:
-            print(f"| {kind} | 0 | 0.00 | - | - | - | - | - |")
+            found[kind].append((float(occl[j]), ratio, int((iou[j] > 0.05).sum())))
+    n = sum(len(v) for v in found.values())
+    print(f"{detections}: {n} boxes, {scenes} scenes with boxes")
+    rows = []
+    for kind, rs in found.items():
+        if not rs:
+            rows.append((kind, 0, "0.00", *["-"] * 5))
             continue
-        o, r, t = (np.array(c) for c in zip(*rows))
-        print(f"| {kind} | {len(rows)} | {len(rows) / n:.2f} | {np.mean(o > 0.1):.2f} | {np.mean(r < 0.7):.2f} | "
-              f"{np.mean((r >= 0.7) & (r < 1.4)):.2f} | {np.mean(r >= 1.4):.2f} | {np.mean(t >= 2):.2f} |")
+        o, r, t = (np.array(c) for c in zip(*rs))
+        rows.append((kind, len(rs), f"{len(rs) / n:.2f}", *(f"{np.mean(x):.2f}" for x in (
+            o > 0.1, r < 0.7, (r >= 0.7) & (r < 1.4), r >= 1.4, t >= 2))))
+    print(table(["boxes", "count", "share", "occluded > 10%", "volume / GT's < 0.7", "0.7-1.4", ">= 1.4",
+                 "touching 2+ GT objects"], rows))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("detections", type=Path, nargs="+", help="detections_<split>.npz files rounds hand on")
+    ap.add_argument("--op", choices=["kinds", "pool_check"], default="kinds")
+    ap.add_argument("--data_dir", type=Path, required=True, help="the dataset folder (holds index.json, proposals/)")
+    ap.add_argument("--split", default="train")
+    ap.add_argument("--max_boxes", type=int, default=8, help="boxes per scene the rounds take (highest scores)")
+    ap.add_argument("--scene_thresholds", type=float, nargs="+", default=[0.5, 0.6, 0.7, 0.8], help="pool_check")
+    ap.add_argument("--out", type=Path, default=None, help="pool_check: append the rows as JSON lines")
+    args = ap.parse_args()
+    print(f"{machine()}; data: {args.data_dir}")
+    if args.op == "kinds":
+        for det in args.detections:
+            kinds(det, args)
+        return
+    rows = []
+    for det in args.detections:
+        for r in check_table(box_scores(det, args.data_dir, args.split, args.max_boxes),
+                             scene_thresholds=tuple(args.scene_thresholds)):
+            rows.append((det, r["check"], r["kept"], f"{r['kept_share']:.2f}", f"{r['on_objects']:.3f}"))
+            if args.out is not None:
+                append_row(args.out, {"detections": str(det), "data_dir": str(args.data_dir), **r,
+                                      "machine": cpu_name(), "date": time.strftime("%Y-%m-%d")})
+    print(table(["boxes handed on", "check", "kept", "kept share", "on GT objects"], rows))
 
 
 if __name__ == "__main__":

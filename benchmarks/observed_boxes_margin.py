@@ -1,15 +1,11 @@
 """The single-view pseudo-boxes a detector is refined against, at several ground margins.
 
-For each ``--margin MARGIN:MIN_HEIGHT`` (metres; ``measured`` = ``ground_margin=None, min_height=None``, the packaged
-:data:`threedq.box_refinement.OBSERVED_PARAMS`), compute :func:`threedq.box_refinement.observed_boxes` of the input
-view each test scene's detector sees (the DataModule's seeded fixed view, ``--num_input_views`` / ``--seed`` as the
-DataModule's) and print their dataset-level mAP@0.25 / @0.5 against the GT boxes, and the share of the GT objects
-less tall than ``--flat`` (metres; the detector's ``min_box_height``) found at IoU 0.25 / 0.5.
+Per ``--margin MARGIN:MIN_HEIGHT`` (metres; ``measured``: the packaged :data:`threedq.box_refinement.OBSERVED_PARAMS`),
+:func:`threedq.box_refinement.observed_boxes` of each test scene's input view: their mAP@0.25 / @0.5 against the GT
+boxes, and the share of GT objects less tall than ``--flat`` found at IoU 0.25 / 0.5.
 
     python benchmarks/observed_boxes_margin.py --data_dir data/shifted
     python benchmarks/observed_boxes_margin.py --data_dir data/clevr_veggie --scenes 120
-
-Results with machine and date: ``docs/studies/detector.md``, "Flat objects and the observed boxes' ground margin".
 """
 
 from __future__ import annotations

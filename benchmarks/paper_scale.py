@@ -1,26 +1,10 @@
 """The paper's preset at full size on this machine: does every stage run at 144^3 / 256 px, how long, how much memory,
 and what would the whole run cost on a GPU?
 
-1. **Smoke run.** ``threedq em --preset paper --rounds 1`` on ``--scenes`` scenes of the 256 px embedded data (the
-   preset's data config with fewer scenes), every stage's steps cut to ``--steps`` (only the step counts shrink: the
-   grid, the image size, the widths, the pools, the queue, K and the yaws are the preset's), the round on GT boxes
-   (``--boxes gt``: a detector of a few steps hands on no box above its 0.9 threshold). It runs under
-   ``/usr/bin/time -v`` (the peak memory of the whole run) and reads each stage's seconds from the run's
-   ``metrics.json``. A Lightning callback (:class:`StepProbe`, added to every stage by an extra config) counts each
-   trained stage's FLOPs on its second step (forward and backward, ``torch.utils.flop_counter.FlopCounterMode``) and
-   times its third (the first holds one-off work: the scenes a stage encodes for its pools and caches).
-2. **Each stage's peak memory** (``--stage_memory``). For each stage of the finished smoke run, a copy of the run
-   without that stage and the ones after it is resumed (``--resume true``) under ``/usr/bin/time -v`` and stopped
-   when the stage has finished: the peak resident memory of a run that has to carry only that stage (with what it
-   loads to start: the checkpoints it reads, the scenes it encodes).
-3. **FLOPs per step.** One view-prediction training step of the preset (batch 2, one input and one target view) is
-   counted with ``torch.utils.flop_counter.FlopCounterMode`` (forward and backward), and timed on this CPU.
-4. **Estimate.** The 100,000 view-prediction steps of the paper at 10% and 35% of a GPU's peak (a V100's fp32
-   15.7 TFLOPS, as the paper trained; an H100 SXM's dense bf16 989 TFLOPS, as ``trainer/gpu.yaml``'s bf16-mixed
-   would run), beside the share of the V100's peak that the paper's own 24 h implies. The shares are assumptions:
-   no GPU has run the preset (``benchmarks/device_check/``).
-
-Usage::
+A smoke run (``threedq em --preset paper --rounds 1`` on ``--scenes`` scenes, every stage cut to ``--steps`` steps,
+under ``/usr/bin/time -v``; ``--stage_memory``: each stage's peak memory on its own), the FLOPs and CPU seconds of one
+view-prediction step, and the paper's 100,000 steps estimated at assumed shares of a V100's and an H100's peak.
+``--minutes`` instead trains the preset's view prediction on ``--device`` and sets its step time beside the estimate.
 
     python benchmarks/paper_scale.py --work runs/paper_smoke      # about 5 min on 2 cores
     python benchmarks/paper_scale.py --work runs/paper_smoke --stage_memory     # about 10 min more
@@ -42,6 +26,7 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
+from _common import append_row, machine, table
 from torch.utils.flop_counter import FlopCounterMode
 
 from threedq.machine import cpu_name
@@ -63,16 +48,13 @@ STAGES = (("view prediction", "00_viewpred", "stage.json"), ("its evaluation", "
 
 
 class StepProbe(pl.Callback):
-    """Counts the FLOPs of a stage's second training step (forward and backward) and times its third (the first holds
-    one-off work: the scenes a stage encodes for its pools and caches); appends one JSON line per stage (its run
-    folder's name) to ``out``."""
+    """Counts the FLOPs of a stage's second training step (forward and backward) and times its third; appends one JSON
+    line per stage (its run folder's name) to ``out``."""
 
     def __init__(self, out: str) -> None:
-        self.out = out
-        self.calls = 0
+        self.out, self.calls, self.t0 = out, 0, 0.0
         self.counter: FlopCounterMode | None = None
         self.rows: dict[str, float] = {}
-        self.t0 = 0.0
 
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, idx: int) -> None:
         self.calls += 1
@@ -92,9 +74,7 @@ class StepProbe(pl.Callback):
             self.rows["s_per_step"] = seconds
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        row = {"stage": Path(trainer.default_root_dir).name, **self.rows}
-        with open(self.out, "a") as f:
-            f.write(json.dumps(row) + "\n")
+        append_row(Path(self.out), {"stage": Path(trainer.default_root_dir).name, **self.rows})
 
 
 def _run_args(work: Path) -> list[str]:
@@ -130,15 +110,14 @@ def smoke(work: Path, scenes: int, steps: int) -> dict[str, Any]:
     data = work / "data.yaml"
     data.write_text(f"base: data/clevr_veggie_256.yaml\ndata:\n  init_args:\n    data_dir: {(work / 'data').resolve()}\n"
                     f"    num_scenes: {scenes}\n    split_fractions: [0.5, 0.125, 0.375]\n")
-    short = work / "steps.yaml"
     probe = work / "steps.jsonl"
     probe.unlink(missing_ok=True)
-    short.write_text(_steps_yaml(steps, probe))
+    (work / "steps.yaml").write_text(_steps_yaml(steps, probe))
     t0 = time.perf_counter()
     proc = subprocess.run(["/usr/bin/time", "-v", *_run_args(work)], capture_output=True, text=True, check=False,
                           env=_env())  # its exit status is reported
-    wall = time.perf_counter() - t0
-    out: dict[str, Any] = {"returncode": proc.returncode, "wall_s": round(wall, 1), "peak_gib": _peak_gib(proc.stderr)}
+    out: dict[str, Any] = {"returncode": proc.returncode, "wall_s": round(time.perf_counter() - t0, 1),
+                           "peak_gib": _peak_gib(proc.stderr)}
     metrics = work / "em" / "metrics.json"
     if proc.returncode != 0 or not metrics.is_file():
         out["error"] = proc.stderr[-3000:]
@@ -211,10 +190,8 @@ def viewpred_step_flops(repeats: int = 2) -> dict[str, float]:
     """FLOPs (forward + backward) and CPU seconds of one view-prediction training step of the preset."""
     model, batch = _preset_viewpred_step()
     opt = torch.optim.Adam(model.parameters(), 1e-3)
-    counter = FlopCounterMode(display=False)
-    with counter:
-        loss = model._step(batch)["loss"]
-        loss.backward()
+    with FlopCounterMode(display=False) as counter:
+        model._step(batch)["loss"].backward()
     flops = counter.get_total_flops()
     times = []
     for _ in range(repeats):
@@ -223,13 +200,13 @@ def viewpred_step_flops(repeats: int = 2) -> dict[str, float]:
         model._step(batch)["loss"].backward()
         opt.step()
         times.append(time.perf_counter() - t0)
-    return {"tflop_per_step": flops / 1e12, "cpu_s_per_step": min(times) if times else float("nan"), "batch": int(batch["rgb"].shape[0])}
+    return {"tflop_per_step": flops / 1e12, "cpu_s_per_step": min(times) if times else float("nan"),
+            "batch": int(batch["rgb"].shape[0])}
 
 
 def timed_steps(minutes: float, device: str, bf16: bool) -> dict[str, Any]:
-    """Train the preset's view prediction on one batch for ``minutes`` on ``device`` (bf16 autocast, as
-    ``trainer/gpu.yaml``'s bf16-mixed, or fp32): the median seconds of a step after the first (data loading
-    excluded), the steps done and the peak memory (the device's allocator on a GPU, resident memory on the CPU)."""
+    """Train the preset's view prediction on one batch for ``minutes`` on ``device`` (bf16 autocast or fp32): the
+    median seconds of a step after the first, the steps done and the peak memory (allocator on a GPU, else RSS)."""
     import resource
     import statistics
 
@@ -260,13 +237,12 @@ def estimate_table(tflop: float) -> str:
     """Hours for the paper's 100k view-prediction steps at two sustained shares of each GPU's peak, and the share the
     paper's own 24 h on a V100 implies for this step's FLOPs."""
     implied = tflop * PAPER_STEPS / (PAPER_HOURS * 3600) / GPUS["V100"][0]
-    rows = [f"The paper's 24 h for 100k steps on a V100 is {implied:.1%} of its fp32 peak for {tflop:.2f} TFLOP a step.",
-            "", "| GPU | peak TFLOPS | share of peak sustained (assumed) | s per step | 100k steps |", "|---|---|---|---|---|"]
-    for name, (peak, what) in GPUS.items():
-        for share in EFFICIENCIES:
-            s = tflop / (peak * share)
-            rows.append(f"| {name} | {peak:g} ({what}) | {share:.0%} | {s:.3f} | {s * PAPER_STEPS / 3600:.1f} h |")
-    return "\n".join(rows)
+    rows = [(name, f"{peak:g} ({what})", f"{share:.0%}", f"{tflop / (peak * share):.3f}",
+             f"{tflop / (peak * share) * PAPER_STEPS / 3600:.1f} h")
+            for name, (peak, what) in GPUS.items() for share in EFFICIENCIES]
+    head = ["GPU", "peak TFLOPS", "share of peak sustained (assumed)", "s per step", "100k steps"]
+    return (f"The paper's 24 h for 100k steps on a V100 is {implied:.1%} of its fp32 peak for {tflop:.2f} TFLOP a step."
+            "\n\n" + table(head, rows))
 
 
 def main() -> None:
@@ -282,7 +258,7 @@ def main() -> None:
     ap.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
                     help="bf16 autocast (default: on a GPU, as trainer/gpu.yaml)")
     args = ap.parse_args()
-    print(f"{time.strftime('%Y-%m-%d')}, {cpu_name()}, {torch.get_num_threads()} threads, torch {torch.__version__}")
+    print(machine())
     if args.minutes is not None:
         bf16 = args.device.startswith("cuda") if args.bf16 is None else args.bf16
         t = timed_steps(args.minutes, args.device, bf16)
@@ -305,19 +281,13 @@ def main() -> None:
     if "error" in s:
         print(s["error"], file=sys.stderr)
         sys.exit(1)
-    print("\n| stage | seconds (with set-up) |\n|---|---|")
-    for name, sec in s["stages"].items():
-        print(f"| {name} | {sec:.1f} |")
+    print("\n" + table(["stage", "seconds (with set-up)"], [(n, f"{sec:.1f}") for n, sec in s["stages"].items()]))
     print("\nthe trained stages' steps (FLOPs of the second step, forward and backward; seconds of the third):\n")
-    print("| stage | TFLOP per step | s per step |\n|---|---|---|")
-    for folder, row in s["steps"].items():
-        print(f"| {folder} | {row.get('tflop', float('nan')):.3f} | {row.get('s_per_step', float('nan')):.2f} |")
+    print(table(["stage", "TFLOP per step", "s per step"], [(f, f"{r.get('tflop', float('nan')):.3f}",
+                f"{r.get('s_per_step', float('nan')):.2f}") for f, r in s["steps"].items()]))
     if args.stage_memory:
         print("\neach stage's peak resident memory, resumed on its own:\n")
-        peaks = stage_memory(args.work, args.steps)
-        print("| stage | peak GiB |\n|---|---|")
-        for name, gib in peaks.items():
-            print(f"| {name} | {gib} |")
+        print(table(["stage", "peak GiB"], stage_memory(args.work, args.steps).items()))
     print(f"\nround 1 on the smoke data (no measure of quality at {args.steps} steps): {s['round1']}")
 
 

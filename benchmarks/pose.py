@@ -1,27 +1,10 @@
 """Pose benchmark: how well does the prototype match give each object's yaw, on categories seen and unseen?
 
-For each dataset (``--datasets``: ``embedded`` = ``configs/data/clevr_veggie.yaml``, ``shapes`` =
-``configs/data/shapes.yaml``, ``unseen`` = ``configs/data/shapes_unseen.yaml``: 8 categories no encoder trained on),
-each encoder (``--encoder NAME=CKPT``; a repeated NAME is another seed) is scored by a K = 50 rotation-aware bank
-(36 yaws, occupancy-weighted crops, the quantizer's) fitted label-free on the evaluated test objects themselves, two
-bank seeds, once per number of input views (``--input_views``: each object cropped from the grid that this many of
-its scene's fixed views fill; the paper's protocol is one) and per box source: GT boxes, and with ``--run RUN`` the
-boxes the detector of that ``threedq em`` run finds from each scene's first input view, as a run's evaluation
-detects (the detections that match a GT object at IoU >= 0.5 are scored with its category and yaw). Per row:
-
-* the median relative yaw error of same-prototype pairs of one asymmetric category, accuracy within 10 / 20 deg
-  (:func:`threedq.metrics.pose.relative_yaw_error`), and of the 2-fold and 4-fold categories modulo their period;
-* the same median over the objects whose ``yaw_confidence`` (:func:`threedq.quantization.yaw_confidence`, as
-  ``threedq parse`` reports it) is above the median: does the confidence tell a pose from a guess?
-* ``pairs``: the yaw the features find directly between two objects of one asymmetric category (the rotation search
-  of one crop against the other, no bank): what the features know of the yaw before a prototype averages them;
-* Hungarian accuracy of the bank (does the pose come at the price of the clusters?).
-
-References, once per dataset: random yaws (the first encoder's clusters), the raw ``cat[occ, occ * rgb]`` crops'
-bank, point-cloud registration (K = 50, input occupancy) and the input occupancy alone between two objects of one
-category (``pairs``).
-
-One JSON line per (dataset, row, seed) goes to ``--rows``; the markdown table (mean and range over seeds) is printed.
+Per dataset, each ``--encoder NAME=CKPT`` (a repeated NAME is another seed) is scored by a K = 50 rotation-aware bank
+fitted label-free on the test objects themselves, per number of ``--input_views`` and box source (GT; with ``--run``
+that run's detections): median relative yaw errors, accuracy within 10 / 20 deg, the confident half, the yaw found
+directly between two objects (``pairs``) and Hungarian accuracy, with references (random yaws, the raw crops' bank,
+point-cloud registration). One JSON line per (dataset, row, seed) goes to ``--rows``; the table is printed.
 
     python benchmarks/pose.py --encoder "main job=runs/em/r04_quantizer/checkpoints/last.ckpt" \\
         --encoder "main job=runs/em_s1/r04_quantizer/checkpoints/last.ckpt" --rows pose_rows.jsonl
@@ -33,13 +16,13 @@ One JSON line per (dataset, row, seed) goes to ``--rows``; the markdown table (m
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from pathlib import Path
 from typing import Any
 
 import torch
+from _common import append_row, mean_range, read_rows
 
 from threedq.machine import cpu_name
 
@@ -76,11 +59,8 @@ def pair_yaw_error(crops: torch.Tensor, test: dict, sym: list[int], seed: int = 
     if not pairs:
         return float("nan")
     pick = torch.randperm(len(pairs), generator=torch.Generator().manual_seed(seed))[:PAIRS].tolist()
-    i = torch.tensor([pairs[p][0] for p in pick])
-    j = torch.tensor([pairs[p][1] for p in pick])
-    yaw = yaw_angles(NUM_ANGLES, dtype=torch.float64)
-    errs = []
-    for a, b in zip(i.tolist(), j.tolist()):
+    yaw, errs = yaw_angles(NUM_ANGLES, dtype=torch.float64), []
+    for a, b in (pairs[p] for p in pick):
         step = best_prototype_and_yaw(crops[a : a + 1], crops[b : b + 1], NUM_ANGLES).angle[0]
         # turning a by yaw[step] aligns it with b: the estimate of g_a - g_b is -yaw[step]
         e = (-yaw[step] - (gt[a] - gt[b]) + math.pi) % (2 * math.pi) - math.pi
@@ -100,8 +80,7 @@ def bank_rows(crops: torch.Tensor, test: dict, sym: list[int], num_classes: int)
         bank = fit_prototype_bank(crops, min(K, crops.shape[0]), iterations=EM_ITERATIONS, num_angles=NUM_ANGLES,
                                   seed=seed)
         res = bank.assign(crops)
-        if first is None:
-            first = res
+        first = res if first is None else first
         m = yaw_summary(res.angle, res.prototype, test, sym)
         margin = yaw_confidence(res, yaw_margin_steps(NUM_ANGLES))
         sure = margin >= margin.median()
@@ -189,8 +168,8 @@ def measure(datasets: list[str], encoders: list[str], rows_path: Path, input_vie
                 refs["point-cloud registration"] = _pointcloud(test, sym)
                 new += [{"dataset": ds, "row": ref, **where, "seed": 0, "objects": int(test["labels"].shape[0]), **r,
                          **machine} for ref, r in refs.items()]
-            with rows_path.open("a") as f:
-                f.writelines(json.dumps(r) + "\n" for r in new)
+            for r in new:
+                append_row(rows_path, r)
             rows += new
             print(f"{ds}: {name} seed {seen[key]}, {views} view(s), {box_name} boxes: yaw {row['asym_median_deg']:.1f} deg, pairs "
                   f"{row['pairs_asym_median_deg']:.1f}, confident half {row['confident_asym_median_deg']:.1f}",
@@ -229,13 +208,7 @@ def table(rows: list[dict[str, Any]]) -> str:
         cells = []
         for key, _ in COLUMNS:
             v = [r[key] for r in rs if key in r and r[key] == r[key]]
-            digits = 2 if "acc" in key else (1 if "deg" in key else 3)
-            if not v:
-                cells.append("")
-            elif len(v) == 1:
-                cells.append(f"{v[0]:.{digits}f}")
-            else:
-                cells.append(f"{sum(v) / len(v):.{digits}f} ({min(v):.{digits}f}-{max(v):.{digits}f})")
+            cells.append(mean_range(v, 2 if "acc" in key else (1 if "deg" in key else 3)) if v else "")
         out.append(f"| {ds} | {boxes} | {views} | {name} | {len(rs)} | {rs[0]['objects']} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
@@ -253,7 +226,7 @@ def main() -> None:
         if not args.encoder:
             ap.error("--encoder: give at least one NAME=CKPT")
         measure(args.datasets, args.encoder, args.rows, args.input_views, args.run)
-    rows = [json.loads(line) for line in args.rows.read_text().splitlines() if line.strip()]
+    rows = read_rows(args.rows)
     print(f"\n{rows[0]['date']}, {rows[0]['cpu']}, torch {rows[0]['torch']}; K = {K}, "
           f"{NUM_ANGLES} yaws, banks fitted on the test objects (labels unused), {len(BANK_SEEDS)} bank seeds\n")
     print(table(rows))

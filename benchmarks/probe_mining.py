@@ -1,10 +1,9 @@
 """How well does the 3D patch miner pick same-category pairs on trained features?
 
-Crops every test object of the embedded data with the encoder of a quantizer checkpoint, mines
-correspondences from the first ``--queries`` objects against all of them (other scenes only), and prints,
-with the GT categories used for measuring only: the fraction of kept pairs whose two objects share a
-category, the same for the plain top-k object retrieval and its top-1, and the verification scores.
-Run it from the folder of a finished ``threedq em`` (it reads ``data/clevr_veggie``):
+Crops every test object of the embedded data (``data/clevr_veggie``) with a quantizer checkpoint's encoder, mines
+correspondences from the first ``--queries`` objects against all of them (other scenes only), and prints (GT for
+measuring only) the share of kept pairs of one category, the same for plain top-k retrieval and its top-1, and the
+verification scores.
 
     python benchmarks/probe_mining.py --ckpt runs/em/r04_quantizer/checkpoints/last.ckpt --min_cosine 0.5
     python benchmarks/probe_mining.py --ckpt ... --min_cosine 0.95 --yaw_window 1 --rank_by retrieval

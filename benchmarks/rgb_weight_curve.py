@@ -1,12 +1,9 @@
 """The RGB loss's weight against shape (shapes data) and category retrieval (embedded data): one picture.
 
-Reads the rows the shape study measured (``docs/studies/shape.md``, "The RGB loss's weight on both
-datasets"): ``benchmarks/results/shape_benchmark_levers_cpu_2026-11-29.jsonl`` and
-``shape_benchmark_cpu_2026-11-29.jsonl`` (shapes data, 500 steps; weight 30 is the "view prediction on shapes, 500
-steps" row) and the ``threedq eval --encoders`` tables under
-``benchmarks/results/viewpred_rgb_weight_embedded_cpu_2026-11-29/`` (embedded data, 1700 steps, GT boxes), and draws
-each measure against the weight, a line per seed, with the references (raw crops, point-cloud registration) and the
-embedded guard (the main job's recipe's lowest seed) as horizontal lines.
+Reads the shape study's rows (``benchmarks/results/shape_benchmark_levers_cpu_2026-11-29.jsonl``,
+``shape_benchmark_cpu_2026-11-29.jsonl``) and the ``threedq eval --encoders`` tables under
+``benchmarks/results/viewpred_rgb_weight_embedded_cpu_2026-11-29/``, and draws each measure against the weight, a
+line per seed, with the references and the embedded guard as horizontal lines.
 
     python benchmarks/rgb_weight_curve.py --png docs/img/rgb_weight_tradeoff.png
 """

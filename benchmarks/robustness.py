@@ -1,16 +1,9 @@
 """Robustness to capture conditions: the main job's model, and one adaptation round, on noisy copies of the embedded data.
 
-For each condition (a capture level with every effect, or one effect alone at level 1; ``threedq.data.sensor``):
-
-- ``frozen``: the main job's last detector and quantizer on a copy whose **test** split is degraded (the training
-  split stays as the main job saw it): what a trained model makes of sensor captures
-  (:func:`threedq.pipeline.em.evaluate_run_on`);
-- ``adapted`` (the conditions given to ``--adapt``): ``threedq em --rounds 1 --viewpred_ckpt <main job's>`` on a copy
-  whose every split is degraded: a user's first run on their own noisy captures (the detector is warm-started from
-  the noisy data's own pseudo-boxes, then one round of mining, quantization and self-labelling).
-
-Each measured row goes to ``--rows`` (JSONL, one line per condition, mode and seed; a row already there is not
-measured again); the table (``--md``) and the curve picture (``--png``) are drawn from every row of the file::
+Per condition (``threedq.data.sensor``): ``frozen``, the main job's last detector and quantizer on a copy whose test
+split is degraded; ``adapted`` (``--adapt``), ``threedq em --rounds 1 --viewpred_ckpt <main job's>`` on a copy whose
+every split is degraded. Rows go to ``--rows`` (a row already there is not measured again); the table (``--md``) and
+the picture (``--png``) are drawn from every row of the file::
 
     python benchmarks/robustness.py --main_run runs/em --work runs/robustness \\
         --rows benchmarks/results/robustness/rows.jsonl --md docs/robustness_table.md --png docs/img/robustness.png
@@ -18,7 +11,7 @@ measured again); the table (``--md``) and the curve picture (``--png``) are draw
         --conditions   # no condition: redraw the table and picture from the rows
 
 Convention: a condition is ``level<L>`` (every effect at level L; ``level0`` is the clean data) or an effect's name
-(that effect alone at level 1); metrics on the test split, mAP against the GT boxes' hulls at IoU 0.5, yaw error the
+(that effect alone at level 1); metrics on the test split, mAP at IoU 0.5 against the GT boxes' hulls, yaw error the
 median relative yaw error on asymmetric categories in degrees.
 """
 
@@ -33,20 +26,16 @@ import time
 from pathlib import Path
 from typing import Any
 
+from _common import append_row, read_rows
+
 from threedq.data.sensor import EFFECTS, degrade_dataset
 from threedq.machine import cpu_name
 
 LEVELS = ("level0", "level0.5", "level1", "level2")
 #: (row key, table heading)
-METRICS = (
-    ("pseudo_map_50", "pseudo-boxes mAP@0.5"),
-    ("detector_map_50", "detector mAP@0.5"),
-    ("precision_at_10", "p@10 strict"),
-    ("precision_at_10_paper", "p@10 paper"),
-    ("hungarian_acc", "Hungarian K=50"),
-    ("fewshot_acc", "few-shot"),
-    ("yaw_median_deg", "yaw error (deg)"),
-)
+METRICS = (("pseudo_map_50", "pseudo-boxes mAP@0.5"), ("detector_map_50", "detector mAP@0.5"),
+           ("precision_at_10", "p@10 strict"), ("precision_at_10_paper", "p@10 paper"),
+           ("hungarian_acc", "Hungarian K=50"), ("fewshot_acc", "few-shot"), ("yaw_median_deg", "yaw error (deg)"))
 DATA_CONFIG = """data:
   class_path: threedq.datamodules.clevr_veggie.ClevrVeggieDataModule
   init_args:
@@ -86,6 +75,11 @@ def noisy_copy(clean: Path, work: Path, name: str, splits: list[str] | None, sen
     return cfg
 
 
+def bank_cells(q: dict[str, Any]) -> dict[str, Any]:
+    """The bank's numbers of a row, from an evaluation's ``quantization["threedq"]``."""
+    return {k: q[k] for k in ("hungarian_acc", "fewshot_acc", "yaw_median_deg")}
+
+
 def frozen_row(main_run: Path, work: Path, clean: Path, name: str, sensor: bool) -> dict[str, Any]:
     """The main job's model on the condition's noisy test split."""
     from threedq.pipeline.em import evaluate_run_on
@@ -98,8 +92,7 @@ def frozen_row(main_run: Path, work: Path, clean: Path, name: str, sensor: bool)
     cells = feature_cells(r["round_eval"]["retrieval"])
     return {"pseudo_map_50": r["detector_eval"]["pseudo_boxes"]["map_50"],
             "detector_map_50": r["detector_eval"]["detector"]["map_50"],
-            "precision_at_10": cells["precision_at_10"], "precision_at_10_paper": cells["precision_at_10_paper"],
-            "hungarian_acc": q["hungarian_acc"], "fewshot_acc": q["fewshot_acc"], "yaw_median_deg": q["yaw_median_deg"],
+            **{k: cells[k] for k in ("precision_at_10", "precision_at_10_paper")}, **bank_cells(q),
             "seconds": round(time.time() - t0, 1)}
 
 
@@ -116,19 +109,15 @@ def adapted_row(main_run: Path, work: Path, clean: Path, name: str, seed: int, s
     print("[robustness] " + " ".join(cmd), flush=True)
     proc = subprocess.run(cmd, capture_output=True, text=True)
     (run.parent / f"{run.name}.log").write_text(proc.stdout + proc.stderr)
-    if proc.returncode:
-        # a stage that finds too few objects stops the run with one line: that line is the row's result
-        last = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
-        return {"failed": last, "seconds": round(time.time() - t0, 1)}
+    if proc.returncode:  # a stage that finds too few objects stops the run with one line: the row's result
+        return {"failed": (proc.stderr.strip().splitlines() or ["(no output)"])[-1],
+                "seconds": round(time.time() - t0, 1)}
     m = json.loads((run / "metrics.json").read_text())
-    last_round = m["table3"][-1]
-    q = m["round_results"][-1]["quantization"]["threedq"]
+    last_round, q = m["table3"][-1], m["round_results"][-1]["quantization"]["threedq"]
     return {"pseudo_map_50": m["detector_eval"]["pseudo_boxes"]["map_50"],
             "warm_start_map_50": m["detector_eval"]["detector"]["map_50"],
             "detector_map_50": last_round["map_50"],
-            "precision_at_10": last_round["precision_at_10"],
-            "precision_at_10_paper": last_round["precision_at_10_paper"],
-            "hungarian_acc": q["hungarian_acc"], "fewshot_acc": q["fewshot_acc"], "yaw_median_deg": q["yaw_median_deg"],
+            **{k: last_round[k] for k in ("precision_at_10", "precision_at_10_paper")}, **bank_cells(q),
             "seconds": round(time.time() - t0, 1)}
 
 
@@ -147,8 +136,7 @@ def pseudo_box_rows(clean: Path, conditions: list[str], scenes: int) -> list[dic
 
     index = load_index(clean)
     files = index.files("test")[:scenes]
-    gt = gt_hulls(clean, files)
-    rows = []
+    gt, rows = gt_hulls(clean, files), []
     for name in conditions:
         level, effects = condition(name)
         recs = {f: apply_capture(load_scene(clean / f), np.random.default_rng([0, zlib.crc32(f.encode())]), level,
@@ -172,10 +160,6 @@ def pseudo_box_table(rows: list[dict[str, Any]], scenes: int) -> str:
         out.append(f"| {name} | " + " | ".join(f"{c['map_50']:.3f} / {c['map_25']:.3f} / {c['boxes_per_scene']:.2f}"
                                                 for c in cells) + " |")
     return "\n".join(out) + "\n"
-
-
-def read_rows(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()] if path.is_file() else []
 
 
 def _fmt(v: Any) -> str:
@@ -202,13 +186,9 @@ def table(rows: list[dict[str, Any]]) -> str:
                        + " |" * (len(METRICS) - 1))
             continue
         cells = []
-        for k, _ in METRICS:
-            vals = [r[k] for r in ok if r.get(k) is not None]
-            if not vals:
-                cells.append("–")
-                continue
-            mean = sum(vals) / len(vals)
-            cells.append(_fmt(mean) + (f" ({_fmt(min(vals))}-{_fmt(max(vals))})" if len(vals) > 1 else ""))
+        for vals in ([r[k] for r in ok if r.get(k) is not None] for k, _ in METRICS):
+            cells.append(_fmt(sum(vals) / len(vals)) + (f" ({_fmt(min(vals))}-{_fmt(max(vals))})" if len(vals) > 1
+                                                          else "") if vals else "–")
         out.append(f"| {mode} | {_read_as(sensor)} | {cond} | {seeds} | " + " | ".join(cells) + " |")
     return "\n".join(out) + "\n"
 
@@ -233,10 +213,8 @@ def curve_png(rows: list[dict[str, Any]], path: Path) -> None:
                     continue
                 base = sum(r[k] for r in clean) / len(clean)
                 xs = sorted({condition(r["condition"])[0] for r in level_rows})
-                ys = []
-                for x in xs:
-                    vals = [r[k] for r in level_rows if condition(r["condition"])[0] == x]
-                    ys.append(sum(vals) / len(vals) / base)
+                ys = [sum(v) / len(v) / base for v in ([r[k] for r in level_rows if condition(r["condition"])[0] == x]
+                                                       for x in xs)]
                 ax.plot(xs, ys, marker="o", color=colours[k], ls="-" if sensor else "--",
                         label=f"{label} ({_read_as(sensor)})")
         ax.axhline(0.9, color="grey", lw=0.8, ls=":")
@@ -276,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     args.work.mkdir(parents=True, exist_ok=True)
     args.rows.parent.mkdir(parents=True, exist_ok=True)
-    rows = read_rows(args.rows)
+    rows = read_rows(args.rows) if args.rows.is_file() else []
     done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"]) for r in rows}
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     todo = []
@@ -286,12 +264,11 @@ def main(argv: list[str] | None = None) -> int:
     for mode, name, seed, sensor in todo:
         if (mode, name, seed, sensor) in done:
             continue
-        row = (frozen_row(args.main_run, args.work, args.clean, name, sensor) if mode == "frozen"
-               else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor))
-        row = {"mode": mode, "condition": name, "seed": seed, "sensor_captures": sensor, **row, "machine": cpu_name(),
-               "commit": commit, "date": time.strftime("%Y-%m-%d")}
-        with args.rows.open("a") as f:
-            f.write(json.dumps(row) + "\n")
+        row = {"mode": mode, "condition": name, "seed": seed, "sensor_captures": sensor,
+               **(frozen_row(args.main_run, args.work, args.clean, name, sensor) if mode == "frozen"
+                  else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor)),
+               "machine": cpu_name(), "commit": commit, "date": time.strftime("%Y-%m-%d")}
+        append_row(args.rows, row)
         rows.append(row)
         print(f"[robustness] {mode} {name} seed {seed}: " + json.dumps(row), flush=True)
     text = table(rows)

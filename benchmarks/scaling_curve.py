@@ -1,15 +1,6 @@
-"""What scale buys the view-prediction features: training steps, image size and grid size against retrieval and
-Hungarian accuracy, from the rows of ``benchmarks/feature_recipes.py`` (GT boxes of the embedded test split, 2 seeds
-each; retrieval: the paper protocol's precision@10 with the paper's cosine, Hungarian: K = 50 with the quantizer's
-occupancy-weighted crops):
-
-* steps, half widths on the CPU (``feature_recipes_long_cpu_2026-11-28.jsonl``: 1700 / 3400 / 5100 steps) and the
-  paper's widths on an H100 (``feature_recipes_h100_2026-11-25.jsonl``: 1000 to 8000 steps; no Hungarian there);
-* image size, 128 and 256 px at 1700 steps (``feature_recipes_256px_cpu_2026-11-28.jsonl``);
-* grid size, 32 x 32 x 16, 48 x 48 x 24 and the default 64 x 64 x 32 cells over the same 2.56 x 2.56 x 1.28 m at 1700
-  steps (``scaling/grid_rows.jsonl``, made by the command below, and the CPU steps rows).
-
-Prints the table and draws ``--png``::
+"""What scale buys the view-prediction features: training steps, image size and grid size against retrieval (paper
+protocol precision@10) and Hungarian accuracy (K = 50), from the rows of ``benchmarks/feature_recipes.py`` in
+``benchmarks/results/``. Prints the table and draws ``--png``::
 
     python benchmarks/feature_recipes.py --cluster --seeds 0 1 --eval_steps 1700 --data_dir data/clevr_veggie \\
         --variant "grid 32x32x16=--model.init_args.grid_resolution=[32,32,16]" \\

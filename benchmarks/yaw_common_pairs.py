@@ -1,21 +1,14 @@
 """The relative yaw error of two ``threedq em`` runs on the object pairs both of them put in one prototype.
 
-The evaluation's yaw error (:func:`threedq.metrics.relative_yaw_error`) is the median over the pairs of objects of
-one (asymmetric) category that the run assigned to one prototype: a run that gathers more of a category into one
-prototype is scored on more pairs, and on harder ones (objects a coarser clustering would have split by pose), so
-two runs' medians compare pair sets as much as poses. This script reads each run's per-object assignments
-(``rNN_eval/objects_test.json``: box, prototype, yaw index of the search) and the scenes' GT boxes, and per round
-prints the yaw error of each run on all its pairs (the evaluation's number, checked against its ``results.json``),
-on the pairs **common** to both runs (the same two objects in one prototype in each run: each run's own yaws), and
-on the pairs only one run has. It measures nothing new and reruns no evaluation.
+Reads each run's per-object assignments (``rNN_eval/objects_test.json``: box, prototype, yaw index) and the scenes'
+GT boxes, and per round prints each run's yaw error on all its pairs (checked against its ``results.json``), on the
+pairs common to both runs (each run's own yaws), and on the pairs only one run has. Reruns no evaluation.
 
     python benchmarks/yaw_common_pairs.py --data_dir data/clevr_veggie --run hull=runs/em --run cube=runs/em_cube \\
         [--rounds 0 4] [--out table.md]
 
-Convention: the evaluation's: yaws counter-clockwise about +z, frame R (the record's world frame); errors in
-degrees in ``[0, 180]``; only categories of symmetry order 1 give pairs (``mode="exclude_symmetric"``); a detected
-box is the GT object of highest axis-aligned IoU (the objects listed are those the round's boxes matched at IoU
->= 0.5, so that object is the one the evaluation used).
+Convention: the evaluation's: yaws counter-clockwise about +z, frame R; errors in degrees in ``[0, 180]``; only
+categories of symmetry order 1 give pairs; a detected box is the GT object of highest axis-aligned IoU.
 """
 
 from __future__ import annotations

@@ -1,13 +1,9 @@
 """The DataModule of an on-disk capture format: import the captures once, then read canonical records.
 
-``prepare_data`` runs :func:`threedq.data.formats.importer.import_captures` for each split's capture folder
-into ``data_dir`` (skipped when ``data_dir/index.json`` exists); everything after is
-:class:`~threedq.datamodules.scene_folder.SceneFolderDataModule` on canonical records. One subclass per
-format (``datamodules/<dataset>.py``) only names its format.
-
-Expected trees: ``capture_dirs[split]`` is one capture, or a folder of captures, in the format's layout (the
-reader's module docstring in ``threedq/data/formats/``); ``data_dir`` receives ``index.json`` and
-``<split>/<capture>.npz``.
+``prepare_data`` imports each split's capture folder (``capture_dirs[split]``: one capture or a folder of captures,
+in the format's layout) into ``data_dir`` (``index.json`` and ``<split>/<capture>.npz``) with
+:func:`threedq.data.formats.importer.import_captures`, unless ``data_dir/index.json`` exists; the rest is
+:class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`. A subclass per format only names its ``FORMAT``.
 """
 
 from __future__ import annotations
@@ -41,15 +37,8 @@ class CaptureDataModule(SceneFolderDataModule):
 
     FORMAT: ClassVar[str] = ""
 
-    def __init__(
-        self,
-        capture_dirs: dict[str, str],
-        data_dir: str,
-        max_views: PositiveInt = 28,
-        max_depth: PositiveFloat = 10.0,
-        reader_options: dict[str, Any] | None = None,
-        **kwargs: Any,
-    ) -> None:
+    def __init__(self, capture_dirs: dict[str, str], data_dir: str, max_views: PositiveInt = 28,
+                 max_depth: PositiveFloat = 10.0, reader_options: dict[str, Any] | None = None, **kwargs: Any) -> None:
         super().__init__(data_dir=data_dir, **kwargs)
         bad = [s for s in capture_dirs if s not in ("train", "val", "test")]
         if bad:
@@ -63,16 +52,8 @@ class CaptureDataModule(SceneFolderDataModule):
         if (self.data_dir / INDEX_NAME).is_file():
             return
         for split, src in self.capture_dirs.items():
-            summary = import_captures(
-                self.FORMAT,
-                src,
-                self.data_dir,
-                split=split,
-                max_views=self.max_views,
-                max_depth=self.max_depth,
-                reader_options=self.reader_options,
-                progress=False,
-            )
+            summary = import_captures(self.FORMAT, src, self.data_dir, split=split, max_views=self.max_views,
+                                      max_depth=self.max_depth, reader_options=self.reader_options, progress=False)
             for line in summary.lines():
                 log.info(line)
 

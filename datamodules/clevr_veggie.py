@@ -1,15 +1,8 @@
-"""The embedded CLEVR-veggie-like dataset: generated offline on first use, then read from disk.
+"""The embedded CLEVR-veggie-like dataset: generated offline on first use (or by ``threedq data generate``), then read
+from disk as a scene folder (:mod:`threedq.datamodules.scene_folder`).
 
-Expected tree (written by ``threedq data generate`` or by :meth:`ClevrVeggieDataModule.prepare_data`)::
-
-    <data_dir>/
-      index.json
-      train/scene_000000.npz ...
-      val/scene_000000.npz ...
-      test/scene_000000.npz ...
-
-41 categories (CLEVR's 3 shapes x 8 colours + 17 scanned YCB meshes), up to 3 objects per scene,
-28 posed RGB-D views per scene by default. See ``threedq.data.layout`` for the scene model.
+41 categories (CLEVR's 3 shapes x 8 colours + 17 scanned YCB meshes), up to 3 objects and 28 posed RGB-D views per
+scene by default; the scene model: :mod:`threedq.data.layout`.
 """
 
 from __future__ import annotations
@@ -43,33 +36,21 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         num_views: cameras per scene.
         max_objects: objects per scene (also the padding size of samples).
         generator_workers: processes used for generation.
-        categories: category names to draw from (``None``: the embedded data's 41; e.g.
-            :data:`threedq.data.catalog.SHAPE_ONLY_NAMES` or the held-out meshes).
-        color_mode: ``"category"`` (catalogue colours) or ``"random"`` (a random palette colour per instance: the
-            category is the shape alone); see :class:`~threedq.data.generator_config.GeneratorConfig`.
-        sensor_captures: as :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`'s, off here: the
-            generator renders clean depth and exact poses (``true`` for a copy with capture conditions, ``threedq
-            data degrade``).
+        categories: category names to draw from (``None``: the embedded data's 41).
+        color_mode: ``"category"`` (catalogue colours) or ``"random"`` (a random palette colour per instance).
+        sensor_captures: as :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`'s (clean renders: off).
         **kwargs: the arguments of :class:`~threedq.datamodules.scene_folder.SceneFolderDataModule`.
     """
 
-    #: the embedded categories are shape and colour (a red cube is not a blue one): the default miner's pairs
+    #: the stage configs that serve this kind of data (threedq.pipeline.presets)
     PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining.yaml", "quantizer": "stages/quantizer.yaml"}
 
     def __init__(
-        self,
-        data_dir: str = "data/clevr_veggie",
-        num_scenes: PositiveInt = 300,
-        split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1),
-        generator_seed: int = 0,
-        image_size: tuple[int, int] = (128, 128),
-        num_views: PositiveInt = 28,
-        max_objects: PositiveInt = 3,
-        generator_workers: PositiveInt = 2,
-        categories: list[str] | None = None,
-        color_mode: Literal["category", "random"] = "category",
-        sensor_captures: bool = False,
-        **kwargs: Any,
+        self, data_dir: str = "data/clevr_veggie", num_scenes: PositiveInt = 300,
+        split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1), generator_seed: int = 0,
+        image_size: tuple[int, int] = (128, 128), num_views: PositiveInt = 28, max_objects: PositiveInt = 3,
+        generator_workers: PositiveInt = 2, categories: list[str] | None = None,
+        color_mode: Literal["category", "random"] = "category", sensor_captures: bool = False, **kwargs: Any,
     ) -> None:
         super().__init__(data_dir=data_dir, max_objects=max_objects, sensor_captures=sensor_captures, **kwargs)
         self.num_scenes = num_scenes
@@ -82,33 +63,22 @@ class ClevrVeggieDataModule(SceneFolderDataModule):
         )
 
     def prepare_data(self) -> None:
-        """Generate the dataset if ``data_dir`` has no ``index.json`` (Lightning runs this on one process per node).
-
-        Another process generating the same folder (a second run started on a fresh clone) is waited for, and its
-        dataset is then read, not generated again.
-        """
+        """Generate the dataset if ``data_dir`` has no ``index.json``; another process generating it is waited for."""
         if not (self.data_dir / INDEX_NAME).is_file():
             with exclusive(self.data_dir, what="generating"):
                 if not (self.data_dir / INDEX_NAME).is_file():  # not made meanwhile by the process waited for
                     log.info("generating %d scenes into %s", self.num_scenes, self.data_dir)
-                    generate_dataset(
-                        self.data_dir,
-                        num_scenes=self.num_scenes,
-                        seed=self.generator_seed,
-                        config=self.generator_config,
-                        split_fractions=self.split_fractions,
-                        workers=self.generator_workers,
-                    )
+                    generate_dataset(self.data_dir, num_scenes=self.num_scenes, seed=self.generator_seed,
+                                     config=self.generator_config, split_fractions=self.split_fractions,
+                                     workers=self.generator_workers)
                     return
         index = load_index(self.data_dir)
         made_with = index.generator.get("config_hash")
         if made_with is not None and made_with != self.generator_config.hash():
-            raise SceneValidationError(
-                str(self.data_dir / INDEX_NAME),
-                "generator",
-                "the dataset was generated with a different generator config than this DataModule asks for; "
-                "point data_dir elsewhere or delete the folder to regenerate",
-            )
+            raise SceneValidationError(str(self.data_dir / INDEX_NAME), "generator",
+                                       "the dataset was generated with a different generator config than this "
+                                       "DataModule asks for; point data_dir elsewhere or delete the folder to "
+                                       "regenerate")
 
     def setup(self, stage: str | None = None) -> None:
         if not (self.data_dir / INDEX_NAME).is_file():

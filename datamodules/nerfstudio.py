@@ -1,10 +1,5 @@
-"""nerfstudio transforms.json captures with depth: imported into canonical records on first use, then read as a scene folder.
-
-Expected tree of each capture: the module docstring of ``threedq/data/formats/nerfstudio.py``; see
-:class:`~threedq.datamodules.capture_folder.CaptureDataModule` for the arguments.
-"""
-
-from __future__ import annotations
+"""nerfstudio transforms.json captures with depth, imported into canonical records on first use (capture layout: the
+module docstring of ``threedq/data/formats/nerfstudio.py``)."""
 
 from threedq.datamodules.capture_folder import CaptureDataModule
 
@@ -12,6 +7,6 @@ __all__ = ["NerfstudioDataModule"]
 
 
 class NerfstudioDataModule(CaptureDataModule):
-    """nerfstudio transforms.json captures with depth; arguments as :class:`~threedq.datamodules.capture_folder.CaptureDataModule`."""
+    """nerfstudio transforms.json captures with depth; arguments as :class:`CaptureDataModule`."""
 
     FORMAT = "nerfstudio"

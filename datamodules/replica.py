@@ -1,10 +1,5 @@
-"""Replica scenes as exported for NICE-SLAM: imported into canonical records on first use, then read as a scene folder.
-
-Expected tree of each capture: the module docstring of ``threedq/data/formats/replica.py``; see
-:class:`~threedq.datamodules.capture_folder.CaptureDataModule` for the arguments.
-"""
-
-from __future__ import annotations
+"""Replica scenes as exported for NICE-SLAM, imported into canonical records on first use (capture layout: the module
+docstring of ``threedq/data/formats/replica.py``)."""
 
 from threedq.datamodules.capture_folder import CaptureDataModule
 
@@ -12,6 +7,6 @@ __all__ = ["ReplicaDataModule"]
 
 
 class ReplicaDataModule(CaptureDataModule):
-    """Replica scenes as exported for NICE-SLAM; arguments as :class:`~threedq.datamodules.capture_folder.CaptureDataModule`."""
+    """Replica scenes as exported for NICE-SLAM; arguments as :class:`CaptureDataModule`."""
 
     FORMAT = "replica"

@@ -1,17 +1,8 @@
-"""A LightningDataModule over a folder of canonical scene records (``index.json`` + ``<split>/*.npz``).
+"""A LightningDataModule over a folder of canonical scene records: ``<data_dir>/index.json`` (categories, symmetry,
+scene bounds, scenes with their split) and ``<data_dir>/<split>/scene_*.npz`` for ``train``, ``val``, ``test``.
 
-Expected tree::
-
-    <data_dir>/
-      index.json                 # categories, symmetry, scene bounds, scenes with their split
-      train/scene_000000.npz ...
-      val/scene_000000.npz ...
-      test/scene_000000.npz ...
-
-Each sample is one scene: ``num_input_views`` input views followed by ``num_target_views`` target
-views (distinct views of the same scene), and the scene's ground-truth objects padded to
-``max_objects`` with a mask. Everything is expressed in the reference frame R, which for a canonical
-record is its world frame (metres, z up, centred on the scene).
+Each sample is one scene: ``num_input_views`` input views, then ``num_target_views`` distinct target views, and the
+scene's objects padded to ``max_objects`` with a mask. Frame R is the record's world frame (metres, z up, centred).
 """
 
 from __future__ import annotations
@@ -46,7 +37,7 @@ SPLITS = ("train", "val", "test")
 
 @dataclass(frozen=True)
 class _SceneViews:
-    """The views of one sample and the scene's objects, as read from its record (arrays are not modified)."""
+    """The views of one sample and the scene's objects, as read from its record."""
 
     rgb: np.ndarray  # [S, H, W, 3] uint8
     depth: np.ndarray  # [S, H, W] float32
@@ -64,12 +55,8 @@ class _SceneViews:
 
 
 class _ViewCache:
-    """A process-wide LRU of the fixed views of scenes already read (a few hundred KiB per scene).
-
-    The stages after view prediction read each scene's fixed input views again and again; a record holds all its
-    views compressed. The key holds the file's size and modification time, so a rewritten file is read again.
-    ``THREEDQ_VIEW_CACHE_MB`` (default 1024, 0 = off) caps its size.
-    """
+    """A process-wide LRU of the fixed views of scenes already read, keyed with the file's size and modification time;
+    ``THREEDQ_VIEW_CACHE_MB`` (default 1024, 0 = off) caps its size."""
 
     def __init__(self) -> None:
         self._items: OrderedDict[tuple, _SceneViews] = OrderedDict()
@@ -99,9 +86,7 @@ class _ViewCache:
 _VIEW_CACHE = _ViewCache()
 #: the pseudo-boxes of clean renders: every second view, a voxel seen by 2 views, a fixed 1.5 cm ground margin
 RENDER_PROPOSALS = ProposalParams(view_stride=2)
-#: the pseudo-boxes of sensor captures: the poses corrected by the floor, a voxel seen by 3 views (a noisy floor's
-#: stray points rarely agree in 3), the ground margin measured per scene (3 sigma of the floor's own spread, at least
-#: the renders' 1.5 cm)
+#: the pseudo-boxes of sensor captures: floor-corrected poses, a voxel seen by 3 views, a per-scene ground margin
 SENSOR_PROPOSALS = ProposalParams(view_stride=2, min_views=3, ground_margin=None, min_ground_margin=0.015,
                                   align_floor=True)
 #: (resolved path, mtime, size) -> a scene's floor-aligned poses ``[V, 4, 4]`` (a few KB a scene)
@@ -109,8 +94,8 @@ _FLOOR_POSES: dict[tuple[str, int, int], np.ndarray] = {}
 
 
 def floor_aligned_poses(path: Path, rec: SceneRecord) -> np.ndarray:
-    """A scene's poses corrected by its floor (:func:`~threedq.geometry.floor_alignment.align_to_floor`), computed once
-    per scene file (its size and modification time) and process."""
+    """A scene's poses corrected by its floor (:func:`~threedq.geometry.floor_alignment.align_to_floor`), once per
+    scene file and process."""
     st = path.stat()
     key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
     if key not in _FLOOR_POSES:
@@ -128,9 +113,8 @@ def _cores(most: int) -> int:
 
 
 def fixed_views(seed: int, i: int, num_views: int, need: int) -> np.ndarray:
-    """The views a fixed-view :class:`SceneDataset` (``random_views=False``) reads for its ``i``-th scene: ``need``
-    distinct views of ``num_views`` drawn from ``(seed, i)``, inputs first (the retrieval protocols' query view, then
-    the paper protocol's gallery view)."""
+    """The views a fixed-view :class:`SceneDataset` reads for its ``i``-th scene: ``need`` distinct views of
+    ``num_views`` drawn from ``(seed, i)``, inputs first."""
     return np.random.default_rng([seed, i]).permutation(num_views)[:need]
 
 
@@ -146,31 +130,18 @@ class SceneDataset(Dataset):
         max_objects: objects are padded to this many; a scene with more is an error.
         random_views: draw views at random per call (training) instead of a fixed per-scene choice.
         seed: seed of the fixed per-scene view choice.
-        box_sets: ``{scene file -> (aabb [P,6], scores [P])}`` boxes to use instead of the ground truth
-            (proposals or detections; see :func:`detections_as_objects`), or ``None`` for GT boxes.
-        match_iou: a box takes the category and oriented GT box of the GT object it matches at this IoU.
-        keep_unmatched: keep boxes that match no GT object (category -1; training needs no labels);
-            ``False`` keeps only matched ones (metrics).
+        box_sets: ``{scene file -> (aabb [P,6], scores [P])}`` boxes to use instead of the GT (``None``: GT boxes).
+        match_iou: a box takes the category and oriented box of the GT object it matches at this IoU.
+        keep_unmatched: keep boxes that match no GT object (category -1); ``False`` keeps only matched ones.
         max_boxes: boxes per scene are padded to this many when ``box_sets`` is given (highest scores kept).
-        align_floor: correct each scene's poses by the floor its views see
-            (:func:`~threedq.geometry.floor_alignment.align_to_floor`; computed once per scene file and process).
+        align_floor: correct each scene's poses by the floor its views see (:func:`floor_aligned_poses`).
     """
 
     def __init__(
-        self,
-        root: str | Path,
-        index: DatasetIndex,
-        split: str,
-        num_input_views: int = 1,
-        num_target_views: int = 1,
-        max_objects: int = 3,
-        random_views: bool = False,
-        seed: int = 0,
-        box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
-        match_iou: float = 0.5,
-        keep_unmatched: bool = True,
-        max_boxes: int = 8,
-        align_floor: bool = False,
+        self, root: str | Path, index: DatasetIndex, split: str, num_input_views: int = 1, num_target_views: int = 1,
+        max_objects: int = 3, random_views: bool = False, seed: int = 0,
+        box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, match_iou: float = 0.5,
+        keep_unmatched: bool = True, max_boxes: int = 8, align_floor: bool = False,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
@@ -190,7 +161,8 @@ class SceneDataset(Dataset):
         if box_sets is not None:
             missing = [f for f in self.files if f not in box_sets]
             if missing:
-                raise ValueError(f"box_sets: no boxes for {len(missing)} scene(s) of split {split!r}, e.g. {missing[0]}")
+                raise ValueError(f"box_sets: no boxes for {len(missing)} scene(s) of split {split!r}, "
+                                 f"e.g. {missing[0]}")
             if max_boxes < 1:
                 raise ValueError(f"max_boxes: expected >= 1, got {max_boxes}")
         self.box_sets = box_sets
@@ -205,30 +177,26 @@ class SceneDataset(Dataset):
     def _choose_views(self, i: int, num_views: int, path: Path, epoch: int | None = None) -> np.ndarray:
         need = self.num_input_views + self.num_target_views
         if need > num_views:
-            raise SceneValidationError(
-                str(path), "rgb", f"sample needs {need} distinct views but the scene has {num_views}"
-            )
+            raise SceneValidationError(str(path), "rgb",
+                                       f"sample needs {need} distinct views but the scene has {num_views}")
         if self.random_views:
             if epoch is not None:  # drawn by an EpochShuffleSampler: the same views in any process or worker
                 return np.random.default_rng([self.seed, i, epoch, 1]).permutation(num_views)[:need]
-            # torch's global generator: seeded by seed_everything (and per worker by Lightning).
+            # torch's global generator: seeded by seed_everything (and per worker by Lightning)
             return torch.randperm(num_views)[:need].numpy()
         return fixed_views(self.seed, i, num_views, need)
 
     def __getitem__(self, i: int | tuple[int, int]) -> dict[str, Any]:
-        """One scene: ``i`` is its index, or ``(index, epoch)`` as an :class:`~threedq.data.samplers.EpochShuffleSampler`
-        yields it (the train split's random views are then drawn from ``(seed, index, epoch)``).
+        """One scene: ``i`` is its index, or ``(index, epoch)`` from an
+        :class:`~threedq.data.samplers.EpochShuffleSampler` (random views then drawn from ``(seed, index, epoch)``).
 
         Returns:
-            ``rgb`` [S,3,H,W] float in [0,1]; ``depth`` [S,H,W] metres (0 invalid); ``K`` [S,3,3];
-            ``R_T_cam`` [S,4,4]; ``instance`` [S,H,W] long (only if the record has masks); ``view_ids`` [S];
-            ``boxes`` [M,7] oriented boxes, ``aabb`` [M,6] axis-aligned hulls ``(xmin..zmax)``,
-            ``categories`` [M] long (-1 pad), ``box_mask`` [M] bool, with M = ``max_objects``;
-            ``scene_index`` long; ``num_input_views`` long (the first that many views are inputs); ``gt_aabb`` [G,6] and ``gt_mask`` [G] (G = ``max_objects``) always hold the
-            ground truth. With ``box_sets``, ``boxes``/``aabb``/``categories``/``box_mask`` describe the given
-            boxes instead (M = ``max_boxes``; ``boxes`` and ``categories`` from the matched GT object, zeros and
-            -1 when unmatched) and ``box_scores`` [M] their scores. The first ``num_input_views`` of the S
-            views are inputs, the rest targets.
+            ``rgb`` [S,3,H,W] float in [0,1]; ``depth`` [S,H,W] metres (0 invalid); ``K`` [S,3,3]; ``R_T_cam``
+            [S,4,4]; ``instance`` [S,H,W] long (only if the record has masks); ``view_ids`` [S]; ``boxes`` [M,7]
+            oriented, ``aabb`` [M,6] ``(xmin..zmax)``, ``categories`` [M] long (-1 pad), ``box_mask`` [M] bool, M =
+            ``max_objects``; ``scene_index`` long; ``num_input_views`` long (the first views are inputs, the rest
+            targets); ``gt_aabb`` [G,6] and ``gt_mask`` [G] the GT. With ``box_sets``, the box fields describe the
+            given boxes (M = ``max_boxes``, :func:`detections_as_objects`) and ``box_scores`` [M] their scores.
 
         Convention: frame R = the record's world frame (metres, z up); OpenCV camera axes.
         """
@@ -245,32 +213,23 @@ class SceneDataset(Dataset):
         cats[:n] = v.categories
         out: dict[str, Any] = {
             "rgb": torch.from_numpy(v.rgb).permute(0, 3, 1, 2).float().div_(255.0),
-            "depth": torch.from_numpy(v.depth.copy()),
-            "K": torch.from_numpy(v.K.copy()),
-            "R_T_cam": torch.from_numpy(v.world_T_cam.copy()),
-            "view_ids": torch.from_numpy(v.view_ids.copy()),
-            "boxes": torch.from_numpy(boxes),
-            "aabb": torch.from_numpy(aabb),
-            "categories": torch.from_numpy(cats),
-            "box_mask": torch.arange(M) < n,
-            "scene_index": torch.tensor(i, dtype=torch.long),
+            "depth": torch.from_numpy(v.depth.copy()), "K": torch.from_numpy(v.K.copy()),
+            "R_T_cam": torch.from_numpy(v.world_T_cam.copy()), "view_ids": torch.from_numpy(v.view_ids.copy()),
+            "boxes": torch.from_numpy(boxes), "aabb": torch.from_numpy(aabb), "categories": torch.from_numpy(cats),
+            "box_mask": torch.arange(M) < n, "scene_index": torch.tensor(i, dtype=torch.long),
             "num_input_views": torch.tensor(self.num_input_views, dtype=torch.long),
         }
         out["gt_aabb"], out["gt_mask"] = out["aabb"], out["box_mask"]
         if self.box_sets is not None:
-            out.update(
-                detections_as_objects(
-                    *self.box_sets[self.files[i]], v.boxes, v.categories, self.match_iou,
-                    self.keep_unmatched, self.max_boxes,
-                )
-            )
+            out.update(detections_as_objects(*self.box_sets[self.files[i]], v.boxes, v.categories, self.match_iou,
+                                             self.keep_unmatched, self.max_boxes))
         if v.instance is not None:
             out["instance"] = torch.from_numpy(v.instance.astype(np.int64))
         return out
 
     def _views(self, i: int, path: Path, epoch: int | None) -> _SceneViews:
         """The chosen views of scene ``i`` and its objects: read and validated from ``path``, or, for a fixed view
-        choice, from :data:`_VIEW_CACHE` when the file (size, modification time) is the one read before."""
+        choice, from :data:`_VIEW_CACHE`."""
         bounds, ncat = self.index.scene_bounds, len(self.index.categories)
         key = None
         if not self.random_views:
@@ -285,9 +244,8 @@ class SceneDataset(Dataset):
                 return hit
         rec = load_scene(path, bounds=bounds, num_categories=ncat)
         if rec.num_objects > self.max_objects:
-            raise SceneValidationError(
-                str(path), "boxes", f"{rec.num_objects} objects but max_objects is {self.max_objects}"
-            )
+            raise SceneValidationError(str(path), "boxes",
+                                       f"{rec.num_objects} objects but max_objects is {self.max_objects}")
         views = self._choose_views(i, rec.num_views, path, epoch)
         poses = floor_aligned_poses(path, rec) if self.align_floor else rec.world_T_cam
         v = _SceneViews(
@@ -301,20 +259,12 @@ class SceneDataset(Dataset):
 
 
 def detections_as_objects(
-    aabb: np.ndarray,
-    scores: np.ndarray,
-    gt_boxes: np.ndarray,
-    gt_categories: np.ndarray,
-    match_iou: float = 0.5,
-    keep_unmatched: bool = True,
-    max_boxes: int = 8,
+    aabb: np.ndarray, scores: np.ndarray, gt_boxes: np.ndarray, gt_categories: np.ndarray, match_iou: float = 0.5,
+    keep_unmatched: bool = True, max_boxes: int = 8,
 ) -> dict[str, torch.Tensor]:
-    """Turn a scene's detected (or proposed) boxes into the object fields of a sample.
-
-    The ``max_boxes`` boxes of highest score are matched to the GT objects by the matching rule of the mAP
-    (:func:`threedq.metrics.detection.assign_detections`: by descending score, each takes the not yet matched
-    GT object of highest IoU of axis-aligned hulls if that IoU is ``>= match_iou``); a matched box carries
-    that object's category and oriented box (for the metrics only).
+    """Turn a scene's detected (or proposed) boxes into the object fields of a sample: the ``max_boxes`` highest
+    scores, matched to the GT by the mAP's rule (:func:`threedq.metrics.detection.assign_detections` at
+    ``match_iou``); a matched box carries that object's category and oriented box (for the metrics only).
 
     Args:
         aabb ``[P, 6]``, scores ``[P]``: the boxes; gt_boxes ``[G, 7]``, gt_categories ``[G]``: the scene's GT.
@@ -328,7 +278,7 @@ def detections_as_objects(
     aabb = np.asarray(aabb, np.float32).reshape(-1, 6)[order]
     scores = np.asarray(scores, np.float32).reshape(-1)[order]
     gt_aabb = boxes_to_aabb(np.asarray(gt_boxes, np.float64).reshape(-1, 7)).astype(np.float32)
-    match = assign_detections(torch.from_numpy(aabb), torch.from_numpy(scores), torch.from_numpy(gt_aabb), match_iou).numpy()
+    match = assign_detections(*(torch.from_numpy(a) for a in (aabb, scores, gt_aabb)), match_iou).numpy()
     keep = np.ones(len(aabb), bool) if keep_unmatched else match >= 0
     idx = np.nonzero(keep)[0]
     out_aabb = np.zeros((M, 6), np.float32)
@@ -343,14 +293,9 @@ def detections_as_objects(
             out_boxes[j] = gt_boxes[match[d]]
             out_cats[j] = gt_categories[match[d]]
             out_matched[j] = True
-    return {
-        "aabb": torch.from_numpy(out_aabb),
-        "boxes": torch.from_numpy(out_boxes),
-        "categories": torch.from_numpy(out_cats),
-        "box_mask": torch.arange(M) < n,
-        "box_scores": torch.from_numpy(out_scores),
-        "box_matched": torch.from_numpy(out_matched),
-    }
+    return {"aabb": torch.from_numpy(out_aabb), "boxes": torch.from_numpy(out_boxes),
+            "categories": torch.from_numpy(out_cats), "box_mask": torch.arange(M) < n,
+            "box_scores": torch.from_numpy(out_scores), "box_matched": torch.from_numpy(out_matched)}
 
 
 class SceneFolderDataModule(L.LightningDataModule):
@@ -360,55 +305,30 @@ class SceneFolderDataModule(L.LightningDataModule):
         data_dir: the dataset folder.
         batch_size: scenes per batch.
         num_workers: DataLoader worker processes.
-        num_input_views: input views per sample; at test time a single view suffices.
+        num_input_views: input views per sample.
         num_target_views: held-out target views per sample (view prediction).
         max_objects: objects per scene are padded to this many.
         seed: seed of the fixed view choice of val/test samples.
-        boxes: which object boxes the samples carry: ``"gt"`` (ground truth), ``"proposals"`` (the
-            label-free pseudo-boxes of :mod:`threedq.proposals`, computed once per split and cached in
-            ``<data_dir>/proposals/<split>.npz``) or a path to a box file with ``{split}`` in it (e.g. a
-            detector's ``detections_{split}.npz``). GT stays available as ``gt_aabb``/``gt_mask``.
+        boxes: the samples' object boxes: ``"gt"``, ``"proposals"`` (label-free pseudo-boxes, cached in
+            ``<data_dir>/proposals/<split>.npz``) or a box file path with ``{split}`` in it.
         match_iou: IoU at which a proposed/detected box is matched to a GT object (metrics only).
         max_boxes: proposed/detected boxes per scene (highest scores kept).
-        train_random_views: draw the train split's views at random per epoch (view prediction, the detector);
-            ``False``: each training scene keeps the fixed per-scene choice that val and test use, so a stage that
-            only reads features (the quantizer) sees the views the other stages of an EM round encoded and shares
-            their feature grids (``threedq em``'s crop cache).
-        proposal_workers: processes computing the pseudo-boxes of a split (:func:`~threedq.data.proposal_cache.
-            propose_dataset`'s ``workers``; the boxes do not depend on it); ``None``: one per CPU core this process
-            may use, at most 8.
-        sensor_captures: the depth and poses come from a sensor and a tracker (noise, holes, pose drift, a tilted
-            gravity), not a renderer: every sample's poses are corrected by the floor its views see
-            (:func:`~threedq.geometry.floor_alignment.align_to_floor`), and the pseudo-boxes take the same poses,
-            voxels seen by 3 views and a ground margin measured per scene (:data:`SENSOR_PROPOSALS`;
-            ``docs/robustness.md``). On clean renders neither changes anything that matters: no pose is corrected
-            and the pseudo-boxes agree.
+        train_random_views: draw the train split's views at random per epoch (else the fixed per-scene choice).
+        proposal_workers: processes computing a split's pseudo-boxes (``None``: one per usable CPU core, at most 8).
+        sensor_captures: poses corrected by the floor and pseudo-boxes with :data:`SENSOR_PROPOSALS` (sensor data).
 
-    With boxes other than GT, the train split keeps every box; val and test keep only the boxes matched
-    to a GT object, so that the label-based metrics are defined (the unmatched ones are counted by the
-    detection metrics instead).
+    With boxes other than GT, the train split keeps every box; val and test keep only the boxes matched to a GT object.
     """
 
-    #: the stage configs that serve this kind of data (threedq.pipeline.presets): objects of one kind come in many
-    #: colours, so the mining pairs compare the input occupancy alone; each object is cropped from 3 views
+    #: the stage configs that serve this kind of data (threedq.pipeline.presets)
     PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining_occupancy_pairs.yaml",
                                          "quantizer": "stages/quantizer_multiview.yaml"}
 
     def __init__(
-        self,
-        data_dir: str = "data/scenes",
-        batch_size: PositiveInt = 2,
-        num_workers: NonNegativeInt = 0,
-        num_input_views: PositiveInt = 1,
-        num_target_views: NonNegativeInt = 1,
-        max_objects: PositiveInt = 3,
-        seed: int = 0,
-        boxes: str = "gt",
-        match_iou: UnitIoU = 0.5,
-        max_boxes: PositiveInt = 8,
-        train_random_views: bool = True,
-        proposal_workers: PositiveInt | None = None,
-        sensor_captures: bool = True,
+        self, data_dir: str = "data/scenes", batch_size: PositiveInt = 2, num_workers: NonNegativeInt = 0,
+        num_input_views: PositiveInt = 1, num_target_views: NonNegativeInt = 1, max_objects: PositiveInt = 3,
+        seed: int = 0, boxes: str = "gt", match_iou: UnitIoU = 0.5, max_boxes: PositiveInt = 8,
+        train_random_views: bool = True, proposal_workers: PositiveInt | None = None, sensor_captures: bool = True,
     ) -> None:
         super().__init__()
         self.sensor_captures = bool(sensor_captures)
@@ -448,21 +368,8 @@ class SceneFolderDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         for split in SPLITS:
             if split not in self.datasets and self.index.files(split):
-                self.datasets[split] = SceneDataset(
-                    self.data_dir,
-                    self.index,
-                    split,
-                    num_input_views=self.num_input_views,
-                    num_target_views=self.num_target_views,
-                    max_objects=self.max_objects,
-                    random_views=split == "train" and self.train_random_views,
-                    seed=self.seed,
-                    box_sets=self.box_sets(split),
-                    match_iou=self.match_iou,
-                    keep_unmatched=split == "train",
-                    max_boxes=self.max_boxes,
-                    align_floor=self.sensor_captures,
-                )
+                random_views = split == "train" and self.train_random_views
+                self.datasets[split] = self._dataset(split, self.num_target_views, random_views, True)
 
     def box_sets(self, split: str) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
         """The proposed/detected boxes of a split per scene file (``None`` for GT boxes)."""
@@ -473,37 +380,34 @@ class SceneFolderDataModule(L.LightningDataModule):
         return load_boxes_file(self.boxes.format(split=split))
 
     def pseudo_boxes(self, split: str, progress: bool = False) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """The label-free pseudo-boxes of a split per scene file (:mod:`threedq.proposals` over every second view:
-        what the detector's warm start learns from), computed once and cached in ``<data_dir>/proposals/<split>.npz``.
-        """
+        """The label-free pseudo-boxes (:mod:`threedq.proposals`) of a split per scene file, cached in
+        ``<data_dir>/proposals/<split>.npz``."""
         cache = self.data_dir / "proposals" / f"{split}.npz"
         params = SENSOR_PROPOSALS if self.sensor_captures else RENDER_PROPOSALS
         return propose_dataset(self.data_dir, split, cache, params=params, progress=progress,
                                workers=self.proposal_workers)
 
     def fixed_view_dataset(self, split: str, gallery: bool = False, with_boxes: bool = True) -> SceneDataset:
-        """A deterministic dataset over one split: every scene's fixed input views (no random draw).
+        """A dataset over one split of every scene's fixed input views; ``gallery``: plus the scene's next fixed view;
+        ``with_boxes``: the samples carry this DataModule's ``boxes`` (else the GT boxes)."""
+        return self._dataset(split, 1 if gallery else 0, False, with_boxes)
 
-        ``gallery``: each sample also holds the scene's next fixed view after the input views (the paper retrieval
-        protocol's gallery view). ``with_boxes``: the samples carry this DataModule's ``boxes`` (else the GT boxes).
-        """
+    def _dataset(self, split: str, num_target_views: int, random_views: bool, with_boxes: bool) -> SceneDataset:
         return SceneDataset(
-            self.data_dir, self.index, split, num_input_views=self.num_input_views,
-            num_target_views=1 if gallery else 0, max_objects=self.max_objects, random_views=False, seed=self.seed,
+            self.data_dir, self.index, split, num_input_views=self.num_input_views, num_target_views=num_target_views,
+            max_objects=self.max_objects, random_views=random_views, seed=self.seed,
             box_sets=self.box_sets(split) if with_boxes else None, match_iou=self.match_iou,
             keep_unmatched=split == "train", max_boxes=self.max_boxes, align_floor=self.sensor_captures,
         )  # fmt: skip
 
     def box_extents(self, split: str = "train") -> np.ndarray:
-        """``[N, 3]`` extents (x, y, z; metres) of the object boxes a split's samples carry: the axis-aligned hulls
-        of the GT boxes, or the ``max_boxes`` highest-scoring proposed/detected boxes of each scene (``boxes``).
-
-        What a detector with ``anchor_size: null`` takes its anchor from.
-        """
+        """``[N, 3]`` extents (x, y, z; metres) of the object boxes a split's samples carry: the GT boxes' hulls, or
+        each scene's ``max_boxes`` highest-scoring proposed/detected boxes."""
         sets = self.box_sets(split)
         if sets is not None:
-            rows = [np.asarray(a, np.float64).reshape(-1, 6)[np.argsort(-np.asarray(sc).reshape(-1), kind="stable")[: self.max_boxes]]
-                    for a, sc in (sets[f] for f in self.index.files(split) if f in sets)]  # fmt: skip
+            pairs = [sets[f] for f in self.index.files(split) if f in sets]
+            order = [np.argsort(-np.asarray(sc).reshape(-1), kind="stable")[: self.max_boxes] for _, sc in pairs]
+            rows = [np.asarray(a, np.float64).reshape(-1, 6)[o] for (a, _), o in zip(pairs, order, strict=True)]
         else:
             rows = []
             for f in self.index.files(split):
@@ -527,23 +431,14 @@ class SceneFolderDataModule(L.LightningDataModule):
         if split not in self.datasets:
             raise SceneValidationError(str(self.data_dir / "index.json"), "scenes", f"no scenes in split {split!r}")
         dataset = self.datasets[split]
-        if shuffle:
-            # shuffled by (seed, epoch), each sample's random views by (seed, index, epoch): the same in one
-            # process or many (see threedq.data.samplers)
+        if shuffle:  # by (seed, epoch), the same in one process or many (threedq.data.samplers)
             sampler: Any = EpochShuffleSampler(dataset, seed=self.seed)
         elif torch.distributed.is_available() and torch.distributed.is_initialized():
-            # evaluation under DDP: each sample once, in the one-process order
-            sampler = ContiguousDistributedSampler(dataset)
+            sampler = ContiguousDistributedSampler(dataset)  # each sample once, in the one-process order
         else:
             sampler = None
-        return DataLoader(
-            dataset,
-            batch_size=self.batch_size,
-            sampler=sampler,
-            num_workers=self.num_workers,
-            persistent_workers=self.num_workers > 0,
-            drop_last=False,
-        )
+        return DataLoader(dataset, batch_size=self.batch_size, sampler=sampler, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0, drop_last=False)
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", shuffle=True)
@@ -554,5 +449,4 @@ class SceneFolderDataModule(L.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         return self._loader("test", shuffle=False)
 
-    def predict_dataloader(self) -> DataLoader:
-        return self._loader("test", shuffle=False)
+    predict_dataloader = test_dataloader

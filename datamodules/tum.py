@@ -1,10 +1,5 @@
-"""TUM RGB-D sequences: imported into canonical records on first use, then read as a scene folder.
-
-Expected tree of each capture: the module docstring of ``threedq/data/formats/tum.py``; see
-:class:`~threedq.datamodules.capture_folder.CaptureDataModule` for the arguments.
-"""
-
-from __future__ import annotations
+"""TUM RGB-D sequences, imported into canonical records on first use (capture layout: the module docstring of
+``threedq/data/formats/tum.py``)."""
 
 from threedq.datamodules.capture_folder import CaptureDataModule
 

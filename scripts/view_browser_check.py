@@ -1,10 +1,6 @@
-"""The web viewer draws a run: ``threedq view --serve`` on a run folder, a headless Chromium (Debian's ``chromium``
-package; software WebGL through SwiftShader) opens the printed address, and the page is screenshotted through the
-DevTools protocol every few seconds until the scenes' 3D view is drawn (many distinct colours where the scenes are,
-not a blank or a loading page) or the time is up. Not part of the test suite: it needs Chromium and
-``websocket-client`` (``pip install websocket-client``), and takes about a minute.
-
-Usage::
+"""The web viewer draws a run: ``threedq view --serve`` on a run folder, a headless Chromium (software WebGL) opens
+the printed address, and the page is screenshotted through the DevTools protocol until the scenes' 3D view is drawn
+(many distinct colours) or the time is up. Needs Chromium and ``websocket-client``; not part of the test suite.
 
     python scripts/view_browser_check.py [--run runs/em] [--out docs/img/viewer.png] [--max_scenes 16]
 """

@@ -1,31 +1,11 @@
 """The checkpoint contract of every stage: one object per checkpoint file, loaded once, and the grid beside it.
 
-Every threedq stage writes a Lightning checkpoint; later stages, ``threedq em``, ``eval``, ``parse`` and the CLI read
-them. :func:`load_checkpoint` loads a file once (``torch.load(weights_only=True)``, on the CPU) into a
-:class:`StageCheckpoint` (the stage that wrote it, its hyperparameters, its grid, its weights by prefix) and keeps
-the last few in memory, keyed by path, size and modification time: a stage that reads its encoder, its detector and
-its bank from three checkpoints opens each file once, and a file rewritten since (a resumed run) is read again.
-Every helper below (:func:`checkpoint_state`, :func:`checkpoint_hparams`, :func:`checkpoint_stage`,
-:func:`encoder_state_from_checkpoint`, :func:`encoder_grid_from_checkpoint`, :func:`require_stage`) reads through
-it. A file ``torch.load`` cannot read safely is refused in one line naming it (:class:`~threedq.errors.InputError`).
-
-The encoder (``encoder_ckpt`` of every stage): a Lightning checkpoint of any stage (its ``encoder.*`` weights are
-used) or a plain ``state_dict`` of the encoder saved with ``torch.save``. Shapes must match the stage's encoder; a
-mismatch is an error naming the file and the parameter.
-
-The grid travels with the encoder: every stage checkpoint stores ``grid_min``, ``grid_max``, ``grid_resolution``,
-``feature_dim``, ``encoder_channels`` and ``feature_stride`` in its hyperparameters (a field a checkpoint lacks is
-:data:`DEFAULT_GRID`'s), and a stage given an ``encoder_ckpt`` takes them from there unless it names them itself
-(:func:`resolve_grid`); a stage that names a different grid than its encoder was trained on is refused with one line
-naming the checkpoint and the field. Only view prediction (which trains the encoder from scratch) needs them in its
-config.
-
-Writing: :class:`AtomicCheckpointIO` is the Lightning checkpoint writer of every threedq run (``threedq fit``, the
-stages of ``threedq em``): each file is written beside its destination, flushed and renamed over it
-(:func:`threedq.atomic_io.atomic_write_bytes`), so a full disk, a read-only folder or a kill leaves the previous
-checkpoint whole (Lightning's own writer stages the bytes in the system's temporary folder and copies them over when
-that is on another disk). :class:`LastStepCheckpoint` is the checkpoint callback of every ``threedq fit`` run: its
-``last.ckpt`` holds the final step, whatever ``max_steps`` is.
+:func:`load_checkpoint` reads a file once (``torch.load(weights_only=True)``, CPU) into a :class:`StageCheckpoint`
+(its stage, hyperparameters, grid and weights by prefix) and keeps the last few in memory; a file it cannot read safely
+is refused in one line naming it (:class:`~threedq.errors.InputError`). Every helper below reads through it. The grid
+travels with the encoder: every stage checkpoint stores the :data:`DEFAULT_GRID` fields, and :func:`resolve_grid`
+takes those a stage does not name from its ``encoder_ckpt`` (a different one is refused). :class:`AtomicCheckpointIO`
+writes each checkpoint atomically; :class:`LastStepCheckpoint`'s ``last.ckpt`` holds the final step.
 """
 
 from __future__ import annotations
@@ -44,40 +24,20 @@ from torch import Tensor
 from threedq.atomic_io import atomic_write_bytes
 from threedq.errors import InputError
 
-__all__ = [
-    "DEFAULT_GRID",
-    "AtomicCheckpointIO",
-    "StageCheckpoint",
-    "checkpoint_hparams",
-    "checkpoint_stage",
-    "checkpoint_state",
-    "encoder_grid_from_checkpoint",
-    "encoder_state_from_checkpoint",
-    "load_checkpoint",
-    "load_encoder_state",
-    "require_stage",
-    "resolve_grid",
-]
+__all__ = ["DEFAULT_GRID", "AtomicCheckpointIO", "StageCheckpoint", "checkpoint_hparams", "checkpoint_stage",
+           "checkpoint_state", "encoder_grid_from_checkpoint", "encoder_state_from_checkpoint", "load_checkpoint",
+           "load_encoder_state", "require_stage", "resolve_grid"]
 
-#: The grid of a stage that is given none and whose encoder checkpoint carries none (the embedded data's), and the
-#: encoder's widths (the paper's U-Net: 64, 128, 256 channels at its three levels) and its output stride (the paper's
-#: features at half the input grid's resolution).
+#: The grid, encoder widths and output stride of a stage that is given none and whose encoder checkpoint carries none.
 DEFAULT_GRID: dict[str, Any] = {
-    "grid_min": (-1.28, -1.28, -0.32),
-    "grid_max": (1.28, 1.28, 0.96),
-    "grid_resolution": (64, 64, 32),
-    "feature_dim": 32,
-    "encoder_channels": (64, 128, 256),
-    "feature_stride": 2,
+    "grid_min": (-1.28, -1.28, -0.32), "grid_max": (1.28, 1.28, 0.96), "grid_resolution": (64, 64, 32),
+    "feature_dim": 32, "encoder_channels": (64, 128, 256), "feature_stride": 2,
 }
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
-    """Lightning's ``torch.save`` checkpoint writer, each file written atomically in its own folder.
-
-    A failed write (no space left, no permission) raises ``OSError`` naming the checkpoint and leaves the previous
-    file as it was; a kill mid-write leaves at most a temporary ``.<name>.<random>.tmp`` beside it.
-    """
+    """Lightning's ``torch.save`` checkpoint writer, each file written atomically in its own folder
+    (:func:`threedq.atomic_io.atomic_write_bytes`); a failed write raises ``OSError`` and leaves the previous file."""
 
     def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
         if storage_options is not None:
@@ -88,13 +48,8 @@ class AtomicCheckpointIO(TorchCheckpointIO):
 
 
 class LastStepCheckpoint(ModelCheckpoint):
-    """Lightning's ``ModelCheckpoint`` whose ``last.ckpt`` always holds the final training step.
-
-    Lightning writes ``last.ckpt`` at the end of training only when no ``last.ckpt`` was written before, so with
-    ``every_n_train_steps=100`` a run stopped by ``max_steps`` between two saves (``--trainer.max_steps=850``) would
-    keep step 800. This writes ``last.ckpt`` again when training ends, unless that step is already saved (or Lightning
-    would not save now: ``fast_dev_run``, sanity check, not fitting).
-    """
+    """Lightning's ``ModelCheckpoint`` whose ``last.ckpt`` always holds the final training step (written again when
+    training ends, unless Lightning would not save now)."""
 
     def on_train_end(self, trainer: Any, pl_module: Any) -> None:
         if self.save_last and not self._should_skip_saving_checkpoint(trainer):
@@ -122,12 +77,8 @@ _STAGE_BY_WEIGHTS = (("self_labelling", ("bank.", "head.")), ("quantizer", ("ban
 
 @dataclass(frozen=True)
 class StageCheckpoint:
-    """One checkpoint file as loaded (read-only: it is shared by every reader of the file).
-
-    Attributes:
-        path: the file.
-        content: what ``torch.load(weights_only=True)`` returned (a Lightning checkpoint dict, or a bare state dict).
-    """
+    """One checkpoint file as loaded (read-only, shared): its ``path`` and ``content``, what
+    ``torch.load(weights_only=True)`` returned (a Lightning checkpoint dict, or a bare state dict)."""
 
     path: Path
     content: Any
@@ -162,8 +113,8 @@ class StageCheckpoint:
 
     @property
     def anchor(self) -> tuple[float, float, float] | None:
-        """The anchor a detector checkpoint decodes with: its ``anchor`` buffer, or for a checkpoint written before
-        the anchor was a buffer its ``anchor_size`` hyperparameter; None when it holds neither."""
+        """The anchor a detector checkpoint decodes with: its ``anchor`` buffer, else its ``anchor_size``
+        hyperparameter, else None."""
         buf = self.content["state_dict"].get("anchor") if self.is_lightning else None
         if isinstance(buf, Tensor) and buf.numel() == 3:
             return tuple(round(float(a), 6) for a in buf.tolist())  # float32: to the micrometre
@@ -172,9 +123,8 @@ class StageCheckpoint:
 
     @property
     def stage(self) -> str | None:
-        """Which stage wrote it (``viewpred``, ``detector``, ``quantizer``, ...): from the class path LightningCLI saves
-        in the hyperparameters (``threedq.stages.<stage>.<Class>``), else told by the weights it holds; None if
-        neither tells (e.g. a plain encoder state dict)."""
+        """Which stage wrote it (``viewpred``, ``detector``, ...): from the saved class path
+        (``threedq.stages.<stage>.<Class>``), else by the weights it holds; None if neither tells."""
         cls = (self.hparams or {}).get("_class_path")
         if isinstance(cls, str) and cls.startswith("threedq.stages.") and cls.count(".") >= 3:
             return cls.split(".")[2]
@@ -206,8 +156,7 @@ _CACHE: OrderedDict[tuple[str, int, int, int], StageCheckpoint] = OrderedDict()
 
 
 def load_checkpoint(path: str | Path) -> StageCheckpoint:
-    """The checkpoint ``path``, read once (``torch.load(weights_only=True)``, CPU) and then from memory while the file
-    is unchanged (same size, inode and modification time).
+    """The checkpoint ``path``, read once (``torch.load(weights_only=True)``, CPU), then from memory while unchanged.
 
     Raises:
         FileNotFoundError: no such file.
@@ -224,7 +173,7 @@ def load_checkpoint(path: str | Path) -> StageCheckpoint:
         return hit if hit.path == path else StageCheckpoint(path, hit.content)
     try:
         content = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt files
+    except Exception as e:  # torch raises several types for corrupt files
         raise InputError(f"{path}: field '<file>': cannot be loaded safely: {_torch_reason(e)}") from e
     ckpt = StageCheckpoint(path, content)
     _CACHE[key] = ckpt
@@ -251,8 +200,7 @@ def encoder_state_from_checkpoint(path: str | Path) -> dict[str, Tensor]:
 
 
 def checkpoint_hparams(path: str | Path, missing_ok: bool = False) -> dict[str, Any]:
-    """The ``hyper_parameters`` of a stage checkpoint; ``{}`` for a file without them (a bare state dict) when
-    ``missing_ok``.
+    """The ``hyper_parameters`` of a stage checkpoint; ``{}`` for a file without them when ``missing_ok``.
 
     Raises:
         FileNotFoundError: no such file. InputError: not loadable safely, or no hyperparameters (names the file).
@@ -271,12 +219,7 @@ def encoder_grid_from_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def checkpoint_stage(path: str | Path) -> str | None:
-    """Which stage wrote the checkpoint ``path`` (:attr:`StageCheckpoint.stage`).
-
-    Raises:
-        FileNotFoundError: no such file.
-        InputError: not a checkpoint ``torch.load(weights_only=True)`` can read (names the file).
-    """
+    """Which stage wrote the checkpoint ``path`` (:attr:`StageCheckpoint.stage`); raises as :func:`load_checkpoint`."""
     return load_checkpoint(path).stage
 
 
@@ -305,8 +248,7 @@ def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict
     """The grid of a stage: what it names, else what its encoder checkpoint carries, else :data:`DEFAULT_GRID`.
 
     Raises:
-        ValueError: the stage names a value that differs from its encoder checkpoint's (one line naming the
-            checkpoint and the field).
+        InputError: the stage names a value that differs from its encoder checkpoint's.
     """
     if encoder_ckpt and not Path(encoder_ckpt).is_file():
         raise FileNotFoundError(f"encoder_ckpt: no such file: {encoder_ckpt}")
@@ -315,10 +257,8 @@ def resolve_grid(given: dict[str, Any], encoder_ckpt: str | Path | None) -> dict
     for k, default in DEFAULT_GRID.items():
         mine, theirs = given.get(k), stored.get(k)
         if mine is not None and theirs is not None and not _same(mine, theirs):
-            raise InputError(
-                f"{encoder_ckpt}: field '{k}': the encoder was trained with {k}={_plain(theirs)}, this stage asks "
-                f"for {_plain(mine)} (drop {k} from the stage config to use the encoder's)"
-            )
+            raise InputError(f"{encoder_ckpt}: field '{k}': the encoder was trained with {k}={_plain(theirs)}, this "
+                             f"stage asks for {_plain(mine)} (drop {k} from the stage config to use the encoder's)")
         value = mine if mine is not None else theirs if theirs is not None else default
         out[k] = (int(value) if k in ("feature_dim", "feature_stride") else tuple(int(v) for v in value)
                   if k == "encoder_channels" else tuple(value))
@@ -336,16 +276,12 @@ def load_encoder_state(encoder: torch.nn.Module, path: str | Path) -> None:
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
     if missing or unexpected:
-        raise InputError(
-            f"{path}: field 'state_dict': encoder weights do not fit this encoder "
-            f"(missing {missing[:3]}, unexpected {unexpected[:3]})"
-        )
+        raise InputError(f"{path}: field 'state_dict': encoder weights do not fit this encoder "
+                         f"(missing {missing[:3]}, unexpected {unexpected[:3]})")
     for k, v in state.items():
         if own[k].shape != v.shape:
-            raise InputError(
-                f"{path}: field 'encoder.{k}': shape {tuple(v.shape)} does not fit {tuple(own[k].shape)} "
-                "(different feature_dim or channels?)"
-            )
+            raise InputError(f"{path}: field 'encoder.{k}': shape {tuple(v.shape)} does not fit {tuple(own[k].shape)} "
+                             "(different feature_dim or channels?)")
     encoder.load_state_dict(state)
 
 

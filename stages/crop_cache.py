@@ -1,15 +1,9 @@
 """An in-memory cache of object crops computed by a fixed encoder, keyed by content.
 
-While the encoder does not change, every EM round and every round's evaluation crop the same objects out
-of the same views with the same weights; ``threedq em`` hands one :class:`CropCache` to all of them, so
-each scene is encoded once per encoder. A key is the hash of everything a crop depends on: the encoder's
-weights (:func:`module_fingerprint`; none for the raw input crops), the input views' pixels, depth and
-cameras, the boxes and the crop size (:func:`sample_key`). A changed encoder, other views (the training
-split draws them at random) or other boxes are therefore misses, never stale hits. Entries live on the
-CPU; the oldest are dropped once ``max_bytes`` is exceeded.
-
-The cache is only consulted where the crops cannot depend on the batch: no gradient and the encoder in
-eval mode (BatchNorm running statistics).
+A key is the hash of everything a crop depends on: the encoder's weights (:func:`module_fingerprint`; none for the raw
+input crops), the input views' pixels, depth and cameras, the boxes and the crop size (:func:`sample_key`), so a
+changed encoder, other views or other boxes are misses, never stale hits. Entries live on the CPU; the oldest are
+dropped beyond ``max_bytes``. Stages consult it only with no gradient and the encoder in eval mode.
 """
 
 from __future__ import annotations
@@ -28,7 +22,7 @@ __all__ = ["CropCache", "module_fingerprint", "pack_bits", "pack_sparse", "sampl
            "views_key"]
 
 
-def _update(h: "hashlib._Hash", t: Tensor) -> None:
+def _update(h: hashlib._Hash, t: Tensor) -> None:
     t = t.detach()
     h.update(f"{t.dtype}{tuple(t.shape)}".encode())
     if t.dtype == torch.bool:
@@ -56,17 +50,11 @@ def views_key(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor) -> str:
 
 
 def pack_sparse(t: Tensor) -> tuple[Tensor, Tensor]:
-    """A tensor as its entries that are not ``+0.0``: flat positions and values, for :func:`unpack_sparse`.
-
-    The unprojected encoder input ``cat[occ, occ * rgb]`` is zero wherever no depth point fell, about 97% of a
-    scene's voxels, so its entries are kept in about a twentieth of the dense tensor's bytes.
-
-    Args:
-        t: any tensor (floating, integer or bool).
+    """A tensor (any dtype) as its entries that are not ``+0.0``, for :func:`unpack_sparse` (bitwise round trip).
 
     Returns:
         ``index`` ``[N]`` int32 (int64 beyond 2^31 elements) positions in ``t.reshape(-1)``, and ``values`` ``[N]``
-        (dtype of ``t``) there: every entry but ``+0.0`` (``-0.0`` and NaN included), so the round trip is bitwise.
+        (dtype of ``t``) there: every entry but ``+0.0`` (``-0.0`` and NaN included).
     """
     flat = t.detach().reshape(-1)
     keep = flat != 0
@@ -78,10 +66,8 @@ def pack_sparse(t: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def unpack_sparse(index: Tensor, values: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """The tensor of shape ``shape`` that :func:`pack_sparse` gave ``index`` and ``values`` for (bitwise).
-
-    Convention: ``+0.0`` (``False``, 0) everywhere else; device and dtype of ``values``.
-    """
+    """The tensor of shape ``shape`` that :func:`pack_sparse` gave ``index`` and ``values`` for (bitwise; device and
+    dtype of ``values``)."""
     out = values.new_zeros(shape)
     out.view(-1)[index.to(device=values.device, dtype=torch.long)] = values
     return out
@@ -99,11 +85,8 @@ def unpack_bits(bits: Tensor, shape: tuple[int, ...]) -> Tensor:
 
 
 def sample_key(batch: dict[str, Tensor], b: int, num_input_views: int, crop_size: int, crop_shape: str = "hull") -> str:
-    """Hex digest of what sample ``b``'s object crops depend on besides the encoder.
-
-    Hashes the first ``num_input_views`` views (``rgb``, ``depth``, ``K``, ``R_T_cam``), the boxes
-    (``aabb``, ``box_mask``), ``crop_size`` and ``crop_shape`` (:func:`threedq.geometry.crop_region`).
-    """
+    """Hex digest of what sample ``b``'s object crops depend on besides the encoder: its first ``num_input_views``
+    views, its boxes (``aabb``, ``box_mask``), ``crop_size`` and ``crop_shape``."""
     h = hashlib.blake2b(digest_size=16)
     h.update(f"v{num_input_views}s{crop_size}".encode() + (b"" if crop_shape == "hull" else crop_shape.encode()))
     for k in ("rgb", "depth", "K", "R_T_cam"):
@@ -127,9 +110,7 @@ class CropCache:
         if max_bytes <= 0:
             raise ValueError(f"max_bytes: expected > 0, got {max_bytes}")
         self.max_bytes = max_bytes
-        self.nbytes = 0
-        self.hits = 0
-        self.misses = 0
+        self.nbytes = self.hits = self.misses = 0
         self._store: OrderedDict[tuple[str, ...], Tensor] = OrderedDict()
         self._fingerprints: weakref.WeakKeyDictionary[torch.nn.Module, tuple[tuple[int, ...], str]] = (
             weakref.WeakKeyDictionary()
@@ -138,10 +119,8 @@ class CropCache:
     def __len__(self) -> int:
         return len(self._store)
 
-    #: :func:`sample_key`, reachable from the cache object (stages use the cache they are handed and import
-    #: nothing from the pipeline layer).
+    #: :func:`sample_key` and :func:`views_key`, reachable from the cache object
     sample_key = staticmethod(sample_key)
-    #: :func:`views_key` (the key of a whole feature grid), reachable from the cache object.
     views_key = staticmethod(views_key)
 
     def fingerprint(self, module: torch.nn.Module) -> str:
@@ -178,8 +157,7 @@ class CropCache:
             self.nbytes -= dropped.numel() * dropped.element_size()
 
     def drop(self, kind: str) -> int:
-        """Remove every entry whose key starts with ``kind`` (e.g. ``"features"`` once the encoder has changed for
-        good); returns how many were removed. Hit and miss counts are kept."""
+        """Remove every entry whose key starts with ``kind`` (e.g. ``"features"``); returns how many were removed."""
         gone = [k for k in self._store if k[0] == kind]
         for k in gone:
             v = self._store.pop(k)

@@ -1,25 +1,19 @@
 """The 3D object detector stage (paper Sec. 3.1 "3D object detection", supplement: detector architecture).
 
-On the (frozen) encoder's feature grid: one down-sampling Conv3d (stride 2) and three 3D residual blocks
-with 32 channels, then a 1x1x1 head with one anchor per cell: an objectness logit and a box regression
-``(dx, dy, dz, log sx, log sy, log sz)`` relative to the cell centre and one anchor size (config, or the median
-extent of the training boxes). Training targets: a cell is **positive** when its centre lies in the inner part of a box (the
-box shrunk by ``inner_fraction`` about its centre; the cell holding the box centre is always positive),
-**negative** when its centre is farther than ``negative_margin`` outside every box, ignored otherwise.
-Objectness: class-balanced logistic loss; regression: smooth L1 over positives. Inference keeps cells
-above a score threshold, decodes their boxes and runs greedy 3D NMS.
+On the encoder's feature grid: a down-sampling Conv3d (stride 2), residual blocks, then a 1x1x1 head with one anchor
+per cell: an objectness logit and a box regression ``(dx, dy, dz, log sx, log sy, log sz)`` relative to the cell
+centre and the anchor size. Targets: :func:`detection_targets`; class-balanced logistic objectness loss and smooth L1
+over positives; inference thresholds, decodes and runs greedy 3D NMS. Training boxes come from the DataModule's
+``boxes`` (``gt`` or ``proposals``); validation and test score against the GT (``gt_aabb``) with
+:class:`~threedq.metrics.DetectionMAP` at IoU 0.25 and 0.5.
 
-Training boxes come from the DataModule's ``boxes`` option: ``gt`` ("3D pretrain", GT boxes of the
-training split) or ``proposals`` ("2D-triangulated pretrain": the label-free pseudo-boxes of
-:mod:`threedq.proposals`). Validation and test always score against the GT boxes (``gt_aabb``) with the
-dataset-level :class:`~threedq.metrics.DetectionMAP` at IoU 0.25 and 0.5.
-
-Convention: frame R metres, z up; boxes axis-aligned ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (yaw comes
-from the prototypes, as in the paper); volumes ``[B, C, Z, Y, X]``.
+Convention: frame R metres, z up; boxes axis-aligned ``(xmin, ymin, zmin, xmax, ymax, zmax)``; volumes
+``[B, C, Z, Y, X]``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import Any
 
@@ -33,31 +27,25 @@ from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor, nn
 
 from threedq.errors import InputError
-from threedq.stages.base import EncoderStage
+from threedq.stages.base import EncoderStage, SplitEvaluation
 from threedq.box_refinement import add_flat_boxes, observed_boxes, refine_boxes
 from threedq.boxes import nms_3d
 from threedq.metrics import DetectionMAP
 from threedq.viz.detection import detection_figure
 from threedq.viz.png import write_png
 
-__all__ = ["Detector", "DetectorHead", "detection_targets", "decode_boxes"]
+__all__ = ["Detector", "DetectorHead", "decode_boxes", "detection_targets"]
 
-#: The most boxes of one scene that enter 3D NMS (the highest scores): NMS builds an N x N overlap matrix. Never reached
-#: on the default 32 x 32 x 16 feature grid (16,384 cells); on the paper's 72^3 grid an untrained head scores tens of
-#: thousands of cells above the evaluation's threshold, whose matrix would take over 20 GB.
+#: The most boxes of one scene that enter 3D NMS (the highest scores): NMS builds an N x N overlap matrix.
 PRE_NMS_TOP_K = 16_384
 
 
 class _ResBlock3d(nn.Module):
     def __init__(self, channels: int) -> None:
         super().__init__()
-        self.body = nn.Sequential(
-            nn.Conv3d(channels, channels, 3, padding=1, bias=False),
-            nn.BatchNorm3d(channels),
-            nn.LeakyReLU(0.2),
-            nn.Conv3d(channels, channels, 3, padding=1, bias=False),
-            nn.BatchNorm3d(channels),
-        )
+        self.body = nn.Sequential(nn.Conv3d(channels, channels, 3, padding=1, bias=False), nn.BatchNorm3d(channels),
+                                  nn.LeakyReLU(0.2), nn.Conv3d(channels, channels, 3, padding=1, bias=False),
+                                  nn.BatchNorm3d(channels))
         self.act = nn.LeakyReLU(0.2)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -69,19 +57,16 @@ class DetectorHead(nn.Module):
 
     Args:
         in_channels: feature-grid channels.
-        channels: width of the residual blocks (paper: 32).
-        num_blocks: residual blocks (paper: 3).
+        channels: width of the residual blocks.
+        num_blocks: residual blocks.
 
     Shapes: ``[B, C, Z, Y, X]`` -> objectness ``[B, Z/2, Y/2, X/2]`` logits and box ``[B, 6, Z/2, Y/2, X/2]``.
     """
 
     def __init__(self, in_channels: int = 32, channels: int = 32, num_blocks: int = 3) -> None:
         super().__init__()
-        self.down = nn.Sequential(
-            nn.Conv3d(in_channels, channels, 4, stride=2, padding=1, bias=False),
-            nn.BatchNorm3d(channels),
-            nn.LeakyReLU(0.2),
-        )
+        self.down = nn.Sequential(nn.Conv3d(in_channels, channels, 4, stride=2, padding=1, bias=False),
+                                  nn.BatchNorm3d(channels), nn.LeakyReLU(0.2))
         self.blocks = nn.Sequential(*[_ResBlock3d(channels) for _ in range(num_blocks)])
         self.out = nn.Conv3d(channels, 7, 1)
         nn.init.constant_(self.out.bias[:1], -2.0)  # start with low objectness everywhere
@@ -92,11 +77,8 @@ class DetectorHead(nn.Module):
 
 
 def cell_centres(origin: Tensor, cell: Tensor, shape: tuple[int, int, int]) -> Tensor:
-    """World coordinates ``[Z, Y, X, 3]`` (x, y, z order) of the centres of a grid of cells.
-
-    Args:
-        origin: ``[3]`` (xmin, ymin, zmin) of the grid; cell ``[3]`` cell size (x, y, z); shape ``(Z, Y, X)``.
-    """
+    """World coordinates ``[Z, Y, X, 3]`` (x, y, z order) of the cell centres of a grid with ``origin`` ``[3]``
+    (xmin, ymin, zmin), ``cell`` ``[3]`` cell size (x, y, z) and ``shape`` ``(Z, Y, X)``."""
     Z, Y, X = shape
     zs, ys, xs = (torch.arange(n, dtype=origin.dtype, device=origin.device) + 0.5 for n in (Z, Y, X))
     gz, gy, gx = torch.meshgrid(zs, ys, xs, indexing="ij")
@@ -104,8 +86,8 @@ def cell_centres(origin: Tensor, cell: Tensor, shape: tuple[int, int, int]) -> T
 
 
 def detection_targets(
-    centres: Tensor, aabb: Tensor, mask: Tensor, anchor: Tensor, inner_fraction: float = 0.5, negative_margin: float = 0.1,
-    min_height: float = 0.0,
+    centres: Tensor, aabb: Tensor, mask: Tensor, anchor: Tensor, inner_fraction: float = 0.5,
+    negative_margin: float = 0.1, min_height: float = 0.0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Objectness labels and box-regression targets of every cell.
 
@@ -116,8 +98,7 @@ def detection_targets(
         inner_fraction: a cell is positive when its centre is within this fraction of the box's half-extent
             of the box centre (per axis); the cell nearest to the centre is positive too.
         negative_margin: a cell is negative when its centre is more than this (metres) outside every box.
-        min_height: boxes less tall than this (metres) give no positives; their cells (and margin) are ignored,
-            neither object nor background (see :class:`Detector`, ``min_box_height``).
+        min_height: boxes less tall than this (metres) give no positives; their cells (and margin) are ignored.
 
     Returns:
         ``label`` ``[B, Z, Y, X]`` (1 positive, 0 negative, -1 ignored) and ``target`` ``[B, 6, Z, Y, X]``
@@ -128,13 +109,13 @@ def detection_targets(
     """
     if mask.shape[1] == 0:  # no boxes at all: one masked-out box keeps the reductions defined
         aabb, mask = aabb.new_zeros(aabb.shape[0], 1, 6), mask.new_zeros(mask.shape[0], 1)
-    B, M = mask.shape
+    B = mask.shape[0]
     Z, Y, X = centres.shape[:3]
     p = centres.view(1, 1, -1, 3)  # [1, 1, N, 3]
     lo, hi = aabb[..., None, :3], aabb[..., None, 3:]  # [B, M, 1, 3]
     ctr, half = (lo + hi) / 2, (hi - lo) / 2
     inner = ((p - ctr).abs() <= half * inner_fraction).all(-1)  # [B, M, N]
-    # The cell holding the box centre (nearest cell centre) is always positive.
+    # the cell holding the box centre is always positive
     nearest = ((p - ctr) ** 2).sum(-1).argmin(-1)  # [B, M]
     inner = inner.scatter(2, nearest[..., None], True)
     tall = (aabb[..., 5] - aabb[..., 2]) >= min_height  # [B, M]
@@ -174,44 +155,27 @@ def decode_boxes(centres: Tensor, box: Tensor, anchor: Tensor) -> Tensor:
     return torch.cat([c - s / 2, c + s / 2], dim=-1)
 
 
-class Detector(EncoderStage):
+class Detector(SplitEvaluation, EncoderStage):
     """3D detector on the shared encoder's feature grid.
 
     Args:
-        freeze_encoder: keep the encoder fixed (here True by default).
-        **kwargs: the encoder's other arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``channels_last``), by keyword: see
-            :class:`~threedq.stages.base.EncoderStage` (the detector expects a trained, frozen encoder).
-        anchor_size: ``(sx, sy, sz)`` metres, the one anchor of every cell; ``None``: the per-axis median extent of
-            the training boxes at least ``min_box_height`` tall (the DataModule's ``boxes``: pseudo-boxes, GT or
-            detections), taken when training starts unless a loaded checkpoint gives it, and saved in the
-            checkpoint's hyperparameters. The regression is relative to it, so an anchor far from the objects' size
-            weakens it.
-        min_box_height: training boxes less tall than this (metres) give no positive cells and their region is
-            ignored: the feature grid cannot tell a 2 cm flat object from the floor under it, and training on them
-            as objects teaches the head to fire on floor (docs/studies/adaptation.md).
-            ``None``: half the feature grid's voxel height (4 cm on the packaged grid); 0: every box counts.
-        channels: residual-block width (paper: 32).
-        num_blocks: residual blocks (paper: 3).
-        inner_fraction, negative_margin: target assignment (see :func:`detection_targets`).
+        freeze_encoder: keep the encoder fixed.
+        **kwargs: the encoder's other arguments, by keyword (:class:`~threedq.stages.base.EncoderStage`).
+        anchor_size: ``(sx, sy, sz)`` metres, every cell's anchor (``None``: a loaded checkpoint's, else the median
+            extent of the training boxes at least ``min_box_height`` tall).
+        min_box_height: metres; lower training boxes give no positives, their region ignored (None: half a voxel).
+        channels: residual-block width.
+        num_blocks: residual blocks.
+        inner_fraction: target assignment's inner part of a box (see :func:`detection_targets`).
+        negative_margin: target assignment's margin around a box, metres (see :func:`detection_targets`).
         box_weight: weight of the box-regression loss.
-        score_threshold: objectness kept as detections handed on (paper: 0.9).
-        eval_score_threshold: objectness kept for the mAP (ranked detections; low so recall is not cut).
+        score_threshold: objectness kept as detections handed on.
+        eval_score_threshold: objectness kept for the mAP.
         nms_iou: 3D NMS IoU threshold.
-        nms_iomin: 3D NMS threshold on intersection over the smaller box (1 = off): also drops the smaller
-            boxes regressed from cells off an object's centre, which sit inside the object's box with an IoU
-            below ``nms_iou``.
-        max_detections: per scene, after NMS.
-        refine_iou: each detection is replaced by the label-free pseudo-box of the detector's own input views
-            (:mod:`threedq.box_refinement`: the same view's depth and ground plane) it overlaps most, when that IoU
-            is at least this, then suppressed again; a detection no observed box supports keeps its regressed box.
-            Applies to everything the stage detects in a batch (validation and test mAP, ``predict``, the boxes
-            ``threedq em`` hands on, ``threedq parse``); 0 = off (the regressed boxes).
-        flat_boxes: with ``refine_iou > 0``, the observed boxes of the input views less tall than ``min_box_height``
-            (which the detector is not trained on: it cannot find them) that no detection overlaps at ``nms_iou`` are
-            added, scored ``score_threshold`` times their geometric score (:func:`~threedq.box_refinement.add_flat_boxes`),
-            so below the boxes handed on: they count in the mAP and the reports, and mining, quantization and parse,
-            whose feature crops cannot describe them, do not get them. False: flat objects are not detected.
+        nms_iomin: 3D NMS threshold on intersection over the smaller box (1 = off).
+        max_detections: detections per scene, after NMS.
+        refine_iou: a detection takes the input views' pseudo-box it overlaps this much, then NMS again (0: off).
+        flat_boxes: with ``refine_iou > 0``, add the input views' pseudo-boxes below ``min_box_height`` no box hits.
         lr: Adam learning rate.
         image_every_n_steps: write a detections PNG at validation when this many steps have passed (0: never).
 
@@ -219,29 +183,17 @@ class Detector(EncoderStage):
     """
 
     def __init__(
-        self,
-        *,
-        freeze_encoder: bool = True,
-        anchor_size: tuple[float, float, float] | None = None,
-        channels: PositiveInt = 32,
-        num_blocks: PositiveInt = 3,
-        inner_fraction: UnitFraction = 0.5,
-        negative_margin: float = 0.1,
-        box_weight: float = 1.0,
-        score_threshold: ClosedUnitInterval = 0.9,
-        eval_score_threshold: ClosedUnitInterval = 0.05,
-        nms_iou: ClosedUnitInterval = 0.1,
-        nms_iomin: ClosedUnitInterval = 0.3,
-        max_detections: PositiveInt = 16,
-        refine_iou: ClosedUnitInterval = 0.1,
-        flat_boxes: bool = True,
-        lr: float = 1e-3,
-        image_every_n_steps: int = 200,
-        min_box_height: float | None = None,
+        self, *, freeze_encoder: bool = True, anchor_size: tuple[float, float, float] | None = None,
+        channels: PositiveInt = 32, num_blocks: PositiveInt = 3, inner_fraction: UnitFraction = 0.5,
+        negative_margin: float = 0.1, box_weight: float = 1.0, score_threshold: ClosedUnitInterval = 0.9,
+        eval_score_threshold: ClosedUnitInterval = 0.05, nms_iou: ClosedUnitInterval = 0.1,
+        nms_iomin: ClosedUnitInterval = 0.3, max_detections: PositiveInt = 16, refine_iou: ClosedUnitInterval = 0.1,
+        flat_boxes: bool = True, lr: float = 1e-3, image_every_n_steps: int = 200, min_box_height: float | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
-        if anchor_size is not None and (len(anchor_size) != 3 or not all(math.isfinite(a) and a > 0 for a in anchor_size)):
+        if anchor_size is not None and (len(anchor_size) != 3
+                                        or not all(math.isfinite(a) and a > 0 for a in anchor_size)):
             raise ValueError(f"anchor_size: expected 3 positive sizes (metres) or null, got {anchor_size}")
         if min_box_height is not None and not (math.isfinite(min_box_height) and min_box_height >= 0):
             raise ValueError(f"min_box_height: expected a size >= 0 (metres) or null, got {min_box_height}")
@@ -249,23 +201,20 @@ class Detector(EncoderStage):
         self.head = DetectorHead(self.feature_dim, channels, num_blocks)
         fg = self.feature_grid
         self.min_box_height = fg.voxel_size[2] / 2 if min_box_height is None else float(min_box_height)
-        # None: taken from a loaded checkpoint or the training boxes (ones until then: see _check_anchor). A persistent
-        # buffer: the checkpoint carries the anchor its head was trained with (hparams keep anchor_size as given)
+        # None: taken from a loaded checkpoint or the training boxes; a buffer, so the checkpoint carries it
         self._anchor_explicit = anchor_size is not None
         self._anchor_known = anchor_size is not None
         self.register_buffer("anchor", torch.tensor(anchor_size or (1.0, 1.0, 1.0), dtype=torch.float32))
         cell = torch.tensor(fg.voxel_size, dtype=torch.float32) * 2
         shape = tuple(n // 2 for n in fg.volume_shape)  # (Z, Y, X) after the stride-2 layer
-        self.register_buffer(
-            "centres", cell_centres(torch.tensor(fg.bounds_min, dtype=torch.float32), cell, shape), persistent=False
-        )
+        origin = torch.tensor(fg.bounds_min, dtype=torch.float32)
+        self.register_buffer("centres", cell_centres(origin, cell, shape), persistent=False)
         self.val_map = DetectionMAP(iou_thresholds=(0.25, 0.5))
         self.test_map = DetectionMAP(iou_thresholds=(0.25, 0.5))
         self._last_image_step = -1
 
     def on_fit_start(self) -> None:
-        """Take ``anchor_size``, when it is ``None`` and no checkpoint gave one (:meth:`on_load_checkpoint` runs
-        first), from the DataModule's training boxes."""
+        """Take a ``None`` ``anchor_size`` that no checkpoint gave from the DataModule's training boxes."""
         super().on_fit_start()
         if not self._anchor_known:
             dm = getattr(self.trainer, "datamodule", None)
@@ -275,11 +224,8 @@ class Detector(EncoderStage):
             self.set_anchor_from_boxes(dm.box_extents("train"), dm.describe_boxes("train"))
 
     def set_anchor_from_boxes(self, extents: np.ndarray, source: str) -> None:
-        """Set the anchor to the per-axis median of the boxes at least ``min_box_height`` tall.
-
-        Args:
-            extents: ``[N, 3]`` box extents (x, y, z), metres. source: named in the error when no box is tall enough.
-        """
+        """Set the anchor to the per-axis median of the ``extents`` ``[N, 3]`` (x, y, z; metres) at least
+        ``min_box_height`` tall; ``source`` is named in the error when none is."""
         ext = np.asarray(extents, dtype=np.float64).reshape(-1, 3)
         ext = ext[np.isfinite(ext).all(1) & (ext > 0).all(1) & (ext[:, 2] >= self.min_box_height)]
         if len(ext) == 0:
@@ -297,8 +243,7 @@ class Detector(EncoderStage):
 
     @property
     def anchor_size(self) -> tuple[float, float, float] | None:
-        """The anchor this detector decodes with (``None`` until it is known: given, loaded or taken from boxes), to the
-        micrometre (the buffer is float32)."""
+        """The anchor this detector decodes with, to the micrometre (``None`` until known)."""
         return tuple(round(float(a), 6) for a in self.anchor.tolist()) if self._anchor_known else None
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -307,7 +252,8 @@ class Detector(EncoderStage):
         super().on_load_checkpoint(checkpoint)
         state = checkpoint.get("state_dict")
         buf = state.get("anchor") if isinstance(state, dict) else None
-        trained = buf.tolist() if isinstance(buf, torch.Tensor) else (checkpoint.get("hyper_parameters") or {}).get("anchor_size")
+        hparams = checkpoint.get("hyper_parameters") or {}
+        trained = buf.tolist() if isinstance(buf, torch.Tensor) else hparams.get("anchor_size")
         if trained is None:
             return
         if self._anchor_explicit:
@@ -321,24 +267,17 @@ class Detector(EncoderStage):
             raise RuntimeError("anchor_size is null and was never taken from training boxes: run the stage through "
                                "a Trainer with a scene-folder DataModule, or set anchor_size")  # fmt: skip
 
-    # ------------------------------------------------------------------ pieces
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         """Objectness logits ``[B, Z, Y, X]`` and box regressions ``[B, 6, Z, Y, X]`` of a batch."""
         v = self.input_views(batch)
-        rgb, depth, K, pose = (batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam"))
-        if self.freeze_encoder:
-            with torch.no_grad():
-                feats = self.encode_views(rgb, depth, K, pose)
-        else:
-            feats = self.encode_views(rgb, depth, K, pose)
+        with torch.no_grad() if self.freeze_encoder else contextlib.nullcontext():
+            feats = self.encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
         return self.head(feats)
 
     def loss(self, logits: Tensor, box: Tensor, aabb: Tensor, mask: Tensor) -> dict[str, Tensor]:
         self._check_anchor()
-        label, target, _ = detection_targets(
-            self.centres, aabb, mask, self.anchor, self.hparams.inner_fraction, self.hparams.negative_margin,
-            self.min_box_height,
-        )
+        label, target, _ = detection_targets(self.centres, aabb, mask, self.anchor, self.hparams.inner_fraction,
+                                             self.hparams.negative_margin, self.min_box_height)
         return self.loss_from_targets(logits, box, label, target)
 
     def loss_from_targets(self, logits: Tensor, box: Tensor, label: Tensor, target: Tensor) -> dict[str, Tensor]:
@@ -363,11 +302,8 @@ class Detector(EncoderStage):
     @torch.no_grad()
     def detect(self, logits: Tensor, box: Tensor, score_threshold: float | None = None,
                views: tuple[Tensor, Tensor, Tensor] | None = None) -> list[dict[str, Tensor]]:
-        """Per scene ``{"boxes": [P, 6], "scores": [P]}`` after thresholding and 3D NMS.
-
-        ``views``: the input views the logits were computed from (:meth:`input_of`); with ``refine_iou > 0`` each
-        detection is refined against them (see ``refine_iou``). ``None``: the regressed boxes.
-        """
+        """Per scene ``{"boxes": [P, 6], "scores": [P]}`` after thresholding and 3D NMS; with the input ``views``
+        (:meth:`input_of`) and ``refine_iou > 0``, refined against them."""
         self._check_anchor()
         thr = self.hparams.score_threshold if score_threshold is None else score_threshold
         scores = torch.sigmoid(logits.float()).flatten(1)
@@ -396,54 +332,36 @@ class Detector(EncoderStage):
             out.append({"boxes": b, "scores": s})
         return out
 
-    # ------------------------------------------------------------------ Lightning hooks
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         logits, box = self(batch)
         r = self.loss(logits, box, batch["aabb"], batch["box_mask"])
-        self.log_dict(
-            {"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"]},
-            prog_bar=True, batch_size=logits.shape[0],
-        )
+        self.log_dict({"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"]},
+                      prog_bar=True, batch_size=logits.shape[0])
         return r["loss"]
 
-    def _eval_step(self, batch: dict[str, Tensor], metric: DetectionMAP, split: str, batch_idx: int) -> None:
+    def _eval_step(self, batch: dict[str, Tensor], split: str, batch_idx: int) -> None:
         logits, box = self(batch)
         r = self.loss(logits, box, batch["gt_aabb"], batch["gt_mask"])
         self.log(f"{split}/loss", r["loss"], batch_size=logits.shape[0], sync_dist=True)
         views = self.input_of(batch)
         dets = self.detect(logits, box, self.hparams.eval_score_threshold, views)
         targets = [{"boxes": a[m]} for a, m in zip(batch["gt_aabb"], batch["gt_mask"])]
-        metric.update(dets, targets)
+        getattr(self, f"{split}_map").update(dets, targets)
         every = self.hparams.image_every_n_steps
         if batch_idx == 0 and every and split == "val" and self.global_step - self._last_image_step >= every:
             self._last_image_step = self.global_step
             self._write_image(batch, self.detect(logits, box, views=views), "val")
 
-    def _eval_end(self, metric: DetectionMAP, split: str) -> None:
+    def _eval_epoch_end(self, split: str) -> None:
+        metric = getattr(self, f"{split}_map")
         res = metric.compute()
         self.log_dict({f"{split}/map_25": res["map_25"], f"{split}/map_50": res["map_50"]}, prog_bar=True)
         self.log_dict({f"{split}/num_gt": float(res["num_gt"]), f"{split}/num_det": float(res["num_det"])})
         metric.reset()
 
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, self.val_map, "val", batch_idx)
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_end(self.val_map, "val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, self.test_map, "test", batch_idx)
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_end(self.test_map, "test")
-
     def predict_step(self, batch: dict[str, Tensor], batch_idx: int) -> list[dict[str, Tensor]]:
         logits, box = self(batch)
         return self.detect(logits, box, views=self.input_of(batch))
-
-    def configure_optimizers(self) -> torch.optim.Optimizer:
-        params = [p for p in self.parameters() if p.requires_grad]
-        return torch.optim.Adam(params, lr=self.hparams.lr)
 
     def _write_image(self, batch: dict[str, Tensor], dets: list[dict[str, Tensor]], tag: str) -> None:
         if self.trainer is None or not self.trainer.is_global_zero or self.trainer.sanity_checking:

@@ -1,33 +1,23 @@
-"""Correspondence learning (paper Sec. 3.3, Table 2): fine-tune the shared encoder by metric learning.
+"""Correspondence learning (paper Sec. 3.3, Table 2): fine-tune the shared encoder by InfoNCE metric learning.
 
-One stage, three sources of positive pairs (``source``), all trained with InfoNCE (temperature 0.07 in the configs):
+Three sources of positive pairs (``source``):
 
-* ``vc`` (the paper's rgbocc+VC): the same world point inside an object box, seen through two disjoint view
-  sets of one scene (the sample's first ``num_input_views`` views and the next as many, both lifted into frame
-  R); ``voxels_per_object`` points per box; negatives are the other points of the batch (in-batch InfoNCE,
-  both sides trained).
+* ``vc`` (rgbocc+VC): the same point inside an object box seen through two disjoint view sets of one scene (the first
+  ``num_input_views`` views and the next as many); in-batch negatives.
 * ``vc_moco`` (rgbocc+VC*): the same pairs; the second view set goes through the momentum key encoder
-  (``moco.encoder_k``), negatives come from the queue (``moco.queue``, ``[Q, D]``).
-* ``mined`` (ours, supplement "3D correspondence mining"): every ``refresh_every`` steps a pool of ``target_pool``
-  object crops (``crop_size^3``) is cut from random training scenes with the current encoder (eval mode, no gradient,
-  float32, each scene's fixed input views; only boxes that the label-free pseudo-boxes of the input views and of the
-  whole scene's views vouch for: ``pool_min_observed_iou``, ``pool_min_scene_iou``). A pair source
-  (:mod:`threedq.stages.pair_sources`, ``candidates_from``) proposes candidate pairs whose queries are the first
-  ``query_pool`` crops: the input crops' mutual nearest neighbours (``input``, ``occupancy``) or the paper's miner on
-  the learned features (``features``). The ``keep`` best become positives (:mod:`threedq.stages.positives`,
-  ``positives``): cells both objects occupy at the pair's yaw (``occupancy``) or the corners around the verified
-  patch match (``patches``, the paper's), keyed by the target turned onto the query at the refresh. A training step
-  draws ``pairs_per_step`` pairs, re-encodes their query scenes with the encoder being trained (the loader's batch is
-  not used) and takes InfoNCE of the query cells against their keys, with the queue as negatives. The queue is primed
-  at the first refresh with random voxels of the pool, so the first steps do not contrast against random vectors.
+  (``moco.encoder_k``), negatives from the queue (``moco.queue``, ``[Q, D]``).
+* ``mined`` (supplement "3D correspondence mining"): every ``refresh_every`` steps a pool of ``target_pool`` object
+  crops (``crop_size^3``, encoder in eval mode, float32, fixed input views, boxes vouched for by label-free
+  pseudo-boxes) is cut; a pair source (:mod:`threedq.stages.pair_sources`) proposes pairs whose queries are the first
+  ``query_pool`` crops; the ``keep`` best become positives (:mod:`threedq.stages.positives`). A training step draws
+  ``pairs_per_step`` pairs, re-encodes their query scenes and takes InfoNCE of the query cells against their keys,
+  with the queue (primed with pool voxels at the first refresh) as negatives.
 
-Mining diagnostics (GT categories and yaws are used for measuring only): each refresh logs the number of pairs, the
-fraction whose two objects share a category, and the median error of the implied relative yaw on same-category
-pairs of asymmetric categories, and writes ``mining/refresh_<step>.json`` and a picture of the best pairs
-(``mining/refresh_<step>.png``) under the run's log folder.
+Each refresh logs its diagnostics (GT categories and yaws used for measuring only) and writes
+``mining/refresh_<step>.json`` and ``mining/refresh_<step>.png`` under the run's log folder.
 
-Convention: frame R metres, z up; crops ``[N, C, Z, Y, X]``; yaw counter-clockwise seen from above, index
-``b`` meaning ``2 pi b / num_angles``; the mined yaw rotates the TARGET crop onto the query.
+Convention: frame R metres, z up; crops ``[N, C, Z, Y, X]``; yaw counter-clockwise seen from above, index ``b``
+meaning ``2 pi b / num_angles``; the mined yaw rotates the TARGET crop onto the query.
 """
 
 from __future__ import annotations
@@ -51,7 +41,7 @@ from threedq.boxes import best_aabb_iou
 from threedq.contrastive import MomentumContrast, calibrate_context_cosine
 from threedq.geometry import crop_boxes, rotate_yaw
 from threedq.metrics import RetrievalPrecisionAtK
-from threedq.stages.base import EncoderStage, SplitEvaluation
+from threedq.stages.base import EncoderStage, RetrievalEvaluation
 from threedq.stages.pair_sources import FeaturePairs, InputPairs, PairSource, input_occupancy
 from threedq.stages.positives import corner_offsets, crop_voxels, occupancy_positives, patch_positives
 from threedq.viz.features import mined_pairs_figure
@@ -61,9 +51,8 @@ __all__ = ["Mining", "gt_box_iou", "implied_yaw_error_deg"]
 
 
 def gt_box_iou(batch: dict[str, Any]) -> Tensor:
-    """``[N]`` for the batch's valid boxes (``box_mask`` order): the highest 3D IoU with a GT object box of its scene
-    (``gt_aabb``/``gt_mask``; measuring only: the pair diagnostics' looser "on an object"); NaN where the batch
-    carries no GT boxes, 0 where the scene has none."""
+    """``[N]`` for the batch's valid boxes (``box_mask`` order): the highest 3D IoU with a GT box of its scene
+    (``gt_aabb``/``gt_mask``; measuring only); NaN where the batch carries no GT boxes, 0 where the scene has none."""
     mask = batch["box_mask"]
     if "gt_aabb" not in batch or "gt_mask" not in batch:
         return torch.full((int(mask.sum()),), float("nan"), device=mask.device)
@@ -90,59 +79,47 @@ def implied_yaw_error_deg(yaw_index: Tensor, num_angles: int, query_yaw: Tensor,
     return torch.rad2deg(torch.minimum(d, period - d))
 
 
-
-
-class Mining(SplitEvaluation, EncoderStage):
+class Mining(RetrievalEvaluation, EncoderStage):
     """The correspondence-learning stage (``vc``, ``vc_moco`` or ``mined``; see the module docstring).
 
     Args:
-        **kwargs: the encoder's arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``channels_last``), by keyword: see
-            :class:`~threedq.stages.base.EncoderStage` (the encoder comes from view prediction or an earlier
-            round, and is fine-tuned; it cannot be frozen).
+        **kwargs: the encoder's arguments, by keyword (:class:`~threedq.stages.base.EncoderStage`; cannot be frozen).
         source: ``"vc"``, ``"vc_moco"`` or ``"mined"``.
-        queue_size: MoCo negatives Q (paper: 100,000).
-        momentum: MoCo key-encoder momentum (paper: 0.999).
-        temperature: InfoNCE temperature (paper: 0.07).
-        lr: Adam learning rate of the fine-tuning.
-        crop_size: object crops are ``crop_size^3`` (paper: 16).
+        queue_size: MoCo negatives Q.
+        momentum: MoCo key-encoder momentum.
+        temperature: InfoNCE temperature.
+        lr: Adam learning rate.
+        crop_size: object crops are ``crop_size^3`` voxels.
         voxels_per_object: ``vc``/``vc_moco``: points sampled per object box.
-        query_pool: ``mined``: query crops per refresh, the first of the pool (paper: 1000); ``<= target_pool``.
-        target_pool: ``mined``: crops cut per refresh; targets are all of them from other scenes (paper: 1000).
-        keep: pairs kept per refresh (paper: 200).
-        num_angles: yaw steps of every rotation search (paper: 36).
-        candidates_from: the pair source (:mod:`~threedq.stages.pair_sources`): ``"input"`` (occupancy and colour of
-            the unprojected input crops), ``"occupancy"`` (the input occupancy alone) or ``"features"`` (the paper's
-            miner on the learned features).
+        query_pool: ``mined``: query crops per refresh, the first of the pool; ``<= target_pool``.
+        target_pool: ``mined``: crops cut per refresh; the targets are those of other scenes.
+        keep: pairs kept per refresh.
+        num_angles: yaw steps of every rotation search.
+        candidates_from: the pair source: ``"input"`` (input occupancy and colour), ``"occupancy"`` or ``"features"``.
         occupancy_mutual_k: ``input``/``occupancy``: pairs are mutual ``k`` nearest neighbours of the pool.
-        candidates_per_query: each query's best pairs, spread over the queries (``None``: the ``keep`` best pairs).
-        positives: what each pair teaches (:mod:`~threedq.stages.positives`): ``"occupancy"`` (cells both objects
-            occupy at the pair's yaw; any source) or ``"patches"`` (corners around the patch match; ``features``).
-        top_k, patch, search_grid, context_distance, min_score, yaw_window, rank_by: ``features``: the miner's
-            settings (:func:`~threedq.contrastive.mine_correspondences`' ``top_k``, ``patch``, ``grid``,
-            ``context_distance``, ``min_score``, ``yaw_window``, ``rank_by``).
-        min_cosine: the miner's context threshold; ``None`` calibrates it per refresh as the ``context_quantile``
-            quantile of random patch pairs' best cosine within +-1 voxel (:func:`~threedq.contrastive.
-            calibrate_context_cosine`; the refresh records it whatever the source).
-        context_quantile: the quantile of that calibration.
-        corner_offset: ``patches``: the corners of a ``2 * corner_offset`` cube around the match (8^3 by default).
+        candidates_per_query: each query's best pairs (``None``: the ``keep`` best pairs overall).
+        positives: ``"occupancy"`` (cells both objects occupy at the pair's yaw) or ``"patches"`` (``features`` only).
+        top_k: ``features``: targets retrieved per query (:func:`~threedq.contrastive.mine_correspondences`).
+        patch: ``features``: patch edge, voxels.
+        search_grid: ``features``: grid positions per axis of the patch search (the miner's ``grid``).
+        context_distance: ``features``: Manhattan distance of the context patches, voxels.
+        min_score: ``features``: verification score a pair needs to be kept.
+        yaw_window: ``features``: search the patch within this many yaw steps of the retrieval's (``None``: all).
+        rank_by: ``features``: order of the verified pairs, ``"score"`` or ``"retrieval"``.
+        min_cosine: the miner's context threshold (``None``: calibrated per refresh, see ``context_quantile``).
+        context_quantile: quantile of random patch pairs' best cosine that calibrates ``min_cosine``.
+        corner_offset: ``patches``: the corners of a ``2 * corner_offset`` cube around the match.
         corner_search: ``patches``: each corner's key is its best match within ``+-corner_search`` voxels.
-        refresh_every: steps between pool refreshes (the first is at step 0).
+        refresh_every: steps between pool refreshes (the first at step 0).
         pairs_per_step: mined pairs (query scenes encoded) per training step.
         pool_batch_size: scenes encoded at once while cutting the pool.
-        pool_min_observed_iou: a box enters the pool only where its 3D IoU with a label-free pseudo-box of its
-            scene's input views (:func:`~threedq.box_refinement.observed_boxes`) reaches this (``None``: every box,
-            the paper's pool).
-        pool_min_scene_iou: ... and with a pseudo-box fused over its training scene's views (the DataModule's
-            ``pseudo_boxes("train")``; ``None``: off).
-        round_lr: ``"constant"`` (``lr`` in every EM round, the paper's) or ``"harmonic"`` (``lr / em_round``).
-        em_round: the EM round this stage runs in (``threedq em`` sets it; 1 outside the loop).
+        pool_min_observed_iou: least 3D IoU of a pool box with a pseudo-box of its input views (``None``: off).
+        pool_min_scene_iou: least 3D IoU with a pseudo-box fused over its training scene's views (``None``: off).
+        round_lr: ``"constant"`` (``lr`` in every EM round) or ``"harmonic"`` (``lr / em_round``).
+        em_round: the EM round this stage runs in (1 outside ``threedq em``).
         seed: seed of the pool draws (offset by the refresh count and the process rank).
         retrieval_k: K of the validation/test precision@K.
-        symmetry_order: per category, its yaw symmetry order, for the mined pairs' yaw-error diagnostics only (the
-            threedq CLI links it from the dataset's ``index.json``; ``None``: not scored by symmetry).
-
-    Convention: see the module docstring.
+        symmetry_order: per category, its yaw symmetry order (diagnostics only; ``None``: not scored by symmetry).
     """
 
     def __init__(
@@ -162,35 +139,7 @@ class Mining(SplitEvaluation, EncoderStage):
         round_lr: Literal["constant", "harmonic"] = "harmonic", em_round: PositiveInt = 1, seed: int = 0,
         retrieval_k: PositiveInt = 10, symmetry_order: list[int] | None = None, **kwargs: Any,
     ) -> None:
-        self._check_settings(kwargs, query_pool, target_pool, corner_offset, crop_size, positives, candidates_from)
-        super().__init__(**kwargs)
-        self.save_hyperparameters()
-        self.moco = MomentumContrast(self.encoder, dim=self.feature_dim, queue_size=queue_size, momentum=momentum,
-                                     temperature=temperature)
-        self.register_buffer("queue_primed", torch.zeros((), dtype=torch.bool))
-        self.register_buffer("refreshes", torch.zeros((), dtype=torch.long))
-        self.metrics = torch.nn.ModuleDict({
-            split: RetrievalPrecisionAtK(k=retrieval_k, num_angles=num_angles) for split in ("val", "test")
-        })
-        #: where each refresh's candidate pairs come from
-        self.pair_source: PairSource = (
-            FeaturePairs(top_k, candidates_per_query, num_angles, patch=patch, grid=search_grid, min_score=min_score,
-                         context_distance=context_distance, yaw_window=yaw_window, rank_by=rank_by)
-            if candidates_from == "features" else
-            InputPairs(occupancy_mutual_k, candidates_from == "input", candidates_per_query, num_angles))
-        self._pairs: dict[str, Tensor] | None = None
-        self._pool_stats = {"boxes": 0, "vouched": 0, "scene_vouched": 0}
-        self._scene_boxes: dict[str, Any] | None = None  # the training split's fused pseudo-boxes (pool_min_scene_iou)
-        self._candidates = 0
-        self._refreshed_at = -1
-        #: per refresh, the diagnostics written to ``mining/refresh_<step>.json``
-        self.mining_history: list[dict[str, Any]] = []
-
-    @staticmethod
-    def _check_settings(encoder: dict[str, Any], query_pool: int, target_pool: int, corner_offset: int,
-                        crop_size: int, positives: str, candidates_from: str) -> None:
-        """The checks that join two settings (each setting's own range is its annotation's)."""
-        if encoder.get("freeze_encoder"):
+        if kwargs.get("freeze_encoder"):
             raise ValueError("freeze_encoder: the mining stage fine-tunes the encoder; it cannot be frozen")
         if query_pool > target_pool:
             raise ValueError(f"query_pool: the queries are the first query_pool of the target_pool crops, so "
@@ -201,37 +150,50 @@ class Mining(SplitEvaluation, EncoderStage):
             raise ValueError(f"positives: 'patches' are the corners around the miner's patch matches; candidates_from "
                              f"{candidates_from!r} proposes pairs without them: use candidates_from: features or "
                              f"positives: occupancy")
+        super().__init__(**kwargs)
+        self.save_hyperparameters()
+        self.moco = MomentumContrast(self.encoder, dim=self.feature_dim, queue_size=queue_size, momentum=momentum,
+                                     temperature=temperature)
+        self.register_buffer("queue_primed", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("refreshes", torch.zeros((), dtype=torch.long))
+        self.metrics = torch.nn.ModuleDict({s: RetrievalPrecisionAtK(k=retrieval_k, num_angles=num_angles)
+                                            for s in ("val", "test")})
+        self.pair_source: PairSource = (
+            FeaturePairs(top_k, candidates_per_query, num_angles, patch=patch, grid=search_grid, min_score=min_score,
+                         context_distance=context_distance, yaw_window=yaw_window, rank_by=rank_by)
+            if candidates_from == "features" else
+            InputPairs(occupancy_mutual_k, candidates_from == "input", candidates_per_query, num_angles))
+        self._pairs: dict[str, Tensor] | None = None
+        self._pool_stats = {"boxes": 0, "vouched": 0, "scene_vouched": 0}
+        self._scene_boxes: dict[str, Any] | None = None  # the training split's fused pseudo-boxes
+        self._candidates = 0
+        self._refreshed_at = -1
+        self.mining_history: list[dict[str, Any]] = []  # per refresh, its diagnostics
 
-
-    # ------------------------------------------------------------------ view-contrastive sources
     def _two_view_sets(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         n = self.input_views(batch)
         S = batch["rgb"].shape[1]
         if S < 2 * n:
             raise ValueError(f"rgb: source {self.hparams.source!r} needs two disjoint sets of {n} views per sample, "
                              f"got {S} views (set the data's num_target_views >= num_input_views)")
-        sets = []
-        for lo in (0, n):
-            sets.append(tuple(batch[k][:, lo:lo + n] for k in ("rgb", "depth", "K", "R_T_cam")))
-        return sets[0], sets[1]
+        return tuple(tuple(batch[k][:, lo:lo + n] for k in ("rgb", "depth", "K", "R_T_cam")) for lo in (0, n))
 
     def _object_points(self, feats: Tensor, aabb: Tensor, mask: Tensor, idx: Tensor) -> Tensor:
         """Features ``[P, C]`` at the sampled cells ``idx`` ``[N, V]`` of every valid box's ``crop_size^3`` crop."""
-        s = self.hparams.crop_size
-        crops = crop_boxes(feats, aabb, self.feature_grid, s, mask=mask)  # [N, C, s, s, s]
+        crops = crop_boxes(feats, aabb, self.feature_grid, self.hparams.crop_size, mask=mask)  # [N, C, s, s, s]
         return crop_voxels(crops, idx).flatten(0, 1)
 
     def _vc_step(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         a, b = self._two_view_sets(batch)
-        mask = batch["box_mask"]
+        mask, aabb = batch["box_mask"], batch["aabb"]
         n_obj = int(mask.sum())
         if n_obj == 0:
             return {"loss": None}
         s, V = self.hparams.crop_size, self.hparams.voxels_per_object
         if self.hparams.source == "vc":
             idx = torch.randint(0, s ** 3, (n_obj, min(V, s ** 3)), device=self.device)
-            q = self._object_points(self.encode_views(*a), batch["aabb"], mask, idx)
-            k = self._object_points(self.encode_views(*b), batch["aabb"], mask, idx)
+            q = self._object_points(self.encode_views(*a), aabb, mask, idx)
+            k = self._object_points(self.encode_views(*b), aabb, mask, idx)
             logits_neg = q @ k.T  # in-batch: the other points' keys are the negatives
             pos = (q * k).sum(1, keepdim=True)
             off = ~torch.eye(q.shape[0], dtype=torch.bool, device=q.device)
@@ -240,35 +202,34 @@ class Mining(SplitEvaluation, EncoderStage):
             return {"loss": loss, "positives": q.shape[0], "pos_cos": pos.mean()}
         with torch.no_grad():
             self.moco._momentum_update_key_encoder()
-        q, k = self._view_positives(self.encode_views(*a), b, batch, V)
+        feats = self.encode_views(*a)
+        idx = torch.randint(0, s ** 3, (n_obj, min(V, s ** 3)), device=self.device)
+        q = self._object_points(feats, aabb, mask, idx)
+        with torch.no_grad():  # keys: the second view set through the momentum encoder (eval mode), same points
+            x, seen = self.encoder_input(*(t.flatten(0, 1) for t in b))
+            self.moco.encoder_k.eval()
+            k = self._object_points(self.encode_input(x, seen, b[0].shape[1], encoder=self.moco.encoder_k), aabb,
+                                    mask, idx)
+        return self._moco_loss(q, k)
+
+    def _moco_loss(self, q: Tensor, k: Tensor) -> dict[str, Any]:
+        """InfoNCE of queries ``q`` ``[P, C]`` against keys ``k`` ``[P, C]`` and the queue; ``k`` is then enqueued."""
         loss = self.moco.loss(q, k)
         self._enqueue(k)
         return {"loss": loss, "positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
-
-    def _encode_keys(self, rgb: Tensor, depth: Tensor, K: Tensor, pose: Tensor, aabb: Tensor, mask: Tensor,
-                     idx: Tensor) -> Tensor:
-        """Keys: the second view set through the momentum encoder (eval mode), at the same points as the queries."""
-        x, seen = self.encoder_input(rgb.flatten(0, 1), depth.flatten(0, 1), K.flatten(0, 1), pose.flatten(0, 1))
-        self.moco.encoder_k.eval()
-        feats = self.encode_input(x, seen, rgb.shape[1], encoder=self.moco.encoder_k)
-        return self._object_points(feats, aabb, mask, idx)
 
     def _enqueue(self, k: Tensor) -> None:
         keys = self.all_gather(k.detach())
         self.moco._dequeue_and_enqueue(keys.reshape(-1, k.shape[-1]))
 
-    # ------------------------------------------------------------------ mined source
     def _train_dataset(self) -> Any:
-        loader = self.trainer.train_dataloader
-        ds = getattr(loader, "dataset", None)
+        ds = getattr(self.trainer.train_dataloader, "dataset", None)
         if ds is None:
             raise RuntimeError("mining: the training dataloader has no .dataset to draw the pools from")
         return ds
 
     def _pool_dataset(self) -> Any:
-        """The training split with each scene's fixed input views (the choice val, test and the self-labelling pool
-        use) instead of random ones: under ``threedq em`` the pool's crops then come from the feature grids the
-        previous round's self-labelling and detector evaluation left in the crop cache for these weights."""
+        """The training split with each scene's fixed input views instead of random ones (so the crop cache serves)."""
         ds = copy.copy(self._train_dataset())
         if getattr(ds, "random_views", False):
             ds.random_views = False
@@ -276,49 +237,40 @@ class Mining(SplitEvaluation, EncoderStage):
 
     @torch.no_grad()
     def _cut_pool(self, ds: Any, generator: torch.Generator) -> dict[str, Tensor]:
-        """Crops of at least ``target_pool`` objects (or all) from random training scenes, encoder in eval mode,
-        in float32 whatever the training precision (the crops the other stages cached are float32)."""
-        with torch.autocast(self.device.type, enabled=False):
-            return self._cut_pool_fp32(ds, generator)
-
-    def _cut_pool_fp32(self, ds: Any, generator: torch.Generator) -> dict[str, Tensor]:
+        """Crops of at most ``target_pool`` objects from random training scenes, encoder in eval mode, float32."""
+        hp = self.hparams
         was_training = self.encoder.training
         self.encoder.eval()
-        want = self.hparams.target_pool
         order = torch.randperm(len(ds), generator=generator).tolist()
         parts: dict[str, list[Tensor]] = {k: [] for k in ("features", "raw", "labels", "yaw", "scene", "slot",
                                                           "gt_iou")}
         got, i = 0, 0
-        try:
-            while got < want and i < len(order):
-                idx = order[i:i + self.hparams.pool_batch_size]
-                i += len(idx)
-                batch = self._to_device(default_collate([ds[j] for j in idx]))
-                c = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
-                mask = batch["box_mask"]
-                slot = torch.arange(mask.shape[1], device=self.device)[None].expand_as(mask)[mask]
-                keep = torch.ones_like(slot, dtype=torch.bool)
-                if self.hparams.pool_min_observed_iou is not None:
-                    keep = self._observed_iou(batch) >= self.hparams.pool_min_observed_iou
-                    self._pool_stats["boxes"] += int(keep.numel())
-                    self._pool_stats["vouched"] += int(keep.sum())
-                if self.hparams.pool_min_scene_iou is not None:
-                    keep &= self._scene_iou(batch, ds) >= self.hparams.pool_min_scene_iou
-                    self._pool_stats["scene_vouched"] += int(keep.sum())
-                for k, v in (("features", c["features"]), ("raw", c["raw"]), ("labels", c["labels"]),
-                             ("yaw", c["boxes"][:, 6]), ("scene", c["scene"]), ("slot", slot),
-                             ("gt_iou", gt_box_iou(batch))):
-                    parts[k].append(v[keep])
-                got += int(keep.sum())
-        finally:
-            self.encoder.train(was_training)
-        out = {k: torch.cat(v)[:want] for k, v in parts.items()}
-        return out
+        with torch.autocast(self.device.type, enabled=False):
+            try:
+                while got < hp.target_pool and i < len(order):
+                    idx = order[i:i + hp.pool_batch_size]
+                    i += len(idx)
+                    batch = self._to_device(default_collate([ds[j] for j in idx]))
+                    c = self.object_crops(batch, self.input_views(batch), hp.crop_size)
+                    keep = torch.ones_like(c["slot"], dtype=torch.bool)
+                    if hp.pool_min_observed_iou is not None:
+                        keep = self._observed_iou(batch) >= hp.pool_min_observed_iou
+                        self._pool_stats["boxes"] += int(keep.numel())
+                        self._pool_stats["vouched"] += int(keep.sum())
+                    if hp.pool_min_scene_iou is not None:
+                        keep &= self._scene_iou(batch, ds) >= hp.pool_min_scene_iou
+                        self._pool_stats["scene_vouched"] += int(keep.sum())
+                    c.update(yaw=c["boxes"][:, 6], gt_iou=gt_box_iou(batch))
+                    for k, v in parts.items():
+                        v.append(c[k][keep])
+                    got += int(keep.sum())
+            finally:
+                self.encoder.train(was_training)
+        return {k: torch.cat(v)[:hp.target_pool] for k, v in parts.items()}
 
     def _observed_iou(self, batch: dict[str, Any]) -> Tensor:
-        """``[N]`` for the batch's valid boxes (``box_mask`` order): the highest 3D IoU with a label-free pseudo-box
-        of its scene's input views (:func:`~threedq.box_refinement.observed_boxes`, with the feature grid's bounds
-        as the detector uses them, so the detector's refinement has usually cached them); 0 where there is none."""
+        """``[N]`` for the batch's valid boxes: the highest 3D IoU with a label-free pseudo-box of its scene's input
+        views (:func:`~threedq.box_refinement.observed_boxes` in the feature grid's bounds); 0 where there is none."""
         v = self.input_views(batch)
         fg = self.feature_grid
         out = []
@@ -330,9 +282,8 @@ class Mining(SplitEvaluation, EncoderStage):
         return torch.cat(out).to(self.device)
 
     def _scene_iou(self, batch: dict[str, Any], ds: Any) -> Tensor:
-        """``[N]`` for the batch's valid boxes (``box_mask`` order): the highest 3D IoU with a label-free pseudo-box
-        fused over the views of its training scene (the DataModule's ``pseudo_boxes("train")``, by the scene's file in
-        ``ds.files``); 0 where the scene has none."""
+        """``[N]`` for the batch's valid boxes: the highest 3D IoU with a label-free pseudo-box fused over the views of
+        its training scene (the DataModule's ``pseudo_boxes("train")``); 0 where the scene has none."""
         if self._scene_boxes is None:
             self._scene_boxes = self._scene_pseudo_boxes()
         if not hasattr(ds, "files"):
@@ -349,21 +300,17 @@ class Mining(SplitEvaluation, EncoderStage):
         return torch.cat(out).to(self.device)
 
     def _scene_pseudo_boxes(self) -> dict[str, Any]:
-        """The training split's label-free pseudo-boxes per scene file, fused over its views: the DataModule's
-        ``pseudo_boxes("train")`` (computed once per split and cached by it)."""
+        """The DataModule's ``pseudo_boxes("train")``: label-free pseudo-boxes per scene file, fused over its views."""
         dm = getattr(self._trainer, "datamodule", None)
         if dm is None or not callable(getattr(dm, "pseudo_boxes", None)):
             raise ValueError(f"pool_min_scene_iou: the check needs a DataModule with pseudo_boxes(split) (threedq's "
                              f"scene-folder DataModules); got {type(dm).__name__}; set pool_min_scene_iou: null")
         return dm.pseudo_boxes("train")
 
-    def _to_device(self, batch: dict[str, Any]) -> dict[str, Any]:
-        return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
-
     @torch.no_grad()
     def refresh_pairs(self) -> dict[str, Any]:
-        """Cut a new pool, take the pair source's candidates and their positives; log and write the diagnostics.
-        Returns them."""
+        """Cut a new pool, take the pair source's candidates and their positives; log, write and return the
+        diagnostics."""
         hp = self.hparams
         t0 = time.time()
         rank = self.trainer.global_rank if self.trainer is not None else 0
@@ -398,17 +345,18 @@ class Mining(SplitEvaluation, EncoderStage):
     def _empty_pool_message(self) -> str:
         hp, st = self.hparams, self._pool_stats
         checks = ", ".join(f"{k}={hp[k]}" for k in ("pool_min_observed_iou", "pool_min_scene_iou") if hp[k] is not None)
-        seen = (f" (of {st['boxes']} boxes seen, {st['vouched']} vouched for by the input views, "
-                f"{st['scene_vouched']} by the scenes' fused views too)") if hp.pool_min_observed_iou is not None else ""
-        return (f"mining: the pool of the training split's boxes is empty{seen}: no box to mine pairs from"
-                + (f"; the pool's checks ({checks}) may be too strict for this data: set them to null" if checks else ""))
+        seen = "" if hp.pool_min_observed_iou is None else (
+            f" (of {st['boxes']} boxes seen, {st['vouched']} vouched for by the input views, "
+            f"{st['scene_vouched']} by the scenes' fused views too)")
+        strict = f"; the pool's checks ({checks}) may be too strict for this data: set them to null" if checks else ""
+        return f"mining: the pool of the training split's boxes is empty{seen}: no box to mine pairs from" + strict
 
     def pair_measures(self, pool: dict[str, Tensor], mined: dict[str, Tensor]) -> dict[str, Any]:
         """GT measures of mined pairs (measuring only): ``same_category`` among the ``labelled_pairs`` (both boxes
-        match a GT object; detected boxes may not), and, where the data names symmetries, the median implied yaw error
-        ``yaw_median_err_deg`` over the ``yaw_pairs`` same-category pairs of asymmetric categories, and
-        ``yaw_sym_median_err_deg`` over the ``yaw_sym_pairs`` of every category of finite symmetry order (each modulo
-        its period: more pairs, a steadier median). A key is absent where it has no pair."""
+        match a GT object), ``pairs_on_objects_iou25``, and, where the data names symmetries, the median implied yaw
+        error ``yaw_median_err_deg`` over the ``yaw_pairs`` same-category pairs of asymmetric categories and
+        ``yaw_sym_median_err_deg`` over the ``yaw_sym_pairs`` of every finite symmetry order (modulo its period). A
+        key is absent where it has no pair."""
         qi, ti = mined["query_index"], mined["target_index"]
         lq, lt = pool["labels"][qi], pool["labels"][ti]
         labelled = (lq >= 0) & (lt >= 0)
@@ -417,12 +365,11 @@ class Mining(SplitEvaluation, EncoderStage):
                                "labelled_pairs": int(labelled.sum())}
         iou = pool.get("gt_iou")
         if iou is not None and iou.numel() and not bool(torch.isnan(iou).any()):
-            # the looser "on an object": both boxes overlap a GT object at IoU >= 0.25 (mAP@0.25's threshold), which
-            # counts boxes cut short on thin or half-seen objects
+            # both boxes overlap a GT object at IoU >= 0.25
             out["pairs_on_objects_iou25"] = int(((iou[qi] >= 0.25) & (iou[ti] >= 0.25)).sum())
-        sym = self._symmetry()
+        sym = self.hparams.symmetry_order
         if sym is not None and same.any():
-            s = sym.to(qi.device)[lq.clamp_min(0)]
+            s = torch.tensor(list(sym), dtype=torch.long).to(qi.device)[lq.clamp_min(0)]
             for key, use in (("yaw", same & (s == 1)), ("yaw_sym", same & (s >= 1))):
                 if use.any():
                     err = implied_yaw_error_deg(mined["yaw"][use], self.hparams.num_angles, pool["yaw"][qi][use],
@@ -437,28 +384,24 @@ class Mining(SplitEvaluation, EncoderStage):
         qi = mined["query_index"]
         measures = self.pair_measures(pool, mined)
         info: dict[str, Any] = {
-            "step": int(self.global_step), "refresh": int(self.refreshes), "pool_objects": int(pool["features"].shape[0]),
+            "step": int(self.global_step), "refresh": int(self.refreshes),
+            "pool_objects": int(pool["features"].shape[0]),
             "queries": n_q, "pairs": int(qi.numel()), "min_cosine": round(min_cos, 4),
             "score_mean": float(mined["score"].mean()) if qi.numel() else float("nan"),
-            # how widely the pairs spread over the pool (a box in many pairs is a hub of the ranking)
-            "distinct_queries": int(qi.unique().numel()), "distinct_targets": int(mined["target_index"].unique().numel()),
+            "distinct_queries": int(qi.unique().numel()),
+            "distinct_targets": int(mined["target_index"].unique().numel()),
             "distinct_boxes": int(torch.cat([qi, mined["target_index"]]).unique().numel()),
-            "same_category": measures["same_category"],
-            "labelled_pairs": measures["labelled_pairs"],
-            **({"pairs_on_objects_iou25": measures["pairs_on_objects_iou25"]}
-               if "pairs_on_objects_iou25" in measures else {}),
-            # the pool's boxes that match a GT object (measuring only)
+            **{k: v for k, v in measures.items() if not k.startswith("yaw")},  # same_category, labelled_pairs, ...
             "pool_on_objects": float((pool["labels"] >= 0).float().mean()) if pool["labels"].numel() else float("nan"),
             "seconds": round(seconds, 1),
             **self.pair_source.describe(),
         }
-        if hp.positives == "occupancy":  # the candidates before the shape ranking, and the kept pairs' agreement
+        if hp.positives == "occupancy":
             info["shape_candidates"] = self._candidates
             info["shape_cosine_mean"] = float(mined["shape_cosine"].mean()) if qi.numel() else float("nan")
-        if hp.pool_min_observed_iou is not None:  # boxes looked at, and those the input views' geometry vouched for
-            info["pool_boxes_seen"] = self._pool_stats["boxes"]
-            info["pool_vouched"] = self._pool_stats["vouched"]
-        if hp.pool_min_scene_iou is not None:  # of those, the ones the fused views of their scene vouched for too
+        if hp.pool_min_observed_iou is not None:
+            info.update(pool_boxes_seen=self._pool_stats["boxes"], pool_vouched=self._pool_stats["vouched"])
+        if hp.pool_min_scene_iou is not None:
             info["pool_scene_vouched"] = self._pool_stats["scene_vouched"]
         info.update({k: v for k, v in measures.items() if k.startswith("yaw")})
         self.mining_history.append(info)
@@ -470,10 +413,6 @@ class Mining(SplitEvaluation, EncoderStage):
                 self._write_diagnostics(info, pool, mined)
         return info
 
-    def _symmetry(self) -> Tensor | None:
-        sym = self.hparams.symmetry_order
-        return None if sym is None else torch.tensor(list(sym), dtype=torch.long)
-
     def _write_diagnostics(self, info: dict[str, Any], pool: dict[str, Tensor], mined: dict[str, Tensor]) -> None:
         out = self.run_dir / "mining"
         name = f"refresh_{info['step']:06d}"
@@ -481,7 +420,7 @@ class Mining(SplitEvaluation, EncoderStage):
         P = mined["query_index"].numel()
         if P == 0:
             return
-        # the best 6 pairs of the refresh and its worst 4 (the kept pairs are in rank order)
+        # the best 6 pairs and the worst 4 (the kept pairs are in rank order)
         pick = torch.cat([torch.arange(min(6, P)), torch.arange(min(max(6, P - 4), P), P)])
         pick = pick.to(mined["query_index"].device)
         qi, ti, yaw = mined["query_index"][pick], mined["target_index"][pick], mined["yaw"][pick]
@@ -526,26 +465,8 @@ class Mining(SplitEvaluation, EncoderStage):
         k = pairs["keys"][pick].reshape(-1, q.shape[-1]).to(q.dtype)
         with torch.no_grad():
             self.moco._momentum_update_key_encoder()
-        loss = self.moco.loss(q, k)
-        self._enqueue(k)
-        return {"loss": loss, "positives": q.shape[0], "pos_cos": (q * k).sum(1).mean()}
+        return self._moco_loss(q, k)
 
-    def _view_positives(self, feats: Tensor, second: tuple[Tensor, ...], batch: dict[str, Tensor], count: int
-                        ) -> tuple[Tensor, Tensor]:
-        """View-contrastive positives (``vc_moco``): queries ``[P, C]``
-        (``feats``, the input views, with gradient) and keys ``[P, C]`` (the same voxels of the same boxes encoded
-        from the ``second`` view set by the momentum encoder, no gradient); ``P = count`` x the valid boxes."""
-        mask = batch["box_mask"]
-        n_obj, s = int(mask.sum()), self.hparams.crop_size
-        if n_obj == 0:
-            return feats.new_zeros(0, feats.shape[1]), feats.new_zeros(0, feats.shape[1])
-        idx = torch.randint(0, s ** 3, (n_obj, min(count, s ** 3)), device=self.device)
-        q = self._object_points(feats, batch["aabb"], mask, idx)
-        with torch.no_grad():
-            k = self._encode_keys(*second, batch["aabb"], mask, idx)
-        return q, k
-
-    # ------------------------------------------------------------------ Lightning hooks
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor | None:
         r = self._mined_step() if self.hparams.source == "mined" else self._vc_step(batch)
         if r["loss"] is None:
@@ -553,20 +474,6 @@ class Mining(SplitEvaluation, EncoderStage):
         self.log_dict({"train/loss": r["loss"], "train/pos_cos": r["pos_cos"],
                        "train/positives": float(r["positives"])}, prog_bar=True, batch_size=1)
         return r["loss"]
-
-    def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:
-        crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
-        if crops["features"].shape[0]:
-            keep = crops["labels"] >= 0
-            self.metrics[split].update(crops["features"][keep], crops["labels"][keep])
-
-    def _eval_epoch_end(self, split: str) -> None:
-        m = self.metrics[split]
-        if m.crops:
-            n = sum(c.shape[0] for c in m.crops) if isinstance(m.crops, list) else m.crops.shape[0]
-            if n > self.hparams.retrieval_k:
-                self.log(f"{split}/precision_at_{self.hparams.retrieval_k}", m.compute(), prog_bar=True)
-        m.reset()
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         params = [p for p in self.encoder.parameters() if p.requires_grad]

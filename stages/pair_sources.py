@@ -1,14 +1,7 @@
-"""Where a mining refresh's candidate pairs come from: one interface, :class:`PairSource`, and its two strategies.
-
-* :class:`InputPairs` (``candidates_from: input`` or ``occupancy``; not in the paper): the pool's boxes of other
-  scenes that are each other's ``mutual_k`` best by agreement of their unprojected input crops over every yaw
-  (:func:`input_pairs`); the learned features choose no pair and learn from them. ``input`` compares occupancy and
-  colour, ``occupancy`` the occupancy alone (for data whose categories are shapes in any paint).
-* :class:`FeaturePairs` (``candidates_from: features``, the paper's): the miner's verified pairs by the learned
-  features (:func:`~threedq.contrastive.mine_correspondences`).
-
-Either hands its pairs best first; with ``per_query`` each query's best ``per_query`` pairs, every query's best before
-any query's second (:func:`spread_candidates`).
+"""Where a mining refresh's candidate pairs come from: :class:`PairSource` and its two strategies,
+:class:`InputPairs` (``candidates_from: input`` or ``occupancy``: mutual nearest neighbours by the unprojected input
+crops' agreement over every yaw) and :class:`FeaturePairs` (``features``: the paper's miner on the learned features).
+Either hands its pairs best first, optionally spread over the queries (:func:`spread_candidates`).
 
 Convention: crops ``[N, C, Z, Y, X]``; yaw about the crop's vertical axis through its centre, counter-clockwise seen
 from above, step ``b`` meaning ``2 pi b / num_angles``; a pair's yaw rotates the TARGET crop onto the query.
@@ -41,12 +34,10 @@ def input_occupancy(raw: Tensor, colour: bool = False) -> Tensor:
 
 def pool_shape_agreement(occ: Tensor, num_angles: int, chunk: int = 128) -> Tensor:
     """:func:`~threedq.stages.positives.shape_agreement` of every box of a pool with every other: ``S[n, m]``, the
-    cosine of crop ``n`` with crop ``m`` turned onto it, at the yaw where it is highest. One rotation per crop and yaw,
-    then one product per chunk of targets: ``N^2 A V`` multiply-adds.
+    cosine of crop ``n`` with crop ``m`` turned onto it, at the yaw where it is highest.
 
     Args:
-        occ: ``[N, C, s, s, s]`` occupancy crops (any non-negative weights; more channels: one cosine over all of
-            them). num_angles: yaw steps in a full turn.
+        occ: ``[N, C, s, s, s]`` non-negative crops (one cosine over all channels). num_angles: yaw steps.
         chunk: target crops rotated at once (memory ``chunk * num_angles * C * s^3`` floats).
 
     Returns:
@@ -64,10 +55,8 @@ def pool_shape_agreement(occ: Tensor, num_angles: int, chunk: int = 128) -> Tens
 
 
 def mutual_pool_neighbours(similarity: Tensor, exclude: Tensor, k: int) -> Tensor:
-    """``[N, N]`` bool: ``n`` and ``m`` are each among the other's ``k`` most similar (excluded pairs never count;
-    ties go to the lower index, :func:`torch.topk`'s order). The matrix is the pool against itself and not symmetric
-    (``S[n, m]`` turns ``m`` onto ``n``), so ``n``'s neighbours are ranked by row ``n`` and ``m``'s by row ``m``,
-    exactly ``k`` each.
+    """``[N, N]`` bool: ``n`` and ``m`` are each among the other's ``k`` most similar by their own row (excluded pairs
+    never count; ties go to the lower index).
 
     Args:
         similarity: ``[N, N]``; exclude: ``[N, N]`` bool (e.g. the same scene, the box itself); k: >= 1.
@@ -88,9 +77,9 @@ def input_pairs(crops: Tensor, scene: Tensor, n_q: int, k: int, num_angles: int)
             k: >= 1; num_angles: yaw steps in a full turn.
 
     Returns:
-        The keys of :func:`~threedq.contrastive.mine_correspondences` the stage reads: ``query_index``,
-        ``target_index``, ``yaw`` ``[P]`` long (the agreement's step), ``score`` ``[P]`` (the agreement),
-        ``query_pos``, ``target_pos``, ``target_pos_aligned`` ``[P, 3]`` long (zeros: no patch match).
+        :func:`~threedq.contrastive.mine_correspondences`' keys: ``query_index``, ``target_index``, ``yaw`` ``[P]``
+        long, ``score`` ``[P]`` (the agreement), ``query_pos``, ``target_pos``, ``target_pos_aligned`` ``[P, 3]``
+        (zeros).
     """
     sim = pool_shape_agreement(crops, num_angles)
     mutual = mutual_pool_neighbours(sim, scene[:, None] == scene[None, :], k)[:n_q]
@@ -104,9 +93,8 @@ def input_pairs(crops: Tensor, scene: Tensor, n_q: int, k: int, num_angles: int)
 
 
 def spread_candidates(query_index: Tensor, per_query: int, count: int) -> Tensor:
-    """Indices of the candidate pairs that spread over the queries: each query's first ``per_query`` pairs (in the
-    given rank order), every query's best before any query's second (round-robin, ties in rank order), cut at
-    ``count``.
+    """Indices of the candidate pairs spread over the queries: each query's first ``per_query`` pairs, every query's
+    best before any query's second (ties in rank order), cut at ``count``.
 
     Args:
         query_index: ``[P]`` pool index of each pair's query, best pair first. per_query, count: >= 1.
@@ -188,10 +176,8 @@ class InputPairs(PairSource):
 
 
 class FeaturePairs(PairSource):
-    """The paper's miner on the learned features: object-level rotation-max retrieval of ``top_k`` targets, the query
-    patch searched over each target's patch grid, verification by the context ring
-    (:func:`~threedq.contrastive.mine_correspondences`; ``miner``: its keywords ``patch``, ``grid``,
-    ``context_distance``, ``min_score``, ``yaw_window``, ``rank_by``)."""
+    """The paper's miner on the learned features (:func:`~threedq.contrastive.mine_correspondences`; ``miner``: its
+    other keywords)."""
 
     name = "features"
 

@@ -1,14 +1,9 @@
 """What a mined pair teaches: the positives of one pair of objects, as query cells and their keys.
 
-Two kinds, chosen by the mining stage's ``positives``:
-
-* ``patches`` (the paper's): the 8 corners of a ``2 * corner_offset``-voxel cube around the verified patch match in
-  the query crop, each keyed by its best-matching voxel in the target turned onto the query (:func:`corner_keys`):
-  the learned features vouch for the correspondence.
-* ``occupancy`` (not in the paper): each pair is re-posed on its two objects' input occupancy
-  (:func:`shape_agreement`), the pairs that agree best are kept, and the positives are cells both objects occupy at
-  that yaw, keyed by the turned target's feature at the same cell (:func:`shape_cells`): the geometry vouches for the
-  correspondence, so the positives are shape agreements by construction.
+Two kinds, chosen by the mining stage's ``positives``: ``patches`` (the paper's; the 8 corners of a cube around the
+verified patch match, each keyed by its best match in the target turned onto the query, :func:`patch_positives`) and
+``occupancy`` (the pairs whose input occupancy agrees best, positives at cells both objects occupy at that yaw,
+:func:`occupancy_positives`).
 
 Convention: crops ``[N, C, Z, Y, X]``; yaw about the crop's vertical axis through its centre, counter-clockwise seen
 from above, step ``b`` meaning ``2 pi b / num_angles``; a pair's yaw rotates the TARGET crop onto the query.
@@ -37,12 +32,8 @@ def take_pairs(mined: dict[str, Any], idx: Tensor) -> dict[str, Any]:
 
 
 def corner_offsets(corner_offset: int = 4, patch: int = 2, device: torch.device | str | None = None) -> Tensor:
-    """``[8, 3]`` long ``(dz, dy, dx)`` offsets from a patch start to the corners of a cube centred on the patch.
-
-    The cube's corners sit ``corner_offset - 0.5`` voxels (for ``patch=2``) from the patch centre along each
-    axis: offsets ``(patch // 2) - corner_offset`` and ``(patch // 2) + corner_offset - 1`` (``-3`` and ``4`` by
-    default, the corners of an 8^3 cube).
-    """
+    """``[8, 3]`` long ``(dz, dy, dx)`` offsets from a patch start to the corners of a cube centred on the patch:
+    ``patch // 2 - corner_offset`` and ``patch // 2 + corner_offset - 1`` per axis."""
     lo, hi = patch // 2 - corner_offset, patch // 2 + corner_offset - 1
     vals = torch.tensor([lo, hi], device=device)
     return torch.cartesian_prod(vals, vals, vals)
@@ -58,8 +49,8 @@ def corner_keys(
         query_crop: ``[C, S, S, S]``; query_pos: ``[3]`` long patch start of the match in the query.
         target_aligned: ``[C, S, S, S]`` the target rotated onto the query; target_pos_aligned ``[3]`` long.
         offsets: ``[P, 3]`` long, from :func:`corner_offsets`.
-        search: the key is the voxel of highest cosine to the query corner within ``+-search`` voxels (per axis)
-            of the expected place ``target_pos_aligned + offset``.
+        search: the key is the voxel of highest cosine to the query corner within ``+-search`` voxels per axis of
+            ``target_pos_aligned + offset``.
 
     Returns:
         ``query_voxels`` ``[P, 3]`` long (clamped into the crop) and ``keys`` ``[P, C]`` L2-normalised.
@@ -78,8 +69,8 @@ def corner_keys(
 
 def shape_agreement(query_occ: Tensor, target_occ: Tensor, num_angles: int, chunk: int = 64
                     ) -> tuple[Tensor, Tensor]:
-    """How well each pair's two objects agree in shape: the cosine of the query's input occupancy crop with the
-    target's, rotated onto it, at the yaw where it is highest (exact: every yaw step by :func:`rotate_yaw`).
+    """How well each pair's two objects agree in shape: the cosine of the query's occupancy crop with the target's
+    rotated onto it, at the yaw where it is highest.
 
     Args:
         query_occ: ``[P, 1, s, s, s]`` occupancy crops (any non-negative weights); target_occ: the same, pairwise.
@@ -87,10 +78,7 @@ def shape_agreement(query_occ: Tensor, target_occ: Tensor, num_angles: int, chun
         chunk: pairs rotated at once.
 
     Returns:
-        ``cos`` ``[P]`` (0 where a crop is empty) and ``yaw`` ``[P]`` long, the step ``b`` whose rotation of the target
-        by ``2 pi b / num_angles`` lies best on the query; ties go to the lowest ``b``.
-
-    Convention: see the module docstring.
+        ``cos`` ``[P]`` (0 where a crop is empty) and ``yaw`` ``[P]`` long, the best step ``b`` (ties: the lowest).
     """
     P, A = query_occ.shape[0], num_angles
     cos = query_occ.new_zeros(P)
@@ -107,8 +95,8 @@ def shape_agreement(query_occ: Tensor, target_occ: Tensor, num_angles: int, chun
 
 def shape_cells(query_occ: Tensor, target_occ_aligned: Tensor, count: int,
                 generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-    """Where a pair's positives go when they are to be shape agreements by construction: ``count`` cells drawn where
-    both objects have input occupancy once the target is turned onto the query (weight: the product of the two).
+    """``count`` cells per pair drawn where both objects have input occupancy once the target is turned onto the query
+    (weight: the product of the two).
 
     Args:
         query_occ: ``[P, 1, s, s, s]``; target_occ_aligned: ``[P, 1, s, s, s]`` the target's, rotated onto the query.
@@ -116,8 +104,8 @@ def shape_cells(query_occ: Tensor, target_occ_aligned: Tensor, count: int,
         generator: the draw's generator (CPU).
 
     Returns:
-        ``cells`` ``[P', count]`` long flat indices ``z * s * s + y * s + x`` (:func:`crop_voxels`' order) and ``valid``
-        ``[P]`` bool: the pairs with at least ``count`` cells of shared occupancy (the ``P'`` returned, in order).
+        ``cells`` ``[P', count]`` long flat indices ``z * s * s + y * s + x`` and ``valid`` ``[P]`` bool, the pairs
+        with at least ``count`` shared cells (the ``P'`` returned, in order).
     """
     w = (query_occ * target_occ_aligned).flatten(1).clamp_min(0)  # [P, s^3]
     valid = (w > 0).sum(dim=1) >= count
@@ -157,8 +145,8 @@ def patch_positives(feats: Tensor, mined: dict[str, Tensor], offsets: Tensor, se
 
 def occupancy_positives(feats: Tensor, occ: Tensor, mined: dict[str, Tensor], count: int, keep: int, num_angles: int,
                         generator: torch.Generator | None = None) -> tuple[dict[str, Tensor], Tensor, Tensor]:
-    """``positives: occupancy``: the ``keep`` pairs whose objects' input occupancy agrees best, each at the yaw of that
-    agreement, and ``count`` positives per pair where both are occupied (:func:`shape_agreement`, :func:`shape_cells`).
+    """``positives: occupancy``: the ``keep`` pairs whose input occupancy agrees best (:func:`shape_agreement`), at
+    that yaw, and ``count`` positives per pair where both are occupied (:func:`shape_cells`).
 
     Args:
         feats: ``[N, C, s, s, s]`` the pool's feature crops; occ: ``[N, 1, s, s, s]`` their input occupancy;
@@ -166,9 +154,8 @@ def occupancy_positives(feats: Tensor, occ: Tensor, mined: dict[str, Tensor], co
         num_angles: yaw steps in a full turn; generator: the cells' draw (CPU).
 
     Returns:
-        The kept pairs (``mined``'s keys, ``yaw`` replaced, ``shape_cosine`` added, ``query_pos`` and
-        ``target_pos_aligned`` one positive cell for the pictures), their query cells ``[P, count, 3]`` long and keys
-        ``[P, count, C]`` L2-normalised.
+        The kept pairs (``yaw`` replaced, ``shape_cosine`` added, ``query_pos`` and ``target_pos_aligned`` one
+        positive cell), their query cells ``[P, count, 3]`` long and keys ``[P, count, C]`` L2-normalised.
     """
     qi, ti = mined["query_index"], mined["target_index"]
     cos, yaw = shape_agreement(occ[qi], occ[ti], num_angles)

@@ -1,17 +1,10 @@
 """2.5DQ-Nets (the paper's supplement, "2.5DQ-Nets"): 3DQ-Nets with 2D CNNs and an in-plane rotation search.
 
-A 2D U-Net (:class:`~threedq.nets.UNet2D`, the 3D encoder's layer list in 2D) encodes ``cat[rgb, depth]`` of one
-view into per-pixel L2-normalised features at half resolution and is trained by autoencoding that same RGB-D
-view (:class:`~threedq.nets.RGBDDecoder2D`; L1 on RGB plus L1 on normalised depth over valid pixels) — not
-by predicting another view, which is what makes it 2.5D. Objects are the regions of their projected
-ground-truth 3D boxes (:func:`~threedq.geometry.project_boxes_2d`) in the feature map, resampled to
-``crop_size x crop_size`` (:meth:`Q25D.object_crops`). Their 2D prototypes are fitted by the same prototype EM
-as 3DQ-Nets (:func:`~threedq.quantization.prototypes.fit_prototype_bank` on one-slice crops ``[N, F, 1, s, s]``,
-whose yaw search is an in-plane rotation search, 36 angles) — in ``threedq eval --q25d`` on the
-training split's objects, like the other baselines, and scored there on the test split.
-
-Train: ``threedq fit --config stages/q25d.yaml``; evaluate: ``threedq eval --ckpt <quantizer.ckpt> --q25d
-runs/q25d/checkpoints/last.ckpt``.
+A 2D U-Net (:class:`~threedq.nets.UNet2D`) encodes ``cat[rgb, depth]`` of one view into per-pixel L2-normalised
+features at half resolution, trained by autoencoding that view (:class:`~threedq.nets.RGBDDecoder2D`; L1 on RGB plus
+L1 on normalised depth over valid pixels). Objects are their projected GT 3D boxes' regions of the feature map
+(:meth:`Q25D.object_crops`); ``threedq eval --q25d`` fits their 2D prototypes with the prototype EM on one-slice crops
+``[N, F, 1, s, s]`` (an in-plane rotation search) and scores them.
 """
 
 from __future__ import annotations
@@ -22,15 +15,16 @@ from torch import Tensor
 
 from threedq.geometry import crop_boxes_2d, project_boxes_2d
 from threedq.nets import RGBDDecoder2D, UNet2D
+from threedq.stages.base import SplitEvaluation
 
 __all__ = ["Q25D"]
 
 
-class Q25D(L.LightningModule):
+class Q25D(SplitEvaluation, L.LightningModule):
     """The 2.5DQ-Nets stage: a 2D RGB-D autoencoder whose features are cropped at projected object boxes.
 
     Args:
-        feature_dim: channels ``F`` of the per-pixel features (32, as the 3D encoder's).
+        feature_dim: channels ``F`` of the per-pixel features.
         depth_range: ``(near, far)`` metres mapped to normalised depth ``[-0.5, 0.5]`` (invalid depth: 0).
         depth_weight: weight of the depth L1 against the RGB L1.
         crop_size: object crops are ``crop_size x crop_size`` feature pixels.
@@ -40,14 +34,8 @@ class Q25D(L.LightningModule):
     boxes in frame R projected with the view's ``K`` and ``R_T_cam`` (view 0 of each sample).
     """
 
-    def __init__(
-        self,
-        feature_dim: int = 32,
-        depth_range: tuple[float, float] = (1.2, 5.2),
-        depth_weight: float = 1.0,
-        crop_size: int = 16,
-        lr: float = 1e-3,
-    ) -> None:
+    def __init__(self, feature_dim: int = 32, depth_range: tuple[float, float] = (1.2, 5.2), depth_weight: float = 1.0,
+                 crop_size: int = 16, lr: float = 1e-3) -> None:
         super().__init__()
         near, far = depth_range
         if not far > near > 0:
@@ -58,7 +46,6 @@ class Q25D(L.LightningModule):
         self.encoder = UNet2D(in_channels=4, out_channels=feature_dim)
         self.decoder = RGBDDecoder2D(in_channels=feature_dim)
 
-    # ------------------------------------------------------------------ pieces
     def rgbd_input(self, rgb: Tensor, depth: Tensor) -> tuple[Tensor, Tensor]:
         """``[N, 3, H, W]`` RGB in [0, 1] and ``[N, H, W]`` depth (m, 0 invalid) -> ``x`` ``[N, 4, H, W]`` =
         ``cat[rgb - 0.5, depth_n]`` and ``valid`` ``[N, 1, H, W]`` (depth > 0)."""
@@ -102,23 +89,16 @@ class Q25D(L.LightningModule):
         return {"features": crops[mask], "labels": batch["categories"][mask], "boxes2d": boxes2d[mask],
                 "visible": visible[mask], "scene": batch["scene_index"][:, None].expand_as(mask)[mask]}
 
-    # ------------------------------------------------------------------ Lightning
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         r = self._step(batch)
         self.log_dict({"train/loss": r["loss"], "train/l1_rgb": r["l1_rgb"], "train/l1_depth": r["l1_depth"]},
                       prog_bar=True, batch_size=batch["rgb"].shape[0])
         return r["loss"]
 
-    def _eval(self, batch: dict[str, Tensor], split: str) -> None:
+    def _eval_step(self, batch: dict[str, Tensor], split: str, batch_idx: int) -> None:
         r = self._step(batch)
         self.log_dict({f"{split}/{k}": v for k, v in r.items()}, prog_bar=split == "val",
                       batch_size=batch["rgb"].shape[0], sync_dist=True)
-
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval(batch, "val")
-
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval(batch, "test")
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)

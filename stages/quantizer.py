@@ -1,12 +1,9 @@
 """Rotation-aware quantization into 3D prototypes (paper Sec. 3.2) as a Lightning stage.
 
-With the encoder frozen (loaded from the view-prediction checkpoint), one pass over the training scenes
-collects the object crops (of the DataModule's boxes: GT, pseudo-boxes or detections); at the last batch of that
-epoch the prototype bank is initialised incrementally and refined by ``em_iterations``
-rounds of E-step (best prototype and yaw per object) and closed-form M-step, in memory. Under DDP the
-crops of every process are gathered first, so every process runs the same EM on the same objects.
-Validation and test assign held-out objects to the prototypes and measure Hungarian-matched accuracy,
-few-shot labelling accuracy and relative yaw error.
+With the encoder frozen, one pass over the training scenes collects the object crops of the DataModule's boxes; at
+the epoch's last batch the prototype bank is initialised incrementally and refined by ``em_iterations`` rounds of
+E-step (best prototype and yaw per object) and closed-form M-step (under DDP on the crops of every process).
+Validation and test measure Hungarian-matched accuracy, few-shot labelling accuracy and relative yaw error.
 """
 
 from __future__ import annotations
@@ -24,16 +21,10 @@ from threedq.stages.base import EncoderStage, SplitEvaluation
 from threedq.stages.checkpoint import checkpoint_hparams, load_checkpoint
 from threedq.geometry import yaw_angles
 from threedq.metrics import FewShotAccuracy, HungarianAccuracy, RelativeYawError
-from threedq.quantization.prototypes import (
-    PrototypeBank,
-    assign_chunked,
-    prototype_crops,
-    quantization_loss,
-    run_prototype_em,
-)
+from threedq.quantization.prototypes import (PrototypeBank, assign_chunked, prototype_crops, quantization_loss,
+                                              run_prototype_em)
 
 __all__ = ["Quantizer", "bank_occupancy_floor", "load_bank_state"]
-
 
 
 def load_bank_state(bank: PrototypeBank, path: str) -> None:
@@ -49,15 +40,13 @@ def load_bank_state(bank: PrototypeBank, path: str) -> None:
 
 
 def _saved_floor(hparams: dict[str, Any] | None) -> float | None:
-    """``occupancy_floor`` of a quantizer checkpoint's hyperparameters (None, or a checkpoint without it: the plain
-    cosine)."""
+    """``occupancy_floor`` of a quantizer checkpoint's hyperparameters (None where absent: the plain cosine)."""
     floor = (hparams or {}).get("occupancy_floor")
     return None if floor is None else float(floor)
 
 
 def bank_occupancy_floor(path: str | Path) -> float | None:
-    """The ``occupancy_floor`` a quantizer checkpoint's bank was fitted with: the crops that bank scores must be
-    weighted the same way."""
+    """The ``occupancy_floor`` a quantizer checkpoint's bank was fitted with (its crops must be weighted alike)."""
     return _saved_floor(checkpoint_hparams(path, missing_ok=True))
 
 
@@ -65,71 +54,46 @@ class Quantizer(SplitEvaluation, EncoderStage):
     """The quantizer stage.
 
     Args:
-        freeze_encoder: keep the encoder fixed (here True by default).
-        **kwargs: the encoder's other arguments (``grid_min``, ``grid_max``, ``grid_resolution``, ``feature_dim``,
-            ``encoder_channels``, ``feature_stride``, ``encoder_ckpt``, ``channels_last``), by keyword: see
-            :class:`~threedq.stages.base.EncoderStage` (the encoder should come from view prediction, frozen).
-        num_prototypes: K (paper: 50).
-        crop_size: object crops are ``crop_size^3`` (paper: 16).
-        num_angles: yaw steps of the rotation search (paper: 36); 1 gives the no-rot-3DQ baseline.
-        init_threshold: incremental initialisation threshold on rotation-max cosine (paper: 0.8).
-        fill_free_slots: after the incremental pass, open the remaining slots from the objects farthest
-            from the bank.
+        freeze_encoder: keep the encoder fixed.
+        **kwargs: the encoder's other arguments, by keyword (:class:`~threedq.stages.base.EncoderStage`).
+        num_prototypes: K, the bank's prototypes.
+        crop_size: object crops are ``crop_size^3``.
+        num_angles: yaw steps of the rotation search (1: the no-rot-3DQ baseline).
+        init_threshold: incremental initialisation threshold on rotation-max cosine.
+        fill_free_slots: after the incremental pass, open the free slots from the objects farthest from the bank.
         em_iterations: E/M rounds at the end of each training epoch.
-        em_restarts: fits of an empty bank, each from its own initialisation order (seeds ``seed, seed + 1, ...``),
-            of which the one with the lowest quantization loss on the training crops is kept (1: the paper's
-            single fit; more is a departure from it, as k-means keeps the best of several starts;
-            docs/studies/quantizer.md). A bank warm-started from ``init_bank_ckpt`` is refined once.
+        em_restarts: fits of an empty bank (seeds ``seed, seed + 1, ...``); the lowest quantization loss is kept.
         search_method: ``"fast"`` (cylindrical FFT) or ``"exact"`` rotation search.
-        num_classes: categories of the dataset (metrics only; labels are never used for training). The threedq CLI
-            links it, and ``symmetry_order``, from the dataset's ``index.json`` (``ThreeDQCLI``'s
-            ``link_arguments``); ``None``: no evaluation metrics (training needs none).
-        symmetry_order: per category, its yaw symmetry order; for the yaw-error metric (``None``: every category
-            asymmetric).
-        shots: labelled examples per category of the few-shot metric (paper: 2).
+        num_classes: categories of the dataset, for the metrics only (``None``: no evaluation metrics).
+        symmetry_order: per category, its yaw symmetry order, for the yaw-error metric (``None``: all asymmetric).
+        shots: labelled examples per category of the few-shot metric.
         seed: seed of the incremental-initialisation order and of the few-shot draw.
-        init_bank_ckpt: start from the prototype bank of an earlier quantizer checkpoint (the previous EM
-            round) instead of an empty one.
-        occupancy_floor: a float in [0, 1): every voxel of a crop is weighted by this floor plus its input occupancy
-            dilated over 3^3 voxels (:func:`~threedq.quantization.prototypes.prototype_crops`), so the cosine weighs
-            the observed surface over the empty space around it (a departure from the paper;
-            docs/studies/quantizer.md). None: the paper's plain cosine of the whole crop. It is the bank's:
-            self-labelling and ``threedq parse`` read it from this stage's checkpoint, and a checkpoint loaded into
-            this stage brings its own.
+        init_bank_ckpt: start from the prototype bank of an earlier quantizer checkpoint instead of an empty one.
+        occupancy_floor: in [0, 1): crop voxels weighted by this plus their dilated input occupancy
+            (:func:`~threedq.quantization.prototypes.prototype_crops`); ``None``: the plain cosine.
 
     Convention: crops in frame R, z up; yaw counter-clockwise seen from above.
     """
 
     def __init__(
-        self,
-        *,
-        freeze_encoder: bool = True,
-        num_prototypes: PositiveInt = 50,
-        crop_size: PositiveInt = 16,
-        num_angles: PositiveInt = 36,
-        init_threshold: float = 0.8,
-        fill_free_slots: bool = True,
-        em_iterations: NonNegativeInt = 10,
-        em_restarts: PositiveInt = 4,
-        search_method: Literal["fast", "exact"] = "fast",
-        num_classes: int | None = None,
-        symmetry_order: list[int] | None = None,
-        shots: PositiveInt = 2,
-        seed: int = 0,
-        init_bank_ckpt: str | None = None,
-        occupancy_floor: OccupancyFloor | None = 0.2,
-        **kwargs: Any,
+        self, *, freeze_encoder: bool = True, num_prototypes: PositiveInt = 50, crop_size: PositiveInt = 16,
+        num_angles: PositiveInt = 36, init_threshold: float = 0.8, fill_free_slots: bool = True,
+        em_iterations: NonNegativeInt = 10, em_restarts: PositiveInt = 4,
+        search_method: Literal["fast", "exact"] = "fast", num_classes: int | None = None,
+        symmetry_order: list[int] | None = None, shots: PositiveInt = 2, seed: int = 0,
+        init_bank_ckpt: str | None = None, occupancy_floor: OccupancyFloor | None = 0.2, **kwargs: Any,
     ) -> None:
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         self.save_hyperparameters()
         self.automatic_optimization = False
-        self.bank = PrototypeBank(num_prototypes, self.feature_dim, crop_size, num_angles, init_threshold, search_method)
+        self.bank = PrototypeBank(num_prototypes, self.feature_dim, crop_size, num_angles, init_threshold,
+                                  search_method)
         if init_bank_ckpt:
             load_bank_state(self.bank, init_bank_ckpt)
             fitted = bank_occupancy_floor(init_bank_ckpt)
             if fitted != occupancy_floor:
-                raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.occupancy_floor': the bank was fitted with "
-                                 f"{fitted}, this stage has occupancy_floor={occupancy_floor}")
+                raise ValueError(f"{init_bank_ckpt}: field 'hyper_parameters.occupancy_floor': the bank was fitted "
+                                 f"with {fitted}, this stage has occupancy_floor={occupancy_floor}")
         self._train_crops: list[Tensor] = []
         self._train_keys: list[Tensor] = []
         self.metrics: torch.nn.ModuleDict | None = None
@@ -137,28 +101,15 @@ class Quantizer(SplitEvaluation, EncoderStage):
             sym = list(symmetry_order) if symmetry_order is not None else [1] * num_classes
             if len(sym) != num_classes:
                 raise ValueError(f"symmetry_order: {len(sym)} orders for num_classes={num_classes} categories")
-            self._make_metrics(num_classes, sym)
+            self.metrics = torch.nn.ModuleDict({split: torch.nn.ModuleDict({
+                "hungarian": HungarianAccuracy(num_prototypes, num_classes),
+                "fewshot": FewShotAccuracy(num_prototypes, num_classes, shots=shots, seed=seed),
+                "yaw": RelativeYawError(sym),
+            }) for split in ("val", "test")})
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """The crop weighting of the checkpoint's bank (:func:`bank_occupancy_floor`'s rule), whatever this stage was
-        built with: the bank is scored as it was fitted."""
+        """Take the crop weighting of the checkpoint's bank, whatever this stage was built with."""
         self.hparams.occupancy_floor = _saved_floor(checkpoint.get("hyper_parameters"))
-
-    def _make_metrics(self, num_classes: int, sym: list[int]) -> None:
-        hp = self.hparams
-        num_prototypes, shots, seed = hp.num_prototypes, hp.shots, hp.seed
-        self.metrics = torch.nn.ModuleDict(
-            {
-                split: torch.nn.ModuleDict(
-                    {
-                        "hungarian": HungarianAccuracy(num_prototypes, num_classes),
-                        "fewshot": FewShotAccuracy(num_prototypes, num_classes, shots=shots, seed=seed),
-                        "yaw": RelativeYawError(sym),
-                    }
-                )
-                for split in ("val", "test")
-            }
-        )
 
     def _split_metrics(self, split: str) -> torch.nn.ModuleDict:
         if self.metrics is None:
@@ -166,10 +117,8 @@ class Quantizer(SplitEvaluation, EncoderStage):
                              "threedq CLI takes it, and symmetry_order, from the dataset's index.json)")
         return self.metrics[split]
 
-    # ------------------------------------------------------------------ training: collect, then EM
     def on_train_epoch_start(self) -> None:
-        self._train_crops = []
-        self._train_keys = []
+        self._train_crops, self._train_keys = [], []
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         with torch.no_grad():
@@ -184,15 +133,11 @@ class Quantizer(SplitEvaluation, EncoderStage):
             self._run_em()
 
     def _gathered_crops(self) -> Tensor:
-        """This epoch's training crops of every process, each object once, in the canonical order.
-
-        The canonical order (scene index, then the box's row) does not depend on the shuffle, nor on how DDP
-        dealt the scenes out, and an object that the distributed sampler's padding showed twice is kept once: so
-        the bank fitted on them is the same in one process and in many (the EM's seeded initialisation visits
-        the objects in an order drawn from this one).
-        """
+        """This epoch's training crops of every process, each object once, in the canonical order (scene index, then
+        the box's row), so that the bank is the same in one process and in many."""
         crops = torch.cat(self._train_crops) if self._train_crops else self.bank.prototypes[:0]
-        keys = torch.cat(self._train_keys) if self._train_keys else torch.zeros(0, dtype=torch.long, device=crops.device)
+        keys = torch.cat(self._train_keys) if self._train_keys else torch.zeros(0, dtype=torch.long,
+                                                                               device=crops.device)
         if self.trainer is not None and self.trainer.world_size > 1:
             # pad to the largest count so all_gather sees equal shapes on every process
             n = torch.tensor([crops.shape[0]], device=crops.device)
@@ -221,20 +166,13 @@ class Quantizer(SplitEvaluation, EncoderStage):
                                 fill_free=self.hparams.fill_free_slots, spectra=spectra,
                                 restarts=self.hparams.em_restarts)
         res = assign_chunked(bank, crops, spectra=spectra)
-        self.log_dict(
-            {
-                "train/prototypes_active": float(bank.num_active),
-                "train/mean_score": res.score.mean(),
-                "train/quantization_loss": quantization_loss(bank, crops, res),
-            },
-            prog_bar=True,
-        )
+        self.log_dict({"train/prototypes_active": float(bank.num_active), "train/mean_score": res.score.mean(),
+                       "train/quantization_loss": quantization_loss(bank, crops, res)}, prog_bar=True)
 
     def configure_optimizers(self) -> None:
         return None  # closed-form EM; no gradient step
 
-    # ------------------------------------------------------------------ evaluation
-    def _eval_step(self, batch: dict[str, Tensor], split: str) -> None:
+    def _eval_step(self, batch: dict[str, Tensor], split: str, batch_idx: int = 0) -> None:
         if self.bank.num_active == 0:
             return  # sanity check before any training
         crops = self.object_crops(batch, self.input_views(batch), self.hparams.crop_size)
@@ -252,17 +190,11 @@ class Quantizer(SplitEvaluation, EncoderStage):
             return
         m = self._split_metrics(split)
         yaw = m["yaw"].compute()
-        self.log_dict(
-            {
-                f"{split}/hungarian_acc": m["hungarian"].compute(),
-                f"{split}/fewshot_acc": m["fewshot"].compute(),
-                f"{split}/yaw_median_deg": yaw["median_deg"],
-                f"{split}/yaw_acc10": yaw["acc_10"],
-                f"{split}/yaw_acc20": yaw["acc_20"],
-                f"{split}/yaw_pairs": float(yaw["num_pairs"]),
-            },
-            prog_bar=True,
-        )
+        self.log_dict({
+            f"{split}/hungarian_acc": m["hungarian"].compute(), f"{split}/fewshot_acc": m["fewshot"].compute(),
+            f"{split}/yaw_median_deg": yaw["median_deg"], f"{split}/yaw_acc10": yaw["acc_10"],
+            f"{split}/yaw_acc20": yaw["acc_20"], f"{split}/yaw_pairs": float(yaw["num_pairs"]),
+        }, prog_bar=True)
         # the confusion matrix is this process's again after compute(): sum the counts over processes
         self.log(f"{split}/objects", m["hungarian"].confusion.sum().float(), reduce_fx="sum", sync_dist=True)
         for metric in m.values():

@@ -1,35 +1,17 @@
 """Detector self-labelling (paper Sec. 3.4; supplement "3D object detection supervised by prototypes distance and
 center-surround score").
 
-The detector of the previous round runs over a pool of ``pool_scenes`` training scenes on the round's (frozen)
-encoder; each of its boxes above ``candidate_threshold`` is cut to a ``crop_size^3`` crop of the feature grid
-and labelled without annotations:
+The previous round's detector runs over ``pool_scenes`` training scenes on the round's frozen encoder; each box above
+``candidate_threshold`` is cut to a ``crop_size^3`` feature crop and labelled without annotations: **positive** when
+its best cosine over the round's prototypes x ``num_angles`` yaws exceeds ``positive_threshold``; **negative** when
+its center-surround similarity (:func:`center_surround_similarity`) exceeds ``negative_threshold`` (this wins over
+positive); ignored otherwise. The head (encoder frozen) is then fine-tuned with the loss confined to the labelled
+regions (:func:`self_label_targets`). Switches beyond the paper (off = the paper): ``snap_to_proposals``,
+``surround_negatives``, ``proposal_positives``, ``spare_proposals``. The labels are buffers (``labels``,
+``labelled``), so a resumed run trains on the same labels; the pool's feature grids are computed once and each step
+draws ``batch_size`` of them (the loader's batch is not used).
 
-* **positive** when its best cosine over all prototypes x ``num_angles`` yaws (the round's prototype bank,
-  :meth:`~threedq.quantization.PrototypeBank.assign`) exceeds ``positive_threshold`` (paper: 0.8): it looks like
-  an object the quantizer knows;
-* **negative** when its center-surround similarity (:func:`center_surround_similarity`: the mean cosine of the
-  crop with its six face-adjacent, equal-size neighbour crops) exceeds ``negative_threshold`` (paper: 0.65): a
-  box that looks like its surroundings is not salient (floor, background);
-* neither otherwise (ignored). A box above both thresholds is negative: the center-surround score vetoes
-  background that happens to resemble a prototype (``docs/studies/detector.md``).
-
-The detector head (encoder frozen) is then fine-tuned on these labels with the loss confined to the union of
-the positive and negative regions (:func:`self_label_targets`): cells of a positive box are positives as in
-the warm start (:func:`~threedq.stages.detector.detection_targets`), cells inside a negative box are negatives,
-every other cell is ignored. Departures from the paper, each a switch (off = the paper; ``docs/studies/detector.md``):
-positives must overlap a label-free pseudo-box and take its box (``snap_to_proposals``); the shell around each
-positive box is negative (``surround_negatives``); every pseudo-box of a pool scene stays a positive, as in the warm
-start, so the labels the prototypes and the center-surround score add are negatives and the positives they vouch for
-(``proposal_positives``); no cell inside a pseudo-box is a negative, so a negative box or shell cutting into an
-object is ignored there, not taught as background (``spare_proposals``). The labels are registered buffers
-(``labels``, ``labelled``), so a resumed run trains on the same labels; the pool's feature grids are computed once
-(the encoder is frozen) and every step draws ``batch_size`` of them, so a step costs a head pass, not an encoding
-(the loader's batch is not used).
-
-Diagnostics (GT boxes used for measuring only): ``self_labels/labels.json`` (counts; the share of positives
-that match a GT object at IoU 0.5 and of negatives that match none at IoU 0.25) and
-``self_labels/labels.png`` (the labelled boxes on a few pool scenes: positives green, negatives red).
+Diagnostics (GT used for measuring only): ``self_labels/labels.json`` and ``self_labels/labels.png``.
 
 Convention: frame R metres, z up; boxes axis-aligned ``(xmin, ymin, zmin, xmax, ymax, zmax)``; volumes
 ``[B, C, Z, Y, X]``.
@@ -64,7 +46,8 @@ from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 from threedq.viz.detection import self_labels_figure
 from threedq.viz.png import write_png
 
-__all__ = ["INHERITED_FROM_DETECTOR", "SelfLabelling", "center_surround_similarity", "load_head_state", "self_label_targets"]
+__all__ = ["INHERITED_FROM_DETECTOR", "SelfLabelling", "center_surround_similarity", "load_head_state",
+           "self_label_targets"]
 
 
 #: face-adjacent neighbour directions (x, y, z order), in units of the box's extent
@@ -72,18 +55,14 @@ _FACES = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], 
 
 
 def center_surround_similarity(grid: Tensor, aabb: Tensor, spec: VoxelGridSpec, size: int = 16) -> Tensor:
-    """Mean cosine between each box's crop and the crops of its six face-adjacent neighbours of equal size.
-
-    A neighbour is the box shifted by its own extent along +-x, +-y or +-z. Each crop (``size^3`` cells,
-    trilinear, :func:`~threedq.geometry.crop_boxes`) is flattened over channels and cells and L2-normalised;
-    the score is the mean of the cosines with the neighbours whose centre lies inside the grid (a neighbour
-    wholly outside carries no features). A box with no neighbour inside the grid scores NaN.
+    """Mean cosine between each box's crop and those of its six face-adjacent neighbours (the box shifted by its own
+    extent along +-x, +-y, +-z) whose centre lies inside the grid; crops flattened and L2-normalised.
 
     Args:
         grid: ``[B, C, Z, Y, X]`` feature volume on ``spec``.
         aabb: ``[B, N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
         spec: the grid of ``grid``.
-        size: crop size.
+        size: crops are ``size^3``.
 
     Returns:
         ``[B, N]`` similarity in [-1, 1] (NaN where no neighbour is inside the grid).
@@ -104,8 +83,7 @@ def center_surround_similarity(grid: Tensor, aabb: Tensor, spec: VoxelGridSpec, 
     centre, around = crops[:, :N], crops[:, N:].view(B, 6, N, -1)
     cos = (around * centre[:, None]).sum(-1)  # [B, 6, N]
     ctr = (moved[..., :3] + moved[..., 3:]) / 2
-    lo = torch.tensor(spec.bounds_min, dtype=ctr.dtype, device=ctr.device)
-    hi = torch.tensor(spec.bounds_max, dtype=ctr.dtype, device=ctr.device)
+    lo, hi = (torch.tensor(b, dtype=ctr.dtype, device=ctr.device) for b in (spec.bounds_min, spec.bounds_max))
     inside = ((ctr >= lo) & (ctr <= hi)).all(-1)  # [B, 6, N]
     n = inside.sum(1)
     mean = (cos * inside).sum(1) / n.clamp_min(1)
@@ -117,22 +95,17 @@ def self_label_targets(
     inner_fraction: float = 0.5, negative_margin: float = 0.1, surround: float = 0.0, min_height: float = 0.0,
     spare_aabb: Tensor | None = None, spare_mask: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Objectness labels and box targets confined to the union of the positive and negative regions.
-
-    Positive boxes label cells exactly as :func:`~threedq.stages.detector.detection_targets` does (inner cells
-    positive with box targets, cells within ``negative_margin`` of a positive box ignored); a cell whose centre
-    lies inside a negative box and near no positive box is negative, and so is one in the shell around a positive
-    box (the box grown by ``surround`` times its extent on each side, minus the box and its ``negative_margin``);
-    a cell inside a spared box is never negative (something geometric stands there that is not labelled
-    positive); every other cell is ignored (-1).
+    """Objectness labels and box targets confined to the union of the positive and negative regions: positive boxes
+    label cells as :func:`~threedq.stages.detector.detection_targets` does; a cell inside a negative box (or the
+    ``surround`` shell of a positive box) and near no positive box is negative, unless inside a spared box; every
+    other cell is ignored (-1).
 
     Args:
         centres: ``[Z, Y, X, 3]`` cell centres (x, y, z), metres.
         pos_aabb: ``[B, P, 6]`` positive boxes, pos_mask ``[B, P]``; neg_aabb ``[B, Q, 6]``, neg_mask ``[B, Q]``.
         anchor, inner_fraction, negative_margin: as in :func:`~threedq.stages.detector.detection_targets`.
         surround: width of the negative shell around each positive box, in units of its extent (0: none).
-        min_height: positive boxes less tall than this give no positives (their region is ignored), as in
-            :func:`~threedq.stages.detector.detection_targets`.
+        min_height: positive boxes less tall than this give no positives (as in ``detection_targets``).
         spare_aabb: ``[B, S, 6]`` spared boxes, spare_mask ``[B, S]`` (None: none).
 
     Returns:
@@ -140,29 +113,27 @@ def self_label_targets(
 
     Convention: frame R metres; x, y, z order inside the last dimensions.
     """
-    label, target, _ = detection_targets(centres, pos_aabb, pos_mask, anchor, inner_fraction, negative_margin, min_height)
+    label, target, _ = detection_targets(centres, pos_aabb, pos_mask, anchor, inner_fraction, negative_margin,
+                                         min_height)
     B = label.shape[0]
     p = centres.reshape(1, 1, -1, 3)
-    in_neg = ((p >= neg_aabb[..., None, :3]) & (p <= neg_aabb[..., None, 3:])).all(-1) & neg_mask[..., None]
-    in_neg = in_neg.any(1).view(B, *label.shape[1:])  # [B, Z, Y, X]
-    if surround > 0:  # the shell around each positive box: what the objects stand out from
-        ext = (pos_aabb[..., 3:] - pos_aabb[..., :3]) * surround
-        lo, hi = pos_aabb[..., None, :3] - ext[..., None, :], pos_aabb[..., None, 3:] + ext[..., None, :]
-        shell = ((p >= lo) & (p <= hi)).all(-1) & pos_mask[..., None]
-        in_neg = in_neg | shell.any(1).view(B, *label.shape[1:])
+
+    def inside(aabb: Tensor, mask: Tensor, pad: Tensor | float = 0.0) -> Tensor:  # [B, Z, Y, X]: inside any box
+        lo, hi = aabb[..., None, :3] - pad, aabb[..., None, 3:] + pad
+        return (((p >= lo) & (p <= hi)).all(-1) & mask[..., None]).any(1).view(B, *label.shape[1:])
+
+    in_neg = inside(neg_aabb, neg_mask)
+    if surround > 0:  # the shell around each positive box
+        in_neg = in_neg | inside(pos_aabb, pos_mask, ((pos_aabb[..., 3:] - pos_aabb[..., :3]) * surround)[..., None, :])
     if spare_aabb is not None and spare_mask is not None and spare_aabb.shape[1]:
-        spared = ((p >= spare_aabb[..., None, :3]) & (p <= spare_aabb[..., None, 3:])).all(-1) & spare_mask[..., None]
-        in_neg = in_neg & ~spared.any(1).view(B, *label.shape[1:])
+        in_neg = in_neg & ~inside(spare_aabb, spare_mask)
     label = torch.where((label == 0) & ~in_neg, torch.full_like(label, -1.0), label)
     return label, target
 
 
 def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = None) -> None:
-    """Load the ``head.*`` weights of a detector (or self-labelling) checkpoint into ``head``.
-
-    With ``anchor_size``, refuse a detector trained with another anchor (its boxes would decode at the wrong size),
-    naming the checkpoint and the field; a checkpoint that holds no anchor (a bare state dict) is not checked.
-    """
+    """Load the ``head.*`` weights of a detector (or self-labelling) checkpoint into ``head``; with ``anchor_size``,
+    refuse a checkpoint whose anchor differs (one that holds none is not checked)."""
     if anchor_size is not None:
         trained = load_checkpoint(path).anchor
         if trained is not None:
@@ -186,82 +157,54 @@ class SelfLabelling(Detector):
     """Fine-tune a detector on labels from the prototypes and the center-surround score (see module docstring).
 
     Args:
-        detector_ckpt: the detector to start from (its head; the warm start or the previous round's). What is not
-            given of :data:`INHERITED_FROM_DETECTOR` (its anchor, head width and depth, score thresholds, NMS,
-            detections per scene, box refinement) is taken from this checkpoint, so a self-labelled detector decodes
-            as the detector it fine-tunes.
-        bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (the round's); its crops are
-            weighted as that bank's were (the quantizer's ``occupancy_floor``).
-        positive_threshold: best prototype cosine (over all prototypes and yaws) above which a box is positive
-            (paper: 0.8).
-        negative_threshold: center-surround similarity above which a box is negative (paper: 0.65).
+        detector_ckpt: the detector to start from (its head; what is not given of :data:`INHERITED_FROM_DETECTOR`).
+        bank_ckpt: the quantizer checkpoint whose prototype bank scores the candidates (and its ``occupancy_floor``).
+        positive_threshold: best prototype cosine (over all prototypes and yaws) above which a box is positive.
+        negative_threshold: center-surround similarity above which a box is negative.
         candidate_threshold: objectness of the detections that are labelled.
-        pool_scenes: training scenes labelled (paper: 1000; all of a smaller split).
+        pool_scenes: training scenes labelled (all of a smaller split).
         crop_size: crops are ``crop_size^3`` (the bank's).
-        num_angles: yaw steps of the prototype search (paper: 36).
+        num_angles: yaw steps of the prototype search.
         search_method: ``"fast"`` or ``"exact"`` rotation search.
         batch_size: pool scenes per training step.
         seed: seed of the pool draw and of the step's scene draws.
-        surround_crop_size: crop size of the center-surround score (coarser than ``crop_size``: 7 crops per box).
-        snap_to_proposals: when > 0, a positive must overlap a label-free pseudo-box (:mod:`threedq.proposals`,
-            the warm start's labels: something standing on the ground plane) at IoU at least this, and takes that
-            box; one that overlaps none is left unlabelled. 0 (the paper): positives keep the detector's own box.
-        surround_negatives: cells in a shell this many box extents wide around each positive box are negatives
-            (see :func:`self_label_targets`; 0, the paper: only the negative boxes' cells).
-        spare_proposals: no cell inside a label-free pseudo-box is a negative (False, the paper: negative boxes label
-            all their cells).
-        proposal_positives: every label-free pseudo-box of a pool scene is a positive (the warm start's targets
-            kept), beside the positives the prototypes vouch for; the detections then add negatives (False, the paper:
-            only the detections the prototypes vouch for are positives).
-        freeze_encoder: must stay True (the encoder is the round's, frozen).
-        lr: Adam learning rate of the head (lower than the warm start's; docs/studies/detector.md).
+        surround_crop_size: crop size of the center-surround score.
+        snap_to_proposals: > 0: a positive must overlap a label-free pseudo-box at this IoU and takes its box.
+        surround_negatives: width of the negative shell around each positive box, in box extents (0: none).
+        spare_proposals: no cell inside a label-free pseudo-box is a negative.
+        proposal_positives: every label-free pseudo-box of a pool scene is a positive too.
+        freeze_encoder: must stay True.
+        lr: Adam learning rate of the head.
         image_every_n_steps: as the detector's (0: no pictures).
-        anchor_size, channels, num_blocks, score_threshold, eval_score_threshold, nms_iou, nms_iomin, max_detections,
-            refine_iou, flat_boxes: as the :class:`~threedq.stages.detector.Detector`'s; None (the default): the value
-            ``detector_ckpt`` was trained with (the Detector's default without a checkpoint). Given, they override
-            it (an anchor other than the detector's is refused: the head's boxes would decode at another size).
-        **kwargs: the :class:`~threedq.stages.detector.Detector`'s other arguments, by keyword, and the encoder's.
+        anchor_size: as the :class:`~threedq.stages.detector.Detector`'s (None: ``detector_ckpt``'s; another: refused).
+        channels: as the Detector's (None: ``detector_ckpt``'s).
+        num_blocks: as the Detector's (None: ``detector_ckpt``'s).
+        score_threshold: as the Detector's (None: ``detector_ckpt``'s).
+        eval_score_threshold: as the Detector's (None: ``detector_ckpt``'s).
+        nms_iou: as the Detector's (None: ``detector_ckpt``'s).
+        nms_iomin: as the Detector's (None: ``detector_ckpt``'s).
+        max_detections: as the Detector's (None: ``detector_ckpt``'s).
+        refine_iou: as the Detector's (None: ``detector_ckpt``'s).
+        flat_boxes: as the Detector's (None: ``detector_ckpt``'s).
+        **kwargs: the :class:`~threedq.stages.detector.Detector`'s other arguments and the encoder's, by keyword.
     """
 
     def __init__(
-        self,
-        *,
-        detector_ckpt: str | None = None,
-        bank_ckpt: str | None = None,
-        positive_threshold: Cosine = 0.8,
-        negative_threshold: Cosine = 0.65,
-        candidate_threshold: ClosedUnitInterval = 0.5,
-        pool_scenes: PositiveInt = 1000,
-        crop_size: PositiveInt = 16,
-        num_angles: PositiveInt = 36,
-        search_method: Literal["fast", "exact"] = "fast",
-        batch_size: PositiveInt = 8,
-        seed: int = 0,
-        surround_crop_size: PositiveInt = 8,
-        snap_to_proposals: ClosedUnitInterval = 0.3,
-        surround_negatives: NonNegativeFloat = 0.5,
-        spare_proposals: bool = True,
-        proposal_positives: bool = True,
-        freeze_encoder: bool = True,
-        lr: float = 1e-4,
-        image_every_n_steps: int = 0,
-        anchor_size: tuple[float, float, float] | None = None,
-        channels: int | None = None,
-        num_blocks: int | None = None,
-        score_threshold: ClosedUnitInterval | None = None,
-        eval_score_threshold: ClosedUnitInterval | None = None,
-        nms_iou: ClosedUnitInterval | None = None,
-        nms_iomin: ClosedUnitInterval | None = None,
-        max_detections: PositiveInt | None = None,
-        refine_iou: ClosedUnitInterval | None = None,
-        flat_boxes: bool | None = None,
-        **kwargs: Any,
+        self, *, detector_ckpt: str | None = None, bank_ckpt: str | None = None, positive_threshold: Cosine = 0.8,
+        negative_threshold: Cosine = 0.65, candidate_threshold: ClosedUnitInterval = 0.5,
+        pool_scenes: PositiveInt = 1000, crop_size: PositiveInt = 16, num_angles: PositiveInt = 36,
+        search_method: Literal["fast", "exact"] = "fast", batch_size: PositiveInt = 8, seed: int = 0,
+        surround_crop_size: PositiveInt = 8, snap_to_proposals: ClosedUnitInterval = 0.3,
+        surround_negatives: NonNegativeFloat = 0.5, spare_proposals: bool = True, proposal_positives: bool = True,
+        freeze_encoder: bool = True, lr: float = 1e-4, image_every_n_steps: int = 0,
+        anchor_size: tuple[float, float, float] | None = None, channels: int | None = None,
+        num_blocks: int | None = None, score_threshold: ClosedUnitInterval | None = None,
+        eval_score_threshold: ClosedUnitInterval | None = None, nms_iou: ClosedUnitInterval | None = None,
+        nms_iomin: ClosedUnitInterval | None = None, max_detections: PositiveInt | None = None,
+        refine_iou: ClosedUnitInterval | None = None, flat_boxes: bool | None = None, **kwargs: Any,
     ) -> None:
-        given = {"anchor_size": anchor_size, "channels": channels, "num_blocks": num_blocks,
-                 "score_threshold": score_threshold, "eval_score_threshold": eval_score_threshold, "nms_iou": nms_iou,
-                 "nms_iomin": nms_iomin, "max_detections": max_detections, "refine_iou": refine_iou,
-                 "flat_boxes": flat_boxes}
-        assert set(given) == set(INHERITED_FROM_DETECTOR)
+        args = locals()
+        given = {name: args[name] for name in INHERITED_FROM_DETECTOR}
         kwargs.update({k: v for k, v in given.items() if v is not None})
         given_decoding = {k for k, v in given.items() if v is not None}
         if not freeze_encoder:
@@ -277,16 +220,14 @@ class SelfLabelling(Detector):
         super().__init__(freeze_encoder=freeze_encoder, lr=lr, image_every_n_steps=image_every_n_steps, **kwargs)
         self._given_decoding = given_decoding
         self.save_hyperparameters()
-        # save_hyperparameters records the arguments as given (under LightningCLI: the parsed config, where these
-        # are null): record what this detector decodes with, or a fit would take a new anchor from its own training
-        # boxes and decode the fine-tuned head at another size than it was trained for
+        # record what this detector decodes with (the arguments as given may be null)
         defaults = inspect.signature(Detector.__init__).parameters
         self.hparams.update({n: builtin_number(kwargs[n]) if n in kwargs else defaults[n].default
                              for n in INHERITED_FROM_DETECTOR})
         if detector_ckpt:
             load_head_state(self.head, detector_ckpt, asked_anchor)
         self.bank: PrototypeBank | None = None
-        #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`), from its checkpoint
+        #: the bank's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`)
         self.occupancy_floor: float | None = None
         if bank_ckpt:
             self.occupancy_floor = bank_occupancy_floor(bank_ckpt)
@@ -301,11 +242,9 @@ class SelfLabelling(Detector):
         self._pool_grids: Tensor | None = None
         self._pool_files: list[str] = []
 
-    # ------------------------------------------------------------------ checkpoint
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """The labels' size, and what was not given of the decoding (thresholds, NMS, detections per scene,
-        refinement) from the checkpoint's hyperparameters (the anchor: :meth:`Detector.on_load_checkpoint`), so a
-        self-labelled checkpoint tested without its ``detector_ckpt`` decodes as it did when it was written."""
+        """The labels' size, and what was not given of the decoding from the checkpoint's hyperparameters (the anchor:
+        :meth:`Detector.on_load_checkpoint`)."""
         super().on_load_checkpoint(checkpoint)
         saved = checkpoint.get("hyper_parameters") or {}
         for name in INHERITED_FROM_DETECTOR[3:]:  # the decoding (the anchor: Detector.on_load_checkpoint)
@@ -315,7 +254,6 @@ class SelfLabelling(Detector):
         if labels is not None:
             self.labels = torch.zeros_like(labels)
 
-    # ------------------------------------------------------------------ the pool
     @property
     def _uses_proposals(self) -> bool:
         h = self.hparams
@@ -327,15 +265,12 @@ class SelfLabelling(Detector):
             raise RuntimeError("self-labelling: needs a scene-folder DataModule (its train split is the pool)")
         return dm.fixed_view_dataset("train", with_boxes=False)
 
-    def _pool_order(self, n: int) -> list[int]:
-        g = torch.Generator().manual_seed(self.hparams.seed)
-        return torch.randperm(n, generator=g)[: self.hparams.pool_scenes].tolist()
-
     @torch.no_grad()
     def _encode_pool(self) -> None:
         """Feature grids of the pool scenes (frozen encoder), and the labels if there are none yet."""
         ds = self._pool_dataset()
-        order = self._pool_order(len(ds))
+        g = torch.Generator().manual_seed(self.hparams.seed)
+        order = torch.randperm(len(ds), generator=g)[: self.hparams.pool_scenes].tolist()
         label_now = not bool(self.labelled)
         t0 = time.time()
         grids, rows, diag_rows = [], [], []
@@ -348,10 +283,9 @@ class SelfLabelling(Detector):
             proposals = self.trainer.datamodule.pseudo_boxes("train", progress=bar)
         for start in tqdm(range(0, len(order), 8), desc="self-labelling pool", disable=not bar, leave=False):
             idx = order[start:start + 8]
-            batch = {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in default_collate([ds[j] for j in idx]).items()}
+            batch = self._to_device(default_collate([ds[j] for j in idx]))
             v = self.input_views(batch)
-            # encoded under the trainer's precision, as training_step would (Lightning's autocast covers the steps, not
-            # this hook): the grids then come from the crop cache the round's quantizer filled; labelled in fp32
+            # encoded under the trainer's precision (the crop cache's grids), labelled in fp32
             weighted = label_now and self.occupancy_floor is not None
             with self.precision_context():
                 g, x = self._encode_views(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")),
@@ -374,7 +308,6 @@ class SelfLabelling(Detector):
             self.labelled.fill_(True)
             info = self._diagnostics(diag_rows, time.time() - t0)
             kinds = self.labels[:, 1]
-            # the boxes the head trains on: with proposal_positives every pseudo-box is a positive
             info["positive_boxes"], info["negative_boxes"] = int((kinds == 1).sum()), int((kinds == 0).sum())
             self.log_dict({f"self_labels/{k}": float(v) for k, v in info.items() if isinstance(v, (int, float))},
                           rank_zero_only=True)
@@ -386,10 +319,8 @@ class SelfLabelling(Detector):
                      occupancy: Tensor | None = None) -> list[tuple[Tensor, dict[str, Tensor]]]:
         """Per scene: label rows ``[L, 7]`` (kind, aabb) and the candidates' measurements (for the diagnostics).
 
-        ``proposals``: per scene the label-free pseudo-boxes ``[P, 6]`` that positives snap to (``snap_to_proposals``),
-        that are positives (``proposal_positives``) and whose cells are spared (``spare_proposals``).
-        ``occupancy``: ``[B, 1, Z, Y, X]`` the input occupancy on the input grid (union over the input views); needed
-        when the bank weights its crops by it (:attr:`occupancy_floor`).
+        ``proposals``: per scene the label-free pseudo-boxes ``[P, 6]``; ``occupancy``: ``[B, 1, Z, Y, X]`` the input
+        occupancy (union over the input views), needed with an :attr:`occupancy_floor`.
         """
         if self.bank is None:
             raise RuntimeError("bank_ckpt: self-labelling needs the round's prototype bank")
@@ -404,8 +335,7 @@ class SelfLabelling(Detector):
         proto_all: list[Tensor] = [grid.new_zeros(n) for n in counts]
         cs_all: list[Tensor] = [grid.new_zeros(n) for n in counts]
         if sum(counts):
-            # each scene's boxes cropped on their own: a padded [B, most boxes] batch would crop the padding too
-            # (the crops of the padding are work thrown away); every crop is the same either way
+            # each scene's boxes cropped on their own (no padding cropped)
             crops: list[Tensor] = []
             for b, d in enumerate(dets):
                 if not counts[b]:
@@ -425,7 +355,6 @@ class SelfLabelling(Detector):
         for b, d in enumerate(dets):
             aabb, n = d["boxes"], counts[b]
             proto, cs = proto_all[b], cs_all[b]
-            # a box both like a prototype and like its surroundings is negative: the center-surround score decides
             neg = cs > self.hparams.negative_threshold  # NaN compares False: never negative
             pos = proto > self.hparams.positive_threshold
             pos &= ~neg
@@ -437,7 +366,7 @@ class SelfLabelling(Detector):
                     aabb = torch.where(snap[:, None], pr[j], aabb)
                 else:
                     snap = torch.zeros_like(pos)
-                pos = snap  # a positive nothing geometric supports (a shadow, a patch of floor) is left unlabelled
+                pos = snap  # a positive no pseudo-box supports is left unlabelled
             keep = pos | neg
             if self.hparams.proposal_positives and self.hparams.snap_to_proposals > 0 and proposals is not None:
                 keep &= ~pos  # the positives are the pseudo-boxes (a snapped positive is one of them), added below
@@ -456,19 +385,13 @@ class SelfLabelling(Detector):
         return out
 
     def _diagnostics(self, rows: list[dict[str, Tensor]], seconds: float) -> dict[str, Any]:
-        cat = {k: torch.cat([r[k] for r in rows]) if rows else torch.zeros(0)
-               for k in ("pos", "neg", "tp50", "tp25")}
-        pos, neg = cat["pos"].bool(), cat["neg"].bool()
-        tp50, tp25 = cat["tp50"].bool(), cat["tp25"].bool()
+        pos, neg, tp50, tp25 = (torch.cat([r[k] for r in rows]).bool() if rows else torch.zeros(0, dtype=torch.bool)
+                                for k in ("pos", "neg", "tp50", "tp25"))
         n_gt = int(sum(int(r["num_gt"]) for r in rows))
-        info: dict[str, Any] = {
-            "scenes": len(rows),
-            "candidates": int(pos.numel()),
-            "candidate_threshold": self.hparams.candidate_threshold,
-            "positives": int(pos.sum()),
-            "negatives": int(neg.sum()),
-            "ignored": int((~pos & ~neg).sum()),
-            "gt_objects": n_gt,
+        return {
+            "scenes": len(rows), "candidates": int(pos.numel()),
+            "candidate_threshold": self.hparams.candidate_threshold, "positives": int(pos.sum()),
+            "negatives": int(neg.sum()), "ignored": int((~pos & ~neg).sum()), "gt_objects": n_gt,
             # GT used for measuring only
             "candidates_true_at_50": int(tp50.sum()),
             "positives_true_at_50": float(tp50[pos].float().mean()) if pos.any() else float("nan"),
@@ -476,7 +399,6 @@ class SelfLabelling(Detector):
             "gt_recall_of_positives_at_50": float(tp50[pos].sum()) / max(n_gt, 1),
             "seconds": round(seconds, 1),
         }
-        return info
 
     def _write_diagnostics(self, info: dict[str, Any], first: list[tuple[dict[str, Tensor], Tensor]]) -> None:
         out = self.run_dir / "self_labels"
@@ -484,7 +406,6 @@ class SelfLabelling(Detector):
         if first:
             write_png(out / "labels.png", self_labels_figure(first))
 
-    # ------------------------------------------------------------------ training
     def on_train_start(self) -> None:
         if self._pool_grids is None:
             self._encode_pool()
@@ -495,12 +416,11 @@ class SelfLabelling(Detector):
         g = torch.Generator().manual_seed(self.hparams.seed * 1_000_003 + int(self.global_step))
         pick = torch.randint(n, (self.hparams.batch_size,), generator=g)
         grids = self._pool_grids[pick].to(self.device)
-        pos_aabb, pos_mask, neg_aabb, neg_mask, spare_aabb, spare_mask = self._batch_labels(pick)
+        lab = self._batch_labels(pick)  # positive, negative and spared boxes, each with its mask
         logits, box = self.head(grids)
-        label, target = self_label_targets(self.centres, pos_aabb, pos_mask, neg_aabb, neg_mask, self.anchor,
-                                           self.hparams.inner_fraction, self.hparams.negative_margin,
-                                           self.hparams.surround_negatives, self.min_box_height,
-                                           spare_aabb, spare_mask)  # fmt: skip
+        hp = self.hparams
+        label, target = self_label_targets(self.centres, *lab[:4], self.anchor, hp.inner_fraction, hp.negative_margin,
+                                           hp.surround_negatives, self.min_box_height, *lab[4:])
         r = self.loss_from_targets(logits, box, label, target)
         self.log_dict({"train/loss": r["loss"], "train/obj_loss": r["obj_loss"], "train/box_loss": r["box_loss"],
                        "train/num_pos": r["num_pos"].float(), "train/num_neg": r["num_neg"].float()},

@@ -1,6 +1,4 @@
-"""Number types of stage and DataModule arguments that jsonargparse validates (the CLI refuses a value outside the
-range with one line naming the key). Each restriction is defined once: jsonargparse registers one type per
-restriction. ``EncoderStage.save_hyperparameters`` stores the values as plain ``int`` and ``float``."""
+"""Number types of stage and DataModule arguments that jsonargparse validates (one type per restriction)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,5 @@
-"""Atomic, deterministic file writing.
-
-Everything threedq writes that a user would hate to lose half-written (scene files, ``index.json``,
-prototype banks, reports) goes through these helpers: the bytes are written to a temporary file in
-the destination folder, flushed to disk, then renamed over the destination (``os.replace`` is atomic
-on POSIX and Windows). A run killed mid-write leaves the old file, or no file, never a torn one.
+"""Atomic, deterministic file writing: the bytes go to a temporary file in the destination folder, are flushed to
+disk, then renamed over the destination (``os.replace``), so a killed run leaves the old file or none, never a torn one.
 """
 
 from __future__ import annotations
@@ -21,17 +17,12 @@ import numpy as np
 
 __all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_text", "npz_bytes"]
 
-# A fixed timestamp makes zip archives (and so .npz files) byte-identical across runs.
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file in the same folder + rename).
-
-    Raises:
-        OSError: the folder cannot be made or the write fails (a full disk, no permission); its ``filename`` is
-            ``path``, and ``path`` is left as it was (or absent): the temporary file is removed.
-    """
+    """Write ``data`` to ``path`` atomically; ``OSError`` naming ``path`` (left as it was; the temporary file is
+    removed) when the folder cannot be made or the write fails (a full disk, no permission)."""
     path = Path(path)
     tmp: str | None = None
     try:
@@ -46,7 +37,6 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
         if isinstance(e, OSError) and e.errno is not None and e.filename != str(path):
-            # name the file the caller asked for (the error may name the temporary file, or nothing)
             reason = f"{e.strerror or e} (not written; the file is left as it was)"
             raise type(e)(e.errno, reason, str(path)) from e
         raise
@@ -64,19 +54,14 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
 
 
 def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
-    """Serialise arrays to the bytes of a compressed ``.npz`` archive readable by ``numpy.load``.
-
-    Unlike ``numpy.savez_compressed`` the archive is deterministic: entries are written in the given
-    order with a fixed timestamp, so the same arrays always give the same bytes.
-    """
+    """The bytes of a compressed ``.npz`` archive of ``arrays`` (``numpy.load`` reads it), deterministic: entries in
+    the given order with a fixed timestamp."""
     buf = io.BytesIO()
-    method = zipfile.ZIP_DEFLATED
-    with zipfile.ZipFile(buf, mode="w", compression=method) as zf:
+    with zipfile.ZipFile(buf, mode="w", compression=zipfile.ZIP_DEFLATED) as zf:
         for name, array in arrays.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
-            info.compress_type = method
             info.external_attr = 0o644 << 16
             member = io.BytesIO()
             np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
-            zf.writestr(info, member.getvalue(), compress_type=method, compresslevel=6)
+            zf.writestr(info, member.getvalue(), compress_type=zipfile.ZIP_DEFLATED, compresslevel=6)
     return buf.getvalue()

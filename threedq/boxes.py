@@ -1,11 +1,9 @@
-"""Oriented 3D boxes of the canonical scene record and their axis-aligned hulls.
+"""Oriented 3D boxes ``(cx, cy, cz, sx, sy, sz, yaw)`` (centre, full extents along the object's own axes, yaw turning
+its x axis towards world +y), their axis-aligned hulls ``(xmin, ymin, zmin, xmax, ymax, zmax)``, IoU and NMS.
 
-A box is ``(cx, cy, cz, sx, sy, sz, yaw)``: centre, full extents along the object's own x, y, z
-axes, and the yaw that turns the object's x axis towards world +y.
-
-Convention: world frame, metres, z up, right-handed; yaw about +z, counter-clockwise seen from above,
-radians. Corner order (object frame, before yaw): index bits (x, y, z) = (i & 1, i >> 1 & 1, i >> 2 & 1),
-0 -> min, 1 -> max; corners 0-3 are the bottom face.
+Convention: world frame, metres, z up, right-handed; yaw about +z, counter-clockwise seen from above, radians.
+Corner order (object frame, before yaw): index bits (x, y, z) = (i & 1, i >> 1 & 1, i >> 2 & 1), 0 -> min, 1 -> max;
+corners 0-3 are the bottom face.
 """
 
 from __future__ import annotations
@@ -18,24 +16,10 @@ __all__ = ["aabb_iomin_3d", "aabb_iou_3d", "best_aabb_iou", "box_corners", "boxe
 _SIGNS = np.array([[(i & 1), (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=np.float64) - 0.5
 
 
-def _as_tensor(x: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, bool]:
-    if isinstance(x, torch.Tensor):
-        return x, False
-    return torch.as_tensor(np.asarray(x)), True
-
-
 def box_corners(boxes: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
-    """Corners of oriented boxes.
-
-    Args:
-        boxes: ``[..., 7]`` ``(cx, cy, cz, sx, sy, sz, yaw)``.
-
-    Returns:
-        ``[..., 8, 3]`` corner coordinates, same type (numpy or torch) as the input.
-
-    Convention: world frame, z up, yaw counter-clockwise about +z seen from above, radians.
-    """
-    t, was_numpy = _as_tensor(boxes)
+    """Corners ``[..., 8, 3]`` of oriented boxes ``[..., 7]``, same type (numpy or torch) as the input."""
+    was_numpy = not isinstance(boxes, torch.Tensor)
+    t = torch.as_tensor(np.asarray(boxes)) if was_numpy else boxes
     if t.shape[-1] != 7:
         raise ValueError(f"boxes: expected shape [..., 7], got {tuple(t.shape)}")
     signs = torch.as_tensor(_SIGNS, dtype=t.dtype, device=t.device)
@@ -48,10 +32,7 @@ def box_corners(boxes: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
 
 
 def boxes_to_aabb(boxes: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
-    """Tight axis-aligned hull ``(xmin, ymin, zmin, xmax, ymax, zmax)`` of oriented boxes ``[..., 7]``.
-
-    Convention: world frame, z up; the hull of a yawed box grows in x and y, never in z.
-    """
+    """Tight axis-aligned hull ``[..., 6]`` ``(xmin, ymin, zmin, xmax, ymax, zmax)`` of oriented boxes ``[..., 7]``."""
     corners = box_corners(boxes)
     if isinstance(corners, np.ndarray):
         return np.concatenate([corners.min(axis=-2), corners.max(axis=-2)], axis=-1)
@@ -89,26 +70,11 @@ def _aabb_intersection(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, 
 
 
 def aabb_iou_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Pairwise intersection-over-union of axis-aligned 3D boxes.
-
-    Args:
-        a: ``[N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
-        b: ``[M, 6]`` boxes, same layout.
-
-    Returns:
-        ``[N, M]`` IoU in ``[0, 1]``, floating dtype promoted from the inputs (default float dtype for integer
-        inputs). A degenerate (zero-volume) box has IoU 0 with every box, itself included, never ``nan``.
+    """Pairwise intersection-over-union ``[N, M]`` in ``[0, 1]`` of axis-aligned boxes ``a [N, 6]`` and ``b [M, 6]``
+    (dtype promoted from the inputs, the default float dtype for integers); a zero-volume box has IoU 0 with every box.
 
     Raises:
-        ValueError: if an input is not an ``[*, 6]`` real tensor, holds non-finite values, or has a box with
-            ``max < min`` on some axis.
-
-    Convention: boxes are closed intervals per axis in any consistent length unit (world frame, z up for
-    this package); touching boxes (shared face) have IoU 0.
-
-    Example:
-        >>> aabb_iou_3d(torch.tensor([[0.0, 0, 0, 2, 1, 1]]), torch.tensor([[1.0, 0, 0, 3, 1, 1]]))
-        tensor([[0.3333]])
+        ValueError: if an input is not an ``[N, 6]`` real tensor, holds non-finite values, or has ``max < min``.
     """
     inter, vol_a, vol_b = _aabb_intersection(a, b)
     union = vol_a[:, None] + vol_b[None, :] - inter
@@ -116,78 +82,35 @@ def aabb_iou_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def best_aabb_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Each box's highest IoU with any box of another set (:func:`aabb_iou_3d`).
-
-    Args:
-        a: ``[N, 6]`` boxes. b: ``[M, 6]`` boxes (``M = 0`` allowed).
-
-    Returns:
-        ``[N]``: ``max_j IoU(a_i, b_j)``, 0 for every box when ``b`` is empty.
-
-    Convention: as :func:`aabb_iou_3d`.
-    """
+    """``[N]``: each box of ``a [N, 6]``'s highest :func:`aabb_iou_3d` with ``b [M, 6]`` (0 when ``M = 0``)."""
     iou = aabb_iou_3d(a, b)
     return iou.amax(dim=1) if iou.shape[1] else iou.new_zeros(iou.shape[0])
 
 
 def aabb_iomin_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Pairwise intersection over the smaller volume of axis-aligned 3D boxes.
-
-    1 when one box lies inside the other, whatever their sizes; this is what catches a small box nested
-    in a big one, whose IoU is only ``small / big``.
-
-    Args:
-        a: ``[N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
-        b: ``[M, 6]`` boxes, same layout.
-
-    Returns:
-        ``[N, M]`` in ``[0, 1]``, dtype as :func:`aabb_iou_3d`; 0 (never ``nan``) when either box is degenerate.
-
-    Raises:
-        ValueError: as :func:`aabb_iou_3d`.
-
-    Convention: as :func:`aabb_iou_3d`.
-
-    Example:
-        >>> aabb_iomin_3d(torch.tensor([[0.0, 0, 0, 4, 4, 4]]), torch.tensor([[1.0, 1, 1, 2, 2, 2]]))
-        tensor([[1.]])
-    """
+    """Pairwise intersection over the smaller volume ``[N, M]`` of ``a [N, 6]`` and ``b [M, 6]`` (1 when one box
+    lies inside the other); dtype and errors as :func:`aabb_iou_3d`, 0 when either box has zero volume."""
     inter, vol_a, vol_b = _aabb_intersection(a, b)
     smaller = torch.minimum(vol_a[:, None], vol_b[None, :])
     return torch.where(smaller > 0, inter / smaller.clamp(min=torch.finfo(inter.dtype).tiny), torch.zeros_like(inter))
 
 
-def nms_3d(
-    boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float, iomin_threshold: float = 1.0
-) -> torch.Tensor:
+def nms_3d(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float,
+           iomin_threshold: float = 1.0) -> torch.Tensor:  # fmt: skip
     """Greedy non-maximum suppression of axis-aligned 3D boxes.
 
-    Boxes are visited by descending score; a box is kept unless, with an already kept box, its IoU
-    (:func:`aabb_iou_3d`) is strictly greater than ``iou_threshold`` or its intersection over the smaller
-    volume (:func:`aabb_iomin_3d`) is strictly greater than ``iomin_threshold``.
+    Boxes are visited by descending score; a box is kept unless, with an already kept box, its IoU is strictly
+    greater than ``iou_threshold`` or its :func:`aabb_iomin_3d` strictly greater than ``iomin_threshold``.
 
     Args:
-        boxes: ``[N, 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``; ``N = 0`` allowed.
-        scores: ``[N]`` real scores, higher is better.
-        iou_threshold: in ``[0, 1]``; ``0`` suppresses every box that overlaps a kept one with positive volume.
-        iomin_threshold: in ``[0, 1]``; the default 1 never suppresses by it (plain IoU NMS). Lower values also
-            drop boxes mostly inside (or mostly containing) a kept box, such as the smaller boxes a detector
-            regresses from cells off an object's centre.
+        boxes: ``[N, 6]`` boxes; ``N = 0`` allowed. scores: ``[N]`` real scores, higher is better.
+        iou_threshold: in ``[0, 1]``. iomin_threshold: in ``[0, 1]``; 1 never suppresses by it (plain IoU NMS).
 
     Returns:
-        ``[K]`` int64 indices into ``boxes`` of the kept boxes, sorted by descending score.
+        ``[K]`` int64 indices into ``boxes`` of the kept boxes, sorted by descending score (ties in index order).
 
     Raises:
-        ValueError: on bad shapes (see :func:`aabb_iou_3d`), non-finite scores, or a threshold outside
-            ``[0, 1]``.
-
-    Convention: as torchvision's ``nms`` (suppress when IoU ``>`` threshold); equal scores are visited in
-    index order. Builds the ``[N, N]`` IoU matrix, so meant for up to a few thousand boxes.
-
-    Example:
-        >>> boxes = torch.tensor([[0.0, 0, 0, 1, 1, 1], [0.1, 0, 0, 1.1, 1, 1], [5.0, 5, 5, 6, 6, 6]])
-        >>> nms_3d(boxes, torch.tensor([0.5, 0.9, 0.1]), 0.5)
-        tensor([1, 2])
+        ValueError: on bad shapes (see :func:`aabb_iou_3d`), non-finite scores, or a threshold outside ``[0, 1]``.
     """
     _check_aabb_rows(boxes, "boxes")
     if not isinstance(scores, torch.Tensor) or scores.ndim != 1 or scores.shape[0] != boxes.shape[0]:

@@ -1,12 +1,4 @@
-"""The ``threedq`` command (entry point only: it parses the subcommand and hands it to the pipeline).
-
-* ``threedq fit|validate|test|predict --config stages/<stage>.yaml`` — :class:`~threedq.pipeline.lightning_cli.ThreeDQCLI`
-  (LightningCLI, subclass mode for model and data, YAML under ``configs/``).
-* ``threedq data generate|show|check|import|index`` — :mod:`threedq.pipeline.data_commands`.
-* ``threedq em`` — :func:`threedq.pipeline.em.run_em`; ``threedq eval`` — :func:`threedq.pipeline.report.run_eval`.
-* ``threedq parse`` — :func:`threedq.pipeline.parse_command.run_parse`; ``threedq label`` — :func:`threedq.pipeline.naming.run_label`;
-  ``threedq view`` — :func:`threedq.pipeline.view.run_view`.
-"""
+"""The ``threedq`` command (entry point only: it parses the subcommand and hands it to the pipeline)."""
 
 from __future__ import annotations
 
@@ -23,10 +15,7 @@ from threedq.errors import InputError, error_line
 __all__ = ["build_parser", "end_process_group", "main", "one_blas_thread"]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
-
-
-#: name -> (help, module, function that runs it). A subcommand's module is imported only when its parser is built, so
-#: ``threedq data ...`` starts without importing Lightning.
+#: name -> (help, module, function that runs it); a subcommand's module is imported only when its parser is built
 _COMMANDS = {
     "data": ("generate, show, check, import or index a dataset", "threedq.pipeline.data_commands", "run_data"),
     "em": ("run the stages in order (view prediction, EM rounds, evaluation)", "threedq.pipeline.em", "run_em"),
@@ -37,7 +26,7 @@ _COMMANDS = {
               "run_label"),
     "view": ("look at a run in 3D (Rerun): scenes, each round's detections, prototypes, metrics",
              "threedq.pipeline.view", "run_view"),
-}
+}  # fmt: skip
 
 
 def _command_function(name: str) -> Callable[..., Any]:
@@ -49,12 +38,11 @@ def _command_function(name: str) -> Callable[..., Any]:
 def build_parser(command: str | None = None) -> ArgumentParser:
     """The top-level parser (``fit``/``validate``/``test``/``predict`` are handed to :class:`ThreeDQCLI`).
 
-    ``command``: build the parser of that subcommand only (the other subcommands' modules are not imported); ``None``
-    or a name that is no subcommand: every subcommand by name and help line only, without its options and without
-    importing its module (``threedq <command> --help`` shows the options).
+    ``command``: build the parser of that subcommand only; ``None`` or a name that is no subcommand: every subcommand
+    by name and help line only, without its options and without importing its module.
     """
-    parser = ArgumentParser(prog="threedq", description=__doc__.split("\n\n")[0] if __doc__ else None,
-                            exit_on_error=False)  # a parse error is one line (main), not the usage
+    description = __doc__.split("\n\n")[0] if __doc__ else None
+    parser = ArgumentParser(prog="threedq", description=description, exit_on_error=False)  # a parse error: one line
     sub = parser.add_subcommands(dest="command")
     for name in LIGHTNING_SUBCOMMANDS:
         p = ArgumentParser(description=f"Lightning '{name}' of a stage; see 'threedq {name} --help'.")
@@ -63,8 +51,8 @@ def build_parser(command: str | None = None) -> ArgumentParser:
         if command in _COMMANDS and name != command:
             continue
         if command not in _COMMANDS:  # listed only: its options are for 'threedq <name> --help'
-            sub.add_subcommand(name, ArgumentParser(description=f"{help_text}; see 'threedq {name} --help'."),
-                               help=help_text)
+            listed = ArgumentParser(description=f"{help_text}; see 'threedq {name} --help'.")
+            sub.add_subcommand(name, listed, help=help_text)
         elif name == "data":
             p = ArgumentParser(description="Dataset tools: generate, show, check, import, index.")
             sub.add_subcommand(name, p, help=help_text)
@@ -82,13 +70,8 @@ def build_parser(command: str | None = None) -> ArgumentParser:
 
 
 def one_blas_thread() -> None:
-    """Run numpy's and scipy's BLAS on one thread from now on in this process, unless ``OPENBLAS_NUM_THREADS`` is set.
-
-    threedq's BLAS calls through numpy are small (RANSAC ground planes, 3 x 3 fits) and come between torch
-    operations, whose OpenMP threads are still spinning when OpenBLAS wakes its own: the two pools fight
-    (``docs/benchmarks.md``, "numpy's BLAS on one thread"). torch's own threads are untouched; threadpoolctl sets the
-    limit on the BLAS libraries loaded. A process that imports threedq as a library can call this too.
-    """
+    """Run numpy's and scipy's BLAS on one thread from now on in this process, unless ``OPENBLAS_NUM_THREADS`` is set
+    (torch's own threads are untouched)."""
     if os.environ.get("OPENBLAS_NUM_THREADS"):
         return
     os.environ["OPENBLAS_NUM_THREADS"] = "1"  # the BLAS libraries loaded from now on, and child processes (DDP)
@@ -114,17 +97,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if cfg.command == "em":
             _command_function("em")(**{k: v for k, v in cfg.em.items() if k != "config" or v is not None})
             return 0
-        if cfg.command == "eval":
-            _command_function("eval")(**dict(cfg.eval.items()))
-            return 0
         if cfg.command == "parse":
             summary = _command_function("parse")(**dict(cfg.parse.items()))
             return 0 if summary["parsed"] or not summary["scenes"] else 1
-        if cfg.command == "label":
-            _command_function("label")(**dict(cfg.label.items()))
-            return 0
-        if cfg.command == "view":
-            _command_function("view")(**dict(cfg.view.items()))
+        if cfg.command in ("eval", "label", "view"):
+            _command_function(cfg.command)(**dict(cfg[cfg.command].items()))
             return 0
         build_parser().print_help()
         return 2
@@ -141,13 +118,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def end_process_group() -> None:
-    """Destroy the default process group, if a DDP run formed one in this process (no-op otherwise).
+    """Destroy the default process group, if a DDP run formed one in this process (no-op otherwise; no collective).
 
-    Lightning leaves the group it forms standing when the trainer is done. A process that then exits with it standing
-    lets the interpreter's shutdown destroy gloo's worker threads while they are still joinable: the process aborts
-    (``terminate called without an active exception``, exit -6, after its work is written), which a scheduler such as
-    SLURM counts as a failed task. ``threedq`` therefore ends the group itself before it returns. No collective is
-    called here: a rank that stopped on an error does not make the others wait.
+    Exiting with Lightning's group standing aborts the process at shutdown (gloo's threads, exit -6).
     """
     dist = sys.modules.get("torch.distributed")  # not imported by this process: it formed no group
     if dist is not None and dist.is_available() and dist.is_initialized():

@@ -1,10 +1,8 @@
 """Errors a user can fix, and the one line the ``threedq`` command prints for them.
 
-:class:`InputError` is a bad input — a scene or index file, a config, a checkpoint, a command-line option —
-whose message is one line naming the file (or the option) and the field, e.g.
-``data/x/train/scene_000003.npz: field 'depth': 12 non-finite value(s) (NaN or inf)``.
-:class:`~threedq.scene.SceneValidationError` is one. :func:`error_line` turns any error the command reports
-(an :class:`InputError`, an ``OSError`` such as a full disk, a parser error) into that one line.
+An :class:`InputError` (such as :class:`~threedq.scene.SceneValidationError`) is a bad input whose message is one line
+naming the file (or option) and the field, e.g. ``data/x/train/scene_000003.npz: field 'depth': 12 non-finite
+value(s) (NaN or inf)``. :func:`error_line` turns any error the command reports into that one line.
 """
 
 from __future__ import annotations
@@ -19,10 +17,8 @@ class InputError(ValueError):
 
 
 # Lines of jsonargparse's nested messages that say nothing about the fault itself.
-_NOISE = re.compile(
-    r"^(Does not validate against any of the Union subtypes|Subtypes: |Errors:$|Given value type: |Given value: |"
-    r"- Expected a <class 'NoneType'>)"
-)
+_NOISE = re.compile(r"^(Does not validate against any of the Union subtypes|Subtypes: |Errors:$|Given value type: |"
+                    r"Given value: |- Expected a <class 'NoneType'>)")
 
 
 def flatten_message(message: str) -> str:
@@ -32,18 +28,8 @@ def flatten_message(message: str) -> str:
     return re.sub(r"\s+", " ", " ".join(kept)).strip()
 
 
-def _os_error_line(e: OSError) -> str:
-    reason = e.strerror or flatten_message(str(e)) or type(e).__name__
-    reason = reason[:1].lower() + reason[1:]
-    if e.filename is None:
-        return flatten_message(str(e)) if e.strerror is None else reason
-    target = f"{e.filename}" + (f" -> {e.filename2}" if e.filename2 is not None else "")
-    return f"{target}: {reason}"
-
-
 def user_error_in_chain(e: BaseException) -> BaseException | None:
-    """The first :class:`InputError` or ``OSError`` among ``e`` and its explicit causes (``raise ... from``: libraries
-    such as jsonargparse wrap the error a class raised in their own), or None."""
+    """The first :class:`InputError` or ``OSError`` among ``e`` and its explicit causes, or None."""
     seen: set[int] = set()
     x: BaseException | None = e
     while x is not None and id(x) not in seen:
@@ -62,7 +48,12 @@ def error_line(e: BaseException) -> str:
     """The one line that reports ``e`` (without the ``threedq: error:`` prefix)."""
     inner = user_error_in_chain(e)
     if isinstance(inner, OSError):
-        return _os_error_line(inner)
+        reason = inner.strerror or flatten_message(str(inner)) or type(inner).__name__
+        reason = reason[:1].lower() + reason[1:]
+        if inner.filename is None:
+            return flatten_message(str(inner)) if inner.strerror is None else reason
+        target = f"{inner.filename}" + (f" -> {inner.filename2}" if inner.filename2 is not None else "")
+        return f"{target}: {reason}"
     if inner is not None:
         e = inner
     text = str(e)

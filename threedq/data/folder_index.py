@@ -1,11 +1,4 @@
-"""Write the ``index.json`` of a folder of canonical scene ``.npz`` files (``threedq data index FOLDER``).
-
-For people who write canonical records themselves: every ``*.npz`` under the folder is read and checked
-(:func:`threedq.scene.load_scene`); its split is its first folder (``train/``, ``val/``, ``test/``), else
-``default_split``; the category names are given or ``category_<id>``; each category's symmetry order defaults
-to 1 (no symmetry); the scene bounds are the union of every box's corners and every record's
-``meta["scene_bounds"]`` (imports store one), grown by ``margin``, unless given.
-"""
+"""Write the ``index.json`` of a folder of canonical scene ``.npz`` files (``threedq data index FOLDER``)."""
 
 from __future__ import annotations
 
@@ -21,31 +14,23 @@ __all__ = ["index_folder"]
 SPLITS = ("train", "val", "test")
 
 
-def index_folder(
-    folder: str | Path,
-    categories: list[str] | None = None,
-    symmetry_order: list[int] | None = None,
-    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None,
-    default_split: str = "train",
-    margin: float = 0.05,
-) -> tuple[DatasetIndex, list[str]]:
-    """Build and write ``folder/index.json`` from the scene files found.
+def index_folder(folder: str | Path, categories: list[str] | None = None, symmetry_order: list[int] | None = None,
+                 bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None,
+                 default_split: str = "train", margin: float = 0.05) -> tuple[DatasetIndex, list[str]]:
+    """Build and write ``folder/index.json`` from the scene files found (every ``*.npz`` under it, checked).
 
     Args:
-        folder: the dataset folder.
         categories: category names, index = category id; ``None`` = ``category_<id>`` up to the largest id used.
         symmetry_order: per category (see :class:`~threedq.scene.DatasetIndex`); ``None`` = all 1.
-        bounds: ``((xmin, ymin, zmin), (xmax, ymax, zmax))``; ``None`` = from the data.
+        bounds: ``((xmin, ymin, zmin), (xmax, ymax, zmax))``; ``None`` = the union of every box's corners and every
+            record's ``meta["scene_bounds"]``, grown by ``margin`` metres.
         default_split: split of files not under ``train/``, ``val/`` or ``test/``.
-        margin: metres added on every side of bounds taken from the data.
 
     Returns:
         The index written and one line per file left out (unreadable or invalid, naming file and field).
 
     Raises:
         SceneValidationError: no valid scene file, or no bounds can be taken from the data.
-
-    Convention: bounds in the scenes' world frame (metres, z up).
     """
     folder = Path(folder)
     if default_split not in SPLITS:
@@ -77,25 +62,17 @@ def index_folder(
     if categories is None:
         categories = [f"category_{i}" for i in range(max_cat + 1)]
     elif max_cat >= len(categories):
-        raise SceneValidationError(
-            source, "categories", f"{len(categories)} names but a scene uses category id {max_cat}"
-        )
+        why = f"{len(categories)} names but a scene uses category id {max_cat}"
+        raise SceneValidationError(source, "categories", why)
     symmetry_order = [1] * len(categories) if symmetry_order is None else list(symmetry_order)
     if len(symmetry_order) != len(categories):
         raise SceneValidationError(source, "symmetry_order", f"expected {len(categories)} integers, one per category")
     if bounds is None:
         if not np.all(np.isfinite(lo)):
-            raise SceneValidationError(
-                source, "scene_bounds", "no boxes or meta scene_bounds in the data: give the bounds"
-            )
+            why = "no boxes or meta scene_bounds in the data: give the bounds"
+            raise SceneValidationError(source, "scene_bounds", why)
         bounds = (tuple(float(x) for x in lo - margin), tuple(float(x) for x in hi + margin))  # type: ignore[assignment]
-    index = DatasetIndex(
-        categories=list(categories),
-        symmetry_order=symmetry_order,
-        scenes=scenes,
-        scene_bounds=bounds,
-        generator={"name": "threedq data index"},
-        seed=None,
-    )
+    index = DatasetIndex(categories=list(categories), symmetry_order=symmetry_order, scenes=scenes,
+                         scene_bounds=bounds, generator={"name": "threedq data index"}, seed=None)
     save_index(folder, index)
     return index, problems

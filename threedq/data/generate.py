@@ -1,20 +1,15 @@
 """The resumable, multi-process writer of the embedded dataset: :func:`generate_dataset`.
 
-Each scene is sampled (:func:`threedq.data.layout.sample_scene`, seeded per scene as
-:mod:`threedq.data.splits` describes), rendered (:func:`threedq.data.render_scene.render_scene`), given the
-capture conditions of ``config.capture_level`` if it is above 0 (:mod:`threedq.data.sensor`) and
-written as a canonical :class:`threedq.scene.SceneRecord` to ``out/<split>/scene_<index:06d>.npz``;
-``out/index.json`` lists the scenes at the end. Scenes are rendered in-process or by a "spawn" pool of
-workers with one GL context each; the files do not depend on the worker count or the scheduling.
-
-Resuming: a scene file that loads, validates and whose ``meta`` names the same generator version,
-config hash, seed, split and index is kept untouched; anything else is (re)written atomically.
-
-Convention: see :mod:`threedq.data.layout`.
+Each scene is sampled (seeded per scene as :mod:`threedq.data.splits` describes), rendered, given the capture
+conditions of ``config.capture_level`` if it is above 0 (:mod:`threedq.data.sensor`) and written to
+``out/<split>/scene_<index:06d>.npz``; ``out/index.json`` lists the scenes at the end. The files do not depend on the
+worker count or the scheduling. A scene file that loads, validates and whose ``meta`` names the same generator
+version, config hash, seed, split and index is kept; anything else is (re)written atomically.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing
 import os
@@ -72,13 +67,8 @@ def _scene_is_current(path: Path, expected: dict[str, Any], config: GeneratorCon
 def _run_task(task: _Task, out: Path, config: GeneratorConfig, config_hash: str, renderer_fn) -> tuple[str, int, str]:
     """Keep or (re)write one scene file; returns ``(split, index, "kept" | "written")``."""
     path = out / scene_file(task.split, task.index)
-    expected = {
-        "generator_version": GENERATOR_VERSION,
-        "config_hash": config_hash,
-        "seed": task.seed,
-        "split": task.split,
-        "index": task.index,
-    }
+    expected = {"generator_version": GENERATOR_VERSION, "config_hash": config_hash, "seed": task.seed,
+                "split": task.split, "index": task.index}
     if _scene_is_current(path, expected, config):
         return task.split, task.index, "kept"
     layout = sample_scene(config, scene_seed_sequence(task.seed, task.split, task.index))
@@ -91,21 +81,18 @@ def _run_task(task: _Task, out: Path, config: GeneratorConfig, config_hash: str,
     return task.split, task.index, "written"
 
 
-# Per-process state of pool workers (each spawned worker owns one GL context). Not configuration:
-# it is filled once by the pool initializer from the arguments it is given.
+# Per-process state of a pool worker (its GL context), filled by the pool initializer.
 _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(out: str, config_dict: dict[str, Any], raster_threads: int) -> None:
-    # Mesa's llvmpipe rasterises with one thread per core by default; with several workers that
-    # oversubscribes the cores. Read once, when the GL driver loads, i.e. below; a user's own setting wins.
+    # Mesa's llvmpipe threads, read when the GL driver loads below; a user's own setting wins
     os.environ.setdefault("LP_NUM_THREADS", str(raster_threads))
+    config = GeneratorConfig.from_dict(config_dict)
     _WORKER.clear()
-    _WORKER["out"] = Path(out)
-    _WORKER["config"] = GeneratorConfig.from_dict(config_dict)
-    _WORKER["hash"] = _WORKER["config"].hash()
+    _WORKER.update(out=Path(out), config=config, hash=config.hash())
     try:
-        _WORKER["renderer"] = make_renderer(_WORKER["config"])
+        _WORKER["renderer"] = make_renderer(config)
     except Exception as e:  # noqa: BLE001 - reported by the first task (a failing initializer would respawn forever)
         _WORKER["error"] = f"{type(e).__name__}: {e}"
 
@@ -122,45 +109,25 @@ def _worker_task(task: _Task) -> tuple[str, int, str]:
 
 def _remove_stale_temporaries(folder: Path, min_age_s: float = 3600.0) -> None:
     """Delete temporary files a killed run left behind (``.scene_XXXXXX.npz.*.tmp``, older than an hour)."""
-    if folder.is_dir():
-        now = time.time()
-        for p in folder.glob(".scene_*.npz.*.tmp"):
-            try:
-                if now - p.stat().st_mtime > min_age_s:
-                    p.unlink()
-            except OSError:
-                pass
+    now = time.time()
+    for p in folder.glob(".scene_*.npz.*.tmp"):
+        with contextlib.suppress(OSError):
+            if now - p.stat().st_mtime > min_age_s:
+                p.unlink()
 
 
-def _checked_arguments(
-    num_scenes: int,
-    seed: int,
-    config: GeneratorConfig | None,
-    split_fractions: tuple[float, float, float],
-    test_seed: int | None,
-    splits: Sequence[str],
-    workers: int,
-) -> tuple[GeneratorConfig, tuple[str, ...], tuple[float, ...]]:
-    """Validate :func:`generate_dataset`'s arguments.
-
-    Returns:
-        The config (``None`` replaced by ``GeneratorConfig()``), the requested splits in canonical order and
-        the three split fractions as floats.
-
-    Raises:
-        ValueError: a bad argument (the message names it).
-    """
+def _checked_arguments(num_scenes: int, seed: int, config: GeneratorConfig | None,
+                       split_fractions: tuple[float, float, float], test_seed: int | None, splits: Sequence[str],
+                       workers: int) -> tuple[GeneratorConfig, tuple[str, ...], tuple[float, ...]]:
+    """Validate :func:`generate_dataset`'s arguments: the config (``None`` = ``GeneratorConfig()``), the requested
+    splits in canonical order and the three split fractions as floats, or a ``ValueError`` naming the argument."""
     config = GeneratorConfig() if config is None else config
     if not isinstance(config, GeneratorConfig):
         raise ValueError(f"config: expected a GeneratorConfig, got {type(config).__name__}")  # noqa: TRY004 - the API promises ValueError naming the argument
-    if not _is_int(num_scenes) or num_scenes < 1:
-        raise ValueError(f"num_scenes: expected an int >= 1, got {num_scenes!r}")
-    if not _is_int(seed) or seed < 0:
-        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
-    if test_seed is not None and (not _is_int(test_seed) or test_seed < 0):
-        raise ValueError(f"test_seed: expected an int >= 0 or None, got {test_seed!r}")
-    if not _is_int(workers) or workers < 1:
-        raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
+    ints = [("num_scenes", num_scenes, 1, ""), ("seed", seed, 0, ""), ("test_seed", test_seed, 0, " or None")]
+    for name, v, lo, or_none in [*ints, ("workers", workers, 1, "")]:
+        if not (or_none and v is None) and (not _is_int(v) or v < lo):
+            raise ValueError(f"{name}: expected an int >= {lo}{or_none}, got {v!r}")
     if isinstance(splits, str) or not all(isinstance(s, str) for s in splits):
         raise ValueError(f"splits: expected a sequence of split names, got {splits!r}")
     splits = tuple(splits)
@@ -173,16 +140,14 @@ def _checked_arguments(
         raise ValueError(f"split_fractions: expected 3 numbers (train, val, test), got {split_fractions!r}") from None
     if len(fractions) != 3 or not all(math.isfinite(f) and f >= 0 for f in fractions):
         raise ValueError(
-            f"split_fractions: expected 3 non-negative numbers (train, val, test), got {split_fractions!r}"
-        )
+            f"split_fractions: expected 3 non-negative numbers (train, val, test), got {split_fractions!r}")
     if sum(fractions[SPLIT_CODES[s]] for s in splits) <= 0:
         raise ValueError(f"split_fractions: the requested splits {splits} all have fraction 0")
     return config, splits, fractions
 
 
-def _render_tasks(
-    tasks: list[_Task], out: Path, config: GeneratorConfig, config_hash: str, workers: int, progress: bool
-) -> None:
+def _render_tasks(tasks: list[_Task], out: Path, config: GeneratorConfig, config_hash: str, workers: int,
+                  progress: bool) -> None:
     """Keep or (re)write every task's scene file, in this process or in a "spawn" pool of ``workers``."""
     from tqdm import tqdm
 
@@ -192,9 +157,8 @@ def _render_tasks(
         n_proc = min(workers, len(tasks))
         main_file = unspawnable_main()
         if n_proc > 1 and main_file is not None:
-            warnings.warn(
-                f"workers={workers}: the main script {main_file!r} is not a file; rendering in-process", stacklevel=3
-            )
+            warnings.warn(f"workers={workers}: the main script {main_file!r} is not a file; rendering in-process",
+                          stacklevel=3)
             n_proc = 1
         if n_proc <= 1:
             renderer: list[Renderer] = []
@@ -223,30 +187,18 @@ def _render_tasks(
         bar.close()
 
 
-def generate_dataset(
-    out: str | Path,
-    num_scenes: int,
-    seed: int = 0,
-    config: GeneratorConfig | None = GeneratorConfig(),
-    split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1),
-    test_seed: int | None = None,
-    splits: Sequence[str] = SPLITS,
-    workers: int = 2,
-    progress: bool = True,
-) -> DatasetIndex:
+def generate_dataset(out: str | Path, num_scenes: int, seed: int = 0,
+                     config: GeneratorConfig | None = GeneratorConfig(),  # noqa: B008 - frozen, never mutated
+                     split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1), test_seed: int | None = None,
+                     splits: Sequence[str] = SPLITS, workers: int = 2, progress: bool = True) -> DatasetIndex:
     """Generate (or complete) a dataset folder and write its ``index.json`` last.
 
     Args:
-        out: dataset folder (created if needed).
         num_scenes: scenes over the requested splits (see :func:`split_sizes`).
-        seed: seed of the train and val scenes (an int >= 0).
+        seed: seed of the train and val scenes; test_seed: of the test scenes (``None``: :func:`derive_test_seed`).
         config: scene parameters (``None`` = ``GeneratorConfig()``).
-        split_fractions: ``(train, val, test)`` shares (renormalised over the requested splits).
-        test_seed: seed of the test scenes; ``None`` derives one from ``seed`` (:func:`derive_test_seed`).
-        splits: which splits to generate, any of ``("train", "val", "test")``. ``index.json`` lists
-            exactly these splits' scenes.
+        split_fractions: ``(train, val, test)`` shares (renormalised over the requested ``splits``).
         workers: processes rendering in parallel ("spawn" pool, one GL context each); 1 = in this process.
-        progress: show a tqdm progress bar.
 
     Returns:
         The :class:`~threedq.scene.DatasetIndex` written to ``out/index.json``.
@@ -254,44 +206,26 @@ def generate_dataset(
     Raises:
         ValueError: a bad argument (the message names it).
         RuntimeError: no OpenGL context could be created (the message says what to install).
-
-    Convention: see :mod:`threedq.data.layout`; files are ``out/<split>/scene_<index:06d>.npz``.
     """
-    config, splits, fractions = _checked_arguments(
-        num_scenes, seed, config, split_fractions, test_seed, splits, workers
-    )
-
+    config, splits, fractions = _checked_arguments(num_scenes, seed, config, split_fractions, test_seed, splits,
+                                                   workers)
     out = Path(out)
     eff_test_seed = derive_test_seed(seed) if test_seed is None else int(test_seed)
     sizes = split_sizes(int(num_scenes), fractions, splits)
     split_seed = {"train": int(seed), "val": int(seed), "test": eff_test_seed}
     tasks = [_Task(s, i, split_seed[s]) for s in splits for i in range(sizes[s])]
-    # One process generates a folder at a time; another one asking for it waits, then finds its scenes kept.
     with exclusive(out, what="generating", before_wait=lambda: refuse_in_spawned_main(out, "generating the dataset")):
         for s in splits:
             (out / s).mkdir(parents=True, exist_ok=True)
             _remove_stale_temporaries(out / s)
         config_hash = config.hash()
-
         _render_tasks(tasks, out, config, config_hash, workers, progress)
-
-        index = DatasetIndex(
-            categories=list(config.category_names),
-            symmetry_order=list(config.symmetry_order),
-            scenes=[{"file": scene_file(t.split, t.index), "split": t.split} for t in tasks],
-            scene_bounds=config.scene_bounds,
-            generator={
-                "name": "threedq.data.generate",
-                "version": GENERATOR_VERSION,
-                "config": config.to_dict(),
-                "config_hash": config_hash,
-                "seed": int(seed),
-                "test_seed": eff_test_seed,
-                "split_fractions": list(fractions),
-                "num_scenes": int(num_scenes),
-                "split_sizes": {s: sizes[s] for s in splits},
-            },
-            seed=int(seed),
-        )
+        generator = {"name": "threedq.data.generate", "version": GENERATOR_VERSION, "config": config.to_dict(),
+                     "config_hash": config_hash, "seed": int(seed), "test_seed": eff_test_seed,
+                     "split_fractions": list(fractions), "num_scenes": int(num_scenes),
+                     "split_sizes": {s: sizes[s] for s in splits}}
+        index = DatasetIndex(categories=list(config.category_names), symmetry_order=list(config.symmetry_order),
+                             scenes=[{"file": scene_file(t.split, t.index), "split": t.split} for t in tasks],
+                             scene_bounds=config.scene_bounds, generator=generator, seed=int(seed))
         save_index(out, index)
     return index

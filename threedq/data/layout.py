@@ -1,20 +1,17 @@
 """Scene layouts of the embedded dataset: objects, their poses, the light and the cameras (numpy only, no GL).
 
-A scene holds ``min_objects``..``max_objects`` objects (categories of :mod:`threedq.data.catalog`,
-uniformly drawn), each scaled, yawed and put on a grey ground plane without overlap, lit by a random
-directional key light plus ambient light, and seen by ``num_views`` RGB-D cameras on rings of
-elevations around the scene centre. :func:`sample_scene` draws all of it from one seed sequence
-(:func:`threedq.data.splits.scene_seed_sequence`); :func:`threedq.data.render_scene.render_scene`
-turns the layout into pixels.
+A scene holds ``min_objects``..``max_objects`` objects (uniformly drawn categories), each scaled, yawed and put on
+the ground plane without overlap, lit by a random directional key light plus ambient light, and seen by
+``num_views`` cameras on rings of elevations around the scene centre. :func:`sample_scene` draws it all from one seed
+sequence; :func:`threedq.data.render_scene.render_scene` turns the layout into pixels.
 
 Convention:
-    World frame in metres, right-handed, z up, ground at z = 0, scene centred on the origin. Cameras
-    use OpenCV axes (x right, y down, z forward), ``world_T_cam`` is camera-to-world, ``K`` has pixel
-    centres at integer coordinates, ``fx = fy = W / (2 tan(fov / 2))``, principal point
-    ``((W - 1) / 2, (H - 1) / 2)``. Depth is camera-frame z in metres (0 = sky); instance 0 is ground or
-    sky, object ``i`` (1-based row of ``boxes``) is ``i``. Boxes are ``(cx, cy, cz, sx, sy, sz, yaw)``:
-    centre of the object's scaled, yawed bounding box, its extents in the object frame, yaw about +z
-    (counter-clockwise seen from above, radians, in ``[0, 2 pi)``).
+    World frame in metres, right-handed, z up, ground at z = 0, scene centred on the origin. Cameras use OpenCV axes
+    (x right, y down, z forward), ``world_T_cam`` is camera-to-world, ``K`` has pixel centres at integer coordinates,
+    ``fx = fy = W / (2 tan(fov / 2))``, principal point ``((W - 1) / 2, (H - 1) / 2)``. Depth is camera-frame z in
+    metres (0 = sky); instance 0 is ground or sky, object ``i`` (1-based row of ``boxes``) is ``i``. Boxes are
+    ``(cx, cy, cz, sx, sy, sz, yaw)``: centre of the object's scaled, yawed bounding box, its extents in the object
+    frame, yaw counter-clockwise about +z, radians in ``[0, 2 pi)``.
 """
 
 from __future__ import annotations
@@ -33,7 +30,6 @@ from threedq.data.render import Lighting
 
 __all__ = ["SceneLayout", "SceneObject", "intrinsics", "sample_scene"]
 
-# Scene constants (documented here rather than configurable: they shape the look, not the task).
 _MAX_PLACEMENT_TRIES = 100  # per object; an object that finds no free spot is left out
 _LOOK_AT = np.array([0.0, 0.0, 0.2])  # cameras look at this point ...
 _LOOK_AT_JITTER = np.array([0.1, 0.1, 0.05])  # ... plus U(-j, j) per axis, per scene
@@ -45,19 +41,9 @@ _COLOR_STREAM = 0xC0102  # spawn-key suffix of the colour stream of color_mode="
 
 @dataclass
 class SceneObject:
-    """One placed object.
-
-    Attributes:
-        category: id (position in the config's category list).
-        name: category name.
-        scale: metres per normalised unit (the object's largest extent).
-        color: this instance's sRGB colour in ``[0, 1]`` (``color_mode="random"``), or ``None``: its category's.
-        yaw: radians in ``[0, 2 pi)``, counter-clockwise about +z.
-        position: ``[3]`` where the object's bounding-box bottom centre sits (z = 0).
-        box: ``[7]`` ``(cx, cy, cz, sx, sy, sz, yaw)``.
-
-    Convention: world frame, metres, z up.
-    """
+    """One placed object: ``category`` id and ``name``, ``scale`` (metres per normalised unit), ``yaw`` (radians in
+    ``[0, 2 pi)``, counter-clockwise about +z), ``position`` ``[3]`` of its bounding-box bottom centre (z = 0), ``box``
+    ``[7]`` and ``color`` (sRGB in ``[0, 1]`` with ``color_mode="random"``, else ``None``: the category's)."""
 
     category: int
     name: str
@@ -65,7 +51,7 @@ class SceneObject:
     yaw: float
     position: np.ndarray
     box: np.ndarray
-    color: tuple[float, float, float] | None = None  # sRGB in [0, 1]; None = the category's catalogue colour
+    color: tuple[float, float, float] | None = None
 
     @property
     def world_T_obj(self) -> np.ndarray:
@@ -79,20 +65,9 @@ class SceneObject:
 
 @dataclass
 class SceneLayout:
-    """Everything about a scene except its pixels.
-
-    Attributes:
-        objects: the placed objects (row ``i`` is instance ``i + 1``).
-        K: ``[V, 3, 3]`` float64 intrinsics (values representable in float32).
-        world_T_cam: ``[V, 4, 4]`` float64 camera-to-world poses (values representable in float32).
-        lighting: the scene's light.
-        image_size: ``(H, W)``.
-        category_names: the config's category names in id order.
-        mesh_faces: face budget of the meshes (:func:`threedq.data.meshes.category_mesh`).
-        meta: JSON-ready facts copied into the record's ``meta``.
-
-    Convention: see the module docstring.
-    """
+    """Everything about a scene except its pixels: the ``objects`` (row ``i`` is instance ``i + 1``), ``K``
+    ``[V, 3, 3]`` and ``world_T_cam`` ``[V, 4, 4]`` (float64 holding float32 values), the ``lighting``, ``image_size``
+    ``(H, W)``, the config's ``category_names``, the meshes' ``mesh_faces`` and JSON-ready ``meta`` for the record."""
 
     objects: list[SceneObject]
     K: np.ndarray
@@ -127,42 +102,24 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def _f32(a: np.ndarray) -> np.ndarray:
-    """Round to float32 and back: what is rendered is then exactly what is stored."""
+    """Round to float32 and back (what is rendered is what is stored)."""
     return np.asarray(a, np.float64).astype(np.float32).astype(np.float64)
 
 
 def intrinsics(config: GeneratorConfig) -> np.ndarray:
-    """``[3, 3]`` float64 pinhole intrinsics of every camera: square pixels, centred principal point.
-
-    Convention: pixel centres at integer coordinates: ``cx = (W - 1) / 2``, ``cy = (H - 1) / 2``,
-    ``fx = fy = W / (2 tan(fov_deg / 2))``.
-    """
+    """``[3, 3]`` float64 pinhole intrinsics of every camera (see the module docstring's convention)."""
     H, W = config.image_size
     f = W / (2.0 * math.tan(math.radians(config.fov_deg) / 2.0))
     return np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
-def _ring_sizes(num_views: int, num_rings: int) -> list[int]:
-    rings = min(num_rings, num_views)
-    base, extra = divmod(num_views, rings)
-    return [base + (1 if r < extra else 0) for r in range(rings)]
-
-
 def sample_scene(config: GeneratorConfig, seed_sequence: np.random.SeedSequence) -> SceneLayout:
-    """Draw one scene's objects, light and cameras from ``seed_sequence`` (pure numpy, no GL).
+    """Draw one scene's objects, light and cameras from ``seed_sequence``; ``meta`` holds ``generator_version`` and
+    ``config_hash``.
 
-    Draw order (part of the format, do not change without bumping :data:`GENERATOR_VERSION`): number of
-    objects; per object category, scale, yaw, then placement tries; light; look-at jitter; per ring
-    azimuth offset, per view elevation (uniform in the ring's band) and distance. With ``color_mode="random"`` each
-    object's colour comes from a second stream of the same seed, in object order.
-
-    Returns:
-        :class:`SceneLayout`; ``meta`` holds ``generator_version`` and ``config_hash``.
-
-    Raises:
-        AssertionError: a box left ``config.scene_bounds`` (cannot happen for a validated config).
-
-    Convention: see the module docstring.
+    Draw order (changing it needs a new :data:`GENERATOR_VERSION`): number of objects; per object category, scale, yaw,
+    then placement tries; light; look-at jitter; per ring azimuth offset, per view elevation (uniform in the ring's
+    band) and distance. Random colours come from a second stream of the same seed, in object order.
     """
     rng = np.random.default_rng(seed_sequence)
     names = config.category_names
@@ -194,15 +151,14 @@ def sample_scene(config: GeneratorConfig, seed_sequence: np.random.SeedSequence)
 
     az = float(rng.uniform(0.0, 2.0 * math.pi))
     el = math.radians(float(rng.uniform(*_LIGHT_ELEVATION_DEG)))
-    lighting = Lighting(
-        direction=(math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)),
-        intensity=float(rng.uniform(*_LIGHT_INTENSITY)),
-        ambient=float(rng.uniform(*_AMBIENT)),
-    )
+    lighting = Lighting(direction=(math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)),
+                        intensity=float(rng.uniform(*_LIGHT_INTENSITY)), ambient=float(rng.uniform(*_AMBIENT)))
 
     target = _LOOK_AT + rng.uniform(-1.0, 1.0, size=3) * _LOOK_AT_JITTER
     e_lo, e_hi = config.elevation_range_deg
-    sizes = _ring_sizes(config.num_views, config.num_rings)
+    rings = min(config.num_rings, config.num_views)
+    base, extra = divmod(config.num_views, rings)
+    sizes = [base + (1 if r < extra else 0) for r in range(rings)]
     band = (e_hi - e_lo) / len(sizes)
     poses = []
     for ring, count in enumerate(sizes):
@@ -211,16 +167,14 @@ def sample_scene(config: GeneratorConfig, seed_sequence: np.random.SeedSequence)
             azimuth = offset + 2.0 * math.pi * k / count
             elevation = math.radians(float(rng.uniform(e_lo + ring * band, e_lo + (ring + 1) * band)))
             dist = float(rng.uniform(*config.distance_range))
-            d = np.array(
-                [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
-            )
+            ce = math.cos(elevation)
+            d = np.array([ce * math.cos(azimuth), ce * math.sin(azimuth), math.sin(elevation)])
             poses.append(_look_at(target + dist * d, target))
     world_T_cam = _f32(np.stack(poses))
     K = _f32(np.broadcast_to(intrinsics(config), (config.num_views, 3, 3)).copy())
     if config.color_mode == "random":
-        # a stream of its own, so that the layout above is the one "category" draws from the same seed
-        colors = np.random.default_rng(np.random.SeedSequence(seed_sequence.entropy,
-                                                              spawn_key=(*seed_sequence.spawn_key, _COLOR_STREAM)))
+        key = (*seed_sequence.spawn_key, _COLOR_STREAM)
+        colors = np.random.default_rng(np.random.SeedSequence(seed_sequence.entropy, spawn_key=key))
         for o in objects:
             o.color = RANDOM_COLOR_PALETTE[int(colors.integers(len(RANDOM_COLOR_PALETTE)))]
     meta = {"generator_version": GENERATOR_VERSION, "config_hash": config.hash()}

@@ -1,8 +1,4 @@
-"""Label-free pseudo-boxes of a whole dataset split, computed once and cached: :func:`propose_dataset`.
-
-Runs :func:`threedq.proposals.propose_boxes` over the scenes of a split with a progress bar and keeps the
-result in one box file (:mod:`threedq.data.box_files`), written atomically every few scenes, resumable
-and tied to the parameters (a cache made with other parameters is recomputed).
+"""Label-free pseudo-boxes of a whole dataset split, computed once and cached in a box file: :func:`propose_dataset`.
 
 Convention: world frame in metres, z up; boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` float32.
 """
@@ -36,52 +32,30 @@ def _params_json(params: ProposalParams, bounds: Bounds | None) -> str:
     return json.dumps(d, sort_keys=True)
 
 
-def propose_dataset(
-    data_dir: str | Path,
-    split: str,
-    cache_path: str | Path,
-    *,
-    params: ProposalParams | None = None,
-    max_scenes: int | None = None,
-    save_every: int = 50,
-    progress: bool = True,
-    workers: int = 1,
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Proposals for every scene of a split, cached in one ``.npz``.
+def propose_dataset(data_dir: str | Path, split: str, cache_path: str | Path, *, params: ProposalParams | None = None,
+                    max_scenes: int | None = None, save_every: int = 50, progress: bool = True,
+                    workers: int = 1) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Proposals for every scene of a split, cached in one box file (:mod:`threedq.data.box_files`) whose ``params``
+    is the JSON of the parameters, the bounds and :data:`PROPOSALS_VERSION`.
 
     Args:
-        data_dir: dataset folder with ``index.json``.
-        split: ``"train"``, ``"val"`` or ``"test"`` (any split name the index uses).
-        cache_path: the cache file. An existing cache made with the same parameters (and bounds and
-            :data:`PROPOSALS_VERSION`) is reused: its scenes are not recomputed, missing ones are added
-            (so an interrupted run resumes). A cache made with other parameters is recomputed from
-            scratch and overwritten (with a warning).
-        params: :class:`ProposalParams` (``None`` = defaults); the points are cropped to the ``scene_bounds`` of
-            ``index.json``.
+        cache_path: a cache made with the same parameters is reused and completed (an interrupted run resumes); one
+            made with other parameters is recomputed and overwritten (with a warning).
+        params: :class:`ProposalParams` (``None`` = defaults); the points are cropped to the index's ``scene_bounds``.
         max_scenes: only the first ``max_scenes`` scenes of the split (``None`` = all).
         save_every: the cache is rewritten (atomically) after every this many newly computed scenes.
-        progress: show a tqdm progress bar.
-        workers: processes computing scenes at once ("spawn" pool, one thread each; 1 = in this process, as for
-            fewer than :data:`MIN_POOL_SCENES` missing scenes or a main script that is not a file). The boxes and
-            the cache file do not depend on it: every scene's RANSAC is seeded by the parameters alone, and the
-            results are collected in order.
+        workers: processes computing scenes at once ("spawn" pool; fewer than :data:`MIN_POOL_SCENES` missing scenes
+            run in this process). The results do not depend on it.
 
     Returns:
-        ``{scene file as listed in index.json (e.g. "test/scene_000000.npz") -> (aabb [P,6] float32,
-        scores [P] float32)}`` in index order.
-
-    Cache layout: a box file (:mod:`threedq.data.box_files`) whose ``params`` is the JSON string of the
-    parameters, the bounds and :data:`PROPOSALS_VERSION`.
-
-    Convention: world frame, metres, z up; boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+        ``{scene file as listed in index.json -> (aabb [P,6] float32, scores [P] float32)}`` in index order.
     """
     params = ProposalParams() if params is None else params
     if not isinstance(params, ProposalParams):
         raise ValueError(f"params: expected a ProposalParams or None, got {type(params).__name__}")  # noqa: TRY004 - ValueError naming the argument
-    if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 1:
-        raise ValueError(f"save_every: expected an int >= 1, got {save_every!r}")
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers: expected an int >= 1, got {workers!r}")
+    for name, v in (("save_every", save_every), ("workers", workers)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
     data_dir, cache_path = Path(data_dir), Path(cache_path)
     index = load_index(data_dir)
     files = index.files(split)
@@ -108,7 +82,6 @@ def propose_dataset(
     results = read_cache(warn=False)
     if cache_path.exists() and all(f in results for f in files):
         return {f: results[f] for f in files}
-    # Another process may be computing the same cache: the first computes, the others wait and read its file.
     with exclusive(cache_path, what="computing proposals into",
                    before_wait=lambda: refuse_in_spawned_main(cache_path, "computing the pseudo-boxes")):
         results = read_cache(warn=True)
@@ -116,7 +89,7 @@ def propose_dataset(
     return {f: results[f] for f in files}
 
 
-#: the fewest missing scenes for which :func:`propose_dataset` starts a process pool (starting one costs seconds)
+#: the fewest missing scenes for which :func:`propose_dataset` starts a process pool
 MIN_POOL_SCENES = 32
 
 
@@ -130,7 +103,6 @@ def _propose_scene(path: Path, bounds: Bounds | None, kwargs: dict[str, Any]) ->
 
 
 def _init_pool_worker() -> None:
-    # one thread per worker process: the pool has a process per core
     import torch
     from threadpoolctl import threadpool_limits
 
@@ -139,11 +111,10 @@ def _init_pool_worker() -> None:
 
 
 def _pool_task(args: tuple[Path, Bounds | None, dict[str, Any]]) -> tuple[np.ndarray, np.ndarray] | None:
-    """:func:`_propose_scene` in a pool worker; None on any error, which the parent then raises itself by
-    computing that scene (so the error keeps its type and message, which a pickled exception may not)."""
+    """:func:`_propose_scene` in a pool worker; None on any error (the parent then computes that scene itself)."""
     try:
         return _propose_scene(*args)
-    except Exception:  # noqa: BLE001 - re-raised by the parent, see above
+    except Exception:  # noqa: BLE001 - re-raised by the parent
         return None
 
 
@@ -158,7 +129,7 @@ def _complete(results: dict[str, tuple[np.ndarray, np.ndarray]], files: list[str
               pjson: str, bounds: Bounds | None, params: ProposalParams, save_every: int, progress: bool,
               workers: int = 1) -> None:  # fmt: skip
     """Compute the scenes of ``files`` missing from ``results`` into it, in order, saving the cache every
-    ``save_every``; ``workers`` processes at once (see :func:`propose_dataset`)."""
+    ``save_every`` scenes."""
     from tqdm import tqdm
 
     all_names = list(dict.fromkeys([*results.keys(), *files]))
@@ -171,7 +142,8 @@ def _complete(results: dict[str, tuple[np.ndarray, np.ndarray]], files: list[str
               unit="scene", dynamic_ncols=True) as bar:  # fmt: skip
         pool = multiprocessing.get_context("spawn").Pool(n_proc, _init_pool_worker) if n_proc > 1 else None
         try:
-            done = pool.imap(_pool_task, tasks, chunksize=4) if pool is not None else (_propose_scene(*t) for t in tasks)
+            done = (pool.imap(_pool_task, tasks, chunksize=4) if pool is not None
+                    else (_propose_scene(*t) for t in tasks))
             for f, task, out in zip(todo, tasks, done, strict=True):
                 results[f] = out if out is not None else _propose_scene(*task)
                 dirty += 1

@@ -1,21 +1,15 @@
 """Offscreen OpenGL (moderngl) renderer of posed RGB-D views with exact metric depth and instance ids.
 
-One render pass with two colour targets: an RGBA8 target for the shaded colour and an RG32F target
-holding the camera-frame z (written from the fragment shader, not recovered from the depth buffer)
-and the instance id. All views of a scene are drawn into tiles of one atlas framebuffer (one
-viewport per view) and read back with one ``glReadPixels`` per target, which on Mesa's llvmpipe is
-much cheaper than a read per view. An optional shadow map per scene (the light is the same for all
-views) gives CLEVR-like cast shadows.
+One pass writes an RGBA8 colour target and an RG32F target holding camera-frame z (from the fragment shader) and the
+instance id. All views of a scene are tiles of one atlas framebuffer, read back with one ``glReadPixels`` per target;
+an optional shadow map per scene gives cast shadows.
 
 Convention:
-    World frame in metres, z up. Cameras use OpenCV axes (x right, y down, z forward); ``world_T_cam``
-    ``[V, 4, 4]`` is camera-to-world; ``K`` ``[V, 3, 3]`` has pixel centres at integer coordinates
-    (column ``u`` is centred at ``u``). The projection maps pixel centre ``(u, v)`` to NDC
-    ``x = 2 (u + 0.5) / W - 1`` and ``y = 2 (v + 0.5) / H - 1``: NDC y points *down* the image, so GL
-    framebuffer row ``v`` (counted from the bottom, as ``glReadPixels`` returns it) is image row ``v``
-    (counted from the top) and no flip is needed. Depth is camera-frame z in metres, 0 where no surface
-    was hit; instance 0 is the ground or background. No anti-aliasing: every pixel holds the surface at
-    its centre.
+    World frame in metres, z up. Cameras use OpenCV axes (x right, y down, z forward); ``world_T_cam`` ``[V, 4, 4]`` is
+    camera-to-world; ``K`` ``[V, 3, 3]`` has pixel centres at integer coordinates. Pixel centre ``(u, v)`` maps to NDC
+    ``x = 2 (u + 0.5) / W - 1``, ``y = 2 (v + 0.5) / H - 1``: NDC y points down the image, so GL framebuffer row ``v``
+    (from the bottom, as ``glReadPixels`` returns it) is image row ``v`` (from the top). Depth is camera-frame z in
+    metres, 0 where no surface was hit; instance 0 is the ground or background. No anti-aliasing.
 """
 
 from __future__ import annotations
@@ -28,15 +22,7 @@ import numpy as np
 
 from threedq.data.meshes import MeshData
 
-__all__ = [
-    "Lighting",
-    "RenderObject",
-    "RenderOutput",
-    "Renderer",
-    "create_context",
-    "ground_mesh",
-    "projection_from_K",
-]
+__all__ = ["Lighting", "RenderObject", "RenderOutput", "Renderer", "create_context", "ground_mesh", "projection_from_K"]
 
 _INSTALL_HINT = (
     "threedq renders its dataset with moderngl. Install it with `pip install moderngl glcontext`; on a "
@@ -115,22 +101,14 @@ in vec3 in_position;
 void main() { gl_Position = light_T_obj * vec4(in_position, 1.0); }
 """
 
-_SHADOW_FRAGMENT_SHADER = """
-#version 330
-void main() {}
-"""
+_SHADOW_FRAGMENT_SHADER = "#version 330\nvoid main() {}\n"
 
 
 @dataclass(frozen=True)
 class Lighting:
-    """A directional key light plus ambient light, in the world frame.
+    """A directional key light (``direction``: unit 3-vector towards the light; ``intensity``) plus ``ambient`` light.
 
-    Attributes:
-        direction: unit 3-vector from the scene towards the light.
-        intensity: key light strength (multiplies the albedo; about 0.5-1).
-        ambient: ambient level (multiplies the albedo; about 0.2-0.5).
-
-    Convention: world frame, z up; colours are sRGB in ``[0, 1]`` and lit linearly (no gamma).
+    Convention: world frame, z up; intensity and ambient multiply the sRGB albedo in ``[0, 1]`` linearly (no gamma).
     """
 
     direction: tuple[float, float, float]
@@ -140,17 +118,9 @@ class Lighting:
 
 @dataclass(frozen=True)
 class RenderObject:
-    """One mesh instance to draw.
-
-    Attributes:
-        key: cache key of the mesh's GPU buffers (e.g. the category name); equal keys must mean equal meshes.
-        mesh: the mesh in its object frame.
-        color: sRGB albedo, 3 floats in ``[0, 1]``.
-        world_T_obj: ``[4, 4]`` object-to-world transform (rotation times a uniform scale, plus a translation).
-        instance_id: value written to the instance image (0 is reserved for the ground and background).
-
-    Convention: world frame in metres, z up.
-    """
+    """One mesh instance to draw: ``key`` caches the mesh's GPU buffers (equal keys must mean equal meshes), ``mesh``
+    in its object frame, sRGB albedo ``color`` in ``[0, 1]``, ``world_T_obj`` ``[4, 4]`` (rotation times a uniform
+    scale, plus a translation) and ``instance_id`` (0 is reserved for the ground and background)."""
 
     key: str
     mesh: MeshData
@@ -162,10 +132,7 @@ class RenderObject:
 @dataclass
 class RenderOutput:
     """Rendered views: ``rgb`` ``[V, H, W, 3]`` uint8, ``depth`` ``[V, H, W]`` float32 (camera z, m, 0 = none),
-    ``instance`` ``[V, H, W]`` int32 (0 = ground/background).
-
-    Convention: image row 0 is the top, column 0 the left; pixel ``(v, u)`` is centred at ``(u, v)``.
-    """
+    ``instance`` ``[V, H, W]`` int32 (0 = ground/background); image row 0 is the top."""
 
     rgb: np.ndarray
     depth: np.ndarray
@@ -173,15 +140,10 @@ class RenderOutput:
 
 
 def create_context(backend: str | None = None):
-    """A standalone (offscreen) moderngl context; OpenGL >= 3.3 core.
-
-    Args:
-        backend: ``"egl"`` or ``None``; ``None`` tries EGL (headless) first, then the platform default.
+    """A standalone (offscreen) OpenGL >= 3.3 core context; ``backend`` ``None`` tries EGL first, then the default.
 
     Raises:
         RuntimeError: no context could be created; the message says what to install.
-
-    Convention: one context per process; moderngl contexts must not cross a fork (use "spawn").
     """
     try:
         import moderngl
@@ -198,13 +160,8 @@ def create_context(backend: str | None = None):
 
 
 def projection_from_K(K: np.ndarray, image_size: tuple[int, int], near: float, far: float) -> np.ndarray:
-    """OpenGL projection ``[4, 4]`` (float64) for OpenCV camera coordinates and intrinsics ``K`` ``[3, 3]``.
-
-    Maps pixel centre ``(u, v)`` to NDC ``(2 (u + 0.5) / W - 1, 2 (v + 0.5) / H - 1)`` (NDC y down the
-    image, see the module docstring) and camera z in ``[near, far]`` to NDC z in ``[-1, 1]``.
-
-    Convention: ``image_size`` is ``(H, W)``; ``K`` has pixel centres at integer coordinates.
-    """
+    """OpenGL projection ``[4, 4]`` (float64) for OpenCV camera coordinates, ``K`` ``[3, 3]`` and ``image_size``
+    ``(H, W)``: NDC as in the module docstring, camera z in ``[near, far]`` to NDC z in ``[-1, 1]``."""
     H, W = image_size
     fx, s, cx = float(K[0, 0]), float(K[0, 1]), float(K[0, 2])
     fy, cy = float(K[1, 1]), float(K[1, 2])
@@ -217,10 +174,7 @@ def projection_from_K(K: np.ndarray, image_size: tuple[int, int], near: float, f
 
 
 def ground_mesh(size: float) -> MeshData:
-    """A square ``size x size`` quad on z = 0 centred at the origin, normal +z (2 triangles).
-
-    Convention: world frame, metres, z up.
-    """
+    """A square ``size x size`` quad on z = 0 centred at the origin, normal +z (2 triangles; metres)."""
     h = size / 2
     v = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], np.float32)
     n = np.tile(np.array([0, 0, 1], np.float32), (4, 1))
@@ -233,10 +187,8 @@ def _mat_bytes(m: np.ndarray) -> bytes:
 
 
 def _look_at_ortho(direction: np.ndarray, centre: np.ndarray, radius: float, depth: float) -> np.ndarray:
-    """World -> clip matrix ``[4, 4]`` of an orthographic light camera looking along ``-direction`` at ``centre``.
-
-    The box covers ``[-radius, radius]^2`` across the light direction and ``depth`` metres along it,
-    starting ``radius`` in front of ``centre``.
+    """World -> clip ``[4, 4]`` of an orthographic light camera looking along ``-direction`` at ``centre``: it covers
+    ``[-radius, radius]^2`` across the light direction and ``depth`` metres along it, from ``radius`` before ``centre``.
     """
     f = -direction / np.linalg.norm(direction)  # forward (from the light into the scene)
     up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
@@ -255,37 +207,20 @@ def _look_at_ortho(direction: np.ndarray, centre: np.ndarray, radius: float, dep
 class Renderer:
     """Offscreen renderer of RGB, metric depth and instance ids for many views of one scene at a time.
 
-    Create one per process (it owns a GL context) and reuse it for every scene: programs, mesh
-    buffers (cached by :attr:`RenderObject.key`), framebuffers and the shadow map are kept.
+    One per process (it owns a GL context), reused for every scene; mesh buffers are cached by :attr:`RenderObject.key`.
 
     Args:
-        backend: GL context backend for :func:`create_context` (``None``: EGL, then the default).
-        ground_size: side of the square grey ground plane at z = 0, metres (0 = no ground).
-        ground_color: sRGB albedo of the ground.
-        shadows: draw cast shadows of the objects (a shadow map per scene).
-        shadow_map_size: shadow-map side in texels.
+        ground_size: side of the square ground plane at z = 0, metres (0 = no ground); ground_color: its sRGB albedo.
+        shadows: draw cast shadows of the objects; shadow_map_size: its side in texels.
         near, far: clip distances of the cameras, metres.
-        specular, shininess: Blinn-Phong highlight of the objects.
-        ground_specular: highlight strength of the ground (mostly matte).
+        specular, shininess: Blinn-Phong highlight of the objects; ground_specular: that of the ground.
         max_atlas_size: largest side of the atlas framebuffer that holds the views (pixels).
-
-    Convention: see the module docstring.
     """
 
-    def __init__(
-        self,
-        backend: str | None = None,
-        ground_size: float = 12.0,
-        ground_color: tuple[float, float, float] = (0.55, 0.55, 0.55),
-        shadows: bool = True,
-        shadow_map_size: int = 512,
-        near: float = 0.05,
-        far: float = 50.0,
-        specular: float = 0.25,
-        ground_specular: float = 0.05,
-        shininess: float = 24.0,
-        max_atlas_size: int = 4096,
-    ) -> None:
+    def __init__(self, backend: str | None = None, ground_size: float = 12.0,
+                 ground_color: tuple[float, float, float] = (0.55, 0.55, 0.55), shadows: bool = True,
+                 shadow_map_size: int = 512, near: float = 0.05, far: float = 50.0, specular: float = 0.25,
+                 ground_specular: float = 0.05, shininess: float = 24.0, max_atlas_size: int = 4096) -> None:
         if not 0 < near < far:
             raise ValueError(f"near, far: need 0 < near < far, got near={near}, far={far}")
         import moderngl
@@ -307,24 +242,20 @@ class Renderer:
         self._shadow_tex = ctx.depth_texture((shadow_map_size, shadow_map_size))
         self._shadow_tex.compare_func = "<="
         self._shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
-        self._shadow_tex.repeat_x = False
-        self._shadow_tex.repeat_y = False
+        self._shadow_tex.repeat_x = self._shadow_tex.repeat_y = False
         self._shadow_fbo = ctx.framebuffer(depth_attachment=self._shadow_tex)
         self._prog["shadow_map"].value = 0
 
-    # -- resources ---------------------------------------------------------------------------------
     def _mesh_buffers(self, key: str, mesh: MeshData) -> tuple:
         entry = self._meshes.get(key)
         if entry is None:
             data = np.ascontiguousarray(np.concatenate([mesh.vertices, mesh.normals], axis=1), np.float32)
             vbo = self.ctx.buffer(data.tobytes())
             ibo = self.ctx.buffer(np.ascontiguousarray(mesh.faces, np.uint32).tobytes())
-            vao = self.ctx.vertex_array(
-                self._prog, [(vbo, "3f 3f", "in_position", "in_normal")], ibo, index_element_size=4
-            )
+            vao = self.ctx.vertex_array(self._prog, [(vbo, "3f 3f", "in_position", "in_normal")], ibo,
+                                        index_element_size=4)
             svao = self.ctx.vertex_array(self._shadow_prog, [(vbo, "3f 12x", "in_position")], ibo, index_element_size=4)
-            entry = (vbo, ibo, vao, svao)
-            self._meshes[key] = entry
+            entry = self._meshes[key] = (vbo, ibo, vao, svao)
         return entry
 
     def _layout(self, num_views: int, H: int, W: int) -> tuple[int, int, int]:
@@ -348,8 +279,7 @@ class Renderer:
             color = self.ctx.renderbuffer(size, components=4, dtype="f1")
             depth_id = self.ctx.renderbuffer(size, components=2, dtype="f4")
             zbuf = self.ctx.depth_renderbuffer(size)
-            fbo = self.ctx.framebuffer(color_attachments=[color, depth_id], depth_attachment=zbuf)
-            self._atlases[key] = fbo
+            fbo = self._atlases[key] = self.ctx.framebuffer(color_attachments=[color, depth_id], depth_attachment=zbuf)
         return fbo
 
     def release(self) -> None:
@@ -364,13 +294,11 @@ class Renderer:
     def __exit__(self, *exc) -> None:
         self.release()
 
-    # -- rendering -----------------------------------------------------------------------------------
     def _shadow_pass(self, objects: Sequence[RenderObject], lighting: Lighting) -> None:
         prog = self._prog
         if not self.shadows or not objects:
             prog["use_shadow"].value = False
             return
-        # an orthographic light camera that tightly covers the objects' bounding spheres
         centres, radii = [], []
         for o in objects:
             lo, hi = o.mesh.bounds
@@ -382,16 +310,13 @@ class Renderer:
         centres_a, radii_a = np.array(centres), np.array(radii)
         centre = centres_a.mean(axis=0)
         radius = float((np.linalg.norm(centres_a - centre, axis=1) + radii_a).max()) + 0.02
-        direction = np.asarray(lighting.direction, np.float64)
-        light_T_world = _look_at_ortho(direction, centre, radius, depth=radius + 40.0)
-        fbo = self._shadow_fbo
-        fbo.use()
-        fbo.clear(depth=1.0)
+        light_T_world = _look_at_ortho(np.asarray(lighting.direction, np.float64), centre, radius, depth=radius + 40.0)
+        self._shadow_fbo.use()
+        self._shadow_fbo.clear(depth=1.0)
         self.ctx.polygon_offset = (2.0, 2.0)
-        sprog = self._shadow_prog
         for o in objects:
-            _, _, _, svao = self._mesh_buffers(o.key, o.mesh)
-            sprog["light_T_obj"].write(_mat_bytes(light_T_world @ np.asarray(o.world_T_obj, np.float64)))
+            svao = self._mesh_buffers(o.key, o.mesh)[3]
+            self._shadow_prog["light_T_obj"].write(_mat_bytes(light_T_world @ np.asarray(o.world_T_obj, np.float64)))
             svao.render()
         self.ctx.polygon_offset = (0.0, 0.0)
         prog["use_shadow"].value = True
@@ -399,29 +324,10 @@ class Renderer:
         prog["shadow_texel"].value = 2 * radius / self._shadow_tex.width
         self._shadow_tex.use(location=0)
 
-    def render(
-        self,
-        objects: Sequence[RenderObject],
-        K: np.ndarray,
-        world_T_cam: np.ndarray,
-        image_size: tuple[int, int],
-        lighting: Lighting,
-    ) -> RenderOutput:
-        """Render ``V`` views of the objects standing on the ground plane.
-
-        Args:
-            objects: the meshes to draw (besides the ground), each with its instance id.
-            K: ``[V, 3, 3]`` intrinsics.
-            world_T_cam: ``[V, 4, 4]`` camera-to-world poses.
-            image_size: ``(H, W)``.
-            lighting: the scene's light.
-
-        Returns:
-            :class:`RenderOutput` with ``rgb`` ``[V, H, W, 3]`` u8, ``depth`` ``[V, H, W]`` f32,
-            ``instance`` ``[V, H, W]`` i32.
-
-        Convention: see the module docstring (OpenCV cameras, camera-to-world poses, integer pixel
-        centres, depth = camera z in metres, 0 where nothing was hit).
+    def render(self, objects: Sequence[RenderObject], K: np.ndarray, world_T_cam: np.ndarray,
+               image_size: tuple[int, int], lighting: Lighting) -> RenderOutput:
+        """Render ``V`` views of the objects (besides the ground) from ``K`` ``[V, 3, 3]`` and ``world_T_cam``
+        ``[V, 4, 4]`` at ``image_size`` ``(H, W)``; returns a :class:`RenderOutput`. Convention: the module docstring.
         """
         if self.ctx is None:
             raise RuntimeError("the renderer was released")
@@ -466,8 +372,7 @@ class Renderer:
             for t in range(n):
                 v = start + t
                 tile = ((t % cols) * W, (t // cols) * H, W, H)
-                fbo.viewport = tile
-                fbo.scissor = tile
+                fbo.viewport = fbo.scissor = tile
                 prog["proj"].write(_mat_bytes(projection_from_K(K[v], (H, W), self.near, self.far)))
                 prog["cam_pos"].value = tuple(float(x) for x in world_T_cam[v, :3, 3])
                 for vao, colour, spec, inst, world_T_obj in draw:

@@ -1,9 +1,5 @@
 """Glue from a sampled scene layout to the renderer: one :class:`~threedq.scene.SceneRecord` per layout.
 
-:func:`make_renderer` sets a :class:`~threedq.data.render.Renderer` up for a generator config (ground
-plane, shadows); :func:`render_scene` draws a :class:`~threedq.data.layout.SceneLayout`'s objects with
-their category meshes and colours from all its cameras and packs pixels, cameras and boxes into a record.
-
 Convention: see :mod:`threedq.data.layout`.
 """
 
@@ -27,43 +23,20 @@ def make_renderer(config: GeneratorConfig) -> Renderer:
 
 
 def render_scene(layout: SceneLayout, renderer: Renderer) -> SceneRecord:
-    """Render a layout's views and pack them with its boxes into a :class:`SceneRecord`.
-
-    Returns:
-        The record: ``rgb`` ``[V, H, W, 3]`` u8, ``depth`` ``[V, H, W]`` f32, ``instance`` ``[V, H, W]``
-        i32, ``K`` ``[V, 3, 3]``, ``world_T_cam`` ``[V, 4, 4]``, ``boxes`` ``[M, 7]``, ``categories`` ``[M]``;
-        ``meta`` is ``layout.meta`` plus the object names and the light.
-
-    Convention: see :mod:`threedq.data.layout`.
-    """
-    objects = [
-        RenderObject(
-            key=f"{o.name}/{layout.mesh_faces}",
-            mesh=category_mesh(o.name, layout.mesh_faces),
-            color=o.color if o.color is not None else category_by_name(o.name).color,
-            world_T_obj=o.world_T_obj,
-            instance_id=i + 1,
-        )
-        for i, o in enumerate(layout.objects)
-    ]
+    """Render a layout's views and pack them with its boxes into a :class:`SceneRecord` (with ``instance``); ``meta``
+    is ``layout.meta`` plus the object names, colours (if any) and the light."""
+    objects = [RenderObject(key=f"{o.name}/{layout.mesh_faces}", mesh=category_mesh(o.name, layout.mesh_faces),
+                            color=o.color if o.color is not None else category_by_name(o.name).color,
+                            world_T_obj=o.world_T_obj, instance_id=i + 1) for i, o in enumerate(layout.objects)]
     out = renderer.render(objects, layout.K, layout.world_T_cam, layout.image_size, layout.lighting)
     meta = dict(layout.meta)
     meta["object_names"] = [o.name for o in layout.objects]
     if any(o.color is not None for o in layout.objects):
         meta["object_colors"] = [[round(float(c), 6) for c in o.color] if o.color is not None else None
                                  for o in layout.objects]
-    meta["light"] = {
-        "direction": [round(float(x), 6) for x in layout.lighting.direction],
-        "intensity": round(layout.lighting.intensity, 6),
-        "ambient": round(layout.lighting.ambient, 6),
-    }
-    return SceneRecord(
-        rgb=out.rgb,
-        depth=out.depth,
-        K=layout.K.astype(np.float32),
-        world_T_cam=layout.world_T_cam.astype(np.float32),
-        boxes=layout.boxes.astype(np.float32),
-        categories=layout.categories,
-        instance=out.instance,
-        meta=meta,
-    )
+    light = layout.lighting
+    meta["light"] = {"direction": [round(float(x), 6) for x in light.direction],
+                     "intensity": round(light.intensity, 6), "ambient": round(light.ambient, 6)}
+    return SceneRecord(rgb=out.rgb, depth=out.depth, K=layout.K.astype(np.float32),
+                       world_T_cam=layout.world_T_cam.astype(np.float32), boxes=layout.boxes.astype(np.float32),
+                       categories=layout.categories, instance=out.instance, meta=meta)

@@ -1,29 +1,11 @@
 """Capture conditions of a consumer RGB-D sensor, applied to clean rendered views.
 
-Each effect is a pure function on numpy arrays: it returns new arrays and never modifies its input. The
-random ones draw only from the ``numpy.random.Generator`` they are given. ``level`` scales an effect: 0 leaves
-the arrays unchanged, 1 is a Kinect-like structured-light camera, 2 doubles every magnitude.
+Each effect ``f(array, rng, level)`` returns a new array of the input's shape and dtype, never modifies its input and
+draws only from ``rng``. ``level`` scales an effect: 0 returns a copy, 1 is a Kinect-like structured-light camera, 2
+doubles every magnitude. :func:`apply_capture` applies a set of them to a :class:`~threedq.scene.SceneRecord` (or a
+dict of its arrays); boxes, intrinsics and instance masks are kept.
 
-========================  ====================================================================================
-effect                    what it does at level 1
-========================  ====================================================================================
-``axial_noise``           Gaussian depth noise, sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2 m (Nguyen, Izadi and
-                          Lovell 2012)
-``quantise_disparity``    depth rounded in disparity space: steps of about 2.85e-3 z^2 m (Khoshelham and
-                          Elberink 2012)
-``drop_depth``            no depth at about half of the pixels beside a depth jump of more than 5 cm and at
-                          about 2% of the other pixels, in small clusters
-``exposure``              per-view white balance (+-15% per channel) times an overall gain (+-20%), plus pixel
-                          noise (std 1% of the full range)
-``pose_drift``            each camera pose off by about 1 degree and 1 cm, correlated over a few views
-``tilt_gravity``          the world frame of the poses tilted by 2 degrees about a random horizontal axis
-========================  ====================================================================================
-
-:func:`apply_capture` applies a set of them to a :class:`~threedq.scene.SceneRecord` (or a dict of its arrays).
-Boxes, intrinsics and instance masks are kept: the effects model what a sensor and its tracker report, not
-what is in the scene.
-
-Convention: metres; depth is camera-frame z (OpenCV axes, z forward), 0 = no measurement; poses are
+Convention: metres; depth ``[..., H, W]`` is camera-frame z (OpenCV axes, z forward), 0 = no measurement; poses are
 camera-to-world ``[V, 4, 4]``; world z up (see :mod:`threedq.scene`).
 """
 
@@ -44,21 +26,10 @@ import numpy as np
 
 from threedq.scene import SceneRecord
 
-__all__ = [
-    "EFFECTS",
-    "apply_capture",
-    "axial_noise",
-    "degrade_dataset",
-    "drop_depth",
-    "effect_names",
-    "exposure",
-    "pose_drift",
-    "quantise_disparity",
-    "tilt_gravity",
-]
+__all__ = ["EFFECTS", "apply_capture", "axial_noise", "degrade_dataset", "drop_depth", "effect_names", "exposure",
+           "pose_drift", "quantise_disparity", "tilt_gravity"]
 
-#: The effects, in the order :func:`apply_capture` applies them.
-#: Dropout comes first, so that it finds the jumps of the scene's geometry rather than those of the noise.
+#: The effects, in the order :func:`apply_capture` applies them (dropout first: it finds the geometry's depth jumps).
 EFFECTS: tuple[str, ...] = ("drop_depth", "axial_noise", "quantise_disparity", "exposure", "pose_drift", "tilt_gravity")
 
 _EDGE_JUMP_M = 0.05  # pixels beside a depth jump larger than this lose their depth more often
@@ -66,10 +37,9 @@ _DROP_CLUSTER_PX = 1.5  # std of the Gaussian that smooths the dropout field: cl
 _DRIFT_VIEWS = 3.0  # std (in views) of the Gaussian that correlates the pose errors along the sequence
 
 
-# -- argument checks ----------------------------------------------------------------------------------------
-def _level(level: Any) -> float:
+def _level(level: Any, name: str = "level") -> float:
     if isinstance(level, bool) or not isinstance(level, numbers.Real) or not math.isfinite(level) or level < 0:
-        raise ValueError(f"level: expected a finite number >= 0, got {level!r}")
+        raise ValueError(f"{name}: expected a finite number >= 0, got {level!r}")
     return float(level)
 
 
@@ -97,23 +67,9 @@ def _rotation(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
-# -- depth --------------------------------------------------------------------------------------------------
 def axial_noise(depth: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
-    """Add Gaussian depth noise whose std grows with distance.
-
-    sigma(z) = level * (0.0012 + 0.0019 * (z - 0.4)^2) metres (Nguyen, Izadi and Lovell 2012). Pixels without
-    depth (0) stay 0; a noisy value below 0 becomes 0.
-
-    Args:
-        depth: ``[..., H, W]`` float, metres.
-        rng: the random stream drawn from.
-        level: scale of sigma (>= 0).
-
-    Returns:
-        ``[..., H, W]``, the dtype of ``depth``.
-
-    Convention: metres, camera-frame z (z forward), 0 = no measurement.
-    """
+    """Add Gaussian depth noise of std ``level * (0.0012 + 0.0019 * (z - 0.4)^2)`` metres (Nguyen, Izadi and Lovell
+    2012) to ``depth`` ``[..., H, W]``. Pixels without depth (0) stay 0; a noisy value below 0 becomes 0."""
     depth, level = _depth(depth), _level(level)
     if level == 0:
         return depth.copy()
@@ -124,21 +80,9 @@ def axial_noise(depth: np.ndarray, rng: np.random.Generator, level: float) -> np
 
 
 def quantise_disparity(depth: np.ndarray, level: float) -> np.ndarray:
-    """Round depth to the steps of a disparity-measuring sensor: about ``level * 2.85e-3 * z^2`` metres.
-
-    The disparity ``1 / z`` is rounded to multiples of ``q = level * 2.85e-3`` per metre, so that the depth step
-    ``1 / (k q) - 1 / ((k + 1) q)`` is about ``q z^2`` (Khoshelham and Elberink 2012). Pixels without depth (0)
-    stay 0, and so does a depth too far to have a non-zero disparity step.
-
-    Args:
-        depth: ``[..., H, W]`` float, metres.
-        level: scale of the step (>= 0; 0 returns a copy of ``depth``).
-
-    Returns:
-        ``[..., H, W]``, the dtype of ``depth``.
-
-    Convention: metres, camera-frame z (z forward), 0 = no measurement.
-    """
+    """Round the disparity ``1 / z`` of ``depth`` ``[..., H, W]`` to multiples of ``q = level * 2.85e-3`` per metre:
+    depth steps of about ``q z^2`` (Khoshelham and Elberink 2012). Pixels without depth (0) stay 0, and so does a depth
+    too far to have a non-zero disparity step."""
     depth, level = _depth(depth), _level(level)
     if level == 0:
         return depth.copy()
@@ -149,13 +93,9 @@ def quantise_disparity(depth: np.ndarray, level: float) -> np.ndarray:
 
 
 def _beside_jump(depth: np.ndarray) -> np.ndarray:
-    """``[..., H, W]`` bool: pixels beside a depth jump of more than 5 cm.
-
-    Along a row or column, the pixel's depth is compared with the plane through its two neighbours: disparity
-    ``1 / z`` is linear in the pixel coordinates on a plane, so the jump is the second difference of the
-    disparity, ``|d[i-1] - 2 d[i] + d[i+1]| * z[i]^2`` metres. A slanted floor has none; at an occluding edge it
-    is about the depth step, on both sides. Pixels without depth, or next to one, and border pixels are never
-    beside a jump.
+    """``[..., H, W]`` bool: pixels beside a depth jump of more than 5 cm along a row or column, measured against the
+    plane through the two neighbours as ``|d[i-1] - 2 d[i] + d[i+1]| * z[i]^2`` metres (``d = 1 / z``). Pixels without
+    depth, or next to one, and border pixels are never beside a jump.
     """
     z = depth.astype(np.float64)
     d = np.divide(1.0, z, out=np.zeros_like(z), where=z > 0)
@@ -169,24 +109,10 @@ def _beside_jump(depth: np.ndarray) -> np.ndarray:
 
 
 def drop_depth(depth: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
-    """Remove depth (set 0) in small clusters, mostly beside depth jumps.
-
-    A white-noise field is smoothed with a Gaussian (std 1.5 pixels) and scaled to unit variance; a pixel loses its
-    depth where the field exceeds the threshold that a fraction ``p`` of a standard normal exceeds, with
-    ``p = min(1, 0.5 * level)`` beside a jump of more than 5 cm (an occluding edge: measured against the plane
-    through the pixel's neighbours along its row or column, so that a slanted floor has none) and
-    ``p = min(1, 0.02 * level)`` elsewhere. Pixels without depth stay 0.
-
-    Args:
-        depth: ``[..., H, W]`` float, metres.
-        rng: the random stream drawn from.
-        level: scale of the dropout fractions (>= 0).
-
-    Returns:
-        ``[..., H, W]``, the dtype of ``depth``.
-
-    Convention: metres, camera-frame z (z forward), 0 = no measurement.
-    """
+    """Remove depth (set 0) of ``depth`` ``[..., H, W]`` in small clusters, mostly beside depth jumps: a white-noise
+    field smoothed with a Gaussian (std 1.5 pixels), scaled to unit variance, drops a pixel where it exceeds the
+    standard normal's upper ``p`` quantile, ``p = min(1, 0.5 * level)`` beside a jump, ``min(1, 0.02 * level)``
+    elsewhere."""
     depth, level = _depth(depth), _level(level)
     if level == 0:
         return depth.copy()
@@ -203,24 +129,10 @@ def drop_depth(depth: np.ndarray, rng: np.random.Generator, level: float) -> np.
     return np.where(field > limit, 0, depth).astype(depth.dtype)
 
 
-# -- colour -------------------------------------------------------------------------------------------------
 def exposure(rgb: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
-    """Change each view's exposure and white balance and add pixel noise.
-
-    View ``v`` channel ``c`` is multiplied by ``g_v * w_vc`` with an overall gain ``g_v`` uniform in
-    ``1 +- 0.2 * level`` and a white balance ``w_vc`` uniform in ``1 +- 0.15 * level`` (both at least 0);
-    then Gaussian noise of std ``0.01 * level`` of the full range is added and the result clipped to the range.
-
-    Args:
-        rgb: ``[V, H, W, 3]``, uint8 (0..255) or float (0..1).
-        rng: the random stream drawn from.
-        level: scale of the gains' spread and of the noise (>= 0).
-
-    Returns:
-        ``[V, H, W, 3]``, the dtype of ``rgb`` (uint8 rounded).
-
-    Convention: colour channels last, RGB order.
-    """
+    """Change each view's exposure and white balance of ``rgb`` ``[V, H, W, 3]`` (uint8 0..255 or float 0..1) and add
+    pixel noise: view ``v`` channel ``c`` times ``g_v * w_vc`` (``g_v`` uniform in ``1 +- 0.2 * level``, ``w_vc`` in
+    ``1 +- 0.15 * level``, both at least 0), plus Gaussian noise of std ``0.01 * level`` of the range, clipped."""
     rgb, level = np.asarray(rgb), _level(level)
     if rgb.ndim != 4 or rgb.shape[-1] != 3 or not (rgb.dtype == np.uint8 or np.issubdtype(rgb.dtype, np.floating)):
         raise ValueError(f"rgb: expected a uint8 or float array [V, H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
@@ -235,25 +147,10 @@ def exposure(rgb: np.ndarray, rng: np.random.Generator, level: float) -> np.ndar
     return np.round(out).astype(np.uint8) if rgb.dtype == np.uint8 else out.astype(rgb.dtype)
 
 
-# -- poses --------------------------------------------------------------------------------------------------
 def pose_drift(poses: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
-    """Perturb each camera pose by a small rigid motion that drifts smoothly along the view sequence.
-
-    A rotation vector and a translation per view are white noise smoothed over the view index with a Gaussian
-    (std 3 views) and scaled to a root-mean-square angle of ``level`` degrees and length of ``level`` cm; views
-    close in the sequence get similar errors. The motion acts in the camera frame: ``world_T_cam @ [R | t]``, so
-    each camera turns about its own centre and its centre moves by ``|t|``.
-
-    Args:
-        poses: ``[V, 4, 4]`` float, camera-to-world.
-        rng: the random stream drawn from.
-        level: scale of the errors (>= 0).
-
-    Returns:
-        ``[V, 4, 4]``, the dtype of ``poses``; rigid (orthonormal rotation, det +1, last row ``[0, 0, 0, 1]``).
-
-    Convention: metres, radians inside (degrees in this text), camera-to-world poses, OpenCV camera axes.
-    """
+    """Perturb each camera pose ``[V, 4, 4]`` by a small rigid motion ``world_T_cam @ [R | t]`` that drifts smoothly
+    along the view sequence: white noise smoothed over the view index (Gaussian, std 3 views), scaled to a
+    root-mean-square angle of ``level`` degrees and length of ``level`` cm."""
     poses, level = _poses(poses), _level(level)
     if level == 0:
         return poses.copy()
@@ -272,22 +169,8 @@ def pose_drift(poses: np.ndarray, rng: np.random.Generator, level: float) -> np.
 
 
 def tilt_gravity(poses: np.ndarray, rng: np.random.Generator, level: float) -> np.ndarray:
-    """Tilt the world frame of a scene's poses: one rotation of ``2 * level`` degrees about a random horizontal axis.
-
-    Every pose becomes ``G @ world_T_cam``, with ``G`` the rotation about the axis ``(cos a, sin a, 0)`` through the
-    world origin (``a`` uniform); the geometry the views see, unprojected with the new poses, is the old geometry
-    rotated by ``G``, so a horizontal floor's normal leaves +z by ``2 * level`` degrees.
-
-    Args:
-        poses: ``[V, 4, 4]`` float, camera-to-world.
-        rng: the random stream drawn from.
-        level: scale of the tilt (>= 0).
-
-    Returns:
-        ``[V, 4, 4]``, the dtype of ``poses``; rigid.
-
-    Convention: metres, world z up, camera-to-world poses.
-    """
+    """Tilt the world frame of poses ``[V, 4, 4]``: each becomes ``G @ world_T_cam``, ``G`` a rotation of ``2 * level``
+    degrees about the horizontal axis ``(cos a, sin a, 0)`` through the origin (``a`` uniform)."""
     poses, level = _poses(poses), _level(level)
     if level == 0:
         return poses.copy()
@@ -297,7 +180,6 @@ def tilt_gravity(poses: np.ndarray, rng: np.random.Generator, level: float) -> n
     return (G @ poses.astype(np.float64)).astype(poses.dtype)
 
 
-# -- all of them --------------------------------------------------------------------------------------------
 def effect_names(effects: Iterable[str] | None, argument: str = "effects") -> tuple[str, ...]:
     """``effects`` checked and in the order of :data:`EFFECTS` (``None`` = all); a ``ValueError`` names ``argument``."""
     if effects is None:
@@ -312,45 +194,22 @@ def effect_names(effects: Iterable[str] | None, argument: str = "effects") -> tu
 
 
 #: effect name -> (the array it changes, the function called as ``f(array, rng, level)``)
-_APPLY = {
-    "axial_noise": ("depth", axial_noise),
-    "quantise_disparity": ("depth", lambda depth, rng, level: quantise_disparity(depth, level)),
-    "drop_depth": ("depth", drop_depth),
-    "exposure": ("rgb", exposure),
-    "pose_drift": ("world_T_cam", pose_drift),
-    "tilt_gravity": ("world_T_cam", tilt_gravity),
-}
+_APPLY = {"axial_noise": ("depth", axial_noise), "drop_depth": ("depth", drop_depth), "exposure": ("rgb", exposure),
+          "quantise_disparity": ("depth", lambda depth, rng, level: quantise_disparity(depth, level)),
+          "pose_drift": ("world_T_cam", pose_drift), "tilt_gravity": ("world_T_cam", tilt_gravity)}
 
 
-def apply_capture(
-    scene: SceneRecord | dict[str, np.ndarray],
-    rng: np.random.Generator,
-    level: float,
-    effects: Iterable[str] | None = None,
-) -> SceneRecord | dict[str, np.ndarray]:
-    """Apply the chosen effects, in the order of :data:`EFFECTS`, to a scene's rgb, depth and poses.
+def apply_capture(scene: SceneRecord | dict[str, np.ndarray], rng: np.random.Generator, level: float,
+                  effects: Iterable[str] | None = None) -> SceneRecord | dict[str, np.ndarray]:
+    """Apply the chosen effects (``None`` = all), in the order of :data:`EFFECTS`, to a scene's rgb, depth and poses.
 
-    Each effect draws from its own child stream of ``rng`` (``rng.spawn``), so the draws of one effect do not depend
-    on which others are switched on.
-
-    Args:
-        scene: a :class:`~threedq.scene.SceneRecord`, or a dict with ``rgb`` ``[V, H, W, 3]``, ``depth``
-            ``[V, H, W]`` and ``world_T_cam`` ``[V, 4, 4]`` (other keys are passed on).
-        rng: the random stream drawn from.
-        level: scale of every effect (>= 0; 0 returns copies).
-        effects: names from :data:`EFFECTS` (``None`` = all).
-
-    Returns:
-        The same kind as ``scene`` with new arrays (the input is not modified). A record's ``meta`` gains
-        ``capture: {"level", "effects"}`` when ``level > 0``.
-
-    Convention: see the module docstring.
+    ``scene`` is a :class:`~threedq.scene.SceneRecord` or a dict with ``rgb``, ``depth`` and ``world_T_cam`` (other keys
+    are passed on). Each effect draws from its own child stream of ``rng``. Returns the same kind as ``scene`` with new
+    arrays; a record's ``meta`` gains ``capture: {"level", "effects"}`` when ``level > 0``.
     """
     level, effects = _level(level), effect_names(effects)
-    if isinstance(scene, SceneRecord):
-        given = {f.name: getattr(scene, f.name) for f in dataclasses.fields(scene)}
-    else:
-        given = dict(scene)
+    is_record = isinstance(scene, SceneRecord)
+    given = {f.name: getattr(scene, f.name) for f in dataclasses.fields(scene)} if is_record else dict(scene)
     for key in ("rgb", "depth", "world_T_cam"):
         if key not in given:
             raise ValueError(f"scene: missing '{key}'")
@@ -360,34 +219,25 @@ def apply_capture(
         for name in effects:
             key, effect = _APPLY[name]
             arrays[key] = effect(arrays[key], streams[name], level)
-    if not isinstance(scene, SceneRecord):
+    if not is_record:
         return arrays
     if level > 0:
         arrays["meta"]["capture"] = {"level": level, "effects": list(effects)}
     return SceneRecord(**arrays)
 
 
-def degrade_dataset(src: str | Path, out: str | Path, level: float, effects: Iterable[str] | None = None,
-                    seed: int = 0, progress: bool = False, splits: Iterable[str] | None = None) -> int:
-    """Write a copy of the dataset folder ``src`` to ``out`` with capture conditions (:func:`apply_capture`).
+def degrade_dataset(src: str | Path, out: str | Path, level: float, effects: Iterable[str] | None = None, seed: int = 0,
+                    progress: bool = False, splits: Iterable[str] | None = None) -> int:
+    """Copy the dataset folder ``src`` to ``out`` (not ``src``) with capture conditions (:func:`apply_capture`).
 
-    Each scene keeps its relative path and its layout (boxes, categories, instances, intrinsics); its random stream
-    is seeded by ``seed`` and the file's relative path, so a scene degrades the same way in every run and whatever
-    else the folder holds. Scenes already written to ``out`` are kept (a killed run resumes); each is written
-    atomically, and ``out/index.json`` (``src``'s) last.
-
-    Args:
-        src: a dataset folder (``index.json`` and its scenes); out: the folder written (not ``src``).
-        level, effects: as :func:`apply_capture`; seed: the copy's seed; progress: a bar over the scenes.
-        splits: degrade only the scenes of these splits (e.g. ``["test"]``: a trained model meets a noisy test
-            set); the others are copied unchanged (hard links where the file system allows). ``None``: all.
-
-    Returns:
-        The number of scenes written now (degraded or copied).
+    Each scene keeps its relative path and layout; its random stream is seeded by ``seed`` and the file's relative
+    path. Scenes already in ``out`` are kept (a killed run resumes); ``out/index.json`` is written last. With
+    ``splits``, only those splits' scenes are degraded; the others are copied unchanged (hard links where possible).
+    Returns the number of scenes written now.
 
     Raises:
-        ValueError: ``out`` is ``src``, a bad level or effect name, a split the index does not hold; errors of a
-            missing or corrupt scene name the file.
+        ValueError: ``out`` is ``src``, a bad level or effect name, a split the index does not hold; errors of a missing
+            or corrupt scene name the file.
     """
     import os
     import shutil

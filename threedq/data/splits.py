@@ -1,11 +1,8 @@
 """The splits of a generated dataset: their names, sizes, per-scene seeds and file names.
 
-Randomness: scene ``i`` of split ``s`` draws everything from
-``np.random.default_rng(np.random.SeedSequence([seed_s, code_s, i]))`` with split codes train 0, val 1,
-test 2, ``seed_s = seed`` for train and val and ``test_seed`` for test. So every scene is independent of
-every other scene, of the number of scenes, of the worker count and of the scheduling. The capture conditions
-(:mod:`threedq.data.sensor`) of scene ``i`` draw from their own stream,
-``np.random.SeedSequence([seed_s, code_s, i, 0x5E4502])``, so a set with them has the layouts of the clean set.
+Scene ``i`` of split ``s`` draws everything from ``np.random.SeedSequence([seed_s, code_s, i])`` (split codes train 0,
+val 1, test 2; ``seed_s = seed`` for train and val, ``test_seed`` for test); its capture conditions
+(:mod:`threedq.data.sensor`) from ``np.random.SeedSequence([seed_s, code_s, i, 0x5E4502])``.
 
 Files: scene ``i`` of split ``s`` is ``<dataset>/<s>/scene_<i:06d>.npz``.
 """
@@ -17,15 +14,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = [
-    "SPLITS",
-    "SPLIT_CODES",
-    "capture_seed_sequence",
-    "derive_test_seed",
-    "scene_file",
-    "scene_seed_sequence",
-    "split_sizes",
-]
+__all__ = ["SPLITS", "SPLIT_CODES", "capture_seed_sequence", "derive_test_seed", "scene_file", "scene_seed_sequence",
+           "split_sizes"]
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 SPLIT_CODES: dict[str, int] = {"train": 0, "val": 1, "test": 2}
@@ -49,12 +39,9 @@ def derive_test_seed(seed: int) -> int:
 
 
 def split_sizes(num_scenes: int, split_fractions: Sequence[float], splits: Sequence[str]) -> dict[str, int]:
-    """Scenes per requested split: ``num_scenes`` shared by the requested splits' fractions.
-
-    The fractions of the requested splits are renormalised; counts are rounded by largest remainder
-    (ties to the earlier split), then every split with a positive fraction gets at least one scene
-    (taken from the largest) when ``num_scenes`` allows it. Deterministic.
-    """
+    """Scenes per requested split: ``num_scenes`` shared by the requested splits' renormalised fractions, rounded by
+    largest remainder (ties to the earlier split), then at least one scene (from the largest) per split with a positive
+    fraction when ``num_scenes`` allows it."""
     fr = [float(split_fractions[SPLIT_CODES[s]]) for s in splits]
     total = sum(fr)
     raw = [round(num_scenes * f / total, 9) for f in fr]

@@ -1,11 +1,8 @@
 """2D object boxes from projected 3D boxes, and bilinear crops / RoI average pooling inside them.
 
-The 2D baselines (2.5DQ-Nets, ImageNet ResNet-18) see an object as the image region of its projected
-ground-truth 3D box (the paper's protocol: "average-pool features within the projected (ground-truth) 2D
-object boxes"). :func:`project_boxes_2d` gives that region, :func:`crop_boxes_2d` resamples it to a fixed
-``size x size`` grid (aspect not kept: the 2D counterpart of the 3D crops' scale normalisation) and
-:func:`roi_average_pool` averages a feature map inside it (RoIAlign-style bilinear samples, so a box smaller
-than one feature cell still gets a well-defined, box-position-dependent value).
+:func:`project_boxes_2d` gives the image region of a projected 3D box, :func:`crop_boxes_2d` resamples it to a fixed
+``size x size`` grid (aspect not kept) and :func:`roi_average_pool` averages a feature map inside it (RoIAlign-style
+bilinear samples).
 
 Convention:
     Pixel coordinates ``(u, v)``: u = column (x right), v = row (y down), pixel centres at integer
@@ -56,9 +53,8 @@ def project_boxes_2d(boxes: Tensor, K: Tensor, R_T_cam: Tensor, image_size: tupl
     cam = transform_points(invert_rigid(R_T_cam), corners)
     uv, z = project(cam, K)
     uv, z = uv.view(B, M, 8, 2), z.view(B, M, 8)
-    lo, hi = uv.amin(dim=2), uv.amax(dim=2)
-    lo = torch.stack([lo[..., 0].clamp(-0.5, W - 0.5), lo[..., 1].clamp(-0.5, H - 0.5)], dim=-1)
-    hi = torch.stack([hi[..., 0].clamp(-0.5, W - 0.5), hi[..., 1].clamp(-0.5, H - 0.5)], dim=-1)
+    lo, hi = (torch.stack([e[..., 0].clamp(-0.5, W - 0.5), e[..., 1].clamp(-0.5, H - 0.5)], dim=-1)
+              for e in (uv.amin(dim=2), uv.amax(dim=2)))
     out = torch.cat([lo, hi], dim=-1)
     valid = (z > _MIN_DEPTH).all(dim=2) & (hi > lo).all(dim=-1)
     return out, valid
@@ -75,8 +71,7 @@ def crop_boxes_2d(images: Tensor, boxes2d: Tensor, size: int = 32) -> Tensor:
     """Resample the region of each 2D box to ``size x size`` (bilinear, zeros outside the image).
 
     Output pixel ``(i, j)`` samples the image at ``u = u0 + (j + 0.5) (u1 - u0) / size``, ``v = v0 + (i + 0.5)
-    (v1 - v0) / size`` (cell centres of a ``size x size`` grid over the box), so the crop covers the box
-    exactly and a box of the image's own extent reproduces the image at ``size = H = W``.
+    (v1 - v0) / size`` (cell centres of a ``size x size`` grid over the box).
 
     Args:
         images: ``[B, C, H, W]``.
@@ -99,8 +94,8 @@ def crop_boxes_2d(images: Tensor, boxes2d: Tensor, size: int = 32) -> Tensor:
     gx = (2.0 * u + 1.0) / W - 1.0  # align_corners=False: pixel i at (2 i + 1) / W - 1
     gy = (2.0 * v + 1.0) / H - 1.0
     grid = torch.stack(torch.broadcast_tensors(gx[:, :, None, :], gy[:, :, :, None]), dim=-1)  # [B, M, s, s, 2]
-    out = F.grid_sample(images, grid.reshape(B, M * size, size, 2).to(images.dtype), mode="bilinear",
-                        padding_mode="zeros", align_corners=False)  # [B, C, M*s, s]
+    grid = grid.reshape(B, M * size, size, 2).to(images.dtype)
+    out = F.grid_sample(images, grid, mode="bilinear", padding_mode="zeros", align_corners=False)  # [B, C, M*s, s]
     return out.view(B, C, M, size, size).permute(0, 2, 1, 3, 4)
 
 

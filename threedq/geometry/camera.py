@@ -5,9 +5,8 @@ Convention:
     frame a; a view's pose is ``R_T_cam``. ``K`` ``[3, 3]`` has pixel centres at integer coordinates:
     pixel (row v, col u) is centred at ``(u, v)``, and its skew ``K[0, 1]`` is honoured. Depth is metric
     z-depth, 0 = invalid. Yaw is a counter-clockwise rotation about +z (seen from above), in radians.
-    Point transforms, rigid inversion and yaw matrices are kornia's (``kornia.geometry.linalg.transform_points``,
-    ``inverse_transformation``, ``kornia.geometry.conversions.axis_angle_to_rotation_matrix``), whose conventions
-    are these; projection and back-projection are local ops (kornia's pinhole functions drop the skew).
+    Point transforms, rigid inversion and yaw matrices are kornia's; projection and back-projection are local ops
+    (kornia's pinhole functions drop the skew).
 """
 
 from __future__ import annotations
@@ -19,14 +18,7 @@ from kornia.geometry.linalg import inverse_transformation
 from kornia.geometry.linalg import transform_points as _kornia_transform_points
 from torch import Tensor
 
-__all__ = [
-    "depth_to_points",
-    "invert_rigid",
-    "project",
-    "transform_points",
-    "unproject_depth",
-    "yaw_matrix",
-]
+__all__ = ["depth_to_points", "invert_rigid", "project", "transform_points", "unproject_depth", "yaw_matrix"]
 
 _PROJECT_EPS = 1e-8
 
@@ -45,9 +37,24 @@ def _check_pose(name: str, pose: Tensor, batch: int) -> None:
         raise _shape_error(name, f"[B, 4, 4] with B={batch}", pose)
 
 
+def _check_view(K: Tensor, R_T_cam: Tensor, batch: int) -> None:
+    _check_intrinsics(K, batch)
+    _check_pose("R_T_cam", R_T_cam, batch)
+
+
 def _check_depth(depth: Tensor) -> None:
     if depth.ndim != 3:
         raise _shape_error("depth", "[B, H, W]", depth)
+
+
+def _pixel_rays(K: Tensor, u: Tensor, v: Tensor) -> Tensor:
+    """``[B, H, W, 3]`` camera-frame rays at z = 1 through pixels ``(u, v)`` (broadcast with ``[B, 1, 1]``, skew
+    honoured)."""
+    fx, fy, skew = K[:, 0, 0, None, None], K[:, 1, 1, None, None], K[:, 0, 1, None, None]
+    cx, cy = K[:, 0, 2, None, None], K[:, 1, 2, None, None]
+    y = (v - cy) / fy
+    x = (u - cx - skew * y) / fx
+    return torch.stack((x, y.expand_as(x), torch.ones_like(x)), dim=-1)
 
 
 def transform_points(a_T_b: Tensor, points: Tensor) -> Tensor:
@@ -81,7 +88,6 @@ def invert_rigid(a_T_b: Tensor) -> Tensor:
 
     Convention:
         ``b_T_a = [[R^T, -R^T t], [0, 1]]``; not valid for non-rigid matrices (no general inverse is taken).
-        kornia takes ``[4, 4]`` or ``[N, 4, 4]``; other leading shapes are flattened around it.
     """
     if a_T_b.ndim < 2 or a_T_b.shape[-2:] != (4, 4):
         raise _shape_error("a_T_b", "[..., 4, 4]", a_T_b)
@@ -92,9 +98,6 @@ def invert_rigid(a_T_b: Tensor) -> Tensor:
 
 def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     """Project camera-frame points to pixels.
-
-    A local op: ``kornia.geometry.camera.perspective.project_points`` ignores the skew ``K[0, 1]`` (kornia's
-    functional pinhole model is zero-skew) and leaves points with ``|z| <= 1e-8`` undivided.
 
     Args:
         points_cam: ``[B, N, 3]`` points in the camera frame.
@@ -121,9 +124,6 @@ def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
 def unproject_depth(depth: Tensor, K: Tensor) -> Tensor:
     """Back-project every pixel of a depth map to a camera-frame point.
 
-    A local op on kornia's ``create_meshgrid``: ``kornia.geometry.depth.depth_to_3d_v2`` and
-    ``unproject_points`` ignore the skew ``K[0, 1]``, which this back-projection honours.
-
     Args:
         depth: ``[B, H, W]`` metric z-depth.
         K: ``[B, 3, 3]`` pinhole intrinsics (skew is honoured).
@@ -138,13 +138,7 @@ def unproject_depth(depth: Tensor, K: Tensor) -> Tensor:
     _check_intrinsics(K, depth.shape[0])
     height, width = depth.shape[-2:]
     uv = create_meshgrid(height, width, normalized_coordinates=False, device=depth.device, dtype=depth.dtype)
-    u, v = uv[..., 0], uv[..., 1]  # [1, H, W]
-    fx, fy, skew = K[:, 0, 0, None, None], K[:, 1, 1, None, None], K[:, 0, 1, None, None]
-    cx, cy = K[:, 0, 2, None, None], K[:, 1, 2, None, None]
-    y = (v - cy) / fy
-    x = (u - cx - skew * y) / fx
-    rays = torch.stack((x, y, torch.ones_like(x)), dim=-1)  # [B, H, W, 3], z = 1
-    return rays * depth[..., None]
+    return _pixel_rays(K, uv[..., 0], uv[..., 1]) * depth[..., None]
 
 
 def depth_to_points(depth: Tensor, K: Tensor, R_T_cam: Tensor) -> tuple[Tensor, Tensor]:
@@ -161,7 +155,6 @@ def depth_to_points(depth: Tensor, K: Tensor, R_T_cam: Tensor) -> tuple[Tensor, 
 
     Convention:
         OpenCV camera axes, integer pixel centres, z-depth; ``R_T_cam`` maps camera points to R.
-        :func:`unproject_depth` then :func:`transform_points` (kornia's ``depth_to_3d_v2`` drops the skew).
     """
     _check_depth(depth)
     _check_pose("R_T_cam", R_T_cam, depth.shape[0])
@@ -181,8 +174,7 @@ def yaw_matrix(yaw: Tensor) -> Tensor:
         ``[..., 3, 3]`` rotations mapping ``(x, y, z)`` to ``(x cos t - y sin t, x sin t + y cos t, z)``.
 
     Convention:
-        Counter-clockwise seen from above (from +z looking down), right-handed, radians: the axis-angle
-        vector ``(0, 0, t)``, for which kornia maps +x to +y.
+        Counter-clockwise seen from above (from +z looking down), right-handed, radians.
     """
     if not isinstance(yaw, Tensor):
         raise ValueError(f"yaw must be a tensor of angles, got {type(yaw).__name__}")

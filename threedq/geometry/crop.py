@@ -12,20 +12,25 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .grid import VoxelGridSpec
+from .grid import VoxelGridSpec, _check_grid, _desc
 
 __all__ = ["CROP_SHAPES", "box_mask", "crop_boxes", "crop_region", "occupancy_weighted", "paste_boxes", "sample_volume"]
 
-#: The regions :func:`crop_region` crops around a box: ``hull`` the box itself (the paper's; aspect not kept once
-#: resized to a cube), ``square`` a horizontal square of the larger horizontal extent with the height as is (aspect
-#: kept in the ground plane, where the rotation search turns crops), ``cube`` a cube of the largest extent (aspect kept).
+#: The regions :func:`crop_region` crops around a box: ``hull`` the box itself (the paper's), ``square`` a horizontal
+#: square of the larger horizontal extent with the height as is, ``cube`` a cube of the largest extent.
 CROP_SHAPES = ("hull", "square", "cube")
 
 
 def _check_boxes(boxes: Tensor) -> None:
     if not isinstance(boxes, Tensor) or boxes.ndim != 3 or boxes.shape[-1] != 6:
-        shape = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
-        raise ValueError(f"boxes must have shape [B, N, 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {shape}")
+        raise ValueError(f"boxes must have shape [B, N, 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {_desc(boxes)}")
+
+
+def _check_volume(volume: Tensor, grid: VoxelGridSpec) -> None:
+    _check_grid(grid)
+    if volume.ndim != 5 or tuple(volume.shape[2:]) != grid.volume_shape:
+        raise ValueError(f"volume must have shape [B, C, Z, Y, X] with (Z, Y, X) = {grid.volume_shape}, got "
+                         f"{tuple(volume.shape)}")
 
 
 def _as_size(size: int | tuple[int, int, int]) -> tuple[int, int, int]:
@@ -39,9 +44,7 @@ def _box_sample_points(boxes: Tensor, size: tuple[int, int, int]) -> Tensor:
     """Centres of the ``sz x sy x sx`` cells of each box: ``[B, N, sz, sy, sx, 3]`` (xyz) in R."""
     lo, hi = boxes[..., :3], boxes[..., 3:]
     sz, sy, sx = size
-    axes = [
-        (torch.arange(n, device=boxes.device, dtype=boxes.dtype) + 0.5) / n for n in (sx, sy, sz)
-    ]  # fractions along x, y, z
+    axes = [(torch.arange(n, device=boxes.device, dtype=boxes.dtype) + 0.5) / n for n in (sx, sy, sz)]  # x, y, z
     fz, fy, fx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     frac = torch.stack((fx, fy, fz), dim=-1)  # [sz, sy, sx, 3]
     return lo[:, :, None, None, None, :] + frac * (hi - lo)[:, :, None, None, None, :]
@@ -49,12 +52,7 @@ def _box_sample_points(boxes: Tensor, size: tuple[int, int, int]) -> Tensor:
 
 def sample_volume(volume: Tensor, coords: Tensor) -> Tensor:
     """``F.grid_sample(volume, coords)`` (trilinear, zero padding, ``align_corners=False``), its points spread over
-    the CPU's threads when the batch is smaller than their number.
-
-    ATen's CPU kernel for 5-D inputs gives each thread whole batch elements, so one volume's samples run on one
-    core. Without autograd, each volume's points are cut into as many chunks as it takes to give every thread one,
-    each chunk sampling the same volume: every output value is computed by the same arithmetic as in one call, so
-    the result is bitwise ``F.grid_sample``'s. With autograd it is one ``F.grid_sample`` call.
+    the CPU's threads when the batch is smaller than their number (without autograd; bitwise the same values).
 
     Args:
         volume: ``[B, C, Z, Y, X]``.
@@ -86,23 +84,14 @@ def sample_volume(volume: Tensor, coords: Tensor) -> Tensor:
     return out.reshape(batch, channels, *out_shape)
 
 
-def crop_boxes(
-    volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | tuple[int, int, int] = 16, mask: Tensor | None = None
-) -> Tensor:
+def crop_boxes(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: int | tuple[int, int, int] = 16,
+               mask: Tensor | None = None) -> Tensor:
     """Crop boxes out of a volume and resize each to a fixed size (trilinear, aspect not kept).
 
     Output cell ``(c, b, a)`` of a box samples the volume at the centre of that cell of the box, e.g.
     ``x = xmin + (a + 0.5) * (xmax - xmin) / sx``: ``F.grid_sample`` (trilinear, zero padding,
-    ``align_corners=False``) at those points. Two implementations give bitwise the same values:
-
-    * with autograd, on a GPU, for volumes of fewer than 16 channels or far more cells than sample points: one
-      :func:`sample_volume` call (``grid_sample``, its points spread over the threads);
-    * otherwise :func:`_gather_crops`, which evaluates ``grid_sample``'s CPU arithmetic (the same weights, the
-      eight corners added in its order) with each corner a gather of whole channel rows: a box's sample points
-      lie on a lattice, so each axis's indices and weights are computed once per box.
-
-    A local op: kornia's ``crop_by_boxes3d`` wants integer voxel boxes of one size per batch, and its affine 3D
-    warps are corner-aligned and take one box per batch element.
+    ``align_corners=False``) at those points, or on a CPU without autograd its arithmetic as row gathers
+    (:func:`_gather_crops`, bitwise the same values).
 
     Args:
         volume: ``[B, C, Z, Y, X]`` feature volume on ``grid``.
@@ -114,20 +103,14 @@ def crop_boxes(
     Returns:
         ``[B, N, C, sz, sy, sx]`` crops, or with ``mask`` the ``[K, C, sz, sy, sx]`` crops of its ``K`` true boxes
         in ``(b, n)`` order (``crop_boxes(volume, boxes, grid, size)[mask]``, bitwise); zero where a sample falls
-        outside the grid (trilinear with zero padding, so samples within half a voxel of the border blend towards
-        zero). The dtype of ``volume`` (float32 under CPU autocast, as ``grid_sample``). Differentiable w.r.t.
-        ``volume``.
+        outside the grid. The dtype of ``volume`` (float32 under CPU autocast, as ``grid_sample``). Differentiable
+        w.r.t. ``volume``.
 
     Convention:
         Axis-aligned boxes in R; cell-centred voxels, ``align_corners=False``. Boxes are not validated:
         an inverted box (min > max) gives a mirrored crop.
     """
-    if not isinstance(grid, VoxelGridSpec):
-        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
-    if volume.ndim != 5 or tuple(volume.shape[2:]) != grid.volume_shape:
-        raise ValueError(
-            f"volume must have shape [B, C, Z, Y, X] with (Z, Y, X) = {grid.volume_shape}, got {tuple(volume.shape)}"
-        )
+    _check_volume(volume, grid)
     _check_boxes(boxes)
     if boxes.shape[0] != volume.shape[0]:
         raise ValueError(f"boxes must have shape [B, N, 6] with B={volume.shape[0]}, got {tuple(boxes.shape)}")
@@ -149,7 +132,6 @@ def crop_boxes(
             crops = _gather_crops(volume, flat, index, grid, (sz, sy, sx))
             if crops is not None:
                 return crops if mask is not None else crops.view(batch, n_boxes, *crops.shape[1:])
-    # (grid_sample crops every slot: one call over the whole batch beats a call per scene of its own boxes)
     crops = _sampled_crops(volume, boxes, grid, (sz, sy, sx))
     return crops if mask is None else crops[mask]
 
@@ -164,26 +146,22 @@ def _sampled_crops(volume: Tensor, boxes: Tensor, grid: VoxelGridSpec, size: tup
     return crops.view(batch, crops.shape[1], n_boxes, *size).transpose(1, 2).contiguous()
 
 
-#: when :func:`_gather_crops` beats ``grid_sample``: volumes of at least this many channels, whose table (the volume with its border) has at most this many cells per sample point (the table is
-#: built whole, the samples read only the boxes' part of it)
+#: :func:`_gather_crops` is used for volumes of at least this many channels whose table (the volume with its border)
+#: has at most this many cells per sample point
 _GATHER_MIN_CHANNELS = 16
 _GATHER_MAX_CELLS_PER_POINT = 4
 #: sample points per gather round of :func:`_gather_crops` (a float32 round of 32 channels: 2 MB)
 _GATHER_CHUNK = 16384
 
 
-def _gather_crops(
-    volume: Tensor, boxes: Tensor, index: Tensor, grid: VoxelGridSpec, size: tuple[int, int, int]
-) -> Tensor | None:
+def _gather_crops(volume: Tensor, boxes: Tensor, index: Tensor, grid: VoxelGridSpec,
+                  size: tuple[int, int, int]) -> Tensor | None:
     """:func:`crop_boxes` without ``grid_sample``: bitwise its values, the channels gathered as rows.
 
-    ATen's CPU ``grid_sample`` (5-D, trilinear, zero padding, ``align_corners=False``) computes for each point
-    ``i = ((g + 1) * n - 1) / 2`` per axis, corner weights ``(wx * wy) * wz`` with ``w0 = (floor(i) + 1) - i`` and
-    ``w1 = i - floor(i)``, and adds ``value * weight`` of the eight corners in the order x fastest, then y, then z,
-    skipping corners outside the volume, each operation rounded to the compute dtype. This does the same
-    operations in the same order on tensors: the points of a box lie on a lattice, so ``i`` and the weights are
-    computed per axis; the volume becomes a ``[B * (Z+2) * (Y+2) * (X+2), C]`` table of channel rows with a zero
-    border (a corner outside the volume reads a zero row, adding ``+0``), and each corner is one ``index_select``.
+    The operations of ATen's CPU ``grid_sample`` (5-D, trilinear, zero padding, ``align_corners=False``) in its
+    order: per axis ``i = ((g + 1) * n - 1) / 2``, corner weights ``(wx * wy) * wz`` with ``w0 = (floor(i) + 1) - i``
+    and ``w1 = i - floor(i)``, the eight corners added x fastest, then y, then z. The volume becomes a
+    ``[B * (Z+2) * (Y+2) * (X+2), C]`` table of channel rows with a zero border; each corner is one ``index_select``.
 
     Args:
         volume: ``[B, C, Z, Y, X]``. boxes: ``[K, 6]`` in ``volume``'s dtype. index: ``[K]`` the volume of each box.
@@ -203,8 +181,10 @@ def _gather_crops(
     # each axis's sample positions, made by the operations of _box_sample_points and world_to_normalized
     lo, hi = boxes[:, :3], boxes[:, 3:]
     s_max = max(sizes)
-    frac = torch.stack([F.pad((torch.arange(n, dtype=boxes.dtype) + 0.5) / n, (0, s_max - n), value=0.5)
-                        for n in sizes], dim=-1)  # [s_max, 3]; an axis with fewer cells padded (not read)
+    # [s_max, 3]; an axis with fewer cells is padded (not read)
+    frac = torch.stack(
+        [F.pad((torch.arange(n, dtype=boxes.dtype) + 0.5) / n, (0, s_max - n), value=0.5) for n in sizes], dim=-1
+    )
     norm = grid.world_to_normalized(lo[:, None, :] + frac * (hi - lo)[:, None, :]).to(compute)  # [K, s_max, 3]
     if not bool(torch.isfinite(norm).all()):
         return None
@@ -217,8 +197,8 @@ def _gather_crops(
         f0 = torch.floor(i)
         # a corner outside the volume reads the zero border (index -1 or n, shifted by the border's 1)
         first = f0.clamp(-2, zyx[2 - axis]).long() + 1
-        idx.append([first.clamp(0, zyx[2 - axis] + 1) * strides[2 - axis],
-                    (first + 1).clamp(0, zyx[2 - axis] + 1) * strides[2 - axis]])
+        hi, stride = zyx[2 - axis] + 1, strides[2 - axis]
+        idx.append([first.clamp(0, hi) * stride, (first + 1).clamp(0, hi) * stride])
         wts.append([(f0 + 1) - i, i - f0])
     table = volume.new_zeros(volume.shape[0], *pad, channels, dtype=compute)
     table[:, 1:-1, 1:-1, 1:-1] = volume.permute(0, 2, 3, 4, 1)
@@ -251,12 +231,6 @@ def _gather_crops(
 def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
     """The region cropped around each box: the box, or a square or cube about its centre.
 
-    A crop resized to a fixed ``s^3`` keeps the object's aspect only if the region it samples is a cube: the hull
-    of a 0.2 x 0.6 m box stretches the object 3x along x, and a hull rotated by a yaw no longer matches the hull of
-    the same object seen at another yaw. ``square`` makes the horizontal extent square (the rotation search turns crops
-    about z, so a rotated crop is the same object rotated); ``cube`` makes all three equal. A departure from the paper,
-    which crops the hull (``hull``, the default everywhere).
-
     Args:
         boxes: ``[..., 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
         shape: one of :data:`CROP_SHAPES`.
@@ -271,8 +245,7 @@ def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
     if shape not in CROP_SHAPES:
         raise ValueError(f"crop shape must be one of {CROP_SHAPES}, got {shape!r}")
     if not isinstance(boxes, Tensor) or boxes.ndim < 1 or boxes.shape[-1] != 6:
-        got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
-        raise ValueError(f"boxes must have shape [..., 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {got}")
+        raise ValueError(f"boxes must have shape [..., 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {_desc(boxes)}")
     if shape == "hull":
         return boxes
     lo, hi = boxes[..., :3], boxes[..., 3:]
@@ -296,28 +269,22 @@ def box_mask(boxes: Tensor, grid: VoxelGridSpec) -> Tensor:
     Convention:
         Axis-aligned boxes in R; cell-centred voxels.
     """
-    if not isinstance(grid, VoxelGridSpec):
-        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
+    _check_grid(grid)
     _check_boxes(boxes)
     dtype = boxes.dtype if boxes.is_floating_point() else torch.get_default_dtype()
     boxes = boxes.to(dtype)
-    # Per axis masks are separable: [B, N, n_axis] each, then broadcast to [B, N, Z, Y, X].
-    masks = []
-    for axis, (lo, n, vs) in enumerate(zip(grid.bounds_min, grid.resolution, grid.voxel_size, strict=True)):
-        centres = lo + (torch.arange(n, device=boxes.device, dtype=dtype) + 0.5) * vs
-        masks.append((centres >= boxes[..., axis, None]) & (centres <= boxes[..., axis + 3, None]))
-    mx, my, mz = masks
+    centres = grid._axis_centres(boxes.device, dtype)
+    mx, my, mz = [(c >= boxes[..., axis, None]) & (c <= boxes[..., axis + 3, None]) for axis, c in enumerate(centres)]
     return mz[:, :, :, None, None] & my[:, :, None, :, None] & mx[:, :, None, None, :]
 
 
-def paste_boxes(volume: Tensor, crops: Tensor, boxes: Tensor, grid: VoxelGridSpec, mask: Tensor | None = None) -> Tensor:
+def paste_boxes(volume: Tensor, crops: Tensor, boxes: Tensor, grid: VoxelGridSpec,
+                mask: Tensor | None = None) -> Tensor:
     """Write crops back into a volume, each resized to fill its box: the inverse of :func:`crop_boxes`.
 
     Every voxel whose centre lies inside a box (:func:`box_mask`) takes the crop's value at the voxel's place in
-    the box: a centre at fraction ``f`` of the box along an axis samples the crop at fraction ``f`` (trilinear,
-    border-clamped), so a crop of ``n`` cells pasted into a box spanning exactly ``n`` voxels lands cell on voxel.
-    Boxes are pasted in order; where boxes overlap the later one wins. Voxels outside every box keep
-    ``volume``'s values.
+    the box (a centre at fraction ``f`` of the box samples the crop at fraction ``f``, trilinear, border-clamped).
+    Boxes are pasted in order (the later one wins); voxels outside every box keep ``volume``'s values.
 
     Args:
         volume: ``[B, C, Z, Y, X]`` volume on ``grid`` (not modified).
@@ -332,29 +299,18 @@ def paste_boxes(volume: Tensor, crops: Tensor, boxes: Tensor, grid: VoxelGridSpe
     Convention:
         Axis-aligned boxes in R; cell-centred voxels and crop cells, ``align_corners=False``.
     """
-    if not isinstance(grid, VoxelGridSpec):
-        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
-    if volume.ndim != 5 or tuple(volume.shape[2:]) != grid.volume_shape:
-        raise ValueError(
-            f"volume must have shape [B, C, Z, Y, X] with (Z, Y, X) = {grid.volume_shape}, got {tuple(volume.shape)}"
-        )
+    _check_volume(volume, grid)
     _check_boxes(boxes)
     B, C = volume.shape[:2]
     N = boxes.shape[1]
     if boxes.shape[0] != B or crops.ndim != 6 or tuple(crops.shape[:3]) != (B, N, C):
-        raise ValueError(
-            f"crops must have shape [B, N, C, sz, sy, sx] = [{B}, {N}, {C}, ...] to match volume and boxes "
-            f"{tuple(boxes.shape)}, got {tuple(crops.shape)}"
-        )
+        raise ValueError(f"crops must have shape [B, N, C, sz, sy, sx] = [{B}, {N}, {C}, ...] to match volume and "
+                         f"boxes {tuple(boxes.shape)}, got {tuple(crops.shape)}")
     if mask is not None and tuple(mask.shape) != (B, N):
         raise ValueError(f"mask must have shape [B, N] = [{B}, {N}], got {tuple(mask.shape)}")
     boxes = boxes.to(volume.dtype)
     inside = box_mask(boxes, grid)  # [B, N, Z, Y, X]
-    # voxel centres as fractions of each box, then as normalised crop coordinates in [-1, 1]
-    axes = [
-        lo + (torch.arange(n, device=volume.device, dtype=volume.dtype) + 0.5) * vs
-        for lo, n, vs in zip(grid.bounds_min, grid.resolution, grid.voxel_size, strict=True)
-    ]  # x, y, z centres
+    axes = grid._axis_centres(volume.device, volume.dtype)  # x, y, z centres
     out = volume.clone()
     for b in range(B):
         for n in range(N):
@@ -375,11 +331,8 @@ def paste_boxes(volume: Tensor, crops: Tensor, boxes: Tensor, grid: VoxelGridSpe
 def occupancy_weighted(features: Tensor, occupancy: Tensor, floor: float = 0.2, dilation: int = 3) -> Tensor:
     """Crops whose voxels count by how near they are to observed surface: ``features * (floor + dilate(occ))``.
 
-    The learned features are L2-normalised per voxel, so in a plain cosine over a crop an empty voxel weighs as
-    much as a surface voxel and most of a box is empty. This weights every voxel by ``floor`` plus the crop's
-    input occupancy max-pooled over a ``dilation^3`` neighbourhood (surface voxels and their neighbours count
-    ``1 + floor``, empty space ``floor``); a cosine of the weighted crops is then a surface-weighted similarity.
-    A departure from the paper, whose similarity is the plain cosine of the whole crop.
+    Every voxel is weighted by ``floor`` plus the crop's input occupancy max-pooled over a ``dilation^3``
+    neighbourhood (surface voxels and their neighbours count ``1 + floor``, empty space ``floor``).
 
     Args:
         features: ``[N, C, s, s, s]`` crops of the feature grid.

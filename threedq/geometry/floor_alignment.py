@@ -1,11 +1,5 @@
 """Camera poses corrected by the floor they see (label-free): each view's floor brought onto one level plane at z = 0.
 
-A tracker's (SLAM, structure from motion) poses carry small rotation and translation errors, and its gravity estimate
-leaves the floor tilted in the world frame. A view rotated by one degree about its camera puts the floor it sees
-several centimetres above or below the others' at a few metres: depth that is consistent within each view disagrees
-between views exactly where the pipeline separates objects from the ground. The floor fixes three of a pose's six
-degrees of freedom (two tilts and the height), and those three are what the ground separation needs:
-
 1. the scene's floor is fitted with RANSAC to the back-projected depth of all views
    (:func:`~threedq.geometry.ground.fit_ground_plane`), and one rigid motion (the same for every view, so the views
    stay consistent with each other) turns it level and moves it to z = 0;
@@ -88,21 +82,10 @@ def _view_points(depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, stri
     return out
 
 
-def align_to_floor(
-    depth: np.ndarray,
-    K: np.ndarray,
-    world_T_cam: np.ndarray,
-    *,
-    stride: int = 2,
-    band: float = 0.15,
-    threshold: float = 0.02,
-    min_points: int = 200,
-    min_angle_deg: float = 0.05,
-    min_offset: float = 0.001,
-    max_angle_deg: float = 10.0,
-    max_offset: float = 0.3,
-    seed: int = 0,
-) -> FloorAlignment:
+def align_to_floor(depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, *, stride: int = 2, band: float = 0.15,
+                   threshold: float = 0.02, min_points: int = 200, min_angle_deg: float = 0.05,
+                   min_offset: float = 0.001, max_angle_deg: float = 10.0, max_offset: float = 0.3,
+                   seed: int = 0) -> FloorAlignment:
     """Correct camera poses so that the floor every view sees is the plane z = 0 (see the module docstring).
 
     Args:
@@ -140,8 +123,8 @@ def align_to_floor(
     on = allp[np.abs(allp @ n + d) <= threshold]
     c = on.mean(axis=0) if len(on) else -d * n
     offset = float(c[2])  # the floor's height at the centroid of its points
-    scene = _rigid(_rotation_between(n, ez), c, -offset) if (tilt >= min_angle_deg or abs(offset) >= min_offset) \
-        else np.eye(4)
+    level = tilt >= min_angle_deg or abs(offset) >= min_offset
+    scene = _rigid(_rotation_between(n, ez), c, -offset) if level else np.eye(4)
     angles, lifts = np.zeros(V), np.zeros(V)
     out = poses.astype(np.float64).copy()
     changed = not np.array_equal(scene, np.eye(4))
@@ -149,9 +132,8 @@ def align_to_floor(
         T = scene @ out[v]
         p = pts[v] @ scene[:3, :3].T + scene[:3, 3]
         near = p[np.abs(p[:, 2]) <= band]
-        own = (fit_ground_plane(near, camera_centres=T[None, :3, 3], threshold=threshold, iters=60, sample=3000,
-                                seed=seed)
-               if len(near) >= min_points else None)
+        kw = {"camera_centres": T[None, :3, 3], "threshold": threshold, "iters": 60, "sample": 3000, "seed": seed}
+        own = fit_ground_plane(near, **kw) if len(near) >= min_points else None
         if own is not None:
             nv, dv, _ = own
             ang = math.degrees(math.acos(min(1.0, float(nv[2]))))

@@ -4,8 +4,7 @@ Convention:
     Grid in the reference frame R (metres, z up), volumes ``[B, C, Z, Y, X]``, cell-centred voxels, every
     ``grid_sample`` with ``align_corners=False``. Cameras: OpenCV axes (x right, y down, z forward), ``K`` with
     pixel centres at integer coordinates (skew honoured), poses ``R_T_cam`` (camera-to-R). Frustum tensors are
-    ``[B, C, D, H, W]`` with ``D`` depth planes (near to far) and ``H x W`` pixels. Local ops: kornia has no
-    frustum resampler (see :func:`resample_to_frustum`).
+    ``[B, C, D, H, W]`` with ``D`` depth planes (near to far) and ``H x W`` pixels.
 """
 
 from __future__ import annotations
@@ -14,16 +13,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .grid import VoxelGridSpec
+from .camera import _check_view, _pixel_rays
+from .grid import VoxelGridSpec, _check_grid
 
 __all__ = ["frustum_depth_max", "frustum_points", "resample_to_frustum", "scale_intrinsics"]
-
-
-def _check_camera(K: Tensor, R_T_cam: Tensor, batch: int) -> None:
-    if K.ndim != 3 or K.shape != (batch, 3, 3):
-        raise ValueError(f"K must have shape [B, 3, 3] with B={batch}, got {tuple(K.shape)}")
-    if R_T_cam.ndim != 3 or R_T_cam.shape != (batch, 4, 4):
-        raise ValueError(f"R_T_cam must have shape [B, 4, 4] with B={batch}, got {tuple(R_T_cam.shape)}")
 
 
 def _check_frustum_args(image_size: tuple[int, int], depth_range: tuple[float, float], num_planes: int) -> None:
@@ -36,10 +29,7 @@ def _check_frustum_args(image_size: tuple[int, int], depth_range: tuple[float, f
 
 
 def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
-    """Intrinsics of a resized image.
-
-    Maps the intrinsics of an image of size ``(H, W)`` to those of the same view resampled to
-    ``(H * sy, W * sx)`` (e.g. ``sx = sy = 0.5`` for the half-resolution frustum).
+    """Intrinsics of an image of size ``(H, W)`` resampled to ``(H * sy, W * sx)``.
 
     Args:
         K: ``[..., 3, 3]`` pinhole intrinsics.
@@ -61,19 +51,13 @@ def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
         raise ValueError(f"scale factors must be positive, got sx={sx}, sy={sy}")
     row_scale = torch.tensor([sx, sy, 1.0], dtype=K.dtype, device=K.device)
     shift = torch.tensor([0.5 * sx - 0.5, 0.5 * sy - 0.5, 0.0], dtype=K.dtype, device=K.device)
-    # Row i of K (i = 0, 1) is scaled by s_i; the principal point gets the extra half-pixel shift. For the usual
-    # last row (0, 0, 1) this is exactly K' = S K with S = [[sx, 0, 0.5 sx - 0.5], [0, sy, 0.5 sy - 0.5], [0, 0, 1]].
+    # K' = S K with S = [[sx, 0, 0.5 sx - 0.5], [0, sy, 0.5 sy - 0.5], [0, 0, 1]]
     out = K * row_scale[:, None]
     return out + shift[:, None] * K[..., 2:3, :]
 
 
-def frustum_points(
-    K: Tensor,
-    R_T_cam: Tensor,
-    image_size: tuple[int, int],
-    depth_range: tuple[float, float],
-    num_planes: int,
-) -> Tensor:
+def frustum_points(K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int], depth_range: tuple[float, float],
+                   num_planes: int) -> Tensor:
     """Points in R at the centre of every frustum sample.
 
     Args:
@@ -90,7 +74,7 @@ def frustum_points(
         Sample ``(d, v, u)`` is the back-projection of pixel centre ``(u, v)`` at camera z-depth
         ``z_d = near + (d + 0.5) * (far - near) / D`` (planes cell-centred like voxels), mapped to R by ``R_T_cam``.
     """
-    _check_camera(K, R_T_cam, K.shape[0])
+    _check_view(K, R_T_cam, K.shape[0])
     _check_frustum_args(image_size, depth_range, num_planes)
     height, width = (int(s) for s in image_size)
     depth_planes = int(num_planes)
@@ -101,33 +85,16 @@ def frustum_points(
     R_T_cam = R_T_cam.to(dtype)
     u = torch.arange(width, device=device, dtype=dtype)
     v = torch.arange(height, device=device, dtype=dtype)
-    fx, fy, skew = K[:, 0, 0, None, None], K[:, 1, 1, None, None], K[:, 0, 1, None, None]
-    cx, cy = K[:, 0, 2, None, None], K[:, 1, 2, None, None]
-    y = (v[None, :, None] - cy) / fy  # [B, H, 1]
-    x = (u[None, None, :] - cx - skew * y) / fx  # [B, H, W]
-    y = y.expand_as(x)
-    rays = torch.stack((x, y, torch.ones_like(x)), dim=-1)  # [B, H, W, 3], camera frame, z = 1
+    rays = _pixel_rays(K, u, v[:, None])  # [B, H, W, 3], camera frame, z = 1
     rays_R = rays @ R_T_cam[:, None, :3, :3].transpose(-1, -2)  # rotated into R, [B, H, W, 3]
     z = near + (torch.arange(depth_planes, device=device, dtype=dtype) + 0.5) * ((far - near) / depth_planes)
     origin = R_T_cam[:, None, None, None, :3, 3]  # [B, 1, 1, 1, 3]
     return z[None, :, None, None, None] * rays_R[:, None] + origin
 
 
-def resample_to_frustum(
-    volume: Tensor,
-    grid: VoxelGridSpec,
-    K: Tensor,
-    R_T_cam: Tensor,
-    image_size: tuple[int, int],
-    depth_range: tuple[float, float],
-    num_planes: int,
-) -> Tensor:
+def resample_to_frustum(volume: Tensor, grid: VoxelGridSpec, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int],
+                        depth_range: tuple[float, float], num_planes: int) -> Tensor:
     """Trilinearly resample a volume in R into a camera's frustum.
-
-    A local op: kornia has no frustum resampler. With depth planes uniform in z the map from frustum sample
-    ``(d, v, u)`` to voxel index is not projective (``z_d K^-1 (u, v, 1)`` has ``u * z_d`` terms), so
-    ``kornia.geometry.transform.warp_perspective3d`` cannot express it, and kornia's pinhole unprojection
-    (``unproject_meshgrid``) drops the skew that :func:`frustum_points` honours.
 
     Args:
         volume: ``[B, C, Z, Y, X]`` volume on ``grid`` (e.g. the encoder's features on ``grid.half()``).
@@ -151,63 +118,40 @@ def resample_to_frustum(
         z-depth ``z_d = near + (d + 0.5) * (far - near) / D``; one ``grid_sample`` with ``align_corners=False``.
     """
     coords, sample_dtype = _frustum_coords(volume, grid, K, R_T_cam, image_size, depth_range, num_planes)
-    out = F.grid_sample(
-        volume.to(sample_dtype), coords.to(sample_dtype), mode="bilinear", padding_mode="zeros", align_corners=False
-    )
+    return _sample(volume, coords, sample_dtype)
+
+
+def _sample(volume: Tensor, coords: Tensor, dtype: torch.dtype) -> Tensor:
+    """Trilinear ``grid_sample`` (zero padding, ``align_corners=False``) in ``dtype``, cast to ``volume``'s dtype."""
+    out = F.grid_sample(volume.to(dtype), coords.to(dtype), mode="bilinear", padding_mode="zeros", align_corners=False)
     return out.to(volume.dtype)
 
 
-def _check_volume(volume: Tensor, grid: VoxelGridSpec) -> None:
-    if not isinstance(grid, VoxelGridSpec):
-        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
+def _frustum_coords(volume: Tensor, grid: VoxelGridSpec, K: Tensor, R_T_cam: Tensor,
+                    *frustum) -> tuple[Tensor, torch.dtype]:
+    """The frustum's ``grid_sample`` coordinates ``[B, D, H, W, 3]`` and the dtype to sample in (float32 for
+    fp16/bf16 volumes), after the checks; ``frustum``: ``image_size, depth_range, num_planes``."""
+    _check_grid(grid)
     if volume.ndim != 5:
         raise ValueError(f"volume must have shape [B, C, Z, Y, X], got {tuple(volume.shape)}")
     if tuple(volume.shape[2:]) != grid.volume_shape:
-        raise ValueError(
-            f"volume spatial shape {tuple(volume.shape[2:])} does not match grid.volume_shape {grid.volume_shape}"
-            " (features of the encoder live on grid.half())"
-        )
-
-
-def _frustum_coords(
-    volume: Tensor,
-    grid: VoxelGridSpec,
-    K: Tensor,
-    R_T_cam: Tensor,
-    image_size: tuple[int, int],
-    depth_range: tuple[float, float],
-    num_planes: int,
-) -> tuple[Tensor, torch.dtype]:
-    """The frustum's ``grid_sample`` coordinates ``[B, D, H, W, 3]`` and the dtype to sample in, after the checks."""
-    _check_volume(volume, grid)
-    _check_camera(K, R_T_cam, volume.shape[0])
-    points = frustum_points(K, R_T_cam, image_size, depth_range, num_planes)  # [B, D, H, W, 3]
-    coords = grid.world_to_normalized(points)
+        raise ValueError(f"volume spatial shape {tuple(volume.shape[2:])} does not match grid.volume_shape "
+                         f"{grid.volume_shape} (features of the encoder live on grid.half())")
+    _check_view(K, R_T_cam, volume.shape[0])
+    coords = grid.world_to_normalized(frustum_points(K, R_T_cam, *frustum))  # [B, D, H, W, 3]
     if not volume.is_floating_point():
         raise ValueError(f"volume must be a floating tensor, got {volume.dtype}")
-    # Sampling positions need more precision than fp16/bf16 offer (bf16 resolves ~1/128 of the grid), so low
-    # precision volumes are sampled in float32 and the result is cast back.
     return coords, torch.promote_types(volume.dtype, torch.float32)
 
 
-def frustum_depth_max(
-    volume: Tensor,
-    grid: VoxelGridSpec,
-    K: Tensor,
-    R_T_cam: Tensor,
-    image_size: tuple[int, int],
-    depth_range: tuple[float, float],
-    num_planes: int,
-    pool: int,
-) -> Tensor:
+def frustum_depth_max(volume: Tensor, grid: VoxelGridSpec, K: Tensor, R_T_cam: Tensor, image_size: tuple[int, int],
+                      depth_range: tuple[float, float], num_planes: int, pool: int) -> Tensor:
     """The max of :func:`resample_to_frustum` over each group of ``pool`` depth planes, without the whole frustum.
 
     Bit for bit, values and gradient, ``depth_max_pool(resample_to_frustum(...), pool)``
-    (:func:`threedq.nets.depth_max_pool`, itself ``F.max_pool3d`` over ``(pool, 1, 1)`` windows). Most of a camera's
-    frustum lies outside the grid, where every sample is an exact zero; a window of ``pool`` samples (one pixel, one
-    group of planes) with no sample within half a voxel of the grid is zero, and is neither sampled nor stored. The
-    other windows' samples are taken by one ``grid_sample`` in the order the whole frustum's would be (plane, then
-    pixel), so the volume's gradient sums the same terms in the same order.
+    (:func:`threedq.nets.depth_max_pool`). A window of ``pool`` samples (one pixel, one group of planes) with no
+    sample within half a voxel of the grid is zero and neither sampled nor stored; the other windows' samples are
+    taken by one ``grid_sample`` in the whole frustum's order (plane, then pixel).
 
     Args:
         volume, grid, K, R_T_cam, image_size, depth_range, num_planes: as for :func:`resample_to_frustum`.
@@ -254,10 +198,7 @@ def frustum_depth_max(
     target[b, k] = g * n + p
     far = coords.new_full((B, 1, 3), 4.0)  # far outside the grid: a zero sample that takes no gradient
     pts = torch.gather(torch.cat([coords.reshape(B, D * n, 3), far], 1), 1, taken[..., None].expand(B, L, 3))
-    samples = F.grid_sample(
-        volume.to(sample_dtype), pts.to(sample_dtype).view(B, 1, 1, L, 3), mode="bilinear", padding_mode="zeros",
-        align_corners=False,
-    ).to(volume.dtype).view(B, C, L)
+    samples = _sample(volume, pts.view(B, 1, 1, L, 3), sample_dtype).view(B, C, L)
     per_window = torch.gather(samples, 2, window_slots.view(B, 1, L).expand(B, C, L)).view(B, C, W_max, pool)
     best = per_window.max(dim=3).values  # [B, C, W_max]
     out = best.new_zeros(B, C, G * n + 1).scatter(2, target[:, None].expand(B, C, W_max), best)

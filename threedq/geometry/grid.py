@@ -95,35 +95,23 @@ class VoxelGridSpec:
         return lo, hi
 
     def voxel_centres(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Tensor:
-        """Coordinates of every voxel centre.
+        """``[Z, Y, X, 3]`` coordinates of every voxel centre: ``[k, j, i]`` holds the ``(x, y, z)`` centre of voxel
+        ``(k, j, i)`` (dtype default: torch's default dtype).
 
-        Args:
-            device: device of the result.
-            dtype: floating dtype of the result (default: torch's default dtype).
-
-        Returns:
-            ``[Z, Y, X, 3]`` tensor; ``[k, j, i]`` holds the ``(x, y, z)`` centre of voxel ``(k, j, i)``.
-
-        Convention:
-            Cell-centred: centre = ``bounds_min + (index + 0.5) * voxel_size``, xyz order in the last dim.
+        Convention: cell-centred, centre = ``bounds_min + (index + 0.5) * voxel_size``, xyz order in the last dim.
         """
-        dtype = dtype or torch.get_default_dtype()
-        axes = [
-            lo + (torch.arange(n, device=device, dtype=dtype) + 0.5) * size
-            for lo, n, size in zip(self.bounds_min, self.resolution, self.voxel_size, strict=True)
-        ]
-        zz, yy, xx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+        x, y, z = self._axis_centres(device, dtype or torch.get_default_dtype())
+        zz, yy, xx = torch.meshgrid(z, y, x, indexing="ij")
         return torch.stack((xx, yy, zz), dim=-1)
 
+    def _axis_centres(self, device: torch.device | str | None, dtype: torch.dtype) -> list[Tensor]:
+        """The voxel centres along x ``[nx]``, y ``[ny]`` and z ``[nz]``."""
+        axes = zip(self.bounds_min, self.resolution, self.voxel_size, strict=True)
+        return [lo + (torch.arange(n, device=device, dtype=dtype) + 0.5) * size for lo, n, size in axes]
+
     def world_to_normalized(self, points: Tensor) -> Tensor:
-        """Map points in R to ``grid_sample`` coordinates.
-
-        Args:
-            points: ``[..., 3]`` points ``(x, y, z)`` in R.
-
-        Returns:
-            ``[..., 3]`` normalised ``(x, y, z)``: ``-1``/``+1`` at ``bounds_min``/``bounds_max``, ready as the
-            last dim of a ``grid_sample`` grid over a ``[B, C, Z, Y, X]`` volume.
+        """Map points ``[..., 3]`` ``(x, y, z)`` in R to ``grid_sample`` coordinates ``[..., 3]``, ``-1``/``+1`` at
+        ``bounds_min``/``bounds_max``.
 
         Convention:
             ``n = 2 * (p - min) / (max - min) - 1``, valid for ``align_corners=False`` only.
@@ -133,32 +121,19 @@ class VoxelGridSpec:
         return 2.0 * (points - lo) / (hi - lo) - 1.0
 
     def contains(self, points: Tensor) -> Tensor:
-        """Whether points lie inside the grid.
+        """``[...]`` bool: whether points ``[..., 3]`` ``(x, y, z)`` in R lie inside the grid.
 
-        Args:
-            points: ``[..., 3]`` points ``(x, y, z)`` in R.
-
-        Returns:
-            ``[...]`` bool mask, true where ``bounds_min <= p < bounds_max`` on all axes.
-
-        Convention:
-            Half-open box, the region whose points get a voxel ``floor((p - bounds_min) / voxel_size)`` in range.
+        Convention: half-open box ``bounds_min <= p < bounds_max``, the region whose points get a voxel
+        ``floor((p - bounds_min) / voxel_size)`` in range.
         """
         _check_points(points)
         lo, hi = self._bounds(points)
         return ((points >= lo) & (points < hi)).all(dim=-1)
 
     def scaled(self, factor: int) -> VoxelGridSpec:
-        """The same bounds at a coarser resolution.
+        """The same bounds at ``resolution // factor`` (``factor`` a positive int dividing every entry).
 
-        Args:
-            factor: positive int dividing every entry of ``resolution``.
-
-        Returns:
-            A grid with ``resolution // factor`` and the same bounds.
-
-        Convention:
-            Bounds are unchanged, so coarse voxel centres are the means of the fine ones they cover.
+        Convention: bounds are unchanged, so coarse voxel centres are the means of the fine ones they cover.
         """
         if isinstance(factor, bool) or not isinstance(factor, numbers.Integral) or factor < 1:
             raise ValueError(f"factor must be a positive int, got {factor!r}")
@@ -172,11 +147,7 @@ class VoxelGridSpec:
 
     def to_dict(self) -> dict[str, list[float] | list[int]]:
         """JSON-friendly dict ``{"bounds_min": [...], "bounds_max": [...], "resolution": [...]}``."""
-        return {
-            "bounds_min": list(self.bounds_min),
-            "bounds_max": list(self.bounds_max),
-            "resolution": list(self.resolution),
-        }
+        return {key: list(getattr(self, key)) for key in ("bounds_min", "bounds_max", "resolution")}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> VoxelGridSpec:
@@ -187,7 +158,16 @@ class VoxelGridSpec:
         return cls(data["bounds_min"], data["bounds_max"], data["resolution"])
 
 
+def _desc(x: object) -> object:
+    """What a bad argument was, for an error message: its shape, or its type's name."""
+    return tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+
+
 def _check_points(points: Tensor) -> None:
     if not isinstance(points, Tensor) or points.ndim < 1 or points.shape[-1] != 3:
-        shape = tuple(points.shape) if isinstance(points, Tensor) else type(points).__name__
-        raise ValueError(f"points must be a tensor of shape [..., 3], got {shape}")
+        raise ValueError(f"points must be a tensor of shape [..., 3], got {_desc(points)}")
+
+
+def _check_grid(grid: object) -> None:
+    if not isinstance(grid, VoxelGridSpec):
+        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")

@@ -19,16 +19,9 @@ from .camera import depth_to_points
 __all__ = ["above_ground_mask", "fit_ground_plane", "ground_spread"]
 
 
-def fit_ground_plane(
-    points: np.ndarray,
-    *,
-    camera_centres: np.ndarray | None = None,
-    iters: int = 200,
-    threshold: float = 0.01,
-    max_tilt_deg: float = 30.0,
-    sample: int = 20000,
-    seed: int = 0,
-) -> tuple[np.ndarray, float, int] | None:
+def fit_ground_plane(points: np.ndarray, *, camera_centres: np.ndarray | None = None, iters: int = 200,
+                     threshold: float = 0.01, max_tilt_deg: float = 30.0, sample: int = 20000,
+                     seed: int = 0) -> tuple[np.ndarray, float, int] | None:
     """RANSAC fit of the dominant near-horizontal plane ``n . p + d = 0``.
 
     Args:
@@ -66,7 +59,6 @@ def fit_ground_plane(
         return None
     n, a = n[ok], a[ok]
     d = -np.einsum("ij,ij->i", n, a)
-    # inlier counts of all hypotheses, in chunks to bound memory
     counts = np.zeros(n.shape[0], dtype=np.int64)
     chunk = max(1, 4_000_000 // max(eval_pts.shape[0], 1))
     for s in range(0, n.shape[0], chunk):
@@ -83,8 +75,7 @@ def fit_ground_plane(
             break
         centroid = inl.mean(axis=0)
         centred = inl - centroid
-        # the normal: the scatter matrix's eigenvector of the least eigenvalue (the last right singular vector of
-        # the centred points, from a 3 x 3 problem instead of an SVD of all inliers)
+        # the normal: the scatter matrix's eigenvector of the least eigenvalue
         cand = np.linalg.eigh(centred.T @ centred)[1][:, 0]
         if cand[2] < 0:
             cand = -cand
@@ -99,15 +90,14 @@ def fit_ground_plane(
 
 
 def ground_spread(heights: np.ndarray, threshold: float) -> float:
-    """Robust standard deviation of the ground points' heights about a fitted plane (the depth maps' noise there).
+    """Robust standard deviation of the ground points' heights about a fitted plane.
 
     Args:
         heights: ``[N]`` signed heights of points above the plane (``n . p + d``), metres.
         threshold: the points within this of the plane are the ground (the RANSAC inlier distance).
 
     Returns:
-        ``1.4826 * median(|h - median(h)|)`` over the ground points (the normal distribution's sigma from the
-        median absolute deviation; objects on the plane do not move it); 0.0 when there are none.
+        ``1.4826 * median(|h - median(h)|)`` over the ground points; 0.0 when there are none.
 
     Convention: metres, heights along the plane's upward normal.
     """
@@ -119,25 +109,14 @@ def ground_spread(heights: np.ndarray, threshold: float) -> float:
 
 
 @torch.no_grad()
-def above_ground_mask(
-    depth: Tensor,
-    K: Tensor,
-    R_T_cam: Tensor,
-    *,
-    margin: float = 0.02,
-    fit_stride: int = 4,
-    iters: int = 100,
-    sample: int = 2000,
-    max_tilt_deg: float = 30.0,
-    seed: int = 0,
-    views: slice = slice(None),
-) -> Tensor:
+def above_ground_mask(depth: Tensor, K: Tensor, R_T_cam: Tensor, *, margin: float = 0.02, fit_stride: int = 4,
+                      iters: int = 100, sample: int = 2000, max_tilt_deg: float = 30.0, seed: int = 0,
+                      views: slice = slice(None)) -> Tensor:
     """Pixels whose observed surface lies more than ``margin`` above the scene's ground plane.
 
     Per scene, the ground plane is fitted with RANSAC (:func:`fit_ground_plane`) to the back-projected depth of
-    all ``S`` views (every ``fit_stride``-th pixel in x and y), oriented towards the cameras; no label is read.
-    Every pixel of every view is then tested against it. A scene with no acceptable plane (too few points,
-    or none near-horizontal) has no ground: all its valid pixels count as above it.
+    all ``S`` views (every ``fit_stride``-th pixel in x and y), oriented towards the cameras. A scene with no
+    acceptable plane has no ground: all its valid pixels count as above it.
 
     Args:
         depth: ``[B, S, H, W]`` metric z-depth, 0 (or non-finite) = invalid.
@@ -146,8 +125,7 @@ def above_ground_mask(
         margin: minimum height above the plane, metres.
         fit_stride: pixel stride of the points the plane is fitted to.
         iters, sample, max_tilt_deg, seed: RANSAC settings (see :func:`fit_ground_plane`).
-        views: the views whose pixels are tested (the plane is fitted to all ``S`` either way): the same masks as
-            ``above_ground_mask(...)[:, views]``, bit for bit, without back-projecting the other views' pixels.
+        views: the views whose pixels are tested (the plane is fitted to all ``S`` either way).
 
     Returns:
         ``[B, S', H, W]`` bool for the ``S'`` views of ``views`` (all ``S`` by default): valid depth and height
@@ -160,15 +138,12 @@ def above_ground_mask(
         z-depth, OpenCV camera axes, R z up; the fit runs in float64 on the CPU (deterministic for equal inputs).
     """
     if depth.ndim != 4 or K.shape != (*depth.shape[:2], 3, 3) or R_T_cam.shape != (*depth.shape[:2], 4, 4):
-        raise ValueError(
-            f"depth, K, R_T_cam must be [B, S, H, W], [B, S, 3, 3], [B, S, 4, 4]; got {tuple(depth.shape)}, "
-            f"{tuple(K.shape)}, {tuple(R_T_cam.shape)}"
-        )
+        raise ValueError(f"depth, K, R_T_cam must be [B, S, H, W], [B, S, 3, 3], [B, S, 4, 4]; got "
+                         f"{tuple(depth.shape)}, {tuple(K.shape)}, {tuple(R_T_cam.shape)}")
     if fit_stride < 1:
         raise ValueError(f"fit_stride must be >= 1, got {fit_stride}")
-    B, S, H, W = depth.shape
-    s = fit_stride
-    # Pixel (s*i, s*j) of the full image is pixel (i, j) of the strided one: u' = u / s.
+    B, s = depth.shape[0], fit_stride
+    # pixel (s*i, s*j) of the full image is pixel (i, j) of the strided one: u' = u / s
     k_strided = K * torch.tensor([1.0 / s, 1.0 / s, 1.0], dtype=K.dtype, device=K.device)[:, None]
     fit_pts, fit_ok = depth_to_points(depth[:, :, ::s, ::s].flatten(0, 1).contiguous(), k_strided.flatten(0, 1),
                                       R_T_cam.flatten(0, 1))
@@ -178,11 +153,9 @@ def above_ground_mask(
     points, ok = points.view(*tested.shape, 3), ok.view(tested.shape)
     masks = []
     for b in range(B):
-        plane = fit_ground_plane(
-            fit_pts[b][fit_ok[b]].double().cpu().numpy(),
-            camera_centres=R_T_cam[b, :, :3, 3].double().cpu().numpy(),
-            iters=iters, threshold=0.01, max_tilt_deg=max_tilt_deg, sample=sample, seed=seed,
-        )
+        plane = fit_ground_plane(fit_pts[b][fit_ok[b]].double().cpu().numpy(),
+                                 camera_centres=R_T_cam[b, :, :3, 3].double().cpu().numpy(), iters=iters,
+                                 threshold=0.01, max_tilt_deg=max_tilt_deg, sample=sample, seed=seed)
         if plane is None:
             masks.append(ok[b])
             continue

@@ -50,16 +50,9 @@ def voxel_downsample(points: np.ndarray, colours: np.ndarray, voxel_size: float)
     return mean_p.astype(np.float32), np.clip(np.rint(mean_c), 0, 255).astype(np.uint8)
 
 
-def fuse_views(
-    rgb: np.ndarray,
-    depth: np.ndarray,
-    K: np.ndarray,
-    world_T_cam: np.ndarray,
-    voxel_size: float = 0.02,
-    max_points: int | None = None,
-    seed: int = 0,
-    bounds: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+def fuse_views(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, voxel_size: float = 0.02,
+               max_points: int | None = None, seed: int = 0,
+               bounds: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Back-project every valid depth pixel of every view into R, thin the union on a voxel grid, keep the voxels
     inside ``bounds`` and, when more than ``max_points`` remain, a random ``max_points`` of them (drawn with ``seed``).
 

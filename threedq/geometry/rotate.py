@@ -14,7 +14,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .grid import _desc
+
 __all__ = ["rotate_yaw", "yaw_angles"]
+
+
+def _yaw_theta(angles: Tensor, ny: int, nx: int) -> Tensor:
+    """``[..., 2, 3]`` ``affine_grid`` matrices sampling at ``R(-t) p``: ``S^-1 R(-t) S``, ``S = diag(nx/2, ny/2)``."""
+    c, s = torch.cos(angles), torch.sin(angles)
+    zero = torch.zeros_like(c)
+    return torch.stack((torch.stack((c, s * (ny / nx), zero), -1), torch.stack((-s * (nx / ny), c, zero), -1)), -2)
 
 
 def rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
@@ -23,10 +32,6 @@ def rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
     Output voxel ``p`` (x-y offset from the centre, in voxels) takes the input value at ``R(-yaw) p``,
     bilinearly interpolated within its z-slice (z is unchanged, so this equals trilinear sampling), zero
     outside the volume. All ``A`` angles are sampled in one ``grid_sample`` call without copying the input.
-
-    A local op: kornia's 2D ``rotate`` (on the ``(C, Z)``-folded slices at ``-degrees(yaw)``) reproduces it but
-    takes one angle per image, so ``A`` angles cost ``A`` calls or copies; its 3D warps normalise corner-aligned
-    whatever ``align_corners`` says (``benchmarks/bench_geometry_kornia.py`` compares them).
 
     Args:
         volume: ``[N, C, Z, Y, X]`` volumes.
@@ -43,30 +48,18 @@ def rotate_yaw(volume: Tensor, yaw: Tensor) -> Tensor:
         and y voxels are assumed square; if ``X != Y`` the content may leave the volume.
     """
     if not isinstance(volume, Tensor) or volume.ndim != 5:
-        shape = tuple(volume.shape) if isinstance(volume, Tensor) else type(volume).__name__
-        raise ValueError(f"volume must have shape [N, C, Z, Y, X], got {shape}")
+        raise ValueError(f"volume must have shape [N, C, Z, Y, X], got {_desc(volume)}")
     if not volume.is_floating_point():
         raise ValueError(f"volume must be a floating-point tensor, got {volume.dtype}")
     n, channels, nz, ny, nx = volume.shape
     if not isinstance(yaw, Tensor) or yaw.ndim not in (1, 2) or yaw.shape[0] != n:
-        shape = tuple(yaw.shape) if isinstance(yaw, Tensor) else type(yaw).__name__
-        raise ValueError(f"yaw must have shape [N] or [N, A] with N={n}, got {shape}")
+        raise ValueError(f"yaw must have shape [N] or [N, A] with N={n}, got {_desc(yaw)}")
     single = yaw.ndim == 1
     if n == 0:
         return volume.clone() if single else volume.new_zeros(0, yaw.shape[1], *volume.shape[1:])
     angles = yaw.to(volume.dtype).reshape(n, -1)  # [N, A]
     n_angles = angles.shape[1]
-
-    # Sample at R(-t) p, written in normalised coords: theta = S^-1 R(-t) S with S = diag(nx/2, ny/2).
-    c, s = torch.cos(angles), torch.sin(angles)
-    zero = torch.zeros_like(c)
-    theta = torch.stack(
-        (
-            torch.stack((c, s * (ny / nx), zero), dim=-1),
-            torch.stack((-s * (nx / ny), c, zero), dim=-1),
-        ),
-        dim=-2,
-    )  # [N, A, 2, 3]
+    theta = _yaw_theta(angles, ny, nx)  # [N, A, 2, 3]
     coords = F.affine_grid(theta.reshape(n * n_angles, 2, 3), [n * n_angles, 1, ny, nx], align_corners=False)
     coords = coords.reshape(n, n_angles * ny, nx, 2)
     # z is unchanged, so fold (C, Z) into channels and rotate each slice in 2D; the A angles are stacked on H.

@@ -3,9 +3,7 @@
 Convention:
     Grid in the reference frame R (metres, z up), volumes ``[B, C, Z, Y, X]``, cell-centred voxels.
     Views: OpenCV camera axes, ``K`` with integer pixel centres (skew honoured), pose ``R_T_cam`` (camera-to-R),
-    metric z-depth with 0 = invalid. Local gather/scatter ops (kornia has no voxel unprojection) on the camera
-    ops of :mod:`threedq.geometry.camera`: kornia's ``inverse_transformation`` and ``transform_points``, local
-    (skew-aware) projection and back-projection.
+    metric z-depth with 0 = invalid.
 """
 
 from __future__ import annotations
@@ -14,16 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .camera import (
-    _check_intrinsics,
-    _check_pose,
-    depth_to_points,
-    invert_rigid,
-    project,
-    transform_points,
-    unproject_depth,
-)
-from .grid import VoxelGridSpec
+from .camera import _check_view, depth_to_points, invert_rigid, project, transform_points, unproject_depth
+from .grid import VoxelGridSpec, _check_grid
 
 __all__ = ["free_space_from_depth", "occupancy_from_depth", "sample_image_at_points", "unproject_rgb",
            "unproject_rgbd_occupied"]
@@ -32,21 +22,16 @@ __all__ = ["free_space_from_depth", "occupancy_from_depth", "sample_image_at_poi
 BEHIND_EPS = 1e-4
 
 
-def _check_view(K: Tensor, R_T_cam: Tensor, batch: int) -> None:
-    _check_intrinsics(K, batch)
-    _check_pose("R_T_cam", R_T_cam, batch)
-
-
-def _check_grid(grid: VoxelGridSpec) -> None:
-    if not isinstance(grid, VoxelGridSpec):
-        raise ValueError(f"grid must be a VoxelGridSpec, got {type(grid).__name__}")
+def _check_depth_view(depth: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelGridSpec) -> None:
+    _check_grid(grid)
+    if depth.ndim != 3 or not depth.is_floating_point():
+        raise ValueError(f"depth must be a float tensor of shape [B, H, W], got {tuple(depth.shape)} {depth.dtype}")
+    _check_view(K, R_T_cam, depth.shape[0])
 
 
 def _voxelize(points: Tensor, keep: Tensor, grid: VoxelGridSpec) -> Tensor:
-    """Scatter points into a 0/1 volume.
-
-    One axis at a time: each coordinate's cell ``floor((p - bounds_min) / voxel_size)``, tested against the grid and
-    folded into a flat int32 index (int64 beyond 2^31 cells). Non-finite points fail the range test and are dropped.
+    """Scatter points into a 0/1 volume: cell ``floor((p - bounds_min) / voxel_size)``; points outside the grid or
+    not finite are dropped.
 
     Args:
         points: ``[B, N, 3]`` points in R.
@@ -76,9 +61,7 @@ def _voxelize(points: Tensor, keep: Tensor, grid: VoxelGridSpec) -> Tensor:
 
 
 def unproject_rgb(rgb: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelGridSpec) -> Tensor:
-    """Gather-unproject an image into a voxel grid.
-
-    Every voxel centre is moved to the camera, projected with ``K`` and bilinearly samples the image.
+    """Gather-unproject an image into a voxel grid: every voxel centre, projected, bilinearly samples the image.
 
     Args:
         rgb: ``[B, C, H, W]`` float image (C = 3 for RGB; any C works).
@@ -120,7 +103,7 @@ def sample_image_at_points(rgb: Tensor, K: Tensor, R_T_cam: Tensor, points: Tens
         raise ValueError(f"rgb must have shape [B, C, H, W], got {tuple(rgb.shape)}")
     if not rgb.is_floating_point():
         raise ValueError(f"rgb must be a floating-point tensor, got {rgb.dtype}")
-    batch, channels, height, width = rgb.shape
+    batch, _, height, width = rgb.shape
     _check_view(K, R_T_cam, batch)
     if points.ndim != 3 or points.shape[0] != batch or points.shape[2] != 3:
         raise ValueError(f"points must have shape [B, N, 3] with B={batch}, got {tuple(points.shape)}")
@@ -152,27 +135,17 @@ def occupancy_from_depth(depth: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelG
         OpenCV camera axes, integer pixel centres, z-depth; a point belongs to the voxel
         ``floor((p - bounds_min) / voxel_size)`` (half-open cells, as ``grid.contains``).
     """
-    _check_grid(grid)
-    if depth.ndim != 3 or not depth.is_floating_point():
-        raise ValueError(f"depth must be a float tensor of shape [B, H, W], got {tuple(depth.shape)} {depth.dtype}")
-    _check_view(K, R_T_cam, depth.shape[0])
+    _check_depth_view(depth, K, R_T_cam, grid)
     points, valid = depth_to_points(depth, K.to(depth.dtype), R_T_cam.to(depth.dtype))
     return _voxelize(points, valid, grid)
 
 
-def free_space_from_depth(
-    depth: Tensor,
-    K: Tensor,
-    R_T_cam: Tensor,
-    grid: VoxelGridSpec,
-    samples_per_ray: int = 32,
-    margin: float | None = None,
-) -> Tensor:
+def free_space_from_depth(depth: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelGridSpec, samples_per_ray: int = 32,
+                          margin: float | None = None) -> Tensor:
     """Voxels seen as empty: those crossed by camera rays before the observed surface.
 
     For each valid pixel with depth ``d``, ``samples_per_ray`` points are placed on its ray at z-depths
-    ``(d - margin) * (s + 0.5) / S``, ``s = 0 .. S-1`` (evenly spaced, strictly between the camera and
-    ``d - margin``; deterministic). They are voxelised, and voxels occupied by
+    ``(d - margin) * (s + 0.5) / S``, ``s = 0 .. S-1``, and voxelised; voxels occupied by
     :func:`occupancy_from_depth` are removed. Pixels with ``d <= margin`` contribute nothing.
 
     Args:
@@ -181,9 +154,8 @@ def free_space_from_depth(
         R_T_cam: ``[B, 4, 4]`` camera-to-R poses.
         grid: the voxel grid in R.
         samples_per_ray: ``S``, number of samples per pixel ray (positive int).
-        margin: z-depth kept clear in front of the surface, in metres (``>= 0``). Defaults to the largest
-            voxel edge, ``max(grid.voxel_size)``, so the voxel just in front of a surface is not
-            marked free from a grazing ray.
+        margin: z-depth kept clear in front of the surface, in metres (``>= 0``); default the largest voxel edge,
+            ``max(grid.voxel_size)``.
 
     Returns:
         ``[B, 1, Z, Y, X]`` float 0/1 (dtype of ``depth``); never 1 where the occupancy is 1.
@@ -191,10 +163,7 @@ def free_space_from_depth(
     Convention:
         OpenCV camera axes, integer pixel centres; depth and margin are camera z-depths (not ray lengths).
     """
-    _check_grid(grid)
-    if depth.ndim != 3 or not depth.is_floating_point():
-        raise ValueError(f"depth must be a float tensor of shape [B, H, W], got {tuple(depth.shape)} {depth.dtype}")
-    _check_view(K, R_T_cam, depth.shape[0])
+    _check_depth_view(depth, K, R_T_cam, grid)
     if isinstance(samples_per_ray, bool) or not isinstance(samples_per_ray, int) or samples_per_ray < 1:
         raise ValueError(f"samples_per_ray must be a positive int, got {samples_per_ray!r}")
     margin = max(grid.voxel_size) if margin is None else float(margin)
@@ -220,9 +189,6 @@ def free_space_from_depth(
 def unproject_rgbd_occupied(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tensor, grid: VoxelGridSpec) -> Tensor:
     """The 3D encoder input ``cat[occ, occ * unproject_rgb(rgb)]``, the image gathered only at occupied voxels.
 
-    A depth map occupies at most ``H * W`` voxels, a small part of a large grid, so this skips most of the projection
-    and sampling.
-
     Args:
         rgb: ``[B, 3, H, W]`` float image; depth ``[B, H, W]`` metric z-depth, 0 = invalid; K ``[B, 3, 3]``;
             R_T_cam ``[B, 4, 4]`` camera-to-R poses; grid: the voxel grid in R.
@@ -243,5 +209,6 @@ def unproject_rgbd_occupied(rgb: Tensor, depth: Tensor, K: Tensor, R_T_cam: Tens
     for b in range(B):
         idx = occ[b, 0].reshape(-1).nonzero().flatten()
         if idx.numel():
-            flat[b, 1:, idx] = sample_image_at_points(rgb[b : b + 1], K[b : b + 1], R_T_cam[b : b + 1], centres[idx][None])[0]
+            view = (rgb[b : b + 1], K[b : b + 1], R_T_cam[b : b + 1])
+            flat[b, 1:, idx] = sample_image_at_points(*view, centres[idx][None])[0]
     return out

@@ -1,12 +1,8 @@
 """Unsupervised classification accuracy of a prototype assignment (the paper's LIN-MATCH, Fig. 3a / Table 5).
 
-Every object is assigned to one of ``K`` prototypes (clusters) and has one of ``C`` true categories. The
-counts of (prototype, category) pairs form a ``K x C`` confusion matrix. The paper's accuracy matches
-prototypes to categories one-to-one (a bipartite matching, Kuhn's Hungarian method) so as to maximise the
-number of correctly labelled objects, and divides that number by the number of objects. With more
-prototypes than categories (the paper uses ``K = 50``) only ``C`` prototypes are matched and the objects of
-every other prototype count as wrong; with fewer prototypes than categories the objects of the ``C - K``
-unmatched categories count as wrong.
+The ``K x C`` confusion matrix counts (prototype, true category) pairs; prototypes are matched to categories one-to-one
+(Hungarian method) to maximise the correctly labelled objects, whose share is the accuracy. Objects of unmatched
+prototypes (``K > C``) or categories (``K < C``) count as wrong.
 """
 
 from __future__ import annotations
@@ -39,9 +35,14 @@ def _check_pair(clusters: Tensor, labels: Tensor, num_clusters: int | None, num_
     _check_ids(clusters, "clusters", num_clusters)
     _check_ids(labels, "labels", num_classes)
     if clusters.shape != labels.shape:
-        raise ValueError(
-            f"clusters and labels must have the same length, got {tuple(clusters.shape)} and {tuple(labels.shape)}"
-        )
+        got = f"got {tuple(clusters.shape)} and {tuple(labels.shape)}"
+        raise ValueError(f"clusters and labels must have the same length, {got}")
+
+
+def _check_positive(**values: Any) -> None:
+    for name, value in values.items():
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
 
 
 def _check_confusion(confusion: Tensor) -> None:
@@ -52,23 +53,22 @@ def _check_confusion(confusion: Tensor) -> None:
         raise ValueError("confusion must hold non-negative counts")
 
 
+class _UnitMetric(Metric):
+    """A metric in ``[0, 1]``, higher is better, not differentiable, whose ``update`` needs no full state."""
+
+    is_differentiable = False
+    higher_is_better = True
+    full_state_update = False
+    plot_lower_bound = 0.0
+    plot_upper_bound = 1.0
+
+
 def cluster_confusion(clusters: Tensor, labels: Tensor, num_clusters: int, num_classes: int) -> Tensor:
-    """Count (assigned prototype, true category) pairs.
-
-    Args:
-        clusters: ``[N]`` integer prototype ids in ``[0, num_clusters)``.
-        labels: ``[N]`` integer category ids in ``[0, num_classes)``.
-        num_clusters: ``K``, the number of prototypes.
-        num_classes: ``C``, the number of categories.
-
-    Returns:
-        ``[K, C]`` int64 counts; entry ``[k, c]`` is how many objects of category ``c`` were assigned to
-        prototype ``k``.
+    """``[K, C]`` int64 counts of (assigned prototype, true category) pairs of ``clusters`` ``[N]`` in ``[0, K)`` and
+    ``labels`` ``[N]`` in ``[0, C)`` (``K = num_clusters``, ``C = num_classes``).
 
     Raises:
         ValueError: if the inputs are not 1-D integer tensors of one length with ids in range.
-
-    Convention: rows are prototypes (clusters), columns are true categories.
     """
     _check_pair(clusters, labels, num_clusters, num_classes)
     flat = clusters.long() * num_classes + labels.long()
@@ -76,24 +76,12 @@ def cluster_confusion(clusters: Tensor, labels: Tensor, num_clusters: int, num_c
 
 
 def matching(confusion: Tensor) -> tuple[Tensor, Tensor]:
-    """One-to-one prototype-to-category assignment maximising the number of matched objects.
-
-    Solves the rectangular linear assignment problem (``scipy.optimize.linear_sum_assignment`` with
-    ``maximize=True``) on the ``K x C`` counts, so exactly ``min(K, C)`` pairs are returned.
-
-    Args:
-        confusion: ``[K, C]`` non-negative counts (rows prototypes, columns categories).
-
-    Returns:
-        ``(cluster_ids, class_ids)``, two ``[min(K, C)]`` int64 tensors: prototype ``cluster_ids[i]`` is
-        named category ``class_ids[i]``. Sorted by prototype id. Prototypes (``K > C``) or categories
-        (``K < C``) left out are unmatched.
+    """One-to-one prototype-to-category assignment of ``confusion`` ``[K, C]`` maximising the matched objects
+    (``scipy.optimize.linear_sum_assignment``, ``maximize=True``): ``(cluster_ids, class_ids)``, two ``[min(K, C)]``
+    int64 tensors sorted by prototype; prototype ``cluster_ids[i]`` is named category ``class_ids[i]``.
 
     Raises:
         ValueError: if ``confusion`` is not a 2-D matrix of non-negative counts.
-
-    Convention: rows are prototypes, columns are categories; ties between equally good assignments are
-    broken by scipy's solver (deterministic).
     """
     _check_confusion(confusion)
     rows, cols = linear_sum_assignment(confusion.detach().cpu().double().numpy(), maximize=True)
@@ -101,22 +89,9 @@ def matching(confusion: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def hungarian_accuracy(confusion: Tensor) -> Tensor:
-    """The paper's unsupervised classification accuracy (LIN-MATCH): Hungarian-matched count / N.
-
-    Args:
-        confusion: ``[K, C]`` non-negative counts (rows prototypes, columns categories), ``K != C``
-            allowed.
-
-    Returns:
-        Scalar float32 tensor in ``[0, 1]``: the number of objects whose prototype is matched to their own
-        category under :func:`matching`, divided by the total count ``N``; ``nan`` when ``N == 0``.
-
-    Raises:
-        ValueError: if ``confusion`` is not a 2-D matrix of non-negative counts.
-
-    Convention: one-to-one matching; with ``K > C`` the objects of the ``K - C`` unmatched prototypes count
-    as wrong, with ``K < C`` the objects of the ``C - K`` unmatched categories count as wrong.
-    """
+    """The paper's unsupervised classification accuracy (LIN-MATCH, scalar float32; ``nan`` without objects): the
+    share of objects matched to their own category by :func:`matching` of ``confusion`` ``[K, C]`` (``K != C``
+    allowed). ``ValueError`` if ``confusion`` is not a 2-D matrix of non-negative counts."""
     _check_confusion(confusion)
     total = float(confusion.sum())
     if total == 0:
@@ -126,53 +101,29 @@ def hungarian_accuracy(confusion: Tensor) -> Tensor:
     return torch.tensor(matched / total, dtype=torch.float32, device=confusion.device)
 
 
-class HungarianAccuracy(Metric):
-    """Hungarian-matched unsupervised classification accuracy over all objects seen (the paper's LIN-MATCH).
+class HungarianAccuracy(_UnitMetric):
+    """Hungarian-matched unsupervised classification accuracy over all objects seen (the paper's LIN-MATCH): the state
+    is the ``[num_clusters, num_classes]`` confusion matrix (:func:`cluster_confusion`), summed over batches and
+    processes.
 
-    The state is the ``[K, C]`` confusion matrix of (assigned prototype, true category) counts, summed over
-    batches and, under DDP, over processes (``dist_reduce_fx="sum"``: cheap to sync).
-
-    Args:
-        num_clusters: ``K``, the number of prototypes.
-        num_classes: ``C``, the number of true categories.
-        **kwargs: passed to :class:`torchmetrics.Metric`.
-
-    Convention: ``update(clusters [N] long, labels [N] long)`` with prototype ids in ``[0, K)`` and category
-    ids in ``[0, C)``; ``compute()`` returns :func:`hungarian_accuracy` of the summed confusion matrix
-    (``nan`` before any object). Each object must be fed exactly once over all processes: a
-    ``DistributedSampler`` that pads with repeated samples counts those twice.
+    Convention: ``update(clusters [N] long, labels [N] long)``; ``compute()`` returns :func:`hungarian_accuracy`
+    (``nan`` before any object). Each object must be fed exactly once.
     """
-
-    is_differentiable = False
-    higher_is_better = True
-    full_state_update = False
-    plot_lower_bound = 0.0
-    plot_upper_bound = 1.0
 
     confusion: Tensor
 
     def __init__(self, num_clusters: int, num_classes: int, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        for name, value in (("num_clusters", num_clusters), ("num_classes", num_classes)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        self.num_clusters = num_clusters
-        self.num_classes = num_classes
-        self.add_state(
-            "confusion", default=torch.zeros(num_clusters, num_classes, dtype=torch.long), dist_reduce_fx="sum"
-        )
+        _check_positive(num_clusters=num_clusters, num_classes=num_classes)
+        self.num_clusters, self.num_classes = num_clusters, num_classes
+        confusion = torch.zeros(num_clusters, num_classes, dtype=torch.long)
+        self.add_state("confusion", default=confusion, dist_reduce_fx="sum")
 
     def update(self, clusters: Tensor, labels: Tensor) -> None:
-        """Add a batch of objects.
-
-        Args:
-            clusters: ``[N]`` integer prototype ids in ``[0, num_clusters)``.
-            labels: ``[N]`` integer category ids in ``[0, num_classes)``.
-        """
-        self.confusion += cluster_confusion(
-            clusters.detach().to(self.confusion.device), labels.detach().to(self.confusion.device),
-            self.num_clusters, self.num_classes,
-        )
+        """Add a batch of objects: ``clusters`` ``[N]`` in ``[0, num_clusters)``, ``labels`` ``[N]`` in
+        ``[0, num_classes)``."""
+        dev = self.confusion.device
+        self.confusion += cluster_confusion(clusters.detach().to(dev), labels.detach().to(dev), *self.confusion.shape)
 
     def compute(self) -> Tensor:
         """Hungarian-matched accuracy of all objects seen (scalar tensor)."""

@@ -1,10 +1,8 @@
 """The 2D encoder-decoder of 2.5DQ-Nets: UNet3D's layer list with 2D convolutions, and its autoencoding head.
 
-The supplement's 2.5DQ-Nets has "the exact architecture as our 3DQ-Nets model, except it uses 2D CNNs
-instead of 3D", trained by "autoencoding the same RGB-D view". :class:`UNet2D` is :class:`~threedq.nets.UNet3D`
-with ``Conv2d`` / ``ConvTranspose2d`` (4-2-64, 4-2-128, 4-2-256, 4-0.5-128, 4-0.5-64, 1-1-F, skip
-concatenations, per-pixel L2-normalised output at half resolution); :class:`RGBDDecoder2D` maps those features
-back to the full-resolution RGB-D view.
+:class:`UNet2D` is :class:`~threedq.nets.UNet3D` with ``Conv2d`` / ``ConvTranspose2d`` (4-2-64, 4-2-128, 4-2-256,
+4-0.5-128, 4-0.5-64, 1-1-F, skip concatenations, per-pixel L2-normalised output at half resolution);
+:class:`RGBDDecoder2D` maps those features back to the full-resolution RGB-D view.
 
 Convention:
     Images ``[B, C, H, W]`` (row y down, column x right); the feature map at half resolution covers the same
@@ -14,26 +12,14 @@ Convention:
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
+
+from .unet3d import _block, _UNet
 
 __all__ = ["RGBDDecoder2D", "UNet2D"]
 
-#: Spatial sizes of the input must be divisible by this (three stride-2 convolutions).
-DOWNSAMPLE = 8
 
-
-def _down(in_channels: int, out_channels: int, negative_slope: float) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(in_channels, out_channels, 4, 2, 1, bias=False), nn.BatchNorm2d(out_channels),
-                         nn.LeakyReLU(negative_slope, inplace=True))
-
-
-def _up(in_channels: int, out_channels: int, negative_slope: float) -> nn.Sequential:
-    return nn.Sequential(nn.ConvTranspose2d(in_channels, out_channels, 4, 2, 1, bias=False),
-                         nn.BatchNorm2d(out_channels), nn.LeakyReLU(negative_slope, inplace=True))
-
-
-class UNet2D(nn.Module):
+class UNet2D(_UNet):
     """2D encoder-decoder over ``cat[rgb, depth]`` producing a per-pixel feature map at half resolution.
 
     Args:
@@ -52,36 +38,7 @@ class UNet2D(nn.Module):
 
     def __init__(self, in_channels: int = 4, out_channels: int = 32, channels: tuple[int, int, int] = (64, 128, 256),
                  negative_slope: float = 0.01, normalize: bool = True) -> None:
-        super().__init__()
-        if len(channels) != 3 or any(int(c) < 1 for c in channels):
-            raise ValueError(f"channels must be 3 positive ints, got {channels!r}")
-        if in_channels < 1 or out_channels < 1:
-            raise ValueError(f"in_channels and out_channels must be positive, got {in_channels}, {out_channels}")
-        c1, c2, c3 = (int(c) for c in channels)
-        self.in_channels, self.out_channels, self.normalize = in_channels, out_channels, normalize
-        self.enc1 = _down(in_channels, c1, negative_slope)
-        self.enc2 = _down(c1, c2, negative_slope)
-        self.enc3 = _down(c2, c3, negative_slope)
-        self.dec1 = _up(c3, c2, negative_slope)
-        self.dec2 = _up(2 * c2, c1, negative_slope)
-        self.head = nn.Conv2d(2 * c1, out_channels, 1)
-
-    def forward(self, x: Tensor) -> Tensor:
-        """``[B, in_channels, H, W]`` -> ``[B, out_channels, H/2, W/2]`` (unit norm per pixel when ``normalize``)."""
-        if x.ndim != 4 or x.shape[1] != self.in_channels:
-            raise ValueError(f"x must have shape [B, {self.in_channels}, H, W], got {tuple(x.shape)}")
-        if any(s <= 0 or s % DOWNSAMPLE for s in x.shape[2:]):
-            raise ValueError(f"the spatial size (H, W) = {tuple(x.shape[2:])} of x must be positive and divisible by "
-                             f"{DOWNSAMPLE}")
-        e1 = self.enc1(x)
-        e2 = self.enc2(e1)
-        e3 = self.enc3(e2)
-        d1 = torch.cat((self.dec1(e3), e2), dim=1)
-        d2 = torch.cat((self.dec2(d1), e1), dim=1)
-        out = self.head(d2)
-        if self.normalize:
-            out = F.normalize(out.float(), p=2.0, dim=1, eps=1e-12).to(out.dtype)
-        return out
+        super().__init__(2, in_channels, out_channels, channels, negative_slope, normalize, 2)
 
 
 class RGBDDecoder2D(nn.Module):
@@ -95,9 +52,9 @@ class RGBDDecoder2D(nn.Module):
 
     def __init__(self, in_channels: int = 32, hidden: int = 64, negative_slope: float = 0.01) -> None:
         super().__init__()
-        self.up = _up(in_channels, hidden, negative_slope)
-        self.conv = nn.Sequential(nn.Conv2d(hidden, hidden, 3, 1, 1, bias=False), nn.BatchNorm2d(hidden),
-                                  nn.LeakyReLU(negative_slope, inplace=True))
+        self.up = _block(nn.ConvTranspose2d, nn.BatchNorm2d, in_channels, hidden, negative_slope)
+        conv = nn.Conv2d(hidden, hidden, 3, 1, 1, bias=False)
+        self.conv = nn.Sequential(conv, nn.BatchNorm2d(hidden), nn.LeakyReLU(negative_slope, inplace=True))
         self.out = nn.Conv2d(hidden, 4, 1)
 
     def forward(self, feats: Tensor) -> tuple[Tensor, Tensor]:

@@ -13,15 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = [
-    "OccupancyHead",
-    "ViewDecoder",
-    "balanced_l1",
-    "depth_max_pool",
-    "balanced_occupancy_loss",
-    "masked_l1",
-    "occupancy_balanced_accuracy",
-]
+__all__ = ["OccupancyHead", "ViewDecoder", "balanced_l1", "balanced_occupancy_loss", "depth_max_pool", "masked_l1",
+           "occupancy_balanced_accuracy"]
 
 
 def depth_max_pool(frustum: Tensor, pool: int) -> Tensor:
@@ -29,8 +22,7 @@ def depth_max_pool(frustum: Tensor, pool: int) -> Tensor:
 
     Forward and gradient are those of ``F.max_pool3d(frustum, (pool, 1, 1), (pool, 1, 1))`` bit for bit (the first
     maximum of a group takes its gradient; NaN counts as the maximum, and of a group with several NaN another one may
-    take it), as a reduction over a view of the planes, which is faster on a CPU (``docs/benchmarks.md``, "The view
-    decoder's depth max-pool").
+    take it), as a reduction over a view of the planes.
 
     Args:
         frustum: ``[B, C, D, h, w]``, any memory format.
@@ -70,76 +62,41 @@ class ViewDecoder(nn.Module):
 
     Convention:
         Depth planes ordered near to far; the output is compared with ``rgb - 0.5`` (RGB in ``[0, 1]``).
-
-    Example:
-        >>> ViewDecoder()(torch.zeros(2, 32, 32, 8, 8)).shape
-        torch.Size([2, 3, 8, 8])
     """
 
-    def __init__(
-        self,
-        in_channels: int = 32,
-        num_planes: int = 32,
-        pool: int = 8,
-        hidden: int = 32,
-        out_channels: int = 3,
-    ) -> None:
+    def __init__(self, in_channels: int = 32, num_planes: int = 32, pool: int = 8, hidden: int = 32,
+                 out_channels: int = 3) -> None:
         super().__init__()
         if min(in_channels, num_planes, pool, hidden, out_channels) < 1:
             raise ValueError("all ViewDecoder sizes must be positive ints")
         if num_planes % pool:
             raise ValueError(f"num_planes ({num_planes}) must be divisible by pool ({pool})")
-        self.in_channels = in_channels
-        self.num_planes = num_planes
-        self.pool = pool
-        self.hidden = hidden
+        self.in_channels, self.num_planes, self.pool, self.hidden = in_channels, num_planes, pool, hidden
         self.conv3d = nn.Conv3d(in_channels, hidden, kernel_size=3, padding=1)
         self.conv2d = nn.Conv2d(hidden * (num_planes // pool), hidden, kernel_size=3, padding=1)
         self.to_rgb = nn.Conv2d(hidden, out_channels, kernel_size=1)
         self.act = nn.LeakyReLU(0.01, inplace=True)
 
     def forward(self, frustum: Tensor) -> Tensor:
-        """Decode an image from frustum features.
+        """Decode ``[B, in_channels, num_planes, h, w]`` frustum features to ``[B, out_channels, h, w]``.
 
-        Args:
-            frustum: ``[B, in_channels, num_planes, h, w]`` frustum-aligned features.
-
-        Returns:
-            ``[B, out_channels, h, w]`` prediction in ``[-0.5, 0.5]``.
-
-        Raises:
-            ValueError: if ``frustum`` does not have shape ``[B, in_channels, num_planes, h, w]``.
-
-        Convention:
-            Depth planes near to far; output is ``rgb - 0.5``.
+        Convention: depth planes near to far; output is ``rgb - 0.5``.
         """
         if frustum.ndim != 5 or frustum.shape[1:3] != (self.in_channels, self.num_planes):
-            raise ValueError(
-                f"frustum must have shape [B, {self.in_channels}, {self.num_planes}, h, w], got {tuple(frustum.shape)}"
-            )
+            raise ValueError(f"frustum must have shape [B, {self.in_channels}, {self.num_planes}, h, w], got "
+                             f"{tuple(frustum.shape)}")
         return self.decode_pooled(depth_max_pool(frustum, self.pool))
 
     def decode_pooled(self, pooled: Tensor) -> Tensor:
-        """Decode an image from the frustum's depth max, what :meth:`forward` computes after its pooling.
+        """:meth:`forward` after its pooling: ``pooled`` ``[B, in_channels, num_planes / pool, h, w]`` is
+        :func:`depth_max_pool` of a frustum, or :func:`threedq.geometry.frustum_depth_max` from the feature grid.
 
-        Args:
-            pooled: ``[B, in_channels, num_planes / pool, h, w]``, :func:`depth_max_pool` of a frustum, or
-                :func:`threedq.geometry.frustum_depth_max` straight from the feature grid.
-
-        Returns:
-            ``[B, out_channels, h, w]`` prediction in ``[-0.5, 0.5]``.
-
-        Raises:
-            ValueError: if ``pooled`` does not have shape ``[B, in_channels, num_planes / pool, h, w]``.
-
-        Convention:
-            Depth groups near to far; output is ``rgb - 0.5``.
+        Convention: depth groups near to far; output is ``rgb - 0.5``.
         """
         groups = self.num_planes // self.pool
         if pooled.ndim != 5 or pooled.shape[1:3] != (self.in_channels, groups):
-            raise ValueError(
-                f"pooled frustum must have shape [B, {self.in_channels}, {groups}, h, w], got {tuple(pooled.shape)}"
-            )
+            raise ValueError(f"pooled frustum must have shape [B, {self.in_channels}, {groups}, h, w], got "
+                             f"{tuple(pooled.shape)}")
         # the first 3D conv in float32 even under autocast: its bf16 weight gradient comes out NaN on oneDNN CPU
         with torch.autocast(pooled.device.type, enabled=False):
             x = self.act(self.conv3d(pooled.float()))  # [B, hidden, D / pool, h, w]
@@ -160,10 +117,6 @@ class OccupancyHead(nn.Module):
 
     Convention:
         ``[B, C, Z, Y, X]`` volumes in R; positive logit = occupied.
-
-    Example:
-        >>> OccupancyHead(32)(torch.zeros(1, 32, 4, 6, 8)).shape
-        torch.Size([1, 1, 4, 6, 8])
     """
 
     def __init__(self, in_channels: int = 32) -> None:
@@ -172,19 +125,9 @@ class OccupancyHead(nn.Module):
         self.conv = nn.Conv3d(in_channels, 1, kernel_size=1)
 
     def forward(self, features: Tensor) -> Tensor:
-        """Occupancy logits.
+        """Occupancy logits ``[B, 1, Z, Y, X]`` of a ``[B, in_channels, Z, Y, X]`` feature volume.
 
-        Args:
-            features: ``[B, C, Z, Y, X]`` feature volume.
-
-        Returns:
-            ``[B, 1, Z, Y, X]`` logits.
-
-        Raises:
-            ValueError: if ``features`` is not ``[B, in_channels, Z, Y, X]``.
-
-        Convention:
-            Positive logit = occupied.
+        Convention: positive logit = occupied.
         """
         if features.ndim != 5 or features.shape[1] != self.in_channels:
             raise ValueError(f"features must have shape [B, {self.in_channels}, Z, Y, X], got {tuple(features.shape)}")
@@ -206,19 +149,17 @@ def masked_l1(pred: Tensor, target: Tensor, valid: Tensor) -> Tensor:
         valid: ``[B, 1, h, w]`` 0/1 (bool or float) mask of pixels to use.
 
     Returns:
-        Scalar (float32 at least): ``sum(|pred - target| * valid) / (E * sum(valid))``, i.e. the mean over valid
-        pixels of the channel-mean L1; 0 (with zero gradient) if no pixel is valid.
+        Scalar (float32 at least): ``sum(|pred - target| * valid) / (E * sum(valid))``; 0 (with zero gradient) if no
+        pixel is valid.
 
     Raises:
         ValueError: on shape mismatch.
 
-    Convention:
-        Images ``[B, E, h, w]``; the mask broadcasts over channels.
+    Convention: images ``[B, E, h, w]``; the mask broadcasts over channels.
     """
     if pred.shape != target.shape or pred.ndim != 4:
-        raise ValueError(
-            f"pred and target must have the same shape [B, E, h, w], got {tuple(pred.shape)} and {tuple(target.shape)}"
-        )
+        raise ValueError(f"pred and target must have the same shape [B, E, h, w], got {tuple(pred.shape)} and "
+                         f"{tuple(target.shape)}")
     _check_same_spatial("valid", valid, pred)
     dtype = torch.promote_types(pred.dtype, torch.float32)
     weight = valid.to(dtype)
@@ -230,10 +171,6 @@ def masked_l1(pred: Tensor, target: Tensor, valid: Tensor) -> Tensor:
 def balanced_l1(pred: Tensor, target: Tensor, valid: Tensor, foreground: Tensor) -> Tensor:
     """Foreground/background-balanced L1: the mean over valid foreground pixels plus the mean over the rest.
 
-    The RGB counterpart of :func:`balanced_occupancy_loss`. In a tabletop view most valid pixels are ground, so a
-    plain mean lets the ground's colour dominate the loss and the objects' colours are learned last; balancing
-    gives the objects half of it whatever their size in the image.
-
     Args:
         pred: ``[B, E, h, w]`` prediction.
         target: ``[B, E, h, w]`` target.
@@ -241,15 +178,13 @@ def balanced_l1(pred: Tensor, target: Tensor, valid: Tensor, foreground: Tensor)
         foreground: ``[B, 1, h, w]`` 0/1 mask of foreground pixels (only its valid part counts).
 
     Returns:
-        Scalar: ``masked_l1(pred, target, valid * fg) + masked_l1(pred, target, valid * (1 - fg))``; a set
-        with no pixel contributes 0, so with no foreground (or no background) it is the plain
-        :func:`masked_l1`.
+        Scalar: ``masked_l1(pred, target, valid * fg) + masked_l1(pred, target, valid * (1 - fg))`` (an empty set
+        contributes 0).
 
     Raises:
         ValueError: on shape mismatch.
 
-    Convention:
-        Images ``[B, E, h, w]``; masks broadcast over channels; the means pool the whole minibatch.
+    Convention: images ``[B, E, h, w]``; masks broadcast over channels; the means pool the whole minibatch.
     """
     _check_same_spatial("foreground", foreground, pred)
     _check_same_spatial("valid", valid, pred)
@@ -266,9 +201,8 @@ def balanced_occupancy_loss(logits: Tensor, occupied: Tensor, free: Tensor) -> T
         free: ``[B, 1, ...]`` 0/1 mask of voxels labelled free (disjoint from ``occupied``).
 
     Returns:
-        Scalar (float32 at least): ``mean_{occupied} softplus(-logit) + mean_{free} softplus(logit)``, the two
-        class means of ``log(1 + exp(-label * logit))`` with ``label = +-1``; each term is 0 when its set is empty.
-        All-zero logits give ``2 ln 2`` when both sets are non-empty.
+        Scalar (float32 at least): ``mean_{occupied} softplus(-logit) + mean_{free} softplus(logit)``; each term is
+        0 when its set is empty.
 
     Raises:
         ValueError: on shape mismatch.
@@ -281,9 +215,7 @@ def balanced_occupancy_loss(logits: Tensor, occupied: Tensor, free: Tensor) -> T
     if logits.shape[1] != 1:
         raise ValueError(f"logits must have shape [B, 1, ...], got {tuple(logits.shape)}")
     dtype = torch.promote_types(logits.dtype, torch.float32)
-    x = logits.to(dtype)
-    occ = occupied.to(dtype)
-    fre = free.to(dtype)
+    x, occ, fre = logits.to(dtype), occupied.to(dtype), free.to(dtype)
     pos = (F.softplus(-x) * occ).sum() / occ.sum().clamp_min(1.0)
     neg = (F.softplus(x) * fre).sum() / fre.sum().clamp_min(1.0)
     return pos + neg
@@ -310,9 +242,7 @@ def occupancy_balanced_accuracy(logits: Tensor, occupied: Tensor, free: Tensor) 
     """
     _check_same_spatial("occupied", occupied, logits)
     _check_same_spatial("free", free, logits)
-    pred = logits > 0
-    occ = occupied.bool()
-    fre = free.bool()
+    pred, occ, fre = logits > 0, occupied.bool(), free.bool()
     rates = []
     if occ.any():
         rates.append((pred & occ).sum().float() / occ.sum().float())

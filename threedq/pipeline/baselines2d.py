@@ -1,20 +1,12 @@
 """The 2D baselines of the paper's tables, measured on the same test objects as threedq (``threedq eval``).
 
-* 2.5DQ-Nets (supplement; Tables 1 and 4, Fig. 3a): a trained :class:`~threedq.stages.q25d.Q25D` checkpoint
-  (``--q25d``) crops every object out of its 2D feature map; a K-prototype bank is fitted on the training
-  split's crops by :func:`~threedq.quantization.prototypes.fit_prototype_bank` (the same EM as every bank here;
-  one-slice crops make its yaw search an in-plane search) and the test
-  crops are scored by :func:`~threedq.pipeline.evaluation.quantization_metrics` (Hungarian, few-shot).
-* ImageNet ResNet-18 (Tables 1 and 2): torchvision ResNet-18 weights from a file (``--weights``), ``layer4``
-  features average-pooled in each projected GT box (:func:`~threedq.baselines.imagenet.object_features`); or, where
-  no ResNet-18 file can be had, the ImageNet MobileNetV2 stand-in (its 1280-channel last stage, pooled alike; the
-  file kind is told from its keys by :func:`~threedq.baselines.backbone.load_backbone` and every row names it);
-  retrieval precision@10 by cosine without rotation
-  (:func:`~threedq.metrics.retrieval.retrieval_precision_at_k`), few-shot "ResNetRet"
-  (:func:`~threedq.metrics.nearest_shot_accuracy`) and "ResNetClass" (:func:`~threedq.metrics.linear_probe_accuracy`).
+* 2.5DQ-Nets (Tables 1 and 4, Fig. 3a): a :class:`~threedq.stages.q25d.Q25D` checkpoint (``--q25d``) crops every
+  object out of its 2D feature map; a bank fitted on the training crops (one-slice crops: an in-plane search) scores
+  the test crops (:func:`~threedq.pipeline.evaluation.quantization_metrics`).
+* ImageNet ResNet-18 (Tables 1 and 2; ``--weights``) or the MobileNetV2 stand-in: features pooled in each projected
+  GT box; retrieval precision@10 by cosine without rotation, few-shot "ResNetRet" and "ResNetClass".
 
-Objects are taken in loader order from the same deterministic loaders as the 3D crops, so the label lists
-must agree with threedq's (checked by the caller).
+Objects come in the order of the same deterministic loaders as the 3D crops (the caller checks the labels agree).
 """
 
 from __future__ import annotations
@@ -37,17 +29,8 @@ from threedq.quantization.prototypes import fit_prototype_bank
 from threedq.stages.checkpoint import checkpoint_hparams, checkpoint_stage, checkpoint_state
 from threedq.stages.q25d import Q25D
 
-__all__ = [
-    "Q25D_HOWTO",
-    "RESNET_HOWTO",
-    "collect_q25d_crops",
-    "backbone_fields",
-    "collect_resnet_features",
-    "load_q25d",
-    "q25d_results",
-    "resnet_paper_results",
-    "resnet_results",
-]
+__all__ = ["Q25D_HOWTO", "RESNET_HOWTO", "collect_q25d_crops", "backbone_fields", "collect_resnet_features",
+           "load_q25d", "q25d_results", "resnet_paper_results", "resnet_results"]
 
 #: What the tables say when the 2.5DQ-Nets rows were not computed.
 Q25D_HOWTO = ("not run: train it with `threedq fit --config stages/q25d.yaml` (same data), then add "
@@ -89,15 +72,14 @@ def collect_q25d_crops(model: Q25D, loader: torch.utils.data.DataLoader, progres
     for batch in tqdm(loader, desc="2.5DQ crops", disable=not progress, leave=False):
         c = model.object_crops({k: v.to(model.device) if isinstance(v, Tensor) else v for k, v in batch.items()})
         out["features"].append(c["features"].unsqueeze(2).cpu())
-        out["labels"].append(c["labels"].cpu())
-        out["visible"].append(c["visible"].cpu())
+        for k in ("labels", "visible"):
+            out[k].append(c[k].cpu())
     return {k: torch.cat(v) for k, v in out.items()}
 
 
 @torch.no_grad()
-def collect_resnet_features(
-    net: torch.nn.Module, loader: torch.utils.data.DataLoader, progress: bool = True, view: int = 0,
-) -> dict[str, Tensor]:
+def collect_resnet_features(net: torch.nn.Module, loader: torch.utils.data.DataLoader, progress: bool = True,
+                            view: int = 0) -> dict[str, Tensor]:
     """ImageNet box-pooled features of every GT object of ``loader`` in one view.
 
     Args:
@@ -105,8 +87,7 @@ def collect_resnet_features(
             (:func:`~threedq.baselines.backbone.load_backbone`).
         loader: SceneDataset batches (``rgb`` ``[B, V, 3, H, W]``, ``boxes`` ``[B, M, 7]``, ``K``, ``R_T_cam``,
             ``box_mask``, ``categories``).
-        view: which view's image (0: the input view; ``num_input_views`` with ``split_loader(gallery=True)``: the
-            paper retrieval protocol's gallery view).
+        view: which view's image (0: the input view; ``num_input_views``: the paper protocol's gallery view).
 
     Returns:
         ``features`` ``[N, C]`` (C = 512 ResNet-18, 1280 MobileNetV2), ``labels`` ``[N]``, ``visible`` ``[N]`` bool,
@@ -133,10 +114,9 @@ def collect_resnet_features(
     return {k: torch.cat(v) for k, v in out.items()}
 
 
-def q25d_results(
-    train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int, num_classes: int,
-    curve_k: list[int] | None = None, em_iterations: int = 10, seed: int = 0, shots: int = 2,
-) -> tuple[dict[str, Any], dict[str, float]]:
+def q25d_results(train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int, num_classes: int,
+                 curve_k: list[int] | None = None, em_iterations: int = 10, seed: int = 0,
+                 shots: int = 2) -> tuple[dict[str, Any], dict[str, float]]:
     """Fit 2D banks on ``train`` crops (K, and each K of ``curve_k``), score ``test`` crops.
 
     Returns:
@@ -167,18 +147,15 @@ def resnet_results(test: dict[str, Tensor], k: int = 10, shots: int = 2, seed: i
         raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
     f = torch.nn.functional.normalize(feats, dim=1)
     kk = min(k, n - 1)
-    return {
-        "precision_at_k": float(retrieval_precision_at_k(f @ f.T, labels, labels, kk, exclude_diagonal=True)),
-        "k": kk, "k_requested": k, "num_objects": n,
-        "ret_acc": float(nearest_shot_accuracy(feats, labels, shots, seed)["accuracy"]),
-        "class_acc": float(linear_probe_accuracy(feats, labels, shots, seed)["accuracy"]),
-        "not_visible": int((~test["visible"]).sum()),
-    }
+    return {"precision_at_k": float(retrieval_precision_at_k(f @ f.T, labels, labels, kk, exclude_diagonal=True)),
+            "k": kk, "k_requested": k, "num_objects": n,
+            "ret_acc": float(nearest_shot_accuracy(feats, labels, shots, seed)["accuracy"]),
+            "class_acc": float(linear_probe_accuracy(feats, labels, shots, seed)["accuracy"]),
+            "not_visible": int((~test["visible"]).sum())}
 
 
 def resnet_paper_results(query: dict[str, Tensor], gallery: dict[str, Tensor], k: int = 10) -> dict[str, float]:
-    """The paper retrieval protocol on ImageNet features: queries from the input view, the gallery the same objects
-    from the second view (:func:`collect_resnet_features` with ``view=num_input_views``), twin counted.
+    """The paper retrieval protocol on ImageNet features: the gallery the same objects from the second view.
 
     Args:
         query, gallery: ``features`` ``[N, C]`` and ``labels`` ``[N]``, row ``i`` of both the same object.
@@ -196,14 +173,12 @@ def resnet_paper_results(query: dict[str, Tensor], gallery: dict[str, Tensor], k
     n = labels.shape[0]
     if n < 2:
         raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
-    fq = torch.nn.functional.normalize(query["features"].double(), dim=1)
-    fg = torch.nn.functional.normalize(gallery["features"].double(), dim=1)
+    fq, fg = (torch.nn.functional.normalize(d["features"].double(), dim=1) for d in (query, gallery))
     sim = fq @ fg.T
     return {"paper_precision_at_k": float(retrieval_precision_at_k(sim, labels, labels, min(k, n - 1))),
             "same_object_top1": float(same_object_top1(sim))}
 
 
 def load_resnet(weights: str | Path) -> torch.nn.Module:
-    """The ImageNet backbone of a ``--weights`` file: torchvision ResNet-18 or the MobileNetV2 stand-in, told from its
-    keys (:func:`~threedq.baselines.backbone.load_backbone`; one-line errors naming the file and the key)."""
+    """The ImageNet backbone of a ``--weights`` file (:func:`~threedq.baselines.backbone.load_backbone`)."""
     return load_backbone(weights)

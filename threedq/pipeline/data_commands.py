@@ -1,8 +1,7 @@
-"""``threedq data generate|show|check|import|index``: the embedded dataset generator, its contact sheet, a
-validator, the importer of on-disk capture formats and the index writer of a folder of canonical scenes.
+"""``threedq data generate|degrade|show|check|import|index``: the embedded dataset generator, sensor-like copies, a
+contact sheet, a validator, the importer of on-disk capture formats and the index writer of a folder of scenes.
 
-A bad option is refused with one line naming it (:class:`~threedq.errors.InputError`), e.g.
-``--scenes: expected an int >= 1, got 0`` or ``--out data/x: exists and is not a folder``.
+A bad option is refused with one line naming it (:class:`~threedq.errors.InputError`).
 """
 
 from __future__ import annotations
@@ -52,15 +51,18 @@ def _option_error(e: ValueError, names: dict[str, str]) -> InputError:
     opts = ", ".join(f"--{names.get(n.strip(), n.strip())}" for n in m.group(1).split(","))
     return InputError(f"{opts}: {m.group(2)}")
 
+
 FormatName = Literal[tuple(FORMATS)]  # type: ignore[valid-type]
 
 
 def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
-    gen = ArgumentParser(description="Generate the embedded CLEVR-veggie-like dataset (offline, deterministic, resumable).")
+    gen = ArgumentParser(description="Generate the embedded CLEVR-veggie-like dataset (offline, deterministic, "
+                         "resumable).")
     gen.add_argument("--out", required=True, help="output dataset folder")
     gen.add_argument("--scenes", type=int, default=300, help="number of scenes over all generated splits")
     gen.add_argument("--seed", type=int, default=0, help="seed of the train/val scenes")
-    gen.add_argument("--test_seed", type=int | None, default=None, help="seed of the test scenes (default: derived from --seed)")
+    gen.add_argument("--test_seed", type=int | None, default=None,
+                     help="seed of the test scenes (default: derived from --seed)")
     gen.add_argument("--split", type=list[str], default=["train", "val", "test"], help="splits to generate")
     gen.add_argument("--split_fractions", type=tuple[float, float, float], default=(0.8, 0.1, 0.1))
     gen.add_argument("--image_size", type=tuple[int, int], default=(128, 128), help="[H, W] in pixels")
@@ -68,13 +70,13 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     gen.add_argument("--min_objects", type=int, default=1)
     gen.add_argument("--max_objects", type=int, default=3)
     gen.add_argument("--categories", type=list[str] | None, default=None, help="category names to use (default all 41)")
-    # the scene knobs of GeneratorConfig (defaults: the embedded data's), to make data unlike it
     d = GeneratorConfig()
     gen.add_argument("--color_mode", type=Literal["category", "random"], default="category",
                      help="'category': catalogue colours; 'random': a random palette colour per instance (shape-only)")
     gen.add_argument("--object_size", type=float, default=d.object_size,
                      help="largest extent of an object before its random scale, metres")
-    gen.add_argument("--scale_range", type=tuple[float, float], default=d.scale_range, help="random object scale (low, high)")
+    gen.add_argument("--scale_range", type=tuple[float, float], default=d.scale_range,
+                     help="random object scale (low, high)")
     gen.add_argument("--placement_radius", type=float, default=d.placement_radius,
                      help="object centres lie within this distance of the origin, metres")
     gen.add_argument("--distance_range", type=tuple[float, float], default=d.distance_range,
@@ -126,7 +128,8 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     imp.add_argument("--max_depth", type=float, default=10.0, help="depth beyond this many metres becomes 0")
     imp.add_argument("--intrinsics", type=tuple[float, float, float, float] | None, default=None,
                      help="fx fy cx cy (tum: overrides the sensor's constants)")
-    imp.add_argument("--depth_units_per_metre", type=float | None, default=None, help="overrides the format's depth scale")
+    imp.add_argument("--depth_units_per_metre", type=float | None, default=None,
+                     help="overrides the format's depth scale")
     imp.add_argument("--max_dt", type=float | None, default=None, help="tum: timestamp association tolerance, seconds")
     imp.add_argument("--progress", type=bool, default=True)
 
@@ -137,14 +140,11 @@ def data_parsers() -> list[tuple[str, ArgumentParser, str]]:
     idx.add_argument("--default_split", type=Literal["train", "val", "test"], default="train")
     idx.add_argument("--margin", type=float, default=0.05, help="metres around the bounds taken from the data")
 
-    return [
-        ("generate", gen, "generate the embedded dataset"),
-        ("degrade", deg, "write a copy of a dataset with sensor-like capture conditions"),
-        ("show", show, "draw a contact sheet PNG"),
-        ("check", check, "validate a dataset folder"),
-        ("import", imp, "import captures of an on-disk RGB-D format"),
-        ("index", idx, "write index.json for a folder of canonical scenes"),
-    ]
+    return [("generate", gen, "generate the embedded dataset"),
+            ("degrade", deg, "write a copy of a dataset with sensor-like capture conditions"),
+            ("show", show, "draw a contact sheet PNG"), ("check", check, "validate a dataset folder"),
+            ("import", imp, "import captures of an on-disk RGB-D format"),
+            ("index", idx, "write index.json for a folder of canonical scenes")]
 
 
 def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
@@ -154,45 +154,30 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
         out = output_folder("--out", args.out)
         try:
             config = GeneratorConfig(
-                image_size=tuple(args.image_size),
-                num_views=args.views,
-                min_objects=args.min_objects,
-                max_objects=args.max_objects,
-                categories=tuple(args.categories) if args.categories else None,
-                object_size=args.object_size,
-                color_mode=args.color_mode,
-                scale_range=tuple(args.scale_range),
-                placement_radius=args.placement_radius,
-                distance_range=tuple(args.distance_range),
-                fov_deg=args.fov_deg,
-                elevation_range_deg=tuple(args.elevation_range_deg),
+                image_size=tuple(args.image_size), num_views=args.views, min_objects=args.min_objects,
+                max_objects=args.max_objects, categories=tuple(args.categories) if args.categories else None,
+                object_size=args.object_size, color_mode=args.color_mode, scale_range=tuple(args.scale_range),
+                placement_radius=args.placement_radius, distance_range=tuple(args.distance_range),
+                fov_deg=args.fov_deg, elevation_range_deg=tuple(args.elevation_range_deg),
                 capture_level=args.capture_level,
-                capture_effects=tuple(args.capture_effects) if args.capture_effects is not None else None,
-            )
-            index = generate_dataset(
-                out,
-                num_scenes=args.scenes,
-                seed=args.seed,
-                config=config,
-                split_fractions=tuple(args.split_fractions),
-                test_seed=args.test_seed,
-                splits=tuple(args.split),
-                workers=args.workers,
-                progress=args.progress,
-            )
+                capture_effects=tuple(args.capture_effects) if args.capture_effects is not None else None)
+            index = generate_dataset(out, num_scenes=args.scenes, seed=args.seed, config=config,
+                                     split_fractions=tuple(args.split_fractions), test_seed=args.test_seed,
+                                     splits=tuple(args.split), workers=args.workers, progress=args.progress)
         except InputError:
             raise
-        except ValueError as e:  # an argument the generator refused, named as the option it came from
+        except ValueError as e:
             raise _option_error(e, _GENERATE_OPTIONS) from e
         counts = {s: len(index.files(s)) for s in ("train", "val", "test")}
-        print(f"wrote {sum(counts.values())} scenes to {args.out} ({', '.join(f'{k} {v}' for k, v in counts.items())})")
+        print(f"wrote {sum(counts.values())} scenes to {args.out} "
+              f"({', '.join(f'{k} {v}' for k, v in counts.items())})")
         return 0
     if action == "degrade":
         out = output_folder("--out", args.out)
         try:
             n = degrade_dataset(args.dir, out, args.capture_level, args.capture_effects, seed=args.seed,
                                 progress=args.progress, splits=args.splits)
-        except ValueError as e:  # a bad level, effect or split name, or --out the source folder
+        except ValueError as e:
             raise _option_error(e, {"level": "capture_level", "effects": "capture_effects", "out": "out",
                                     "splits": "splits"}) from e
         print(f"wrote {n} scenes to {out} (capture level {args.capture_level:g}); read it as sensor captures: a data "
@@ -217,7 +202,7 @@ def run_data(cfg) -> int:  # noqa: ANN001 - jsonargparse Namespace
                                       max_depth=args.max_depth, reader_options=options, progress=args.progress)
         except InputError:
             raise
-        except ValueError as e:  # an option that does not apply to the format
+        except ValueError as e:
             print(f"threedq: error: {e}", file=sys.stderr)
             return 2
         for line in summary.lines():

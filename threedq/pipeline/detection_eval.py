@@ -1,15 +1,9 @@
 """Detection evaluation: dataset-level 3D mAP of pseudo-boxes and of a trained detector, and detection files.
 
-:func:`evaluate_detection` is the ``detector_eval`` step of ``threedq em``: on the held-out split it scores
-(a) the label-free pseudo-boxes of :mod:`threedq.proposals` and (b) the detector, at IoU 0.25 and 0.5
-(:class:`~threedq.metrics.DetectionMAP`, accumulated over the whole split); it draws detections beside GT
-on held-out scenes; it measures, per object size band, the share of objects each box set finds at IoU 0.25 and
-0.5 and how the best box misses (centre, height, size; :mod:`threedq.metrics.localisation`), beside the fair
-reference of pseudo-boxes computed from only the views the detector sees; and it writes the detector's boxes of the
-requested splits as ``detections_<split>.npz``
-(``threedq em``: the test split, or every split with ``--boxes detections``; the
-layout of :func:`threedq.data.box_files.save_boxes_file`), which later stages read through the DataModule's
-``boxes`` option.
+:func:`evaluate_detection` is the ``detector_eval`` step of ``threedq em``: it scores the label-free pseudo-boxes
+and the detector on the test split at IoU 0.25 and 0.5, measures what each box set finds per object size band, draws
+detections beside GT and writes the detector's boxes of each split as ``detections_<split>.npz``
+(:func:`threedq.data.box_files.save_boxes_file`), which later stages read through the DataModule's ``boxes`` option.
 
 Convention: frame R (the record's world frame), metres, z up; boxes axis-aligned
 ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
@@ -38,23 +32,17 @@ from threedq.scene import load_scene, load_scene_boxes
 from threedq.viz.detection import detection_figure, size_band_figure
 from threedq.viz.png import write_png
 
-__all__ = [
-    "box_sets_map", "detect_split", "evaluate_detection", "gt_hulls", "precision_recall", "single_view_pseudo_boxes",
-    "size_band_table",
-]
-
+__all__ = ["box_sets_map", "detect_split", "evaluate_detection", "gt_hulls", "precision_recall",
+           "single_view_pseudo_boxes", "size_band_table"]
 
 
 def gt_hulls(data_dir: str | Path, files: list[str]) -> dict[str, np.ndarray]:
-    """``{file -> [G, 6]}`` the axis-aligned hulls of each scene's GT boxes (float64), read once per evaluation (the
-    ``boxes`` array only: :func:`~threedq.scene.load_scene_boxes`)."""
+    """``{file -> [G, 6]}`` the axis-aligned hulls of each scene's GT boxes (float64)."""
     return {f: boxes_to_aabb(load_scene_boxes(Path(data_dir) / f).astype(np.float64)).reshape(-1, 6) for f in files}
 
 
-def box_sets_map(
-    gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]],
-    iou_thresholds: tuple[float, ...] = (0.25, 0.5), progress: bool = True,
-) -> dict[str, float]:
+def box_sets_map(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]],
+                 iou_thresholds: tuple[float, ...] = (0.25, 0.5), progress: bool = True) -> dict[str, float]:
     """Dataset-level mAP of per-scene boxes against the GT boxes' axis-aligned hulls.
 
     Args:
@@ -70,7 +58,7 @@ def box_sets_map(
             raise ValueError(f"box_sets: no boxes for scene {f}")
         aabb, scores = box_sets[f]
         metric.update([{"boxes": torch.as_tensor(aabb).reshape(-1, 6), "scores": torch.as_tensor(scores).reshape(-1)}],
-                      [{"boxes": torch.from_numpy(hulls.astype(np.float32))}])  # fmt: skip
+                      [{"boxes": torch.from_numpy(hulls.astype(np.float32))}])
     return {k: (float(v) if v.is_floating_point() else int(v)) for k, v in metric.compute().items()}
 
 
@@ -95,7 +83,7 @@ def detect_split(
     first: list = []
     for batch in tqdm(loader, desc="detect", disable=not progress, leave=False):
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
-        with stage.precision_context():  # as the stage's test_step runs (and keys the crop cache)
+        with stage.precision_context():
             logits, box = stage(batch)
         dets = stage.detect(logits, box, score_threshold, views=stage.input_of(batch))
         for j, (i, d) in enumerate(zip(batch["scene_index"].tolist(), dets)):
@@ -108,13 +96,10 @@ def detect_split(
     return out, first
 
 
-def precision_recall(
-    gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]], iou_threshold: float = 0.5
-) -> dict[str, float | int]:
-    """Precision and recall of a set of kept boxes against the GT hulls (:func:`gt_hulls`) of their scenes.
-
-    Matching is :func:`~threedq.metrics.detection.assign_detections` (greedy by score, one GT per box): a second
-    box on an already matched object, e.g. a box nested in it, is a false positive.
+def precision_recall(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray, np.ndarray]],
+                     iou_threshold: float = 0.5) -> dict[str, float | int]:
+    """Precision and recall of a set of kept boxes against the GT hulls (:func:`gt_hulls`) of their scenes, matched by
+    :func:`~threedq.metrics.detection.assign_detections` (a second box on a matched object is a false positive).
 
     Returns:
         ``{"precision", "recall", "boxes", "matched", "gt"}`` (precision is NaN with no boxes).
@@ -128,18 +113,14 @@ def precision_recall(
         if a.shape[0] and g.shape[0]:
             matched += int((assign_detections(a, torch.as_tensor(scores).reshape(-1), g, iou_threshold) >= 0).sum())
     return {"precision": matched / boxes if boxes else float("nan"), "recall": matched / max(gt_total, 1),
-            "boxes": boxes, "matched": matched, "gt": gt_total}  # fmt: skip
+            "boxes": boxes, "matched": matched, "gt": gt_total}
 
 
 def single_view_pseudo_boxes(data_dir: str | Path, views: dict[str, list[int]], bounds: Any = None,
                              progress: bool = True, align_floor: bool = False,
                              ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The label-free pseudo-boxes of each scene from only the views a detector sees (``{file -> view indices}``).
-
-    The detector's fair reference: the pseudo-boxes it is trained on fuse every view of a training scene, while
-    at test time it sees one. These are :func:`~threedq.box_refinement.observed_boxes` (a voxel seen by one view
-    counts), the boxes the detector's ``refine_iou`` snaps its detections to; cached per process. ``align_floor``:
-    with the poses the DataModule's samples have (sensor captures: corrected by the floor).
+    """The label-free pseudo-boxes (:func:`~threedq.box_refinement.observed_boxes`) of each scene from only the views
+    a detector sees (``{file -> view indices}``); ``align_floor``: poses corrected by the floor (sensor captures).
     """
     from threedq.datamodules.scene_folder import floor_aligned_poses
 
@@ -165,35 +146,28 @@ def size_band_table(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndar
     return by_size_band(per_scene, flat_height=flat_height)
 
 
-
 def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[str, float],
-                       splits: tuple[str, ...] = ("train", "val", "test"), progress: bool = True) -> dict[str, Any]:  # fmt: skip
+                       splits: tuple[str, ...] = ("train", "val", "test"), progress: bool = True,
+                       ) -> dict[str, Any]:
     """mAP of the pseudo-boxes on the test split beside the detector's, a detections picture, and detection files.
 
     Args:
         stage: a trained :class:`~threedq.stages.detector.Detector`; dm: its scene DataModule (set up).
         out_dir: receives ``results.json``, ``detections.png`` and ``detections_<split>.npz``.
-        test_map: the detector's test metrics as its own ``test_step`` measured them (``trainer.test``:
-            ``map_25``, ``map_50``, ``num_gt``, ``num_det``); the pseudo-boxes are scored here by the same
-            :class:`~threedq.metrics.DetectionMAP`.
+        test_map: the detector's test metrics as its own ``test_step`` measured them (``map_25``, ``map_50``,
+            ``num_gt``, ``num_det``).
 
     Returns:
-        ``{"pseudo_boxes": {...}, "pseudo_boxes_single_view": {...} (the mAP of pseudo-boxes from only the views the
-        detector sees), "detector": {...}, "by_size": [{"boxes": box set, "rows": objects found at IoU 0.25 / 0.5
-        and the best box's centre, height and size errors per size band}] (also ``detection_by_size.png``), "detections":
-        {split: path}, "handed_on": {split: precision, recall and counts of the boxes above the stage's score
-        threshold at IoU 0.5}, "seconds"}``.
+        ``{"pseudo_boxes", "pseudo_boxes_single_view", "detector": {...}, "by_size": [{"boxes", "rows"}],
+        "flat_objects", "detections": {split: path}, "handed_on": {split: precision, recall and counts}, "seconds"}``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     gt_test = gt_hulls(dm.data_dir, dm.index.files("test"))
     pseudo = dm.pseudo_boxes("test", progress=progress)
-    result: dict[str, Any] = {
-        "split": "test",
-        "pseudo_boxes": box_sets_map(gt_test, pseudo, progress=progress),
-        "detector": dict(test_map),
-    }
+    result: dict[str, Any] = {"split": "test", "pseudo_boxes": box_sets_map(gt_test, pseudo, progress=progress),
+                              "detector": dict(test_map)}
     files: dict[str, str] = {}
     handed_on: dict[str, dict[str, Any]] = {}
     for split in splits:
@@ -206,31 +180,26 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
         path = out / f"detections_{split}.npz"
         save_boxes_file(path, dets, json.dumps({"score_threshold": stage.hparams.score_threshold}))
         files[split] = str(path)
-        # the boxes handed on to mining and quantization (GT used for measuring only)
         gt = gt_test if split == "test" else gt_hulls(dm.data_dir, ds.files)
         handed_on[split] = {"score_threshold": stage.hparams.score_threshold, **precision_recall(gt, dets)}
         if split == "test":
-            kept = sum(len(s) for _, s in dets.values())
-            result["detector"]["boxes_kept_at_score_threshold"] = kept
-            # the fair reference: pseudo-boxes from only the views the detector saw; and where IoU is lost, per size
-            fg = stage.feature_grid  # the bounds the detector's refinement uses, so both are the same boxes
+            result["detector"]["boxes_kept_at_score_threshold"] = sum(len(s) for _, s in dets.values())
+            fg = stage.feature_grid
             single = single_view_pseudo_boxes(dm.data_dir, views, (fg.bounds_min, fg.bounds_max), progress=progress,
                                               align_floor=getattr(dm, "sensor_captures", False))
             result["pseudo_boxes_single_view"] = box_sets_map(gt, single, progress=progress)
-            # objects under the detector's min_box_height: it is not trained on them (the grid cannot resolve them)
             flat = float(stage.min_box_height) if stage.min_box_height > 0 else None
             tables = {"pseudo-boxes (all views)": size_band_table(gt, pseudo, flat),
                       "pseudo-boxes (input view)": size_band_table(gt, single, flat),
                       f"detector (score >= {stage.hparams.score_threshold:g})": size_band_table(gt, dets, flat)}
-            result["by_size"] = [{"boxes": name, "rows": rows} for name, rows in tables.items()]  # a list: ordered
-            rows = tables["pseudo-boxes (all views)"]  # every box set counts the same GT objects per band
-            result["flat_objects"] = {"min_box_height": stage.min_box_height, "objects": rows[-2]["objects"] if flat else 0,
-                                      "of": rows[-1]["objects"], "flat_boxes": bool(stage.hparams.flat_boxes)}  # fmt: skip
+            result["by_size"] = [{"boxes": name, "rows": rows} for name, rows in tables.items()]
+            rows = tables["pseudo-boxes (all views)"]
+            result["flat_objects"] = {"min_box_height": stage.min_box_height,
+                                      "objects": rows[-2]["objects"] if flat else 0, "of": rows[-1]["objects"],
+                                      "flat_boxes": bool(stage.hparams.flat_boxes)}
             write_png(out / "detection_by_size.png", size_band_figure(tables))
             batch, d = first[0]
             write_png(out / "detections.png", detection_figure(batch, d, max_scenes=4))
-    result["detections"] = files
-    result["handed_on"] = handed_on
-    result["seconds"] = round(time.time() - t0, 1)
+    result.update(detections=files, handed_on=handed_on, seconds=round(time.time() - t0, 1))
     atomic_write_json(out / "results.json", result)
     return result

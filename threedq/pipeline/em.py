@@ -1,53 +1,15 @@
 """``threedq em``: run the stages of 3DQ-Nets in order, each as its own LightningCLI run.
 
-Layout of ``work_dir``::
+The paper's loop (Sec. 3.4): view-prediction pre-training; the detector warm-started from label-free pseudo-boxes;
+then each round: mine correspondences on the boxes the current detector hands on and fine-tune the encoder ->
+quantize the objects into prototypes -> evaluate the round (the last one with the baselines) -> self-label the
+detector, whose detections are the next round's boxes. ``--boxes gt`` runs the rounds on GT boxes (the oracle
+protocol). Folder names: :class:`~threedq.pipeline.run_layout.RunLayout`; the stages after view prediction share one
+:class:`~threedq.stages.crop_cache.CropCache`.
 
-    work_dir/
-      00_viewpred/            # LightningCLI run: config.yaml, checkpoints/last.ckpt, metrics.csv,
-        stage.json            #   TensorBoard events, images/*.png; stage.json once it has finished
-      01_viewpred_eval/
-        metrics.json          # held-out view-prediction metrics
-      02_detector/            # 3D detector on the frozen encoder, trained from label-free pseudo-boxes
-      03_detector_eval/       # mAP@0.25/0.5 of pseudo-boxes and detector, detections.png, detections_<split>.npz
-                              #   (the boxes above 0.9 handed on to round 1; only the test split's with --boxes gt)
-      r00_quantizer/          # round 0 (the paper's iteration 0): prototypes on the view-prediction encoder, on the
-      r00_eval/               #   boxes round 1 takes; its evaluation (Table 3's first feature and clustering row)
-      r01_mining/             # round 1: the encoder fine-tuned by correspondence mining on those boxes;
-                              #   mining/refresh_*.json|png
-      r01_quantizer/          # round 1: prototypes on that encoder, frozen (LightningCLI run)
-      r01_eval/               # round 1: results.json/.md (retrieval under the strict and the paper protocol,
-                              #   Hungarian, few-shot, yaw) + figures
-      r01_self_labelling/     # round 1: the detector fine-tuned on labels from the prototypes and the
-                              #   center-surround score; self_labels/labels.json|png
-      r01_detector_eval/      # round 1: its mAP, detections.png, detections_<split>.npz for round 2
-      r02_mining/ ...         # round r starts from round r-1's encoder, prototype bank and detector
-      metrics.json            # everything measured, per stage and round (Table 3 under "table3")
-      report.md               # the same as tables
-      table3.png              # features, quantization and detection per round
-
-(the names are :class:`~threedq.pipeline.run_layout.RunLayout`'s, which ``parse`` and ``label`` read back)
-
-The stages after view prediction share one :class:`~threedq.stages.crop_cache.CropCache` (a process-wide store keyed
-by the encoder's weights, the input views and the boxes): each scene is encoded once per encoder, not once per
-stage. Every stage that reads features does so from each scene's fixed input views (the quantizer with
-``train_random_views: false``), so the grids one stage computed serve the next.
-
-A finished stage (its ``stage.json`` exists) and a finished evaluation (its ``metrics.json`` / ``results.json``)
-are never re-run. ``--resume true`` continues a killed run: the stage that was interrupted restarts from its
-beginning in a cleared folder, and the temporary files of writes the kill cut short are removed, so the resumed run
-ends with the ``metrics.json`` an uninterrupted run of the same seed writes (``tests/test_resume.py``; a stage
-continued mid-way from its ``last.ckpt`` would not: Lightning restarts the epoch's data and does not restore the
-random generators). ``threedq fit --ckpt_path <run>/checkpoints/last.ckpt`` still continues one long stage mid-way,
-approximately. Every stage saves its resolved ``config.yaml``, so each can be
-re-run or inspected on its own with ``threedq fit --config <run>/config.yaml``.
-
-The paper's loop (Sec. 3.4): view-prediction pre-training and its evaluation; the detector warm-started from
-label-free pseudo-boxes and its evaluation; then each round r = detect (the boxes the current detector hands
-on) -> mine correspondences on them and fine-tune the encoder (``--mining_config``) -> quantize them into
-prototypes on that encoder -> evaluate the round (the last round also fits and scores the baselines) ->
-self-label the detector with the round's prototypes (``--self_labelling_config``), whose detections are the
-next round's boxes. ``--boxes gt`` runs the rounds on GT boxes instead (the oracle protocol); GT is otherwise
-used only to score, matched to the detections by IoU.
+A finished stage (``stage.json``) or evaluation (``metrics.json`` / ``results.json``) is never re-run; ``--resume
+true`` restarts the interrupted stage from its beginning in a cleared folder, so the resumed run writes the
+``metrics.json`` of an uninterrupted one. Each stage saves its resolved ``config.yaml``.
 """
 
 from __future__ import annotations
@@ -96,14 +58,12 @@ from threedq.viz.png import write_png
 __all__ = ["evaluate_run_on", "run_em"]
 
 ROUND_STAGES: tuple[str, ...] = ("mining", "quantizer", "self_labelling")
-#: How a round fits its quantizer: one epoch over the training boxes, no validation pass (the round's evaluation
-#: scores the bank on the test split; the val split's numbers were read by nothing).
+#: How a round fits its quantizer: one epoch over the training boxes, no validation pass.
 _QUANTIZER_FIT = {"max_steps": -1, "max_epochs": 1, "limit_val_batches": 0}
 
 
 def _config_label(path: Path, work: Path) -> str:
-    """How the report names a config file: inside the packaged configs as ``stages/mining.yaml``, else relative to
-    the work folder's parent (where ``threedq em`` is usually run) when it lies below it, else as given."""
+    """How the report names a config file: relative to the packaged configs, else to the work folder's parent."""
     path = Path(path)
     for base in (packaged_configs_dir(), work.resolve().parent):
         try:
@@ -119,8 +79,7 @@ def _stage_done(run_dir: Path) -> StageRecord | None:
 
 
 def _remove_torn_writes(work: Path) -> None:
-    """Delete the temporary files of atomic writes that a kill cut short (``.<name>.<random>.tmp``, see
-    :mod:`threedq.atomic_io`): the file they were to replace is intact, or absent and written again."""
+    """Delete the temporary files of atomic writes that a kill cut short (``.<name>.<random>.tmp``)."""
     for tmp in work.rglob(".*.tmp"):
         if tmp.is_file():
             tmp.unlink()
@@ -128,11 +87,7 @@ def _remove_torn_writes(work: Path) -> None:
 
 
 def _frees_its_stage(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Run ``fn`` (one stage or evaluation through a ``ThreeDQCLI``), then free what it built.
-
-    A stage's LightningModule, Trainer, DataModule and CLI reference one another, so only the cyclic collector frees
-    them, and it runs on object counts, not bytes: collecting after every stage keeps one stage's memory at a time.
-    """
+    """Run ``fn`` (one stage or evaluation through a ``ThreeDQCLI``), then collect the cycles it built."""
 
     @functools.wraps(fn)
     def run(*args: Any, **kwargs: Any) -> Any:
@@ -146,9 +101,8 @@ def _frees_its_stage(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 @contextlib.contextmanager
 def _old_objects_frozen() -> Iterator[None]:
-    """Leave the objects that exist before the run (imported modules and their data) out of the collections
-    :func:`_frees_its_stage` runs (``gc.freeze``), and hand them back to the collector when the run ends."""
-    gc.collect()  # garbage from before the run is freed now, not frozen with the rest
+    """Leave the objects that exist before the run out of the collector's work (``gc.freeze``) until it ends."""
+    gc.collect()
     gc.freeze()
     try:
         yield
@@ -162,17 +116,13 @@ def _crop_cache_setup(cache: CropCache | None) -> Callable[[Any], None] | None:
 
 
 def _cli_args(configs: list[Path], run_dir: Path, overrides: list[str]) -> list[str]:
-    args: list[str] = []
-    for c in configs:
-        args += ["--config", str(c)]
+    args = [a for c in configs for a in ("--config", str(c))]
     return [*args, f"--trainer.default_root_dir={run_dir}", *overrides]
 
 
 @_frees_its_stage
-def _fit_stage(
-    name: str, configs: list[Path], run_dir: Path, overrides: list[str], resume: bool,
-    crop_cache: CropCache | None = None,
-) -> StageRecord:
+def _fit_stage(name: str, configs: list[Path], run_dir: Path, overrides: list[str], resume: bool,
+               crop_cache: CropCache | None = None) -> StageRecord:
     done = _stage_done(run_dir)
     if done is not None:
         print(f"[em] {name}: finished earlier ({RunLayout.stage_marker(run_dir)}), not re-run")
@@ -180,17 +130,13 @@ def _fit_stage(
     last = RunLayout.checkpoint(run_dir)
     if run_dir.exists() and any(run_dir.iterdir()):
         if not resume:
-            raise RuntimeError(
-                f"{run_dir} holds an unfinished '{name}' run: pass --resume to continue it, or delete the folder"
-            )
-        # Restart the stage from its beginning: continuing from its last.ckpt would not give the numbers of an
-        # uninterrupted run (Lightning restarts the epoch's data and does not restore the random generators).
+            raise RuntimeError(f"{run_dir} holds an unfinished '{name}' run: pass --resume to continue it, or delete "
+                               "the folder")
         print(f"[em] {name}: unfinished (interrupted): restarting it from its beginning in a cleared {run_dir}")
         shutil.rmtree(run_dir)
     print(f"[em] {name}: training in {run_dir}")
     t0 = time.time()
-    setup = _crop_cache_setup(crop_cache)
-    ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides)], model_setup=setup)
+    ThreeDQCLI(args=["fit", *_cli_args(configs, run_dir, overrides)], model_setup=_crop_cache_setup(crop_cache))
     if not last.is_file():
         raise RuntimeError(f"{name}: training finished without writing {last}")
     info = StageRecord(stage=name, checkpoint=str(last), seconds=round(time.time() - t0, 1))
@@ -199,10 +145,10 @@ def _fit_stage(
 
 
 def _given_viewpred(path: str | Path) -> StageRecord:
-    """The stage record of a view-prediction checkpoint given with ``--viewpred_ckpt`` (not trained here).
+    """The stage record of a view-prediction checkpoint given with ``--viewpred_ckpt``.
 
     Raises:
-        InputError: no such file, not a checkpoint that loads safely, or another stage's (one line naming it).
+        InputError: no such file, not a checkpoint that loads safely, or another stage's.
     """
     ckpt = Path(path)
     require_stage(ckpt, "viewpred", "--viewpred_ckpt")
@@ -231,10 +177,8 @@ def _evaluate_viewpred(configs: list[Path], ckpt: Path, run_dir: Path) -> dict[s
 
 
 @_frees_its_stage
-def _evaluate_detector(
-    configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...], overrides: list[str] | None = None,
-    crop_cache: CropCache | None = None,
-) -> dict[str, Any]:
+def _evaluate_detector(configs: list[Path], ckpt: Path, run_dir: Path, splits: tuple[str, ...],
+                       overrides: list[str] | None = None, crop_cache: CropCache | None = None) -> dict[str, Any]:
     cached = run_dir / "results.json"
     if cached.is_file():
         done = json.loads(cached.read_text())
@@ -242,54 +186,41 @@ def _evaluate_detector(
             print(f"[em] detector_eval: finished earlier ({cached}), not re-run")
             return done
         print(f"[em] detector_eval: {cached} lacks detections of {', '.join(splits)}: evaluating again")
-    setup = _crop_cache_setup(crop_cache)
-    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
+    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=_crop_cache_setup(crop_cache))
     test_map = {k.removeprefix("test/"): (int(v) if k.startswith("test/num_") else v) for k, v in res.items()}
     return evaluate_detection(cli.model, cli.datamodule, run_dir, test_map, splits=splits)
 
 
 @_frees_its_stage
-def _evaluate_round(
-    configs: list[Path], ckpt: Path, run_dir: Path, final: bool, overrides: list[str] | None = None,
-    crop_cache: CropCache | None = None,
-) -> dict[str, Any]:
+def _evaluate_round(configs: list[Path], ckpt: Path, run_dir: Path, final: bool, overrides: list[str] | None = None,
+                    crop_cache: CropCache | None = None) -> dict[str, Any]:
     cached = run_dir / "results.json"
     if cached.is_file():
         print(f"[em] {run_dir.name}: finished earlier ({cached}), not re-run")
         return json.loads(cached.read_text())
-    setup = _crop_cache_setup(crop_cache)
-    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=setup)
-    # Fig. 3a (accuracy against K) is left to threedq eval, which keeps the main job short
+    cli, res = test_checkpoint(configs, ckpt, run_dir, overrides or [], model_setup=_crop_cache_setup(crop_cache))
     return evaluate_quantizer(cli.model, cli.datamodule, run_dir, res, baselines=final, curve_k=[],
                               random_encoder=final, per_category=final)
 
 
 def _check_handed_on(eval_dir: Path, splits: tuple[str, ...]) -> None:
-    """Refuse to start a round on detections (``eval_dir/detections_<split>.npz``, the boxes handed on) of a split
-    with fewer than 2 boxes: mining, quantization and the evaluation need at least 2 objects. One line naming
-    the file."""
+    """Refuse to start a round on handed-on detections (``eval_dir/detections_<split>.npz``) of fewer than 2 boxes."""
     for split in splits:
         path = RunLayout.detections(eval_dir, split)
         if not path.is_file():
             continue
         n = sum(len(aabb) for aabb, _ in load_boxes_file(path).values())
         if n < 2:
-            raise RuntimeError(
-                f"{path}: field 'boxes': the detector hands on {n} box(es) of the {split} split, the rounds need at "
-                "least 2; train the detector longer or run the rounds on GT boxes (--boxes gt)"
-            )
+            raise RuntimeError(f"{path}: field 'boxes': the detector hands on {n} box(es) of the {split} split, the "
+                               "rounds need at least 2; train the detector longer or run the rounds on GT boxes "
+                               "(--boxes gt)")
 
 
 def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
             self_labels: list[SelfLabellingResult], round0: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Paper Table 3 rows: per round 0..R, feature precision@10 (strict and paper protocol, same-object top-1),
-    Hungarian accuracy and detection mAP@0.5 (test).
-
-    ``precision_at_10`` is scored at ``k`` = min(10, N - 1) on a test split of N <= 10 objects (the row's ``k``).
-
-    Round 0 is the paper's iteration 0, the state before the rounds: the warm-start detector, and the view-prediction
-    encoder's features and prototypes (``round0``: a quantizer fitted on them) on the boxes round 1 takes.
-    A round's detection is its self-labelled detector's (the warm start's when self-labelling is off).
+    Hungarian accuracy and detection mAP@0.5 (test). Round 0: the warm-start detector and ``round0`` (a quantizer on
+    the view-prediction encoder); a round's detection is its self-labelled detector's (else the warm start's).
     """
     def det_row(d: dict[str, Any] | None) -> dict[str, Any]:
         if not d:
@@ -297,7 +228,8 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
         return {"map_50": d["detector"]["map_50"], "map_25": d["detector"]["map_25"],
                 "handed_on_test": d.get("handed_on", {}).get("test")}
     rows = [{"round": 0, **feature_cells(round0["retrieval"] if round0 else None),
-             "hungarian_acc": round0["quantization"]["threedq"]["hungarian_acc"] if round0 else None, **det_row(det_eval)}]
+             "hungarian_acc": round0["quantization"]["threedq"]["hungarian_acc"] if round0 else None,
+             **det_row(det_eval)}]
     for i, r in enumerate(rounds):
         d = self_labels[i].detector_eval if i < len(self_labels) else det_eval
         rows.append({"round": i + 1, **feature_cells(r["retrieval"]),
@@ -308,22 +240,18 @@ def _table3(det_eval: dict[str, Any] | None, rounds: list[dict[str, Any]],
 def _precisions(frozen_precision: str) -> tuple[str, dict[str, Any]]:
     """The precision of the stages reading a frozen encoder (``auto`` resolved: bf16 where it is native) and the
     trainer overrides of mining (none, or fp32 where bf16 would be emulated)."""
-    mining_trainer: dict[str, Any] = {}  # mining keeps its config's precision (bf16-mixed) ...
+    mining_trainer: dict[str, Any] = {}
     if frozen_precision == "auto":
         native = _bf16_is_native()
         frozen_precision = "bf16-mixed" if native else "32-true"
-        if not native:  # ... unless bf16 would be emulated here (about 2x the float32 time)
+        if not native:
             mining_trainer = {"precision": "32-true"}
     return frozen_precision, mining_trainer
 
 
 @dataclass(frozen=True)
 class _RunConfigs:
-    """The resolved configs of every stage of a run, each stage's own followed by the data and extra configs.
-
-    ``m`` is empty when mining is off (``mine``), ``sl`` when self-labelling is off (``relabel``), ``d`` without
-    detection; ``vp_overrides`` are the view-prediction stage's overrides.
-    """
+    """The resolved configs of every stage, each stage's own then the data and extra configs (empty: stage off)."""
 
     vp: list[Path]
     q: list[Path]
@@ -342,8 +270,7 @@ PAPER_PRESET = {"config": "paper/viewpred.yaml", "quantizer_config": "paper/quan
 
 
 def _preset(preset: str, *given: str | None) -> tuple[str | None, ...]:
-    """The stage and data configs of ``preset``, in :data:`PAPER_PRESET`'s order: with ``paper`` each one still at
-    its default is the paper's; one given explicitly stays."""
+    """The stage and data configs of ``preset`` in :data:`PAPER_PRESET`'s order (``paper`` replaces the defaults)."""
     if preset == "default":
         return given
     if preset != "paper":
@@ -351,18 +278,15 @@ def _preset(preset: str, *given: str | None) -> tuple[str | None, ...]:
     return tuple(PAPER_PRESET[k] if g == _DEFAULT_CONFIGS[k] else g for k, g in zip(PAPER_PRESET, given))
 
 
-def _resolve_configs(
-    config: str, quantizer_config: str | None, detector_config: str, mining_config: str | None,
-    self_labelling_config: str | None, data_config: str | None, extra_configs: list[str] | str | None,
-    detection: bool, max_steps: int | None,
-) -> _RunConfigs:
-    """Resolve the configs of every stage (see :func:`run_em`'s arguments) and check now, not when each stage starts,
-    every argument the rounds hand a stage against the stage's class."""
+def _resolve_configs(config: str, quantizer_config: str | None, detector_config: str, mining_config: str | None,
+                     self_labelling_config: str | None, data_config: str | None,
+                     extra_configs: list[str] | str | None, detection: bool, max_steps: int | None) -> _RunConfigs:
+    """Resolve the configs of every stage (:func:`run_em`'s arguments) and check the arguments the rounds hand each."""
     if isinstance(extra_configs, (str, Path)):
         extra_configs = [str(extra_configs)]
     extra = [resolve_config(c) for c in ([data_config] if data_config else []) + list(extra_configs or [])]
     vp_configs = [resolve_config(config), *extra]
-    presets = stage_presets(extra)  # the data's (threedq.pipeline.presets), for a stage config not given
+    presets = stage_presets(extra)
     if quantizer_config is None:
         quantizer_config = presets.get("quantizer", "stages/quantizer.yaml")
     q_configs = [resolve_config(quantizer_config), *extra]
@@ -385,22 +309,18 @@ def _resolve_configs(
 
 def _warm_start_detector(
     cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, prec: dict[str, Any], resume: bool, crop_cache: CropCache,
-    boxes: str, rounds: int,
-) -> tuple[StageRecord, dict[str, Any], tuple[str, ...], dict[str, Any]]:
+    boxes: str, rounds: int) -> tuple[StageRecord, dict[str, Any], tuple[str, ...], dict[str, Any]]:
     """Train the detector on label-free pseudo-boxes and evaluate it.
 
     Returns:
         Its stage record, its evaluation, the splits whose detections the rounds read, and round 1's DataModule
         boxes (the detections handed on with ``boxes="detections"``, else empty: GT).
     """
-    d_configs = cfg.d
-    det = _fit_stage("detector", d_configs, layout.detector,
-                     stage_overrides(d_configs, model={"encoder_ckpt": vp_ckpt}, trainer=prec), resume, crop_cache)
-    # detections of every split only when the rounds take their boxes from the detector
+    det = _fit_stage("detector", cfg.d, layout.detector,
+                     stage_overrides(cfg.d, model={"encoder_ckpt": vp_ckpt}, trainer=prec), resume, crop_cache)
     det_splits = ("train", "val", "test") if boxes == "detections" else ("test",)
-    det_eval = _evaluate_detector(d_configs, det.path, layout.detector_eval, det_splits,
-                                  stage_overrides(d_configs, trainer=prec),
-                                  crop_cache=crop_cache)
+    det_eval = _evaluate_detector(cfg.d, det.path, layout.detector_eval, det_splits,
+                                  stage_overrides(cfg.d, trainer=prec), crop_cache=crop_cache)
     print(f"[em] detection mAP@0.5: pseudo-boxes {det_eval['pseudo_boxes']['map_50']:.3f}, "
           f"detector {det_eval['detector']['map_50']:.3f}")
     boxes_of_round: dict[str, Any] = {}
@@ -410,21 +330,14 @@ def _warm_start_detector(
     return det, det_eval, det_splits, boxes_of_round
 
 
-def _round0(
-    cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, boxes_of_round: dict[str, Any], prec: dict[str, Any],
-    resume: bool, crop_cache: CropCache,
-) -> dict[str, Any]:
-    """The paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes, evaluated
-    (the grids of every split are in the crop cache from the detector's evaluation, so this is mostly the bank's EM).
-    """
-    q_configs = cfg.q
-    q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", q_configs, layout.round(0, "quantizer"),
-                    stage_overrides(q_configs, model={"encoder_ckpt": vp_ckpt}, data=boxes_of_round,
-                                    trainer={**_QUANTIZER_FIT, **prec}), resume,
-                    crop_cache)
-    return _evaluate_round(q_configs, q0.path, layout.round(0, "eval"), final=False,
-                           overrides=stage_overrides(q_configs, data=boxes_of_round, trainer=prec),
-                           crop_cache=crop_cache)
+def _round0(cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, boxes_of_round: dict[str, Any], prec: dict[str, Any],
+            resume: bool, crop_cache: CropCache) -> dict[str, Any]:
+    """The paper's iteration 0: the view-prediction encoder's features and prototypes on round 1's boxes, evaluated."""
+    q0 = _fit_stage("round 0 quantizer (view-prediction encoder)", cfg.q, layout.round(0, "quantizer"),
+                    stage_overrides(cfg.q, model={"encoder_ckpt": vp_ckpt}, data=boxes_of_round,
+                                    trainer={**_QUANTIZER_FIT, **prec}), resume, crop_cache)
+    return _evaluate_round(cfg.q, q0.path, layout.round(0, "eval"), final=False,
+                           overrides=stage_overrides(cfg.q, data=boxes_of_round, trainer=prec), crop_cache=crop_cache)
 
 
 @dataclass
@@ -436,11 +349,10 @@ class _Rounds:
     self_labels: list[SelfLabellingResult] = field(default_factory=list)
 
 
-def _run_rounds(
-    rounds: int, cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, det_ckpt: Path | None,
-    det_eval: dict[str, Any] | None, det_splits: tuple[str, ...], boxes_of_round: dict[str, Any], boxes: str,
-    bank_warm_start: bool, prec: dict[str, Any], mining_trainer: dict[str, Any], resume: bool, crop_cache: CropCache,
-) -> _Rounds:
+def _run_rounds(rounds: int, cfg: _RunConfigs, layout: RunLayout, vp_ckpt: Path, det_ckpt: Path | None,
+                det_eval: dict[str, Any] | None, det_splits: tuple[str, ...], boxes_of_round: dict[str, Any],
+                boxes: str, bank_warm_start: bool, prec: dict[str, Any], mining_trainer: dict[str, Any], resume: bool,
+                crop_cache: CropCache) -> _Rounds:
     """Rounds 1..``rounds``: mining (fine-tunes the encoder), quantizer, its evaluation (the last round's with the
     baselines), self-labelling of the detector and its evaluation (the next round's boxes)."""
     out = _Rounds()
@@ -450,11 +362,9 @@ def _run_rounds(
         if cfg.mine:
             m = _fit_stage(f"round {r} mining", cfg.m, layout.round(r, "mining"),
                            stage_overrides(cfg.m, model={"encoder_ckpt": encoder, "em_round": r},
-                                           data=boxes_of_round, trainer=mining_trainer), resume,
-                           crop_cache)
+                                           data=boxes_of_round, trainer=mining_trainer), resume, crop_cache)
             encoder = m.path
             out.mining.append(MiningResult(m, _mining_diagnostics(layout.round(r, "mining"))))
-            # the encoder is new: the previous one's grids and crops will not be asked for again
             crop_cache.drop("features")
             crop_cache.drop("grid")
         q_model: dict[str, Any] = {"encoder_ckpt": encoder}
@@ -473,10 +383,10 @@ def _run_rounds(
             if boxes == "detections" and r < rounds:
                 _check_handed_on(layout.round(r, "detector_eval"), ("train", "test"))
                 boxes_of_round = {"boxes": layout.detections(layout.round(r, "detector_eval"))}
-        q_res = out.results[-1]["quantization"]["threedq"]
-        c = feature_cells(out.results[-1]["retrieval"])
-        print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot {fewshot_cell(q_res['fewshot_acc'])}, "
-              f"{precision_label(out.results[-1]['retrieval'])} {c['precision_at_10']:.3f} (strict), "
+        q_res, ret = out.results[-1]["quantization"]["threedq"], out.results[-1]["retrieval"]
+        c = feature_cells(ret)
+        print(f"[em] round {r}: Hungarian acc {q_res['hungarian_acc']:.3f}, few-shot "
+              f"{fewshot_cell(q_res['fewshot_acc'])}, {precision_label(ret)} {c['precision_at_10']:.3f} (strict), "
               f"{fmt(c['precision_at_10_paper'])} (paper protocol)")
     if rounds:
         print(f"[em] crop cache: {crop_cache.hits} reused, {crop_cache.misses} computed (per scene: learned, raw "
@@ -484,67 +394,52 @@ def _run_rounds(
     return out
 
 
-def _self_label_round(
-    r: int, rounds: int, cfg: _RunConfigs, layout: RunLayout, encoder: Path, bank: Path, det_ckpt: Path,
-    det_eval: dict[str, Any], det_splits: tuple[str, ...], prec: dict[str, Any], resume: bool, crop_cache: CropCache,
-    self_label_results: list[SelfLabellingResult],
-) -> Path:
-    """Round ``r``'s self-labelling of the detector with the round's encoder and prototype ``bank``, and the
-    evaluation of the self-labelled detector; appends the result to ``self_label_results`` and returns the new
-    detector checkpoint."""
+def _self_label_round(r: int, rounds: int, cfg: _RunConfigs, layout: RunLayout, encoder: Path, bank: Path,
+                     det_ckpt: Path, det_eval: dict[str, Any], det_splits: tuple[str, ...], prec: dict[str, Any],
+                     resume: bool, crop_cache: CropCache, self_label_results: list[SelfLabellingResult]) -> Path:
+    """Round ``r``'s self-labelling of the detector and its evaluation; appends the result to ``self_label_results``
+    and returns the new detector checkpoint."""
     run = layout.round(r, "self_labelling")
     sl_model = {"encoder_ckpt": encoder, "bank_ckpt": bank}
     sl = _fit_stage(f"round {r} self-labelling", cfg.sl, run,
                     stage_overrides(cfg.sl, model={**sl_model, "detector_ckpt": det_ckpt}, trainer=prec),
                     resume, crop_cache)
     det_ckpt = sl.path
-    # the next round's boxes come from the self-labelled detector (the last round needs only the test split)
     splits = det_splits if r < rounds else ("test",)
     sl_eval = _evaluate_detector(cfg.sl, det_ckpt, layout.round(r, "detector_eval"), splits,
-                                 stage_overrides(cfg.sl, model={**sl_model, "detector_ckpt": None},
-                                                 trainer=prec), crop_cache)
+                                 stage_overrides(cfg.sl, model={**sl_model, "detector_ckpt": None}, trainer=prec),
+                                 crop_cache)
     labels = run / "self_labels" / "labels.json"
-    self_label_results.append(SelfLabellingResult(
-        sl, json.loads(labels.read_text()) if labels.is_file() else None, sl_eval))
+    self_label_results.append(SelfLabellingResult(sl, json.loads(labels.read_text()) if labels.is_file() else None,
+                                                  sl_eval))
     before = self_label_results[-2].map_50 if r > 1 else float(det_eval["detector"]["map_50"])
     print(f"[em] round {r} self-labelling: detection mAP@0.5 {self_label_results[-1].map_50:.3f} "
           f"(before: {before:.3f})")
     return det_ckpt
 
 
-def _summary(
-    work: Path, layout: RunLayout, rounds: int, cfg: _RunConfigs, data_config: str | None, vp: StageRecord,
-    vp_eval: dict[str, Any], det: StageRecord | None, det_eval: dict[str, Any] | None, boxes: str,
-    bank_warm_start: bool, frozen_precision: str, mining_trainer: dict[str, Any], round0: dict[str, Any] | None,
-    rounds_run: _Rounds, crop_cache: CropCache,
-) -> dict[str, Any]:
+def _summary(work: Path, layout: RunLayout, rounds: int, cfg: _RunConfigs, data_config: str | None, vp: StageRecord,
+             vp_eval: dict[str, Any], det: StageRecord | None, det_eval: dict[str, Any] | None, boxes: str,
+             bank_warm_start: bool, frozen_precision: str, mining_trainer: dict[str, Any],
+             round0: dict[str, Any] | None, rounds_run: _Rounds, crop_cache: CropCache) -> dict[str, Any]:
     """The run's ``metrics.json``: every stage's and round's results, Table 3, the configs and the machine."""
     mine, relabel = cfg.mine, cfg.relabel
     round_results, self_label_results = rounds_run.results, rounds_run.self_labels
     return {
-        "work_dir": str(work),
-        "rounds": rounds,
-        "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine) and (st != "self_labelling" or relabel)]
-        if rounds else [],
+        "work_dir": str(work), "rounds": rounds,
+        "round_stages_run": [st for st in ROUND_STAGES if (st != "mining" or mine)
+                             and (st != "self_labelling" or relabel)] if rounds else [],
         "self_labelling_config": _config_label(cfg.sl[0], work) if relabel else None,
         "self_label_results": [x.to_json() for x in self_label_results],
         "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
-        "round0_result": round0,
-        "mining_config": _config_label(cfg.m[0], work) if mine else None,
+        "round0_result": round0, "mining_config": _config_label(cfg.m[0], work) if mine else None,
         "quantizer_config": _config_label(cfg.q[0], work),
         "data_config": _config_label(resolve_config(data_config or DEFAULT_DATA_CONFIG), work),
-        "mining_results": [x.to_json() for x in rounds_run.mining],
-        "viewpred": vp.to_json(),
-        "viewpred_eval": vp_eval,
-        "detector": det.to_json() if det else None,
-        "detector_eval": det_eval,
-        "boxes": boxes,
-        "bank_warm_start": bank_warm_start,
-        "frozen_precision": frozen_precision,
-        "mining_precision": mining_trainer.get("precision", "its config's"),
-        "round_results": round_results,
+        "mining_results": [x.to_json() for x in rounds_run.mining], "viewpred": vp.to_json(), "viewpred_eval": vp_eval,
+        "detector": det.to_json() if det else None, "detector_eval": det_eval, "boxes": boxes,
+        "bank_warm_start": bank_warm_start, "frozen_precision": frozen_precision,
+        "mining_precision": mining_trainer.get("precision", "its config's"), "round_results": round_results,
         "final_eval_dir": str(layout.round(rounds, "eval")) if rounds else None,
-        # how much this process's crop cache saved (a resumed run computes again what the killed one had held)
         "crop_cache": {"reused": crop_cache.hits, "computed": crop_cache.misses,
                        "gib": round(crop_cache.nbytes / 2**30, 3)},
         "machine": f"{platform.machine()} {platform.processor() or ''} {torch.get_num_threads()} threads".strip(),
@@ -553,39 +448,26 @@ def _summary(
 
 
 def _write_report(work: Path, summary: dict[str, Any]) -> None:
-    """Write ``metrics.json``, ``table3.png`` (with Table 3 rows) and ``report.md`` to ``work``; print the final
-    round's precision@k and where they are."""
+    """Write ``metrics.json``, ``table3.png`` and ``report.md`` to ``work``; print the final precision@k."""
     round_results = summary["round_results"]
     atomic_write_json(work / "metrics.json", summary)
     if summary["table3"]:
         write_png(work / "table3.png", table3_figure(summary["table3"]))
     atomic_write_text(work / "report.md", em_markdown(summary))
     if round_results:
-        p = round_results[-1]["retrieval"]["precision_at_k"]
-        k = round_results[-1]["retrieval"]["k"]
-        print(f"[em] precision@{k}: " + ", ".join(f"{name} {v:.3f}" for name, v in p.items()))
+        r = round_results[-1]["retrieval"]
+        print(f"[em] precision@{r['k']}: " + ", ".join(f"{name} {v:.3f}" for name, v in r["precision_at_k"].items()))
     print(f"[em] wrote {work / 'report.md'} and {work / 'metrics.json'}")
 
 
-def run_em(
-    rounds: NonNegativeInt = 4,
-    work_dir: str = "runs/em",
-    resume: bool = False,
-    config: str = "stages/viewpred.yaml",
-    quantizer_config: str | None = None,
-    detector_config: str = "stages/detector.yaml",
-    detection: bool = True,
-    boxes: Literal["detections", "gt"] = "detections",
-    data_config: str | None = None,
-    extra_configs: list[str] | str | None = None,
-    max_steps: int | None = None,
-    mining_config: str | None = None,
-    self_labelling_config: str | None = "stages/self_labelling.yaml",
-    viewpred_ckpt: str | None = None,
-    frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
-    bank_warm_start: bool = False,
-    preset: Literal["default", "paper"] = "default",
-) -> dict[str, Any]:
+def run_em(rounds: NonNegativeInt = 4, work_dir: str = "runs/em", resume: bool = False,
+           config: str = "stages/viewpred.yaml", quantizer_config: str | None = None,
+           detector_config: str = "stages/detector.yaml", detection: bool = True,
+           boxes: Literal["detections", "gt"] = "detections", data_config: str | None = None,
+           extra_configs: list[str] | str | None = None, max_steps: int | None = None, mining_config: str | None = None,
+           self_labelling_config: str | None = "stages/self_labelling.yaml", viewpred_ckpt: str | None = None,
+           frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto", bank_warm_start: bool = False,
+           preset: Literal["default", "paper"] = "default") -> dict[str, Any]:
     """Run view prediction, then ``rounds`` EM rounds, then the evaluation; write report.md + metrics.json.
 
     Args:
@@ -636,10 +518,10 @@ def run_em(
     config, quantizer_config, detector_config, mining_config, self_labelling_config, data_config = _preset(
         preset, config, quantizer_config, detector_config, mining_config, self_labelling_config, data_config)
     frozen_precision, mining_trainer = _precisions(frozen_precision)
-    prec = {"precision": frozen_precision}  # the trainer of every stage reading a frozen encoder
+    prec = {"precision": frozen_precision}
     work = output_folder("--work_dir", work_dir)
     layout = RunLayout(work)
-    with hold_folder(work, check_below=True), _old_objects_frozen():  # one run per work folder (a second is refused)
+    with hold_folder(work, check_below=True), _old_objects_frozen():
         if resume:
             _remove_torn_writes(work)
         cfg = _resolve_configs(config, quantizer_config, detector_config, mining_config, self_labelling_config,
@@ -647,44 +529,29 @@ def run_em(
         vp = (_given_viewpred(viewpred_ckpt) if viewpred_ckpt is not None
               else _fit_stage("viewpred", cfg.vp, layout.viewpred, cfg.vp_overrides, resume))
         vp_eval = _evaluate_viewpred(cfg.vp, vp.path, layout.viewpred_eval)
-        # One crop cache for the rest of the run, keyed by the encoder's weights and the input views: every scene is
-        # encoded once per encoder. The warm-start detector's evaluation leaves the grids of every split that round 1's
-        # mining pool reads; a round's quantizer encodes the training scenes its evaluation (the final one's banks),
-        # self-labelling, detector evaluation and the next round's mining pool then read. After a mining stage the
-        # encoder is new, and the older grids and crops are dropped.
         crop_cache = CropCache()
-        # the DataModule's boxes of the round: GT unless detections are handed on
         det, det_eval, det_splits, boxes_of_round = (
             _warm_start_detector(cfg, layout, vp.path, prec, resume, crop_cache, boxes, rounds) if detection
-            else (None, None, ("test",), {})
-        )  # fmt: skip
+            else (None, None, ("test",), {}))
         round0 = _round0(cfg, layout, vp.path, boxes_of_round, prec, resume, crop_cache) if rounds else None
-        rounds_run = _run_rounds(
-            rounds, cfg, layout, vp.path, det.path if det else None, det_eval, det_splits, boxes_of_round, boxes,
-            bank_warm_start, prec, mining_trainer, resume, crop_cache,
-        )  # fmt: skip
+        rounds_run = _run_rounds(rounds, cfg, layout, vp.path, det.path if det else None, det_eval, det_splits,
+                                 boxes_of_round, boxes, bank_warm_start, prec, mining_trainer, resume, crop_cache)
         summary = _summary(work, layout, rounds, cfg, data_config, vp, vp_eval, det, det_eval, boxes, bank_warm_start,
                            frozen_precision, mining_trainer, round0, rounds_run, crop_cache)
         _write_report(work, summary)
         return summary
 
 
-
 #: run_em's default of each config :data:`PAPER_PRESET` replaces.
 _DEFAULT_CONFIGS = {k: inspect.signature(run_em).parameters[k].default for k in PAPER_PRESET}
 
-def evaluate_run_on(
-    run: str | Path, out: str | Path, data_config: str | None = None, detector_config: str = "stages/detector.yaml",
-    quantizer_config: str | None = None, self_labelling_config: str = "stages/self_labelling.yaml",
-    frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto",
-) -> dict[str, Any]:
-    """Evaluate a finished run's last detector and last quantizer (encoder and prototype bank) on a dataset, training
-    nothing: what the trained model makes of other captures of the same kind of scenes (e.g. a noisy copy,
-    ``threedq data degrade``).
 
-    The detector is scored as a round's detector evaluation is (the dataset's own label-free pseudo-boxes beside it)
-    and hands on its detections of every split; the quantizer's bank then assigns the test objects among them as a
-    round's evaluation does (retrieval, Hungarian, few-shot, yaw).
+def evaluate_run_on(run: str | Path, out: str | Path, data_config: str | None = None,
+                    detector_config: str = "stages/detector.yaml", quantizer_config: str | None = None,
+                    self_labelling_config: str = "stages/self_labelling.yaml",
+                    frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto") -> dict[str, Any]:
+    """Evaluate a finished run's last detector and last quantizer (encoder and prototype bank) on a dataset, training
+    nothing, as a round's detector evaluation and round evaluation do (e.g. on a noisy copy, ``threedq data degrade``).
 
     Args:
         run: a ``threedq em`` work folder with at least one finished round.
@@ -711,16 +578,14 @@ def evaluate_run_on(
     det_dir, eval_dir = out / "detector_eval", out / "eval"
     crop_cache = CropCache()
     relabelled = layout.rounds("self_labelling")
+    det_cfg, model = cfg.d, None
     if relabelled and det_ckpt.parent.parent == layout.round(relabelled[-1], "self_labelling"):
-        r = relabelled[-1]  # a self-labelled detector is built with its round's encoder and bank, as em evaluates it
+        r = relabelled[-1]
         encoder = layout.finished(layout.round(r, "mining")) or layout.checkpoint(layout.viewpred)
-        model = {"encoder_ckpt": encoder, "bank_ckpt": layout.finished(layout.round(r, "quantizer")),
-                 "detector_ckpt": None}
-        det_eval = _evaluate_detector(cfg.sl, det_ckpt, det_dir, ("train", "val", "test"),
-                                      stage_overrides(cfg.sl, model=model, trainer=prec), crop_cache=crop_cache)
-    else:
-        det_eval = _evaluate_detector(cfg.d, det_ckpt, det_dir, ("train", "val", "test"),
-                                      stage_overrides(cfg.d, trainer=prec), crop_cache=crop_cache)
+        det_cfg, model = cfg.sl, {"encoder_ckpt": encoder, "bank_ckpt": layout.finished(layout.round(r, "quantizer")),
+                                  "detector_ckpt": None}
+    det_eval = _evaluate_detector(det_cfg, det_ckpt, det_dir, ("train", "val", "test"),
+                                  stage_overrides(det_cfg, model=model, trainer=prec), crop_cache=crop_cache)
     boxes = {"boxes": RunLayout.detections(det_dir)}
     round_eval = _evaluate_round(cfg.q, q_ckpt, eval_dir, final=False,
                                  overrides=stage_overrides(cfg.q, data=boxes, trainer=prec), crop_cache=crop_cache)

@@ -1,16 +1,9 @@
 """Evaluation of learned 3D features on held-out scenes (paper Table 2, GT or detected boxes).
 
-For every object of the evaluated split, its axis-aligned box is cropped out of the scene's feature
-grid and resized to 16^3; crops are compared at their best relative yaw over 36 steps of 10 deg and
-rotation-max retrieval precision@10 is macro-averaged over categories. :func:`retrieval_table` is the one
-implementation of that measurement (``threedq em``, ``threedq eval`` and the benchmarks all call it), under both
-protocols of :mod:`threedq.metrics.retrieval` (``strict``: leave-one-out over one view; ``paper``: the queries
-against the same objects seen from a second fixed view of their scene, the twin counted as a hit), each with the
-perfect-feature ceiling of its pool. It uses one declared search (:data:`RETRIEVAL_SEARCH`, ``"fast"`` unless asked
-otherwise) and records it, so every table can name it. References computed side by side: (a) raw
-``cat[occ, occ * rgb]`` crops of the input grid (no learning), (b) the same encoder with random weights, (c) a
-six-number colour + size descriptor (:mod:`threedq.baselines.descriptor`); :func:`probe_table` adds a linear probe
-on the frozen features (labels train the probe only).
+Each object's box is cropped out of the scene's feature grid (16^3) and crops are compared at their best relative yaw
+(36 steps); :func:`retrieval_table` scores rotation-max precision@10, macro over categories, under both protocols of
+:mod:`threedq.metrics.retrieval` with each pool's perfect-feature ceiling, beside raw ``cat[occ, occ * rgb]`` crops, a
+random encoder and a colour + size descriptor; :func:`probe_table` adds a linear probe on the frozen features.
 """
 
 from __future__ import annotations
@@ -23,34 +16,22 @@ from torch import Tensor
 from tqdm import tqdm
 
 from threedq.baselines.descriptor import colour_size_descriptor, descriptor_similarity
-from threedq.stages.base import EncoderStage
-from threedq.stages.crop_cache import CropCache, sample_key
 from threedq.geometry import CROP_SHAPES, crop_boxes, crop_region, yaw_angles
 from threedq.metrics import cluster_confusion, few_shot_accuracy, hungarian_accuracy, linear_probe, relative_yaw_error
-from threedq.metrics.retrieval import (
-    precision_ceiling,
-    retrieval_precision_at_k,
-    same_object_top1,
-)
-from threedq.quantization.rotation_search import SEARCH_METHODS, all_pairs_rotation_max
+from threedq.metrics.retrieval import precision_ceiling, retrieval_precision_at_k, same_object_top1
 from threedq.nets import UNet3D
+from threedq.quantization.rotation_search import SEARCH_METHODS, all_pairs_rotation_max
+from threedq.stages.base import EncoderStage
+from threedq.stages.crop_cache import CropCache, sample_key
 
-__all__ = [
-    "RETRIEVAL_SEARCH",
-    "SEARCH_LABELS",
-    "collect_object_crops",
-    "probe_table",
-    "quantization_metrics",
-    "retrieval_table",
-]
+__all__ = ["RETRIEVAL_SEARCH", "SEARCH_LABELS", "collect_object_crops", "probe_table", "quantization_metrics",
+           "retrieval_table"]
 
 #: The rotation search every retrieval table of threedq uses unless told otherwise.
 RETRIEVAL_SEARCH = "fast"
 #: How a table header names each search.
-SEARCH_LABELS = {
-    "fast": "fast search (cylindrical resampling + FFT over yaw; cosine over the inscribed cylinder)",
-    "exact": "exact search (every crop rotated by every yaw; cosine over the full cube)",
-}
+SEARCH_LABELS = {"fast": "fast search (cylindrical resampling + FFT over yaw; cosine over the inscribed cylinder)",
+                 "exact": "exact search (every crop rotated by every yaw; cosine over the full cube)"}
 #: Crop sets of :func:`collect_object_crops` and their names in result tables.
 FEATURE_SETS = (("learned", "learned"), ("raw_rgb_occupancy", "raw"), ("random_encoder", "random"))
 #: The hand-made reference's name in result tables (computed from the ``raw`` crops and the boxes).
@@ -59,10 +40,8 @@ DESCRIPTOR = "colour_size_descriptor"
 GALLERY_VIEW = "each scene's second fixed view (the first view after the input views)"
 
 
-def _random_encoder_crops(
-    stage: EncoderStage, random_enc: UNet3D, batch: dict[str, Tensor], v: int, crop_size: int, cache: CropCache | None,
-    crop_shape: str = "hull",
-) -> Tensor:
+def _random_encoder_crops(stage: EncoderStage, random_enc: UNet3D, batch: dict[str, Tensor], v: int, crop_size: int,
+                          cache: CropCache | None, crop_shape: str = "hull") -> Tensor:
     """Crops of ``batch``'s valid boxes from ``random_enc``'s features (view mean, L2-normalised), on the CPU."""
     mask = batch["box_mask"]
     B = mask.shape[0]
@@ -83,8 +62,7 @@ def _random_encoder_crops(
 
 
 def _hull_raw_crops(stage: EncoderStage, batch: dict[str, Tensor], v: int, crop_size: int) -> Tensor:
-    """Raw input crops of ``batch``'s valid boxes cut as their hulls, on the CPU: the colour + size descriptor's,
-    whatever region the features are cut from (no encoder pass: the unprojected input only)."""
+    """Raw input crops of ``batch``'s valid boxes cut as their hulls (the descriptor's), on the CPU."""
     x, _ = stage.views_input(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
     B = batch["box_mask"].shape[0]
     raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"].to(x.dtype), stage.grid, crop_size,
@@ -93,8 +71,7 @@ def _hull_raw_crops(stage: EncoderStage, batch: dict[str, Tensor], v: int, crop_
 
 
 def _descriptor(crops: dict[str, Tensor], prefix: str = "") -> Tensor:
-    """The colour + size descriptor of ``crops``' objects (of ``gallery_`` ones with that ``prefix``), from the hull
-    crops of their raw input (``descriptor_raw``, which crops of another region carry) and the boxes."""
+    """The colour + size descriptor of ``crops``' objects (of ``gallery_`` ones with that ``prefix``)."""
     raw = crops.get(f"{prefix}descriptor_raw", crops[f"{prefix}raw"])
     return colour_size_descriptor(raw, crops["aabb"])
 
@@ -109,16 +86,9 @@ def _single_view(batch: dict[str, Tensor], view: int) -> dict[str, Tensor]:
 
 
 @torch.no_grad()
-def collect_object_crops(
-    stage: EncoderStage,
-    loader: torch.utils.data.DataLoader,
-    num_input_views: int = 1,
-    crop_size: int = 16,
-    random_encoder_seed: int | None = 0,
-    progress: bool = True,
-    gallery: bool = False,
-    crop_shape: str = "hull",
-) -> dict[str, Tensor]:
+def collect_object_crops(stage: EncoderStage, loader: torch.utils.data.DataLoader, num_input_views: int = 1,
+                         crop_size: int = 16, random_encoder_seed: int | None = 0, progress: bool = True,
+                         gallery: bool = False, crop_shape: str = "hull") -> dict[str, Tensor]:
     """Crop every GT object of every scene of ``loader`` out of three volumes.
 
     Args:
@@ -127,12 +97,10 @@ def collect_object_crops(
         num_input_views: views aggregated per scene (the paper tests with one).
         crop_size: crops are ``crop_size^3``.
         random_encoder_seed: seed of the randomly initialised reference encoder (None: skip it).
-        gallery: also crop the same boxes out of the grid of each scene's next view alone (view
-            ``num_input_views``, which the loader must hold: :func:`~threedq.pipeline.report.split_loader` with
-            ``gallery=True``): the paper protocol's gallery, row ``i`` the twin of query ``i``.
-        crop_shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull`` (the
-            paper's), ``square`` or ``cube`` (the stages cut the hull).
-            ``aabb`` is returned as given either way.
+        gallery: also crop the same boxes out of the grid of each scene's view ``num_input_views`` alone (the paper
+            protocol's gallery, row ``i`` the twin of query ``i``).
+        crop_shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull``, ``square``
+            or ``cube``; ``aabb`` is returned as given either way.
 
     Returns:
         ``learned`` ``[N, C, s, s, s]``, ``raw`` ``[N, 4, s, s, s]``, ``random`` ``[N, C, s, s, s]`` (if
@@ -150,8 +118,7 @@ def collect_object_crops(
     if random_encoder_seed is not None:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(random_encoder_seed)
-            random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels,
-                                channels=stage.encoder.channels,
+            random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels, channels=stage.encoder.channels,
                                 output_stride=stage.encoder.output_stride).to(stage.device).eval()
     keys = ("learned", "raw", "random", "labels", "boxes", "aabb", "scene", "gallery_learned", "gallery_raw",
             "gallery_random", "descriptor_raw", "gallery_descriptor_raw")
@@ -161,7 +128,7 @@ def collect_object_crops(
     v = num_input_views
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
         batch = {k: t.to(stage.device) if isinstance(t, Tensor) else t for k, t in batch.items()}
-        with stage.precision_context():  # as the stage's test_step encodes (and keys the crop cache)
+        with stage.precision_context():
             crops = stage.object_crops(batch, v, crop_size, crop_shape)
             if gallery:
                 if batch["rgb"].shape[1] <= v:
@@ -182,9 +149,8 @@ def collect_object_crops(
         if random_enc is not None:
             out["random"].append(_random_encoder_crops(stage, random_enc, batch, v, crop_size, cache, crop_shape))
             if gallery:
-                out["gallery_random"].append(
-                    _random_encoder_crops(stage, random_enc, other, 1, crop_size, cache, crop_shape)
-                )
+                out["gallery_random"].append(_random_encoder_crops(stage, random_enc, other, 1, crop_size, cache,
+                                                                   crop_shape))
     stage.train(was_training)
     return {k: torch.cat(v) for k, v in out.items() if v}
 
@@ -193,10 +159,8 @@ def _scores(sim: Tensor, labels: Tensor, k: int, protocol: str) -> float:
     return float(retrieval_precision_at_k(sim, labels, labels, k, exclude_diagonal=protocol == "strict"))
 
 
-def retrieval_table(
-    crops: dict[str, Tensor], k: int = 10, num_angles: int = 36, search: str = RETRIEVAL_SEARCH,
-    coarse_labels: Tensor | None = None,
-) -> tuple[dict[str, Any], dict[str, Tensor]]:
+def retrieval_table(crops: dict[str, Tensor], k: int = 10, num_angles: int = 36, search: str = RETRIEVAL_SEARCH,
+                    coarse_labels: Tensor | None = None) -> tuple[dict[str, Any], dict[str, Tensor]]:
     """Rotation-max retrieval precision@k of every crop set in ``crops`` under both protocols (paper Table 2).
 
     Args:
@@ -211,12 +175,10 @@ def retrieval_table(
 
     Returns:
         The table: ``{"k", "k_requested", "num_angles", "search", "num_objects", "num_categories",
-        "precision_at_k": {name: p} (strict, kept for older readers), "protocols": {protocol: {"pool",
-        "ceiling", "precision_at_k": {name: p}, ["same_object_top1": {name: rate}, "gallery", "coarse"]}}}``
-        (``k`` is ``min(k_requested, N - 1)``: tables name it with :func:`threedq.pipeline.report.precision_label`);
+        "precision_at_k": {name: p} (strict), "protocols": {protocol: {"pool", "ceiling", "precision_at_k":
+        {name: p}, ["same_object_top1": {name: rate}, "gallery", "coarse"]}}}`` (``k`` is ``min(k_requested, N - 1)``);
         and the similarity matrices, ``{name: [N, N]}`` of the strict protocol and ``{"paper/<name>": [N, N]}``
-        (query x gallery) for pictures. Categories with a single object still count as queries, as in the paper's
-        per-class average. The descriptor has no rotation search (it does not change with yaw).
+        (query x gallery).
     """
     if search not in SEARCH_METHODS:
         raise ValueError(f"search: expected one of {SEARCH_METHODS}, got {search!r}")
@@ -224,9 +186,9 @@ def retrieval_table(
     n = labels.shape[0]
     if n < 2:
         raise ValueError(f"need at least 2 objects to evaluate retrieval, got {n}")
-    kk = min(k, n - 1)  # a split of N <= k objects is scored at k = N - 1; "k_requested" keeps what was asked
-    protocols: dict[str, dict[str, Any]] = {"strict": {"pool": n, "precision_at_k": {},
-                                                      "ceiling": float(precision_ceiling(labels, labels, kk, True))}}
+    kk = min(k, n - 1)
+    protocols: dict[str, dict[str, Any]] = {
+        "strict": {"pool": n, "precision_at_k": {}, "ceiling": float(precision_ceiling(labels, labels, kk, True))}}
     paper = any(f"gallery_{key}" in crops for _, key in FEATURE_SETS)
     if paper:
         protocols["paper"] = {"pool": n, "gallery": GALLERY_VIEW, "precision_at_k": {}, "same_object_top1": {},
@@ -257,19 +219,15 @@ def retrieval_table(
             "num_classes": int(coarse_labels.unique().numel()),
             "ceiling": float(precision_ceiling(coarse_labels, coarse_labels, kk, False)),
             "precision_at_k": {"learned": float(retrieval_precision_at_k(sims["paper/learned"], coarse_labels,
-                                                                         coarse_labels, kk))},
-        }
-    table: dict[str, Any] = {
-        "k": kk, "k_requested": k, "num_angles": num_angles, "search": search, "num_objects": n,
-        "num_categories": int(labels.unique().numel()),
-        "precision_at_k": dict(protocols["strict"]["precision_at_k"]), "protocols": protocols,
-    }
+                                                                         coarse_labels, kk))}}
+    table: dict[str, Any] = {"k": kk, "k_requested": k, "num_angles": num_angles, "search": search, "num_objects": n,
+                             "num_categories": int(labels.unique().numel()),
+                             "precision_at_k": dict(protocols["strict"]["precision_at_k"]), "protocols": protocols}
     return table, sims
 
 
 def pooled_features(crops: dict[str, Tensor]) -> dict[str, Tensor]:
-    """``{name: [N, D]}`` what the linear probe reads: each crop set averaged over its voxels (``[N, C]``, which does
-    not change with yaw) and the six-number descriptor."""
+    """``{name: [N, D]}`` what the linear probe reads: each crop set averaged over its voxels, and the descriptor."""
     out = {name: crops[key].flatten(2).mean(2) for name, key in FEATURE_SETS if key in crops}
     if "raw" in crops and "aabb" in crops:
         out[DESCRIPTOR] = _descriptor(crops)
@@ -277,10 +235,9 @@ def pooled_features(crops: dict[str, Tensor]) -> dict[str, Tensor]:
 
 
 def probe_table(train: dict[str, Tensor], test: dict[str, Tensor]) -> dict[str, Any]:
-    """Linear-probe accuracy of every feature set that both splits hold (:func:`threedq.metrics.linear_probe`:
-    a logistic regression trained with the training objects' labels on their voxel-averaged crops, which stay
-    frozen; scored on the test objects). ``{"train_objects", "test_objects", "accuracy": {name: acc}}``."""
-    keep = train["labels"] >= 0  # boxes that match no GT object (detected boxes) carry no label to train on
+    """Linear-probe accuracy (:func:`threedq.metrics.linear_probe`) of every feature set both splits hold, trained on
+    the labelled training objects: ``{"train_objects", "test_objects", "accuracy": {name: acc}}``."""
+    keep = train["labels"] >= 0
     tr = {name: f[keep] for name, f in pooled_features(train).items()}
     te = pooled_features(test)
     acc = {name: float(linear_probe(tr[name], train["labels"][keep], te[name], test["labels"])["accuracy"])
@@ -288,14 +245,12 @@ def probe_table(train: dict[str, Tensor], test: dict[str, Tensor]) -> dict[str, 
     return {"train_objects": int(keep.sum()), "test_objects": int(test["labels"].shape[0]), "accuracy": acc}
 
 
-def quantization_metrics(
-    clusters: Tensor, angles: Tensor, num_angles: int, num_clusters: int, labels: Tensor, gt_yaw: Tensor | None,
-    num_classes: int, symmetry_order: list[int], shots: int = 2, seed: int = 0,
-) -> dict[str, float]:
+def quantization_metrics(clusters: Tensor, angles: Tensor, num_angles: int, num_clusters: int, labels: Tensor,
+                         gt_yaw: Tensor | None, num_classes: int, symmetry_order: list[int], shots: int = 2,
+                         seed: int = 0) -> dict[str, float]:
     """Hungarian accuracy, few-shot accuracy and relative yaw error of one assignment.
 
-    ``gt_yaw`` None (an assignment whose angles are not yaws, e.g. 2.5DQ-Nets' in-plane angles): the yaw fields
-    are NaN and ``yaw_pairs`` 0.
+    ``gt_yaw`` None (angles that are not yaws): the yaw fields are NaN and ``yaw_pairs`` 0.
     """
     conf = cluster_confusion(clusters, labels, num_clusters, num_classes)
     fs = few_shot_accuracy(clusters, labels, shots=shots, seed=seed, num_clusters=num_clusters)
@@ -305,11 +260,6 @@ def quantization_metrics(
                 "yaw_median_deg": nan, "yaw_acc_10": nan, "yaw_acc_20": nan, "yaw_pairs": 0}
     est = yaw_angles(num_angles, dtype=torch.float64)[angles]
     yaw = relative_yaw_error(est, gt_yaw.double(), labels, clusters, symmetry_order)
-    return {
-        "hungarian_acc": float(hungarian_accuracy(conf)),
-        "fewshot_acc": float(fs["accuracy"]),
-        "yaw_median_deg": float(yaw["median_deg"]),
-        "yaw_acc_10": float(yaw["acc_10"]),
-        "yaw_acc_20": float(yaw["acc_20"]),
-        "yaw_pairs": int(yaw["num_pairs"]),
-    }
+    return {"hungarian_acc": float(hungarian_accuracy(conf)), "fewshot_acc": float(fs["accuracy"]),
+            "yaw_median_deg": float(yaw["median_deg"]), "yaw_acc_10": float(yaw["acc_10"]),
+            "yaw_acc_20": float(yaw["acc_20"]), "yaw_pairs": int(yaw["num_pairs"])}

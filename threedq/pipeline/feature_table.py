@@ -1,16 +1,10 @@
 """Paper Table 2 with clustering beside it: one row per feature set, all measured on the same test crops.
 
-Rows: raw ``cat[occ, occ * rgb]`` crops, a randomly initialised encoder, the six-number colour + size descriptor
-(retrieval and probe only), and every named encoder checkpoint (e.g. ``rgbocc`` = view prediction, ``rgbocc+VC``,
-``rgbocc+VC*``, ``ours`` = cross-scene mining, ``supervised (labels)`` = :mod:`threedq.stages.supervised`). For
-each: rotation-max retrieval precision@10 under the strict protocol and, when the test loader holds a gallery view
-(:func:`~threedq.pipeline.report.split_loader` with ``gallery=True``), the paper protocol with its same-object top-1
-rate (:func:`~threedq.pipeline.evaluation.retrieval_table`, one declared search); a linear probe
-(:func:`~threedq.pipeline.evaluation.probe_table`); and a K-prototype bank fitted on the training split's crops of
-that feature set
-(:func:`~threedq.quantization.prototypes.fit_prototype_bank`, the same EM as the quantizer stage) scored on
-the test crops by Hungarian accuracy, few-shot accuracy and relative yaw error
-(:func:`~threedq.pipeline.evaluation.quantization_metrics`).
+Rows: raw ``cat[occ, occ * rgb]`` crops, a randomly initialised encoder, the colour + size descriptor (retrieval and
+probe only), and every named encoder checkpoint. For each: retrieval precision@10 under the strict protocol and, when
+the test loader holds a gallery view, the paper protocol (:func:`~threedq.pipeline.evaluation.retrieval_table`); a
+linear probe; and a K-prototype bank fitted on the training crops, scored by Hungarian accuracy, few-shot accuracy and
+relative yaw error (:func:`~threedq.pipeline.evaluation.quantization_metrics`).
 """
 
 from __future__ import annotations
@@ -22,6 +16,7 @@ import torch
 
 from threedq.pipeline.evaluation import (
     DESCRIPTOR,
+    FEATURE_SETS,
     RETRIEVAL_SEARCH,
     collect_object_crops,
     probe_table,
@@ -34,15 +29,18 @@ from threedq.stages.checkpoint import load_encoder_state
 
 __all__ = ["feature_sets_table"]
 
+#: crop set -> its row name in a retrieval table
+_ROW_KEYS = {key: name for name, key in FEATURE_SETS}
 
-def _retrieval_cells(test: dict[str, torch.Tensor], key: str, name: str, num_angles: int, search: str) -> dict[str, Any]:
+
+def _retrieval_cells(test: dict[str, torch.Tensor], key: str, name: str, num_angles: int,
+                     search: str) -> dict[str, Any]:
     """Strict and (with a gallery) paper-protocol precision@10 and same-object top-1 of one feature set."""
     crops = {k: test[k] for k in ("labels", key, f"gallery_{key}", "aabb") if k in test}
     if name == DESCRIPTOR:
         crops = {k: test[k] for k in ("labels", "raw", "gallery_raw", "aabb") if k in test}
     table, _ = retrieval_table(crops, k=10, num_angles=num_angles, search=search)
-    row_key = DESCRIPTOR if name == DESCRIPTOR else {"learned": "learned", "raw": "raw_rgb_occupancy",
-                                                     "random": "random_encoder"}[key]
+    row_key = DESCRIPTOR if name == DESCRIPTOR else _ROW_KEYS[key]
     prot = table["protocols"]
     paper = prot.get("paper")
     return {"precision_at_10": prot["strict"]["precision_at_k"][row_key], "k": table["k"],
@@ -51,14 +49,14 @@ def _retrieval_cells(test: dict[str, torch.Tensor], key: str, name: str, num_ang
             "ceilings": {p: v["ceiling"] for p, v in prot.items()}, "pool": table["num_objects"]}
 
 
-_NO_TRAIN = {"probe_acc": float("nan"), "hungarian_acc": float("nan"), "fewshot_acc": float("nan"),
-             "yaw_median_deg": float("nan"), "yaw_acc_10": float("nan"), "yaw_acc_20": float("nan"), "yaw_pairs": 0}
+_NO_TRAIN = {**dict.fromkeys(("probe_acc", "hungarian_acc", "fewshot_acc", "yaw_median_deg", "yaw_acc_10",
+                               "yaw_acc_20"), float("nan")), "yaw_pairs": 0}
 
 
 def _row(train: dict[str, torch.Tensor] | None, test: dict[str, torch.Tensor], key: str, K: int, num_angles: int,
          em_iterations: int, seed: int, search: str, num_classes: int, symmetry: list[int]) -> dict[str, Any]:
     cells = _retrieval_cells(test, key, key, num_angles, search)
-    if train is None:  # no training split: retrieval only (the probe and the banks are fitted on training objects)
+    if train is None:
         return {**cells, **_NO_TRAIN}
     probe = probe_table({"labels": train["labels"], key: train[key]}, {"labels": test["labels"], key: test[key]})
     bank = fit_prototype_bank(train[key], min(K, train[key].shape[0]), iterations=em_iterations, num_angles=num_angles,
@@ -66,8 +64,7 @@ def _row(train: dict[str, torch.Tensor] | None, test: dict[str, torch.Tensor], k
     res = bank.assign(test[key])
     q = quantization_metrics(res.prototype, res.angle, num_angles, bank.active.numel(), test["labels"],
                              test["boxes"][:, 6], num_classes, symmetry, seed=seed)
-    name = {"learned": "learned", "raw": "raw_rgb_occupancy", "random": "random_encoder"}[key]
-    return {**cells, "probe_acc": probe["accuracy"][name], **q}
+    return {**cells, "probe_acc": probe["accuracy"][_ROW_KEYS[key]], **q}
 
 
 def _descriptor_row(train: dict[str, torch.Tensor] | None, test: dict[str, torch.Tensor], num_angles: int,
@@ -76,28 +73,17 @@ def _descriptor_row(train: dict[str, torch.Tensor] | None, test: dict[str, torch
     cells = _retrieval_cells(test, "raw", DESCRIPTOR, num_angles, search)
     if train is None:
         return {**cells, **_NO_TRAIN}
-    probe = probe_table({k: train[k] for k in ("labels", "raw", "aabb")}, {k: test[k] for k in ("labels", "raw", "aabb")})
-    nan = float("nan")
-    return {**cells, "probe_acc": probe["accuracy"][DESCRIPTOR], "hungarian_acc": nan, "fewshot_acc": nan,
-            "yaw_median_deg": nan, "yaw_acc_10": nan, "yaw_acc_20": nan, "yaw_pairs": 0}
+    keys = ("labels", "raw", "aabb")
+    probe = probe_table({k: train[k] for k in keys}, {k: test[k] for k in keys})
+    return {**cells, **_NO_TRAIN, "probe_acc": probe["accuracy"][DESCRIPTOR]}
 
 
 @torch.no_grad()
-def feature_sets_table(
-    stage: EncoderStage,
-    train_loader: torch.utils.data.DataLoader,
-    test_loader: torch.utils.data.DataLoader,
-    encoders: dict[str, str],
-    num_classes: int,
-    symmetry_order: list[int],
-    num_input_views: int = 1,
-    K: int = 50,
-    num_angles: int = 36,
-    em_iterations: int = 10,
-    seed: int = 0,
-    search: str = RETRIEVAL_SEARCH,
-    progress: bool = True,
-) -> dict[str, Any]:
+def feature_sets_table(stage: EncoderStage, train_loader: torch.utils.data.DataLoader,
+                       test_loader: torch.utils.data.DataLoader, encoders: dict[str, str], num_classes: int,
+                       symmetry_order: list[int], num_input_views: int = 1, K: int = 50, num_angles: int = 36,
+                       em_iterations: int = 10, seed: int = 0, search: str = RETRIEVAL_SEARCH,
+                       progress: bool = True) -> dict[str, Any]:
     """Score raw crops, a random encoder and each named encoder checkpoint on one set of test crops.
 
     Args:
@@ -121,11 +107,11 @@ def feature_sets_table(
             t0 = time.time()
             load_encoder_state(stage.encoder, ckpt)
             first = i == 0
-            gallery = test_loader.dataset.num_target_views > 0  # a split_loader(..., gallery=True): the paper protocol
-            test = collect_object_crops(stage, test_loader, num_input_views, random_encoder_seed=seed if first else None,
-                                        progress=progress, gallery=gallery)
+            gallery = test_loader.dataset.num_target_views > 0
+            test = collect_object_crops(stage, test_loader, num_input_views,
+                                        random_encoder_seed=seed if first else None, progress=progress, gallery=gallery)
             train = None
-            if len(train_loader.dataset):  # a folder without a training split gets retrieval rows only
+            if len(train_loader.dataset):
                 train = collect_object_crops(stage, train_loader, num_input_views,
                                              random_encoder_seed=seed if first else None, progress=progress)
                 n_train = int(train["labels"].shape[0])
@@ -133,7 +119,8 @@ def feature_sets_table(
                 base = test
                 rows["raw crops"] = {**_row(train, test, "raw", **kw), "checkpoint": None}
                 rows["random encoder"] = {**_row(train, test, "random", **kw), "checkpoint": None}
-                rows["colour + size descriptor"] = {**_descriptor_row(train, test, num_angles, search), "checkpoint": None}
+                rows["colour + size descriptor"] = {**_descriptor_row(train, test, num_angles, search),
+                                                    "checkpoint": None}
             elif base is not None and not torch.equal(base["labels"], test["labels"]):
                 raise RuntimeError(f"{ckpt}: the test crops differ from the first checkpoint's (other data?)")
             rows[name] = {**_row(train, test, "learned", **kw), "checkpoint": str(ckpt),
@@ -142,11 +129,11 @@ def feature_sets_table(
                 r = rows[name]
                 paper = "-" if r["precision_at_10_paper"] is None else f"{r['precision_at_10_paper']:.3f}"
                 print(f"[table 2] {name}: precision@10 {r['precision_at_10']:.3f} (strict), {paper} (paper protocol), "
-                      f"probe {r['probe_acc']:.3f}, Hungarian {r['hungarian_acc']:.3f}, few-shot {r['fewshot_acc']:.3f}")
+                      f"probe {r['probe_acc']:.3f}, Hungarian {r['hungarian_acc']:.3f}, "
+                      f"few-shot {r['fewshot_acc']:.3f}")
     finally:
         stage.encoder.load_state_dict(own)
     first_row = next(iter(rows.values()), {})
     return {"search": search, "num_test_objects": int(base["labels"].shape[0]) if base is not None else 0,
             "num_train_objects": n_train, "K": K, "ceilings": first_row.get("ceilings", {}), "rows": rows}
-
 

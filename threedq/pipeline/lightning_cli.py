@@ -1,13 +1,8 @@
 """LightningCLI for every threedq stage, and where configs are found.
 
-A ``--config`` path that does not exist relative to the working directory is looked up in the packaged
-``configs/`` folder, so ``threedq fit --config stages/viewpred.yaml`` works anywhere. A config (or a command
-line) that names a class by its path before threedq 0.2 (``stages.viewpred.ViewPrediction``) is refused with
-one line naming the new path (``threedq.stages.viewpred.ViewPrediction``).
-
-Every fault of a config is one line naming the config file (or the command line) and the field: YAML that does
-not parse or is not a mapping, an unknown key, a value of the wrong type (:class:`ConfigError`); so is a
-``--ckpt_path`` that is truncated, refused by ``torch.load(weights_only=True)`` or written by another stage.
+A ``--config`` path missing relative to the working directory is looked up in the packaged ``configs/`` folder. Every
+fault of a config, a pre-0.2 class path or a bad ``--ckpt_path`` is one line naming the config file (or the command
+line) and the field (:class:`ConfigError`, :class:`OldClassPathError`).
 """
 
 from __future__ import annotations
@@ -33,11 +28,9 @@ from threedq.pipeline.precision import cpu_precision
 from threedq.pipeline.strategy import DDPStrategy
 from threedq.stages.checkpoint import AtomicCheckpointIO, LastStepCheckpoint, checkpoint_stage
 
-__all__ = [
-    "DEFAULT_DATA_CONFIG", "ThreeDQCLI", "ConfigError", "OldClassPathError", "dataset_num_classes",
-    "dataset_symmetry_order", "default_data", "packaged_configs_dir",
-    "config_chain", "expand_configs", "load_config", "resolve_config", "resolve_config_args", "test_checkpoint",
-]
+__all__ = ["DEFAULT_DATA_CONFIG", "ThreeDQCLI", "ConfigError", "OldClassPathError", "dataset_num_classes",
+           "dataset_symmetry_order", "default_data", "packaged_configs_dir", "config_chain", "expand_configs",
+           "load_config", "resolve_config", "resolve_config_args", "test_checkpoint"]
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 #: Where a run writes when its config names no ``trainer.default_root_dir``.
@@ -53,11 +46,11 @@ def default_data() -> dict[str, Any]:
 
 def packaged_configs_dir() -> Path:
     """The folder of configs shipped with threedq (source checkout or installed package)."""
-    package = Path(__file__).resolve().parents[1]  # threedq/
-    source_tree = package.parent / "configs"  # a source checkout or an editable install
+    package = Path(__file__).resolve().parents[1]
+    source_tree = package.parent / "configs"
     if source_tree.is_dir() and (package.parent / "pyproject.toml").is_file():
         return source_tree
-    return package / "configs"  # an installed wheel: configs/ is shipped as threedq/configs/
+    return package / "configs"
 
 
 def resolve_config(path: str | Path) -> Path:
@@ -82,8 +75,7 @@ LINKED_FROM_DATA = ("num_classes", "symmetry_order")
 
 
 def _refuse_linked(args: Sequence[str]) -> None:
-    """A config file or command line that sets a :data:`LINKED_FROM_DATA` argument to a value is refused (one line):
-    jsonargparse would drop it silently, and the dataset's value would be used. ``null`` (older configs) passes.
+    """Refuse a config file or command line that sets a :data:`LINKED_FROM_DATA` argument to a value (not ``null``).
 
     Raises:
         ConfigError: naming the file (or the command line) and the field.
@@ -94,8 +86,8 @@ def _refuse_linked(args: Sequence[str]) -> None:
         init = ((what or {}).get("model") or {}).get("init_args") if isinstance(what, dict) else None
         for key in LINKED_FROM_DATA:
             if isinstance(init, dict) and init.get(key) is not None:
-                raise ConfigError(f"{where}: field 'model.init_args.{key}': taken from the dataset's index.json (linked "
-                                  "from the data); remove it, or use a dataset with those categories")
+                raise ConfigError(f"{where}: field 'model.init_args.{key}': taken from the dataset's index.json "
+                                  "(linked from the data); remove it, or use a dataset with those categories")
     prev = ""
     for a in args:
         key, _, value = a.partition("=") if a.startswith("--") else (prev, "", a)
@@ -107,15 +99,13 @@ def _refuse_linked(args: Sequence[str]) -> None:
 
 
 def _dataset_value(datamodule: Any, name: str) -> Any:
-    """``datamodule.<name>`` (``num_classes``, ``symmetry_order``), or None for a DataModule that does not say. A
-    scene folder reads these from its ``index.json``: where it is not there yet, the data is made first
-    (``prepare_data``: the embedded generator on first use; locked, so parallel processes wait); the checks of
-    ``prepare_data`` on data that exists stay where Lightning runs them (``fit``, ``test``)."""
+    """``datamodule.<name>`` (``num_classes``, ``symmetry_order``), or None for a DataModule that does not say; data
+    whose ``index.json`` is not there yet is made first (``prepare_data``)."""
     if not hasattr(type(datamodule), name) and name not in vars(datamodule):
         return None
     try:
         return getattr(datamodule, name)
-    except InputError:  # e.g. no index.json yet: the DataModule generates its data
+    except InputError:
         prepare = getattr(datamodule, "prepare_data", None)
         if not callable(prepare):
             raise
@@ -130,8 +120,7 @@ def dataset_num_classes(datamodule: Any) -> int | None:
 
 
 def dataset_symmetry_order(datamodule: Any) -> list[int] | None:
-    """Per category, its yaw symmetry order (a scene folder's ``index.json``), linked to a stage's
-    ``symmetry_order``."""
+    """Per category, its yaw symmetry order (a scene folder's ``index.json``), linked to ``symmetry_order``."""
     sym = _dataset_value(datamodule, "symmetry_order")
     return None if sym is None else [int(o) for o in sym]
 
@@ -206,8 +195,8 @@ def _sources(args: Sequence[str]) -> list[tuple[str, Any]]:
 
 
 def explain_parse_error(message: str, args: Sequence[str]) -> str:
-    """One line for a jsonargparse error: where the faulty field is set (the last config file or command-line
-    option that sets it: last wins), the field, and what is wrong."""
+    """One line for a jsonargparse error: where the faulty field is set (the last source that sets it), the field,
+    and what is wrong."""
     text = flatten_message(message)
     key = None
     m = re.match(r'Parser key "([^"]+)": ?(.*)$', text)
@@ -235,7 +224,6 @@ def explain_parse_error(message: str, args: Sequence[str]) -> str:
 
 _OLD_CLASS_PATH = re.compile(r"((?:stages|datamodules)\.[A-Za-z_][\w.]*)$")
 
-
 #: modules renamed so that each data module is named as its format's reader (:mod:`threedq.data.formats`)
 RENAMED_MODULES = {"threedq.datamodules.tum_rgbd": "threedq.datamodules.tum",
                    "threedq.datamodules.kinect_open3d": "threedq.datamodules.open3d",
@@ -247,7 +235,8 @@ def _refuse_old(value: str, where: str) -> None:
     m = _OLD_CLASS_PATH.match(path)
     if m:
         old = m.group(1)
-        raise OldClassPathError(f"{where}: field 'class_path': '{old}' is the path before threedq 0.2; use 'threedq.{old}'")
+        raise OldClassPathError(f"{where}: field 'class_path': '{old}' is the path before threedq 0.2; use "
+                                f"'threedq.{old}'")
     module, _, name = path.rpartition(".")
     if module in RENAMED_MODULES:
         raise OldClassPathError(f"{where}: field 'class_path': '{path}' was renamed; use "
@@ -271,9 +260,8 @@ def _is_class_key(key: str) -> bool:
 
 
 def config_chain(path: str | Path) -> list[Path]:
-    """The config files that ``path`` stands for, base first: a config may name the config it changes with a
-    top-level ``base:`` key (a path relative to its own folder, else to the packaged configs), and then holds only the
-    keys it changes; its base may have a base in turn.
+    """The config files that ``path`` stands for, base first: a top-level ``base:`` key names the config it changes (a
+    path relative to its own folder, else to the packaged configs), which may have a base in turn.
 
     Raises:
         ConfigError: a ``base`` that is not a path, or a chain that comes back to a config it holds.
@@ -324,7 +312,7 @@ def resolve_config_args(argv: Sequence[str]) -> list[str]:
     for a in argv:
         if prev == "--config":
             *bases, path = config_chain(a)
-            for b in bases:  # out ends with this "--config"
+            for b in bases:
                 out += [str(b), "--config"]
             a = str(path)
         elif a.startswith("--config="):
@@ -351,21 +339,13 @@ def _runs_on_cpu(trainer: Any) -> bool:
 class ThreeDQCLI(LightningCLI):
     """LightningCLI for every threedq stage: any LightningModule / LightningDataModule via ``class_path``.
 
-    Each run saves its resolved ``config.yaml`` in the log directory (overwriting a previous one of the
-    same directory, so that a resumed run can be restarted from it).
-
-    Data is composed: a stage config's ``data`` block holds how the stage loads a dataset (``init_args`` such as
-    ``batch_size``, ``num_input_views``, ``boxes``; no ``class_path``), a data config (``configs/data/*.yaml``)
-    which dataset (``class_path``, ``data_dir``, its own arguments). The default dataset is
-    :data:`DEFAULT_DATA_CONFIG`'s; ``--config my_data.yaml`` (before or after the stage config) replaces it, and
-    the stage's loading arguments carry over to the new DataModule class.
+    Each run saves its resolved ``config.yaml`` in the log directory (overwriting one there). A stage config's ``data``
+    block holds how the stage loads a dataset (no ``class_path``), a data config (``configs/data/*.yaml``) which
+    dataset; the default is :data:`DEFAULT_DATA_CONFIG`'s.
     """
 
     def add_arguments_to_parser(self, parser: Any) -> None:
-        """The default dataset, and what a stage takes from the dataset: ``num_classes`` and ``symmetry_order``, the
-        DataModule's attributes of those names (a scene folder reads them from its ``index.json``; a DataModule of
-        your own may define them), once it is built; a stage without such an argument is not given it. A config
-        cannot set a linked argument: the dataset decides it."""
+        """The default dataset, and the stage arguments linked from the DataModule (:data:`LINKED_FROM_DATA`)."""
         parser.set_defaults({"data": default_data()})
         parser.add_argument("--presets", type=Optional[dict[str, str]], default=None,
                             help="a data config's stage presets (read by threedq em; see threedq.pipeline.presets)")
@@ -375,54 +355,35 @@ class ThreeDQCLI(LightningCLI):
         for key, compute in zip(LINKED_FROM_DATA, (dataset_num_classes, dataset_symmetry_order)):
             parser.link_arguments("data", f"model.init_args.{key}", compute_fn=compute, apply_on="instantiate")
 
-    def __init__(
-        self,
-        args: Sequence[str] | None = None,
-        run: bool = True,
-        model_setup: Callable[[L.LightningModule], None] | None = None,
-    ) -> None:
+    def __init__(self, args: Sequence[str] | None = None, run: bool = True,
+                 model_setup: Callable[[L.LightningModule], None] | None = None) -> None:
         """Parse ``args`` (default: the command line), instantiate, and with ``run`` run the subcommand.
 
-        ``--config`` files are looked up in the packaged configs too (:func:`resolve_config_args`).
-        ``model_setup`` is called with the instantiated model before anything runs (``threedq em`` uses it
-        to hand every stage the same :class:`~threedq.stages.crop_cache.CropCache`).
+        ``model_setup`` is called with the instantiated model before anything runs.
         """
         self._model_setup = model_setup
-        self._hold = ExitStack()  # the run's folder, held from before instantiation to the end of the subcommand
+        self._hold = ExitStack()
         with self._hold, warnings.catch_warnings():
-            # threedq passes its own (config-resolved) command line as args= on purpose.
             warnings.filterwarnings("ignore", message=".*args parameter is intended to run from within Python.*")
             self._init(None if args is None else resolve_config_args(args), run)
 
     def _init(self, args: Sequence[str] | None, run: bool) -> None:
         self._args = list(args or [])
-        super().__init__(
-            model_class=L.LightningModule,
-            datamodule_class=L.LightningDataModule,
-            subclass_mode_model=True,
-            subclass_mode_data=True,
-            save_config_kwargs={"overwrite": True},
-            seed_everything_default=0,
-            # a parse error is raised (and reported as one line naming the config file), not printed with the usage
-            parser_kwargs={"default_env": True, "exit_on_error": False},
-            args=list(args) if args is not None else None,
-            run=run,
-        )
+        super().__init__(model_class=L.LightningModule, datamodule_class=L.LightningDataModule,
+                         subclass_mode_model=True, subclass_mode_data=True, save_config_kwargs={"overwrite": True},
+                         seed_everything_default=0,
+                         parser_kwargs={"default_env": True, "exit_on_error": False},
+                         args=list(args) if args is not None else None, run=run)
 
     def subcommands(self) -> dict[str, set[str]]:  # type: ignore[override]  # Lightning's is a staticmethod
-        """Lightning's subcommands (``fit``, ``validate``, ``test``, ``predict``) and the trainer arguments each
-        skips; a command line that starts with one of them gets that one's parser only (building a subcommand's parser
-        is most of a stage's start-up)."""
+        """Lightning's subcommands and the trainer arguments each skips; only the one the command line starts with."""
         every = LightningCLI.subcommands()
         first = self._args[0] if self._args else None
         return {first: every[first]} if first in every else every
 
     def parse_arguments(self, parser: Any, args: Any) -> None:
-        """Parse; a fault is a :class:`ConfigError` naming the config file that sets the field (or the command line).
-
-        A ``--ckpt_path`` is checked here, before Lightning reads it: one that cannot be loaded safely, or that
-        another stage wrote, is refused with one line naming it.
-        """
+        """Parse; a fault is a :class:`ConfigError` naming the config file that sets the field (or the command line), a
+        ``--ckpt_path`` that cannot be loaded safely or that another stage wrote an :class:`InputError`."""
         _refuse_linked(self._args)
         try:
             super().parse_arguments(parser, args)
@@ -439,14 +400,13 @@ class ThreeDQCLI(LightningCLI):
         cls = model.get("class_path") if hasattr(model, "get") else None
         wanted = cls.split(".")[2] if isinstance(cls, str) and cls.startswith("threedq.stages.") else None
         if stage and wanted and stage != wanted:
-            raise InputError(f"{ckpt}: this is a {stage} checkpoint; --ckpt_path of {cls} needs a {wanted} checkpoint")
+            raise InputError(f"{ckpt}: this is a {stage} checkpoint; --ckpt_path of {cls} needs a {wanted} "
+                             "checkpoint")
 
     def _parse_ckpt_path(self) -> None:
-        """Lightning puts the hyperparameters saved in ``--ckpt_path`` over the config. Those of a threedq stage name
-        the files it started from (``encoder_ckpt``, ``detector_ckpt``, ``bank_ckpt``, ``init_bank_ckpt``), often
-        relative to the folder it ran in; the checkpoint itself holds those weights. A named file that is not there
-        (another working folder, a moved run) is replaced by the checkpoint itself (encoder, bank) or dropped
-        (the detector head, the initial bank: the checkpoint's own are loaded)."""
+        """After Lightning puts ``--ckpt_path``'s saved hyperparameters over the config, a named start file that is not
+        there (``encoder_ckpt``, ``bank_ckpt``: replaced by the checkpoint; ``detector_ckpt``, ``init_bank_ckpt``:
+        dropped) is replaced, since the checkpoint holds those weights."""
         super()._parse_ckpt_path()
         sub = self.config.get("subcommand")
         cfg = self.config.get(sub) if sub else None
@@ -465,12 +425,8 @@ class ThreeDQCLI(LightningCLI):
                     args[key] = replacement
 
     def before_instantiate_classes(self) -> None:
-        """A run of a subcommand holds its ``trainer.default_root_dir`` (:func:`~threedq.locks.hold_folder`): a
-        second run writing into it, or into a folder inside one that another run holds (a ``threedq em`` work
-        folder), is refused before anything is built or written.
-
-        A bf16 ``trainer.precision`` on a CPU without bf16 instructions becomes ``32-true``, with one line saying so
-        (:func:`~threedq.pipeline.precision.cpu_precision`); the saved ``config.yaml`` names the precision the run used."""
+        """Hold the run's ``trainer.default_root_dir`` (:func:`~threedq.locks.hold_folder`), and make a bf16
+        ``trainer.precision`` ``32-true`` on a CPU without bf16 instructions, saying so in one line."""
         trainer = self._get(self.config, "trainer", default=None)
         if trainer is not None:
             precision, note = cpu_precision(trainer.get("precision"), _runs_on_cpu(trainer))
@@ -484,7 +440,7 @@ class ThreeDQCLI(LightningCLI):
     def instantiate_classes(self) -> None:
         try:
             super().instantiate_classes()
-        except Exception as e:  # jsonargparse wraps what a class raised in its own multi-line error
+        except Exception as e:
             inner = user_error_in_chain(e)
             if inner is not None:
                 raise inner from None
@@ -493,60 +449,41 @@ class ThreeDQCLI(LightningCLI):
             self._model_setup(self.model)
 
     def instantiate_trainer(self, **kwargs: Any) -> L.Trainer:
-        """Give every run a self-contained folder ``trainer.default_root_dir``.
-
-        Unless the config names its own, the loggers are TensorBoard + CSV writing straight into that
-        folder (beside the saved ``config.yaml``), and a ModelCheckpoint keeps ``checkpoints/last.ckpt``
-        there, refreshed every 100 training steps and at the last one, so that ``--ckpt_path <root>/checkpoints/last.ckpt`` resumes a killed run.
-        """
+        """Give every run a self-contained folder ``trainer.default_root_dir``: unless the config names its own, the
+        loggers (TensorBoard + CSV) write into it and ``checkpoints/last.ckpt`` is kept there every 100 steps."""
         cfg = self._get(self.config_init, "trainer", default={})
         if cfg.get("sync_batchnorm") and _runs_on_cpu(cfg):
-            # torch's SyncBatchNorm has no CPU kernel: without this the processes start, then fail at the first step
-            raise ConfigError(
-                "--trainer.sync_batchnorm: SyncBatchNorm runs on GPUs only; on CPU use --config trainer/ddp_cpu.yaml "
-                "(or --trainer.sync_batchnorm false)"
-            )
+            raise ConfigError("--trainer.sync_batchnorm: SyncBatchNorm runs on GPUs only; on CPU use --config "
+                              "trainer/ddp_cpu.yaml (or --trainer.sync_batchnorm false)")
         if cfg.get("strategy") == "ddp":
-            kwargs["strategy"] = DDPStrategy()  # Lightning's, able to run the quantizer (no trainable parameter)
+            kwargs["strategy"] = DDPStrategy()
         root = Path(cfg.get("default_root_dir") or DEFAULT_ROOT)
         if cfg.get("logger") in (None, True) and not cfg.get("fast_dev_run"):
-            kwargs["logger"] = [
-                TensorBoardLogger(save_dir=str(root), name="", version=""),
-                CSVLogger(save_dir=str(root), name="", version=""),
-            ]
+            kwargs["logger"] = [TensorBoardLogger(save_dir=str(root), name="", version=""),
+                                CSVLogger(save_dir=str(root), name="", version="")]
         callbacks = list(cfg.get("callbacks") or [])
         if cfg.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in callbacks):
             ckpt = LastStepCheckpoint(dirpath=root / "checkpoints", save_last=True, every_n_train_steps=100)
             kwargs["callbacks"] = [*callbacks, ckpt]
-        if not cfg.get("plugins"):  # every checkpoint written atomically (a full disk keeps the previous one whole)
+        if not cfg.get("plugins"):
             kwargs["plugins"] = [AtomicCheckpointIO()]
         return super().instantiate_trainer(**kwargs)
 
 
 def test_checkpoint(
-    configs: Sequence[str | Path],
-    ckpt: str | Path,
-    out_dir: str | Path,
-    overrides: Sequence[str] = (),
-    model_setup: Callable[[L.LightningModule], None] | None = None,
-) -> tuple[ThreeDQCLI, dict[str, float]]:
-    """Score a stage checkpoint through the stage's own ``test_step``: ``trainer.test(model, datamodule, ckpt_path)``.
-
-    The stage is built from ``configs`` with ``encoder_ckpt`` pointing at ``ckpt`` itself, so the grid comes
-    from the checkpoint (and a config naming another grid is refused); Lightning then loads every weight and
-    buffer of ``ckpt``. Runs without a logger, in ``out_dir``.
+    configs: Sequence[str | Path], ckpt: str | Path, out_dir: str | Path, overrides: Sequence[str] = (),
+    model_setup: Callable[[L.LightningModule], None] | None = None) -> tuple[ThreeDQCLI, dict[str, float]]:
+    """Score a stage checkpoint through the stage's own ``test_step`` (built from ``configs`` with ``encoder_ckpt`` =
+    ``ckpt``), without a logger, in ``out_dir``.
 
     Returns:
         The CLI (its ``model`` and ``datamodule`` are set up and loaded, for further evaluation) and the test
         metrics the stage logged, ``{"test/<name>": value}``.
     """
-    args: list[str] = []
-    for c in configs:
-        args += ["--config", str(c)]
-    args += [
-        *overrides, f"--model.init_args.encoder_ckpt={ckpt}", "--trainer.logger=false", "--trainer.enable_checkpointing=false",
-        f"--trainer.default_root_dir={out_dir}",
-    ]
+    args = [a for c in configs for a in ("--config", str(c))]
+    args += [*overrides, f"--model.init_args.encoder_ckpt={ckpt}", "--trainer.logger=false",
+             "--trainer.enable_checkpointing=false", f"--trainer.default_root_dir={out_dir}"]
     cli = ThreeDQCLI(args=args, run=False, model_setup=model_setup)
-    results = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=str(ckpt), verbose=False, weights_only=True)
+    results = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=str(ckpt), verbose=False,
+                               weights_only=True)
     return cli, {k: float(v) for k, v in (results[0] if results else {}).items()}

@@ -8,11 +8,8 @@ A labels YAML names objects of scenes::
       - {scene: test/scene_000003.npz, object: 0, name: cube}      # object 0 of `threedq parse`'s list
       - {scene: test/scene_000007.npz, box: [-0.7, 0.0, 0.0, 0.0, 0.7, 0.6], name: mug}   # or a box (frame R)
 
-Each named object is matched against the prototypes (the parse's detection and rotation search, or the given
-box); each prototype takes the name most of its named members carry
-(:func:`threedq.metrics.fewshot.few_shot_accuracy`'s propagation, ties to the alphabetically first name); the
-names are stored beside the bank (``prototype_names.json``, written atomically) and ``threedq parse`` prints
-them. Conflicts (a prototype whose members carry several names) and prototypes left unnamed are reported.
+Each prototype takes the name most of its named members carry (ties: the alphabetically first); the names are
+stored beside the bank (``prototype_names.json``); conflicts and prototypes left unnamed are reported.
 """
 
 from __future__ import annotations
@@ -25,8 +22,8 @@ import numpy as np
 import torch
 import yaml
 
-from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_json
+from threedq.errors import InputError
 from threedq.metrics.fewshot import few_shot_accuracy
 from threedq.pipeline.parse import SceneParser, check_views, names_path, parse_records, resolve_run
 from threedq.scene import SceneValidationError, load_scene
@@ -54,7 +51,8 @@ def load_labels(path: str | Path) -> tuple[Path, list[int], list[dict[str, Any]]
     out = []
     for i, item in enumerate(doc["labels"]):
         where = f"labels[{i}]"
-        if not isinstance(item, dict) or not isinstance(item.get("scene"), str) or not str(item.get("name", "")).strip():
+        if (not isinstance(item, dict) or not isinstance(item.get("scene"), str)
+                or not str(item.get("name", "")).strip()):
             raise InputError(f"{p}: field '{where}': expected a mapping with 'scene' and 'name', got {item!r}")
         has_obj, has_box = "object" in item, "box" in item
         if has_obj == has_box:
@@ -65,7 +63,8 @@ def load_labels(path: str | Path) -> tuple[Path, list[int], list[dict[str, Any]]
             box = item["box"]
             ok = isinstance(box, list) and len(box) == 6 and all(isinstance(v, (int, float)) for v in box)
             if not ok or not all(box[j] < box[j + 3] for j in range(3)):
-                raise InputError(f"{p}: field '{where}.box': expected [xmin, ymin, zmin, xmax, ymax, zmax], got {box!r}")
+                raise InputError(f"{p}: field '{where}.box': expected [xmin, ymin, zmin, xmax, ymax, zmax], "
+                                 f"got {box!r}")
         out.append({**item, "name": str(item["name"]).strip()})
     return root, views, out
 
@@ -88,14 +87,8 @@ def propagate_names(prototypes: list[int], names: list[str], num_prototypes: int
     return {"names": named, "conflicts": {k: v for k, v in votes.items() if len(v) > 1}, "votes": votes}
 
 
-def run_label(
-    labels: str,
-    run: str | None = None,
-    encoder: str | None = None,
-    detector: str | None = None,
-    prototypes: str | None = None,
-    score_threshold: float | None = None,
-) -> dict[str, Any]:
+def run_label(labels: str, run: str | None = None, encoder: str | None = None, detector: str | None = None,
+              prototypes: str | None = None, score_threshold: float | None = None) -> dict[str, Any]:
     """Name a few objects (a labels YAML) and propagate the names to the prototypes; store them beside the bank.
 
     Args:
@@ -131,34 +124,28 @@ def run_label(
             else:
                 j = items[i]["object"]
                 if j >= len(detected):
-                    raise SceneValidationError(
-                        str(labels), f"labels[{i}].object",
-                        f"{scene} has {len(detected)} detected object(s) (threedq parse lists them), not {j + 1}",
-                    )
+                    raise SceneValidationError(str(labels), f"labels[{i}].object", f"{scene} has {len(detected)} "
+                                               f"detected object(s) (threedq parse lists them), not {j + 1}")
                 o = detected[j]
             protos[i] = o["prototype"]
             matched[i] = {"scene": scene, "name": items[i]["name"], "box": o["box"], "prototype": o["prototype"],
-                          "yaw_deg": o["yaw_deg"], "similarity": o["similarity"]}  # fmt: skip
+                          "yaw_deg": o["yaw_deg"], "similarity": o["similarity"]}
     K = int(parser.bank.prototypes.shape[0])
     prop = propagate_names(protos, [it["name"] for it in items], K)
     active = [int(k) for k in parser.bank.active.nonzero().flatten().tolist()]
     unnamed = [k for k in active if k not in prop["names"]]
-    doc = {
-        "bank": parser.fingerprint,
-        "prototypes": str(artifacts.prototypes),
-        "labels": str(labels),
-        "names": {str(k): n for k, n in sorted(prop["names"].items())},
-        "conflicts": {str(k): v for k, v in sorted(prop["conflicts"].items())},
-        "unnamed": unnamed,
-        "objects": matched,
-    }
+    doc = {"bank": parser.fingerprint, "prototypes": str(artifacts.prototypes), "labels": str(labels),
+           "names": {str(k): n for k, n in sorted(prop["names"].items())},
+           "conflicts": {str(k): v for k, v in sorted(prop["conflicts"].items())}, "unnamed": unnamed,
+           "objects": matched}
     path = names_path(artifacts.prototypes)
     atomic_write_json(path, doc)
     for k, v in sorted(prop["conflicts"].items()):
-        print(f"threedq label: conflict: prototype C{k} has members named " + ", ".join(f"{n} x{c}" for n, c in v.items())
-              + f" -> {prop['names'][k]}")  # fmt: skip
+        print(f"threedq label: conflict: prototype C{k} has members named "
+              + ", ".join(f"{n} x{c}" for n, c in v.items()) + f" -> {prop['names'][k]}")
     for k, n in sorted(prop["names"].items()):
         print(f"threedq label: C{k} = {n}")
     print(f"threedq label: {len(items)} object(s) named, {len(prop['names'])} of {len(active)} prototypes named, "
-          f"{len(prop['conflicts'])} conflict(s), {len(unnamed)} unnamed; wrote {path} ({time.time() - t0:.1f} s)")  # fmt: skip
+          f"{len(prop['conflicts'])} conflict(s), {len(unnamed)} unnamed; wrote {path} "
+          f"({time.time() - t0:.1f} s)")
     return {**doc, "file": str(path)}

@@ -1,11 +1,7 @@
 """Command-line overrides of a stage run, built from keyword arguments checked against what the stage takes.
 
-``threedq em`` hands each stage its inputs (the encoder to start from, the boxes of the round, the precision) as
-LightningCLI overrides. :func:`stage_overrides` builds them from Python values and checks every name first: a model
-argument against the constructors of the stage class its configs name (its own and its bases'),
-a data argument against the DataModule's, a trainer argument against :class:`lightning.pytorch.Trainer`'s. A renamed
-argument is refused with one line naming the configs and the name, before anything runs, instead of failing deep
-inside a run.
+:func:`stage_overrides` checks each model argument against the constructors of the stage class its configs name, each
+data argument against the DataModule's, each trainer argument against :class:`lightning.pytorch.Trainer`'s.
 """
 
 from __future__ import annotations
@@ -29,10 +25,9 @@ _TRAINER_ARGUMENTS = frozenset(inspect.signature(L.Trainer.__init__).parameters)
 
 def class_of(configs: Sequence[str | Path], key: str) -> type | None:
     """The class a run of ``configs`` builds for ``key`` (``"model"`` or ``"data"``): the last ``class_path`` the
-    configs set (later configs override earlier ones; for ``data`` the CLI's default dataset when none sets one,
-    :data:`~threedq.pipeline.lightning_cli.DEFAULT_DATA_CONFIG`); ``None`` when none sets one or it does not import."""
+    configs set (for ``data`` default: the CLI's default dataset); ``None`` when none sets one or it does not import."""
     path = default_data()["class_path"] if key == "data" else None
-    for config in expand_configs(configs):  # a variant's bases first
+    for config in expand_configs(configs):
         doc = yaml.safe_load(Path(config).read_text()) or {}
         section = doc.get(key) if isinstance(doc, dict) else None
         if isinstance(section, dict) and isinstance(section.get("class_path"), str):
@@ -54,13 +49,8 @@ def _value(v: Any) -> str:
     return str(v)
 
 
-def stage_overrides(
-    configs: Sequence[str | Path],
-    *,
-    model: Mapping[str, Any] | None = None,
-    data: Mapping[str, Any] | None = None,
-    trainer: Mapping[str, Any] | None = None,
-) -> list[str]:
+def stage_overrides(configs: Sequence[str | Path], *, model: Mapping[str, Any] | None = None,
+                    data: Mapping[str, Any] | None = None, trainer: Mapping[str, Any] | None = None) -> list[str]:
     """``--model.init_args.<k>=<v>``, ``--data.init_args.<k>=<v>`` and ``--trainer.<k>=<v>`` for a run of ``configs``.
 
     Args:
@@ -71,9 +61,10 @@ def stage_overrides(
         InputError: a name the stage's model, its DataModule or the Trainer does not take (one line).
     """
     out: list[str] = []
-    for key, values, allowed in (("model", model, None), ("data", data, None), ("trainer", trainer, _TRAINER_ARGUMENTS)):
+    for key, values in (("model", model), ("data", data), ("trainer", trainer)):
         if not values:
             continue
+        allowed = _TRAINER_ARGUMENTS if key == "trainer" else None
         if allowed is None:
             cls = class_of(configs, key)
             allowed = None if cls is None else _argument_names(cls)
@@ -89,8 +80,7 @@ def stage_overrides(
 
 
 def _argument_names(cls: type) -> frozenset[str]:
-    """Every named constructor argument of ``cls`` and its bases below Lightning's classes (with a default or not:
-    a DataModule's ``data_dir`` has none)."""
+    """Every named constructor argument of ``cls`` and its bases below Lightning's classes."""
     names: set[str] = set()
     for c in cls.__mro__:
         if c.__module__.startswith("lightning"):

@@ -1,26 +1,10 @@
 """Scene parsing with a trained run (paper Sec. 4.5, Fig. 4); the command is :mod:`threedq.pipeline.parse_command`.
 
-Per scene: encode the input view(s) into the feature grid, detect 3D boxes (the run's final detector, at its
-hand-on score threshold, 3D NMS), crop each box out of the features the prototypes were fitted on, and match
-the crop against every prototype at every yaw (the bank's rotation search, the same call as the evaluation's).
-The result per object: its box, the detector's score, the prototype id ``C``, the yaw ``R``, the cosine
-similarity, the confidence in the yaw (``yaw_confidence``: the search's best similarity minus its best at any yaw
-more than 30 degrees away; near 0, another pose fits as well) and a name when the prototypes were named
-(``threedq label``).
-
-What a run folder (``threedq em``'s ``work_dir``) provides, found by :func:`resolve_run`::
-
-    <run>/
-      00_viewpred/checkpoints/last.ckpt          view decoder (renders)
-      02_detector/checkpoints/last.ckpt          the warm-start detector (used when no round self-labelled)
-      rNN_quantizer/checkpoints/last.ckpt        the prototype bank of round NN (+ the encoder it was fitted on)
-      rNN_self_labelling/checkpoints/last.ckpt   the self-labelled detector of round NN
-      rNN_quantizer/checkpoints/prototype_names.json        names (``threedq label``)
-      rNN_quantizer/checkpoints/prototype_appearance.pt     what each prototype looks like (pictures only)
-
-The newest finished round (``stage.json`` written) is used; ``--encoder``, ``--detector`` and ``--prototypes``
-override each part. Detection runs on the detector checkpoint's encoder, matching on the encoder of the
-prototypes (in ``threedq em`` both are the round's encoder, and the grid is encoded once).
+Per scene: encode the input view(s), detect 3D boxes (the run's final detector at its hand-on threshold), crop each
+box out of the prototypes' feature space and match it against every prototype at every yaw. Per object: box, score,
+prototype id ``C``, yaw ``R``, similarity, ``yaw_confidence`` (best similarity minus the best more than 30 degrees
+away) and a name when the prototypes were named (``threedq label``). :func:`resolve_run` finds the newest finished
+round's parts in a ``threedq em`` folder (:class:`~threedq.pipeline.run_layout.RunLayout`).
 
 Convention: boxes in frame R, the record's world frame (metres, z up), axis-aligned
 ``(xmin, ymin, zmin, xmax, ymax, zmax)``; with an imported capture (``meta.canonical_T_capture``) each object
@@ -32,6 +16,8 @@ degrees counter-clockwise about +z looks like the object).
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import math
 import sys
@@ -67,24 +53,13 @@ from threedq.stages.checkpoint import (
 from threedq.stages.detector import Detector
 from threedq.stages.quantizer import bank_occupancy_floor, load_bank_state
 
-__all__ = [
-    "RunArtifacts",
-    "check_views",
-    "prototype_top_view",
-    "SceneParser",
-    "find_scenes",
-    "load_names",
-    "names_path",
-    "parse_records",
-    "resolve_run",
-    "scene_batch",
-]
+__all__ = ["RunArtifacts", "check_views", "prototype_top_view", "SceneParser", "find_scenes", "load_names",
+           "names_path", "parse_records", "resolve_run", "scene_batch"]
 
 NAMES_FILE = "prototype_names.json"
 APPEARANCE_FILE = "prototype_appearance.pt"
 
 
-# ---------------------------------------------------------------------------------------------- the run's parts
 @dataclass(frozen=True)
 class RunArtifacts:
     """The checkpoints a parse uses (see the module docstring)."""
@@ -99,12 +74,8 @@ class RunArtifacts:
         return {k: (None if v is None else str(v)) for k, v in self.__dict__.items()}
 
 
-def resolve_run(
-    run: str | Path | None = None,
-    encoder: str | Path | None = None,
-    detector: str | Path | None = None,
-    prototypes: str | Path | None = None,
-) -> RunArtifacts:
+def resolve_run(run: str | Path | None = None, encoder: str | Path | None = None, detector: str | Path | None = None,
+                prototypes: str | Path | None = None) -> RunArtifacts:
     """The final encoder, detector and prototype bank of a ``threedq em`` run folder (explicit paths win).
 
     Raises:
@@ -113,7 +84,6 @@ def resolve_run(
     r = Path(run) if run is not None else None
     if r is not None and not r.is_dir():
         raise FileNotFoundError(f"run: no such folder: {r}")
-
     layout = RunLayout(r) if r is not None else None
 
     def need(part: str, given: str | Path | None, found: Path | None, what: str) -> Path:
@@ -127,8 +97,8 @@ def resolve_run(
             raise FileNotFoundError(f"{part}: {where}: no finished {what}; give --{part}")
         return found
 
-    bank = need("prototypes", prototypes, layout.final_quantizer() if layout else None, "quantizer stage (rNN_quantizer)")
-    # the warm start counts as round 0; a self-labelled round's detector replaces it
+    bank = need("prototypes", prototypes, layout.final_quantizer() if layout else None,
+                "quantizer stage (rNN_quantizer)")
     det = need("detector", detector, layout.final_detector() if layout else None,
                "detector (02_detector or rNN_self_labelling)")
     enc = Path(encoder) if encoder is not None else bank
@@ -145,8 +115,6 @@ def names_path(prototypes: str | Path) -> Path:
 
 def bank_fingerprint(bank: PrototypeBank) -> str:
     """A short hash of the bank's prototypes (names and appearances are refused for another bank)."""
-    import hashlib
-
     h = hashlib.sha256()
     h.update(bank.prototypes.detach().cpu().contiguous().numpy().tobytes())
     h.update(bank.active.cpu().numpy().tobytes())
@@ -168,7 +136,6 @@ def load_names(prototypes: str | Path, bank: PrototypeBank | None = None) -> dic
     return names
 
 
-# ---------------------------------------------------------------------------------------------- the models
 def _checked_grid(a: dict[str, Any], b: dict[str, Any], pa: Path, pb: Path) -> None:
     for k in DEFAULT_GRID:
         va, vb = a.get(k), b.get(k)
@@ -183,7 +150,7 @@ class SceneParser(torch.nn.Module):
         artifacts: from :func:`resolve_run`.
         score_threshold: objectness of the boxes kept (default: the detector's hand-on threshold).
         precision: ``"fp32"`` or ``"bf16"`` (autocast of the encoder and the detector head; crops and the rotation
-            search stay fp32). ``benchmarks/bench_parse.py`` measures the speed and how often the parse changes.
+            search stay fp32).
     """
 
     def __init__(self, artifacts: RunArtifacts, score_threshold: float | None = None, precision: str = "fp32") -> None:
@@ -197,21 +164,25 @@ class SceneParser(torch.nn.Module):
         names = set(stage_arguments(Detector)) - {"encoder_ckpt"}
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in det_hp.items() if k in names}
         kw.update(channels_last=True, freeze_encoder=True, image_every_n_steps=0,
-                  anchor_size=load_checkpoint(artifacts.detector).anchor)  # the anchor buffer (older files: hparams)
+                  anchor_size=load_checkpoint(artifacts.detector).anchor)
         self.detector = Detector(**kw)
         state = checkpoint_state(artifacts.detector)
         part = {k: v for k, v in state.items() if k.startswith(("encoder.", "head."))}
         if not any(k.startswith("head.") for k in part):
-            raise InputError(f"{artifacts.detector}: field 'state_dict': no 'head.*' weights (not a detector checkpoint)")
+            raise InputError(f"{artifacts.detector}: field 'state_dict': no 'head.*' weights (not a detector "
+                             "checkpoint)")
         missing, _ = self.detector.load_state_dict(part, strict=False)
         missing = [k for k in missing if k.startswith(("encoder.", "head."))]
         if missing:
-            raise InputError(f"{artifacts.detector}: field 'state_dict': missing {missing[0]} (and {len(missing) - 1} more)")
+            raise InputError(f"{artifacts.detector}: field 'state_dict': missing {missing[0]} "
+                             f"(and {len(missing) - 1} more)")
         for k in ("num_prototypes", "crop_size", "num_angles"):
             if k not in q_hp:
-                raise InputError(f"{artifacts.prototypes}: field 'hyper_parameters.{k}': missing (not a quantizer checkpoint)")
-        self.bank = PrototypeBank(q_hp["num_prototypes"], self.detector.feature_dim, q_hp["crop_size"], q_hp["num_angles"],
-                                  q_hp.get("init_threshold", 0.8), q_hp.get("search_method", "fast"))  # fmt: skip
+                raise InputError(f"{artifacts.prototypes}: field 'hyper_parameters.{k}': missing (not a quantizer "
+                                 "checkpoint)")
+        self.bank = PrototypeBank(q_hp["num_prototypes"], self.detector.feature_dim, q_hp["crop_size"],
+                                  q_hp["num_angles"], q_hp.get("init_threshold", 0.8),
+                                  q_hp.get("search_method", "fast"))
         load_bank_state(self.bank, str(artifacts.prototypes))
         if self.bank.num_active == 0:
             raise InputError(f"{artifacts.prototypes}: field 'bank.active': the bank has no prototype")
@@ -278,7 +249,8 @@ class SceneParser(torch.nn.Module):
             dets = det.detect(logits.float(), box.float(), self.score_threshold, views=(depth, K, pose))
         else:
             dets = [{"boxes": torch.as_tensor(a, dtype=torch.float32).reshape(-1, 6).to(feats.device),
-                     "scores": torch.as_tensor(sc, dtype=torch.float32).reshape(-1).to(feats.device)} for a, sc in boxes]  # fmt: skip
+                     "scores": torch.as_tensor(sc, dtype=torch.float32).reshape(-1).to(feats.device)}
+                    for a, sc in boxes]
         t["detect"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if self.q_stage is None:
@@ -299,7 +271,8 @@ class SceneParser(torch.nn.Module):
         crops = crop_boxes(q_feats, region, det.feature_grid, self.crop_size, mask=mask)
         if self.occupancy_floor is not None:  # the input occupancy (union over the views) weights the crops
             occ = x[:, :1].reshape(B, V, 1, *x.shape[2:]).amax(1)
-            crops = prototype_crops(crops, crop_boxes(occ, region, det.grid, self.crop_size, mask=mask), self.occupancy_floor)
+            crops = prototype_crops(crops, crop_boxes(occ, region, det.grid, self.crop_size, mask=mask),
+                                    self.occupancy_floor)
         t["crop"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if crops.shape[0]:
@@ -312,26 +285,16 @@ class SceneParser(torch.nn.Module):
         t["search"] = time.perf_counter() - t0
         counts = mask.sum(1).tolist()
         split = lambda x: list(torch.split(x.cpu(), counts))  # noqa: E731
-        return {
-            "aabb": [d["boxes"].cpu() for d in dets],
-            "score": [d["scores"].cpu() for d in dets],
-            "prototype": split(proto),
-            "angle": split(angle),
-            "similarity": split(sim.float()),
-            "yaw_confidence": split(margin.float()),
-            "features": q_feats,
-            "timings": t,
-        }
+        return {"aabb": [d["boxes"].cpu() for d in dets], "score": [d["scores"].cpu() for d in dets],
+                "prototype": split(proto), "angle": split(angle), "similarity": split(sim.float()),
+                "yaw_confidence": split(margin.float()), "features": q_feats, "timings": t}
 
 
 def yaw_margin_steps(num_angles: int) -> int:
-    """The yaws within 30 degrees of the chosen one count as the same pose for an object's ``yaw_confidence``: the
-    search's best similarity minus its best at any yaw more than 30 degrees away
-    (:func:`~threedq.quantization.yaw_confidence`)."""
+    """The yaw steps within 30 degrees of the chosen one, which ``yaw_confidence`` counts as the same pose."""
     return max(1, round(num_angles * 30 / 360))
 
 
-# ---------------------------------------------------------------------------------------------- scenes
 def find_scenes(scenes: str | Path, split: str | None = None) -> tuple[Path, list[str]]:
     """The scene files to parse: ``(root, files relative to root)``.
 
@@ -347,7 +310,8 @@ def find_scenes(scenes: str | Path, split: str | None = None) -> tuple[Path, lis
         index = load_index(p)
         files = index.files(split) if split else [s["file"] for s in index.scenes]
     else:
-        files = sorted(str(f.relative_to(p)) for f in p.rglob("*.npz") if not {"proposals", "boxes"} & set(f.relative_to(p).parts[:-1]))
+        files = sorted(str(f.relative_to(p)) for f in p.rglob("*.npz")
+                       if not {"proposals", "boxes"} & set(f.relative_to(p).parts[:-1]))
     if not files:
         raise FileNotFoundError(f"scenes: no scene files in {p}" + (f" (split {split!r})" if split else ""))
     return p, files
@@ -355,30 +319,27 @@ def find_scenes(scenes: str | Path, split: str | None = None) -> tuple[Path, lis
 
 def scene_batch(records: list[SceneRecord], views: list[list[int]]) -> dict[str, Tensor]:
     """Stack the chosen views of records of one image size into a parse batch (see :meth:`SceneParser.forward`)."""
-    return {
-        "rgb": torch.stack([torch.from_numpy(r.rgb[v]).permute(0, 3, 1, 2).float().div_(255.0) for r, v in zip(records, views)]),
-        "depth": torch.stack([torch.from_numpy(r.depth[v].astype(np.float32)) for r, v in zip(records, views)]),
-        "K": torch.stack([torch.from_numpy(r.K[v].astype(np.float32)) for r, v in zip(records, views)]),
-        "R_T_cam": torch.stack([torch.from_numpy(r.world_T_cam[v].astype(np.float32)) for r, v in zip(records, views)]),
-    }
+    rv = list(zip(records, views))
+    return {"rgb": torch.stack([torch.from_numpy(r.rgb[v]).permute(0, 3, 1, 2).float().div_(255.0) for r, v in rv]),
+            **{k: torch.stack([torch.from_numpy(getattr(r, a)[v].astype(np.float32)) for r, v in rv])
+               for k, a in (("depth", "depth"), ("K", "K"), ("R_T_cam", "world_T_cam"))}}
 
 
 def check_views(views: list[int], record: SceneRecord, source: str) -> list[int]:
     bad = [v for v in views if not -record.num_views <= v < record.num_views]
     if bad:
-        raise SceneValidationError(source, "views", f"view {bad[0]} asked for but the scene has {record.num_views} views")
+        raise SceneValidationError(source, "views",
+                                   f"view {bad[0]} asked for but the scene has {record.num_views} views")
     return [v % record.num_views for v in views]
 
 
-def parse_records(
-    parser: SceneParser, records: list[SceneRecord], views: list[list[int]], names: dict[int, str] | None = None,
-    batch_size: int = 4, boxes: list[tuple[np.ndarray, np.ndarray]] | None = None,
-) -> list[dict[str, Any]]:
+def parse_records(parser: SceneParser, records: list[SceneRecord], views: list[list[int]],
+                  names: dict[int, str] | None = None, batch_size: int = 4,
+                  boxes: list[tuple[np.ndarray, np.ndarray]] | None = None) -> list[dict[str, Any]]:
     """Parse in-memory records (views per record); returns one JSON-ready dict per record (see :func:`run_parse`).
 
-    ``boxes`` (per record ``(aabb [P, 6], scores [P])``) replaces the detector's boxes.
-
-    Records are batched ``batch_size`` at a time when they share an image size and a number of input views.
+    ``boxes`` (per record ``(aabb [P, 6], scores [P])``) replaces the detector's boxes. Records of one image size and
+    number of input views are batched ``batch_size`` at a time.
     """
     names = names or {}
     out: list[dict[str, Any] | None] = [None] * len(records)
@@ -403,20 +364,15 @@ def _scene_json(rec: SceneRecord, views: list[int], res: dict[str, Any], j: int,
     objects = []
     c_T = rec.meta.get("canonical_T_capture") if isinstance(rec.meta, dict) else None
     for n in range(aabb.shape[0]):
-        a = int(res["angle"][j][n])
-        k = int(res["prototype"][j][n])
+        a, k = int(res["angle"][j][n]), int(res["prototype"][j][n])
         obj: dict[str, Any] = {
             "box": [round(float(x), 5) for x in aabb[n]],
             "center": [round(float(x), 5) for x in (aabb[n, :3] + aabb[n, 3:]) / 2],
             "size": [round(float(x), 5) for x in aabb[n, 3:] - aabb[n, :3]],
-            "score": round(float(res["score"][j][n]), 5),
-            "prototype": k,
-            "angle_index": a,
+            "score": round(float(res["score"][j][n]), 5), "prototype": k, "angle_index": a,
             "yaw_deg": round((-math.degrees(float(yaw[a]))) % 360.0, 3),
             "similarity": round(float(res["similarity"][j][n]), 5),
-            "yaw_confidence": round(float(res["yaw_confidence"][j][n]), 5),
-            "name": names.get(k),
-        }
+            "yaw_confidence": round(float(res["yaw_confidence"][j][n]), 5), "name": names.get(k)}
         if c_T is not None:
             box7 = np.array([[*obj["center"], *obj["size"], 0.0]])
             obj["capture_T_box"] = np.round(boxes_to_capture_frame(box7, np.asarray(c_T))[0][0], 6).tolist()
@@ -424,7 +380,6 @@ def _scene_json(rec: SceneRecord, views: list[int], res: dict[str, Any], j: int,
     return {"input_views": list(views), "frame": "R (the record's world frame: metres, z up)", "objects": objects}
 
 
-# ---------------------------------------------------------------------------------------------- pictures
 def _appearance_raw(parser: SceneParser, appearance: dict[str, Tensor] | None, k: int) -> Tensor | None:
     if appearance is None or k >= appearance["count"].shape[0] or appearance["count"][k] == 0:
         return None
@@ -434,9 +389,8 @@ def _appearance_raw(parser: SceneParser, appearance: dict[str, Tensor] | None, k
 def prototype_top_view(raw: Tensor) -> tuple[np.ndarray, np.ndarray]:
     """Bird's-eye picture of a mean raw crop ``[4, s, s, s]`` (``cat[occ, occ * rgb]`` averaged over members).
 
-    Occupancy is rescaled by its maximum (a mean of members that differ in shape is nowhere 1) and colour is
-    ``rgb / occ``; returns the ``[s, s, 3]`` float RGB picture (y up) and the ``[s, s]`` mask of columns that
-    hold a voxel above half the maximum occupancy.
+    Returns the ``[s, s, 3]`` float RGB picture (y up; occupancy rescaled by its maximum, colour ``rgb / occ``) and
+    the ``[s, s]`` mask of columns holding a voxel above half the maximum occupancy.
     """
     occ = raw[0].clamp_min(0)
     occ_n = occ / occ.max().clamp_min(1e-6)
@@ -446,10 +400,8 @@ def prototype_top_view(raw: Tensor) -> tuple[np.ndarray, np.ndarray]:
     return pic, mask
 
 
-def birds_eye_panel(
-    rec: SceneRecord, views: list[int], parse: dict[str, Any], parser: SceneParser,
-    appearance: dict[str, Tensor] | None, size: int,
-) -> np.ndarray:
+def birds_eye_panel(rec: SceneRecord, views: list[int], parse: dict[str, Any], parser: SceneParser,
+                    appearance: dict[str, Tensor] | None, size: int) -> np.ndarray:
     """Bird's-eye view of the scene's input grid (top colour of the occupied voxels) with each object's prototype
     drawn at its yaw inside the object's footprint, its footprint outline and its label (``[size, size, 3]`` uint8).
 
@@ -465,7 +417,7 @@ def birds_eye_panel(
     g = det.grid
     scale = size / max(img.shape[:2])
     img = cv2.resize(img, (round(img.shape[1] * scale), round(img.shape[0] * scale)), interpolation=cv2.INTER_NEAREST)
-    img = (img.astype(np.float32) * 0.6).astype(np.uint8)  # dim the scene so the prototypes stand out
+    img = (img.astype(np.float32) * 0.6).astype(np.uint8)
     H, W = img.shape[:2]
     lo, hi = np.array(g.bounds_min), np.array(g.bounds_max)
 
@@ -492,7 +444,7 @@ def birds_eye_panel(
         ang = math.radians(o["yaw_deg"])  # the prototype's +x axis, turned like the object
         L = 0.5 * min(x1 - x0, y1 - y0)
         cv2.arrowedLine(img, (int(cx), int(cy)), (int(cx + L * math.cos(ang)), int(cy - L * math.sin(ang))), col, 1,
-                        cv2.LINE_AA, tipLength=0.3)  # fmt: skip
+                        cv2.LINE_AA, tipLength=0.3)
         text = f"C{o['prototype']} R{o['yaw_deg']:.0f}" + (f" {o['name']}" if o.get("name") else "")
         cv2.putText(img, text, (c0, max(r0 - 3, 9)), cv2.FONT_HERSHEY_SIMPLEX, 0.33, col, 1, cv2.LINE_AA)
     out = np.zeros((size, max(W, size), 3), np.uint8)
@@ -510,7 +462,7 @@ def parse_figure(rec: SceneRecord, views: list[int], parse: dict[str, Any], pars
     H = rec.image_size[0]
     up = max(1, int(math.ceil(384 / H)))
     left = draw_boxes(rec.rgb[v], boxes, labels, rec.K[v], rec.world_T_cam[v],
-                      colour=[distinct_colour(o["prototype"] + 1) for o in objs], upscale=up, heading=False)  # fmt: skip
+                      colour=[distinct_colour(o["prototype"] + 1) for o in objs], upscale=up, heading=False)
     right = birds_eye_panel(rec, views, parse, parser, _none_if_empty(appearance), left.shape[0])
     gap = np.full((left.shape[0], 6, 3), 255, np.uint8)
     return np.concatenate([left, gap, right], axis=1)
@@ -520,13 +472,11 @@ def _none_if_empty(appearance: dict[str, Tensor] | None) -> dict[str, Tensor] | 
     return appearance if appearance is not None and int(appearance["count"].sum()) > 0 else None
 
 
-# ---------------------------------------------------------------------------------------------- appearance
 @torch.no_grad()
 def prototype_appearance(parser: SceneParser, root: Path, files: list[str], views: list[int], progress: bool = True,
                          batch_size: int = 4) -> dict[str, Tensor]:
     """What each prototype looks like: the mean raw crop (``cat[occ, occ * rgb]``) of the objects the parser finds
-    in ``files`` and assigns to it, each turned into the prototype's canonical pose. Label-free (the run's own
-    detections); used only for pictures.
+    in ``files`` and assigns to it, each turned into the prototype's canonical pose (for pictures only).
 
     Returns:
         ``raw`` ``[K, 4, s, s, s]``, ``count`` ``[K]``, ``size`` ``[K, 3]`` mean box size (metres), ``bank``
@@ -555,7 +505,8 @@ def prototype_appearance(parser: SceneParser, root: Path, files: list[str], view
             b = scene_batch(group, vs)
             res = parser(b)
             B, V = b["rgb"].shape[:2]
-            x, _ = det.encoder_input(*(b[k].flatten(0, 1).to(parser.device) for k in ("rgb", "depth", "K", "R_T_cam")))
+            x, _ = det.encoder_input(*(b[k].flatten(0, 1).to(parser.device)
+                                       for k in ("rgb", "depth", "K", "R_T_cam")))
             raw_grid = x.view(B, V, *x.shape[1:]).amax(1)
             for j in range(B):
                 if res["aabb"][j].shape[0] == 0:
@@ -571,7 +522,7 @@ def prototype_appearance(parser: SceneParser, root: Path, files: list[str], view
     acc[has] /= count[has].view(-1, 1, 1, 1, 1)
     size[has] /= count[has, None]
     return {"raw": acc, "count": count, "size": size,
-            "bank": torch.tensor(list(parser.fingerprint.encode()), dtype=torch.uint8)}  # fmt: skip
+            "bank": torch.tensor(list(parser.fingerprint.encode()), dtype=torch.uint8)}
 
 
 def _training_scenes(artifacts: RunArtifacts) -> tuple[Path, list[str]] | None:
@@ -594,7 +545,8 @@ def _training_scenes(artifacts: RunArtifacts) -> tuple[Path, list[str]] | None:
     return None
 
 
-def load_or_make_appearance(parser: SceneParser, max_scenes: int = 100, progress: bool = True) -> dict[str, Tensor] | None:
+def load_or_make_appearance(parser: SceneParser, max_scenes: int = 100,
+                            progress: bool = True) -> dict[str, Tensor] | None:
     """The cached ``prototype_appearance.pt`` beside the bank, made from up to ``max_scenes`` training scenes when
     missing or made for another bank (None when the training data cannot be found, or ``max_scenes`` is 0)."""
     if max_scenes <= 0:
@@ -610,13 +562,11 @@ def load_or_make_appearance(parser: SceneParser, max_scenes: int = 100, progress
     train = _training_scenes(parser.artifacts)
     if train is None:
         print("threedq parse: the prototypes' training scenes are not at hand: the bird's-eye view draws no "
-              "prototype pictures", file=sys.stderr)  # fmt: skip
+              "prototype pictures", file=sys.stderr)
         return None
     root, files = train
     step = max(1, len(files) // max_scenes)
     app = prototype_appearance(parser, root, files[::step][:max_scenes], [0], progress=progress)
-    import io
-
     buf = io.BytesIO()
     torch.save(app, buf)
     atomic_write_bytes(path, buf.getvalue())

@@ -1,8 +1,6 @@
 """``threedq parse``: parse scenes a trained run has never seen; write JSON + PNG per scene (paper Sec. 4.5, Fig. 4).
 
-See :mod:`threedq.pipeline.parse` for what a run provides and the conventions of the output; with ``--renders``
-also the prototype gallery and, per scene, the objects re-rendered as their prototypes
-(:mod:`threedq.pipeline.renders`).
+The parsing and its conventions: :mod:`threedq.pipeline.parse`; the renders: :mod:`threedq.pipeline.renders`.
 """
 
 from __future__ import annotations
@@ -19,9 +17,10 @@ import yaml
 from jsonargparse.typing import NonNegativeInt, PositiveInt
 from tqdm import tqdm
 
-from threedq.errors import InputError
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json
 from threedq.data.box_files import load_boxes_file
+from threedq.datamodules.scene_folder import floor_aligned_poses
+from threedq.errors import InputError
 from threedq.locks import hold_folder
 from threedq.pipeline.parse import (
     SceneParser,
@@ -33,7 +32,6 @@ from threedq.pipeline.parse import (
     parse_records,
     resolve_run,
 )
-from threedq.datamodules.scene_folder import floor_aligned_poses
 from threedq.pipeline.renders import load_view_decoder, prototype_gallery, replaced_render
 from threedq.pipeline.run_layout import RunLayout
 from threedq.scene import SceneRecord, SceneValidationError, load_scene
@@ -58,8 +56,7 @@ def _scene_name(file: str) -> str:
 
 
 def _run_data_args(run: str | Path | None) -> dict[str, Any]:
-    """How a ``threedq em`` run read its data: the ``data.init_args`` of its final quantizer's saved config (``{}``
-    without one)."""
+    """The ``data.init_args`` of a ``threedq em`` run's final quantizer's saved config (``{}`` without one)."""
     if run is None:
         return {}
     layout = RunLayout(Path(run))
@@ -72,8 +69,7 @@ def _run_data_args(run: str | Path | None) -> dict[str, Any]:
 
 
 def spread_views(num_views: int, n: int) -> list[int]:
-    """``n`` view indices spread evenly over a scene's ``num_views`` views (first and last included; all of them when
-    the scene has at most ``n``)."""
+    """``n`` view indices spread evenly over ``num_views`` views (first and last included; all when at most ``n``)."""
     if num_views <= n:
         return list(range(num_views))
     return sorted({round(i * (num_views - 1) / (n - 1)) for i in range(n)}) if n > 1 else [0]
@@ -86,21 +82,13 @@ def _view_decoder(artifacts: Any) -> Any:
     return load_view_decoder(artifacts.viewpred)
 
 
-def _load_batch(
-    root: Path,
-    batch: list[str],
-    views: list[int] | int,
-    box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None,
-    boxes: str | None,
-    failed: list[str],
-    align_floor: bool = False,
-) -> tuple[list[SceneRecord], list[list[int]], list[str]]:
-    """Load a batch of scene files and check their input views (a list: the same indices for every scene; a number
-    ``n``: :func:`spread_views` of each scene).
+def _load_batch(root: Path, batch: list[str], views: list[int] | int,
+                box_sets: dict[str, tuple[np.ndarray, np.ndarray]] | None, boxes: str | None, failed: list[str],
+                align_floor: bool = False) -> tuple[list[SceneRecord], list[list[int]], list[str]]:
+    """Load a batch of scene files and check their input views (a list, or a number ``n``: :func:`spread_views`).
 
-    A scene that cannot be loaded, whose views are out of range, or that the boxes file (``boxes``, loaded as
-    ``box_sets``) does not cover is skipped: its one-line reason is appended to ``failed`` and printed.
-    ``align_floor``: each record's poses corrected by its floor (sensor captures).
+    A scene that cannot be loaded, whose views are out of range, or that ``box_sets`` does not cover is skipped, its
+    one-line reason appended to ``failed`` and printed. ``align_floor``: poses corrected by the floor.
 
     Returns:
         The loaded records, their chosen view indices and the files they came from (``batch`` order).
@@ -124,25 +112,11 @@ def _load_batch(
     return recs, chosen, ok_files
 
 
-def _write_pictures(
-    outp: Path,
-    name: str,
-    rec: SceneRecord,
-    v: list[int],
-    doc: dict[str, Any],
-    features: Tensor,
-    parser: SceneParser,
-    appearance: dict[str, Tensor] | None,
-    names: dict[int, str],
-    decoder: ViewPrediction | None,
-    pictures: bool,
-    gallery_done: bool,
-) -> bool:
-    """Write one parsed scene's pictures to ``outp``; returns whether ``gallery.png`` is written by now.
-
-    ``<name>.png`` with ``pictures``; with a ``decoder``, ``gallery.png`` (unless ``gallery_done``) and
-    ``<name>_replaced.png`` (decoded from the first view that was not an input, if there is one).
-    """
+def _write_pictures(outp: Path, name: str, rec: SceneRecord, v: list[int], doc: dict[str, Any], features: Tensor,
+                    parser: SceneParser, appearance: dict[str, Tensor] | None, names: dict[int, str],
+                    decoder: ViewPrediction | None, pictures: bool, gallery_done: bool) -> bool:
+    """Write ``<name>.png`` (with ``pictures``), and with a ``decoder`` ``gallery.png`` (unless ``gallery_done``) and
+    ``<name>_replaced.png``; returns whether ``gallery.png`` is written by now."""
     if pictures:
         _png(outp / f"{name}.png", parse_figure(rec, v, doc, parser, appearance))
     if decoder is not None:
@@ -155,56 +129,24 @@ def _write_pictures(
     return gallery_done
 
 
-def _write_summary(
-    outp: Path,
-    files: list[str],
-    parsed: list[dict[str, Any]],
-    failed: list[str],
-    names: dict[int, str],
-    t0: float,
-    models: dict[str, Any],
-) -> dict[str, Any]:
-    """Write ``outp/summary.json``, print a one-line account of the run and return the summary.
-
-    The summary holds the scene count, parsed and failed scenes, objects, named prototypes, seconds since
-    ``t0``, the models and one entry per parsed file.
-    """
-    summary = {
-        "scenes": len(files),
-        "parsed": len(parsed),
-        "failed": failed,
-        "objects": sum(p["objects"] for p in parsed),
-        "named_prototypes": len(names),
-        "seconds": round(time.time() - t0, 2),
-        "models": models,
-        "files": parsed,
-    }
+def _write_summary(outp: Path, files: list[str], parsed: list[dict[str, Any]], failed: list[str],
+                   names: dict[int, str], t0: float, models: dict[str, Any]) -> dict[str, Any]:
+    """Write ``outp/summary.json``, print a one-line account of the run and return the summary."""
+    summary = {"scenes": len(files), "parsed": len(parsed), "failed": failed,
+               "objects": sum(p["objects"] for p in parsed), "named_prototypes": len(names),
+               "seconds": round(time.time() - t0, 2), "models": models, "files": parsed}
     atomic_write_json(outp / "summary.json", summary)
     print(f"threedq parse: {len(parsed)} of {len(files)} scene(s) parsed, {summary['objects']} object(s), "
-          f"{len(failed)} failed; wrote {outp}")  # fmt: skip
+          f"{len(failed)} failed; wrote {outp}")
     return summary
 
 
-def run_parse(
-    scenes: str,
-    out: str,
-    run: str | None = None,
-    encoder: str | None = None,
-    detector: str | None = None,
-    prototypes: str | None = None,
-    views: list[int] | None = None,
-    split: str | None = None,
-    boxes: str | None = None,
-    score_threshold: float | None = None,
-    precision: str = "fp32",
-    batch_size: PositiveInt = 4,
-    pictures: bool = True,
-    renders: bool = False,
-    appearance_scenes: NonNegativeInt = 100,
-    sensor_captures: bool | None = None,
-    view: bool = False,
-    progress: bool = True,
-) -> dict[str, Any]:
+def run_parse(scenes: str, out: str, run: str | None = None, encoder: str | None = None, detector: str | None = None,
+              prototypes: str | None = None, views: list[int] | None = None, split: str | None = None,
+              boxes: str | None = None, score_threshold: float | None = None, precision: str = "fp32",
+              batch_size: PositiveInt = 4, pictures: bool = True, renders: bool = False,
+              appearance_scenes: NonNegativeInt = 100, sensor_captures: bool | None = None, view: bool = False,
+              progress: bool = True) -> dict[str, Any]:
     """Parse scenes with a trained run: boxes, prototype id (C), yaw (R), similarity and name per object.
 
     Args:
@@ -256,7 +198,7 @@ def run_parse(
     box_sets = load_boxes_file(boxes) if boxes else None
     appearance = load_or_make_appearance(parser, appearance_scenes, progress) if pictures or renders else None
     decoder = _view_decoder(artifacts) if renders else None
-    with hold_folder(outp):  # one run writes this folder at a time
+    with hold_folder(outp):
         outp.mkdir(parents=True, exist_ok=True)
         failed: list[str] = []
         parsed: list[dict[str, Any]] = []
@@ -267,14 +209,15 @@ def run_parse(
             recs, chosen, ok_files = _load_batch(root, files[s : s + batch_size], chosen_views, box_sets, boxes,
                                                  failed, sensor_captures)
             given = None if box_sets is None else [box_sets[f] for f in ok_files]
-            for f, rec, v, res in zip(ok_files, recs, chosen, parse_records(parser, recs, chosen, names, batch_size, given)):
+            results = parse_records(parser, recs, chosen, names, batch_size, given)
+            for f, rec, v, res in zip(ok_files, recs, chosen, results):
                 features = res.pop("_features")
-                doc = {"scene": str(root / f), **res, "models": artifacts.to_dict(), "score_threshold": parser.score_threshold}
+                doc = {"scene": str(root / f), **res, "models": artifacts.to_dict(),
+                       "score_threshold": parser.score_threshold}
                 name = _scene_name(f)
                 atomic_write_json(outp / f"{name}.json", doc)
-                gallery_done = _write_pictures(
-                    outp, name, rec, v, doc, features, parser, appearance, names, decoder, pictures, gallery_done
-                )
+                gallery_done = _write_pictures(outp, name, rec, v, doc, features, parser, appearance, names, decoder,
+                                               pictures, gallery_done)
                 parsed.append({"scene": str(root / f), "json": f"{name}.json", "objects": len(doc["objects"])})
             bar.update(len(files[s : s + batch_size]))
         bar.close()

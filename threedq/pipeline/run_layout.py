@@ -1,6 +1,4 @@
-"""The folder layout of a ``threedq em`` run: written by :mod:`threedq.pipeline.em`, read by ``parse`` and ``label``.
-
-One object owns the names, so the loop that writes a run and the commands that read it cannot disagree::
+"""The folder layout of a ``threedq em`` run: written by :mod:`threedq.pipeline.em`, read by ``parse`` and ``label``::
 
     work_dir/
       00_viewpred/  01_viewpred_eval/  02_detector/  03_detector_eval/
@@ -34,7 +32,6 @@ class RunLayout:
     def __post_init__(self) -> None:
         object.__setattr__(self, "work", Path(self.work))
 
-    # --- before the rounds
     @property
     def viewpred(self) -> Path:
         return self.work / "00_viewpred"
@@ -51,7 +48,6 @@ class RunLayout:
     def detector_eval(self) -> Path:
         return self.work / "03_detector_eval"
 
-    # --- the rounds
     def round(self, r: int, part: RoundPart) -> Path:
         """The folder of ``part`` of round ``r`` (``r00_quantizer``, ``r01_mining``, ...)."""
         if part not in ROUND_PARTS:
@@ -71,7 +67,6 @@ class RunLayout:
                 found.append(int(digits))
         return sorted(found)
 
-    # --- what a folder holds
     @staticmethod
     def checkpoint(stage_dir: Path) -> Path:
         """A stage folder's checkpoint."""
@@ -93,7 +88,6 @@ class RunLayout:
         """The boxes a detector evaluation hands on for ``split`` (``{split}`` kept as a pattern by default)."""
         return Path(eval_dir) / f"detections_{split}.npz"
 
-    # --- the final parts, as parse and label read them
     def final_quantizer(self) -> Path | None:
         """The checkpoint of the last finished round's quantizer (the final encoder and prototype bank)."""
         done = [c for r in self.rounds("quantizer") if (c := self.finished(self.round(r, "quantizer")))]

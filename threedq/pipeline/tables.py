@@ -1,9 +1,5 @@
-"""Every markdown table threedq writes, in one place: the ``threedq em`` report (``report.md``), the ``threedq eval``
-report (``results.md``), paper Table 2 (retrieval) and the feature-set table (``table2.md``), and the cells and labels
-they share (how a precision@k, a few-shot accuracy or a missing value is written; which search a table used).
-
-The numbers come from the measuring modules (:mod:`threedq.pipeline.evaluation`, :mod:`threedq.pipeline.em`,
-:mod:`threedq.pipeline.feature_table`); this module only writes them down.
+"""Every markdown table threedq writes: the ``threedq em`` report (``report.md``), the ``threedq eval`` report
+(``results.md``), paper Table 2 (retrieval), the feature-set table (``table2.md``), and the cells and labels they share.
 """
 
 from __future__ import annotations
@@ -15,35 +11,18 @@ from threedq.metrics.retrieval import PROTOCOL_LABELS
 from threedq.pipeline.baselines2d import Q25D_HOWTO, RESNET_HOWTO
 from threedq.pipeline.evaluation import DESCRIPTOR, SEARCH_LABELS
 
-__all__ = [
-    "METHOD_LABELS",
-    "RETRIEVAL_ROWS",
-    "CROP_LABELS",
-    "cluster_search_label",
-    "em_markdown",
-    "eval_markdown",
-    "feature_cells",
-    "feature_sets_markdown",
-    "fewshot_cell",
-    "fmt",
-    "method_rows",
-    "precision_label",
-    "retrieval_markdown",
-    "size_band_lines",
-]
+__all__ = ["METHOD_LABELS", "RETRIEVAL_ROWS", "CROP_LABELS", "cluster_search_label", "em_markdown", "eval_markdown",
+           "feature_cells", "feature_sets_markdown", "fewshot_cell", "fmt", "method_rows", "precision_label",
+           "retrieval_markdown", "size_band_lines"]
 
 
-METHOD_LABELS = {
-    "threedq": "threedq (rotation-aware 3D prototypes)",
-    "no_rot": "no-rot-3DQ (no rotation search)",
-    "pointcloud": "point-cloud registration",
-    "q25d": "2.5DQ-Nets (2D prototypes, in-plane rotation search)",
-}
+METHOD_LABELS = {"threedq": "threedq (rotation-aware 3D prototypes)", "no_rot": "no-rot-3DQ (no rotation search)",
+                 "pointcloud": "point-cloud registration",
+                 "q25d": "2.5DQ-Nets (2D prototypes, in-plane rotation search)"}
 
 
 def method_rows(quantization: dict[str, Any]) -> list[tuple[str, Any]]:
-    """``quantization``'s (method, result) pairs in the tables' order (:data:`METHOD_LABELS`, then by name), the same
-    whether the dict was just computed or read back from a key-sorted JSON file."""
+    """``quantization``'s (method, result) pairs in the tables' order (:data:`METHOD_LABELS`, then by name)."""
     order = list(METHOD_LABELS)
     return sorted(quantization.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
 
@@ -63,12 +42,10 @@ def _crop_note(retrieval: dict[str, Any]) -> str:
 
 
 def cluster_search_label(method: str = "fast", occupancy_floor: float | None = None, crop_shape: str = "hull") -> str:
-    """How each clustering row searches rotations (every clustering table names it): the stage's bank (threedq)
-    uses ``method``; the banks fitted here (no-rot-3DQ, 2.5DQ-Nets) use the fast search. ``occupancy_floor``: the
-    quantizer's crop weighting (threedq and no-rot-3DQ compare occupancy-weighted crops; None: plain crops);
-    ``crop_shape``: the region its crops are cut from (named unless the paper's ``hull``)."""
-    own = "exact search over 36 yaw steps (cosine over the full cube)" if method == "exact" else (
-        "fast search over 36 yaw steps (cosine over the inscribed cylinder)")
+    """How each clustering row searches rotations: the stage's bank (threedq) with ``method``, on crops weighted by
+    ``occupancy_floor`` (None: plain crops) and cut from ``crop_shape``; the banks fitted here with the fast search."""
+    own = ("exact search over 36 yaw steps (cosine over the full cube)" if method == "exact"
+           else "fast search over 36 yaw steps (cosine over the inscribed cylinder)")
     if occupancy_floor is not None:
         own += (f", of crops weighted by their input occupancy (empty space {occupancy_floor:g}, voxels at or next to "
                 f"observed surface {1 + occupancy_floor:g}; not the paper's plain crops)")
@@ -80,8 +57,7 @@ def cluster_search_label(method: str = "fast", occupancy_floor: float | None = N
 
 
 def precision_label(retrieval: dict[str, Any]) -> str:
-    """``precision@k`` of a :func:`~threedq.pipeline.evaluation.retrieval_table`, saying so when k was lowered for
-    a split of too few objects (``precision@5 (k lowered from 10: 6 test objects)``)."""
+    """``precision@k`` of a :func:`~threedq.pipeline.evaluation.retrieval_table`, saying so when k was lowered."""
     k, asked = retrieval["k"], retrieval.get("k_requested", retrieval["k"])
     if k < asked:
         return f"precision@{k} (k lowered from {asked}: {retrieval['num_objects']} test objects)"
@@ -89,17 +65,14 @@ def precision_label(retrieval: dict[str, Any]) -> str:
 
 
 def fewshot_cell(value: float | None, shots: int = 2) -> str:
-    """A few-shot accuracy for a table: ``n/a`` with the reason when it is undefined (NaN: every object is one of
-    the ``shots`` labelled ones of its category, so none is left to score)."""
+    """A few-shot accuracy for a table: ``n/a`` with the reason when it is undefined (NaN or None)."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return f"n/a (no category has more than {shots} objects: all are labelled shots)"
     return f"{value:.3f}"
 
 
 def yaw_cell(v: dict[str, Any]) -> str:
-    """A median relative yaw error for a table, with the number of pairs it is the median of when known: a run that
-    groups more of a category into one prototype is scored on more, and other, pairs (compare two runs on their
-    common pairs with ``benchmarks/yaw_common_pairs.py``)."""
+    """A median relative yaw error for a table, with the number of pairs it is the median of when known."""
     pairs = v.get("yaw_pairs")
     return f"{v['yaw_median_deg']:.1f}" + (f" ({int(pairs)} pairs)" if pairs is not None else "")
 
@@ -116,7 +89,7 @@ RETRIEVAL_ROWS = {
 def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, learned: str | None = None,
                        extra_rows: list[str] | None = None) -> list[str]:
     """Paper Table 2 as markdown lines: each feature set under both protocols, the same-object top-1 rate and the
-    linear probe, with the protocol, pool, search and perfect-feature ceiling of each column stated."""
+    linear probe, with each column's protocol, pool, search and perfect-feature ceiling."""
     pk = precision_label(r)
     prot = r.get("protocols") or {"strict": {"pool": r["num_objects"], "precision_at_k": r["precision_at_k"]}}
     st, pa = prot.get("strict", {}), prot.get("paper")
@@ -168,18 +141,13 @@ def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, l
 
 def eval_markdown(res: dict[str, Any]) -> str:
     r = res["retrieval"]
-    lines = [
-        "# threedq evaluation",
-        "",
-        f"Held-out split `{res['split']}`: {res['num_test_objects']} objects in {res['num_test_categories']} categories "
-        f"({res.get('box_source', 'GT boxes')}, {res['num_input_views']} input view(s) per scene); K = {res['num_prototypes']}"
-        + (f"; baseline banks fitted on {res['num_train_objects']} training objects." if res["num_train_objects"] else "."),
-        "",
-        "## Retrieval (paper Table 2)",
-        "",
-    ]
+    lines = ["# threedq evaluation", "",
+             f"Held-out split `{res['split']}`: {res['num_test_objects']} objects in {res['num_test_categories']} "
+             f"categories ({res.get('box_source', 'GT boxes')}, {res['num_input_views']} input view(s) per scene); "
+             f"K = {res['num_prototypes']}"
+             + (f"; baseline banks fitted on {res['num_train_objects']} training objects."
+                if res["num_train_objects"] else "."), "", "## Retrieval (paper Table 2)", ""]
     rn = res.get("resnet")
-    # the backbone named in every row: torchvision's ResNet-18 (the paper's) or the MobileNetV2 stand-in
     rn_name = (rn or {}).get("backbone_label", "ImageNet ResNet-18")
     rn_stage = "layer4" if rn is None else f"{rn.get('feature_stage', 'layer4')}"
     if rn is not None and rn.get("backbone", "resnet18") != "resnet18":
@@ -205,21 +173,15 @@ def eval_markdown(res: dict[str, Any]) -> str:
                   "queries held by the other's objects, both directions): " + "; ".join(
                       f"{p['a']} / {p['b']} ({p['slots']})" for p in res["confused_pairs"][:8])
                   + ". Per category: `per_category_retrieval.png`."]
-    lines += [
-        "",
-        f"## Clustering into K = {res['num_prototypes']} prototypes (paper Tables 1 and 4), and pose",
-        "",
-        res.get("cluster_search", cluster_search_label()),
-        "",
-        "| method | Hungarian acc. | few-shot acc. (2 shots) | yaw median err. (deg) | yaw acc. @10 deg | @20 deg |",
-        "|---|---|---|---|---|---|",
-    ]
+    lines += ["", f"## Clustering into K = {res['num_prototypes']} prototypes (paper Tables 1 and 4), and pose", "",
+              res.get("cluster_search", cluster_search_label()), "",
+              "| method | Hungarian acc. | few-shot acc. (2 shots) | yaw median err. (deg) | yaw acc. @10 deg | "
+              "@20 deg |", "|---|---|---|---|---|---|"]
     for m, v in method_rows(res["quantization"]):
-        if m == "q25d":
-            yaw = "n/a (in-plane angle, not a yaw) | n/a | n/a"
-        else:
-            yaw = f"{yaw_cell(v)} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f}"
-        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | {yaw} |")
+        yaw = ("n/a (in-plane angle, not a yaw) | n/a | n/a" if m == "q25d"
+               else f"{yaw_cell(v)} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f}")
+        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
+                     f"{yaw} |")
     if "q25d" not in res["quantization"]:
         lines.append(f"| {METHOD_LABELS['q25d']} | {Q25D_HOWTO} | | | | |")
     lines += ["", "## Few-shot labelling, 2 labelled objects per category (paper Table 1)", "",
@@ -237,8 +199,9 @@ def eval_markdown(res: dict[str, Any]) -> str:
         lines.append(f"| {label} | {RESNET_HOWTO if rn is None else fewshot_cell(rn[key])} |")
     if res.get("curve"):
         ks = sorted({int(k) for v in res["curve"].values() for k in v})
-        lines += ["", "## Hungarian accuracy vs K (paper Fig. 3a)", "", res.get("cluster_search", cluster_search_label()),
-                  "", "| method | " + " | ".join(f"K={k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
+        lines += ["", "## Hungarian accuracy vs K (paper Fig. 3a)", "",
+                  res.get("cluster_search", cluster_search_label()), "",
+                  "| method | " + " | ".join(f"K={k}" for k in ks) + " |", "|---|" + "---|" * len(ks)]
         for m, v in method_rows(res["curve"]):
             lines.append(f"| {METHOD_LABELS.get(m, m)} | " + " | ".join(
                 f"{v[str(k)]:.3f}" if str(k) in v else "-" for k in ks) + " |")
@@ -252,8 +215,8 @@ def eval_markdown(res: dict[str, Any]) -> str:
 
 
 def feature_cells(retrieval: dict[str, Any] | None) -> dict[str, Any]:
-    """The learned features' Table 3 cells of a round's retrieval table: precision@k under the strict and the paper
-    protocol (with their ceilings on the round's pool) and the same-object top-1 rate."""
+    """The learned features' Table 3 cells of a round's retrieval table: precision@k under both protocols (with their
+    ceilings), the pool and the same-object top-1 rate."""
     if not retrieval:
         return {"precision_at_10": None, "precision_at_10_paper": None, "same_object_top1": None}
     paper = retrieval.get("protocols", {}).get("paper", {})
@@ -268,6 +231,13 @@ def fmt(v: float | None, digits: int = 3) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
+def size_band_cells(rows: list[dict[str, Any]]) -> list[str]:
+    """The cells of one box set's row of a size-band table: share found at IoU 0.25 / 0.5; median centre errors."""
+    return ["-" if not r["objects"] else f"{r['found_25']:.2f} / {r['found_50']:.2f}"
+            + ("" if r["median_centre_error_xy"] != r["median_centre_error_xy"]  # NaN: no box overlaps any
+               else f"; {r['median_centre_error_xy']:.3f} / {r['median_centre_error_z']:+.3f}") for r in rows]
+
+
 def size_band_lines(det: dict[str, Any], work_dir: str) -> list[str]:
     """Objects found per size band by each box set of a detector evaluation (``by_size``), as a markdown table."""
     if not det.get("by_size"):
@@ -280,16 +250,12 @@ def size_band_lines(det: dict[str, Any], work_dir: str) -> list[str]:
              "| boxes | " + " | ".join(f"{b} ({r['objects']})" for b, r in zip(bands, tables[names[0]])) + " |",
              "|---|" + "---|" * len(bands)]
     for name in names:
-        cells = [("-" if not r["objects"] else f"{r['found_25']:.2f} / {r['found_50']:.2f}"
-                  + ("" if r["median_centre_error_xy"] != r["median_centre_error_xy"]  # NaN: no box overlaps any
-                     else f"; {r['median_centre_error_xy']:.3f} / {r['median_centre_error_z']:+.3f}"))
-                 for r in tables[name]]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines.append(f"| {name} | " + " | ".join(size_band_cells(tables[name])) + " |")
     lines += ["", f"Picture: `{work_dir}/03_detector_eval/detection_by_size.png`.", ""]
     flat = det.get("flat_objects")
     if flat and flat["of"]:
-        how = ("`flat_boxes` adds the input view's observed boxes of such objects to the ranked boxes of the mAP, below "
-               "the boxes handed on" if flat["flat_boxes"] else "`flat_boxes` is off: they are not detected")
+        how = ("`flat_boxes` adds the input view's observed boxes of such objects to the ranked boxes of the mAP, "
+               "below the boxes handed on" if flat["flat_boxes"] else "`flat_boxes` is off: they are not detected")
         lines += [f"{flat['objects']} of {flat['of']} test objects ({flat['objects'] / flat['of']:.0%}) are less tall "
                   f"than {flat['min_box_height']:.3f} m, the detector's `min_box_height` (half a voxel of the feature "
                   "grid, which cannot tell them from the floor): the detector is not trained on them and does not "
@@ -299,243 +265,191 @@ def size_band_lines(det: dict[str, Any], work_dir: str) -> list[str]:
 
 
 def _em_header_lines(summary: dict[str, Any]) -> list[str]:
-    """The report's title, run facts (work dir, rounds, machine, precisions, view-prediction checkpoint) and the
-    view-prediction table."""
+    """The report's title, the run's facts and the view-prediction table."""
     vp = summary["viewpred_eval"]["view_prediction"]
-    lines = [
-        "# threedq em report",
-        "",
-        f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}"
-        + (f"; data: `{summary['data_config']}`" if summary.get("data_config") else ""),
-        f"- machine: {summary['machine']}; torch {summary['torch']}; frozen-encoder stages in "
-        f"{summary.get('frozen_precision', '32-true')}"
-        + (f"; mining in {summary['mining_precision']}" if summary.get("mining_precision") else ""),
-        f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` "
-        + ("(given with --viewpred_ckpt, not trained here)" if summary["viewpred"].get("given")
-           else f"({summary['viewpred'].get('seconds', '?')} s)"),
-        "",
-        f"## View prediction on held-out scenes ({vp['num_scenes']} scenes)",
-        "",
-        "| metric | value |",
-        "|---|---|",
-        f"| RGB L1 (target pixels inside the grid, half resolution) | {vp['l1']:.4f} |",
-        f"| RGB L1 of the mean-colour baseline | {vp['l1_mean_colour']:.4f} |",
-        *(
-            [
-                f"| RGB L1 on the objects (target pixels above the ground plane) | {vp['l1_fg']:.4f} |",
-                f"| the same for the mean-colour baseline | {vp['l1_fg_mean_colour']:.4f} |",
-            ]
-            if "l1_fg" in vp
-            else []
-        ),
-        f"| occupancy balanced accuracy | {vp['occ_bacc']:.3f} |",
-        "",
-    ]
+    return ["# threedq em report", "",
+            f"- work dir: `{summary['work_dir']}`; rounds: {summary['rounds']}"
+            + (f"; data: `{summary['data_config']}`" if summary.get("data_config") else ""),
+            f"- machine: {summary['machine']}; torch {summary['torch']}; frozen-encoder stages in "
+            f"{summary.get('frozen_precision', '32-true')}"
+            + (f"; mining in {summary['mining_precision']}" if summary.get("mining_precision") else ""),
+            f"- view prediction checkpoint: `{summary['viewpred']['checkpoint']}` "
+            + ("(given with --viewpred_ckpt, not trained here)" if summary["viewpred"].get("given")
+               else f"({summary['viewpred'].get('seconds', '?')} s)"),
+            "", f"## View prediction on held-out scenes ({vp['num_scenes']} scenes)", "", *viewpred_lines(vp), ""]
+
+
+def viewpred_lines(vp: dict[str, Any]) -> list[str]:
+    """The view-prediction table of an evaluation's ``view_prediction`` metrics."""
+    lines = ["| metric | value |", "|---|---|",
+             f"| RGB L1 (target pixels inside the grid, half resolution) | {vp['l1']:.4f} |",
+             f"| RGB L1 of the mean-colour baseline | {vp['l1_mean_colour']:.4f} |"]
+    if "l1_fg" in vp:
+        lines += [f"| RGB L1 on the objects (target pixels above the ground plane) | {vp['l1_fg']:.4f} |",
+                  f"| the same for the mean-colour baseline | {vp['l1_fg_mean_colour']:.4f} |"]
+    lines.append(f"| occupancy balanced accuracy | {vp['occ_bacc']:.3f} |")
     return lines
 
 
 def _em_detector_lines(summary: dict[str, Any]) -> list[str]:
-    """The 3D detection section (pseudo-boxes and the warm-start detector, mAP by size band); empty without a
-    detector evaluation."""
-    lines: list[str] = []
+    """The 3D detection section (pseudo-boxes, the warm-start detector, size bands); empty without a detector."""
     det = summary.get("detector_eval")
-    if det:
-        pb, dd = det["pseudo_boxes"], det["detector"]
-        lines += [
-            f"## 3D detection on held-out scenes ({dd['num_gt']} GT objects; dataset-level mAP, axis-aligned IoU)",
-            "",
-            "| boxes | mAP@0.25 | mAP@0.5 |",
-            "|---|---|---|",
+    if not det:
+        return []
+    pb, dd = det["pseudo_boxes"], det["detector"]
+    sv = det.get("pseudo_boxes_single_view")
+    return [f"## 3D detection on held-out scenes ({dd['num_gt']} GT objects; dataset-level mAP, axis-aligned IoU)", "",
+            "| boxes | mAP@0.25 | mAP@0.5 |", "|---|---|---|",
             f"| label-free pseudo-boxes (depth, ground plane, 3D components; every view) | {pb['map_25']:.3f} | "
             f"{pb['map_50']:.3f} |",
-            *([f"| the same from only the view(s) the detector sees (its fair reference) | "
-               f"{det['pseudo_boxes_single_view']['map_25']:.3f} | {det['pseudo_boxes_single_view']['map_50']:.3f} |"]
-              if det.get("pseudo_boxes_single_view") else []),
-            f"| detector trained on the pseudo-boxes | {dd['map_25']:.3f} | {dd['map_50']:.3f} |",
-            "",
+            *([f"| the same from only the view(s) the detector sees (its fair reference) | {sv['map_25']:.3f} | "
+               f"{sv['map_50']:.3f} |"] if sv else []),
+            f"| detector trained on the pseudo-boxes | {dd['map_25']:.3f} | {dd['map_50']:.3f} |", "",
             f"Detections beside GT: `{summary['work_dir']}/03_detector_eval/detections.png`. "
-            f"Rounds use {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes.",
-            "",
-            *size_band_lines(det, summary["work_dir"]),
-        ]
-    return lines
+            f"Rounds use {_boxes_word(summary)} boxes.", "", *size_band_lines(det, summary["work_dir"])]
+
+
+def _boxes_word(summary: dict[str, Any]) -> str:
+    return "detected" if summary.get("boxes") == "detections" else "GT"
 
 
 def _em_round_lines(summary: dict[str, Any]) -> list[str]:
-    """The per-EM-round table (round 0 first, when measured) and the final round's retrieval, clustering and pose
-    tables; empty without rounds."""
-    lines: list[str] = []
+    """The per-EM-round table (round 0 first, when measured) and the final round's tables; empty without rounds."""
     rounds = summary.get("round_results", [])
     r0 = summary.get("round0_result")
-    if rounds:
-        pk = precision_label(rounds[0]["retrieval"])
-        lines += [
-            f"## Per EM round (threedq, {'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes, "
-            "held-out objects)",
-            "",
-            f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}{_crop_note(rounds[0]['retrieval'])}; strict: "
-            f"{PROTOCOL_LABELS['strict']}; paper: {PROTOCOL_LABELS['paper']}. Round 0 is the view-prediction encoder "
-            "and a bank fitted on it, on round 1's boxes (the paper's iteration 0).",
-            "",
-            f"| round | {pk}, strict | {pk}, paper | same object nearest (paper) | pool (ceiling strict / paper) | "
-            "Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for i, r in ([(0, r0)] if r0 else []) + list(enumerate(rounds, 1)):
-            q = r["quantization"]["threedq"]
-            c = feature_cells(r["retrieval"])
-            ceil = (f"{c['pool']} ({fmt(c['ceiling_strict'])} / {fmt(c['ceiling_paper'])})")
-            lines.append(f"| {i} | {fmt(c['precision_at_10'])} | {fmt(c['precision_at_10_paper'])} | "
-                         f"{fmt(c['same_object_top1'])} | {ceil} | {q['hungarian_acc']:.3f} | "
-                         f"{fewshot_cell(q['fewshot_acc'])} | {yaw_cell(q)} | {q['yaw_acc_10']:.3f} |")
-        last = rounds[-1]
-        r = last["retrieval"]
-        lines += [
-            "",
-            f"## Final round in detail ({last['num_test_objects']} test objects, {last['num_test_categories']} categories, "
-            f"K = {last['num_prototypes']})",
-            "",
-            "Retrieval (paper Table 2):",
-            "",
-            *retrieval_markdown(r, last.get("probe"), learned="threedq features of the final round (learned)"),
-        ]
-        lines += ["", "Clustering and pose (paper Tables 1 and 4; yaw error beyond the paper):", "",
-                  "| method | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 | @20 |",
-                  "|---|---|---|---|---|---|"]
-        for m, v in method_rows(last["quantization"]):
-            lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
-                         f"{yaw_cell(v)} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
-        lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`, "
-                  "`per_category_retrieval.png` (per-category precision@10 under both protocols, the most confused pairs). "
-                  "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
+    if not rounds:
+        return []
+    pk = precision_label(rounds[0]["retrieval"])
+    lines = [f"## Per EM round (threedq, {_boxes_word(summary)} boxes, held-out objects)", "",
+             f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}{_crop_note(rounds[0]['retrieval'])}; strict: "
+             f"{PROTOCOL_LABELS['strict']}; paper: {PROTOCOL_LABELS['paper']}. Round 0 is the view-prediction encoder "
+             "and a bank fitted on it, on round 1's boxes (the paper's iteration 0).", "",
+             f"| round | {pk}, strict | {pk}, paper | same object nearest (paper) | pool (ceiling strict / paper) | "
+             "Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for i, r in ([(0, r0)] if r0 else []) + list(enumerate(rounds, 1)):
+        q = r["quantization"]["threedq"]
+        c = feature_cells(r["retrieval"])
+        ceil = f"{c['pool']} ({fmt(c['ceiling_strict'])} / {fmt(c['ceiling_paper'])})"
+        lines.append(f"| {i} | {fmt(c['precision_at_10'])} | {fmt(c['precision_at_10_paper'])} | "
+                     f"{fmt(c['same_object_top1'])} | {ceil} | {q['hungarian_acc']:.3f} | "
+                     f"{fewshot_cell(q['fewshot_acc'])} | {yaw_cell(q)} | {q['yaw_acc_10']:.3f} |")
+    last = rounds[-1]
+    lines += ["", f"## Final round in detail ({last['num_test_objects']} test objects, {last['num_test_categories']} "
+              f"categories, K = {last['num_prototypes']})", "", "Retrieval (paper Table 2):", "",
+              *retrieval_markdown(last["retrieval"], last.get("probe"),
+                                  learned="threedq features of the final round (learned)"),
+              "", "Clustering and pose (paper Tables 1 and 4; yaw error beyond the paper):", "",
+              "| method | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 | @20 |",
+              "|---|---|---|---|---|---|"]
+    for m, v in method_rows(last["quantization"]):
+        lines.append(f"| {METHOD_LABELS.get(m, m)} | {v['hungarian_acc']:.3f} | {fewshot_cell(v['fewshot_acc'])} | "
+                     f"{yaw_cell(v)} | {v['yaw_acc_10']:.3f} | {v['yaw_acc_20']:.3f} |")
+    lines += ["", f"Pictures in `{summary['final_eval_dir']}/`: `prototype_alignment.png`, `retrieval.png`, "
+              "`per_category_retrieval.png` (per-category precision@10 under both protocols, the most confused pairs). "
+              "Accuracy against K (Fig. 3a): `threedq eval --ckpt <round>/checkpoints/last.ckpt`."]
     return lines
 
 
 def _mining_row(i: int, f: dict[str, Any]) -> str:
-    """One row of the mining table: round ``i``'s refresh ``f`` (a dict of the miner's logged counts; cells whose
-    key is absent are ``-``)."""
+    """One row of the mining table: round ``i``'s refresh ``f`` (the miner's logged counts; absent ones ``-``)."""
     yaw = f"{f['yaw_median_err_deg']:.1f} ({f['yaw_pairs']} pairs)" if "yaw_median_err_deg" in f else "-"
     yaw_sym = (f"{f['yaw_sym_median_err_deg']:.1f} ({f['yaw_sym_pairs']} pairs)"
                if "yaw_sym_median_err_deg" in f else "-")
     pool = f"{f['pool_on_objects']:.2f}" if "pool_on_objects" in f else "-"
-    if "pool_vouched" in f:  # the object check: boxes the input views' geometry vouched for / looked at
+    if "pool_vouched" in f:
         pool += f" ({f['pool_vouched']} of {f['pool_boxes_seen']} vouched"
         pool += f", {f['pool_scene_vouched']} by the scene too)" if "pool_scene_vouched" in f else ")"
     pairs = f"{f['pairs']}"
     src = f.get("candidates_from", "features")
-    if src != "features":  # the input crops' mutual neighbours proposed the pairs
+    if src != "features":
         inputs = {"occupancy": "occupancy", "input": "crops, occupancy and colour"}.get(src, src)
         pairs += f" (from the input {inputs}: mutual {f['occupancy_mutual_k']}-NN)"
-    # the patch verification's threshold: calibrated every refresh, read only by the miner's candidates
     context = f"{f['min_cosine']:.3f}" if src == "features" else "- (no patch check)"
     on = f"{f.get('labelled_pairs', '-')}" + (f" ({f['pairs_on_objects_iou25']} at IoU 0.25)"
                                               if "pairs_on_objects_iou25" in f else "")
-    # how widely the pairs spread over the pool (label-free)
-    spread = (f"{f['distinct_queries']} / {f['distinct_boxes']}" if "distinct_boxes" in f else "-")
-    return (f"| {i} | {f['refresh']} | {pool} | {pairs} | {spread} | {on} | "
-            f"{f['same_category']:.3f} | {yaw} | {yaw_sym} | {context} | {f['seconds']} |")
+    spread = f"{f['distinct_queries']} / {f['distinct_boxes']}" if "distinct_boxes" in f else "-"
+    return (f"| {i} | {f['refresh']} | {pool} | {pairs} | {spread} | {on} | {f['same_category']:.3f} | {yaw} | "
+            f"{yaw_sym} | {context} | {f['seconds']} |")
 
 
 def _em_mining_lines(summary: dict[str, Any]) -> list[str]:
     """The correspondence-mining table (one row per round and refresh); empty when mining is off."""
-    lines: list[str] = []
     mining = summary.get("mining_results") or []
-    if mining:
-        lines += [
-            "",
-            f"## Correspondence mining per round (`{summary.get('mining_config')}`; categories and yaws used for "
-            "measuring only)",
-            "",
+    if not mining:
+        return []
+    return ["", f"## Correspondence mining per round (`{summary.get('mining_config')}`; categories and yaws used for "
+            "measuring only)", "",
             "| round | refresh | pool boxes on GT objects | pairs | queries / boxes they use | of them on two GT "
             "objects | same category (of those) | yaw median err., same-category asymmetric pairs (deg) | the same "
             "over every finite symmetry, modulo its period (deg) | context cosine threshold | seconds |",
             "|---|---|---|---|---|---|---|---|---|---|---|",
-        ]
-        for i, m in enumerate(mining, 1):
-            for f in m["refreshes"]:
-                lines.append(_mining_row(i, f))
-        lines += ["", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
-    return lines
+            *(_mining_row(i, f) for i, m in enumerate(mining, 1) for f in m["refreshes"]),
+            "", "Pictures of the best pairs of each refresh: `r<round>_mining/mining/refresh_<step>.png`."]
 
 
 def _em_table3_lines(summary: dict[str, Any]) -> list[str]:
     """Table 3: every module (features, quantization, detection) per round; empty without it."""
-    lines: list[str] = []
     rounds = summary.get("round_results", [])
     table3 = summary.get("table3") or []
-    if table3:
-        lines += [
-            "",
-            f"## Table 3: every module per round (held-out split; rounds on "
-            f"{'detected' if summary.get('boxes') == 'detections' else 'GT'} boxes)",
-            "",
-            "Round 0 is the state before the rounds (the paper's iteration 0): the warm-start detector, and the "
-            "view-prediction encoder's features and prototypes on the boxes round 1 takes. "
-            f"{precision_label(rounds[0]['retrieval']) if rounds else 'precision@10'}: "
-            f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; strict and paper protocol as above "
-            "(pool and ceilings in the per-round table); detection: the round's detector "
-            "(after its self-labelling), dataset-level mAP@0.5; precision / recall: its boxes above the 0.9 "
-            "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false positive). "
-            + ("Prototypes: from round 2 on, each round's quantizer refines the previous round's bank."
-               if summary.get("bank_warm_start", True) else
-               "Prototypes: every round's quantizer fits an empty bank on its encoder (`--bank_warm_start false`)."),
-            "",
-            f"| round | features: precision@{rounds[0]['retrieval']['k'] if rounds else 10}, strict | paper protocol | "
-            "same object nearest | quantization: Hungarian acc. | detection: mAP@0.5 | mAP@0.25 | "
-            "handed-on precision | recall |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for t in table3:
-            h = t["handed_on_test"] or {}
-            lines.append(f"| {t['round']} | {fmt(t['precision_at_10'])} | {fmt(t.get('precision_at_10_paper'))} | "
-                         f"{fmt(t.get('same_object_top1'))} | {fmt(t['hungarian_acc'])} | {fmt(t['map_50'])} | "
-                         f"{fmt(t['map_25'])} | {fmt(h.get('precision'))} | {fmt(h.get('recall'))} |")
-        lines += ["", f"Curves: `{summary['work_dir']}/table3.png`."]
+    if not table3:
+        return []
+    lines = ["", f"## Table 3: every module per round (held-out split; rounds on {_boxes_word(summary)} boxes)", "",
+             "Round 0 is the state before the rounds (the paper's iteration 0): the warm-start detector, and the "
+             "view-prediction encoder's features and prototypes on the boxes round 1 takes. "
+             f"{precision_label(rounds[0]['retrieval']) if rounds else 'precision@10'}: "
+             f"{SEARCH_LABELS[rounds[0]['retrieval']['search']] if rounds else '-'}; strict and paper protocol as "
+             "above (pool and ceilings in the per-round table); detection: the round's detector "
+             "(after its self-labelling), dataset-level mAP@0.5; precision / recall: its boxes above the 0.9 "
+             "objectness threshold, the ones handed on, at IoU 0.5 (a box nested in a matched one is a false "
+             "positive). "
+             + ("Prototypes: from round 2 on, each round's quantizer refines the previous round's bank."
+                if summary.get("bank_warm_start", True)
+                else "Prototypes: every round's quantizer fits an empty bank on its encoder "
+                "(`--bank_warm_start false`)."),
+             "", f"| round | features: precision@{rounds[0]['retrieval']['k'] if rounds else 10}, strict | paper "
+             "protocol | same object nearest | quantization: Hungarian acc. | detection: mAP@0.5 | mAP@0.25 | "
+             "handed-on precision | recall |", "|---|---|---|---|---|---|---|---|---|"]
+    for t in table3:
+        h = t["handed_on_test"] or {}
+        lines.append(f"| {t['round']} | {fmt(t['precision_at_10'])} | {fmt(t.get('precision_at_10_paper'))} | "
+                     f"{fmt(t.get('same_object_top1'))} | {fmt(t['hungarian_acc'])} | {fmt(t['map_50'])} | "
+                     f"{fmt(t['map_25'])} | {fmt(h.get('precision'))} | {fmt(h.get('recall'))} |")
+    lines += ["", f"Curves: `{summary['work_dir']}/table3.png`."]
     return lines
 
 
 def _em_self_label_lines(summary: dict[str, Any]) -> list[str]:
     """The detector self-labelling table (one row per round); empty when self-labelling is off."""
-    lines: list[str] = []
     sl = summary.get("self_label_results") or []
-    if sl:
-        lines += [
-            "",
-            f"## Detector self-labelling per round (`{summary.get('self_labelling_config')}`; GT used for measuring only)",
-            "",
-            "| round | pool scenes | candidates | positives | of them true (IoU 0.5) | negatives | of them background "
-            "(no object at IoU 0.25) | mAP@0.5 before | after |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        before = summary["detector_eval"]["detector"]["map_50"] if summary.get("detector_eval") else None
-        for i, r in enumerate(sl, 1):
-            lab = r["labels"] or {}
-            after = r["detector_eval"]["detector"]["map_50"]
-            pos = f"{lab.get('positives', '-')}"
-            if lab.get("positive_boxes", lab.get("positives")) != lab.get("positives"):  # pseudo-boxes are positives too
-                pos += f" (boxes trained as positives: {lab['positive_boxes']}, the pseudo-boxes)"
-            lines.append(f"| {i} | {lab.get('scenes', '-')} | {lab.get('candidates', '-')} | {pos} | "
-                         f"{fmt(lab.get('positives_true_at_50'))} | {lab.get('negatives', '-')} | "
-                         f"{fmt(lab.get('negatives_false_at_25'))} | {fmt(before)} | {fmt(after)} |")
-            before = after
-        lines += ["", "Pictures: the labels on training scenes `r<round>_self_labelling/self_labels/labels.png` (kept "
-                  "green, pruned red); the round's detections on test scenes `r<round>_detector_eval/detections.png`."]
-    return lines
+    if not sl:
+        return []
+    lines = ["", f"## Detector self-labelling per round (`{summary.get('self_labelling_config')}`; GT used for "
+             "measuring only)", "",
+             "| round | pool scenes | candidates | positives | of them true (IoU 0.5) | negatives | of them background "
+             "(no object at IoU 0.25) | mAP@0.5 before | after |", "|---|---|---|---|---|---|---|---|---|"]
+    before = summary["detector_eval"]["detector"]["map_50"] if summary.get("detector_eval") else None
+    for i, r in enumerate(sl, 1):
+        lab = r["labels"] or {}
+        after = r["detector_eval"]["detector"]["map_50"]
+        pos = f"{lab.get('positives', '-')}"
+        if lab.get("positive_boxes", lab.get("positives")) != lab.get("positives"):  # pseudo-boxes are positives too
+            pos += f" (boxes trained as positives: {lab['positive_boxes']}, the pseudo-boxes)"
+        lines.append(f"| {i} | {lab.get('scenes', '-')} | {lab.get('candidates', '-')} | {pos} | "
+                     f"{fmt(lab.get('positives_true_at_50'))} | {lab.get('negatives', '-')} | "
+                     f"{fmt(lab.get('negatives_false_at_25'))} | {fmt(before)} | {fmt(after)} |")
+        before = after
+    return lines + ["", "Pictures: the labels on training scenes `r<round>_self_labelling/self_labels/labels.png` "
+                    "(kept green, pruned red); the round's detections on test scenes "
+                    "`r<round>_detector_eval/detections.png`."]
 
 
 def em_markdown(summary: dict[str, Any]) -> str:
-    """The ``threedq em`` report (``report.md``) of a run's summary: view prediction, detection, the per-round
-    tables, mining, Table 3, self-labelling and what the rounds left out, as markdown."""
+    """The ``threedq em`` report (``report.md``) of a run's summary, as markdown."""
     mining = summary.get("mining_results") or []
     sl = summary.get("self_label_results") or []
-    lines = [
-        *_em_header_lines(summary),
-        *_em_detector_lines(summary),
-        *_em_round_lines(summary),
-        *_em_mining_lines(summary),
-        *_em_table3_lines(summary),
-        *_em_self_label_lines(summary),
-    ]
+    lines = [*_em_header_lines(summary), *_em_detector_lines(summary), *_em_round_lines(summary),
+             *_em_mining_lines(summary), *_em_table3_lines(summary), *_em_self_label_lines(summary)]
     if not mining or not sl:
         lines += ["", "## Left out of these rounds", ""]
         if not mining:
@@ -560,22 +474,18 @@ def feature_sets_markdown(table: dict[str, Any]) -> str:
     ceil = table.get("ceilings", {})
     banks = (f"banks of K = {table['K']} fitted on {table['num_train_objects']} training objects"
              if table["num_train_objects"] else "no training split: retrieval only (no probe, no banks)")
-    lines = [
-        f"## Feature sets (paper Table 2, with clustering): {table['num_test_objects']} test objects, {banks}",
-        "",
-        f"precision@10: {SEARCH_LABELS[table['search']]}.",
-        *(f"- {p}: {PROTOCOL_LABELS[p]}; pool {table['num_test_objects']} objects; perfect features would score "
-          f"{c:.3f}." for p, c in ceil.items()),
-        "- linear probe: a logistic regression on the voxel-averaged frozen crops (the descriptor's six numbers), trained "
-        "with the training objects' labels (they train the probe only), accuracy on the test objects.",
-        "",
-        "| features | precision@10, strict | precision@10, paper | same object nearest (paper) | linear probe acc. | "
-        "Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
+    lines = [f"## Feature sets (paper Table 2, with clustering): {table['num_test_objects']} test objects, {banks}", "",
+             f"precision@10: {SEARCH_LABELS[table['search']]}.",
+             *(f"- {p}: {PROTOCOL_LABELS[p]}; pool {table['num_test_objects']} objects; perfect features would score "
+               f"{c:.3f}." for p, c in ceil.items()),
+             "- linear probe: a logistic regression on the voxel-averaged frozen crops (the descriptor's six numbers), "
+             "trained with the training objects' labels (they train the probe only), accuracy on the test objects.", "",
+             "| features | precision@10, strict | precision@10, paper | same object nearest (paper) | linear probe "
+             "acc. | Hungarian acc. | few-shot acc. | yaw median err. (deg) | yaw acc. @10 deg |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, r in table["rows"].items():
         lines.append(f"| {name} | {_cell(r['precision_at_10'])} | {_cell(r.get('precision_at_10_paper'))} | "
-                     f"{_cell(r.get('same_object_top1'))} | {_cell(r.get('probe_acc'))} | {_cell(r['hungarian_acc'])} | "
-                     f"{_cell(r['fewshot_acc'])} | {_yaw_or_dash(r)} | "
+                     f"{_cell(r.get('same_object_top1'))} | {_cell(r.get('probe_acc'))} | "
+                     f"{_cell(r['hungarian_acc'])} | {_cell(r['fewshot_acc'])} | {_yaw_or_dash(r)} | "
                      f"{_cell(r['yaw_acc_10'])} |")
     return "\n".join(lines) + "\n"

@@ -1,28 +1,16 @@
 """``threedq view``: a finished run, or a parse folder, as one Rerun recording (native viewer, web viewer or ``.rrd``).
 
-What it reads from a ``threedq em`` run (``--run runs/em``)::
-
-    <run>/metrics.json                 ``table3``: the metrics of every round
-    <run>/rNN_eval/config.yaml         the dataset folder and the boxes file round NN's evaluation read
-    <run>/rNN_eval/objects_test.json   each evaluated object: its box, prototype and yaw index
-    <run>/<det>/detections_test.npz    the boxes and scores of that boxes file (03_detector_eval or r(NN-1)_...)
-    <data_dir>/index.json + scenes     the views, the GT boxes and the category names
-
-and from a ``threedq parse`` folder (``--run runs/parse``): ``summary.json`` and each ``<scene>.json``.
-
-What the recording holds (entity paths; ``round`` is a sequence timeline, a parse folder's objects are round 0)::
+It reads a ``threedq em`` run's ``metrics.json`` (Table 3), each ``rNN_eval``'s ``config.yaml`` and
+``objects_test.json`` with the boxes file it read, and the dataset; or a ``threedq parse`` folder's ``summary.json``
+and ``<scene>.json`` files (as round 0). Entity paths (``round`` is a sequence timeline)::
 
     scenes/<scene>                     Transform3D: the scene's place in a grid of scenes
-    scenes/<scene>/points              Points3D: fused from every view, thinned on a voxel grid, inside the
-                                       dataset's scene bounds
-    scenes/<scene>/cameras             LineStrips3D: each view's frustum
+    scenes/<scene>/points, cameras     Points3D fused from every view inside the scene bounds; LineStrips3D frusta
     scenes/<scene>/ground_truth        Boxes3D labelled with the category (where the scene has labels)
-    scenes/<scene>/detections          Boxes3D per round: "p07 0.98" (prototype, score), coloured by prototype;
-                                       boxes the round assigned no prototype are grey, labelled with their score
-    scenes/<scene>/yaw                 Arrows3D per round: the prototype's +x turned by the object's yaw
+    scenes/<scene>/detections, yaw     Boxes3D per round "p07 0.98" coloured by prototype (none: grey); Arrows3D yaw
     prototypes/pNN                     Transform3D: the prototype's place in a grid of prototypes
-    prototypes/pNN/members             Points3D per round: every member's points, turned into the prototype's pose
-    prototypes/pNN/template            Points3D per round: the voxels at least half of the members occupy
+    prototypes/pNN/members, template   Points3D per round: members turned into the prototype's pose; voxels at least
+                                       half of them occupy
     metrics/<name>                     Scalars per round (the run's Table 3)
 
 Convention: positions in metres in each scene's world frame R (z up) shifted by its grid place; an object's yaw
@@ -86,7 +74,6 @@ class RunView:
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
 
-# ---------------------------------------------------------------------------------------------- reading
 def _read_json(path: Path, what: str) -> Any:
     try:
         return json.loads(path.read_text())
@@ -146,14 +133,14 @@ def _round_objects(run: Path, eval_dir: Path, split: str) -> tuple[dict[str, Sce
         key = tuple(round(float(x), 4) for x in o["box"])
         assigned.setdefault(o["scene"], {})[key] = (int(o["prototype"]), int(o["angle_index"]))
     given = init.get("boxes")
-    given = given if given and "{split}" in str(given) else None  # "gt" or "proposals": the objects are the boxes
+    given = given if given and "{split}" in str(given) else None
     boxes = _boxes_of(run, given, split, cfg_path) if given else {}
     scenes = sorted(set(boxes) | set(assigned))
     out = {}
     for s in scenes:
         aabb, score = boxes.get(s, (np.zeros((0, 6)), np.zeros(0)))
         found = assigned.get(s, {})
-        if not given:  # boxes of the dataset itself: the evaluated objects are the boxes
+        if not given:
             aabb = np.array([list(k) for k in found] or np.zeros((0, 6)), dtype=np.float64).reshape(-1, 6)
             score = np.ones(len(aabb))
         pa = np.array([found.get(tuple(round(float(x), 4) for x in b), (-1, -1)) for b in aabb], dtype=np.int64)
@@ -202,18 +189,15 @@ def read_parse_folder(folder: str | Path) -> RunView:
         for o in obs:
             if o.get("name"):
                 names[int(o["prototype"])] = o["name"]
-        objects[str(scene)] = SceneObjects(
-            np.array([o["box"] for o in obs], dtype=np.float64).reshape(-1, 6),
-            np.array([o["score"] for o in obs], dtype=np.float64),
-            np.array([o["prototype"] for o in obs], dtype=np.int64),
-            np.array([o["angle_index"] for o in obs], dtype=np.int64),
-        )
+        objects[str(scene)] = SceneObjects(np.array([o["box"] for o in obs], dtype=np.float64).reshape(-1, 6),
+                                           np.array([o["score"] for o in obs], dtype=np.float64),
+                                           *(np.array([o[k] for o in obs], dtype=np.int64)
+                                             for k in ("prototype", "angle_index")))
     if not objects:
         raise InputError(f"{folder / 'summary.json'}: field 'files': no parsed scene")
     return RunView(Path("/"), sorted(objects), {0: objects}, {}, names, 36, [])
 
 
-# ---------------------------------------------------------------------------------------------- geometry
 def _frusta(K: np.ndarray, world_T_cam: np.ndarray, hw: tuple[int, int], depth: float = 0.15) -> list[np.ndarray]:
     """Each view's frustum as one line strip (apex, 4 image corners at ``depth``, back)."""
     h, w = hw
@@ -256,7 +240,6 @@ def template_voxels(members: list[np.ndarray], voxel: float = _TEMPLATE_VOXEL) -
     return ((cells + 0.5) * voxel).astype(np.float32)
 
 
-# ---------------------------------------------------------------------------------------------- recording
 def _label(k: int, score: float, names: dict[int, str]) -> str:
     if k < 0:
         return f"{score:.2f}"
@@ -295,7 +278,7 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
             loaded.append((s, load_scene(path, validate=False)))
         except (SceneValidationError, OSError) as e:
             print(f"threedq view: {e}; scene left out", file=sys.stderr)
-    for _, recd in loaded:  # each scene's cell holds its cameras
+    for _, recd in loaded:
         pts = recd.world_T_cam[:, :3, 3]
         spacing = max(spacing, float(np.ptp(pts[:, 0])), float(np.ptp(pts[:, 1])))
     spacing = max(spacing + 0.5, 2.0)
@@ -303,7 +286,7 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
         name = Path(s).stem
         base = f"scenes/{name}"
         rec.log(base, rr.Transform3D(translation=_grid_place(i, len(loaded), spacing)), static=True)
-        region = None if view.bounds is None else np.r_[view.bounds[0], view.bounds[1]]  # not the floor to the horizon
+        region = None if view.bounds is None else np.r_[view.bounds[0], view.bounds[1]]
         points, colours = fuse_views(recd.rgb, recd.depth, recd.K, recd.world_T_cam, voxel_size, points_per_scene, i,
                                      region)
         rec.log(f"{base}/points", rr.Points3D(points, colors=colours, radii=rr.Radius.ui_points(2.0)), static=True)
@@ -323,15 +306,14 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
             rec.set_time("round", sequence=r)
             obj = per_scene.get(s) or per_scene.get(str(view.data_dir / s))
             if obj is None or len(obj.aabb) == 0:
-                rec.log(f"{base}/detections", rr.Clear(recursive=False))
-                rec.log(f"{base}/yaw", rr.Clear(recursive=False))
+                for part in ("detections", "yaw"):
+                    rec.log(f"{base}/{part}", rr.Clear(recursive=False))
                 continue
             a = obj.aabb
             centre, half = (a[:, :3] + a[:, 3:]) / 2, (a[:, 3:] - a[:, :3]) / 2
             colours_k = [distinct_colour(int(k)) if k >= 0 else _GREY for k in obj.prototype]
             labels = [_label(int(k), float(sc), view.names) for k, sc in zip(obj.prototype, obj.score)]
-            rec.log(f"{base}/detections", rr.Boxes3D(centers=centre, half_sizes=half, labels=labels,
-                                                     colors=colours_k))
+            rec.log(f"{base}/detections", rr.Boxes3D(centers=centre, half_sizes=half, labels=labels, colors=colours_k))
             has = obj.prototype >= 0
             yaw = -2 * np.pi * obj.angle_index[has] / view.num_angles
             length = np.maximum(half[has, :2].max(1), 0.05)
@@ -347,7 +329,7 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
                     members[r].setdefault(int(obj.prototype[n]), []).append((pts_n, colours[mask]))
         rec.reset_time()
     ids = sorted(set().union(*(set(m) for m in members.values())))
-    for k in ids:  # a prototype id keeps its place in every round
+    for k in ids:
         rec.log(f"prototypes/p{k:02d}", rr.Transform3D(translation=_grid_place(k, ids[-1] + 1, 0.8)), static=True)
     for r in view.rounds:
         rec.set_time("round", sequence=r)
@@ -360,8 +342,7 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
             pts = [m[0] for m in members[r][k]]
             label = f"{view.names[k]} (p{k:02d})" if k in view.names else f"p{k:02d}"
             rec.log(f"{base}/template", rr.Points3D(template_voxels(pts), colors=[distinct_colour(k)],
-                                                    radii=_TEMPLATE_VOXEL / 2,
-                                                    labels=[f"{label}: {len(pts)} objects"]))
+                                                    radii=_TEMPLATE_VOXEL / 2, labels=[f"{label}: {len(pts)} objects"]))
             rec.log(f"{base}/members", rr.Points3D(np.concatenate(pts), colors=np.concatenate(
                 [m[1] for m in members[r][k]]), radii=rr.Radius.ui_points(1.5)))
         for name, value in view.metrics.get(r, {}).items():
@@ -370,18 +351,9 @@ def record(view: RunView, rec: Any, points_per_scene: int = 6000, voxel_size: fl
     return counts
 
 
-def run_view(
-    run: str,
-    save: str | None = None,
-    serve: bool = False,
-    port: int = 9090,
-    data_dir: str | None = None,
-    split: str = "test",
-    max_scenes: int | None = None,
-    points_per_scene: int = 6000,
-    voxel_size: float = 0.02,
-    progress: bool = True,
-) -> dict[str, Any]:
+def run_view(run: str, save: str | None = None, serve: bool = False, port: int = 9090, data_dir: str | None = None,
+             split: str = "test", max_scenes: int | None = None, points_per_scene: int = 6000, voxel_size: float = 0.02,
+             progress: bool = True) -> dict[str, Any]:
     """Look at a run in 3D: its scenes, every round's detections with prototype and yaw, the prototypes, the metrics.
 
     Args:
@@ -438,12 +410,11 @@ def run_view(
     if save:
         rec.disconnect()
         tmp.replace(out)
-        counts["file"] = str(out)
-        counts["megabytes"] = round(out.stat().st_size / 2**20, 2)
+        counts.update(file=str(out), megabytes=round(out.stat().st_size / 2**20, 2))
     counts["seconds"] = round(time.time() - t0, 2)
     boxes = ", ".join(f"round {r}: {n}" for r, n in counts["boxes"].items())
-    where = f"wrote {out} ({counts['megabytes']} MB)" if save else (f"web viewer at {url}" if serve else "sent to "
-                                                                                                          "the viewer")
+    where = (f"wrote {out} ({counts['megabytes']} MB)" if save
+             else f"web viewer at {url}" if serve else "sent to the viewer")
     print(f"threedq view: {counts['scenes']} scene(s), {counts['points']} points, boxes {boxes}; {where} "
           f"in {counts['seconds']} s")
     if serve:

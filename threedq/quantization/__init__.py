@@ -20,17 +20,6 @@ from threedq.quantization.rotation_search import (
     yaw_margin,
 )
 
-__all__ = [
-    "PrototypeBank",
-    "RotationSearchResult",
-    "all_pairs_rotation_max",
-    "best_prototype_and_yaw",
-    "fill_free_slots",
-    "fit_prototype_bank",
-    "prototype_crops",
-    "quantization_loss",
-    "rotation_max_similarity",
-    "run_prototype_em",
-    "yaw_confidence",
-    "yaw_margin",
-]
+__all__ = ["PrototypeBank", "RotationSearchResult", "all_pairs_rotation_max", "best_prototype_and_yaw",
+           "fill_free_slots", "fit_prototype_bank", "prototype_crops", "quantization_loss", "rotation_max_similarity",
+           "run_prototype_em", "yaw_confidence", "yaw_margin"]

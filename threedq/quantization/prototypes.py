@@ -1,15 +1,11 @@
 """The prototype bank: K pose-canonical 3D prototypes and the EM steps that learn them (paper Sec. 3.2).
 
-E-step: every object crop ``M_o`` is assigned its best (prototype, yaw) by rotation-aware matching
-(:func:`threedq.quantization.rotation_search.best_prototype_and_yaw`). M-step: every prototype becomes the mean of its
-members rotated into its canonical pose — the closed-form minimiser of the paper's quantization loss
-``sum_o ||e_k(o) - Rotate(M_o, R_o)||^2`` over ``e_k`` (``benchmarks/bench_prototype_update.py`` compares
-it with gradient descent on the same loss). The bank starts empty and is filled incrementally: an
-exemplar becomes a prototype only if its rotation-max cosine to every existing prototype is below
-``init_threshold`` (paper: 0.8); objects far from every prototype may open a new one while slots are free.
-
-All state is in registered buffers (``prototypes``, ``active``, ``member_sum``, ``member_count``), so a
-checkpoint carries the whole algorithm and ``.to(device)`` moves it.
+E-step: every object crop is assigned its best (prototype, yaw) by
+:func:`threedq.quantization.rotation_search.best_prototype_and_yaw`. M-step: every prototype becomes the mean of
+its members rotated into its canonical pose, the closed-form minimiser of the paper's quantization loss
+``sum_o ||e_k(o) - Rotate(M_o, R_o)||^2``. The bank starts empty and is filled incrementally: an exemplar becomes a
+prototype only if its rotation-max cosine to every existing prototype is below ``init_threshold``. All state is in
+registered buffers (``prototypes``, ``active``, ``member_sum``, ``member_count``).
 
 Convention: crops ``[N, C, S, S, S]`` in frame R order ``(C, Z, Y, X)``, z up; a yaw index ``a`` means
 ``2 pi a / num_angles`` counter-clockwise seen from above; "object o has yaw a" means rotating the object
@@ -23,22 +19,14 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from threedq.geometry import occupancy_weighted, rotate_yaw, yaw_angles
-from threedq.quantization.rotation_search import (
-    PolarSpectrum,
-    RotationSearchResult,
-    best_prototype_and_yaw,
-    polar_spectrum,
-)
 
-__all__ = [
-    "PrototypeBank",
-    "assign_chunked",
-    "fill_free_slots",
-    "fit_prototype_bank",
-    "prototype_crops",
-    "quantization_loss",
-    "run_prototype_em",
-]
+from .rotation_search import PolarSpectrum, RotationSearchResult, best_prototype_and_yaw, polar_spectrum
+
+__all__ = ["PrototypeBank", "assign_chunked", "fill_free_slots", "fit_prototype_bank", "prototype_crops",
+           "quantization_loss", "run_prototype_em"]
+
+#: A cache of the polar spectra of ``crops[start : start + chunk]``, by ``start``.
+_Spectra = dict[int, PolarSpectrum | None]
 
 
 class PrototypeBank(nn.Module):
@@ -49,38 +37,24 @@ class PrototypeBank(nn.Module):
         num_prototypes: K, the number of slots.
         channels: C, feature channels of the crops.
         size: S, crops are ``S^3``.
-        num_angles: yaw steps of the rotation search (36 = 10 deg); 1 = no rotation search (the
-            paper's no-rot-3DQ baseline).
-        init_threshold: an exemplar opens a new prototype only if its best cosine to every prototype is
-            below this (paper: 0.8).
+        num_angles: yaw steps of the rotation search (36 = 10 deg); 1 = no rotation search (no-rot-3DQ).
+        init_threshold: an exemplar opens a new prototype only if its best cosine to every prototype is below this.
         method: rotation search implementation, ``"fast"`` or ``"exact"``.
-        depth: D, the crops' extent along the rotation axis (default ``size``: ``S^3`` crops); ``depth=1``
-            holds 2D prototypes ``[C, 1, S, S]`` whose yaw search is an in-plane rotation search (2.5DQ-Nets: an
-            image crop's angle index ``a`` turns it by ``2 pi a / A`` clockwise as displayed, row y down).
+        depth: D, the crops' extent along the rotation axis (default ``size``); ``depth=1`` holds 2D prototypes
+            ``[C, 1, S, S]`` whose yaw search is an in-plane rotation search (2.5DQ-Nets: an image crop's angle
+            index ``a`` turns it by ``2 pi a / A`` clockwise as displayed, row y down).
     """
 
-    def __init__(
-        self,
-        num_prototypes: int = 50,
-        channels: int = 32,
-        size: int = 16,
-        num_angles: int = 36,
-        init_threshold: float = 0.8,
-        method: str = "fast",
-        depth: int | None = None,
-    ) -> None:
+    def __init__(self, num_prototypes: int = 50, channels: int = 32, size: int = 16, num_angles: int = 36,
+                 init_threshold: float = 0.8, method: str = "fast", depth: int | None = None) -> None:
         super().__init__()
         depth = size if depth is None else depth
         if num_prototypes < 1 or channels < 1 or size < 1 or num_angles < 1 or depth < 1:
-            raise ValueError(
-                f"num_prototypes, channels, size, num_angles must be >= 1, got {num_prototypes}, {channels}, {size}, "
-                f"{num_angles}"
-            )
+            got = f"{num_prototypes}, {channels}, {size}, {num_angles}"
+            raise ValueError(f"num_prototypes, channels, size, num_angles must be >= 1, got {got}")
         if method not in ("fast", "exact"):
             raise ValueError(f"method: expected 'fast' or 'exact', got {method!r}")
-        self.num_angles = num_angles
-        self.init_threshold = init_threshold
-        self.method = method
+        self.num_angles, self.init_threshold, self.method = num_angles, init_threshold, method
         shape = (num_prototypes, channels, depth, size, size)
         self.register_buffer("prototypes", torch.zeros(shape))
         self.register_buffer("active", torch.zeros(num_prototypes, dtype=torch.bool))
@@ -92,14 +66,15 @@ class PrototypeBank(nn.Module):
         return int(self.active.sum())
 
     def _as_bank(self, objects: Tensor) -> Tensor:
-        """``objects`` checked for shape and in the bank's dtype: crops of an encoder run under bf16 autocast (a GPU's
-        ``bf16-mixed``) are searched, rotated and summed in the bank's float32, as float32 crops are (the polar
-        spectra of objects and prototypes must share one plan, dtype included)."""
+        """``objects`` checked for shape and cast to the bank's dtype (bf16 autocast crops are searched in float32)."""
         if objects.ndim != 5 or tuple(objects.shape[1:]) != tuple(self.prototypes.shape[1:]):
-            raise ValueError(
-                f"objects: expected shape [N, {', '.join(map(str, self.prototypes.shape[1:]))}], got {tuple(objects.shape)}"
-            )
+            shape = ", ".join(map(str, self.prototypes.shape[1:]))
+            raise ValueError(f"objects: expected shape [N, {shape}], got {tuple(objects.shape)}")
         return objects.to(self.prototypes.dtype)
+
+    def _search(self, objects: Tensor, prototypes: Tensor, spectrum: PolarSpectrum | None) -> RotationSearchResult:
+        return best_prototype_and_yaw(objects, prototypes, num_angles=self.num_angles, method=self.method,
+                                      objects_spectrum=spectrum)
 
     @torch.no_grad()
     def spectrum(self, objects: Tensor) -> PolarSpectrum | None:
@@ -122,8 +97,7 @@ class PrototypeBank(nn.Module):
         idx = self.active.nonzero().flatten()
         if idx.numel() == 0:
             raise RuntimeError("the prototype bank is empty: initialise it first (init_from / add)")
-        res = best_prototype_and_yaw(objects, self.prototypes[idx], num_angles=self.num_angles, method=self.method,
-                                     objects_spectrum=spectrum)
+        res = self._search(objects, self.prototypes[idx], spectrum)
         return RotationSearchResult(prototype=idx[res.prototype], angle=res.angle, score=res.score, scores=res.scores)
 
     @torch.no_grad()
@@ -132,7 +106,7 @@ class PrototypeBank(nn.Module):
         own) if the bank has a free slot and its best cosine to every active prototype is below ``threshold``.
 
         ``reuse_spectrum`` (``"fast"`` search): the objects' polar spectrum is computed once and sliced for every
-        comparison (the same result); False recomputes it for each opened prototype (the tests' reference path).
+        comparison (the same result); False recomputes it for each opened prototype.
 
         Returns:
             ``[N]`` bool, which objects became prototypes.
@@ -158,22 +132,19 @@ class PrototypeBank(nn.Module):
             opened[i] = True
             rest = objects[i + 1 :]
             if rest.shape[0]:
-                s = best_prototype_and_yaw(rest, objects[i : i + 1], num_angles=self.num_angles, method=self.method,
-                                           objects_spectrum=None if spectrum is None else spectrum.take(i + 1))
+                s = self._search(rest, objects[i : i + 1], None if spectrum is None else spectrum.take(i + 1))
                 best[i + 1 :] = torch.maximum(best[i + 1 :], s.score)
         return opened
 
     @torch.no_grad()
-    def accumulate(
-        self, objects: Tensor, result: RotationSearchResult, previous: tuple[Tensor, Tensor] | None = None
-    ) -> tuple[Tensor, Tensor]:
+    def accumulate(self, objects: Tensor, result: RotationSearchResult,
+                   previous: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
         """Add each object, rotated into its prototype's canonical pose, to that prototype's running sum.
 
         Args:
             objects: ``[N, C, D, S, S]``; result: their E-step.
             previous: what this returned for the same objects at an earlier E-step: the objects whose yaw index is
-                unchanged are not rotated again (a rotation depends on its object and angle alone, so the sums are
-                bitwise the same); its ``aligned`` tensor is updated in place and returned.
+                unchanged are not rotated again (bitwise the same sums); its ``aligned`` tensor is updated in place.
 
         Returns:
             ``(angle [N], aligned [N, C, D, S, S])``: the yaw indices and the rotated objects, for ``previous``.
@@ -187,8 +158,9 @@ class PrototypeBank(nn.Module):
                 aligned[moved] = rotate_yaw(objects[moved], angles[result.angle[moved]])
         else:
             aligned = rotate_yaw(objects, angles[result.angle])
+        ones = torch.ones_like(result.prototype, dtype=self.member_count.dtype)
         self.member_sum.index_add_(0, result.prototype, aligned.to(self.member_sum.dtype))
-        self.member_count.index_add_(0, result.prototype, torch.ones_like(result.prototype, dtype=self.member_count.dtype))
+        self.member_count.index_add_(0, result.prototype, ones)
         return result.angle.clone(), aligned
 
     @torch.no_grad()
@@ -213,10 +185,9 @@ class PrototypeBank(nn.Module):
 
 
 def prototype_crops(features: Tensor, raw: Tensor | None, occupancy_floor: float | None = None) -> Tensor:
-    """The crops a prototype bank is fitted on and scores: the feature crops as they are (``occupancy_floor``
-    None, the paper's plain cosine over the whole crop) or weighted by their input occupancy
-    (:func:`threedq.geometry.occupancy_weighted` with this floor and a 3^3 dilation: voxels at and next to observed
-    surface count ``1 + floor``, empty space ``floor``; a departure from the paper).
+    """The crops a prototype bank is fitted on and scores: the feature crops as they are (``occupancy_floor`` None,
+    the paper's) or weighted by their input occupancy (:func:`threedq.geometry.occupancy_weighted` with this floor
+    and a 3^3 dilation).
 
     Args:
         features: ``[N, C, s, s, s]`` feature crops.
@@ -240,28 +211,19 @@ def quantization_loss(bank: PrototypeBank, objects: Tensor, result: RotationSear
     """The paper's quantization objective ``mean_o ||e_k(o) - Rotate(M_o, R_o)||^2`` at a given assignment."""
     sums = []
     for s in range(0, objects.shape[0], 256):  # per object exactly as over all at once, without the big temporaries
-        part = RotationSearchResult(result.prototype[s : s + 256], result.angle[s : s + 256], result.score[s : s + 256],
-                                    result.scores[s : s + 256] if result.scores is not None else None)
-        aligned = bank.canonical_rotation(objects[s : s + 256], part)
+        sl = slice(s, s + 256)
+        part = RotationSearchResult(result.prototype[sl], result.angle[sl], result.score[sl], None)
+        aligned = bank.canonical_rotation(objects[sl], part)
         sums.append((bank.prototypes[part.prototype] - aligned).pow(2).flatten(1).sum(1))
     return torch.cat(sums).mean()
 
 
 @torch.no_grad()
-def fit_prototype_bank(
-    crops: Tensor,
-    num_prototypes: int = 50,
-    iterations: int = 10,
-    num_angles: int = 36,
-    init_threshold: float = 0.8,
-    method: str = "fast",
-    seed: int = 0,
-    chunk: int = 256,
-) -> PrototypeBank:
-    """A new bank fitted to ``crops`` by :func:`run_prototype_em` (what the quantizer stage runs, in memory).
-
-    ``crops`` ``[N, C, D, S, S]``: 3D crops (``D = S``) or 2D crops as one-slice volumes (``D = 1``).
-    """
+def fit_prototype_bank(crops: Tensor, num_prototypes: int = 50, iterations: int = 10, num_angles: int = 36,
+                       init_threshold: float = 0.8, method: str = "fast", seed: int = 0,
+                       chunk: int = 256) -> PrototypeBank:
+    """A new bank fitted to ``crops`` ``[N, C, D, S, S]`` (3D crops, ``D = S``, or 2D ones, ``D = 1``) by
+    :func:`run_prototype_em`."""
     if crops.ndim != 5 or crops.shape[3] != crops.shape[4]:
         raise ValueError(f"crops: expected [N, C, D, S, S], got {tuple(crops.shape)}")
     C, D, S = crops.shape[1], crops.shape[2], crops.shape[3]
@@ -270,32 +232,22 @@ def fit_prototype_bank(
 
 
 @torch.no_grad()
-def run_prototype_em(
-    bank: PrototypeBank, crops: Tensor, iterations: int = 10, seed: int = 0, fill_free: bool = True, chunk: int = 256,
-    reuse_spectra: bool = True, spectra: dict[int, PolarSpectrum | None] | None = None, reuse_aligned: bool = True,
-    restarts: int = 1,
-) -> PrototypeBank:
+def run_prototype_em(bank: PrototypeBank, crops: Tensor, iterations: int = 10, seed: int = 0, fill_free: bool = True,
+                     chunk: int = 256, reuse_spectra: bool = True, spectra: _Spectra | None = None,
+                     reuse_aligned: bool = True, restarts: int = 1) -> PrototypeBank:
     """The prototype EM of the paper (Sec. 3.2) on ``crops`` ``[N, C, S, S, S]``, in place; returns ``bank``.
 
-    An empty bank is first initialised incrementally, visiting the objects in a seeded random order (an
-    object opens a prototype unless it matches one above the bank's threshold); with ``fill_free`` the
-    remaining free slots are then filled with the objects farthest from the bank. A bank that already holds
-    prototypes (an earlier round's) skips the initialisation. Then ``iterations`` rounds of E-step (best
-    prototype and yaw per object, in chunks of ``chunk``) and closed-form M-step.
+    An empty bank is first initialised incrementally, visiting the objects in a seeded random order; with
+    ``fill_free`` the remaining free slots are then filled with the objects farthest from the bank. A bank that
+    already holds prototypes skips the initialisation. Then ``iterations`` rounds of E-step (in chunks of ``chunk``)
+    and M-step.
 
-    ``reuse_spectra`` (``"fast"`` search): each chunk's polar spectrum is computed once and handed to every E-step
-    (the objects do not change, only the prototypes): the same bank, the E-steps about 3x faster; False
-    recomputes it every iteration (the reference path of the tests). ``spectra``: the cache to use (a dict the
-    caller keeps, e.g. for :func:`assign_chunked` of the same crops afterwards).
-
-    ``reuse_aligned``: each object's rotation into its prototype's pose is kept between the M-steps and redone only
-    when its yaw changes (:meth:`PrototypeBank.accumulate`'s ``previous``): the same bank, about 2x the crops'
-    memory while the EM runs; False rotates every object at every iteration.
-
-    ``restarts`` (an empty bank only; default 1, the paper's single fit): the initialisation and EM are run
-    ``restarts`` times, visiting the objects in the orders of seeds ``seed, seed + 1, ...``, and the bank with the
-    lowest :func:`quantization_loss` on ``crops`` is kept (the first of equal ones), as k-means keeps the best of
-    several starts (a departure from the paper). A bank that already holds prototypes is refined once, as it is.
+    Args:
+        reuse_spectra: ``"fast"`` search: compute each chunk's polar spectrum once for every E-step (the same bank).
+        spectra: the spectra cache to use (one the caller keeps, e.g. for :func:`assign_chunked` afterwards).
+        reuse_aligned: rotate an object into its prototype's pose again only when its yaw changes (the same bank).
+        restarts: an empty bank only: run the initialisation and EM with seeds ``seed, seed + 1, ...`` and keep the
+            bank of lowest :func:`quantization_loss` (the first of equal ones).
     """
     crops = bank._as_bank(crops)
     N = crops.shape[0]
@@ -303,18 +255,14 @@ def run_prototype_em(
         raise ValueError("crops: no objects to fit prototypes to")
     if isinstance(restarts, bool) or not isinstance(restarts, int) or restarts < 1:
         raise ValueError(f"restarts: expected an int >= 1, got {restarts!r}")
-    if not reuse_spectra:
-        spectra = None
-    elif spectra is None:
-        spectra = {}
+    spectra = ({} if spectra is None else spectra) if reuse_spectra else None
     if bank.num_active == 0 and restarts > 1:
         empty = {k: v.clone() for k, v in bank.state_dict().items()}
         best: dict[str, Tensor] | None = None
         best_loss = float("inf")
         for i in range(restarts):
             bank.load_state_dict(empty)
-            run_prototype_em(bank, crops, iterations, seed=seed + i, fill_free=fill_free, chunk=chunk,
-                             reuse_spectra=reuse_spectra, spectra=spectra, reuse_aligned=reuse_aligned)
+            run_prototype_em(bank, crops, iterations, seed + i, fill_free, chunk, reuse_spectra, spectra, reuse_aligned)
             loss = float(quantization_loss(bank, crops, assign_chunked(bank, crops, chunk, spectra)))
             if best is None or loss < best_loss:
                 best, best_loss = {k: v.clone() for k, v in bank.state_dict().items()}, loss
@@ -331,8 +279,8 @@ def run_prototype_em(
     for _ in range(iterations):
         for start in range(0, N, chunk):
             part = crops[start : start + chunk]
-            kept = bank.accumulate(part, bank.assign(part, _chunk_spectrum(bank, crops, start, chunk, spectra)),
-                                   aligned.get(start))
+            res = bank.assign(part, _chunk_spectrum(bank, crops, start, chunk, spectra))
+            kept = bank.accumulate(part, res, aligned.get(start))
             if reuse_aligned:
                 aligned[start] = kept
         bank.update()
@@ -340,7 +288,7 @@ def run_prototype_em(
 
 
 def _chunk_spectrum(bank: PrototypeBank, crops: Tensor, start: int, chunk: int,
-                    spectra: dict[int, PolarSpectrum | None] | None) -> PolarSpectrum | None:
+                    spectra: _Spectra | None) -> PolarSpectrum | None:
     """The spectrum of ``crops[start : start + chunk]``, computed once per ``spectra`` cache (None: no cache)."""
     if spectra is None:
         return None
@@ -351,20 +299,18 @@ def _chunk_spectrum(bank: PrototypeBank, crops: Tensor, start: int, chunk: int,
 
 @torch.no_grad()
 def assign_chunked(bank: PrototypeBank, crops: Tensor, chunk: int = 256,
-                   spectra: dict[int, PolarSpectrum | None] | None = None) -> RotationSearchResult:
-    """:meth:`PrototypeBank.assign` of ``crops`` in chunks of ``chunk`` (reusing the spectra of a
-    :func:`run_prototype_em` cache when given)."""
+                   spectra: _Spectra | None = None) -> RotationSearchResult:
+    """:meth:`PrototypeBank.assign` of ``crops`` in chunks of ``chunk`` (reusing a :func:`run_prototype_em` cache of
+    spectra when given)."""
     crops = bank._as_bank(crops)
-    parts = [bank.assign(crops[s : s + chunk], _chunk_spectrum(bank, crops, s, chunk, spectra))
-             for s in range(0, crops.shape[0], chunk)]
-    return RotationSearchResult(prototype=torch.cat([r.prototype for r in parts]),
-                                angle=torch.cat([r.angle for r in parts]), score=torch.cat([r.score for r in parts]),
-                                scores=torch.cat([r.scores for r in parts]))
+    starts = range(0, crops.shape[0], chunk)
+    parts = [bank.assign(crops[s : s + chunk], _chunk_spectrum(bank, crops, s, chunk, spectra)) for s in starts]
+    fields = ("prototype", "angle", "score", "scores")
+    return RotationSearchResult(**{f: torch.cat([getattr(r, f) for r in parts]) for f in fields})
 
 
 @torch.no_grad()
-def fill_free_slots(bank: PrototypeBank, crops: Tensor, chunk: int = 256,
-                    spectra: dict[int, PolarSpectrum | None] | None = None) -> int:
+def fill_free_slots(bank: PrototypeBank, crops: Tensor, chunk: int = 256, spectra: _Spectra | None = None) -> int:
     """Open prototypes from the objects farthest from the bank (lowest best score) while slots are free.
 
     ``spectra``: a cache of the chunks' polar spectra (filled here, reused by the caller's E-steps); None
@@ -383,11 +329,11 @@ def fill_free_slots(bank: PrototypeBank, crops: Tensor, chunk: int = 256,
         free, opened = free - 1, 1
 
     def best_against(protos: Tensor) -> Tensor:
-        return torch.cat([
-            best_prototype_and_yaw(crops[s : s + chunk], protos, num_angles=bank.num_angles, method=bank.method,
-                                   objects_spectrum=_chunk_spectrum(bank, crops, s, chunk, spectra)).score
-            for s in range(0, crops.shape[0], chunk)
-        ])
+        out = []
+        for s in range(0, crops.shape[0], chunk):
+            spectrum = _chunk_spectrum(bank, crops, s, chunk, spectra)
+            out.append(bank._search(crops[s : s + chunk], protos, spectrum).score)
+        return torch.cat(out)
 
     scores = best_against(bank.prototypes[bank.active])
     while free > 0:

@@ -1,45 +1,28 @@
 """Fast search over yaw rotations: cylindrical resampling + correlation along the angle (rFFT).
 
-Matching a crop against prototypes (or against other crops) at its best yaw is the inner loop of 3DQ-Nets'
-quantisation and of the rotation-max retrieval evaluation. The exact way rotates every crop by every candidate
-yaw (``threedq.geometry.rotate_yaw``, one interpolation of the whole crop per angle) and compares; it costs
-``A`` interpolations and a GEMM of ``A * N`` crops. Here each crop is instead resampled ONCE onto a polar grid
-per z-slice (rings ``r`` x angles ``a``) where a yaw by one angle step is a circular shift along ``a``; the
-inner products at all ``A`` shifts are then one correlation along ``a``, computed in the Fourier domain
-(correlation theorem): per angular frequency one (real-ified complex) GEMM over the other dimensions.
+The ``"exact"`` kernel rotates every crop by every candidate yaw (``threedq.geometry.rotate_yaw``) and compares.
+The ``"fast"`` kernel resamples each crop ONCE onto a polar grid per z-slice (rings ``r`` x angles ``a``), where a
+yaw by one angle step is a circular shift along ``a``, and computes the inner products at all ``A`` shifts as one
+correlation along ``a`` in the Fourier domain:
 
-Pipeline of the ``"fast"`` methods:
+1. :func:`polar_interpolation_matrix`: the bilinear weights of the ``R x A`` polar samples from the ``Y x X`` slice
+   pixels (cached per shape/device/dtype), scaled by ``sqrt(area)`` of each polar cell.
+2. Composed with an orthonormal real DFT along the angle, one batched matmul maps Cartesian slices straight to polar
+   Fourier coefficients (:func:`polar_spectrum`), laid out ``[N, K, C * Z]``. With ``bandlimit=True`` ring ``i``
+   keeps only angular frequencies ``<= ceil(pi * r_i)`` (``r_i`` in voxels), what a ring of circumference
+   ``2 pi r_i`` voxels carries.
+3. Per frequency ``f``, GEMMs of the query and gallery blocks give ``Re(conj(Q_f) G_f)`` and ``Im(conj(Q_f) G_f)``,
+   and an ``[A, K]`` inverse real DFT gives the inner products at all ``A`` yaw shifts.
 
-1. ``polar_interpolation_matrix``: the bilinear weights of the ``R x A`` polar sample points from the
-   ``Y x X`` slice pixels (the same for every crop, so built once and cached per shape/device/dtype), scaled
-   by ``sqrt(area)`` of each polar cell.
-2. That matrix is composed with an orthonormal real DFT along the angle, so one dense (batched) matmul over
-   all ``N * C * Z`` slices maps Cartesian slices straight to polar Fourier coefficients ("polar spectrum",
-   ``polar_spectrum``), laid out ``[N, K, C * Z]`` so that every frequency block is a strided matrix view.
-   Optionally (``bandlimit=True``) ring ``i`` keeps only angular frequencies ``<= ceil(pi * r_i)`` (``r_i``
-   in voxels): a ring of circumference ``2 pi r_i`` voxels carries no more than that from the voxel grid
-   (the rest is interpolation artefact); this drops ~1/3 of the coefficients and of the GEMM work and is
-   the same as correlating low-passed rings.
-3. Per frequency ``f``, GEMMs of the query and gallery coefficient blocks give ``Re(conj(Q_f) G_f)`` (one GEMM
-   over the block) and ``Im(conj(Q_f) G_f)`` (two GEMMs over its halves), and a tiny ``[A, A]`` matmul (an
-   inverse real DFT) gives the inner products at all ``A`` yaw shifts. Cost per pair: ``~2 A`` dot products
-   of length ``C * Z * R`` (``~1.3 A`` with the band limit) instead of ``A`` of length ``C * Z * Y * X`` plus
-   ``A`` interpolations of the crop.
+Precision: fp32 (or fp64) inputs are computed in their dtype. ``compute_dtype=torch.bfloat16`` runs the resampling
+and the per-frequency GEMMs in bf16; the frequency-0 term is computed from fp32 copies with an fp32 output, and the
+inverse DFT, norms and scores are fp32.
 
-Precision: fp32 (or fp64) inputs are computed in their dtype. ``compute_dtype=torch.bfloat16`` runs the
-resampling and the per-frequency GEMMs in bf16 (faster on CPUs with native bf16 matmul): inputs are rounded to
-bf16 (random errors that average out over the long contractions) and each GEMM output is rounded to bf16 (CPU
-matmul has no fp32 output for bf16 operands); the frequency-0 term (which carries most of every cosine and does
-not depend on the angle) is computed from fp32 copies with an fp32 output, and the inverse DFT, norms and scores
-are fp32.
-
-Area weighting: polar samples are denser near the axis. Sample ``(i, a)`` stands for the polar cell of area
-``(2 pi / A) * (rho / R) * r_i`` voxels^2 (``rho`` the inscribed radius, ``r_i = (i + 0.5) rho / R``); the
-resampled value is multiplied by ``sqrt(area)`` so that a PLAIN inner product of two cylinders approximates the
-inner product of the two crops over the inscribed disc of each slice (the areas sum to ``pi rho^2``, the disc
-area in voxels). Norms and cosines of cylinders are therefore disc-region quantities: the ``"fast"`` cosine
-ignores the corners of the crop outside the inscribed cylinder, whereas the ``"exact"`` cosine normalises over
-the full cube (and a rotated crop loses its corners, which rotate out of the cube).
+Area weighting: sample ``(i, a)`` stands for the polar cell of area ``(2 pi / A) * (rho / R) * r_i`` voxels^2
+(``rho`` the inscribed radius, ``r_i = (i + 0.5) rho / R``) and is multiplied by ``sqrt(area)``, so that a plain
+inner product of two cylinders approximates the inner product of the two crops over the inscribed disc of each
+slice. The ``"fast"`` cosine therefore ignores the corners of the crop outside the inscribed cylinder, whereas the
+``"exact"`` cosine normalises over the full cube.
 
 Convention:
     Crops are ``[N, C, Z, Y, X]`` in frame R, z up (the yaw axis). Yaw index ``a`` means ``2 pi a / A``
@@ -53,6 +36,7 @@ Convention:
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -61,35 +45,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from threedq.geometry.grid import _desc
 from threedq.geometry.rotate import rotate_yaw, yaw_angles
 
-__all__ = [
-    "SEARCH_METHODS",
-    "PolarSpectrum",
-    "RotationSearchResult",
-    "all_pairs_rotation_max",
-    "best_prototype_and_yaw",
-    "cylindrical_resample",
-    "default_num_radii",
-    "polar_interpolation_matrix",
-    "polar_spectrum",
-    "rotation_max_similarity",
-    "yaw_confidence",
-    "yaw_margin",
-]
+__all__ = ["SEARCH_METHODS", "PolarSpectrum", "RotationSearchResult", "all_pairs_rotation_max",
+           "best_prototype_and_yaw", "cylindrical_resample", "default_num_radii", "polar_interpolation_matrix",
+           "polar_spectrum", "rotation_max_similarity", "yaw_confidence", "yaw_margin"]
 
 #: The two kernels of every rotation search: ``"fast"`` (polar spectrum + FFT over the angle, cosine over the
 #: inscribed cylinder) and ``"exact"`` (every crop rotated by every yaw, cosine over the full cube).
 SEARCH_METHODS = ("fast", "exact")
-_METHODS = SEARCH_METHODS
 _LOW_PRECISION = (torch.bfloat16, torch.float16)
 #: Bytes of scratch a correlation chunk may use (sizes the automatic query chunk).
 _CHUNK_BYTES = 1 << 26
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Polar sampling
-# ----------------------------------------------------------------------------------------------------------------
 
 
 def default_num_radii(ny: int, nx: int) -> int:
@@ -97,13 +65,17 @@ def default_num_radii(ny: int, nx: int) -> int:
     return max(1, math.ceil(min(ny, nx) / 2))
 
 
+def _positive_int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 1
+
+
 def _check_grid(ny: int, nx: int, num_angles: int, num_radii: int | None) -> int:
     for name, v in (("ny", ny), ("nx", nx), ("num_angles", num_angles)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        if not _positive_int(v):
             raise ValueError(f"{name} must be a positive int, got {v!r}")
     if num_radii is None:
         return default_num_radii(ny, nx)
-    if isinstance(num_radii, bool) or not isinstance(num_radii, int) or num_radii < 1:
+    if not _positive_int(num_radii):
         raise ValueError(f"num_radii must be a positive int or None, got {num_radii!r}")
     return num_radii
 
@@ -137,31 +109,20 @@ def _polar_matrix_f64(ny: int, nx: int, num_angles: int, num_radii: int, area_we
 
 
 @functools.lru_cache(maxsize=32)
-def _polar_matrix_cached(
-    ny: int, nx: int, num_angles: int, num_radii: int, area_weighted: bool, device: torch.device, dtype: torch.dtype
-) -> Tensor:
-    return _polar_matrix_f64(ny, nx, num_angles, num_radii, area_weighted).reshape(num_radii * num_angles, -1).to(
-        device=device, dtype=dtype
-    )
+def _polar_matrix_cached(ny: int, nx: int, num_angles: int, num_radii: int, area_weighted: bool, device: torch.device,
+                         dtype: torch.dtype) -> Tensor:
+    weights = _polar_matrix_f64(ny, nx, num_angles, num_radii, area_weighted)
+    return weights.reshape(num_radii * num_angles, -1).to(device=device, dtype=dtype)
 
 
-def polar_interpolation_matrix(
-    ny: int,
-    nx: int,
-    num_angles: int = 36,
-    num_radii: int | None = None,
-    *,
-    area_weighted: bool = True,
-    device: torch.device | str | None = None,
-    dtype: torch.dtype | None = None,
-) -> Tensor:
+def polar_interpolation_matrix(ny: int, nx: int, num_angles: int = 36, num_radii: int | None = None, *,
+                               area_weighted: bool = True, device: torch.device | str | None = None,
+                               dtype: torch.dtype | None = None) -> Tensor:
     """Bilinear interpolation matrix from a ``Y x X`` slice to its ``R x A`` polar samples (cached).
 
-    Row ``i * A + a`` holds the (at most 4) bilinear weights of polar sample ``(i, a)`` on the flattened
-    slice pixels; neighbours outside the slice get no weight (zero padding, like ``grid_sample`` with
-    ``align_corners=False, padding_mode="zeros"`` at the same points). With ``area_weighted`` the row is
-    multiplied by ``sqrt(area_i)``, ``area_i = (2 pi / A) (rho / R) r_i`` voxels^2, so that plain inner
-    products of resampled slices approximate inner products over the inscribed disc.
+    Row ``i * A + a`` holds the (at most 4) bilinear weights of polar sample ``(i, a)`` on the flattened slice
+    pixels, zero padding as ``grid_sample`` with ``align_corners=False, padding_mode="zeros"``. With
+    ``area_weighted`` the row is multiplied by ``sqrt(area_i)``, ``area_i = (2 pi / A) (rho / R) r_i`` voxels^2.
 
     Args:
         ny: slice height ``Y``.
@@ -180,25 +141,22 @@ def polar_interpolation_matrix(
         (voxel indices), ``r_i = (i + 0.5) / R * min(Y, X) / 2``; angles counter-clockwise seen from above.
     """
     num_radii = _check_grid(ny, nx, num_angles, num_radii)
-    dtype = dtype or torch.get_default_dtype()
-    return _polar_matrix_cached(ny, nx, num_angles, num_radii, bool(area_weighted), torch.device(device or "cpu"), dtype)
+    device, dtype = torch.device(device or "cpu"), dtype or torch.get_default_dtype()
+    return _polar_matrix_cached(ny, nx, num_angles, num_radii, bool(area_weighted), device, dtype)
 
 
-def _check_crops(x: Tensor, name: str) -> None:
-    if not isinstance(x, Tensor) or x.ndim != 5:
-        shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-        raise ValueError(f"{name} must have shape [N, C, Z, Y, X], got {shape}")
+def _check_crops(x: Tensor, name: str, ndim: int = 5) -> None:
+    if not isinstance(x, Tensor) or x.ndim != ndim:
+        raise ValueError(f"{name} must have shape {'[N, C, Z, Y, X]' if ndim == 5 else '[C, Z, Y, X]'}, got {_desc(x)}")
     if not x.is_floating_point():
         raise ValueError(f"{name} must be a floating-point tensor, got {x.dtype}")
 
 
-def cylindrical_resample(
-    crops: Tensor, num_angles: int = 36, num_radii: int | None = None, *, area_weighted: bool = True
-) -> Tensor:
+def cylindrical_resample(crops: Tensor, num_angles: int = 36, num_radii: int | None = None, *,
+                         area_weighted: bool = True) -> Tensor:
     """Resample every z-slice of every crop onto a polar grid, so that a yaw step is a roll along the angle.
 
-    One dense matmul of all ``N * C * Z`` slices with the cached ``[R * A, Y * X]`` interpolation matrix
-    (``polar_interpolation_matrix``) instead of a ``grid_sample`` per crop. Linear, hence differentiable.
+    One matmul with :func:`polar_interpolation_matrix`; linear, hence differentiable.
 
     Args:
         crops: ``[N, C, Z, Y, X]`` crops.
@@ -218,16 +176,10 @@ def cylindrical_resample(
     _check_crops(crops, "crops")
     n, c, nz, ny, nx = crops.shape
     num_radii = _check_grid(ny, nx, num_angles, num_radii)
-    w = polar_interpolation_matrix(
-        ny, nx, num_angles, num_radii, area_weighted=area_weighted, device=crops.device, dtype=crops.dtype
-    )
+    w = polar_interpolation_matrix(ny, nx, num_angles, num_radii, area_weighted=area_weighted, device=crops.device,
+                                   dtype=crops.dtype)
     out = F.linear(crops.reshape(n * c * nz, ny * nx), w)  # [N*C*Z, R*A]
     return out.view(n, c, nz, num_radii, num_angles)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Polar spectrum: resampling fused with an orthonormal real DFT along the angle
-# ----------------------------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -246,13 +198,8 @@ class _Block:
 
 def _frequency_blocks(num_angles: int, caps: list[int]) -> tuple[_Block, ...]:
     """Blocks per frequency ``0 .. A // 2`` holding the rings whose cap is ``>= f``."""
-    blocks = []
-    for f in range(num_angles // 2 + 1):
-        rings = tuple(i for i, cap in enumerate(caps) if cap >= f)
-        if rings:
-            is_complex = f != 0 and 2 * f != num_angles
-            blocks.append(_Block(f, rings, is_complex))
-    return tuple(blocks)
+    rings = [(f, tuple(i for i, cap in enumerate(caps) if cap >= f)) for f in range(num_angles // 2 + 1)]
+    return tuple(_Block(f, r, f != 0 and 2 * f != num_angles) for f, r in rings if r)
 
 
 def _ring_caps(ny: int, nx: int, num_angles: int, num_radii: int, bandlimit: bool) -> list[int]:
@@ -279,9 +226,7 @@ def _lag_basis_f64(blocks: tuple[_Block, ...], num_angles: int) -> Tensor:
     return torch.stack(cols, dim=1)
 
 
-def _fourier_matrix_f64(
-    ny: int, nx: int, num_angles: int, num_radii: int, blocks: tuple[_Block, ...]
-) -> Tensor:
+def _fourier_matrix_f64(ny: int, nx: int, num_angles: int, num_radii: int, blocks: tuple[_Block, ...]) -> Tensor:
     """``[K_total, Y * X]``: area-weighted polar sampling composed with the orthonormal real DFT along angle.
 
     Rows per block ``f``: ``Re`` for each ring in the block, then (complex blocks) ``Im`` for each ring, of
@@ -294,12 +239,9 @@ def _fourier_matrix_f64(
     for b in blocks:
         theta = 2.0 * math.pi * b.freq * a / num_angles
         scale = math.sqrt((2.0 if b.complex else 1.0) / num_angles)
-        re = torch.einsum("a,rap->rp", torch.cos(theta) * scale, w[list(b.rings)])  # [R_f, P]
-        if b.complex:
-            im = torch.einsum("a,rap->rp", -torch.sin(theta) * scale, w[list(b.rings)])
-            rows.extend((re, im))  # all real parts, then all imaginary parts
-        else:
-            rows.append(re)
+        rows.append(torch.einsum("a,rap->rp", torch.cos(theta) * scale, w[list(b.rings)]))  # [R_f, P] real parts
+        if b.complex:  # then all imaginary parts
+            rows.append(torch.einsum("a,rap->rp", -torch.sin(theta) * scale, w[list(b.rings)]))
     return torch.cat(rows, dim=0)
 
 
@@ -313,17 +255,12 @@ class _SpectrumPlan:
     @property
     def offsets(self) -> tuple[int, ...]:
         """First coefficient row of each block."""
-        out, k = [], 0
-        for b in self.blocks:
-            out.append(k)
-            k += b.width
-        return tuple(out)
+        return tuple(itertools.accumulate([0] + [b.width for b in self.blocks[:-1]]))
 
 
 @functools.lru_cache(maxsize=32)
-def _spectrum_plan(
-    ny: int, nx: int, num_angles: int, num_radii: int, bandlimit: bool, device: torch.device, dtype: torch.dtype
-) -> _SpectrumPlan:
+def _spectrum_plan(ny: int, nx: int, num_angles: int, num_radii: int, bandlimit: bool, device: torch.device,
+                   dtype: torch.dtype) -> _SpectrumPlan:
     blocks = _frequency_blocks(num_angles, _ring_caps(ny, nx, num_angles, num_radii, bandlimit))
     matrix = _fourier_matrix_f64(ny, nx, num_angles, num_radii, blocks).to(device=device, dtype=dtype)
     lag = _lag_basis_f64(blocks, num_angles).to(device=device, dtype=_acc_dtype(dtype))
@@ -372,29 +309,13 @@ class PolarSpectrum:
         return part.reshape(part.shape[0], -1)
 
 
-def _resolve_compute_dtype(dtype: torch.dtype, compute_dtype: torch.dtype | None) -> torch.dtype:
-    compute_dtype = compute_dtype or dtype
-    if not compute_dtype.is_floating_point or compute_dtype.is_complex:
-        raise ValueError(f"compute_dtype must be a real floating dtype, got {compute_dtype}")
-    return compute_dtype
-
-
-def polar_spectrum(
-    crops: Tensor,
-    num_angles: int = 36,
-    num_radii: int | None = None,
-    *,
-    bandlimit: bool = True,
-    compute_dtype: torch.dtype | None = None,
-    chunk: int = 64,
-) -> PolarSpectrum:
-    """Area-weighted cylindrical resampling fused with an orthonormal real DFT along the angle.
+def polar_spectrum(crops: Tensor, num_angles: int = 36, num_radii: int | None = None, *, bandlimit: bool = True,
+                   compute_dtype: torch.dtype | None = None, chunk: int = 64) -> PolarSpectrum:
+    """Area-weighted cylindrical resampling fused with an orthonormal real DFT along the angle (without gradient).
 
     Equals ``torch.fft.rfft(cylindrical_resample(crops), norm="ortho")`` (times ``sqrt(2)`` on the complex
-    frequencies, real-ified) computed as ONE batched matmul per chunk of crops with the cached
-    ``[K, Y * X]`` matrix, written straight into the ``[N, K, C * Z]`` layout the correlation GEMMs read; with
-    ``bandlimit`` ring ``i`` keeps only frequencies ``f <= ceil(pi r_i)`` (``r_i`` in voxels). Computed without
-    gradient (a search primitive).
+    frequencies, real-ified), one batched matmul per chunk of crops; with ``bandlimit`` ring ``i`` keeps only
+    frequencies ``f <= ceil(pi r_i)`` (``r_i`` in voxels).
 
     Args:
         crops: ``[N, C, Z, Y, X]`` crops.
@@ -414,7 +335,9 @@ def polar_spectrum(
     _check_crops(crops, "crops")
     n, c, nz, ny, nx = crops.shape
     num_radii = _check_grid(ny, nx, num_angles, num_radii)
-    compute_dtype = _resolve_compute_dtype(crops.dtype, compute_dtype)
+    compute_dtype = compute_dtype or crops.dtype
+    if not compute_dtype.is_floating_point or compute_dtype.is_complex:
+        raise ValueError(f"compute_dtype must be a real floating dtype, got {compute_dtype}")
     acc = _acc_dtype(crops.dtype if crops.dtype.itemsize > compute_dtype.itemsize else compute_dtype)
     plan = _spectrum_plan(ny, nx, num_angles, num_radii, bool(bandlimit), crops.device, compute_dtype)
     cz, k_total, k_dc = c * nz, plan.matrix.shape[0], plan.blocks[0].width
@@ -428,16 +351,10 @@ def polar_spectrum(
             out = coef[start : start + m]
             slices = x.reshape(m, cz, ny * nx).to(compute_dtype).transpose(1, 2)  # [m, Y*X, C*Z]
             torch.bmm(plan.matrix.expand(m, -1, -1), slices, out=out)  # [m, K, C*Z]
-            # partial norms over the contiguous C*Z runs (in the compute dtype: no converted copy; for bf16 each is
-            # rounded, relative 2^-9, but the K partial squares are summed in float32 so the errors average out)
+            # partial norms over the contiguous C*Z runs in the compute dtype, their squares summed in float32
             norm[start : start + m] = torch.linalg.vector_norm(out, dim=2).to(acc).square().sum(dim=1).sqrt()
             dc[start : start + m] = out[:, :k_dc]
     return PolarSpectrum(coef, dc, plan, norm)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Correlation along the angle
-# ----------------------------------------------------------------------------------------------------------------
 
 
 def _inverse_norms(x: PolarSpectrum) -> Tensor:
@@ -491,11 +408,6 @@ def _correlate(q: PolarSpectrum, g: PolarSpectrum, chunk: int) -> Iterator[tuple
         yield start, torch.mm(lag, buf32.view(num_out, -1), out=cbuf.view(lag.shape[0], -1)).view(-1, n, m)
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# Search
-# ----------------------------------------------------------------------------------------------------------------
-
-
 @dataclass(frozen=True)
 class RotationSearchResult:
     """Best (prototype, yaw) per object.
@@ -514,18 +426,16 @@ class RotationSearchResult:
 
 
 def _check_method(method: str) -> None:
-    if method not in _METHODS:
-        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    if method not in SEARCH_METHODS:
+        raise ValueError(f"method must be one of {SEARCH_METHODS}, got {method!r}")
 
 
 def _check_pair(a: Tensor, b: Tensor, names: tuple[str, str]) -> None:
     _check_crops(a, names[0])
     _check_crops(b, names[1])
     if a.shape[1:] != b.shape[1:]:
-        raise ValueError(
-            f"{names[0]} and {names[1]} must be crops of one shape [*, C, Z, Y, X], got {tuple(a.shape)} and "
-            f"{tuple(b.shape)}"
-        )
+        shapes = f"{tuple(a.shape)} and {tuple(b.shape)}"
+        raise ValueError(f"{names[0]} and {names[1]} must be crops of one shape [*, C, Z, Y, X], got {shapes}")
 
 
 def _exact_scores(objects: Tensor, prototypes: Tensor, num_angles: int, chunk: int) -> Iterator[tuple[int, Tensor]]:
@@ -539,29 +449,15 @@ def _exact_scores(objects: Tensor, prototypes: Tensor, num_angles: int, chunk: i
         yield start, s.transpose(1, 2)
 
 
-def best_prototype_and_yaw(
-    objects: Tensor,
-    prototypes: Tensor,
-    num_angles: int = 36,
-    method: str = "fast",
-    *,
-    num_radii: int | None = None,
-    bandlimit: bool = True,
-    compute_dtype: torch.dtype | None = None,
-    chunk: int | None = None,
-    objects_spectrum: PolarSpectrum | None = None,
-) -> RotationSearchResult:
-    """Best prototype and yaw for every object crop (the paper's quantisation step, Eq. 1).
+def best_prototype_and_yaw(objects: Tensor, prototypes: Tensor, num_angles: int = 36, method: str = "fast", *,
+                           num_radii: int | None = None, bandlimit: bool = True,
+                           compute_dtype: torch.dtype | None = None, chunk: int | None = None,
+                           objects_spectrum: PolarSpectrum | None = None) -> RotationSearchResult:
+    """Best prototype and yaw for every object crop (the paper's quantisation step, Eq. 1), without gradient.
 
     ``scores[n, k, a] = cos(rotate(objects[n], 2 pi a / A), prototypes[k])``; the best (prototype, yaw) is the
-    argmax over ``K * A``. For L2-normalised crops ``||x - y||^2 = 2 - 2 cos(x, y)``, so this is the argmin of
-    the squared distance over rotations and prototypes used by the paper. Computed without gradient (re-rotate
-    the object with ``rotate_yaw`` by the returned angle to train through it).
-
-    ``"fast"``: polar spectrum of objects and prototypes (``polar_spectrum``), one GEMM per angular frequency,
-    cosine over the inscribed cylinder (area-weighted, see module docstring). ``"exact"``: each object rotated
-    by every yaw with ``rotate_yaw`` (bilinear, zeros outside), flattened, L2-normalised over the full crop and
-    compared with the flattened L2-normalised prototypes in one GEMM per chunk of objects.
+    argmax over ``K * A`` (for L2-normalised crops, the argmin of the squared distance). ``"fast"``: polar spectra,
+    cosine over the inscribed cylinder; ``"exact"``: ``rotate_yaw`` by every yaw, cosine over the full crop.
 
     Args:
         objects: ``[N, C, S, S, S]`` crops (any ``[N, C, Z, Y, X]``).
@@ -570,12 +466,10 @@ def best_prototype_and_yaw(
         method: ``"fast"`` or ``"exact"``.
         num_radii: ``"fast"`` only: polar rings (default ``ceil(min(Y, X) / 2)``).
         bandlimit: ``"fast"`` only: drop angular frequencies above ``ceil(pi r)`` per ring.
-        compute_dtype: ``"fast"`` only: e.g. ``torch.bfloat16`` (faster on CPUs with bf16 matmul; see
-            the module docstring for the precision); default the objects' dtype.
+        compute_dtype: ``"fast"`` only: e.g. ``torch.bfloat16``; default the objects' dtype.
         chunk: objects per GEMM (default: ~64 MiB of scratch for ``"fast"``, 16 for ``"exact"``).
-        objects_spectrum: ``"fast"`` only: ``polar_spectrum(objects, ...)`` computed earlier with the same settings
-            (an EM that assigns the same objects to changing prototypes computes it once); the result is the one of
-            computing it here. Its plan must be the one the prototypes get (else ``ValueError``).
+        objects_spectrum: ``"fast"`` only: ``polar_spectrum(objects, ...)`` computed earlier with the same settings;
+            its plan must be the one the prototypes get (else ``ValueError``).
 
     Returns:
         ``RotationSearchResult`` (``scores`` ``[N, K, A]`` float32 for low-precision compute, else the input
@@ -587,7 +481,7 @@ def best_prototype_and_yaw(
     """
     _check_pair(objects, prototypes, ("objects", "prototypes"))
     _check_method(method)
-    if isinstance(num_angles, bool) or not isinstance(num_angles, int) or num_angles < 1:
+    if not _positive_int(num_angles):
         raise ValueError(f"num_angles must be a positive int, got {num_angles!r}")
     n, k = objects.shape[0], prototypes.shape[0]
     if k == 0:
@@ -598,13 +492,15 @@ def best_prototype_and_yaw(
             for start, s in _exact_scores(objects, prototypes, num_angles, chunk or 16):
                 scores[start : start + s.shape[0]] = s
         else:
+            kw = {"bandlimit": bandlimit, "compute_dtype": compute_dtype}
             q = objects_spectrum
             if q is None:
-                q = polar_spectrum(objects, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
-            g = polar_spectrum(prototypes, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
+                q = polar_spectrum(objects, num_angles, num_radii, **kw)
+            g = polar_spectrum(prototypes, num_angles, num_radii, **kw)
             if len(q) != n or q.plan is not g.plan:
+                other = "" if q.plan is g.plan else " of another plan"
                 raise ValueError(f"objects_spectrum: expected the polar spectrum of the {n} objects computed with the "
-                                 f"prototypes' settings, got {len(q)} items{'' if q.plan is g.plan else ' of another plan'}")
+                                 f"prototypes' settings, got {len(q)} items{other}")
             lag = q.plan.lag_basis
             scores = torch.empty(n, k, num_angles, device=objects.device, dtype=lag.dtype)
             inv_q, inv_g = _inverse_norms(q), _inverse_norms(g)
@@ -612,20 +508,16 @@ def best_prototype_and_yaw(
                 rows = slice(start, start + c.shape[1])
                 torch.mul(c.permute(1, 2, 0), (inv_q[rows, None] * inv_g[None])[..., None], out=scores[rows])
         best, flat = scores.reshape(n, -1).max(dim=1)
-    return RotationSearchResult(
-        prototype=torch.div(flat, num_angles, rounding_mode="floor"), angle=flat % num_angles, score=best, scores=scores
-    )
+    return RotationSearchResult(prototype=torch.div(flat, num_angles, rounding_mode="floor"), angle=flat % num_angles,
+                                score=best, scores=scores)
 
 
-def rotation_max_similarity(
-    query: Tensor, gallery: Tensor, num_angles: int = 36, chunk: int = 64, method: str = "exact"
-) -> tuple[Tensor, Tensor]:
+def rotation_max_similarity(query: Tensor, gallery: Tensor, num_angles: int = 36, chunk: int = 64,
+                            method: str = "exact") -> tuple[Tensor, Tensor]:
     """The exact kernel of rotation-max retrieval (the reference of ``all_pairs_rotation_max``).
 
-    ``method="exact"``: each query is rotated by every candidate yaw (``rotate_yaw``: trilinear, about its
-    vertical centre line), flattened and L2-normalised, then compared with every flattened, L2-normalised
-    gallery crop. ``method="fast"`` is :func:`all_pairs_rotation_max` (cylindrical resampling + rFFT over the
-    angle; cosine over the inscribed cylinder, much faster on CPU).
+    ``method="exact"``: each query rotated by every candidate yaw (``rotate_yaw``), flattened and L2-normalised,
+    compared with every flattened, L2-normalised gallery crop. ``method="fast"`` is :func:`all_pairs_rotation_max`.
 
     Args:
         query: ``[N, C, S, S, S]`` crops.
@@ -641,39 +533,23 @@ def rotation_max_similarity(
     Convention: crops in frame R order ``[C, Z, Y, X]``, z up; yaw counter-clockwise seen from above.
     """
     if query.ndim != 5 or gallery.ndim != 5 or query.shape[1:] != gallery.shape[1:]:
-        raise ValueError(
-            f"query and gallery must be [N, C, Z, Y, X] crops of one shape, got {tuple(query.shape)} and "
-            f"{tuple(gallery.shape)}"
-        )
+        shapes = f"{tuple(query.shape)} and {tuple(gallery.shape)}"
+        raise ValueError(f"query and gallery must be [N, C, Z, Y, X] crops of one shape, got {shapes}")
     _check_method(method)
     if method == "fast":
         return all_pairs_rotation_max(query, gallery, num_angles, method="fast")
-    sims, idxs = [], []
     with torch.no_grad():
-        for _, s in _exact_scores(query, gallery, num_angles, chunk):  # [n, M, A]
-            best, arg = s.max(dim=2)
-            sims.append(best)
-            idxs.append(arg)
-    return torch.cat(sims), torch.cat(idxs)
+        best = [s.max(dim=2) for _, s in _exact_scores(query, gallery, num_angles, chunk)]  # s: [n, M, A]
+    return torch.cat([b.values for b in best]), torch.cat([b.indices for b in best])
 
 
-def all_pairs_rotation_max(
-    query: Tensor,
-    gallery: Tensor,
-    num_angles: int = 36,
-    method: str = "fast",
-    chunk: int | None = None,
-    *,
-    num_radii: int | None = None,
-    bandlimit: bool = True,
-    compute_dtype: torch.dtype | None = None,
-) -> tuple[Tensor, Tensor]:
+def all_pairs_rotation_max(query: Tensor, gallery: Tensor, num_angles: int = 36, method: str = "fast",
+                           chunk: int | None = None, *, num_radii: int | None = None, bandlimit: bool = True,
+                           compute_dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
     """Cosine similarity of every query to every gallery crop at the query's best yaw (rotation-max retrieval).
 
-    Same semantics as :func:`rotation_max_similarity` (``method="exact"`` calls it): the
-    maximum over ``A`` yaws of ``cos(rotate(query_n, a), gallery_m)``. ``"fast"`` computes the cosine over the
-    inscribed cylinder from polar spectra (one GEMM per angular frequency, see the module docstring); with
-    ``query is gallery`` the spectrum is computed once.
+    The maximum over ``A`` yaws of ``cos(rotate(query_n, a), gallery_m)``; ``"exact"`` is
+    :func:`rotation_max_similarity`, ``"fast"`` the cosine over the inscribed cylinder from polar spectra.
 
     Args:
         query: ``[N, C, Z, Y, X]`` crops.
@@ -698,10 +574,9 @@ def all_pairs_rotation_max(
         return rotation_max_similarity(query, gallery, num_angles, chunk or 64)
     n, m = query.shape[0], gallery.shape[0]
     with torch.no_grad():
-        q = polar_spectrum(query, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype)
-        g = q if gallery is query else polar_spectrum(
-            gallery, num_angles, num_radii, bandlimit=bandlimit, compute_dtype=compute_dtype
-        )
+        kw = {"bandlimit": bandlimit, "compute_dtype": compute_dtype}
+        q = polar_spectrum(query, num_angles, num_radii, **kw)
+        g = q if gallery is query else polar_spectrum(gallery, num_angles, num_radii, **kw)
         lag = q.plan.lag_basis
         sim = torch.empty(n, m, device=query.device, dtype=lag.dtype)
         angle = torch.empty(n, m, device=query.device, dtype=torch.long)
@@ -716,8 +591,7 @@ def all_pairs_rotation_max(
 
 def yaw_margin(scores: Tensor, angle: Tensor, exclude: int) -> Tensor:
     """How clearly the rotation search's best yaw wins: its score minus the best score of every yaw more than
-    ``exclude`` steps away from it (circularly). A margin near 0 says another, distant yaw matches as well (a shape
-    symmetric about the vertical, or a guess); a large one, that the pose is pinned down.
+    ``exclude`` steps away from it (circularly).
 
     Args:
         scores: ``[N, A]`` the search's similarity at each of ``A`` yaws (one prototype per object).

@@ -1,10 +1,9 @@
 """Curves of the evaluation: Table 3 against the EM round, Hungarian accuracy against K (paper Fig. 3a).
 
-| picture | function | written by |
-|---|---|---|
-| ``table3.png`` of a ``threedq em`` run | :func:`table3_figure` | ``threedq.pipeline.em`` |
-| ``fig3a_accuracy_vs_k.png`` | :func:`accuracy_vs_k_figure` | ``threedq eval`` (``threedq.pipeline.report``) |
-| runs against rounds or steps, a line per run | :func:`runs_figure` | ``benchmarks/em_seeds.py``, ``benchmarks/feature_recipes.py`` |
+- :func:`table3_figure`: ``table3.png`` of a ``threedq em`` run, written by ``threedq.pipeline.em``;
+- :func:`accuracy_vs_k_figure`: ``fig3a_accuracy_vs_k.png``, by ``threedq eval`` (``threedq.pipeline.report``);
+- :func:`runs_figure`: runs against rounds or steps, a line per run, by ``benchmarks/em_seeds.py`` and
+  ``benchmarks/feature_recipes.py``.
 
 Convention: matplotlib pictures are ``Figure`` objects for :func:`~threedq.viz.png.write_png`.
 """

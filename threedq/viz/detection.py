@@ -1,10 +1,9 @@
 """Pictures of 3D boxes: detections against the GT, self-labels, objects found per size band.
 
-| picture | function | written by |
-|---|---|---|
-| ``detections.png`` (evaluation), ``images/val_detections_step*.png`` (training) | :func:`detection_figure` | ``threedq.pipeline.detection_eval``, ``threedq.stages.detector`` |
-| ``labels.png`` of a self-labelling round | :func:`self_labels_figure` | ``threedq.stages.self_labelling`` |
-| ``detection_by_size.png`` | :func:`size_band_figure` | ``threedq.pipeline.detection_eval`` |
+- :func:`detection_figure`: ``detections.png`` (evaluation, ``threedq.pipeline.detection_eval``),
+  ``images/val_detections_step*.png`` (training, ``threedq.stages.detector``);
+- :func:`self_labels_figure`: ``labels.png`` of a self-labelling round, by ``threedq.stages.self_labelling``;
+- :func:`size_band_figure`: ``detection_by_size.png``, by ``threedq.pipeline.detection_eval``.
 
 Convention: boxes axis-aligned ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in frame R (metres, z up), drawn on a
 scene's first input view; images ``[H, W, 3]`` uint8 RGB.
@@ -29,15 +28,14 @@ def aabb_to_boxes7(aabb: np.ndarray) -> np.ndarray:
     return np.concatenate([c, s, np.zeros((len(aabb), 1))], axis=1)
 
 
-def detection_figure(batch: dict[str, Any], dets: list[dict[str, Tensor]], max_scenes: int = 4, upscale: int = 3) -> np.ndarray:
-    """Rows of (detections with scores | GT boxes) projected onto each scene's first input view.
+def detection_figure(batch: dict[str, Any], dets: list[dict[str, Tensor]], max_scenes: int = 4,
+                     upscale: int = 3) -> np.ndarray:
+    """Rows of (detections with scores | GT boxes) projected onto each scene's first input view: ``[H', W', 3]`` uint8
+    RGB.
 
     Args:
         batch: a SceneDataset batch (``rgb``, ``K``, ``R_T_cam``, ``gt_aabb``, ``gt_mask``).
         dets: per scene ``{"boxes": [P, 6], "scores": [P]}``.
-
-    Returns:
-        ``[H', W', 3]`` uint8 RGB.
     """
     rows = []
     for i in range(min(max_scenes, len(dets))):
@@ -57,14 +55,12 @@ def detection_figure(batch: dict[str, Any], dets: list[dict[str, Tensor]], max_s
 
 
 def self_labels_figure(scenes: list[tuple[dict[str, Tensor], Tensor]], upscale: int = 3) -> np.ndarray:
-    """Labelled candidates on each scene's first input view: positives green, negatives red.
+    """Labelled candidates on each scene's first input view, positives green, negatives red: ``[H', W', 3]`` uint8 RGB
+    (the scenes side by side).
 
     Args:
         scenes: per scene (``{"rgb": [S,3,H,W], "K": [S,3,3], "R_T_cam": [S,4,4]}``, rows ``[L, 7]`` = kind
             (1 positive, 0 negative) + aabb).
-
-    Returns:
-        ``[H', W', 3]`` uint8 RGB (the scenes side by side).
     """
     tiles = []
     for sample, rows in scenes:
@@ -82,14 +78,12 @@ def self_labels_figure(scenes: list[tuple[dict[str, Tensor], Tensor]], upscale: 
 
 
 def size_band_figure(tables: dict[str, list[dict[str, Any]]]) -> Any:
-    """Bars: per size band, the share of objects each box set finds at IoU 0.25 (light) and 0.5 (dark).
+    """A matplotlib ``Figure`` of bars: per size band, the share of objects each box set finds at IoU 0.25 (light) and
+    0.5 (dark).
 
     Args:
         tables: ``{box set name: rows}``, rows of :func:`~threedq.metrics.localisation.by_size_band` (``band``,
             ``objects``, ``found_25``, ``found_50``), the same bands in every set.
-
-    Returns:
-        a matplotlib ``Figure`` (:func:`~threedq.viz.png.write_png` writes it).
     """
     names = list(tables)
     bands = [r["band"] for r in tables[names[0]]]
@@ -99,11 +93,9 @@ def size_band_figure(tables: dict[str, list[dict[str, Any]]]) -> Any:
     colours = ["#4c72b0", "#dd8452", "#55a868", "#c44e52"]
     for i, name in enumerate(names):
         x = np.arange(len(bands)) + (i - (len(names) - 1) / 2) * width
-        f25 = [r["found_25"] for r in tables[name]]
-        f50 = [r["found_50"] for r in tables[name]]
         c = colours[i % len(colours)]
-        ax.bar(x, np.nan_to_num(f25), width * 0.95, color=c, alpha=0.35)
-        ax.bar(x, np.nan_to_num(f50), width * 0.95, color=c, label=name)
+        ax.bar(x, np.nan_to_num([r["found_25"] for r in tables[name]]), width * 0.95, color=c, alpha=0.35)
+        ax.bar(x, np.nan_to_num([r["found_50"] for r in tables[name]]), width * 0.95, color=c, label=name)
     ax.set_xticks(np.arange(len(bands)))
     ax.set_xticklabels([f"{b}\n({r['objects']} obj.)" for b, r in zip(bands, tables[names[0]])], fontsize=8)
     ax.set_ylim(0, 1)

@@ -1,17 +1,16 @@
 """Pictures of the learned 3D features: view prediction, mined correspondences, retrieval and rotational alignment.
 
-| picture | function | written by |
-|---|---|---|
-| ``images/*_step*.png`` of view prediction (input, predicted and true target view, occupancy) | :func:`view_prediction_figure` | ``threedq.stages.viewpred`` |
-| ``mining/refresh_*.png`` (mined pairs, matched patch boxed) | :func:`mined_pairs_figure` | ``threedq.stages.mining`` |
-| ``retrieval.png`` (queries and their nearest objects) | :func:`retrieval_figure` | ``threedq eval`` (``threedq.pipeline.report``) |
-| ``prototype_alignment.png`` (a prototype's members before / after rotation) | :func:`alignment_figure` | ``threedq eval`` |
-| ``per_category_retrieval.png`` | :func:`per_category_figure` | ``threedq eval`` |
+- :func:`view_prediction_figure`: ``images/*_step*.png`` of view prediction (input, predicted and true target view,
+  occupancy), written by ``threedq.stages.viewpred``;
+- :func:`mined_pairs_figure`: ``mining/refresh_*.png`` (mined pairs, matched patch boxed), by ``threedq.stages.mining``;
+- :func:`retrieval_figure`: ``retrieval.png`` (queries and their nearest objects), by ``threedq eval``
+  (``threedq.pipeline.report``);
+- :func:`alignment_figure`: ``prototype_alignment.png`` (a prototype's members before / after rotation), and
+  :func:`per_category_figure`: ``per_category_retrieval.png``, both by ``threedq eval``.
 
 Convention: crops are ``[4, S, S, S]`` raw ``(occ, occ * rgb)`` volumes, drawn as bird's-eye views (x right, y up);
-images ``[H, W, 3]`` uint8 RGB (picture grids are drawn
-with OpenCV); the one plot, :func:`per_category_figure`, is a matplotlib ``Figure``; both go to
-:func:`~threedq.viz.png.write_png`.
+images ``[H, W, 3]`` uint8 RGB (picture grids are drawn with OpenCV); the one plot, :func:`per_category_figure`, is a
+matplotlib ``Figure``; both go to :func:`~threedq.viz.png.write_png`.
 """
 
 from __future__ import annotations
@@ -28,7 +27,8 @@ from threedq.data.draw import crop_birds_eye
 from threedq.geometry import rotate_yaw, yaw_angles
 from threedq.viz.png import new_figure
 
-__all__ = ["alignment_figure", "mined_pairs_figure", "per_category_figure", "retrieval_figure", "view_prediction_figure"]
+__all__ = ["alignment_figure", "mined_pairs_figure", "per_category_figure", "retrieval_figure",
+           "view_prediction_figure"]
 
 
 def _to_u8(img: Tensor, size: tuple[int, int]) -> np.ndarray:
@@ -36,21 +36,17 @@ def _to_u8(img: Tensor, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(a, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
 
 
-def view_prediction_figure(
-    input_rgb: Tensor, pred_rgb: Tensor, true_rgb: Tensor, occ_prob: Tensor, occ_true: Tensor
-) -> np.ndarray:
-    """One row: input view | predicted target | true target | predicted occupancy | true occupancy.
+def view_prediction_figure(input_rgb: Tensor, pred_rgb: Tensor, true_rgb: Tensor, occ_prob: Tensor,
+                           occ_true: Tensor) -> np.ndarray:
+    """One row ``[H', W', 3]`` uint8 RGB: input view | predicted target | true target | predicted and true occupancy.
 
     Args:
-        input_rgb ``[3, H, W]``, pred_rgb and true_rgb ``[3, h, w]`` in [0, 1]; occ_prob, occ_true
-        ``[Z, Y, X]``. Occupancy is shown as a bird's-eye view: the max over the upper 70% of z (above
-        the ground of the embedded scenes, which sits at 25% of the grid height), x to the right, y up.
-
-    Returns:
-        ``[H', W', 3]`` uint8 RGB.
+        input_rgb ``[3, H, W]``, pred_rgb and true_rgb ``[3, h, w]`` in [0, 1]; occ_prob, occ_true ``[Z, Y, X]``.
+        Occupancy is shown as a bird's-eye view: the max over the upper 70% of z (above the ground of the embedded
+        scenes, which sits at 25% of the grid height), x to the right, y up.
     """
     H, W = input_rgb.shape[-2:]
-    tiles = [_to_u8(input_rgb, (H, W)), _to_u8(pred_rgb, (H, W)), _to_u8(true_rgb, (H, W))]
+    tiles = [_to_u8(img, (H, W)) for img in (input_rgb, pred_rgb, true_rgb)]
     lo = int(round(0.3 * occ_prob.shape[0]))  # skip the ground slab
     for occ in (occ_prob, occ_true):
         bev = occ[lo:].amax(0).flip(0)  # y up
@@ -68,15 +64,13 @@ def _bev(raw: Tensor, scale: int) -> np.ndarray:
 
 def mined_pairs_figure(query_raw: Tensor, target_raw_aligned: Tensor, query_pos: Tensor, target_pos_aligned: Tensor,
                        captions: list[str], patch: int = 2, scale: int = 8) -> np.ndarray:
-    """Rows of mined pairs: query (bird's-eye view) | target rotated onto the query, matched patch boxed in red.
+    """Rows of mined pairs, ``[H, W, 3]`` uint8 RGB: query (bird's-eye view) | target rotated onto the query, matched
+    patch boxed in red.
 
     Args:
         query_raw, target_raw_aligned: ``[P, 4, S, S, S]`` raw crops (target already rotated by the mined yaw).
         query_pos, target_pos_aligned: ``[P, 3]`` long patch starts ``(z, y, x)``.
         captions: one line of text per pair.
-
-    Returns:
-        ``[H, W, 3]`` uint8 RGB.
     """
     rows = []
     for i in range(query_raw.shape[0]):
@@ -115,15 +109,12 @@ def _text_bar(text: str, width: int, height: int = 16, scale: float = 0.35, colo
 
 def _mosaic(rows: list[tuple[str | None, list[tuple[Tensor, str, tuple[int, int, int]]]]], cols: int, side: int,
             scale: int, title: str) -> np.ndarray:
-    """Rows of captioned bird's-eye views under a title; a row may have its own heading and fewer than ``cols``
-    tiles (the rest left blank).
+    """``[H, W, 3]`` uint8 RGB: rows of captioned bird's-eye views under a title; a row may have its own heading and
+    fewer than ``cols`` tiles (the rest left blank).
 
     Args:
         rows: ``(heading or None, [(raw crop [4, S, S, S], caption, RGB colour of the caption)])``.
         cols: tiles per row. side: ``S``. scale: pixels per voxel.
-
-    Returns:
-        ``[H, W, 3]`` uint8 RGB.
     """
     gap, tile = 4, side * scale
     width = cols * tile + (cols - 1) * gap
@@ -215,10 +206,10 @@ def per_category_figure(curves: dict[str, dict[int, float]], category_sizes: Ten
     y = np.arange(len(present))
     for off, (name, cur) in zip((-0.2, 0.2), curves.items()):
         ax.barh(y + off, [cur.get(c, 0.0) for c in present], height=0.4, label=f"{name} protocol")
-    n_c = category_sizes
-    ax.plot([min(k, int(n_c[c]) - 1) / k for c in present], y - 0.2, "k|", ms=7, label="ceiling, strict (category size)")
+    sizes = [int(category_sizes[c]) for c in present]
+    ax.plot([min(k, n - 1) / k for n in sizes], y - 0.2, "k|", ms=7, label="ceiling, strict (category size)")
     if "paper" in curves:
-        ax.plot([min(k, int(n_c[c])) / k for c in present], y + 0.2, "r|", ms=7, label="ceiling, paper")
+        ax.plot([min(k, n) / k for n in sizes], y + 0.2, "r|", ms=7, label="ceiling, paper")
     ax.set_yticks(y, [categories[c] for c in present], fontsize=6)
     ax.invert_yaxis()
     ax.set_xlim(0, 1)

@@ -49,12 +49,8 @@ def _text(img: np.ndarray, text: str, xy: tuple[int, int], scale: float = 0.45) 
 def prototype_overview(rgb: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, boxes: Sequence[Sequence[float]],
                        rows: Sequence[tuple[int, int, Sequence[np.ndarray]]], title: str = "",
                        upscale: int = 3) -> np.ndarray:
-    """Left: the scene with ``boxes`` drawn, box i labelled ``P<prototype>`` of ``rows[i]``; right: per box a row of
-    ``(prototype, its number of objects, tiles of other objects it holds)`` in the box's colour.
-
-    Returns:
-        ``[H, W, 3]`` uint8 RGB.
-    """
+    """``[H, W, 3]`` uint8 RGB. Left: the scene with ``boxes`` drawn, box i labelled ``P<prototype>`` of ``rows[i]``;
+    right: per box a row of ``(prototype, its number of objects, tiles of other objects it holds)`` in its colour."""
     colours = [distinct_colour(j) for j in range(len(rows))]
     left = draw_boxes(rgb, aabb_to_boxes7(np.asarray(boxes, np.float64).reshape(-1, 6)),
                       [f"P{p}" for p, _, _ in rows], np.asarray(K, np.float64), np.asarray(world_T_cam, np.float64),

@@ -1,19 +1,19 @@
 """What every capture reader returns (:class:`Capture`) and the file readers they share.
 
-A reader reads one on-disk capture into a :class:`Capture`: the views in the capture's own world frame,
-metric depth, one ``K`` per view (colour and depth already on the same pixel grid) and the frames it
-skipped, each with the file and field at fault. :func:`threedq.data.formats.normalise.normalise_capture`
-then turns a capture into the canonical :class:`~threedq.scene.SceneRecord` (z up, centred).
+A reader reads one on-disk capture into a :class:`Capture` (views in the capture's own world frame, metric depth, one
+``K`` per view on the colour-and-depth pixel grid, the frames it skipped);
+:func:`threedq.data.formats.normalise.normalise_capture` turns it into a canonical :class:`~threedq.scene.SceneRecord`.
 
-Convention: capture frame as the format defines it (any orientation), metres; ``world_T_cam`` camera-to-world
-with OpenCV camera axes (x right, y down, z forward); ``K`` with pixel centres at integer ``(u, v)``.
-Images are read with OpenCV (``cv2.IMREAD_UNCHANGED`` for depth, so 16-bit PNGs stay 16-bit).
+Convention: capture frame as the format defines it, metres; ``world_T_cam`` camera-to-world with OpenCV camera axes
+(x right, y down, z forward); ``K`` with pixel centres at integer ``(u, v)``. Images are read with OpenCV
+(``cv2.IMREAD_UNCHANGED`` for depth, so 16-bit PNGs stay 16-bit).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,21 +23,9 @@ import numpy as np
 
 from threedq.scene import SceneValidationError
 
-__all__ = [
-    "OBJECTS_NAME",
-    "Capture",
-    "CaptureObjects",
-    "Frame",
-    "FrameSkip",
-    "check_rigid",
-    "farthest_order",
-    "load_frames",
-    "read_depth_png",
-    "read_matrix",
-    "read_objects",
-    "read_rgb",
-    "resize_to",
-]
+__all__ = ["OBJECTS_NAME", "Capture", "CaptureObjects", "Frame", "FrameSkip", "check_rigid", "farthest_order",
+           "load_frames", "png_frame", "read_depth_png", "read_matrix", "read_objects", "read_rgb", "resize_to",
+           "skipping"]
 
 #: optional threedq annotation beside a capture: boxes in the capture's own frame (see :func:`read_objects`)
 OBJECTS_NAME = "threedq_objects.json"
@@ -56,13 +44,19 @@ class FrameSkip:
         return f"{self.source}: field '{self.field}': {self.reason}"
 
 
+@contextmanager
+def skipping(skipped: list[FrameSkip]) -> Iterator[None]:
+    """Record a :class:`~threedq.scene.SceneValidationError` raised in the block in ``skipped`` instead of raising."""
+    try:
+        yield
+    except SceneValidationError as e:
+        skipped.append(FrameSkip(e.source, e.field, e.reason))
+
+
 @dataclass
 class CaptureObjects:
-    """Annotated objects of a capture, in its own frame.
-
-    ``capture_T_box`` ``[M,4,4]`` box-to-capture poses (the box's local z is its up axis), ``size``
-    ``[M,3]`` full extents ``(sx, sy, sz)`` in metres, ``categories`` ``[M]`` names.
-    """
+    """Annotated objects of a capture, in its own frame: ``capture_T_box`` ``[M,4,4]`` box-to-capture poses (local z
+    up), ``size`` ``[M,3]`` full extents ``(sx, sy, sz)`` in metres, ``categories`` ``[M]`` names."""
 
     capture_T_box: np.ndarray
     size: np.ndarray
@@ -73,10 +67,9 @@ class CaptureObjects:
 class Capture:
     """One parsed capture (``V`` views of ``H x W`` pixels), in the capture's own world frame.
 
-    ``rgb`` ``[V,H,W,3]`` uint8, ``depth`` ``[V,H,W]`` float32 metres (0 = invalid), ``K`` ``[V,3,3]``,
-    ``world_T_cam`` ``[V,4,4]`` camera-to-capture-world (OpenCV camera axes), ``frame_ids`` ``[V]`` the
-    format's frame names, ``skipped`` the frames left out (and malformed lines), ``objects`` optional
-    annotated boxes, ``num_frames`` the frames with a valid pose before subsampling.
+    ``rgb`` ``[V,H,W,3]`` uint8, ``depth`` ``[V,H,W]`` float32 metres (0 = invalid), ``K`` ``[V,3,3]``, ``world_T_cam``
+    ``[V,4,4]``, ``frame_ids`` the format's frame names, ``skipped`` the frames left out (and malformed lines),
+    ``objects`` optional annotated boxes, ``num_frames`` the frames with a valid pose before subsampling.
     """
 
     rgb: np.ndarray
@@ -96,18 +89,12 @@ class Capture:
 
 
 def _decode(path: Path, field_name: str, flags: int) -> np.ndarray:
-    """Decode an image file with OpenCV, refusing truncated JPEG/PNG files that the decoders would half-read.
-
-    libjpeg decodes a JPEG cut short with only a warning (the missing rows grey): a JPEG must end with its EOI
-    marker (``FF D9``) and a PNG with its ``IEND`` chunk.
-    """
+    """Decode an image file with OpenCV; a JPEG must end with its EOI marker and a PNG with its ``IEND`` chunk."""
     if not path.is_file():
         raise SceneValidationError(str(path), field_name, "no such file")
     data = path.read_bytes()
-    suffix = path.suffix.lower()
-    if (suffix in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-16:]) or (
-        suffix == ".png" and b"IEND" not in data[-16:]
-    ):
+    marker = {".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9", ".png": b"IEND"}.get(path.suffix.lower())
+    if marker is not None and marker not in data[-16:]:
         raise SceneValidationError(str(path), field_name, "truncated image (no end marker)")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None:
@@ -117,8 +104,7 @@ def _decode(path: Path, field_name: str, flags: int) -> np.ndarray:
 
 def read_rgb(path: Path) -> np.ndarray:
     """``[H,W,3]`` uint8 RGB of an image file; a missing, truncated or unreadable file raises naming it."""
-    img = _decode(path, "rgb", cv2.IMREAD_COLOR)
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(_decode(path, "rgb", cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
 def read_depth_png(path: Path, units_per_metre: float) -> np.ndarray:
@@ -138,9 +124,8 @@ def read_matrix(path: Path, field_name: str, shape: tuple[int, int] = (4, 4)) ->
     except ValueError as e:
         raise SceneValidationError(str(path), field_name, f"not a matrix of numbers ({e})") from e
     if m.shape != shape:
-        raise SceneValidationError(
-            str(path), field_name, f"expected a {shape[0]}x{shape[1]} matrix, got {list(m.shape)}"
-        )
+        why = f"expected a {shape[0]}x{shape[1]} matrix, got {list(m.shape)}"
+        raise SceneValidationError(str(path), field_name, why)
     if not np.all(np.isfinite(m)):
         raise SceneValidationError(str(path), field_name, "non-finite values (inf/NaN): invalid pose")
     return m
@@ -164,11 +149,10 @@ def check_rigid(pose: np.ndarray, source: str, field_name: str = "pose") -> np.n
 
 
 def resize_to(rgb: np.ndarray, K: np.ndarray, size_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Resize a colour image to ``size_hw`` and scale its intrinsics to match (the documented resize).
+    """Resize a colour image to ``size_hw`` (area interpolation down, linear up) and scale its intrinsics to match.
 
-    With ``s_x = W'/W`` and ``s_y = H'/H`` and integer pixel centres: ``fx' = s_x fx``, ``fy' = s_y fy``,
-    ``skew' = s_x skew``, ``cx' = s_x (cx + 0.5) - 0.5``, ``cy' = s_y (cy + 0.5) - 0.5``. Downsizing uses
-    ``cv2.INTER_AREA``, upsizing ``cv2.INTER_LINEAR``.
+    With ``s_x = W'/W``, ``s_y = H'/H`` and integer pixel centres: ``fx' = s_x fx``, ``fy' = s_y fy``, ``skew' = s_x
+    skew``, ``cx' = s_x (cx + 0.5) - 0.5``, ``cy' = s_y (cy + 0.5) - 0.5``.
     """
     H, W = rgb.shape[:2]
     H2, W2 = size_hw
@@ -182,11 +166,8 @@ def resize_to(rgb: np.ndarray, K: np.ndarray, size_hw: tuple[int, int]) -> tuple
 
 
 def read_objects(folder: Path) -> CaptureObjects | None:
-    """The optional ``threedq_objects.json`` of a capture folder, or ``None``.
-
-    Layout: ``{"objects": [{"category": name, "capture_T_box": 4x4 rows, "size": [sx, sy, sz]}, ...]}`` with
-    ``capture_T_box`` mapping box-local points (centre at the origin, local z up) to the capture frame.
-    """
+    """The optional ``threedq_objects.json`` of a capture folder, or ``None``: ``{"objects": [{"category": name,
+    "capture_T_box": 4x4 rows (box-local centre at the origin, local z up), "size": [sx, sy, sz]}, ...]}``."""
     path = folder / OBJECTS_NAME
     if not path.is_file():
         return None
@@ -197,9 +178,8 @@ def read_objects(folder: Path) -> CaptureObjects | None:
         size = np.array([o["size"] for o in objs], np.float64).reshape(-1, 3)
         cats = [str(o["category"]) for o in objs]
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise SceneValidationError(
-            str(path), "objects", f"expected {{'objects': [{{category, capture_T_box, size}}]}}: {e}"
-        ) from e
+        why = f"expected {{'objects': [{{category, capture_T_box, size}}]}}: {e}"
+        raise SceneValidationError(str(path), "objects", why) from e
     for m, p in enumerate(poses):
         check_rigid(p, str(path), f"objects[{m}].capture_T_box")
     if np.any(size <= 0):
@@ -218,6 +198,11 @@ class Frame:
     load: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray, str]]
 
 
+def png_frame(frame_id: str, pose: np.ndarray, rgb: Path, depth: Path, units_per_metre: float, K: np.ndarray) -> Frame:
+    """A :class:`Frame` of a colour image file and a 16-bit depth PNG of ``units_per_metre`` units per metre."""
+    return Frame(frame_id, pose, lambda: (read_rgb(rgb), read_depth_png(depth, units_per_metre), K, str(depth)))
+
+
 def farthest_order(centres: np.ndarray) -> np.ndarray:
     """All indices of ``centres`` ``[V,3]`` in farthest-point order from index 0 (ties: the lowest index)."""
     V = centres.shape[0]
@@ -233,20 +218,15 @@ def farthest_order(centres: np.ndarray) -> np.ndarray:
 
 
 def load_frames(
-    frames: list[Frame],
-    source: str,
-    fmt: str,
-    skipped: list[FrameSkip],
-    objects: CaptureObjects | None,
-    max_views: int | None = None,
+    frames: list[Frame], source: str, fmt: str, skipped: list[FrameSkip], folder: Path, max_views: int | None = None
 ) -> Capture:
-    """Read the pixels of at most ``max_views`` frames into a :class:`Capture` (in capture order).
+    """Read the pixels of at most ``max_views`` frames (``None``: all) into a :class:`Capture` (in capture order),
+    with the objects of ``folder`` (:func:`read_objects`).
 
-    Frames are read in farthest-camera-position order (so a long sequence is subsampled before any image is
-    decoded) until ``max_views`` are read; ``None`` reads all. A frame that fails to load, whose depth size
-    differs from its colour size, or whose size differs from the first read frame's is skipped and counted
-    (naming its file) rather than resampled, and the next farthest frame is read instead.
+    Frames are read in farthest-camera-position order; one that fails to load, whose depth and colour sizes differ, or
+    whose size differs from the first read frame's is skipped and counted, and the next farthest is read instead.
     """
+    objects = read_objects(folder)
     if max_views is not None and max_views < 1:
         raise ValueError(f"max_views: expected >= 1 or None, got {max_views}")
     order = farthest_order(np.array([f.world_T_cam[:3, 3] for f in frames])) if frames else np.zeros(0, np.int64)
@@ -261,38 +241,23 @@ def load_frames(
         except SceneValidationError as e:
             skipped.append(FrameSkip(e.source, e.field, e.reason))
             continue
+        hw = list(rgb.shape[:2])
         if depth.shape != rgb.shape[:2]:
-            skipped.append(
-                FrameSkip(depth_file, "depth", f"depth is {list(depth.shape)} but colour is {list(rgb.shape[:2])}")
-            )
+            skipped.append(FrameSkip(depth_file, "depth", f"depth is {list(depth.shape)} but colour is {hw}"))
             continue
         if shape is not None and rgb.shape != shape:
-            skipped.append(
-                FrameSkip(
-                    depth_file,
-                    "rgb",
-                    f"frame {f.frame_id}: size {list(rgb.shape[:2])} differs from "
-                    f"the first read frame's {list(shape[:2])}",
-                )
-            )
+            why = f"frame {f.frame_id}: size {hw} differs from the first read frame's {list(shape[:2])}"
+            skipped.append(FrameSkip(depth_file, "rgb", why))
             continue
         shape = rgb.shape
         kept[int(i)] = (rgb, depth, np.asarray(K, np.float64))
     if not kept:
-        reasons = "; ".join(dict.fromkeys(str(s) for s in skipped[:3])) or "no frames found"  # each reason once
+        reasons = "; ".join(dict.fromkeys(str(s) for s in skipped[:3])) or "no frames found"
         raise SceneValidationError(source, "frames", f"no usable frame ({reasons})")
     idx = sorted(kept)
-    depth = np.stack([kept[i][1] for i in idx]).astype(np.float32)
+    rgb, depth, K = (np.stack([kept[i][j] for i in idx]) for j in range(3))
+    depth = depth.astype(np.float32)
     depth[~np.isfinite(depth) | (depth < 0)] = 0
-    return Capture(
-        rgb=np.stack([kept[i][0] for i in idx]),
-        depth=depth,
-        K=np.stack([kept[i][2] for i in idx]),
-        world_T_cam=np.stack([frames[i].world_T_cam for i in idx]).astype(np.float64),
-        frame_ids=[frames[i].frame_id for i in idx],
-        source=source,
-        format=fmt,
-        skipped=skipped,
-        objects=objects,
-        num_frames=len(frames),
-    )
+    poses = np.stack([frames[i].world_T_cam for i in idx]).astype(np.float64)
+    return Capture(rgb=rgb, depth=depth, K=K, world_T_cam=poses, frame_ids=[frames[i].frame_id for i in idx],
+                   source=source, format=fmt, skipped=skipped, objects=objects, num_frames=len(frames))

@@ -1,16 +1,16 @@
 """Import captures of one on-disk format into a canonical dataset folder (``threedq data import``).
 
-``import_captures("tum", SRC, D)`` parses every capture found (``SRC`` itself, or its subfolders holding the
-format's marker file), normalises each (:func:`~threedq.data.formats.normalise.normalise_capture`: z up,
-centred, at most ``max_views`` views), writes ``D/<split>/<capture name>.npz`` and ``D/index.json``
-(atomically; an existing index is extended, a re-imported capture replaces its entry), and returns a summary:
-views kept per scene, frames skipped and why, captures that failed.
+``import_captures("tum", SRC, D)`` parses every capture found (``SRC`` itself, or its subfolders holding the format's
+marker file), normalises each (:func:`~threedq.data.formats.normalise.normalise_capture`), writes
+``D/<split>/<capture name>.npz`` and ``D/index.json`` (an existing index is extended, a re-imported capture replaces
+its entry), and returns a summary.
 """
 
 from __future__ import annotations
 
 import inspect
 import re
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,18 +39,11 @@ class ImportSummary:
     def lines(self) -> list[str]:
         """Human-readable summary: one line per skipped frame and failed capture, then the totals."""
         out = [f"skipped: {s}" for s in self.skipped] + [f"failed: {f}" for f in self.failed]
-        reasons: dict[str, int] = {}
-        for s in self.skipped:
-            reasons[s.field] = reasons.get(s.field, 0) + 1
-        why = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
-        for f, kept, read in self.scenes:
-            out.append(f"{f}: {kept} views kept of {read} posed frames")
-        out.append(
-            f"imported {len(self.scenes)} scene(s), {sum(k for _, k, _ in self.scenes)} views; "
-            f"{len(self.skipped)} frame(s) skipped"
-            + (f" ({why})" if why else "")
-            + f"; {len(self.failed)} capture(s) failed"
-        )
+        why = ", ".join(f"{k} {v}" for k, v in sorted(Counter(s.field for s in self.skipped).items()))
+        out += [f"{f}: {kept} views kept of {read} posed frames" for f, kept, read in self.scenes]
+        out.append(f"imported {len(self.scenes)} scene(s), {sum(k for _, k, _ in self.scenes)} views; "
+                   f"{len(self.skipped)} frame(s) skipped" + (f" ({why})" if why else "")
+                   + f"; {len(self.failed)} capture(s) failed")
         return out
 
 
@@ -78,30 +71,16 @@ def _reader_kwargs(fmt: str, options: dict[str, Any]) -> dict[str, Any]:
     return given
 
 
-def import_captures(
-    fmt: str,
-    src: str | Path,
-    out: str | Path,
-    split: str = "train",
-    max_views: int = 28,
-    max_depth: float = 10.0,
-    reader_options: dict[str, Any] | None = None,
-    progress: bool = True,
-) -> ImportSummary:
-    """Import every capture of ``src`` into the dataset folder ``out`` (see the module docstring).
+def import_captures(fmt: str, src: str | Path, out: str | Path, split: str = "train", max_views: int = 28,
+                    max_depth: float = 10.0, reader_options: dict[str, Any] | None = None,
+                    progress: bool = True) -> ImportSummary:
+    """Import every capture of ``src`` (one capture folder or a folder of them) into the dataset folder ``out``.
 
     Args:
         fmt: a name of :data:`~threedq.data.formats.registry.FORMATS`.
-        src: one capture folder or a folder of them.
-        out: the dataset folder (created if needed).
         split: the split the scenes go to (``train``, ``val`` or ``test``).
-        max_views: views kept per scene (farthest camera positions).
-        max_depth: depth beyond this many metres becomes 0.
+        max_views: views kept per scene; max_depth: depth beyond this many metres becomes 0.
         reader_options: keyword arguments of the format's reader (``None`` values are dropped).
-        progress: show a tqdm progress bar.
-
-    Returns:
-        The :class:`ImportSummary`.
 
     Raises:
         SceneValidationError: ``src`` holds no capture of this format.
@@ -120,9 +99,8 @@ def import_captures(
 
     from tqdm import tqdm
 
-    for folder in tqdm(
-        captures, disable=not progress, desc=f"threedq import {fmt}", unit="capture", dynamic_ncols=True
-    ):
+    bar = tqdm(captures, disable=not progress, desc=f"threedq import {fmt}", unit="capture", dynamic_ncols=True)
+    for folder in bar:
         try:
             capture = FORMATS[fmt][0](folder, max_views=max_views, **kwargs)  # reads only the views it keeps
             record = normalise_capture(capture, categories, max_views=max_views, max_depth=max_depth)
@@ -140,15 +118,9 @@ def import_captures(
     if bounds is not None:
         sym = list(old.symmetry_order) if old else []
         formats = sorted(set(old.generator.get("formats", []) if old else []) | {fmt})
-        save_index(
-            out,
-            DatasetIndex(
-                categories=categories,
-                symmetry_order=sym + [1] * (len(categories) - len(sym)),
-                scenes=scenes,
-                scene_bounds=(tuple(float(x) for x in bounds[0]), tuple(float(x) for x in bounds[1])),  # type: ignore[arg-type]
-                generator={"name": "threedq.data.formats", "version": IMPORT_VERSION, "formats": formats},
-                seed=None,
-            ),
-        )
+        scene_bounds = (tuple(float(x) for x in bounds[0]), tuple(float(x) for x in bounds[1]))
+        generator = {"name": "threedq.data.formats", "version": IMPORT_VERSION, "formats": formats}
+        save_index(out, DatasetIndex(categories=categories, symmetry_order=sym + [1] * (len(categories) - len(sym)),
+                                     scenes=scenes, scene_bounds=scene_bounds, generator=generator,  # type: ignore[arg-type]
+                                     seed=None))
     return summary

@@ -9,11 +9,10 @@ Expected tree::
                                        # "depth_unit_scale_factor" (metres per unit) says otherwise
       threedq_objects.json             # optional: annotated boxes in the transforms' world frame
 
-``frames[].transform_matrix`` is camera-to-world in the **OpenGL** camera convention (x right, y up, z back);
-it becomes ours (OpenCV) by negating its y and z columns. nerfstudio puts pixel centres at ``i + 0.5``
-(COLMAP's convention), ours at ``i``: ``cx_ours = cx - 0.5``, ``cy_ours = cy - 0.5``. Only undistorted
-pinhole cameras are read (any non-zero ``k1..k4, p1, p2`` is refused). A frame without ``depth_file_path``
-is skipped and counted.
+``frames[].transform_matrix`` is camera-to-world with OpenGL camera axes (x right, y up, z back): negating its y and
+z columns gives OpenCV axes. nerfstudio puts pixel centres at ``i + 0.5``, ours at ``i``: ``cx_ours = cx - 0.5``.
+Only undistorted pinhole cameras are read (any non-zero ``k1..k4, p1, p2`` is refused). A frame without
+``depth_file_path`` is skipped and counted.
 
 Convention: the transforms' world frame (any orientation), metres; OpenCV camera axes after conversion.
 """
@@ -26,16 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from threedq.data.formats.capture import (
-    Capture,
-    Frame,
-    FrameSkip,
-    check_rigid,
-    load_frames,
-    read_depth_png,
-    read_objects,
-    read_rgb,
-)
+from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, load_frames, png_frame
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "OPENGL_T_OPENCV", "read_nerfstudio"]
@@ -60,21 +50,12 @@ def _camera(frame: dict[str, Any], top: dict[str, Any], source: str) -> np.ndarr
     return np.array([[vals["fl_x"], 0, vals["cx"] - 0.5], [0, vals["fl_y"], vals["cy"] - 0.5], [0, 0, 1]])
 
 
-def read_nerfstudio(
-    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
-) -> Capture:
-    """Read a ``transforms.json`` capture with depth (tree in the module docstring).
+def read_nerfstudio(folder: str | Path, depth_units_per_metre: float | None = None,
+                    max_views: int | None = None) -> Capture:
+    """Read a ``transforms.json`` capture with depth (tree in the module docstring); frame ids are the ``file_path``s.
 
-    Args:
-        folder: the folder holding ``transforms.json``.
-        depth_units_per_metre: depth PNG units per metre; ``None`` = ``1 / depth_unit_scale_factor`` from the
-            JSON if present, else 1000 (millimetres, nerfstudio's default).
-        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
-
-    Returns:
-        A :class:`Capture`; frame ids are the ``file_path`` entries.
-
-    Convention: see the module docstring.
+    ``depth_units_per_metre`` ``None`` = ``1 / depth_unit_scale_factor`` from the JSON if present, else 1000; at most
+    ``max_views`` frames are read (farthest camera positions; ``None`` = all).
     """
     folder = Path(folder)
     path = folder / "transforms.json"
@@ -95,10 +76,9 @@ def read_nerfstudio(
     for i, fr in enumerate(frames):
         where = f"{source}: frames[{i}]"
         try:
-            if "file_path" not in fr or "transform_matrix" not in fr:
-                raise SceneValidationError(
-                    where, "file_path" if "file_path" not in fr else "transform_matrix", "missing"
-                )
+            for key in ("file_path", "transform_matrix"):
+                if key not in fr:
+                    raise SceneValidationError(where, key, "missing")
             if not fr.get("depth_file_path"):
                 raise SceneValidationError(where, "depth_file_path", "missing (a frame without depth)")
             K = _camera(fr, top, where)
@@ -112,8 +92,6 @@ def read_nerfstudio(
             else:
                 skipped.append(FrameSkip(where, "transform_matrix", f"not a 4x4 matrix of numbers ({e})"))
             continue
-        r, d = folder / fr["file_path"], folder / fr["depth_file_path"]
-        todo.append(
-            Frame(str(fr["file_path"]), pose, lambda r=r, d=d, K=K: (read_rgb(r), read_depth_png(d, scale), K, str(d)))
-        )
-    return load_frames(todo, source, "nerfstudio", skipped, read_objects(folder), max_views)
+        rgb, depth = folder / fr["file_path"], folder / fr["depth_file_path"]
+        todo.append(png_frame(str(fr["file_path"]), pose, rgb, depth, scale, K))
+    return load_frames(todo, source, "nerfstudio", skipped, folder, max_views)

@@ -1,17 +1,11 @@
 """Turn a parsed capture (any orientation, any origin) into a canonical scene: z up, centred on its objects.
 
-Steps (:func:`normalise_capture`):
-
-1. depth beyond ``max_depth``, non-finite or negative becomes 0 (invalid);
-2. at most ``max_views`` views are kept, by farthest-point sampling of the camera positions (from view 0);
-3. a first "up" guess is the mean camera up vector (``-y`` of each camera); the support plane is then fitted
-   with the RANSAC of :func:`threedq.geometry.ground.fit_ground_plane` on the fused, back-projected depth of
-   the kept views, and the frame is rotated so that its normal is +z and translated so that it is ``z = 0``;
-4. the grid is centred (x, y) on what stands on the plane (points between ``margin`` and ``object_max_height``
-   above it: the midpoint of their 2nd-98th percentiles), and the scene bounds are chosen from those points
-   and the annotated boxes;
-5. ``canonical_T_capture`` is stored in the record's ``meta``, so that every output (boxes, parses) maps back
-   to the capture's own frame (:func:`boxes_to_capture_frame`).
+Steps (:func:`normalise_capture`): depth beyond ``max_depth``, non-finite or negative becomes 0; at most
+``max_views`` views are kept (farthest camera positions from view 0); the support plane, fitted
+(:func:`threedq.geometry.ground.fit_ground_plane`) to the fused depth near the mean camera up vector, becomes ``z = 0``
+with normal +z; x, y are centred on what stands on the plane (the midpoint of the 2nd-98th percentiles of the points
+between ``margin`` and ``object_max_height`` above it); ``canonical_T_capture`` goes into the record's ``meta``
+(:func:`boxes_to_capture_frame` maps boxes back).
 
 Convention: canonical frame metres, right-handed, z up, centred; yaw counter-clockwise about +z;
 ``a_T_b`` maps points in frame b to frame a; OpenCV camera axes throughout.
@@ -56,50 +50,32 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _points(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int) -> np.ndarray:
     """Back-projected valid depth of all views (every ``stride``-th pixel), ``[N,3]`` float64 in the pose frame."""
     s = stride
-    Ks = K * np.array([1.0 / s, 1.0 / s, 1.0])[:, None]  # pixel (s*i, s*j) of the full image is (i, j): u' = u/s
-    pts, ok = depth_to_points(
-        torch.from_numpy(np.ascontiguousarray(depth[:, ::s, ::s], np.float64)),
-        torch.from_numpy(Ks),
-        torch.from_numpy(pose),
-    )
+    Ks = K * np.array([1.0 / s, 1.0 / s, 1.0])[:, None]  # u' = u / s
+    pts, ok = depth_to_points(torch.from_numpy(np.ascontiguousarray(depth[:, ::s, ::s], np.float64)),
+                              torch.from_numpy(Ks), torch.from_numpy(pose))
     return pts[ok].numpy()
 
 
-def normalise_capture(
-    capture: Capture,
-    categories: list[str] | None = None,
-    max_views: int = 28,
-    max_depth: float = 10.0,
-    plane_threshold: float = 0.02,
-    max_tilt_deg: float = 45.0,
-    margin: float = 0.02,
-    object_max_height: float = 1.5,
-    fit_stride: int = 2,
-) -> SceneRecord:
-    """The canonical record of a capture (see the module docstring for the steps).
+def normalise_capture(capture: Capture, categories: list[str] | None = None, max_views: int = 28,
+                      max_depth: float = 10.0, plane_threshold: float = 0.02, max_tilt_deg: float = 45.0,
+                      margin: float = 0.02, object_max_height: float = 1.5, fit_stride: int = 2) -> SceneRecord:
+    """The canonical record of a capture (steps in the module docstring).
 
     Args:
-        capture: a parsed capture (``V`` views).
-        categories: category names; annotated objects take the id of their name (names not yet in the list
-            are appended, so the caller's list grows). ``None`` = a fresh list.
-        max_views: views kept (farthest camera positions).
-        max_depth: depth beyond this many metres becomes 0.
-        plane_threshold: RANSAC inlier distance of the support plane, metres.
-        max_tilt_deg: largest angle between the support plane's normal and the mean camera up vector.
-        margin: points this far above the plane count as standing on it.
-        object_max_height: points higher than this above the plane are ignored for centring and bounds.
-        fit_stride: pixel stride of the points the plane is fitted to.
+        categories: category names; annotated objects take the id of their name (new names are appended to the
+            caller's list). ``None`` = a fresh list.
+        plane_threshold: RANSAC inlier distance of the support plane, metres; max_tilt_deg: largest angle between its
+            normal and the mean camera up vector; fit_stride: pixel stride of the points it is fitted to.
+        margin: points this far above the plane count as standing on it; object_max_height: points higher are ignored.
 
     Returns:
-        A :class:`SceneRecord` with ``V' = min(V, max_views)`` views; ``meta`` holds ``canonical_T_capture``
-        (4x4 rows), ``scene_bounds`` (``{"min", "max"}``), ``source``, ``source_format``, ``frame_ids``,
-        ``skipped`` (count) and ``unannotated`` (no object boxes).
+        A :class:`SceneRecord` with ``min(V, max_views)`` views; ``meta`` holds ``canonical_T_capture`` (4x4 rows),
+        ``scene_bounds`` (``{"min", "max"}``), ``source``, ``source_format``, ``frame_ids``, ``skipped`` (count) and
+        ``unannotated``.
 
     Raises:
-        SceneValidationError: no support plane was found (naming the capture and ``depth``), or an annotated
-            box is not upright in the canonical frame (naming ``objects``).
-
-    Convention: see the module docstring.
+        SceneValidationError: no support plane was found (naming ``depth``), or an annotated box is not upright in the
+            canonical frame (naming ``objects``).
     """
     if max_views < 1:
         raise ValueError(f"max_views: expected >= 1, got {max_views}")
@@ -111,61 +87,27 @@ def normalise_capture(
     K = capture.K[keep].astype(np.float64)
     depth = depth[keep]
 
-    c_T, lo, hi, cxy, above_h = _canonical_frame(
-        capture.source, depth, K, poses, fit_stride, plane_threshold, max_tilt_deg, margin, object_max_height
-    )
-    world_T_cam = c_T @ poses
-
-    boxes = np.zeros((0, 7))
-    cats = np.zeros((0,), np.int64)
+    c_T, lo, hi, cxy, above_h = _canonical_frame(capture.source, depth, K, poses, fit_stride, plane_threshold,
+                                                 max_tilt_deg, margin, object_max_height)
+    boxes, cats = np.zeros((0, 7)), np.zeros((0,), np.int64)
     if capture.objects is not None and len(capture.objects.categories):
         boxes, cats = _canonical_boxes(capture, c_T, categories)
     bmin, bmax = _scene_bounds(lo, hi, cxy, above_h, boxes, margin)
-    meta = {
-        "source": capture.source,
-        "source_format": capture.format,
-        "frame_ids": [capture.frame_ids[i] for i in keep],
-        "canonical_T_capture": c_T.tolist(),
-        "scene_bounds": {"min": bmin.tolist(), "max": bmax.tolist()},
-        "skipped": len(capture.skipped),
-        "unannotated": boxes.shape[0] == 0,
-    }
-    return SceneRecord(
-        rgb=capture.rgb[keep],
-        depth=depth,
-        K=K.astype(np.float32),
-        world_T_cam=world_T_cam.astype(np.float32),
-        boxes=boxes.astype(np.float32),
-        categories=cats,
-        meta=meta,
-    )
+    meta = {"source": capture.source, "source_format": capture.format,
+            "frame_ids": [capture.frame_ids[i] for i in keep], "canonical_T_capture": c_T.tolist(),
+            "scene_bounds": {"min": bmin.tolist(), "max": bmax.tolist()}, "skipped": len(capture.skipped),
+            "unannotated": boxes.shape[0] == 0}
+    return SceneRecord(rgb=capture.rgb[keep], depth=depth, K=K.astype(np.float32),
+                       world_T_cam=(c_T @ poses).astype(np.float32), boxes=boxes.astype(np.float32), categories=cats,
+                       meta=meta)
 
 
-def _canonical_frame(
-    source: str,
-    depth: np.ndarray,
-    K: np.ndarray,
-    poses: np.ndarray,
-    fit_stride: int,
-    plane_threshold: float,
-    max_tilt_deg: float,
-    margin: float,
-    object_max_height: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Fit the support plane and centre on what stands on it (steps 3-4 of the module docstring).
-
-    Args:
-        source: the capture's name (for the error).
-        depth: ``[V,H,W]`` cleaned depth of the kept views; ``K`` ``[V,3,3]``; ``poses`` ``[V,4,4]`` world_T_cam.
-
-    Returns:
-        ``canonical_T_capture`` ``[4,4]``; ``lo``, ``hi`` ``[2]`` (2nd/98th percentiles of the x-y of the
-        points standing on the plane, in the plane-aligned frame before centring), their midpoint ``cxy`` ``[2]``
-        and those points' heights above the plane ``[N]``.
-
-    Raises:
-        SceneValidationError: no support plane was found.
-    """
+def _canonical_frame(source: str, depth: np.ndarray, K: np.ndarray, poses: np.ndarray, fit_stride: int,
+                     plane_threshold: float, max_tilt_deg: float, margin: float,
+                     object_max_height: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fit the support plane to ``depth`` ``[V,H,W]`` and centre on what stands on it: ``canonical_T_capture``
+    ``[4,4]``, the 2nd/98th percentiles ``lo``, ``hi`` ``[2]`` of the x-y of the points on the plane (before centring),
+    their midpoint ``cxy`` and those points' heights ``[N]``."""
     up = -poses[:, :3, 1].mean(axis=0)
     R0 = rotation_between(up, [0, 0, 1]) if np.linalg.norm(up) > 1e-6 else np.eye(3)
     T0 = np.eye(4)
@@ -177,31 +119,23 @@ def _canonical_frame(
         raise SceneValidationError(source, "depth", "no support plane found in the fused depth")
     n, d, _ = plane
     R1 = rotation_between(n, [0, 0, 1])
-    R = R1 @ R0
     height = pts @ n + d
     sel = (height > margin) & (height < object_max_height)
     if np.count_nonzero(sel) < 10:  # nothing stands on the plane: centre on the plane itself
         sel = np.abs(height) <= plane_threshold
-    above, above_h = pts[sel] @ R1.T, height[sel]
-    xy = above[:, :2]
+    xy, above_h = (pts[sel] @ R1.T)[:, :2], height[sel]
     lo, hi = np.percentile(xy, 2, axis=0), np.percentile(xy, 98, axis=0)
     cxy = (lo + hi) / 2
     c_T = np.eye(4)
-    c_T[:3, :3] = R
+    c_T[:3, :3] = R1 @ R0
     c_T[:3, 3] = [-cxy[0], -cxy[1], d]
     return c_T, lo, hi, cxy, above_h
 
 
-def _scene_bounds(
-    lo: np.ndarray, hi: np.ndarray, cxy: np.ndarray, above_h: np.ndarray, boxes: np.ndarray, margin: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Canonical scene bounds ``(min [3], max [3])`` from what stands on the plane and the annotated boxes.
-
-    ``lo``/``hi`` are the 2nd/98th percentiles ``[2]`` of the (x, y) of the points above the plane (before
-    centring), ``cxy`` their midpoint, ``above_h`` those points' heights; ``boxes`` ``[M,7]`` canonical boxes.
-    The x-y extent is symmetric about the origin, z runs from the plane to the 98th percentile height, the
-    boxes' corners are included, and everything is padded by ``margin`` (z at least ``-margin`` below).
-    """
+def _scene_bounds(lo: np.ndarray, hi: np.ndarray, cxy: np.ndarray, above_h: np.ndarray, boxes: np.ndarray,
+                  margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Canonical scene bounds ``(min [3], max [3])``: x-y symmetric about the origin, z from the plane to the 98th
+    percentile height, the ``boxes``' corners included, padded by ``margin`` (z at least ``-margin`` below)."""
     half = np.maximum(np.abs(lo - cxy), np.abs(hi - cxy))
     zmax = float(np.percentile(above_h, 98))
     bmin = np.array([-half[0], -half[1], 0.0])
@@ -222,11 +156,9 @@ def _canonical_boxes(capture: Capture, c_T: np.ndarray, categories: list[str]) -
         q = c_T @ p
         tilt = math.degrees(math.acos(float(np.clip(q[2, 2], -1, 1))))
         if tilt > _BOX_TILT_DEG:
-            raise SceneValidationError(
-                capture.source, f"objects[{m}]", f"box is tilted {tilt:.1f} deg from the support plane's normal"
-            )
-        yaw = math.atan2(q[1, 0], q[0, 0])
-        boxes.append([*q[:3, 3], *size, yaw])
+            why = f"box is tilted {tilt:.1f} deg from the support plane's normal"
+            raise SceneValidationError(capture.source, f"objects[{m}]", why)
+        boxes.append([*q[:3, 3], *size, math.atan2(q[1, 0], q[0, 0])])
         if name not in categories:
             categories.append(name)
         ids.append(categories.index(name))
@@ -234,17 +166,8 @@ def _canonical_boxes(capture: Capture, c_T: np.ndarray, categories: list[str]) -
 
 
 def boxes_to_capture_frame(boxes: np.ndarray, canonical_T_capture: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Map canonical boxes back to the capture's own frame.
-
-    Args:
-        boxes: ``[M,7]`` ``(cx, cy, cz, sx, sy, sz, yaw)`` in the canonical frame.
-        canonical_T_capture: ``[4,4]`` from the record's ``meta``.
-
-    Returns:
-        ``capture_T_box`` ``[M,4,4]`` (box-local centre at the origin, local z up) and ``size`` ``[M,3]``.
-
-    Convention: yaw counter-clockwise about the canonical +z; ``a_T_b`` maps frame b to frame a.
-    """
+    """Map canonical boxes ``[M,7]`` back to the capture's own frame with ``canonical_T_capture`` ``[4,4]``: returns
+    ``capture_T_box`` ``[M,4,4]`` (box-local centre at the origin, local z up) and ``size`` ``[M,3]``."""
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
     can_T_box = np.tile(np.eye(4), (boxes.shape[0], 1, 1))

@@ -11,10 +11,9 @@ Expected tree::
                                        # camera-to-world (Redwood "log" format, Open3D's writer)
       threedq_objects.json             # optional: annotated boxes in the trajectory's frame
 
-``depth_scale`` is 1000 (millimetres, Open3D's default) unless given. Depth must already be registered to the
-colour image (the Azure Kinect SDK's ``transformation_depth_image_to_color_camera``, as the paper did); a
-depth image of another size is skipped and counted, not resampled. A frame missing from the trajectory,
-or whose matrix is not rigid, is skipped and counted.
+Depth must already be registered to the colour image (the Azure Kinect SDK's
+``transformation_depth_image_to_color_camera``); a depth image of another size, a frame missing from the trajectory
+or whose matrix is not rigid is skipped and counted.
 
 Convention: the trajectory's world frame, metres; OpenCV camera axes.
 """
@@ -27,31 +26,21 @@ from pathlib import Path
 
 import numpy as np
 
-from threedq.data.formats.capture import (
-    Capture,
-    Frame,
-    FrameSkip,
-    check_rigid,
-    load_frames,
-    read_depth_png,
-    read_objects,
-    read_rgb,
-)
+from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, load_frames, png_frame, skipping
 from threedq.scene import SceneValidationError
 
-__all__ = ["MARKER", "read_open3d", "read_log"]
+__all__ = ["MARKER", "read_log", "read_open3d"]
 
 MARKER = "trajectory.log"
 
 
 def read_log(path: Path, skipped: list[FrameSkip]) -> dict[int, np.ndarray]:
-    """Frame index -> camera-to-world ``[4,4]`` of a Redwood/Open3D ``.log``; malformed items are skipped and counted."""
+    """Frame index -> camera-to-world ``[4,4]`` of a Redwood/Open3D ``.log``; malformed items are skipped, counted."""
     if not path.is_file():
         raise SceneValidationError(str(path), "trajectory", "no such file")
     lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
     out: dict[int, np.ndarray] = {}
     for s in range(0, len(lines), 5):
-        where = f"{path}:{s + 1}"
         try:
             head = lines[s].split()
             if len(head) != 3:
@@ -61,11 +50,15 @@ def read_log(path: Path, skipped: list[FrameSkip]) -> dict[int, np.ndarray]:
             m = np.array(rows, np.float64)
             if m.shape != (4, 4):
                 raise ValueError(f"expected a 4x4 matrix, got {len(rows)} rows")
+            out[idx] = m
         except ValueError as e:
-            skipped.append(FrameSkip(where, "trajectory", f"malformed item ({e})"))
-            continue
-        out[idx] = m
+            skipped.append(FrameSkip(f"{path}:{s + 1}", "trajectory", f"malformed item ({e})"))
     return out
+
+
+def _number(p: Path) -> int:
+    """The last number in a file's stem (-1 if none)."""
+    return int(re.findall(r"\d+", p.stem)[-1]) if re.search(r"\d", p.stem) else -1
 
 
 def _intrinsics(folder: Path) -> np.ndarray:
@@ -81,21 +74,10 @@ def _intrinsics(folder: Path) -> np.ndarray:
     raise SceneValidationError(str(folder / "camera_intrinsic.json"), "intrinsic_matrix", "no such file")
 
 
-def read_open3d(
-    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
-) -> Capture:
-    """Read an Open3D/Kinect capture folder (tree in the module docstring).
-
-    Args:
-        folder: the capture folder.
-        depth_units_per_metre: Open3D's ``depth_scale`` (``None`` = 1000).
-        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
-
-    Returns:
-        A :class:`Capture`; frame ids are the colour file stems.
-
-    Convention: see the module docstring.
-    """
+def read_open3d(folder: str | Path, depth_units_per_metre: float | None = None,
+                max_views: int | None = None) -> Capture:
+    """Read an Open3D/Kinect capture folder (tree in the module docstring); frame ids are the colour file stems.
+    ``depth_units_per_metre`` is Open3D's ``depth_scale`` (``None`` = 1000); at most ``max_views`` frames are read."""
     folder = Path(folder)
     scale = 1000.0 if depth_units_per_metre is None else float(depth_units_per_metre)
     K = _intrinsics(folder)
@@ -103,24 +85,17 @@ def read_open3d(
     traj_path = folder / "trajectory.log"
     poses = read_log(traj_path, skipped)
     cdir = folder / "color" if (folder / "color").is_dir() else folder / "image"
-    colour = sorted(
-        (p for p in cdir.glob("*") if p.suffix.lower() in (".jpg", ".png") and re.search(r"\d", p.stem)),
-        key=lambda p: int(re.findall(r"\d+", p.stem)[-1]),
-    )
-    depths = {
-        int(re.findall(r"\d+", p.stem)[-1]): p for p in (folder / "depth").glob("*.png") if re.search(r"\d", p.stem)
-    }
+    colour = sorted((p for p in cdir.glob("*") if p.suffix.lower() in (".jpg", ".png") and _number(p) >= 0),
+                    key=_number)
+    depths = {_number(p): p for p in (folder / "depth").glob("*.png") if _number(p) >= 0}
     frames = []
     for i, f in enumerate(colour):
-        n = int(re.findall(r"\d+", f.stem)[-1])
-        try:
+        n = _number(f)
+        with skipping(skipped):
             if i not in poses:
                 raise SceneValidationError(str(traj_path), "trajectory", f"no item for frame {i} ({f.name})")
             pose = check_rigid(poses[i], str(traj_path), f"trajectory[{i}]")
             if n not in depths:
                 raise SceneValidationError(str(folder / "depth"), "depth", f"no depth image numbered {n}")
-        except SceneValidationError as e:
-            skipped.append(FrameSkip(e.source, e.field, e.reason))
-            continue
-        frames.append(Frame(f.stem, pose, lambda f=f, d=depths[n]: (read_rgb(f), read_depth_png(d, scale), K, str(d))))
-    return load_frames(frames, str(folder), "open3d", skipped, read_objects(folder), max_views)
+            frames.append(png_frame(f.stem, pose, f, depths[n], scale, K))
+    return load_frames(frames, str(folder), "open3d", skipped, folder, max_views)

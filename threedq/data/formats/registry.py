@@ -9,12 +9,7 @@ from threedq.data.formats.capture import Capture
 
 __all__ = ["FORMATS"]
 
+_MODULES = {"tum": tum, "scannet": scannet, "nerfstudio": nerfstudio, "replica": replica, "bigbird": bigbird,
+            "open3d": open3d, "rig": rig}
 FORMATS: dict[str, tuple[Callable[..., Capture], str]] = {
-    "tum": (tum.read_tum, tum.MARKER),
-    "scannet": (scannet.read_scannet, scannet.MARKER),
-    "nerfstudio": (nerfstudio.read_nerfstudio, nerfstudio.MARKER),
-    "replica": (replica.read_replica, replica.MARKER),
-    "bigbird": (bigbird.read_bigbird, bigbird.MARKER),
-    "open3d": (open3d.read_open3d, open3d.MARKER),
-    "rig": (rig.read_rig, rig.MARKER),
-}
+    name: (getattr(m, f"read_{name}"), m.MARKER) for name, m in _MODULES.items()}

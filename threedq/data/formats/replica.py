@@ -24,16 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from threedq.data.formats.capture import (
-    Capture,
-    Frame,
-    FrameSkip,
-    check_rigid,
-    load_frames,
-    read_depth_png,
-    read_objects,
-    read_rgb,
-)
+from threedq.data.formats.capture import Capture, FrameSkip, check_rigid, load_frames, png_frame, skipping
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "REPLICA_CAMERA", "read_replica"]
@@ -49,27 +40,15 @@ def _camera(folder: Path) -> dict[str, float]:
                 cam = json.loads(p.read_text(encoding="utf-8"))["camera"]
                 return {k: float(cam[k]) for k in ("fx", "fy", "cx", "cy", "scale")}
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-                raise SceneValidationError(
-                    str(p), "camera", f"expected {{'camera': {{fx, fy, cx, cy, scale}}}} ({e})"
-                ) from e
+                why = f"expected {{'camera': {{fx, fy, cx, cy, scale}}}} ({e})"
+                raise SceneValidationError(str(p), "camera", why) from e
     return {k: float(v) for k, v in REPLICA_CAMERA.items()}
 
 
-def read_replica(
-    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
-) -> Capture:
-    """Read one NICE-SLAM Replica scene (tree in the module docstring).
-
-    Args:
-        folder: the scene folder (holding ``results/`` and ``traj.txt``).
-        depth_units_per_metre: overrides the camera's ``scale``.
-        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
-
-    Returns:
-        A :class:`Capture`; frame ids are the 6-digit frame numbers.
-
-    Convention: see the module docstring.
-    """
+def read_replica(folder: str | Path, depth_units_per_metre: float | None = None,
+                 max_views: int | None = None) -> Capture:
+    """Read one NICE-SLAM Replica scene folder (tree in the module docstring); frame ids are the 6-digit frame
+    numbers. ``depth_units_per_metre`` overrides the camera's ``scale``; at most ``max_views`` frames are read."""
     folder = Path(folder)
     cam = _camera(folder)
     scale = cam["scale"] if depth_units_per_metre is None else float(depth_units_per_metre)
@@ -86,7 +65,7 @@ def read_replica(
             continue
         i = int(fid)
         where = f"{traj_path}:{i + 1}"
-        try:
+        with skipping(skipped):
             if i >= len(lines) or not lines[i].strip():
                 raise SceneValidationError(where, "pose", f"no pose line for frame {fid}")
             try:
@@ -94,9 +73,5 @@ def read_replica(
             except ValueError as e:
                 raise SceneValidationError(where, "pose", f"expected 16 numbers ({e})") from e
             check_rigid(pose, where)
-        except SceneValidationError as e:
-            skipped.append(FrameSkip(e.source, e.field, e.reason))
-            continue
-        d = folder / "results" / f"depth{fid}.png"
-        frames.append(Frame(fid, pose, lambda f=f, d=d: (read_rgb(f), read_depth_png(d, scale), K, str(d))))
-    return load_frames(frames, str(folder), "replica", skipped, read_objects(folder), max_views)
+            frames.append(png_frame(fid, pose, f, folder / "results" / f"depth{fid}.png", scale, K))
+    return load_frames(frames, str(folder), "replica", skipped, folder, max_views)

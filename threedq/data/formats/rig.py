@@ -21,10 +21,10 @@ Expected tree::
     captures:                   # optional: world_T_rig (4x4 rows) per capture number; default identity
       0: [[...]]
 
-``carla`` depth is CARLA's RGB-encoded depth image: ``1000 m * (R + 256 G + 65536 B) / (256^3 - 1)``.
-CARLA's own transforms are left-handed (Unreal axes): convert them to right-handed poses with OpenCV camera
-axes before writing ``rig.yaml``. Every (camera, capture) pair is one view of one scene; a pair with a
-corrupt image, a missing capture pose or a non-rigid pose is skipped and counted.
+``carla`` depth is CARLA's RGB-encoded depth image: ``1000 m * (R + 256 G + 65536 B) / (256^3 - 1)``. CARLA's own
+transforms are left-handed (Unreal axes): convert them to right-handed poses with OpenCV camera axes before writing
+``rig.yaml``. Every (camera, capture) pair is one view; a pair with a corrupt image, a missing capture pose or a
+non-rigid pose is skipped and counted.
 
 Convention: the rig's world frame, metres; ``world_T_cam = world_T_rig @ rig_T_cam``; OpenCV camera axes.
 """
@@ -32,6 +32,7 @@ Convention: the rig's world frame, metres; ``world_T_cam = world_T_rig @ rig_T_c
 from __future__ import annotations
 
 import re
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +46,8 @@ from threedq.data.formats.capture import (
     check_rigid,
     load_frames,
     read_depth_png,
-    read_objects,
     read_rgb,
+    skipping,
 )
 from threedq.scene import SceneValidationError
 
@@ -70,7 +71,8 @@ def _spec(path: Path) -> dict[str, Any]:
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise SceneValidationError(str(path), "<file>", f"not valid YAML{where} ({getattr(e, 'problem', None) or e})") from e
+        why = f"not valid YAML{where} ({getattr(e, 'problem', None) or e})"
+        raise SceneValidationError(str(path), "<file>", why) from e
     if not isinstance(spec, dict) or not isinstance(spec.get("cameras"), dict) or not spec["cameras"]:
         raise SceneValidationError(str(path), "cameras", "expected a mapping of camera folders")
     enc = (spec.get("depth") or {}).get("encoding", "uint16")
@@ -89,9 +91,14 @@ def _matrix(v: Any, shape: tuple[int, int], source: str, field_name: str) -> np.
     return m
 
 
-def _read_depth(path_stem: Path, enc: str, units: float) -> tuple[np.ndarray, Path]:
+def _pose(v: Any, source: str, field_name: str) -> np.ndarray:
+    return check_rigid(_matrix(v, (4, 4), source, field_name), source, field_name)
+
+
+def _load(rgb: Path, depth_stem: Path, enc: str, units: float, K: np.ndarray) -> tuple[np.ndarray, ...]:
+    """One view: ``(rgb, depth in metres, K, depth file)``, the depth file encoded as ``enc``."""
     if enc == "npy":
-        p = path_stem.with_suffix(".npy")
+        p = depth_stem.with_suffix(".npy")
         if not p.is_file():
             raise SceneValidationError(str(p), "depth", "no such file")
         try:
@@ -100,26 +107,17 @@ def _read_depth(path_stem: Path, enc: str, units: float) -> tuple[np.ndarray, Pa
             raise SceneValidationError(str(p), "depth", f"not a readable .npy (truncated or corrupt: {e})") from e
         if d.ndim != 2:
             raise SceneValidationError(str(p), "depth", f"expected an [H,W] array, got {list(d.shape)}")
-        return d.astype(np.float32), p
-    p = path_stem.with_suffix(".png")
-    if enc == "carla":
-        return decode_carla_depth(read_rgb(p)), p
-    return read_depth_png(p, units), p
+        depth = d.astype(np.float32)
+    else:
+        p = depth_stem.with_suffix(".png")
+        depth = decode_carla_depth(read_rgb(p)) if enc == "carla" else read_depth_png(p, units)
+    return read_rgb(rgb), depth, K, str(p)
 
 
 def read_rig(folder: str | Path, max_views: int | None = None) -> Capture:
-    """Read a recorded rig capture (tree and ``rig.yaml`` in the module docstring).
-
-    Args:
-        folder: the capture folder.
-        max_views: read at most this many views (farthest camera positions; ``None`` = all).
-
-    Returns:
-        A :class:`Capture` with one view per (camera, capture number), cameras in ``rig.yaml`` order;
-        frame ids are ``"<camera>/<capture number>"``.
-
-    Convention: see the module docstring.
-    """
+    """Read a recorded rig capture (tree and ``rig.yaml`` in the module docstring): one view per (camera, capture
+    number), cameras in ``rig.yaml`` order, frame ids ``"<camera>/<capture number>"``; at most ``max_views`` views
+    (farthest camera positions; ``None`` = all)."""
     folder = Path(folder)
     spec_path = folder / "rig.yaml"
     src = str(spec_path)
@@ -131,37 +129,18 @@ def read_rig(folder: str | Path, max_views: int | None = None) -> Capture:
     frames = []
     for cam, cs in spec["cameras"].items():
         K = _matrix((cs or {}).get("K"), (3, 3), src, f"cameras.{cam}.K")
-        rig_T_cam = check_rigid(
-            _matrix((cs or {}).get("rig_T_cam"), (4, 4), src, f"cameras.{cam}.rig_T_cam"),
-            src,
-            f"cameras.{cam}.rig_T_cam",
-        )
+        rig_T_cam = _pose((cs or {}).get("rig_T_cam"), src, f"cameras.{cam}.rig_T_cam")
         cam_dir = folder / str(cam)
-        numbers = sorted(
-            int(m.group(1)) for p in cam_dir.glob("rgb_*.png") if (m := re.fullmatch(r"rgb_(\d+)", p.stem))
-        )
+        numbers = sorted(int(m.group(1)) for p in cam_dir.glob("rgb_*.png")
+                         if (m := re.fullmatch(r"rgb_(\d+)", p.stem)))
         if not numbers:
             skipped.append(FrameSkip(str(cam_dir), "rgb", "no rgb_<number>.png files"))
         for t in numbers:
             stem = f"{t:06d}"
-            rgb_path = cam_dir / f"rgb_{stem}.png"
-            try:
+            with skipping(skipped):
                 if captures and t not in captures:
                     raise SceneValidationError(src, f"captures.{t}", f"no rig pose for capture {t}")
-                world_T_rig = (
-                    np.eye(4)
-                    if not captures
-                    else check_rigid(_matrix(captures[t], (4, 4), src, f"captures.{t}"), src, f"captures.{t}")
-                )
-            except SceneValidationError as e:
-                skipped.append(FrameSkip(e.source, e.field, e.reason))
-                continue
-
-            def load(
-                r: Path = rgb_path, d: Path = cam_dir / f"depth_{stem}", K: np.ndarray = K
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-                depth, dpath = _read_depth(d, enc, units)
-                return read_rgb(r), depth, K, str(dpath)
-
-            frames.append(Frame(f"{cam}/{stem}", world_T_rig @ rig_T_cam, load))
-    return load_frames(frames, str(folder), "rig", skipped, read_objects(folder), max_views)
+                world_T_rig = _pose(captures[t], src, f"captures.{t}") if captures else np.eye(4)
+                load = partial(_load, cam_dir / f"rgb_{stem}.png", cam_dir / f"depth_{stem}", enc, units, K)
+                frames.append(Frame(f"{cam}/{stem}", world_T_rig @ rig_T_cam, load))
+    return load_frames(frames, str(folder), "rig", skipped, folder, max_views)

@@ -10,10 +10,9 @@ Expected tree::
       intrinsic/intrinsic_depth.txt    # 4x4 (top-left 3x3 is K of the depth image)
       threedq_objects.json             # optional: annotated boxes in the scan's frame
 
-Views are on the **depth** camera's pixel grid with its intrinsics (``K = intrinsic_depth``, exact): the
-colour image is first resized towards the depth size (:func:`~threedq.data.formats.capture.resize_to`, area
-interpolation) and then resampled onto the depth pixels with the homography ``K_color' K_depth^-1`` (the two
-cameras share their centre and axes in the export: ScanNet's ``extrinsic_*`` are identities).
+Views are on the depth camera's pixel grid with ``K = intrinsic_depth``: the colour image is resized towards the
+depth size (:func:`~threedq.data.formats.capture.resize_to`) and resampled onto the depth pixels with the homography
+``K_color' K_depth^-1`` (the export's two cameras share their centre and axes).
 
 Convention: the scan's frame (z up in ScanNet), metres; OpenCV camera axes; frames in numeric order.
 """
@@ -33,11 +32,10 @@ from threedq.data.formats.capture import (
     load_frames,
     read_depth_png,
     read_matrix,
-    read_objects,
     read_rgb,
     resize_to,
+    skipping,
 )
-from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "read_scannet", "register_colour"]
 
@@ -45,47 +43,17 @@ MARKER = "intrinsic/intrinsic_depth.txt"
 
 
 def register_colour(rgb: np.ndarray, K_color: np.ndarray, K_depth: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
-    """Colour resampled onto the depth camera's ``size_hw`` pixel grid (same centre and axes).
-
-    Args:
-        rgb: ``[Hc,Wc,3]`` colour; K_color, K_depth: ``[3,3]``; size_hw: ``(H, W)`` of the depth image.
-
-    Returns:
-        ``[H,W,3]`` uint8: depth pixel ``x_d`` takes the colour at ``K_color K_depth^-1 x_d``.
-
-    Convention: integer pixel centres; bilinear sampling, border replicated.
-    """
+    """Colour ``[Hc,Wc,3]`` resampled onto the depth camera's ``size_hw`` pixel grid (same centre and axes): ``[H,W,3]``
+    uint8, depth pixel ``x_d`` takes the colour at ``K_color K_depth^-1 x_d`` (bilinear, border replicated)."""
     small, Kc = resize_to(rgb, K_color, size_hw)
-    H = Kc @ np.linalg.inv(K_depth)
-    return cv2.warpPerspective(
-        small,
-        H,
-        (size_hw[1], size_hw[0]),
-        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
+    return cv2.warpPerspective(small, Kc @ np.linalg.inv(K_depth), (size_hw[1], size_hw[0]),
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
 
-def _frame_ids(folder: Path) -> list[str]:
-    ids = [p.stem for p in (folder / "color").glob("*.jpg") if p.stem.isdigit()]
-    return sorted(ids, key=int)
-
-
-def read_scannet(
-    folder: str | Path, depth_units_per_metre: float | None = None, max_views: int | None = None
-) -> Capture:
-    """Read a SensReader export (tree in the module docstring).
-
-    Args:
-        folder: the scene folder.
-        depth_units_per_metre: depth PNG units per metre (``None`` = 1000, millimetres).
-        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
-
-    Returns:
-        A :class:`Capture` on the depth grid; frame ids are the file numbers.
-
-    Convention: see the module docstring.
-    """
+def read_scannet(folder: str | Path, depth_units_per_metre: float | None = None,
+                 max_views: int | None = None) -> Capture:
+    """Read a SensReader export (tree in the module docstring) on the depth grid; frame ids are the file numbers.
+    ``depth_units_per_metre`` ``None`` = 1000; at most ``max_views`` frames are read."""
     folder = Path(folder)
     scale = 1000.0 if depth_units_per_metre is None else float(depth_units_per_metre)
     K_color = read_matrix(folder / "intrinsic" / "intrinsic_color.txt", "intrinsic_color")[:3, :3]
@@ -99,12 +67,9 @@ def read_scannet(
         return rgb, depth, K_depth, str(depth_path)
 
     frames = []
-    for fid in _frame_ids(folder):
-        try:
+    for fid in sorted((p.stem for p in (folder / "color").glob("*.jpg") if p.stem.isdigit()), key=int):
+        with skipping(skipped):
             pose = read_matrix(folder / "pose" / f"{fid}.txt", "pose")
             check_rigid(pose, str(folder / "pose" / f"{fid}.txt"))
-        except SceneValidationError as e:
-            skipped.append(FrameSkip(e.source, e.field, e.reason))
-            continue
-        frames.append(Frame(fid, pose, lambda fid=fid: load(fid)))
-    return load_frames(frames, str(folder), "scannet", skipped, read_objects(folder), max_views)
+            frames.append(Frame(fid, pose, lambda fid=fid: load(fid)))
+    return load_frames(frames, str(folder), "scannet", skipped, folder, max_views)

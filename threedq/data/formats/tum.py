@@ -10,11 +10,9 @@ Expected tree::
       depth/<timestamp>.png            # 16-bit, depth / 5000 = metres, 0 = missing; registered to colour
       threedq_objects.json             # optional: annotated boxes in the mocap frame
 
-Each colour frame takes the nearest depth frame and the nearest pose, each within ``max_dt`` seconds; a colour
-frame with no depth or no pose that close is skipped and counted. Poses are taken as written (no
-interpolation). Intrinsics are not in the files: they are TUM's published per-sensor constants (``fr1``,
-``fr2``, ``fr3``, chosen from the folder name) unless given. TUM also publishes lens distortion for fr1/fr2;
-it is not applied (the pinhole model is used as is).
+Each colour frame takes the nearest depth frame and the nearest pose (not interpolated), each within ``max_dt``
+seconds, or is skipped and counted. Intrinsics are TUM's published per-sensor constants (``fr1``, ``fr2``, ``fr3``,
+chosen from the folder name) unless given; TUM's lens distortion for fr1/fr2 is not applied.
 
 Convention: mocap world frame, metres; the pose is the colour camera's optical centre, OpenCV camera axes.
 """
@@ -27,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from threedq.data.formats.capture import Capture, Frame, FrameSkip, load_frames, read_depth_png, read_objects, read_rgb
+from threedq.data.formats.capture import Capture, FrameSkip, load_frames, png_frame, skipping
 from threedq.scene import SceneValidationError
 
 __all__ = ["MARKER", "TUM_INTRINSICS", "read_tum"]
@@ -35,11 +33,8 @@ __all__ = ["MARKER", "TUM_INTRINSICS", "read_tum"]
 MARKER = "rgb.txt"
 DEPTH_UNITS_PER_METRE = 5000.0
 #: (fx, fy, cx, cy) per sensor, from the TUM RGB-D "file formats" page (640x480)
-TUM_INTRINSICS = {
-    "fr1": (517.3, 516.5, 318.6, 255.3),
-    "fr2": (520.9, 521.0, 325.1, 249.7),
-    "fr3": (535.4, 539.2, 320.1, 247.6),
-}
+TUM_INTRINSICS = {"fr1": (517.3, 516.5, 318.6, 255.3), "fr2": (520.9, 521.0, 325.1, 249.7),
+                  "fr3": (535.4, 539.2, 320.1, 247.6)}
 _QUAT_TOL = 1e-3
 
 
@@ -68,8 +63,7 @@ def _nearest(times: np.ndarray, t: float) -> tuple[int, float]:
     if times.size == 0:
         return -1, float("inf")
     i = int(np.searchsorted(times, t))
-    cands = [j for j in (i - 1, i) if 0 <= j < times.size]
-    j = min(cands, key=lambda k: abs(times[k] - t))
+    j = min((j for j in (i - 1, i) if 0 <= j < times.size), key=lambda k: abs(times[k] - t))
     return j, abs(float(times[j]) - t)
 
 
@@ -77,34 +71,19 @@ def _intrinsics(folder: Path, intrinsics: tuple[float, float, float, float] | No
     if intrinsics is None:
         m = re.search(r"freiburg([123])", folder.resolve().name)
         if not m:
-            raise SceneValidationError(
-                str(folder), "intrinsics", "no 'freiburg1|2|3' in the folder name: give the intrinsics (fx, fy, cx, cy)"
-            )
+            why = "no 'freiburg1|2|3' in the folder name: give the intrinsics (fx, fy, cx, cy)"
+            raise SceneValidationError(str(folder), "intrinsics", why)
         intrinsics = TUM_INTRINSICS[f"fr{m.group(1)}"]
     fx, fy, cx, cy = (float(x) for x in intrinsics)
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
 
 
-def read_tum(
-    folder: str | Path,
-    intrinsics: tuple[float, float, float, float] | None = None,
-    max_dt: float = 0.02,
-    depth_units_per_metre: float | None = None,
-    max_views: int | None = None,
-) -> Capture:
-    """Read a TUM RGB-D sequence (tree in the module docstring).
+def read_tum(folder: str | Path, intrinsics: tuple[float, float, float, float] | None = None, max_dt: float = 0.02,
+             depth_units_per_metre: float | None = None, max_views: int | None = None) -> Capture:
+    """Read a TUM RGB-D sequence (tree in the module docstring); frame ids are the colour timestamps (``%.6f``).
 
-    Args:
-        folder: the sequence folder.
-        intrinsics: ``(fx, fy, cx, cy)``; ``None`` = TUM's constants of the sensor named in the folder name.
-        max_dt: association tolerance in seconds (colour-depth and colour-pose).
-        depth_units_per_metre: depth PNG units per metre (``None`` = 5000).
-        max_views: read at most this many frames (farthest camera positions; ``None`` = all).
-
-    Returns:
-        A :class:`Capture` of the associated frames, frame ids = colour timestamps as written.
-
-    Convention: see the module docstring.
+    ``intrinsics`` ``(fx, fy, cx, cy)`` (``None`` = TUM's constants of the sensor in the folder name); ``max_dt``: the
+    association tolerance in seconds; ``depth_units_per_metre`` ``None`` = 5000; at most ``max_views`` frames are read.
     """
     folder = Path(folder)
     K = _intrinsics(folder, intrinsics)
@@ -113,41 +92,27 @@ def read_tum(
     rgbs = _read_list(folder / "rgb.txt", 2, "rgb", skipped)
     depths = _read_list(folder / "depth.txt", 2, "depth", skipped)
     gt = _read_list(folder / "groundtruth.txt", 8, "pose", skipped)
-    d_times = np.array([t for t, _ in depths])
-    p_times = np.array([t for t, _ in gt])
+    d_times, p_times = np.array([t for t, _ in depths]), np.array([t for t, _ in gt])
+    gt_file = str(folder / "groundtruth.txt")
     frames = []
     for t, (rgb_name,) in rgbs:
         stamp = f"{t:.6f}"
-        jd, dt_d = _nearest(d_times, t)
-        if dt_d > max_dt:
-            skipped.append(FrameSkip(str(folder / "depth.txt"), "depth", f"no depth within {max_dt} s of rgb {stamp}"))
+        (jd, dt_d), (jp, dt_p) = _nearest(d_times, t), _nearest(p_times, t)
+        late = [(src, what) for dt, src, what in ((dt_d, folder / "depth.txt", "depth"), (dt_p, gt_file, "pose"))
+                if dt > max_dt]
+        if late:
+            src, what = late[0]
+            skipped.append(FrameSkip(str(src), what, f"no {what} within {max_dt} s of rgb {stamp}"))
             continue
-        jp, dt_p = _nearest(p_times, t)
-        if dt_p > max_dt:
-            skipped.append(
-                FrameSkip(str(folder / "groundtruth.txt"), "pose", f"no pose within {max_dt} s of rgb {stamp}")
-            )
-            continue
-        try:
+        with skipping(skipped):
             q = np.array([float(x) for x in gt[jp][1][3:7]])
             if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1) > _QUAT_TOL:
-                raise SceneValidationError(
-                    str(folder / "groundtruth.txt"),
-                    "pose",
-                    f"pose at {p_times[jp]:.6f}: quaternion norm {np.linalg.norm(q):.4g} is not 1 (not a rotation)",
-                )
+                why = f"pose at {p_times[jp]:.6f}: quaternion norm {np.linalg.norm(q):.4g} is not 1 (not a rotation)"
+                raise SceneValidationError(gt_file, "pose", why)
             pose = np.eye(4)
             pose[:3, :3] = Rotation.from_quat(q).as_matrix()  # scipy: scalar-last, like TUM
             pose[:3, 3] = [float(x) for x in gt[jp][1][:3]]
             if not np.all(np.isfinite(pose)):
-                raise SceneValidationError(
-                    str(folder / "groundtruth.txt"), "pose", f"pose at {p_times[jp]:.6f} is not finite"
-                )
-        except SceneValidationError as e:
-            skipped.append(FrameSkip(e.source, e.field, e.reason))
-            continue
-        rgb_path, depth_path = folder / rgb_name, folder / depths[jd][1][0]
-        frames.append(
-            Frame(stamp, pose, lambda r=rgb_path, d=depth_path: (read_rgb(r), read_depth_png(d, scale), K, str(d)))
-        )
-    return load_frames(frames, str(folder), "tum", skipped, read_objects(folder), max_views)
+                raise SceneValidationError(gt_file, "pose", f"pose at {p_times[jp]:.6f} is not finite")
+            frames.append(png_frame(stamp, pose, folder / rgb_name, folder / depths[jd][1][0], scale, K))
+    return load_frames(frames, str(folder), "tum", skipped, folder, max_views)
