@@ -33,9 +33,17 @@ class TestRobustnessBenchmark:
                 {"mode": "adapted", "condition": "level2", "seed": 0, "sensor_captures": False,
                  "failed": "threedq: error: too few boxes"}]
         lines = robustness.table(rows).splitlines()
-        assert lines[2].startswith("| frozen | renders | level0 | 0 | 0.900 |")  # frozen first
-        assert "| adapted | sensor captures | level1 | 0, 1 | 0.500 (0.400-0.600) |" in lines[4]
+        assert lines[2].startswith("| frozen | renders | quantizer | level0 | 0 | 0.900 |")  # frozen first
+        assert "| adapted | sensor captures | quantizer | level1 | 0, 1 | 0.500 (0.400-0.600) |" in lines[4]
         assert "stopped: threedq: error: too few boxes" in lines[3]
+
+    def test_table_keeps_each_quantizer_apart(self) -> None:
+        """Rows without ``quantizer_config`` are the one-view quantizer's; another quantizer gets its own line."""
+        rows = [_row("adapted", "level1", 0, True, 0.4),
+                {**_row("adapted", "level1", 0, True, 0.8), "quantizer_config": "stages/quantizer_multiview.yaml"}]
+        lines = robustness.table(rows).splitlines()
+        assert lines[2].startswith("| adapted | sensor captures | quantizer | level1 | 0 | 0.400 |")
+        assert lines[3].startswith("| adapted | sensor captures | quantizer_multiview | level1 | 0 | 0.800 |")
 
     def test_curve_png(self, tmp_path: Path) -> None:
         rows = [_row(m, c, 0, s, v) for m in ("frozen", "adapted") for s in (False, True)
@@ -52,7 +60,10 @@ class TestRobustnessBenchmark:
         (clean / "train" / "a.npz").write_bytes(b"scene")
         work.mkdir()
 
+        commands = []
+
         def fake_run(cmd, **kwargs):
+            commands.append(cmd)
             run = Path(cmd[cmd.index("--work_dir") + 1])
             run.mkdir(parents=True)
             (run / "metrics.json").write_text(json.dumps({
@@ -69,6 +80,10 @@ class TestRobustnessBenchmark:
             "pseudo_map_50": 0.9, "warm_start_map_50": 0.7, "detector_map_50": 0.8, "precision_at_10": 0.4,
             "hungarian_acc": 0.5, "yaw_median_deg": 12.0}
         assert "sensor_captures: true" in (work / "data_level0_sensor.yaml").read_text()
+        # the capture DataModules' quantizer preset by default, named in the run's folder
+        assert commands[0][commands[0].index("--quantizer_config") + 1] == "stages/quantizer_multiview.yaml"
+        run = Path(commands[0][commands[0].index("--work_dir") + 1])
+        assert run.name == "adapted_level0_sensor_quantizer_multiview_s1"
         # level 0 is the clean folder, linked (its proposal caches are the copy's own)
         assert (work / "data_level0" / "train" / "a.npz").read_bytes() == b"scene"
         assert (work / "data_level0" / "train" / "a.npz").stat().st_ino == (clean / "train" / "a.npz").stat().st_ino
