@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from _common import sync, table
 
 from threedq.contrastive import info_nce_plain, info_nce_streamed
 from threedq.machine import cpu_name
@@ -80,17 +81,14 @@ def child(args: argparse.Namespace) -> None:
 
     def step() -> float:
         q.grad = None
-        if cuda:
-            torch.cuda.synchronize()
+        sync(device)
         t0 = time.perf_counter()
-        loss = fn()
-        loss.backward()
-        if cuda:
-            torch.cuda.synchronize()
+        fn().backward()
+        sync(device)
         return time.perf_counter() - t0
 
+    sync(device)
     if cuda:
-        torch.cuda.synchronize()
         base = torch.cuda.memory_allocated()
         torch.cuda.reset_peak_memory_stats()
     else:
@@ -146,15 +144,11 @@ def main() -> None:
           f"{datetime.date.today()}")
     print(f"# median of {args.repeats} after {args.warmup} warm-ups, one subprocess per row; extra MiB: CPU "
           f"VmHWM growth, CUDA max_memory_allocated over the inputs")
-    print()
-    print("| variant | device | ms (median) | extra MiB |")
-    print("|---|---|---|---|")
-    for variant, r in rows:
-        print(f"| {variant_name(variant)} | {r['device']} | {r['ms']:.1f} | {r['mib']:.1f} |")
+    print("\n" + table(["variant", "device", "ms (median)", "extra MiB"],
+                       [(variant_name(v), r["device"], f"{r['ms']:.1f}", f"{r['mib']:.1f}") for v, r in rows]))
     plain = {r["device"]: r["loss"] for v, r in rows if v == "plain"}
     diff = max(abs(r["loss"] - plain[r["device"]]) for v, r in rows if v != "plain")
-    print()
-    print(f"max |loss(streamed) - loss(plain)| = {diff:.2e}")
+    print(f"\nmax |loss(streamed) - loss(plain)| = {diff:.2e}")
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import datetime
 import statistics
 import tempfile
 import time
@@ -23,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import machine, table
 
-from threedq.machine import cpu_name
 from threedq.pipeline.parse import RunArtifacts, SceneParser, find_scenes, parse_records, resolve_run
+from threedq.quantization.prototypes import PrototypeBank
 from threedq.scene import load_scene
 from threedq.stages.detector import Detector
-from threedq.quantization.prototypes import PrototypeBank
 
 SCALES = {
     "default (128^2 view, 64x64x32 grid)": ((128, 128), (-1.28, -1.28, -0.32), (1.28, 1.28, 0.96), (64, 64, 32)),
@@ -48,8 +47,8 @@ def random_parser(tmp: Path, grid_min, grid_max, res, precision: str, device: st
     bank.active.fill_(True)
     state = {**{f"bank.{k}": v for k, v in bank.state_dict().items()},
              **{f"encoder.{k}": v for k, v in det.encoder.state_dict().items()}}  # fmt: skip
-    torch.save({"state_dict": state, "hyper_parameters": {**hp, "num_prototypes": 50, "crop_size": 16, "num_angles": 36}},
-               tmp / "q.ckpt")  # fmt: skip
+    hq = {**hp, "num_prototypes": 50, "crop_size": 16, "num_angles": 36}
+    torch.save({"state_dict": state, "hyper_parameters": hq}, tmp / "q.ckpt")
     art = RunArtifacts(encoder=tmp / "q.ckpt", detector=tmp / "det.ckpt", prototypes=tmp / "q.ckpt")
     return SceneParser(art, score_threshold=0.5, precision=precision).to(device)
 
@@ -71,7 +70,7 @@ def scene(image: tuple[int, int], grid_min, grid_max, device: str) -> dict[str, 
     g = torch.Generator().manual_seed(0)
     depth = 2.0 + 0.8 * torch.rand(H, W, generator=g)
     return {"rgb": torch.rand(1, 1, 3, H, W, generator=g).to(device), "depth": depth[None, None].to(device),
-            "K": K[None, None].to(device), "R_T_cam": torch.tensor(pose, dtype=torch.float32)[None, None].to(device)}  # fmt: skip
+            "K": K[None, None].to(device), "R_T_cam": torch.tensor(pose, dtype=torch.float32)[None, None].to(device)}
 
 
 def three_boxes(grid_min, grid_max) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -120,19 +119,15 @@ def agreement(run: str, scenes: str, limit: int) -> list[str]:
     pairs = [(x, y) for sa, sb in zip(a, b) for x, y in zip(sa["objects"], sb["objects"])]
     same = sum(x["prototype"] == y["prototype"] and x["angle_index"] == y["angle_index"] for x, y in pairs)
     same_k = sum(x["prototype"] == y["prototype"] for x, y in pairs)
-    same_boxes = sum(len(sa["objects"]) == len(sb["objects"]) and all(
-        np.allclose(x["box"], y["box"], atol=0.02) for x, y in zip(sa["objects"], sb["objects"])) for sa, sb in zip(a, own))  # fmt: skip
+    same_boxes = sum(len(sa["objects"]) == len(sb["objects"]) and all(np.allclose(x["box"], y["box"], atol=0.02)
+                     for x, y in zip(sa["objects"], sb["objects"])) for sa, sb in zip(a, own))
     n = max(len(pairs), 1)
-    return [
-        f"Agreement on {run} ({len(files)} test scenes, {len(pairs)} objects, view 0; bf16 matched on fp32's boxes):",
-        "",
-        "| measure | value |",
-        "|---|---|",
-        f"| same prototype and yaw index | {same}/{len(pairs)} = {same / n:.1%} |",
-        f"| same prototype | {same_k}/{len(pairs)} = {same_k / n:.1%} |",
-        f"| scenes whose bf16 detections equal fp32's (count, boxes within 2 cm) | {same_boxes}/{len(files)} |",
-        f"| whole parse of the split (batches of 4), fp32 / bf16 | {t32:.1f} s / {t16:.1f} s |",
-    ]
+    return [f"Agreement on {run} ({len(files)} test scenes, {len(pairs)} objects, view 0; bf16 matched on fp32's "
+            "boxes):", "", table(["measure", "value"], [
+                ("same prototype and yaw index", f"{same}/{len(pairs)} = {same / n:.1%}"),
+                ("same prototype", f"{same_k}/{len(pairs)} = {same_k / n:.1%}"),
+                ("scenes whose bf16 detections equal fp32's (count, boxes within 2 cm)", f"{same_boxes}/{len(files)}"),
+                ("whole parse of the split (batches of 4), fp32 / bf16", f"{t32:.1f} s / {t16:.1f} s")])]
 
 
 def main() -> None:
@@ -143,11 +138,9 @@ def main() -> None:
     ap.add_argument("--scenes", default=None, help="its dataset folder")
     ap.add_argument("--limit", type=int, default=250, help="test scenes of the agreement table")
     args = ap.parse_args()
-    print(f"# bench_parse — {datetime.date.today()} — {cpu_name()}, {torch.get_num_threads()} threads, "
-          f"torch {torch.__version__}, device {args.device}\n")  # fmt: skip
+    print(f"# bench_parse — {machine()}, device {args.device}\n")
     print("Per-scene latency (median of", args.repeats, "after a warm-up; 1 view, 3 objects, K = 50 x 36 yaws), ms:\n")
-    print("| scale | mode | " + " | ".join(PARTS) + " | total |")
-    print("|---|---|" + "---|" * (len(PARTS) + 1))
+    print(table(["scale", "mode", *PARTS, "total"]))
     with tempfile.TemporaryDirectory() as tmp:
         for name, (image, lo, hi, res) in SCALES.items():
             batch = scene(image, lo, hi, args.device)

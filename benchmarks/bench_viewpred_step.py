@@ -14,6 +14,7 @@ encoder's output stride.
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import statistics
 import tempfile
@@ -21,30 +22,27 @@ import time
 from contextlib import nullcontext
 
 import torch
+from _common import sync, table
 
-from threedq.datamodules.scene_folder import SceneFolderDataModule
-from threedq.stages.viewpred import ViewPrediction
 from threedq.data.generate import generate_dataset
 from threedq.data.generator_config import GeneratorConfig
+from threedq.datamodules.scene_folder import SceneFolderDataModule
 from threedq.machine import cpu_name
+from threedq.stages.viewpred import ViewPrediction
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def time_step(model: ViewPrediction, batch: dict, opt: torch.optim.Optimizer, bf16: bool, device: str) -> dict[str, float]:
+def time_step(model: ViewPrediction, batch: dict, opt: torch.optim.Optimizer, bf16: bool,
+              device: str) -> dict[str, float]:
     ctx = torch.autocast(device_type=device.split(":")[0], dtype=torch.bfloat16) if bf16 else nullcontext()
     t: dict[str, float] = {}
 
     def mark(name: str, t0: float) -> float:
-        _sync(device)
+        sync(device)
         now = time.perf_counter()
         t[name] = now - t0
         return now
 
-    _sync(device)
+    sync(device)
     t_start = t0 = time.perf_counter()
     with ctx:
         n_in = batch["rgb"].shape[1] - 1
@@ -71,7 +69,7 @@ def time_step(model: ViewPrediction, batch: dict, opt: torch.optim.Optimizer, bf
     loss.backward()
     opt.step()
     mark("backward+adam", t0)
-    _sync(device)
+    sync(device)
     t["step"] = time.perf_counter() - t_start
     return t
 
@@ -95,7 +93,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
-        generate_dataset(tmp, num_scenes=2, seed=0, config=GeneratorConfig(), splits=("train",), workers=1, progress=False)
+        generate_dataset(tmp, num_scenes=2, seed=0, config=GeneratorConfig(), splits=("train",), workers=1,
+                         progress=False)
         dm = SceneFolderDataModule(tmp, batch_size=2)
         dm.setup()
         batch = next(iter(dm.train_dataloader()))
@@ -104,31 +103,29 @@ def main() -> None:
           f"({cpu_name() if args.device == 'cpu' else torch.cuda.get_device_name()}), "
           f"torch {torch.__version__}, median of {args.repeats} after 2 warm-ups\n")
     cols = ["unproject", "encoder", "occ/free labels", "frustum+decoder", "backward+adam", "step"]
-    print("| encoder widths | feature stride | planes / pool | precision | layout | encoder | "
-          + " | ".join(f"{c} ms" for c in cols) + " |")
-    print("|---|---|---|---|---|---|" + "---|" * len(cols))
-    for channels, stride in ((c, s) for c in args.channels or [(64, 128, 256)] for s in args.feature_stride):
-        for planes, pool in args.decoder or [(32, 8)]:
-            for bf16 in (False,) if args.fp32_only else (False, True):
-                for cl in (True,) if args.channels_last_only else (False, True):
-                    for compiled in (False, True) if args.compile else (False,):
-                        torch.manual_seed(0)
-                        model = ViewPrediction(grid_resolution=tuple(args.grid), encoder_channels=tuple(channels),
-                                               feature_stride=stride, channels_last=cl, num_planes=planes, pool=pool,
-                                               image_every_n_steps=0).to(args.device)
-                        if compiled:
-                            model.encoder = torch.compile(model.encoder, dynamic=False)
-                        opt = torch.optim.Adam(model.parameters(), 1e-3)
-                        t0 = time.perf_counter()
-                        for _ in range(2):
-                            time_step(model, batch, opt, bf16, args.device)
-                        warm_s = time.perf_counter() - t0
-                        runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats)]
-                        med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
-                        enc = f"torch.compile (warm-ups {warm_s:.0f} s)" if compiled else "eager"
-                        print(f"| {'-'.join(map(str, channels))} | {stride} | {planes} / {pool} | "
-                              f"{'bf16 autocast' if bf16 else 'fp32'} | {'channels_last_3d' if cl else 'contiguous'} | "
-                              f"{enc} | " + " | ".join(f"{med[c]:.0f}" for c in cols) + " |")
+    print(table(["encoder widths", "feature stride", "planes / pool", "precision", "layout", "encoder",
+                 *(f"{c} ms" for c in cols)]))
+    for channels, stride, (planes, pool), bf16, cl, compiled in itertools.product(
+            args.channels or [(64, 128, 256)], args.feature_stride, args.decoder or [(32, 8)],
+            (False,) if args.fp32_only else (False, True), (True,) if args.channels_last_only else (False, True),
+            (False, True) if args.compile else (False,)):
+        torch.manual_seed(0)
+        model = ViewPrediction(grid_resolution=tuple(args.grid), encoder_channels=tuple(channels), channels_last=cl,
+                               feature_stride=stride, num_planes=planes, pool=pool, image_every_n_steps=0)
+        model = model.to(args.device)
+        if compiled:
+            model.encoder = torch.compile(model.encoder, dynamic=False)
+        opt = torch.optim.Adam(model.parameters(), 1e-3)
+        t0 = time.perf_counter()
+        for _ in range(2):
+            time_step(model, batch, opt, bf16, args.device)
+        warm_s = time.perf_counter() - t0
+        runs = [time_step(model, batch, opt, bf16, args.device) for _ in range(args.repeats)]
+        med = {c: 1000 * statistics.median(r[c] for r in runs) for c in cols}
+        enc = f"torch.compile (warm-ups {warm_s:.0f} s)" if compiled else "eager"
+        print(f"| {'-'.join(map(str, channels))} | {stride} | {planes} / {pool} | "
+              f"{'bf16 autocast' if bf16 else 'fp32'} | {'channels_last_3d' if cl else 'contiguous'} | "
+              f"{enc} | " + " | ".join(f"{med[c]:.0f}" for c in cols) + " |")
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ import numpy as np
 from tqdm import tqdm
 
 from threedq.datamodules.scene_folder import fixed_views
-
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene, save_scene
 
 #: depth is stored in millimetres as uint16
@@ -118,16 +117,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("pack", help="write the cut copy of a scene folder")
-    p.add_argument("src", type=Path)
-    p.add_argument("dst", type=Path)
+    u = sub.add_parser("unpack", help="turn a copy back into a scene folder")
+    for q, workers in ((p, 2), (u, 8)):
+        q.add_argument("src", type=Path)
+        q.add_argument("dst", type=Path)
+        q.add_argument("--workers", type=int, default=workers)
     p.add_argument("--train_views", type=int, default=6)
     p.add_argument("--view_seed", type=int, default=12345, help="seed of the training scenes' kept views")
     p.add_argument("--seed", type=int, default=0, help="the DataModule seed whose fixed views val/test scenes keep")
-    p.add_argument("--workers", type=int, default=2)
-    u = sub.add_parser("unpack", help="turn a copy back into a scene folder")
-    u.add_argument("src", type=Path)
-    u.add_argument("dst", type=Path)
-    u.add_argument("--workers", type=int, default=8)
     args = ap.parse_args()
     if args.cmd == "pack":
         n = pack(args.src, args.dst, args.train_views, args.view_seed, args.seed, args.workers)

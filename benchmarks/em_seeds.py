@@ -26,9 +26,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from _common import read_rows  # a results folder's rows.jsonl: one row per run, each metric a list over its rounds
-
-from threedq.machine import cpu_name
+from _common import machine, read_rows, table
 
 #: (column, name in the table)
 METRICS = (("precision_at_10", "strict p@10"), ("precision_at_10_paper", "paper p@10"),
@@ -90,29 +88,20 @@ def holds_round0(run: dict[int, dict[str, float | None]], metric: str) -> bool |
 
 def summary_markdown(arms: dict[str, list[str]], runs: dict[str, list[dict[int, dict[str, float | None]]]]) -> str:
     """Per round and arm the mean (range) over its runs; then each run's round-0 check."""
-    lines = ["| round | arm | runs | " + " | ".join(name for _, name in METRICS) + " |",
-             "|---|---|---|" + "---|" * len(METRICS)]
-    rounds = sorted({r for rs in runs.values() for run in rs for r in run})
-    for r in rounds:
+    body, checks = [], []
+    for r in sorted({r for rs in runs.values() for run in rs for r in run}):
         for arm, rs in runs.items():
-            cells, n = [], 0
-            for key, _ in METRICS:
-                mr = mean_range([run.get(r, {}).get(key) for run in rs])
-                if mr is None:
-                    cells.append("-")
-                    continue
-                n = max(n, mr[2])
-                digits = 1 if key == "mining_seconds" else 3
-                cells.append(f"{mr[0]:.{digits}f} ({mr[1]:.{digits}f})" if mr[2] > 1 else f"{mr[0]:.{digits}f}")
-            if n:
-                lines.append(f"| {r} | {arm} | {n} | " + " | ".join(cells) + " |")
-    lines += ["", "| arm | run | every round >= round 0, strict | paper protocol |", "|---|---|---|---|"]
+            stats = [(mean_range([run.get(r, {}).get(key) for run in rs]), 1 if key == "mining_seconds" else 3)
+                     for key, _ in METRICS]
+            if n := max((mr[2] for mr, _ in stats if mr is not None), default=0):
+                body.append([r, arm, n, *("-" if mr is None else f"{mr[0]:.{d}f} ({mr[1]:.{d}f})" if mr[2] > 1
+                                          else f"{mr[0]:.{d}f}" for mr, d in stats)])
     for arm, rs in runs.items():
         for d, run in zip(arms[arm], rs):
-            marks = ["-" if (h := holds_round0(run, k)) is None else ("yes" if h else "no")
-                     for k in ("precision_at_10", "precision_at_10_paper")]
-            lines.append(f"| {arm} | {d} | " + " | ".join(marks) + " |")
-    return "\n".join(lines)
+            checks.append([arm, d, *("-" if (h := holds_round0(run, k)) is None else ("yes" if h else "no")
+                                     for k in ("precision_at_10", "precision_at_10_paper"))])
+    return "\n".join([table(["round", "arm", "runs", *(name for _, name in METRICS)], body), "",
+                      table(["arm", "run", "every round >= round 0, strict", "paper protocol"], checks)])
 
 
 def figure(arms: dict[str, list[str]], runs: dict[str, list[dict[int, dict[str, float | None]]]]) -> Any:
@@ -145,7 +134,7 @@ def main(argv: list[str] | None = None) -> None:
     if not arms:
         ap.error("give --arm or --rows")
     runs = {arm: [read_run(d) for d in dirs] for arm, dirs in arms.items()}
-    print(f"# threedq em runs per arm: mean (range) over runs; {cpu_name()} (where this table was printed, "
+    print(f"# threedq em runs per arm: mean (range) over runs; {machine()} (where this table was printed, "
           "not necessarily where the runs ran)")
     print(summary_markdown(arms, runs))
     if args.png is not None:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from _common import append_row, read_rows
+from _common import table as md_table
 
 from threedq.geometry import CROP_SHAPES
 from threedq.machine import cpu_name
@@ -234,34 +235,33 @@ def table(rows: list[dict[str, Any]]) -> str:
     groups: dict[tuple[str, int], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["variant"], r["steps"]), []).append(r)
-    head = "| recipe | steps | seeds | s/step | " + " | ".join(c for _, c in COLUMNS) + " |"
-    lines = [head, "|" + "---|" * (4 + len(COLUMNS))]
-    for (name, steps), rs in groups.items():
-        cells = [_cell([r[k] for r in rs if k in r]) for k, _ in COLUMNS]
-        sps = [r["s_per_step"] for r in rs if r["s_per_step"] == r["s_per_step"]]  # NaN: a scored checkpoint
-        lines.append(f"| {name} | {steps or '-'} | {len(rs)} | {_cell(sps)} | " + " | ".join(cells) + " |")
-    lines += ["", "| reference (same objects) | strict | paper | top-1 | linear probe |", "|---|---|---|---|---|"]
+    body = [[name, steps or "-", len(rs), _cell([r["s_per_step"] for r in rs if r["s_per_step"] == r["s_per_step"]]),
+             *(_cell([r[k] for r in rs if k in r]) for k, _ in COLUMNS)]  # NaN s/step: a scored checkpoint
+            for (name, steps), rs in groups.items()]
     shapes = list(dict.fromkeys(r.get("crop", "hull") for r in rows)) or ["hull"]
     refs = [("raw", f"raw crops{'' if s == 'hull' else f', {s} crop'}", s) for s in shapes]
     refs.append(("descriptor", "colour + size descriptor (of the hull crops)", "hull"))
+    ref_rows: list[list[Any]] = []
     for key, label, shape in refs:
-        per_recipe: dict[str, list[str]] = {}  # recipes on other data (e.g. another image size) have own references
+        keys = [f"{key}/{m}" for m in ("strict", "paper", "top1")] + [f"probe/{key}"]
+        # recipes on other data (e.g. another image size) have own references: equal ones, the recipes having them
+        same: dict[tuple[str, ...], list[str]] = {}
         for name in dict.fromkeys(r["variant"] for r in rows):
             own = [r for r in rows if r.get("crop", "hull") == shape and r["variant"] == name]
-            keys = [f"{key}/{m}" for m in ("strict", "paper", "top1")] + [f"probe/{key}"]
-            per_recipe[name] = [_cell([r[k] for r in own if k in r][:1]) for k in keys]
-        groups: dict[tuple[str, ...], list[str]] = {}  # equal references, the recipes that have them
-        for name, cells in per_recipe.items():
-            if cells != ["-"] * 4:
-                groups.setdefault(tuple(cells), []).append(name)
-        if len(groups) <= 1:
-            lines.append(f"| {label} | " + " | ".join(next(iter(groups), ("-",) * 4)) + " |")
+            cells = tuple(_cell([r[k] for r in own if k in r][:1]) for k in keys)
+            if cells != ("-",) * 4:
+                same.setdefault(cells, []).append(name)
+        if len(same) <= 1:
+            ref_rows.append([label, *next(iter(same), ("-",) * 4)])
         else:
-            lines += [f"| {label}, rows of {', '.join(names)} | " + " | ".join(c) + " |" for c, names in groups.items()]
+            ref_rows += [[f"{label}, rows of {', '.join(names)}", *c] for c, names in same.items()]
     if rows:
-        r = rows[0]
-        lines.append(f"| perfect features (ceiling) | {r['ceiling/strict']:.3f} | {r['ceiling/paper']:.3f} | 1 | 1 |")
-        lines.append(f"\npool: {r['pool']} test objects (GT boxes); fast rotation search, 36 yaws; k = 10")
+        ref_rows.append(["perfect features (ceiling)", f"{rows[0]['ceiling/strict']:.3f}",
+                         f"{rows[0]['ceiling/paper']:.3f}", 1, 1])
+    lines = [md_table(["recipe", "steps", "seeds", "s/step", *(c for _, c in COLUMNS)], body), "",
+             md_table(["reference (same objects)", "strict", "paper", "top-1", "linear probe"], ref_rows)]
+    if rows:
+        lines.append(f"\npool: {rows[0]['pool']} test objects (GT boxes); fast rotation search, 36 yaws; k = 10")
     return "\n".join(lines)
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from _common import append_row, mean_range, read_rows
+from _common import table as md_table
 
 from threedq.machine import cpu_name
 
@@ -287,33 +288,25 @@ COLUMNS = [("cosine/strict", "strict P@10"), ("cosine/paper", "paper P@10"), ("c
            ("no_rot/hungarian_acc", "no-rot Hungarian"), ("threedq/colour_hungarian_acc", "Hungarian vs colour")]
 
 
-def md(label: str, cells: list[str]) -> str:
-    return f"| {label} | " + " | ".join(cells) + " |"
-
-
 def table(rows: list[dict[str, Any]]) -> str:
     """Markdown, one table per dataset: the reference rows, then each encoder row (mean and range over seeds)."""
     lines: list[str] = []
+    digits = lambda k: 0 if "yaw" in k else 3  # noqa: E731
+    head = ["features", *(c for _, c in COLUMNS)]
     for ds in dict.fromkeys(r["dataset"] for r in rows):
         rs = [r for r in rows if r["dataset"] == ds]
         feats = [r for r in rs if r["row"] != "references" and "backbone" not in r]
         imagenet = [r for r in rs if "backbone" in r]
-        refs = [r for r in rs if r["row"] == "references"]
         if not feats and not imagenet:
             continue
-        machine = (feats or imagenet)[0]
-        lines += [f"### {ds} ({ALL_DATASETS.get(ds, ds)}; {machine['objects']} test objects; GT boxes, one input view)",
-                  "", f"{machine['cpu']}, torch {machine['torch']}, {machine['threads']} threads, {machine['date']}. "
-                  "Retrieval: rotation-max search over 36 yaws, cosine; banks: K = 50, 36 yaws, occupancy-weighted "
-                  f"crops (floor {OCCUPANCY_FLOOR}), mean of EM seeds {', '.join(map(str, EM_SEEDS))}.", "",
-                  "| features | " + " | ".join(c for _, c in COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
-        digits = lambda k: 0 if "yaw" in k else 3  # noqa: E731
-        first = {"features": feats[:1], "references": refs[:1]}  # the encoder-free numbers, equal in every row
+        m = (feats or imagenet)[0]
+        lines += [f"### {ds} ({ALL_DATASETS.get(ds, ds)}; {m['objects']} test objects; GT boxes, one input view)", "",
+                  f"{m['cpu']}, torch {m['torch']}, {m['threads']} threads, {m['date']}. Retrieval: rotation-max "
+                  "search over 36 yaws, cosine; banks: K = 50, 36 yaws, occupancy-weighted crops (floor "
+                  f"{OCCUPANCY_FLOOR}), mean of EM seeds {', '.join(map(str, EM_SEEDS))}.", ""]
+        first = {"features": feats[:1], "references": [r for r in rs if r["row"] == "references"][:1]}
         retrieval, bank = [k for k, _ in COLUMNS[:3]], [k for k, _ in COLUMNS if k.startswith("threedq/")]
-
-        def cols(source: str, prefix: str, keys: list[str]) -> dict[str, tuple[str, str]]:
-            return {k: (source, f"{prefix}/{k.split('/')[1]}") for k in keys}
-
+        cols = lambda source, prefix, keys: {k: (source, f"{prefix}/{k.split('/')[1]}") for k in keys}  # noqa: E731
         reference_rows = {
             "raw `cat[occ, occ * rgb]` crops": {**cols("features", "raw", retrieval),
                                                 "probe/learned": ("features", "probe/raw"),
@@ -322,28 +315,25 @@ def table(rows: list[dict[str, Any]]) -> str:
             "colour + size descriptor": cols("features", "descriptor", retrieval),
             "point-cloud registration": cols("references", "pointcloud", bank),
         }
-        for label, where in reference_rows.items():
-            cells = [mean_range([r.get(where[k][1]) for r in first[where[k][0]]], digits(k)) if k in where else "-"
-                     for k, _ in COLUMNS]
-            lines.append(md(label, cells))
+        body = [[label, *(mean_range([r.get(w[k][1]) for r in first[w[k][0]]], digits(k)) if k in w else "-"
+                          for k, _ in COLUMNS)] for label, w in reference_rows.items()]
         for name in dict.fromkeys(r["row"] for r in feats):
             group = [r for r in feats if r["row"] == name]
-            label = f"{name} ({len(group)} seed{'s' if len(group) > 1 else ''})"
-            lines.append(md(label, [mean_range([r.get(k) for r in group], digits(k)) for k, _ in COLUMNS]))
-
-        def imagenet_label(r: dict[str, Any]) -> str:
-            return f"{r['backbone_label']}, {r['feature_stage']} pooled in the projected GT box (no rotation search)"
-
-        for r in imagenet:  # the 2D rows: no rotation search, no yaw; their bank is the no-rot one
-            lines.append(md(imagenet_label(r), [mean_range([r.get(k)], digits(k)) for k, _ in COLUMNS]))
+            body.append([f"{name} ({len(group)} seed{'s' if len(group) > 1 else ''})",
+                         *(mean_range([r.get(k) for r in group], digits(k)) for k, _ in COLUMNS)])
+        # the 2D rows: no rotation search, no yaw; their bank is the no-rot one
+        inet = [(f"{r['backbone_label']}, {r['feature_stage']} pooled in the projected GT box (no rotation search)", r)
+                for r in imagenet]
+        body += [[label, *(mean_range([r.get(k)], digits(k)) for k, _ in COLUMNS)] for label, r in inet]
+        lines.append(md_table(head, body))
         if imagenet:
+            extra = ("ret_acc", "class_acc", "no_rot/hungarian_acc", "no_rot/colour_hungarian_acc")
             lines += ["", "ImageNet rows: few-shot as in paper Table 1 (2 labelled objects per category, seed 0) and "
                       "the colours of their no-rotation banks' clusters; the encoder rows' few-shot column above "
                       "propagates the labels through their prototypes instead.", "",
-                      "| features | ResNetRet (nearest labelled object) | ResNetClass (linear classifier on the shots) "
-                      "| no-rot Hungarian K=50 | no-rot Hungarian vs colour |", "|---|---|---|---|---|"]
-            extra = ("ret_acc", "class_acc", "no_rot/hungarian_acc", "no_rot/colour_hungarian_acc")
-            lines += [md(imagenet_label(r), [mean_range([r.get(k)]) for k in extra]) for r in imagenet]
+                      md_table(["features", "ResNetRet (nearest labelled object)", "ResNetClass (linear classifier "
+                                "on the shots)", "no-rot Hungarian K=50", "no-rot Hungarian vs colour"],
+                               [[label, *(mean_range([r.get(k)]) for k in extra)] for label, r in inet])]
         lines.append("")
     return "\n".join(lines)
 

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from _common import table as md_table
 
 from threedq.boxes import aabb_iou_3d, boxes_to_aabb
 from threedq.metrics import relative_yaw_error
@@ -47,10 +48,10 @@ def read_objects(path: Path, data_dir: Path, min_iou: float = 0.5) -> dict[tuple
         iou = aabb_iou_3d(torch.tensor([o["box"]], dtype=torch.float64), gt_aabb)[0].numpy()
         j = int(iou.argmax())
         if iou[j] < min_iou:
-            raise SystemExit(f"yaw_common_pairs: {path}: a box of {o['scene']} overlaps no GT object at IoU >= {min_iou} "
-                             f"(best {iou[j]:.2f}): is --data_dir the run's data?")
-        out[(o["scene"], j)] = {"prototype": int(o["prototype"]), "est": 2 * math.pi * int(o["angle_index"]) / num_angles,
-                                "gt": float(boxes[j, 6]), "category": int(cats[j])}
+            raise SystemExit(f"yaw_common_pairs: {path}: a box of {o['scene']} overlaps no GT object at IoU >= "
+                             f"{min_iou} (best {iou[j]:.2f}): is --data_dir the run's data?")
+        out[(o["scene"], j)] = {"prototype": int(o["prototype"]), "gt": float(boxes[j, 6]), "category": int(cats[j]),
+                                "est": 2 * math.pi * int(o["angle_index"]) / num_angles}
     return out
 
 
@@ -91,11 +92,10 @@ def compare(a: dict, b: dict, symmetry_order: list[int]) -> dict[str, Any]:
     both = [ids[(a[o]["prototype"], b[o]["prototype"])] for o in shared]
     row = {"pairs_a": len(pa), "pairs_b": len(pb), "common": len(common),
            "all_a": _median(list(pa.values())), "all_b": _median(list(pb.values())),
-           "common_a": _median([pa[k] for k in common]), "common_b": _median([pb[k] for k in common]),
-           "only_a": sorted(set(pa) - set(pb)), "only_b": sorted(set(pb) - set(pa))}
-    row["only_a_median"] = _median([pa[k] for k in row["only_a"]])
-    row["only_b_median"] = _median([pb[k] for k in row["only_b"]])
-    row["only_a"], row["only_b"] = len(row["only_a"]), len(row["only_b"])
+           "common_a": _median([pa[k] for k in common]), "common_b": _median([pb[k] for k in common])}
+    for name, own, other in (("a", pa, pb), ("b", pb, pa)):
+        only = sorted(set(own) - set(other))
+        row[f"only_{name}"], row[f"only_{name}_median"] = len(only), _median([own[k] for k in only])
     for name, objs, own in (("a", a, pa), ("b", b, pb)):
         keys = sorted(objs)
         lib, n = _library_median(objs, keys, [objs[k]["prototype"] for k in keys], symmetry_order)
@@ -136,11 +136,7 @@ def main(argv: list[str] | None = None) -> str:
                              and (rb / f"r{r:02d}_eval/objects_test.json").is_file()]
     if not rounds:
         raise SystemExit(f"yaw_common_pairs: no round with rNN_eval/objects_test.json in both {ra} and {rb}")
-    lines = [f"Relative yaw error (median, deg), same-prototype pairs of asymmetric categories: {na} ({ra}) vs {nb} ({rb})",
-             "",
-             f"| round | {na}: all pairs | {nb}: all pairs | common pairs | {na} on them | {nb} on them "
-             f"| only {na}: pairs, median | only {nb}: pairs, median |",
-             "|---|---|---|---|---|---|---|---|"]
+    cells = []
     for r in rounds:
         a = read_objects(ra / f"r{r:02d}_eval" / "objects_test.json", args.data_dir)
         b = read_objects(rb / f"r{r:02d}_eval" / "objects_test.json", args.data_dir)
@@ -150,10 +146,13 @@ def main(argv: list[str] | None = None) -> str:
             if rep is not None and not math.isclose(rep, row[f"all_{name}"], abs_tol=1e-3):
                 print(f"yaw_common_pairs: note: {run}, round {r}: results.json reports {rep:.3f} deg, the objects give "
                       f"{row[f'all_{name}']:.3f} (pairs capped per group there?)", file=sys.stderr)
-        lines.append(f"| {r} | {row['all_a']:.1f} ({row['pairs_a']}) | {row['all_b']:.1f} ({row['pairs_b']}) | "
-                     f"{row['common']} | {row['common_a']:.1f} | {row['common_b']:.1f} | {row['only_a']}, "
-                     f"{row['only_a_median']:.1f} | {row['only_b']}, {row['only_b_median']:.1f} |")
-    table = "\n".join(lines)
+        cells.append([r, f"{row['all_a']:.1f} ({row['pairs_a']})", f"{row['all_b']:.1f} ({row['pairs_b']})",
+                      row["common"], f"{row['common_a']:.1f}", f"{row['common_b']:.1f}",
+                      f"{row['only_a']}, {row['only_a_median']:.1f}", f"{row['only_b']}, {row['only_b_median']:.1f}"])
+    table = (f"Relative yaw error (median, deg), same-prototype pairs of asymmetric categories: {na} ({ra}) vs {nb} "
+             f"({rb})\n\n" + md_table(["round", f"{na}: all pairs", f"{nb}: all pairs", "common pairs",
+                                      f"{na} on them", f"{nb} on them", f"only {na}: pairs, median",
+                                      f"only {nb}: pairs, median"], cells))
     print(table)
     if args.out:
         args.out.write_text(table + "\n")

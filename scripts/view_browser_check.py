@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import itertools
 import json
 import shutil
 import subprocess
@@ -79,26 +80,24 @@ def main() -> int:
             print("view_browser_check: Chromium's DevTools did not answer")
             return 1
         ws = websocket.create_connection(target["webSocketDebuggerUrl"], timeout=30)
-        t0, n, png = time.time(), 0, b""
+        ids = itertools.count(1)
+
+        def screenshot() -> bytes:
+            n = next(ids)
+            ws.send(json.dumps({"id": n, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
+            while (reply := json.loads(ws.recv())).get("id") != n:
+                pass
+            return base64.b64decode(reply["result"]["data"])
+
+        t0, png = time.time(), b""
         while time.time() - t0 < args.seconds:
             time.sleep(5)
-            n += 1
-            ws.send(json.dumps({"id": n, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
-            while True:
-                reply = json.loads(ws.recv())
-                if reply.get("id") == n:
-                    break
-            png = base64.b64decode(reply["result"]["data"])
-            colours = drawn_colours(png)
+            colours = drawn_colours(png := screenshot())
             print(f"view_browser_check: after {time.time() - t0:.0f} s, {colours} colours in the scenes' view")
             if colours >= 200:
                 time.sleep(5)  # let the labels and the time series settle, then keep that picture
-                n += 1
-                ws.send(json.dumps({"id": n, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
-                while (reply := json.loads(ws.recv())).get("id") != n:
-                    pass
                 Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-                Path(args.out).write_bytes(base64.b64decode(reply["result"]["data"]))
+                Path(args.out).write_bytes(screenshot())
                 print(f"view_browser_check: drawn; wrote {args.out}")
                 return 0
         Path(args.out).with_suffix(".failed.png").write_bytes(png)

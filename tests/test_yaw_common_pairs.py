@@ -2,22 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_benchmark
 
 from threedq.boxes import boxes_to_aabb
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "yaw_common_pairs.py"
-_spec = importlib.util.spec_from_file_location("yaw_common_pairs", _PATH)
-ycp = importlib.util.module_from_spec(_spec)
-sys.modules["yaw_common_pairs"] = ycp
-_spec.loader.exec_module(ycp)  # type: ignore[union-attr]
+ycp = load_benchmark("yaw_common_pairs")
 
 # one scene, five objects: three of the asymmetric category 0 (GT yaws 0, 30, 60 deg), two of the 4-fold category 1
 GT_YAW_DEG = [0.0, 30.0, 60.0, 0.0, 45.0]
@@ -66,7 +61,7 @@ class TestYawCommonPairs:
                              data)
         row = ycp.compare(a, b, [1, 4])
         assert (row["pairs_a"], row["pairs_b"], row["common"], row["only_a"], row["only_b"]) == (3, 1, 1, 2, 0)
-        assert row["common_a"] == pytest.approx(0.0, abs=1e-5)  # GT yaws stored in float32 and row["common_b"] == pytest.approx(10.0)
+        assert row["common_a"] == pytest.approx(0.0, abs=1e-5) and row["common_b"] == pytest.approx(10.0)  # float32 GT
         # the same run twice: every pair is common, and the numbers are the run's own
         same = ycp.compare(a, a, [1, 4])
         assert same["common"] == 3 and same["common_a"] == same["all_a"] == pytest.approx(10.0)
