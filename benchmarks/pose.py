@@ -45,6 +45,7 @@ def yaw_summary(angles: torch.Tensor, clusters: torch.Tensor, test: dict, sym: l
         if order == 1:
             out["asym_acc_10"], out["asym_acc_20"] = float(r["acc_10"]), float(r["acc_20"])
             out["asym_pairs"] = int(r["num_pairs"])
+    out["asym_objects"] = int((torch.tensor(sym)[test["labels"]] == 1).sum())
     return out
 
 
@@ -93,17 +94,18 @@ def bank_rows(crops: torch.Tensor, test: dict, sym: list[int], num_classes: int)
     return {k: sum(v) / len(v) for k, v in acc.items()}, first
 
 
-def detected_boxes(run: Path, dm: Any, out: Path) -> str:
-    """Write the boxes the detector of ``run`` finds on the test split (each scene's first fixed view, the run's
-    hand-on threshold) to the boxes file ``out``; returns its path."""
+def detected_boxes(run: Path, dm: Any, out: Path, views: int) -> str:
+    """Write the boxes the detector of ``run`` finds on the test split (from each scene's first ``views`` fixed views,
+    as ``threedq parse`` detects on the views it reads; the run's hand-on threshold) to the boxes file ``out``;
+    returns its path."""
     from threedq.data.box_files import save_boxes_file
     from threedq.pipeline.parse import SceneParser, resolve_run
     from threedq.pipeline.report import split_loader
 
     parser = SceneParser(resolve_run(str(run), None, None, None))
-    views, dm.num_input_views = dm.num_input_views, 1
+    old, dm.num_input_views = dm.num_input_views, views
     loader = split_loader(dm, "test")
-    dm.num_input_views = views
+    dm.num_input_views = old
     boxes: dict[str, tuple[Any, Any]] = {}
     files = loader.dataset.files
     with torch.no_grad():
@@ -140,12 +142,12 @@ def measure(datasets: list[str], encoders: list[str], rows_path: Path, input_vie
     for ds in datasets:
         dm = load_datamodule(DATASETS[ds])
         sym, num_classes = list(dm.index.symmetry_order), len(dm.index.categories)
-        sources = {"GT": "gt"}
-        if run is not None:
-            sources["detected"] = detected_boxes(run, dm, tmp / f"{ds}.npz")
+        sources = {(v, "GT"): "gt" for v in input_views}
+        if run is not None:  # boxes found from the views the crops are read from
+            sources.update({(v, "detected"): detected_boxes(run, dm, tmp / f"{ds}_{v}.npz", v) for v in input_views})
         seen: dict[tuple[str, int, str], int] = {}
         first_clusters = None
-        for spec, views, (box_name, boxes) in ((e, v, b) for e in encoders for v in input_views for b in sources.items()):
+        for spec, ((views, box_name), boxes) in ((e, b) for e in encoders for b in sources.items()):
             name, _, ckpt = spec.partition("=")
             key = (name, views, box_name)
             seen[key] = seen.get(key, -1) + 1
@@ -199,8 +201,8 @@ COLUMNS = (("asym_median_deg", "yaw, asymmetric (median deg)"), ("asym_acc_10", 
 
 def table(rows: list[dict[str, Any]]) -> str:
     """Markdown: one line per (dataset, boxes, input views, row), the mean (and range) over its seeds."""
-    out = ["| dataset | boxes | input views | row | seeds | objects | " + " | ".join(h for _, h in COLUMNS) + " |",
-           "|" + "---|" * (6 + len(COLUMNS))]
+    out = ["| dataset | boxes | input views | row | seeds | objects | asymmetric objects | "
+           + " | ".join(h for _, h in COLUMNS) + " |", "|" + "---|" * (7 + len(COLUMNS))]
     groups: dict[tuple[str, str, int, str], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["dataset"], r.get("boxes", "GT"), r.get("input_views", 1), r["row"]), []).append(r)
@@ -209,7 +211,9 @@ def table(rows: list[dict[str, Any]]) -> str:
         for key, _ in COLUMNS:
             v = [r[key] for r in rs if key in r and r[key] == r[key]]
             cells.append(mean_range(v, 2 if "acc" in key else (1 if "deg" in key else 3)) if v else "")
-        out.append(f"| {ds} | {boxes} | {views} | {name} | {len(rs)} | {rs[0]['objects']} | " + " | ".join(cells) + " |")
+        asym = int(rs[0]["asym_objects"]) if "asym_objects" in rs[0] else ""
+        out.append(f"| {ds} | {boxes} | {views} | {name} | {len(rs)} | {rs[0]['objects']} | {asym} | " + " | ".join(cells)
+                   + " |")
     return "\n".join(out)
 
 

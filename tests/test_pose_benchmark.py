@@ -24,7 +24,7 @@ class TestYawSummary:
         clusters = torch.zeros(6, dtype=torch.long)
         perfect = torch.tensor([0, 33, 30, 27, 0, 0])  # y = -g in steps of 10 deg; the cube's quarter turn is free
         s = pose.yaw_summary(perfect, clusters, test, [1, 4])
-        assert s["asym_median_deg"] == 0 and s["asym_acc_10"] == 1 and s["asym_pairs"] == 6
+        assert s["asym_median_deg"] == 0 and s["asym_acc_10"] == 1 and s["asym_pairs"] == 6 and s["asym_objects"] == 4
         assert s["4fold_median_deg"] == 0 and math.isnan(s["2fold_median_deg"])
         off = perfect.clone()
         off[0] = 1  # object 0 one step (10 deg) off: its 3 pairs are 10 deg off, the other 3 exact
@@ -54,8 +54,8 @@ class TestTable:
                 for s, v, a in ((0, 10.0, 0.5), (1, 20.0, 0.7))]
         rows.append({"dataset": "unseen", "row": "random yaw", "seed": 0, "objects": 9, "asym_median_deg": 88.0})
         rows.append({"dataset": "unseen", "row": "enc", "input_views": 3, "boxes": "detected", "seed": 0, "objects": 7,
-                     "asym_median_deg": 12.0})
+                     "asym_objects": 3.0, "asym_median_deg": 12.0})
         md = pose.table(rows).splitlines()
-        assert md[2].startswith("| unseen | GT | 1 | enc | 2 | 9 | 15.0 (10.0-20.0) | 0.60 (0.50-0.70) |")
-        assert md[3].startswith("| unseen | GT | 1 | random yaw | 1 | 9 | 88.0 |  |")
-        assert md[4].startswith("| unseen | detected | 3 | enc | 1 | 7 | 12.0 |")
+        assert md[2].startswith("| unseen | GT | 1 | enc | 2 | 9 |  | 15.0 (10.0-20.0) | 0.60 (0.50-0.70) |")
+        assert md[3].startswith("| unseen | GT | 1 | random yaw | 1 | 9 |  | 88.0 |  |")
+        assert md[4].startswith("| unseen | detected | 3 | enc | 1 | 7 | 3 | 12.0 |")
