@@ -37,13 +37,18 @@ class TestRobustnessBenchmark:
         assert "| adapted | sensor captures | quantizer | level1 | 0, 1 | 0.500 (0.400-0.600) |" in lines[4]
         assert "stopped: threedq: error: too few boxes" in lines[3]
 
-    def test_table_keeps_each_quantizer_apart(self) -> None:
-        """Rows without ``quantizer_config`` are the one-view quantizer's; another quantizer gets its own line."""
+    def test_table_keeps_each_quantizer_and_detector_apart(self) -> None:
+        """Rows without ``quantizer_config`` (``detector_config``) are the one-view quantizer's (the default detector's);
+        other configs get their own line."""
         rows = [_row("adapted", "level1", 0, True, 0.4),
                 {**_row("adapted", "level1", 0, True, 0.8), "quantizer_config": "stages/quantizer_multiview.yaml"}]
         lines = robustness.table(rows).splitlines()
         assert lines[2].startswith("| adapted | sensor captures | quantizer | level1 | 0 | 0.400 |")
         assert lines[3].startswith("| adapted | sensor captures | quantizer_multiview | level1 | 0 | 0.800 |")
+        rows.append({**rows[-1], "detector_config": "stages/detector_sensor.yaml", "pseudo_map_50": 0.9})
+        lines = robustness.table(rows).splitlines()
+        assert lines[4].startswith("| adapted | sensor captures | quantizer_multiview + detector_sensor | level1 | 0 | "
+                                   "0.900 |")
 
     def test_curve_png(self, tmp_path: Path) -> None:
         rows = [_row(m, c, 0, s, v) for m in ("frozen", "adapted") for s in (False, True)
@@ -80,10 +85,14 @@ class TestRobustnessBenchmark:
             "pseudo_map_50": 0.9, "warm_start_map_50": 0.7, "detector_map_50": 0.8, "precision_at_10": 0.4,
             "hungarian_acc": 0.5, "yaw_median_deg": 12.0}
         assert "sensor_captures: true" in (work / "data_level0_sensor.yaml").read_text()
-        # the capture DataModules' quantizer preset by default, named in the run's folder
+        # the capture DataModules' quantizer preset and the default detector, the quantizer named in the run's folder
         assert commands[0][commands[0].index("--quantizer_config") + 1] == "stages/quantizer_multiview.yaml"
+        assert commands[0][commands[0].index("--detector_config") + 1] == "stages/detector.yaml"
         run = Path(commands[0][commands[0].index("--work_dir") + 1])
         assert run.name == "adapted_level0_sensor_quantizer_multiview_s1"
+        robustness.adapted_row(tmp_path / "main", work, clean, "level0", 0, True, detector="stages/detector_sensor.yaml")
+        run = Path(commands[1][commands[1].index("--work_dir") + 1])
+        assert run.name == "adapted_level0_sensor_quantizer_multiview_detector_sensor_s0"
         # level 0 is the clean folder, linked (its proposal caches are the copy's own)
         assert (work / "data_level0" / "train" / "a.npz").read_bytes() == b"scene"
         assert (work / "data_level0" / "train" / "a.npz").stat().st_ino == (clean / "train" / "a.npz").stat().st_ino
