@@ -2,9 +2,10 @@
 
 Per dataset, each ``--encoder NAME=CKPT`` (a repeated NAME is another seed) is scored by a K = 50 rotation-aware bank
 fitted label-free on the test objects themselves, per number of ``--input_views`` and box source (GT; with ``--run``
-that run's detections): median relative yaw errors, accuracy within 10 / 20 deg, the confident half, the yaw found
-directly between two objects (``pairs``) and Hungarian accuracy, with references (random yaws, the raw crops' bank,
-point-cloud registration). One JSON line per (dataset, row, seed) goes to ``--rows``; the table is printed.
+that run's detections, found from the same input views): median relative yaw errors, accuracy within 10 / 20 deg,
+the confident half, the yaw found directly between two objects (``pairs``) and Hungarian accuracy, with references
+(random yaws, the raw crops' bank, point-cloud registration). One JSON line per (dataset, row, seed) goes to
+``--rows``; the table is printed.
 
     python benchmarks/pose.py --encoder "main job=runs/em/r04_quantizer/checkpoints/last.ckpt" \\
         --encoder "main job=runs/em_s1/r04_quantizer/checkpoints/last.ckpt" --rows pose_rows.jsonl
@@ -212,8 +213,8 @@ def table(rows: list[dict[str, Any]]) -> str:
             v = [r[key] for r in rs if key in r and r[key] == r[key]]
             cells.append(mean_range(v, 2 if "acc" in key else (1 if "deg" in key else 3)) if v else "")
         asym = int(rs[0]["asym_objects"]) if "asym_objects" in rs[0] else ""
-        out.append(f"| {ds} | {boxes} | {views} | {name} | {len(rs)} | {rs[0]['objects']} | {asym} | " + " | ".join(cells)
-                   + " |")
+        head = f"| {ds} | {boxes} | {views} | {name} | {len(rs)} | {rs[0]['objects']} | {asym} | "
+        out.append(head + " | ".join(cells) + " |")
     return "\n".join(out)
 
 

@@ -2,8 +2,8 @@
 
 Per condition (``threedq.data.sensor``): ``frozen``, the main job's last detector and quantizer on a copy whose test
 split is degraded; ``adapted`` (``--adapt``), ``threedq em --rounds 1 --viewpred_ckpt <main job's>`` on a copy whose
-every split is degraded, its quantizer ``--quantizer_config`` (default the capture DataModules' preset, 3 input views)
-and detector ``--detector_config`` (default ``stages/detector.yaml``). Rows go to ``--rows`` (a row already there is not measured again); the table (``--md``) and
+every split is degraded, its quantizer ``--quantizer_config`` (default the capture DataModules' preset, 3 input
+views). Rows go to ``--rows`` (a row already there is not measured again); the table (``--md``) and
 the picture (``--png``) are drawn from every row of the file::
 
     python benchmarks/robustness.py --main_run runs/em --work runs/robustness \\
@@ -45,7 +45,7 @@ DATA_CONFIG = """data:
 """
 #: the adaptation rounds' quantizer: the capture DataModules' preset; rows without ``quantizer_config`` used ONE_VIEW
 QUANTIZER, ONE_VIEW = "stages/quantizer_multiview.yaml", "stages/quantizer.yaml"
-#: the adaptation rounds' detector by default; rows without ``detector_config`` used it too
+#: the adaptation rounds' detector; a row's ``detector_config`` names another one (kept apart in the table)
 PLAIN = "stages/detector.yaml"
 
 
@@ -116,20 +116,18 @@ def frozen_row(main_run: Path, work: Path, clean: Path, name: str, sensor: bool)
 
 
 def adapted_row(main_run: Path, work: Path, clean: Path, name: str, seed: int, sensor: bool,
-                quantizer: str = QUANTIZER, detector: str = PLAIN) -> dict[str, Any]:
+                quantizer: str = QUANTIZER) -> dict[str, Any]:
     """``threedq em --rounds 1 --viewpred_ckpt`` on the condition's noisy copy (every split), one seed, with the
-    quantizer config ``quantizer`` and the detector config ``detector``."""
+    quantizer config ``quantizer``."""
     cfg = noisy_copy(clean, work, name, None, sensor)
     seed_cfg = work / f"seed{seed}.yaml"
     seed_cfg.write_text(f"seed_everything: {seed}\n")
-    tag = ("" if quantizer == ONE_VIEW else f"_{Path(quantizer).stem}") + (
-        "" if detector == PLAIN else f"_{Path(detector).stem}")
+    tag = "" if quantizer == ONE_VIEW else f"_{Path(quantizer).stem}"
     run = work / f"adapted_{name}_{cfg.stem.rsplit('_', 1)[1]}{tag}_s{seed}"
     t0 = time.time()
     cmd = ["threedq", "em", "--rounds", "1", "--work_dir", str(run), "--resume", "true",
            "--viewpred_ckpt", str(main_run / "00_viewpred" / "checkpoints" / "last.ckpt"),
-           "--data_config", str(cfg), "--extra_configs", str(seed_cfg), "--quantizer_config", quantizer,
-           "--detector_config", detector]
+           "--data_config", str(cfg), "--extra_configs", str(seed_cfg), "--quantizer_config", quantizer]
     print("[robustness] " + " ".join(cmd), flush=True)
     proc = subprocess.run(cmd, capture_output=True, text=True)
     (run.parent / f"{run.name}.log").write_text(proc.stdout + proc.stderr)
@@ -265,7 +263,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sensor_captures", nargs="*", default=["true"], choices=["true", "false"],
                     help="read the copies as sensor captures (the DataModule's sensor_captures), or not, or both")
     ap.add_argument("--quantizer_config", default=QUANTIZER, help="the adaptation rounds' quantizer config")
-    ap.add_argument("--detector_config", default=PLAIN, help="the adaptation rounds' detector config")
     ap.add_argument("--rows", type=Path, default=Path("benchmarks/results/robustness/rows.jsonl"))
     ap.add_argument("--pseudo_boxes", type=int, default=0, metavar="N",
                     help="only the pseudo-boxes of N test scenes per condition (degraded in memory), renders' against "
@@ -284,20 +281,20 @@ def main(argv: list[str] | None = None) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
     args.rows.parent.mkdir(parents=True, exist_ok=True)
     rows = read_rows(args.rows) if args.rows.is_file() else []
-    done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"], _quantizer(r), _detector(r)) for r in rows}
+    done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"], _quantizer(r)) for r in rows
+            if _detector(r) == PLAIN}
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     todo = []
     for sensor in [s == "true" for s in args.sensor_captures]:
-        todo += [("frozen", c, 0, sensor, ONE_VIEW, PLAIN) for c in args.conditions]
-        todo += [("adapted", c, s, sensor, args.quantizer_config, args.detector_config) for c in args.conditions
-                 if c in args.adapt for s in args.seeds]
-    for mode, name, seed, sensor, quantizer, detector in todo:
-        if (mode, name, seed, sensor, quantizer, detector) in done:
+        todo += [("frozen", c, 0, sensor, ONE_VIEW) for c in args.conditions]
+        todo += [("adapted", c, s, sensor, args.quantizer_config) for c in args.conditions if c in args.adapt
+                 for s in args.seeds]
+    for mode, name, seed, sensor, quantizer in todo:
+        if (mode, name, seed, sensor, quantizer) in done:
             continue
         row = {"mode": mode, "condition": name, "seed": seed, "sensor_captures": sensor, "quantizer_config": quantizer,
-               "detector_config": detector,
                **(frozen_row(args.main_run, args.work, args.clean, name, sensor) if mode == "frozen"
-                  else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor, quantizer, detector)),
+                  else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor, quantizer)),
                "machine": cpu_name(), "commit": commit, "date": time.strftime("%Y-%m-%d")}
         append_row(args.rows, row)
         rows.append(row)
