@@ -2,8 +2,8 @@
 
 Per condition (``threedq.data.sensor``): ``frozen``, the main job's last detector and quantizer on a copy whose test
 split is degraded; ``adapted`` (``--adapt``), ``threedq em --rounds 1 --viewpred_ckpt <main job's>`` on a copy whose
-every split is degraded, its quantizer ``--quantizer_config`` (default the capture DataModules' preset, 3 input
-views). Rows go to ``--rows`` (a row already there is not measured again); the table (``--md``) and
+every split is degraded, its quantizer ``--quantizer_config`` and detector ``--detector_config`` (default the capture
+DataModules' presets: 3 input views; detections refined against the scene's pseudo-boxes). Rows go to ``--rows`` (a row already there is not measured again); the table (``--md``) and
 the picture (``--png``) are drawn from every row of the file::
 
     python benchmarks/robustness.py --main_run runs/em --work runs/robustness \\
@@ -45,8 +45,8 @@ DATA_CONFIG = """data:
 """
 #: the adaptation rounds' quantizer: the capture DataModules' preset; rows without ``quantizer_config`` used ONE_VIEW
 QUANTIZER, ONE_VIEW = "stages/quantizer_multiview.yaml", "stages/quantizer.yaml"
-#: the adaptation rounds' detector; a row's ``detector_config`` names another one (kept apart in the table)
-PLAIN = "stages/detector.yaml"
+#: the adaptation rounds' detector: the capture DataModules' preset; rows without ``detector_config`` used PLAIN
+DETECTOR, PLAIN = "stages/detector_scene.yaml", "stages/detector.yaml"
 
 
 def _quantizer(r: dict[str, Any]) -> str:
@@ -116,18 +116,20 @@ def frozen_row(main_run: Path, work: Path, clean: Path, name: str, sensor: bool)
 
 
 def adapted_row(main_run: Path, work: Path, clean: Path, name: str, seed: int, sensor: bool,
-                quantizer: str = QUANTIZER) -> dict[str, Any]:
+                quantizer: str = QUANTIZER, detector: str = DETECTOR) -> dict[str, Any]:
     """``threedq em --rounds 1 --viewpred_ckpt`` on the condition's noisy copy (every split), one seed, with the
-    quantizer config ``quantizer``."""
+    quantizer config ``quantizer`` and the detector config ``detector``."""
     cfg = noisy_copy(clean, work, name, None, sensor)
     seed_cfg = work / f"seed{seed}.yaml"
     seed_cfg.write_text(f"seed_everything: {seed}\n")
-    tag = "" if quantizer == ONE_VIEW else f"_{Path(quantizer).stem}"
+    tag = ("" if quantizer == ONE_VIEW else f"_{Path(quantizer).stem}") + (
+        "" if detector == PLAIN else f"_{Path(detector).stem}")
     run = work / f"adapted_{name}_{cfg.stem.rsplit('_', 1)[1]}{tag}_s{seed}"
     t0 = time.time()
     cmd = ["threedq", "em", "--rounds", "1", "--work_dir", str(run), "--resume", "true",
            "--viewpred_ckpt", str(main_run / "00_viewpred" / "checkpoints" / "last.ckpt"),
-           "--data_config", str(cfg), "--extra_configs", str(seed_cfg), "--quantizer_config", quantizer]
+           "--data_config", str(cfg), "--extra_configs", str(seed_cfg), "--quantizer_config", quantizer,
+           "--detector_config", detector]
     print("[robustness] " + " ".join(cmd), flush=True)
     proc = subprocess.run(cmd, capture_output=True, text=True)
     (run.parent / f"{run.name}.log").write_text(proc.stdout + proc.stderr)
@@ -218,19 +220,23 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def curve_png(rows: list[dict[str, Any]], path: Path) -> None:
-    """Each metric against the capture level (every effect), as a share of its clean value: the main job's model and
-    one adaptation round with the one-view quantizer; solid read as sensor captures, dashed read as renders."""
+    """Each metric against the capture level (every effect), as a share of its clean value: the main job's model, one
+    adaptation round with the one-view quantizer and the input view's detector, and one with the capture DataModules'
+    presets; solid read as sensor captures, dashed read as renders."""
     from threedq.viz.png import figure_png, new_figure, write_png
 
-    fig = new_figure(figsize=(12, 4.5))
+    fig = new_figure(figsize=(17, 4.5))
     colours = dict(zip([k for k, _ in METRICS], ["C0", "C1", "C2", "C3", "C4", "C5", "C6"]))
-    rows = [r for r in rows if _quantizer(r) == ONE_VIEW and _detector(r) == PLAIN]
-    for ax_i, mode in enumerate(("frozen", "adapted")):
-        ax = fig.add_subplot(1, 2, ax_i + 1)
+    panels = (("frozen", ONE_VIEW, PLAIN, "the main job's model"),
+              ("adapted", ONE_VIEW, PLAIN, "one adaptation round: one view, the input view's boxes"),
+              ("adapted", QUANTIZER, DETECTOR, "one adaptation round: the capture presets"))
+    for ax_i, (mode, quantizer, detector, title) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), ax_i + 1)
+        kept = [r for r in rows if r["mode"] == mode and _quantizer(r) == quantizer and _detector(r) == detector
+                and "failed" not in r]
         for sensor in (False, True):
-            level_rows = [r for r in rows if r["mode"] == mode and r["sensor_captures"] == sensor
-                          and r["condition"] in LEVELS and "failed" not in r]
-            clean = [r for r in rows if r["mode"] == mode and r["condition"] == "level0" and "failed" not in r]
+            level_rows = [r for r in kept if r["sensor_captures"] == sensor and r["condition"] in LEVELS]
+            clean = [r for r in kept if r["condition"] == "level0"]
             if not level_rows or not clean:
                 continue
             for k, label in METRICS:
@@ -245,7 +251,7 @@ def curve_png(rows: list[dict[str, Any]], path: Path) -> None:
         ax.axhline(0.9, color="grey", lw=0.8, ls=":")
         ax.set_xlabel("capture level (1 = a Kinect-class sensor and a good SLAM run)")
         ax.set_ylabel("share of the clean value")
-        ax.set_title("the main job's model" if mode == "frozen" else "one adaptation round on the noisy data")
+        ax.set_title(title, fontsize=9)
         ax.set_ylim(0, 1.25)
         ax.legend(fontsize=6, ncol=2)
     write_png(path, figure_png(fig))
@@ -263,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sensor_captures", nargs="*", default=["true"], choices=["true", "false"],
                     help="read the copies as sensor captures (the DataModule's sensor_captures), or not, or both")
     ap.add_argument("--quantizer_config", default=QUANTIZER, help="the adaptation rounds' quantizer config")
+    ap.add_argument("--detector_config", default=DETECTOR, help="the adaptation rounds' detector config")
     ap.add_argument("--rows", type=Path, default=Path("benchmarks/results/robustness/rows.jsonl"))
     ap.add_argument("--pseudo_boxes", type=int, default=0, metavar="N",
                     help="only the pseudo-boxes of N test scenes per condition (degraded in memory), renders' against "
@@ -281,20 +288,20 @@ def main(argv: list[str] | None = None) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
     args.rows.parent.mkdir(parents=True, exist_ok=True)
     rows = read_rows(args.rows) if args.rows.is_file() else []
-    done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"], _quantizer(r)) for r in rows
-            if _detector(r) == PLAIN}
+    done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"], _quantizer(r), _detector(r)) for r in rows}
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     todo = []
     for sensor in [s == "true" for s in args.sensor_captures]:
-        todo += [("frozen", c, 0, sensor, ONE_VIEW) for c in args.conditions]
-        todo += [("adapted", c, s, sensor, args.quantizer_config) for c in args.conditions if c in args.adapt
-                 for s in args.seeds]
-    for mode, name, seed, sensor, quantizer in todo:
-        if (mode, name, seed, sensor, quantizer) in done:
+        todo += [("frozen", c, 0, sensor, ONE_VIEW, PLAIN) for c in args.conditions]
+        todo += [("adapted", c, s, sensor, args.quantizer_config, args.detector_config) for c in args.conditions
+                 if c in args.adapt for s in args.seeds]
+    for mode, name, seed, sensor, quantizer, detector in todo:
+        if (mode, name, seed, sensor, quantizer, detector) in done:
             continue
         row = {"mode": mode, "condition": name, "seed": seed, "sensor_captures": sensor, "quantizer_config": quantizer,
+               "detector_config": detector,
                **(frozen_row(args.main_run, args.work, args.clean, name, sensor) if mode == "frozen"
-                  else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor, quantizer)),
+                  else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor, quantizer, detector)),
                "machine": cpu_name(), "commit": commit, "date": time.strftime("%Y-%m-%d")}
         append_row(args.rows, row)
         rows.append(row)

@@ -321,7 +321,8 @@ class SceneFolderDataModule(L.LightningDataModule):
     """
 
     #: the stage configs that serve this kind of data (threedq.pipeline.presets)
-    PRESETS: ClassVar[dict[str, str]] = {"mining": "stages/mining_occupancy_pairs.yaml",
+    PRESETS: ClassVar[dict[str, str]] = {"detector": "stages/detector_scene.yaml",
+                                         "mining": "stages/mining_occupancy_pairs.yaml",
                                          "quantizer": "stages/quantizer_multiview.yaml"}
 
     def __init__(

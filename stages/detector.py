@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -174,8 +174,12 @@ class Detector(SplitEvaluation, EncoderStage):
         nms_iou: 3D NMS IoU threshold.
         nms_iomin: 3D NMS threshold on intersection over the smaller box (1 = off).
         max_detections: detections per scene, after NMS.
-        refine_iou: a detection takes the input views' pseudo-box it overlaps this much, then NMS again (0: off).
-        flat_boxes: with ``refine_iou > 0``, add the input views' pseudo-boxes below ``min_box_height`` no box hits.
+        refine_iou: a detection takes the pseudo-box of ``refine_to`` it overlaps this much, then NMS again (0: off).
+        flat_boxes: with ``refine_iou > 0``, add the pseudo-boxes of ``refine_to`` below ``min_box_height`` that no
+            box hits.
+        refine_to: the pseudo-boxes a detection is refined against: ``"input"``, those of the views the detector
+            reads; ``"scene"``, the DataModule's ``pseudo_boxes(split)``, fused over every view of the scene (a
+            departure from the paper's single-view detection: the boxes then use views the detector does not read).
         lr: Adam learning rate.
         image_every_n_steps: write a detections PNG at validation when this many steps have passed (0: never).
 
@@ -188,8 +192,8 @@ class Detector(SplitEvaluation, EncoderStage):
         negative_margin: float = 0.1, box_weight: float = 1.0, score_threshold: ClosedUnitInterval = 0.9,
         eval_score_threshold: ClosedUnitInterval = 0.05, nms_iou: ClosedUnitInterval = 0.1,
         nms_iomin: ClosedUnitInterval = 0.3, max_detections: PositiveInt = 16, refine_iou: ClosedUnitInterval = 0.1,
-        flat_boxes: bool = True, lr: float = 1e-3, image_every_n_steps: int = 200, min_box_height: float | None = None,
-        **kwargs: Any,
+        flat_boxes: bool = True, refine_to: Literal["input", "scene"] = "input", lr: float = 1e-3,
+        image_every_n_steps: int = 200, min_box_height: float | None = None, **kwargs: Any,
     ) -> None:
         super().__init__(freeze_encoder=freeze_encoder, **kwargs)
         if anchor_size is not None and (len(anchor_size) != 3
@@ -212,6 +216,7 @@ class Detector(SplitEvaluation, EncoderStage):
         self.val_map = DetectionMAP(iou_thresholds=(0.25, 0.5))
         self.test_map = DetectionMAP(iou_thresholds=(0.25, 0.5))
         self._last_image_step = -1
+        self._scene_boxes: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
 
     def on_fit_start(self) -> None:
         """Take a ``None`` ``anchor_size`` that no checkpoint gave from the DataModule's training boxes."""
@@ -301,14 +306,16 @@ class Detector(SplitEvaluation, EncoderStage):
 
     @torch.no_grad()
     def detect(self, logits: Tensor, box: Tensor, score_threshold: float | None = None,
-               views: tuple[Tensor, Tensor, Tensor] | None = None) -> list[dict[str, Tensor]]:
-        """Per scene ``{"boxes": [P, 6], "scores": [P]}`` after thresholding and 3D NMS; with the input ``views``
-        (:meth:`input_of`) and ``refine_iou > 0``, refined against them."""
+               views: tuple[Tensor, Tensor, Tensor] | None = None,
+               targets: list[tuple[np.ndarray, np.ndarray]] | None = None) -> list[dict[str, Tensor]]:
+        """Per scene ``{"boxes": [P, 6], "scores": [P]}`` after thresholding and 3D NMS; with ``refine_iou > 0``,
+        refined against the pseudo-boxes of the input ``views`` (:meth:`input_of`), or against per scene
+        ``targets`` ``(aabb [Q, 6], scores [Q])`` when given (:meth:`scene_targets`)."""
         self._check_anchor()
         thr = self.hparams.score_threshold if score_threshold is None else score_threshold
         scores = torch.sigmoid(logits.float()).flatten(1)
         boxes = decode_boxes(self.centres, box.float(), self.anchor).flatten(1, 3)
-        refine = views is not None and self.hparams.refine_iou > 0
+        refine = (views is not None or targets is not None) and self.hparams.refine_iou > 0
         fg = self.feature_grid
         out = []
         for i, (s, b) in enumerate(zip(scores, boxes)):
@@ -320,8 +327,12 @@ class Detector(SplitEvaluation, EncoderStage):
             k = nms_3d(b, s, self.hparams.nms_iou, self.hparams.nms_iomin)[: self.hparams.max_detections]
             b, s = b[k], s[k]
             if refine:
-                obs, obs_s = observed_boxes(views[0][i], views[1][i], views[2][i], (fg.bounds_min, fg.bounds_max))
-                obs, obs_s = torch.from_numpy(obs), torch.from_numpy(obs_s)
+                if targets is None:
+                    obs, obs_s = observed_boxes(views[0][i], views[1][i], views[2][i], (fg.bounds_min, fg.bounds_max))
+                else:
+                    obs, obs_s = targets[i]
+                obs = torch.as_tensor(obs, dtype=torch.float32).reshape(-1, 6).to(b.device)
+                obs_s = torch.as_tensor(obs_s, dtype=torch.float32).reshape(-1).to(b.device)
                 if b.shape[0]:
                     b, s, _ = refine_boxes(b, s, obs, self.hparams.refine_iou, self.hparams.nms_iou,
                                            self.hparams.nms_iomin)  # fmt: skip
@@ -339,18 +350,44 @@ class Detector(SplitEvaluation, EncoderStage):
                       prog_bar=True, batch_size=logits.shape[0])
         return r["loss"]
 
+    def scene_targets(self, batch: dict[str, Tensor], split: str, files: list[str] | None = None,
+                      ) -> list[tuple[np.ndarray, np.ndarray]] | None:  # fmt: skip
+        """With ``refine_to: scene``, the batch's scenes' pseudo-boxes fused over all their views (the trainer's
+        DataModule's ``pseudo_boxes(split)``; ``files``: the scene files ``batch["scene_index"]`` indexes, default the
+        trainer's ``split`` loader's); else ``None``."""
+        if self.hparams.refine_to != "scene":
+            return None
+        dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        if split not in self._scene_boxes:
+            if dm is None or not callable(getattr(dm, "pseudo_boxes", None)):
+                raise ValueError(f"refine_to: 'scene' refines against the DataModule's pseudo_boxes(split), which "
+                                 f"needs a scene-folder DataModule; got {type(dm).__name__}; set refine_to: input")
+            self._scene_boxes[split] = dm.pseudo_boxes(split)
+        if files is None:
+            loader = self.trainer.test_dataloaders if split == "test" else self.trainer.val_dataloaders
+            files = getattr(getattr(loader, "dataset", None), "files", None)
+            if files is None:
+                raise ValueError(f"refine_to: 'scene': the {split} loader's dataset names no scene files (.files)")
+        boxes = self._scene_boxes[split]
+        names = [files[int(i)] for i in batch["scene_index"].reshape(-1)]
+        missing = [n for n in names if n not in boxes]
+        if missing:
+            raise ValueError(f"refine_to: 'scene': the {split} split's pseudo-boxes have no entry for {missing[0]}")
+        return [boxes[n] for n in names]
+
     def _eval_step(self, batch: dict[str, Tensor], split: str, batch_idx: int) -> None:
         logits, box = self(batch)
         r = self.loss(logits, box, batch["gt_aabb"], batch["gt_mask"])
         self.log(f"{split}/loss", r["loss"], batch_size=logits.shape[0], sync_dist=True)
         views = self.input_of(batch)
-        dets = self.detect(logits, box, self.hparams.eval_score_threshold, views)
+        snap = self.scene_targets(batch, split)
+        dets = self.detect(logits, box, self.hparams.eval_score_threshold, views, snap)
         targets = [{"boxes": a[m]} for a, m in zip(batch["gt_aabb"], batch["gt_mask"])]
         getattr(self, f"{split}_map").update(dets, targets)
         every = self.hparams.image_every_n_steps
         if batch_idx == 0 and every and split == "val" and self.global_step - self._last_image_step >= every:
             self._last_image_step = self.global_step
-            self._write_image(batch, self.detect(logits, box, views=views), "val")
+            self._write_image(batch, self.detect(logits, box, views=views, targets=snap), "val")
 
     def _eval_epoch_end(self, split: str) -> None:
         metric = getattr(self, f"{split}_map")

@@ -150,7 +150,7 @@ def load_head_state(head: torch.nn.Module, path: str | Path, anchor_size: Any = 
 #: What a self-labelled detector takes from the detector checkpoint it fine-tunes unless given.
 INHERITED_FROM_DETECTOR: tuple[str, ...] = ("anchor_size", "channels", "num_blocks", "score_threshold",
                                             "eval_score_threshold", "nms_iou", "nms_iomin", "max_detections",
-                                            "refine_iou", "flat_boxes")
+                                            "refine_iou", "flat_boxes", "refine_to")
 
 
 class SelfLabelling(Detector):
@@ -186,6 +186,7 @@ class SelfLabelling(Detector):
         max_detections: as the Detector's (None: ``detector_ckpt``'s).
         refine_iou: as the Detector's (None: ``detector_ckpt``'s).
         flat_boxes: as the Detector's (None: ``detector_ckpt``'s).
+        refine_to: as the Detector's (None: ``detector_ckpt``'s).
         **kwargs: the :class:`~threedq.stages.detector.Detector`'s other arguments and the encoder's, by keyword.
     """
 
@@ -201,7 +202,8 @@ class SelfLabelling(Detector):
         num_blocks: int | None = None, score_threshold: ClosedUnitInterval | None = None,
         eval_score_threshold: ClosedUnitInterval | None = None, nms_iou: ClosedUnitInterval | None = None,
         nms_iomin: ClosedUnitInterval | None = None, max_detections: PositiveInt | None = None,
-        refine_iou: ClosedUnitInterval | None = None, flat_boxes: bool | None = None, **kwargs: Any,
+        refine_iou: ClosedUnitInterval | None = None, flat_boxes: bool | None = None,
+        refine_to: Literal["input", "scene"] | None = None, **kwargs: Any,
     ) -> None:
         args = locals()
         given = {name: args[name] for name in INHERITED_FROM_DETECTOR}

@@ -250,3 +250,119 @@ class TestDetectorRefinement:
         assert float(ranked["scores"][1]) == pytest.approx(0.5 * float(obs_s[j]))
         off = self._stage(0.1, flat_boxes=False).detect(logits, box, 0.01, views=views)[0]
         assert off["boxes"].shape == (1, 6)
+
+
+class TestSceneTargets:
+    """``refine_to: scene``: detections are refined against given per-scene pseudo-boxes instead of the input
+    views' own, and the stage takes them from its DataModule's ``pseudo_boxes(split)`` by scene file."""
+
+    def _stage(self, refine_to: str = "scene"):
+        from threedq.stages.detector import Detector
+
+        return Detector(grid_min=(-1.0, -1.0, -0.5), grid_max=(1.0, 1.0, 1.5), grid_resolution=(16, 16, 16),
+                        feature_dim=8, anchor_size=(0.4, 0.4, 0.3), score_threshold=0.5, refine_to=refine_to)
+
+    def test_targets_replace_the_input_views(self) -> None:
+        stage = self._stage()
+        loose = BOXES[0] + np.array([0.06, -0.05, 0.08, 0.06, -0.05, 0.0])
+        logits, box = TestDetectorRefinement._logits_for(None, stage, loose)
+        scene = render(BOXES, num_views=1)
+        views = tuple(torch.from_numpy(a)[None] for a in (scene.depth, scene.K, scene.world_T_cam))
+        target = (BOXES[:1].astype(np.float32) + np.float32(0.01), np.ones(1, np.float32))  # by hand: one box near it
+        got = stage.detect(logits, box, views=views, targets=[target])[0]["boxes"]
+        torch.testing.assert_close(got, torch.from_numpy(target[0]))
+        alone = stage.detect(logits, box, targets=[target])[0]["boxes"]  # no views needed
+        torch.testing.assert_close(alone, got)
+        far = (BOXES[1:2].astype(np.float32), np.ones(1, np.float32))  # overlaps nothing: the regression stays
+        kept = stage.detect(logits, box, targets=[far])[0]["boxes"]
+        torch.testing.assert_close(kept[0].double(), torch.from_numpy(loose), atol=1e-5, rtol=0)
+
+    def test_scene_targets_by_file(self) -> None:
+        from types import SimpleNamespace
+
+        boxes = {"a.npz": (np.zeros((1, 6), np.float32), np.ones(1, np.float32)),
+                 "b.npz": (np.ones((2, 6), np.float32), np.ones(2, np.float32))}
+        asked = []
+
+        def pseudo_boxes(split):
+            asked.append(split)
+            return boxes
+
+        stage = self._stage()
+        stage._trainer = SimpleNamespace(datamodule=SimpleNamespace(pseudo_boxes=pseudo_boxes))
+        batch = {"scene_index": torch.tensor([1, 0, 1])}
+        got = stage.scene_targets(batch, "test", files=["a.npz", "b.npz"])
+        assert [g[0].shape[0] for g in got] == [2, 1, 2] and asked == ["test"]
+        stage.scene_targets(batch, "test", files=["a.npz", "b.npz"])
+        assert asked == ["test"]  # read once per split
+        with pytest.raises(ValueError, match="no entry for c.npz"):
+            stage.scene_targets({"scene_index": torch.tensor([0])}, "test", files=["c.npz"])
+        assert self._stage("input").scene_targets(batch, "test", files=["a.npz", "b.npz"]) is None
+
+    def test_exception_without_a_scene_datamodule(self) -> None:
+        from types import SimpleNamespace
+
+        stage = self._stage()
+        stage._trainer = SimpleNamespace(datamodule=object())
+        with pytest.raises(ValueError, match="refine_to: 'scene'.*set refine_to: input"):
+            stage.scene_targets({"scene_index": torch.tensor([0])}, "val", files=["a.npz"])
+
+    def test_detect_split_takes_the_targets(self) -> None:
+        from threedq.pipeline.detection_eval import detect_split
+
+        stage = self._stage().eval()
+        scene = render(BOXES, num_views=1)
+        rgb = torch.from_numpy(scene.rgb).permute(0, 3, 1, 2).float() / 255
+        sample = {"rgb": rgb, "depth": torch.from_numpy(scene.depth),
+                  "K": torch.from_numpy(scene.K), "R_T_cam": torch.from_numpy(scene.world_T_cam),
+                  "scene_index": torch.tensor(0), "view_ids": torch.tensor([0]), "num_input_views": torch.tensor(1)}
+
+        class Data(torch.utils.data.Dataset):
+            files = ["s.npz"]
+
+            def __len__(self):
+                return 1
+
+            def __getitem__(self, i):
+                return sample
+
+        loader = torch.utils.data.DataLoader(Data(), batch_size=1)
+        with torch.no_grad():
+            plain, _ = detect_split(stage, loader, 0.0, progress=False)
+            shifted = plain["s.npz"][0][:3] + np.float32(0.02)  # by hand: a target beside three of the detections
+            target = {"s.npz": (shifted, np.ones(3, np.float32))}
+            logits, box = stage({k: v[None] for k, v in sample.items()})
+            want = stage.detect(logits, box, 0.0, targets=[target["s.npz"]])[0]["boxes"].numpy()
+            got, _ = detect_split(stage, loader, 0.0, progress=False, targets=target)
+        np.testing.assert_array_equal(got["s.npz"][0], want)
+        snapped = (want[:, None] == shifted[None]).all(-1).any(-1)
+        assert snapped.sum() >= 1 and not np.array_equal(plain["s.npz"][0], want)
+        with pytest.raises(ValueError, match="no pseudo-boxes for s.npz"):
+            detect_split(stage, loader, progress=False, targets={})
+
+    def test_validation_step_refines_against_the_scene(self) -> None:
+        """The stage's own validation step (metric and picture) refines against the scene's pseudo-boxes: each
+        detection's box is then one of them or its regression."""
+        from types import SimpleNamespace
+
+        stage = self._stage().eval()
+        scene = render(BOXES, num_views=1)
+        rgb = torch.from_numpy(scene.rgb).permute(0, 3, 1, 2).float() / 255
+        batch = {"rgb": rgb[None], "depth": torch.from_numpy(scene.depth)[None], "K": torch.from_numpy(scene.K)[None],
+                 "R_T_cam": torch.from_numpy(scene.world_T_cam)[None], "scene_index": torch.tensor([0]),
+                 "num_input_views": torch.tensor([1]), "gt_aabb": torch.from_numpy(BOXES).float()[None],
+                 "gt_mask": torch.ones(1, 2, dtype=torch.bool)}
+        shifted = BOXES.astype(np.float32) + np.float32(0.01)
+        asked = []
+
+        def pseudo_boxes(split):
+            asked.append(split)
+            return {"s.npz": (shifted, np.ones(2, np.float32))}
+
+        stage._trainer = SimpleNamespace(datamodule=SimpleNamespace(pseudo_boxes=pseudo_boxes), global_step=1000,
+                                         val_dataloaders=SimpleNamespace(dataset=SimpleNamespace(files=["s.npz"])),
+                                         is_global_zero=False, sanity_checking=False)
+        stage.log = lambda *args, **kwargs: None
+        with torch.no_grad():
+            stage._eval_step(batch, "val", 0)  # with the picture's detection too (image_every_n_steps)
+        assert asked == ["val"] and stage.val_map.compute()["num_det"] > 0

@@ -32,6 +32,7 @@ OWN_GRID = {"stages/viewpred.yaml", "stages/supervised.yaml", "paper/viewpred.ya
 NEEDS = {
     "stages/detector.yaml": ("encoder_ckpt",),
     "stages/detector_gt.yaml": ("encoder_ckpt",),
+    "stages/detector_scene.yaml": ("encoder_ckpt",),
     "stages/quantizer.yaml": ("encoder_ckpt",),
     "stages/quantizer_multiview.yaml": ("encoder_ckpt",),
     "stages/mining.yaml": ("encoder_ckpt",),

@@ -25,6 +25,7 @@ from threedq.pipeline.parse import (
     names_path,
     parse_records,
     resolve_run,
+    scene_targets,
 )
 from threedq.pipeline.parse_command import run_parse
 from threedq.pipeline.renders import load_view_decoder, orbit_poses, replaced_render
@@ -118,6 +119,42 @@ class TestParse:
             assert (o["prototype"], o["angle_index"]) == (e["prototype"], e["angle_index"])
             assert o["similarity"] == pytest.approx(e["similarity"], abs=1e-4)
             assert o["yaw_deg"] == pytest.approx((-10.0 * e["angle_index"]) % 360)
+
+    def test_refined_against_the_whole_scene(self, tiny_run: Path) -> None:
+        """A ``refine_to: scene`` detector's parse refines its detections against the scene's pseudo-boxes fused over
+        all its views (the renders' parameters here; two boxes on a flat floor, seen from 8 views), while an input-view
+        detector gets no targets."""
+        from dataclasses import asdict
+
+        from analytic_scenes import render
+
+        from threedq.boxes import aabb_iou_3d
+        from threedq.datamodules.scene_folder import RENDER_PROPOSALS
+        from threedq.proposals import propose_boxes
+
+        parser = SceneParser(resolve_run(tiny_run), score_threshold=0.0)
+        boxes = np.array([[-0.55, -0.35, 0.0, -0.15, 0.05, 0.3], [0.2, 0.1, 0.0, 0.5, 0.6, 0.2]])
+        recs = [render(boxes, num_views=8)]
+        assert scene_targets(parser, recs, sensor_captures=False) is None
+        parser.detector.hparams.refine_to = "scene"
+        targets = scene_targets(parser, recs, sensor_captures=False)
+        fg = parser.detector.feature_grid
+        want = propose_boxes(recs[0], bounds=(fg.bounds_min, fg.bounds_max), **asdict(RENDER_PROPOSALS))
+        np.testing.assert_array_equal(targets[0][0], want[0])
+        assert len(want[0]) == 2 and float(aabb_iou_3d(torch.from_numpy(want[0]).double(),
+                                                       torch.from_numpy(boxes)).diagonal().min()) > 0.5
+        seen = []
+        detect = parser.detector.detect
+
+        def recording(*args, **kwargs):  # the snapping itself: tests/test_box_refinement.py::TestSceneTargets
+            seen.append(kwargs.get("targets"))
+            return detect(*args, **kwargs)
+
+        parser.detector.detect = recording
+        parse_records(parser, recs, [[0]], targets=targets)
+        parse_records(parser, recs, [[0]])
+        assert len(seen) == 2 and seen[1] is None
+        np.testing.assert_array_equal(seen[0][0][0], want[0])
 
     def test_yaw_convention(self, tiny_run: Path) -> None:
         """A prototype turned by -yaw[a] (the object the parse describes as 'R = 10 a') is found at index a."""

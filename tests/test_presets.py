@@ -14,6 +14,7 @@ from threedq.pipeline.presets import stage_presets
 class TestStagePresets:
     EMBEDDED = {"mining": "stages/mining.yaml", "quantizer": "stages/quantizer.yaml"}
     SHAPES = {"mining": "stages/mining_occupancy_pairs.yaml", "quantizer": "stages/quantizer_multiview.yaml"}
+    CAPTURES = {**SHAPES, "detector": "stages/detector_scene.yaml"}
 
     def test_the_shipped_data_configs(self) -> None:
         assert stage_presets([]) == self.EMBEDDED  # the default data: the embedded scenes
@@ -25,9 +26,11 @@ class TestStagePresets:
         own = tmp_path / "desk.yaml"
         own.write_text("data:\n  class_path: threedq.datamodules.scene_folder.SceneFolderDataModule\n"
                        "  init_args:\n    data_dir: data/desk\n")
-        assert stage_presets([own]) == self.SHAPES
+        assert stage_presets([own]) == self.CAPTURES
         own.write_text(own.read_text() + "presets:\n  mining: stages/mining.yaml\n")  # the config's own wins
-        assert stage_presets([own]) == {**self.SHAPES, "mining": "stages/mining.yaml"}
+        assert stage_presets([own]) == {**self.CAPTURES, "mining": "stages/mining.yaml"}
+        own.write_text(own.read_text().replace("scene_folder.SceneFolderDataModule", "tum.TumRGBDDataModule"))
+        assert stage_presets([own]) == {**self.CAPTURES, "mining": "stages/mining.yaml"}  # a capture DataModule
 
     def test_the_multiview_quantizer_is_its_base_with_three_views(self) -> None:
         from threedq.pipeline.lightning_cli import load_config
@@ -37,6 +40,14 @@ class TestStagePresets:
         multi["data"]["init_args"]["num_input_views"] = 1
         multi["trainer"]["default_root_dir"] = base["trainer"]["default_root_dir"]
         assert multi == base
+
+    def test_the_scene_detector_is_its_base_refined_against_the_scene(self) -> None:
+        from threedq.pipeline.lightning_cli import load_config
+
+        base, scene = load_config("stages/detector.yaml"), load_config("stages/detector_scene.yaml")
+        assert scene["model"]["init_args"].pop("refine_to") == "scene"
+        scene["trainer"]["default_root_dir"] = base["trainer"].get("default_root_dir")
+        assert scene == base
 
     @pytest.mark.parametrize("presets, field", [("[a, b]", "presets"), ("{viewpred: x.yaml}", "presets.viewpred"),
                                                 ("{mining: 3}", "presets.mining")])
@@ -72,6 +83,22 @@ class TestStagePresets:
         assert quantizer(None) == ["quantizer.yaml"]
         assert quantizer("data/shapes.yaml") == ["quantizer_multiview.yaml", "shapes.yaml"]
         assert quantizer("data/shapes.yaml", "stages/quantizer.yaml") == ["quantizer.yaml", "shapes.yaml"]
+
+    def test_em_detects_with_the_data_configs_preset(self, tmp_path: Path) -> None:
+        from threedq.pipeline.em import _resolve_configs
+
+        def detector(data_config: str | None, detector_config: str | None = None) -> list[str]:
+            cfg = _resolve_configs("stages/viewpred.yaml", None, detector_config, "none",
+                                   "stages/self_labelling.yaml", data_config, None, True, None)
+            return [p.name for p in cfg.d]
+
+        own = tmp_path / "desk.yaml"
+        own.write_text("data:\n  class_path: threedq.datamodules.scene_folder.SceneFolderDataModule\n"
+                       "  init_args:\n    data_dir: data/desk\n")
+        assert detector(None) == ["detector.yaml"]
+        assert detector("data/shapes.yaml") == ["detector.yaml", "shapes.yaml"]
+        assert detector(str(own)) == ["detector_scene.yaml", "desk.yaml"]
+        assert detector(str(own), "stages/detector.yaml") == ["detector.yaml", "desk.yaml"]
 
 
 class TestConfigChain:

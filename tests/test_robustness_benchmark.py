@@ -53,6 +53,8 @@ class TestRobustnessBenchmark:
     def test_curve_png(self, tmp_path: Path) -> None:
         rows = [_row(m, c, 0, s, v) for m in ("frozen", "adapted") for s in (False, True)
                 for c, v in (("level0", 0.8), ("level1", 0.6), ("level2", 0.4))]
+        rows += [{**_row("adapted", c, 0, True, v), "quantizer_config": robustness.QUANTIZER,
+                  "detector_config": robustness.DETECTOR} for c, v in (("level0", 0.9), ("level1", 0.8))]
         robustness.curve_png(rows, tmp_path / "c.png")
         assert (tmp_path / "c.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -85,10 +87,11 @@ class TestRobustnessBenchmark:
             "pseudo_map_50": 0.9, "warm_start_map_50": 0.7, "detector_map_50": 0.8, "precision_at_10": 0.4,
             "hungarian_acc": 0.5, "yaw_median_deg": 12.0}
         assert "sensor_captures: true" in (work / "data_level0_sensor.yaml").read_text()
-        # the capture DataModules' quantizer preset by default, named in the run's folder
+        # the capture DataModules' quantizer and detector presets by default, named in the run's folder
         assert commands[0][commands[0].index("--quantizer_config") + 1] == "stages/quantizer_multiview.yaml"
+        assert commands[0][commands[0].index("--detector_config") + 1] == "stages/detector_scene.yaml"
         run = Path(commands[0][commands[0].index("--work_dir") + 1])
-        assert run.name == "adapted_level0_sensor_quantizer_multiview_s1"
+        assert run.name == "adapted_level0_sensor_quantizer_multiview_detector_scene_s1"
         # level 0 is the clean folder, linked (its proposal caches are the copy's own)
         assert (work / "data_level0" / "train" / "a.npz").read_bytes() == b"scene"
         assert (work / "data_level0" / "train" / "a.npz").stat().st_ino == (clean / "train" / "a.npz").stat().st_ino

@@ -91,13 +91,14 @@ def _stage_configs() -> list[str]:
 #: runs.
 CONFIG_CHOICES = {"grid_min", "grid_max", "grid_resolution", "feature_dim", "encoder_channels", "source"}
 #: A variant config (one with ``base:``) holds only what it exists to set on top of its base; its own choices.
-VARIANT_CHOICES = {"stages/detector_gt.yaml": set(), "stages/quantizer_multiview.yaml": set(),
+VARIANT_CHOICES = {"stages/detector_gt.yaml": set(), "stages/detector_scene.yaml": {"refine_to"},
+                   "stages/quantizer_multiview.yaml": set(),
                    "stages/mining_occupancy_pairs.yaml": {"candidates_from"},
                    "stages/mining_paper.yaml": {"candidates_from", "candidates_per_query", "positives", "query_pool",
                                                 "target_pool", "yaw_window", "rank_by"}}
 
 #: the data arguments a variant sets (the detector's GT variant: ``boxes: gt``)
-VARIANT_DATA = {"stages/quantizer_multiview.yaml": {"num_input_views": 3}}
+VARIANT_DATA = {"stages/quantizer_multiview.yaml": {"num_input_views": 3}, "stages/detector_scene.yaml": {}}
 
 
 @pytest.mark.parametrize("config", _stage_configs())
@@ -130,7 +131,7 @@ class TestSelfLabellingInheritsTheDetector:
     def _detector_ckpt(self, tmp_path: Path) -> Path:
         det = Detector(anchor_size=(0.4, 0.3, 0.2), channels=16, num_blocks=2, score_threshold=0.7,
                        eval_score_threshold=0.1, nms_iou=0.2, nms_iomin=0.5, max_detections=5, refine_iou=0.3,
-                       flat_boxes=False, **SMALL)
+                       flat_boxes=False, refine_to="scene", **SMALL)
         path = tmp_path / "det.ckpt"
         torch.save({"state_dict": det.state_dict(), "hyper_parameters": dict(det.hparams)}, path)
         return path
@@ -140,7 +141,7 @@ class TestSelfLabellingInheritsTheDetector:
         sl = SelfLabelling(detector_ckpt=str(ckpt), **SMALL)
         want = {"anchor_size": [0.4, 0.3, 0.2], "channels": 16, "num_blocks": 2, "score_threshold": 0.7,
                 "eval_score_threshold": 0.1, "nms_iou": 0.2, "nms_iomin": 0.5, "max_detections": 5,
-                "refine_iou": 0.3, "flat_boxes": False}
+                "refine_iou": 0.3, "flat_boxes": False, "refine_to": "scene"}
         assert set(want) == set(INHERITED_FROM_DETECTOR)
         for k, v in want.items():
             got = sl.hparams[k]

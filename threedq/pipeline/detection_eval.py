@@ -66,11 +66,14 @@ def box_sets_map(gt: dict[str, np.ndarray], box_sets: dict[str, tuple[np.ndarray
 def detect_split(
     stage: torch.nn.Module, loader: torch.utils.data.DataLoader, score_threshold: float | None = None,
     progress: bool = True, input_views: dict[str, list[int]] | None = None,
+    targets: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[tuple[dict[str, Tensor], list[dict[str, Tensor]]]]]:
     """Run a :class:`~threedq.stages.detector.Detector` over a deterministic loader.
 
     Args:
         input_views: when given, filled with ``{scene file -> the view indices the detector saw}``.
+        targets: ``{scene file -> (aabb [Q, 6], scores [Q])}`` to refine against instead of the input views'
+            pseudo-boxes (a ``refine_to: scene`` detector's, :meth:`~threedq.stages.detector.Detector.scene_targets`).
 
     Returns:
         ``{scene file -> (aabb [P,6], scores [P])}`` at ``score_threshold`` (default: the stage's) and the
@@ -85,7 +88,14 @@ def detect_split(
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
         with stage.precision_context():
             logits, box = stage(batch)
-        dets = stage.detect(logits, box, score_threshold, views=stage.input_of(batch))
+        scene = None
+        if targets is not None:
+            names = [files[i] for i in batch["scene_index"].tolist()]
+            missing = [n for n in names if n not in targets]
+            if missing:
+                raise ValueError(f"targets: no pseudo-boxes for {missing[0]}")
+            scene = [targets[n] for n in names]
+        dets = stage.detect(logits, box, score_threshold, views=stage.input_of(batch), targets=scene)
         for j, (i, d) in enumerate(zip(batch["scene_index"].tolist(), dets)):
             out[files[i]] = (d["boxes"].cpu().numpy(), d["scores"].cpu().numpy())
             if input_views is not None:
@@ -176,7 +186,8 @@ def evaluate_detection(stage: Any, dm: Any, out_dir: str | Path, test_map: dict[
         ds = dm.fixed_view_dataset(split, with_boxes=False)
         loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=False, num_workers=0)
         views: dict[str, list[int]] = {}
-        dets, first = detect_split(stage, loader, progress=progress, input_views=views)
+        targets = dm.pseudo_boxes(split, progress=progress) if stage.hparams.get("refine_to") == "scene" else None
+        dets, first = detect_split(stage, loader, progress=progress, input_views=views, targets=targets)
         path = out / f"detections_{split}.npz"
         save_boxes_file(path, dets, json.dumps({"score_threshold": stage.hparams.score_threshold}))
         files[split] = str(path)

@@ -278,8 +278,8 @@ def _preset(preset: str, *given: str | None) -> tuple[str | None, ...]:
     return tuple(PAPER_PRESET[k] if g == _DEFAULT_CONFIGS[k] else g for k, g in zip(PAPER_PRESET, given))
 
 
-def _resolve_configs(config: str, quantizer_config: str | None, detector_config: str, mining_config: str | None,
-                     self_labelling_config: str | None, data_config: str | None,
+def _resolve_configs(config: str, quantizer_config: str | None, detector_config: str | None,
+                     mining_config: str | None, self_labelling_config: str | None, data_config: str | None,
                      extra_configs: list[str] | str | None, detection: bool, max_steps: int | None) -> _RunConfigs:
     """Resolve the configs of every stage (:func:`run_em`'s arguments) and check the arguments the rounds hand each."""
     if isinstance(extra_configs, (str, Path)):
@@ -292,6 +292,8 @@ def _resolve_configs(config: str, quantizer_config: str | None, detector_config:
     q_configs = [resolve_config(quantizer_config), *extra]
     if mining_config is None:
         mining_config = presets.get("mining", "stages/mining.yaml")
+    if detector_config is None:
+        detector_config = presets.get("detector", "stages/detector.yaml")
     mine = mining_config not in ("", "none")
     m_configs = [resolve_config(mining_config), *extra] if mine else []
     relabel = detection and self_labelling_config not in (None, "", "none")
@@ -434,6 +436,7 @@ def _summary(work: Path, layout: RunLayout, rounds: int, cfg: _RunConfigs, data_
         "table3": _table3(det_eval, round_results, self_label_results, round0) if rounds else [],
         "round0_result": round0, "mining_config": _config_label(cfg.m[0], work) if mine else None,
         "quantizer_config": _config_label(cfg.q[0], work),
+        "detector_config": _config_label(cfg.d[0], work) if cfg.d else None,
         "data_config": _config_label(resolve_config(data_config or DEFAULT_DATA_CONFIG), work),
         "mining_results": [x.to_json() for x in rounds_run.mining], "viewpred": vp.to_json(), "viewpred_eval": vp_eval,
         "detector": det.to_json() if det else None, "detector_eval": det_eval, "boxes": boxes,
@@ -462,7 +465,7 @@ def _write_report(work: Path, summary: dict[str, Any]) -> None:
 
 def run_em(rounds: NonNegativeInt = 4, work_dir: str = "runs/em", resume: bool = False,
            config: str = "stages/viewpred.yaml", quantizer_config: str | None = None,
-           detector_config: str = "stages/detector.yaml", detection: bool = True,
+           detector_config: str | None = None, detection: bool = True,
            boxes: Literal["detections", "gt"] = "detections", data_config: str | None = None,
            extra_configs: list[str] | str | None = None, max_steps: int | None = None, mining_config: str | None = None,
            self_labelling_config: str | None = "stages/self_labelling.yaml", viewpred_ckpt: str | None = None,
@@ -479,7 +482,9 @@ def run_em(rounds: NonNegativeInt = 4, work_dir: str = "runs/em", resume: bool =
         quantizer_config: the quantizer stage config (default: the data's preset,
             :func:`~threedq.pipeline.presets.stage_presets`: ``stages/quantizer.yaml`` on the embedded data,
             ``stages/quantizer_multiview.yaml`` on the shape-only data and users' scene folders and captures).
-        detector_config: the detector stage config (trained from label-free pseudo-boxes by default).
+        detector_config: the detector stage config, trained from label-free pseudo-boxes (default: the data's preset,
+            :func:`~threedq.pipeline.presets.stage_presets`: ``stages/detector.yaml`` on the embedded and shape-only
+            data, ``stages/detector_scene.yaml`` on users' scene folders and captures).
         detection: train and evaluate the detector before the rounds.
         boxes: object boxes of the rounds: ``detections`` (the paper's protocol: the boxes the current detector
             hands on, above its score threshold; needs ``detection``; GT is used only to score, over the detections
@@ -547,7 +552,7 @@ _DEFAULT_CONFIGS = {k: inspect.signature(run_em).parameters[k].default for k in 
 
 
 def evaluate_run_on(run: str | Path, out: str | Path, data_config: str | None = None,
-                    detector_config: str = "stages/detector.yaml", quantizer_config: str | None = None,
+                    detector_config: str | None = None, quantizer_config: str | None = None,
                     self_labelling_config: str = "stages/self_labelling.yaml",
                     frozen_precision: Literal["auto", "bf16-mixed", "32-true"] = "auto") -> dict[str, Any]:
     """Evaluate a finished run's last detector and last quantizer (encoder and prototype bank) on a dataset, training

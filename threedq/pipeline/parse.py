@@ -22,7 +22,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,9 +36,11 @@ from tqdm import tqdm
 from threedq.atomic_io import atomic_write_bytes
 from threedq.data.draw import crop_birds_eye, distinct_colour, draw_boxes
 from threedq.data.formats.normalise import boxes_to_capture_frame
+from threedq.datamodules.scene_folder import RENDER_PROPOSALS, SENSOR_PROPOSALS
 from threedq.errors import InputError
 from threedq.geometry import crop_boxes, rotate_yaw, unproject_rgbd_occupied, yaw_angles
 from threedq.pipeline.run_layout import RunLayout
+from threedq.proposals import propose_boxes
 from threedq.quantization.prototypes import PrototypeBank, prototype_crops
 from threedq.quantization.rotation_search import yaw_confidence
 from threedq.scene import INDEX_NAME, SceneRecord, SceneValidationError, load_index, load_scene
@@ -211,13 +213,16 @@ class SceneParser(torch.nn.Module):
         return self.bank.prototypes.device
 
     @torch.no_grad()
-    def forward(self, batch: dict[str, Tensor], boxes: list[tuple[Tensor, Tensor]] | None = None) -> dict[str, Any]:
+    def forward(self, batch: dict[str, Tensor], boxes: list[tuple[Tensor, Tensor]] | None = None,
+                targets: list[tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, Any]:
         """Parse a batch of scenes (:func:`scene_batch` layout: ``rgb`` ``[B, V, 3, H, W]``, ``depth``, ``K``,
         ``R_T_cam``; all V views are inputs).
 
         Args:
             batch: the scenes.
             boxes: per scene ``(aabb [P, 6], scores [P])`` to match instead of the detector's boxes.
+            targets: per scene ``(aabb [Q, 6], scores [Q])`` the detections are refined against instead of the
+                input views' pseudo-boxes (a ``refine_to: scene`` detector: :func:`scene_targets`).
 
         Returns:
             per scene lists: ``aabb`` ``[P, 6]``, ``score`` ``[P]``, ``prototype`` ``[P]``, ``angle`` ``[P]``,
@@ -246,7 +251,8 @@ class SceneParser(torch.nn.Module):
         if boxes is None:
             with amp:
                 logits, box = det.head(feats)
-            dets = det.detect(logits.float(), box.float(), self.score_threshold, views=(depth, K, pose))
+            dets = det.detect(logits.float(), box.float(), self.score_threshold, views=(depth, K, pose),
+                              targets=targets)
         else:
             dets = [{"boxes": torch.as_tensor(a, dtype=torch.float32).reshape(-1, 6).to(feats.device),
                      "scores": torch.as_tensor(sc, dtype=torch.float32).reshape(-1).to(feats.device)}
@@ -333,13 +339,27 @@ def check_views(views: list[int], record: SceneRecord, source: str) -> list[int]
     return [v % record.num_views for v in views]
 
 
+def scene_targets(parser: SceneParser, records: list[SceneRecord], sensor_captures: bool,
+                  ) -> list[tuple[np.ndarray, np.ndarray]] | None:  # fmt: skip
+    """Per record, the label-free pseudo-boxes fused over all its views that a ``refine_to: scene`` detector refines
+    against (the parameters a scene-folder DataModule's ``pseudo_boxes`` uses for renders or sensor captures); ``None``
+    for a detector that refines against its input views."""
+    if parser.detector.hparams.get("refine_to") != "scene":
+        return None
+    params = asdict(SENSOR_PROPOSALS if sensor_captures else RENDER_PROPOSALS)
+    fg = parser.detector.feature_grid
+    return [propose_boxes(r, bounds=(fg.bounds_min, fg.bounds_max), **params) for r in records]
+
+
 def parse_records(parser: SceneParser, records: list[SceneRecord], views: list[list[int]],
                   names: dict[int, str] | None = None, batch_size: int = 4,
-                  boxes: list[tuple[np.ndarray, np.ndarray]] | None = None) -> list[dict[str, Any]]:
+                  boxes: list[tuple[np.ndarray, np.ndarray]] | None = None,
+                  targets: list[tuple[np.ndarray, np.ndarray]] | None = None) -> list[dict[str, Any]]:
     """Parse in-memory records (views per record); returns one JSON-ready dict per record (see :func:`run_parse`).
 
-    ``boxes`` (per record ``(aabb [P, 6], scores [P])``) replaces the detector's boxes. Records of one image size and
-    number of input views are batched ``batch_size`` at a time.
+    ``boxes`` (per record ``(aabb [P, 6], scores [P])``) replaces the detector's boxes; ``targets`` (the same
+    layout, :func:`scene_targets`) are what its detections are refined against. Records of one image size and number
+    of input views are batched ``batch_size`` at a time.
     """
     names = names or {}
     out: list[dict[str, Any] | None] = [None] * len(records)
@@ -351,7 +371,8 @@ def parse_records(parser: SceneParser, records: list[SceneRecord], views: list[l
         for s in range(0, len(idx), batch_size):
             chunk = idx[s : s + batch_size]
             given = None if boxes is None else [boxes[i] for i in chunk]
-            res = parser(scene_batch([records[i] for i in chunk], [views[i] for i in chunk]), given)
+            snap = None if targets is None else [targets[i] for i in chunk]
+            res = parser(scene_batch([records[i] for i in chunk], [views[i] for i in chunk]), given, snap)
             for j, i in enumerate(chunk):
                 out[i] = _scene_json(records[i], views[i], res, j, yaw, names)
                 out[i]["_features"] = res["features"][j : j + 1]

@@ -31,6 +31,7 @@ from threedq.pipeline.parse import (
     parse_figure,
     parse_records,
     resolve_run,
+    scene_targets,
 )
 from threedq.pipeline.renders import load_view_decoder, prototype_gallery, replaced_render
 from threedq.pipeline.run_layout import RunLayout
@@ -209,7 +210,8 @@ def run_parse(scenes: str, out: str, run: str | None = None, encoder: str | None
             recs, chosen, ok_files = _load_batch(root, files[s : s + batch_size], chosen_views, box_sets, boxes,
                                                  failed, sensor_captures)
             given = None if box_sets is None else [box_sets[f] for f in ok_files]
-            results = parse_records(parser, recs, chosen, names, batch_size, given)
+            targets = scene_targets(parser, recs, sensor_captures) if given is None else None
+            results = parse_records(parser, recs, chosen, names, batch_size, given, targets)
             for f, rec, v, res in zip(ok_files, recs, chosen, results):
                 features = res.pop("_features")
                 doc = {"scene": str(root / f), **res, "models": artifacts.to_dict(),

@@ -4,6 +4,7 @@ A DataModule class names its presets (``PRESETS``: stage -> config), and a data 
 top-level ``presets:`` mapping, which wins:
 
     presets:
+      detector: stages/detector_scene.yaml
       mining: stages/mining_occupancy_pairs.yaml
       quantizer: stages/quantizer_multiview.yaml
 
@@ -23,7 +24,7 @@ from threedq.pipeline.overrides import class_of
 __all__ = ["STAGES", "stage_presets"]
 
 #: the stages a preset can name
-STAGES = ("mining", "quantizer")
+STAGES = ("detector", "mining", "quantizer")
 
 
 def stage_presets(configs: Sequence[str | Path]) -> dict[str, str]:
