@@ -3,8 +3,9 @@
 Per condition (``threedq.data.sensor``): ``frozen``, the main job's last detector and quantizer on a copy whose test
 split is degraded; ``adapted`` (``--adapt``), ``threedq em --rounds 1 --viewpred_ckpt <main job's>`` on a copy whose
 every split is degraded, its quantizer ``--quantizer_config`` and detector ``--detector_config`` (default the capture
-DataModules' presets: 3 input views; detections refined against the scene's pseudo-boxes). Rows go to ``--rows`` (a row already there is not measured again); the table (``--md``) and
-the picture (``--png``) are drawn from every row of the file::
+DataModules' presets: 3 input views; detections refined against the scene's pseudo-boxes). Rows go to ``--rows`` (a
+row already there is not measured again); the table (``--md``) and the picture (``--png``) are drawn from every row of
+the file::
 
     python benchmarks/robustness.py --main_run runs/em --work runs/robustness \\
         --rows benchmarks/results/robustness/rows.jsonl --md docs/robustness_table.md --png docs/img/robustness.png

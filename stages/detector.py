@@ -155,6 +155,17 @@ def decode_boxes(centres: Tensor, box: Tensor, anchor: Tensor) -> Tensor:
     return torch.cat([c - s / 2, c + s / 2], dim=-1)
 
 
+def boxes_of_batch(boxes: dict[str, tuple[np.ndarray, np.ndarray]], files: list[str], scene_index: Tensor,
+                   missing_message: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``boxes[files[i]]`` for each ``i`` of ``scene_index``; ``ValueError`` of ``missing_message`` followed by the
+    first scene file it has no entry for."""
+    names = [files[int(i)] for i in scene_index.reshape(-1)]
+    missing = [n for n in names if n not in boxes]
+    if missing:
+        raise ValueError(f"{missing_message}{missing[0]}")
+    return [boxes[n] for n in names]
+
+
 class Detector(SplitEvaluation, EncoderStage):
     """3D detector on the shared encoder's feature grid.
 
@@ -368,12 +379,8 @@ class Detector(SplitEvaluation, EncoderStage):
             files = getattr(getattr(loader, "dataset", None), "files", None)
             if files is None:
                 raise ValueError(f"refine_to: 'scene': the {split} loader's dataset names no scene files (.files)")
-        boxes = self._scene_boxes[split]
-        names = [files[int(i)] for i in batch["scene_index"].reshape(-1)]
-        missing = [n for n in names if n not in boxes]
-        if missing:
-            raise ValueError(f"refine_to: 'scene': the {split} split's pseudo-boxes have no entry for {missing[0]}")
-        return [boxes[n] for n in names]
+        return boxes_of_batch(self._scene_boxes[split], files, batch["scene_index"],
+                              f"refine_to: 'scene': the {split} split's pseudo-boxes have no entry for ")
 
     def _eval_step(self, batch: dict[str, Tensor], split: str, batch_idx: int) -> None:
         logits, box = self(batch)

@@ -29,6 +29,7 @@ from threedq.metrics import DetectionMAP
 from threedq.metrics.detection import assign_detections
 from threedq.metrics.localisation import by_size_band, localisation_errors
 from threedq.scene import load_scene, load_scene_boxes
+from threedq.stages.detector import boxes_of_batch
 from threedq.viz.detection import detection_figure, size_band_figure
 from threedq.viz.png import write_png
 
@@ -88,13 +89,8 @@ def detect_split(
         batch = {k: v.to(stage.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
         with stage.precision_context():
             logits, box = stage(batch)
-        scene = None
-        if targets is not None:
-            names = [files[i] for i in batch["scene_index"].tolist()]
-            missing = [n for n in names if n not in targets]
-            if missing:
-                raise ValueError(f"targets: no pseudo-boxes for {missing[0]}")
-            scene = [targets[n] for n in names]
+        scene = None if targets is None else boxes_of_batch(targets, files, batch["scene_index"],
+                                                           "targets: no pseudo-boxes for ")
         dets = stage.detect(logits, box, score_threshold, views=stage.input_of(batch), targets=scene)
         for j, (i, d) in enumerate(zip(batch["scene_index"].tolist(), dets)):
             out[files[i]] = (d["boxes"].cpu().numpy(), d["scores"].cpu().numpy())
