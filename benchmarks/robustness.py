@@ -3,9 +3,10 @@
 Per condition (``threedq.data.sensor``): ``frozen``, the main job's last detector and quantizer on a copy whose test
 split is degraded; ``adapted`` (``--adapt``), ``threedq em --rounds 1 --viewpred_ckpt <main job's>`` on a copy whose
 every split is degraded, its quantizer ``--quantizer_config`` and detector ``--detector_config`` (default the capture
-DataModules' presets: 3 input views; detections refined against the scene's pseudo-boxes). Rows go to ``--rows`` (a
-row already there is not measured again); the table (``--md``) and the picture (``--png``) are drawn from every row of
-the file::
+DataModules' presets: 3 input views; detections refined against the scene's pseudo-boxes); with ``--viewpred copy``
+the round trains its own view prediction on the copy (``threedq em --rounds 1``, a user's whole first run) instead of
+reusing the main job's. Rows go to ``--rows`` (a row already there is not measured again: keep one file per CPU type);
+the table (``--md``) and the picture (``--png``) are drawn from every row of the file::
 
     python benchmarks/robustness.py --main_run runs/em --work runs/robustness \\
         --rows benchmarks/results/robustness/rows.jsonl --md docs/robustness_table.md --png docs/img/robustness.png
@@ -59,9 +60,11 @@ def _detector(r: dict[str, Any]) -> str:
 
 
 def _configs(r: dict[str, Any]) -> str:
-    """The table's name of a row's stage configs: the quantizer's, and the detector's where it is not the default."""
+    """The table's name of a row's stage configs: the quantizer's, the detector's where it is not the default, and
+    the view prediction's where the round trained its own."""
     q, d = Path(_quantizer(r)).stem, _detector(r)
-    return q if d == PLAIN else f"{q} + {Path(d).stem}"
+    name = q if d == PLAIN else f"{q} + {Path(d).stem}"
+    return name + (" + view prediction on the copy" if r.get("viewpred") == "copy" else "")
 
 
 def condition(name: str) -> tuple[float, list[str] | None]:
@@ -117,18 +120,19 @@ def frozen_row(main_run: Path, work: Path, clean: Path, name: str, sensor: bool)
 
 
 def adapted_row(main_run: Path, work: Path, clean: Path, name: str, seed: int, sensor: bool,
-                quantizer: str = QUANTIZER, detector: str = DETECTOR) -> dict[str, Any]:
+                quantizer: str = QUANTIZER, detector: str = DETECTOR, viewpred: str = "main") -> dict[str, Any]:
     """``threedq em --rounds 1 --viewpred_ckpt`` on the condition's noisy copy (every split), one seed, with the
-    quantizer config ``quantizer`` and the detector config ``detector``."""
+    quantizer config ``quantizer`` and the detector config ``detector``; ``viewpred="copy"``: without
+    ``--viewpred_ckpt`` (the round trains its view prediction on the copy)."""
     cfg = noisy_copy(clean, work, name, None, sensor)
     seed_cfg = work / f"seed{seed}.yaml"
     seed_cfg.write_text(f"seed_everything: {seed}\n")
     tag = ("" if quantizer == ONE_VIEW else f"_{Path(quantizer).stem}") + (
-        "" if detector == PLAIN else f"_{Path(detector).stem}")
+        "" if detector == PLAIN else f"_{Path(detector).stem}") + ("_vpcopy" if viewpred == "copy" else "")
     run = work / f"adapted_{name}_{cfg.stem.rsplit('_', 1)[1]}{tag}_s{seed}"
     t0 = time.time()
     cmd = ["threedq", "em", "--rounds", "1", "--work_dir", str(run), "--resume", "true",
-           "--viewpred_ckpt", str(main_run / "00_viewpred" / "checkpoints" / "last.ckpt"),
+           *([] if viewpred == "copy" else ["--viewpred_ckpt", str(main_run / "00_viewpred/checkpoints/last.ckpt")]),
            "--data_config", str(cfg), "--extra_configs", str(seed_cfg), "--quantizer_config", quantizer,
            "--detector_config", detector]
     print("[robustness] " + " ".join(cmd), flush=True)
@@ -234,7 +238,7 @@ def curve_png(rows: list[dict[str, Any]], path: Path) -> None:
     for ax_i, (mode, quantizer, detector, title) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), ax_i + 1)
         kept = [r for r in rows if r["mode"] == mode and _quantizer(r) == quantizer and _detector(r) == detector
-                and "failed" not in r]
+                and r.get("viewpred", "main") == "main" and "failed" not in r]
         for sensor in (False, True):
             level_rows = [r for r in kept if r["sensor_captures"] == sensor and r["condition"] in LEVELS]
             clean = [r for r in kept if r["condition"] == "level0"]
@@ -271,6 +275,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="read the copies as sensor captures (the DataModule's sensor_captures), or not, or both")
     ap.add_argument("--quantizer_config", default=QUANTIZER, help="the adaptation rounds' quantizer config")
     ap.add_argument("--detector_config", default=DETECTOR, help="the adaptation rounds' detector config")
+    ap.add_argument("--viewpred", default="main", choices=["main", "copy"],
+                    help="the adaptation rounds' view prediction: the main job's, or trained on the copy")
     ap.add_argument("--rows", type=Path, default=Path("benchmarks/results/robustness/rows.jsonl"))
     ap.add_argument("--pseudo_boxes", type=int, default=0, metavar="N",
                     help="only the pseudo-boxes of N test scenes per condition (degraded in memory), renders' against "
@@ -289,20 +295,22 @@ def main(argv: list[str] | None = None) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
     args.rows.parent.mkdir(parents=True, exist_ok=True)
     rows = read_rows(args.rows) if args.rows.is_file() else []
-    done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"], _quantizer(r), _detector(r)) for r in rows}
+    done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"], _quantizer(r), _detector(r),
+             r.get("viewpred", "main")) for r in rows}
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     todo = []
     for sensor in [s == "true" for s in args.sensor_captures]:
-        todo += [("frozen", c, 0, sensor, ONE_VIEW, PLAIN) for c in args.conditions]
-        todo += [("adapted", c, s, sensor, args.quantizer_config, args.detector_config) for c in args.conditions
-                 if c in args.adapt for s in args.seeds]
-    for mode, name, seed, sensor, quantizer, detector in todo:
-        if (mode, name, seed, sensor, quantizer, detector) in done:
+        todo += [("frozen", c, 0, sensor, ONE_VIEW, PLAIN, "main") for c in args.conditions]
+        todo += [("adapted", c, s, sensor, args.quantizer_config, args.detector_config, args.viewpred)
+                 for c in args.conditions if c in args.adapt for s in args.seeds]
+    for mode, name, seed, sensor, quantizer, detector, viewpred in todo:
+        if (mode, name, seed, sensor, quantizer, detector, viewpred) in done:
             continue
         row = {"mode": mode, "condition": name, "seed": seed, "sensor_captures": sensor, "quantizer_config": quantizer,
-               "detector_config": detector,
+               "detector_config": detector, **({"viewpred": viewpred} if viewpred != "main" else {}),
                **(frozen_row(args.main_run, args.work, args.clean, name, sensor) if mode == "frozen"
-                  else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor, quantizer, detector)),
+                  else adapted_row(args.main_run, args.work, args.clean, name, seed, sensor, quantizer, detector,
+                                   viewpred)),
                "machine": cpu_name(), "commit": commit, "date": time.strftime("%Y-%m-%d")}
         append_row(args.rows, row)
         rows.append(row)

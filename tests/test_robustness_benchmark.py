@@ -49,6 +49,10 @@ class TestRobustnessBenchmark:
         lines = robustness.table(rows).splitlines()
         assert lines[4].startswith("| adapted | sensor captures | quantizer_multiview + detector_sensor | level1 | 0 | "
                                    "0.900 |")
+        rows.append({**rows[-1], "viewpred": "copy", "pseudo_map_50": 0.7})
+        lines = robustness.table(rows).splitlines()
+        assert lines[5].startswith("| adapted | sensor captures | quantizer_multiview + detector_sensor + view "
+                                   "prediction on the copy | level1 | 0 | 0.700 |")
 
     def test_curve_png(self, tmp_path: Path) -> None:
         rows = [_row(m, c, 0, s, v) for m in ("frozen", "adapted") for s in (False, True)
@@ -95,6 +99,12 @@ class TestRobustnessBenchmark:
         # level 0 is the clean folder, linked (its proposal caches are the copy's own)
         assert (work / "data_level0" / "train" / "a.npz").read_bytes() == b"scene"
         assert (work / "data_level0" / "train" / "a.npz").stat().st_ino == (clean / "train" / "a.npz").stat().st_ino
+        ckpt = tmp_path / "main/00_viewpred/checkpoints/last.ckpt"
+        assert commands[0][commands[0].index("--viewpred_ckpt") + 1] == str(ckpt)
+        # view prediction trained on the copy: no checkpoint handed in, its own run folder
+        robustness.adapted_row(tmp_path / "main", work, clean, "level0", 1, True, viewpred="copy")
+        assert "--viewpred_ckpt" not in commands[1]
+        assert Path(commands[1][commands[1].index("--work_dir") + 1]).name.endswith("_detector_scene_vpcopy_s1")
 
 
 def test_pseudo_box_rows_on_the_tiny_data(tiny_dataset: Path, tmp_path: Path) -> None:
