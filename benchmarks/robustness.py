@@ -59,12 +59,16 @@ def _detector(r: dict[str, Any]) -> str:
     return r.get("detector_config", PLAIN)
 
 
+def _viewpred(r: dict[str, Any]) -> str:
+    return r.get("viewpred", "main")
+
+
 def _configs(r: dict[str, Any]) -> str:
     """The table's name of a row's stage configs: the quantizer's, the detector's where it is not the default, and
     the view prediction's where the round trained its own."""
     q, d = Path(_quantizer(r)).stem, _detector(r)
     name = q if d == PLAIN else f"{q} + {Path(d).stem}"
-    return name + (" + view prediction on the copy" if r.get("viewpred") == "copy" else "")
+    return name + (" + view prediction on the copy" if _viewpred(r) == "copy" else "")
 
 
 def condition(name: str) -> tuple[float, list[str] | None]:
@@ -238,7 +242,7 @@ def curve_png(rows: list[dict[str, Any]], path: Path) -> None:
     for ax_i, (mode, quantizer, detector, title) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), ax_i + 1)
         kept = [r for r in rows if r["mode"] == mode and _quantizer(r) == quantizer and _detector(r) == detector
-                and r.get("viewpred", "main") == "main" and "failed" not in r]
+                and _viewpred(r) == "main" and "failed" not in r]
         for sensor in (False, True):
             level_rows = [r for r in kept if r["sensor_captures"] == sensor and r["condition"] in LEVELS]
             clean = [r for r in kept if r["condition"] == "level0"]
@@ -296,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     args.rows.parent.mkdir(parents=True, exist_ok=True)
     rows = read_rows(args.rows) if args.rows.is_file() else []
     done = {(r["mode"], r["condition"], r["seed"], r["sensor_captures"], _quantizer(r), _detector(r),
-             r.get("viewpred", "main")) for r in rows}
+             _viewpred(r)) for r in rows}
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     todo = []
     for sensor in [s == "true" for s in args.sensor_captures]:
