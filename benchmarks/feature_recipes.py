@@ -24,7 +24,6 @@ from typing import Any
 from _common import append_row, read_rows
 from _common import table as md_table
 
-from threedq.geometry import CROP_SHAPES
 from threedq.machine import cpu_name
 
 DEFAULT_VARIANTS = ["default=", "3 targets=--data.init_args.num_target_views=3",
@@ -98,10 +97,10 @@ def _channels(crops: dict, channels: slice | None) -> dict:
     return out
 
 
-def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_shape: str = "hull",
+def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False,
                   channels: slice | None = None) -> dict[str, Any]:
     """Every number of one row for ``stage``'s encoder on the test split's GT boxes, one input view per scene;
-    ``crop_shape``: the region around each box (:func:`threedq.geometry.crop_region`); ``channels``: those scored."""
+    ``channels``: those scored."""
     import copy
 
     import torch
@@ -115,13 +114,13 @@ def score_encoder(stage: Any, dm: Any, probe: bool, cluster: bool = False, crop_
 
     with torch.no_grad():
         crops = collect_object_crops(stage, split_loader(dm, "test", gallery=True), random_encoder_seed=None,
-                                     progress=False, gallery=True, crop_shape=crop_shape)
+                                     progress=False, gallery=True)
         crops = _channels(crops, channels)
-        row: dict[str, Any] = {"crop": crop_shape}
+        row: dict[str, Any] = {}
         row.update({k: v for sim in SIMILARITIES for k, v in _score(crops, sim).items()})
         if probe or cluster:
             train = _channels(collect_object_crops(stage, split_loader(dm, "train"), random_encoder_seed=None,
-                                                   progress=False, crop_shape=crop_shape), channels)
+                                                   progress=False), channels)
         if probe:
             acc = probe_table(train, crops)["accuracy"]
             row.update({"probe/learned": acc["learned"], "probe/raw": acc["raw_rgb_occupancy"],
@@ -182,9 +181,9 @@ def run_one(name: str, overrides: list[str], seed: int, eval_steps: list[int], r
 
 
 def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: bool, cluster: bool = False,
-                      crop_shapes: tuple[str, ...] = ("hull",), channels: slice | None = None) -> None:
-    """One row per ``NAME=CKPT`` and crop shape: the checkpoint's encoder scored as :func:`score_encoder` does (no
-    training); ``channels``: one more row per checkpoint and shape on these channels of the learned crops alone."""
+                      channels: slice | None = None) -> None:
+    """One row per ``NAME=CKPT``: the checkpoint's encoder scored as :func:`score_encoder` does (no training);
+    ``channels``: one more row per checkpoint on these channels of the learned crops alone."""
     from threedq.datamodules.clevr_veggie import ClevrVeggieDataModule
     from threedq.datamodules.scene_folder import SceneFolderDataModule
     from threedq.stages.crop_cache import CropCache
@@ -197,18 +196,16 @@ def score_checkpoints(specs: list[str], data_dir: str | None, out: Path, probe: 
     for spec in specs:
         name, _, ckpt = spec.partition("=")
         stage = ViewPrediction(encoder_ckpt=ckpt).eval()
-        if len(crop_shapes) > 1 or channels is not None:  # each row after the first reads the same encodings
+        if channels is not None:  # the second row reads the same encodings
             stage.use_crop_cache(CropCache())
-        for shape in crop_shapes:
-            for sl in (None, channels) if channels is not None else (None,):
-                variant = (name if shape == "hull" else f"{name}, {shape} crop") + (
-                    "" if sl is None else f", channels {sl.start}:{sl.stop}")
-                row = {"variant": variant, "overrides": [ckpt], "seed": None, "steps": 0,
-                       "s_per_step": float("nan"), **score_encoder(stage, dm, probe, cluster, shape, sl),
-                       "device": _device_name(stage.device), "data_dir": data_dir}
-                append_row(out, row)
-                print(f"{row['variant']}: strict {row['cosine/strict']:.3f} paper {row['cosine/paper']:.3f} "
-                      f"(occupancy {row['occupancy/paper']:.3f}) top-1 {row['cosine/top1']:.3f}", flush=True)
+        for sl in (None, channels) if channels is not None else (None,):
+            variant = name + ("" if sl is None else f", channels {sl.start}:{sl.stop}")
+            row = {"variant": variant, "overrides": [ckpt], "seed": None, "steps": 0, "s_per_step": float("nan"),
+                   **score_encoder(stage, dm, probe, cluster, sl), "device": _device_name(stage.device),
+                   "data_dir": data_dir}
+            append_row(out, row)
+            print(f"{row['variant']}: strict {row['cosine/strict']:.3f} paper {row['cosine/paper']:.3f} "
+                  f"(occupancy {row['occupancy/paper']:.3f}) top-1 {row['cosine/top1']:.3f}", flush=True)
         stage.use_crop_cache(None)  # the next checkpoint's grids replace these (about 2 MiB a scene)
         del stage
         gc.collect()
@@ -332,9 +329,6 @@ def main() -> None:
     ap.add_argument("--score", action="append", metavar="NAME=CKPT",
                     help="score an existing encoder checkpoint instead of training (repeatable; any stage's "
                          "checkpoint); with --data_dir any scene folder (threedq data generate / index)")
-    ap.add_argument("--crop_shapes", nargs="+", default=["hull"], choices=list(CROP_SHAPES),
-                    help="regions cropped around each box (threedq.geometry.crop_region), a row each: hull (the "
-                         "paper's), square (aspect kept in the ground plane), cube (aspect kept); with --score")
     ap.add_argument("--channels", default=None, metavar="START:STOP",
                     help="with --score: one more row per checkpoint on these channels of the learned crops alone "
                          "(e.g. 0:16, the view-prediction stage's shape_channels)")
@@ -354,8 +348,7 @@ def main() -> None:
             except ValueError:
                 ap.error(f"--channels: expected START:STOP, e.g. 0:16, got {args.channels!r}")
             channels = slice(a, b)
-        score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster, tuple(args.crop_shapes),
-                          channels)
+        score_checkpoints(args.score, args.data_dir, args.out, args.probe, args.cluster, channels)
     elif not args.table_only:
         jobs = [(spec, seed) for spec in (args.variant or DEFAULT_VARIANTS) for seed in args.seeds]
         common = ["--eval_steps", *map(str, args.eval_steps), "--root", str(args.root), "--out", str(args.out)]

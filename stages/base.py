@@ -17,7 +17,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from threedq.geometry import VoxelGridSpec, crop_boxes, crop_region, occupancy_from_depth, unproject_rgb
+from threedq.geometry import VoxelGridSpec, crop_boxes, occupancy_from_depth, unproject_rgb
 from threedq.nets import UNet3D
 from threedq.stages.crop_cache import CropCache, pack_bits, pack_sparse, unpack_bits, unpack_sparse
 from threedq.stages.checkpoint import (  # noqa: F401 - re-exported beside the stage base
@@ -263,8 +263,7 @@ class EncoderStage(L.LightningModule):
         agg = torch.where(none, feats.mean(1), agg)  # voxels no view sees: plain mean
         return torch.nn.functional.normalize(agg, dim=1, eps=1e-6)
 
-    def object_crops(self, batch: dict[str, Tensor], num_input_views: int = 1, size: int = 16,
-                     shape: str = "hull") -> dict[str, Tensor]:
+    def object_crops(self, batch: dict[str, Tensor], num_input_views: int = 1, size: int = 16) -> dict[str, Tensor]:
         """Encode the first ``num_input_views`` views of each scene and crop every (valid) object box (read from
         :attr:`crop_cache` where the same encoder weights cropped the sample before).
 
@@ -273,8 +272,6 @@ class EncoderStage(L.LightningModule):
                 ``box_mask`` [B,M], ``categories``, ``boxes``, ``scene_index``).
             num_input_views: views aggregated per scene.
             size: crops are ``size^3``.
-            shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull``, ``square``
-                or ``cube``.
 
         Returns:
             ``features`` ``[N, C, s, s, s]`` crops of the feature grid, ``raw`` ``[N, 4, s, s, s]`` crops of the
@@ -282,7 +279,7 @@ class EncoderStage(L.LightningModule):
             ``[N, 7]`` (oriented GT), ``aabb`` ``[N, 6]``, ``scene`` ``[N]`` (the scene's index in its split), ``slot``
             ``[N]`` (the box's row in the scene) — N = valid boxes of the batch.
 
-        Convention: boxes axis-aligned in R, the region of ``shape`` around each resized to a cube.
+        Convention: boxes axis-aligned in R, each resized to a cube.
         """
         v = num_input_views
         rgb, depth, K, pose = (batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam"))
@@ -294,16 +291,15 @@ class EncoderStage(L.LightningModule):
         cache = self.crop_cache if self.crops_cacheable() else None
         if cache is not None:
             prefix = self.crop_cache_prefix()
-            keys = [cache.sample_key(batch, b, v, size, shape) for b in range(B)]
+            keys = [cache.sample_key(batch, b, v, size) for b in range(B)]
             f_keys = [("features", prefix, cache.fingerprint(self.encoder), k) for k in keys]
             r_keys = [("raw", prefix, k) for k in keys]
             feats, raw = cache.get_many(f_keys), cache.get_many(r_keys)
             if feats is not None and raw is not None:
                 return {"features": torch.cat(feats).to(self.device), "raw": torch.cat(raw).to(self.device), **out}
         grid, x = self._encode_views(rgb, depth, K, pose, need_input=True)
-        region = crop_region(batch["aabb"], shape)
-        feats = crop_boxes(grid, region, self.feature_grid, size, mask=mask)  # [N, ...], the valid boxes only
-        raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), region, self.grid, size, mask=mask)
+        feats = crop_boxes(grid, batch["aabb"], self.feature_grid, size, mask=mask)  # [N, ...], the valid boxes only
+        raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"], self.grid, size, mask=mask)
         if cache is not None:
             counts = mask.sum(1).tolist()
             for b, (f, r) in enumerate(zip(feats.split(counts), raw.split(counts), strict=True)):

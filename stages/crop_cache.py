@@ -84,11 +84,11 @@ def unpack_bits(bits: Tensor, shape: tuple[int, ...]) -> Tensor:
     return torch.from_numpy(np.unpackbits(bits.numpy(), count=count).view(np.bool_)).reshape(shape)
 
 
-def sample_key(batch: dict[str, Tensor], b: int, num_input_views: int, crop_size: int, crop_shape: str = "hull") -> str:
+def sample_key(batch: dict[str, Tensor], b: int, num_input_views: int, crop_size: int) -> str:
     """Hex digest of what sample ``b``'s object crops depend on besides the encoder: its first ``num_input_views``
-    views, its boxes (``aabb``, ``box_mask``), ``crop_size`` and ``crop_shape``."""
+    views, its boxes (``aabb``, ``box_mask``) and ``crop_size``."""
     h = hashlib.blake2b(digest_size=16)
-    h.update(f"v{num_input_views}s{crop_size}".encode() + (b"" if crop_shape == "hull" else crop_shape.encode()))
+    h.update(f"v{num_input_views}s{crop_size}".encode())
     for k in ("rgb", "depth", "K", "R_T_cam"):
         _update(h, batch[k][b, :num_input_views])
     for k in ("aabb", "box_mask"):

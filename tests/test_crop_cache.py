@@ -173,8 +173,6 @@ class TestSampleKey:
         assert k != sample_key(moved, 0, 1, 8)
         darker = dict(batch, rgb=batch["rgb"] * 0.5)
         assert k != sample_key(darker, 0, 1, 8)
-        assert k == sample_key(batch, 0, 1, 8, "hull")
-        assert len({k, sample_key(batch, 0, 1, 8, "square"), sample_key(batch, 0, 1, 8, "cube")}) == 3
 
 
 class TestCropCache:
@@ -333,28 +331,4 @@ class TestObjectCropsWithCache:
             for k in ref:
                 assert torch.equal(got[k], ref[k]), k
         assert stage.crop_cache.hits > 0
-
-    def test_crop_shapes_are_cached_apart(self, dm: SceneFolderDataModule) -> None:
-        """Crops of one encoding under each region shape: through one cache (the grids shared) they equal uncached
-        crops of that shape, never another shape's; the boxes handed back are the GT hulls whatever the shape."""
-        stage = _stage()
-        loader = lambda: split_loader(dm, "test", batch_size=1)  # noqa: E731
-        ref = {s: collect_object_crops(stage, loader(), crop_size=8, progress=False, crop_shape=s, random_encoder_seed=None)
-               for s in ("hull", "cube")}
-        assert not torch.equal(ref["hull"]["learned"], ref["cube"]["learned"])
-        assert torch.equal(ref["hull"]["aabb"], ref["cube"]["aabb"])
-        # the colour + size descriptor reads the hulls' raw crops whatever the shape (its colour is the box's)
-        assert torch.equal(ref["cube"]["descriptor_raw"], ref["hull"]["raw"]) and "descriptor_raw" not in ref["hull"]
-        stage.use_crop_cache(CropCache())
-        calls = []
-        for shape in ("hull", "cube", "hull"):
-            if shape == "cube":
-                stage.encoder.register_forward_hook(lambda *a: calls.append(1))
-            got = collect_object_crops(stage, loader(), crop_size=8, progress=False, crop_shape=shape,
-                                       random_encoder_seed=None)
-            for k in ref[shape]:
-                assert torch.equal(got[k], ref[shape][k]), (shape, k)
-        assert not calls  # the cube crops were cut from the grids the hull pass cached
-        with pytest.raises(ValueError, match="crop_shape must be one of"):
-            collect_object_crops(stage, loader(), crop_size=8, progress=False, crop_shape="ball")
 

@@ -74,7 +74,7 @@ class TestCurves:
 
 
 class TestScoreCheckpoints:
-    def test_one_row_per_crop_shape(self, tmp_path: Path, tiny_dataset: Path) -> None:
+    def test_one_row_and_one_per_channel_slice(self, tmp_path: Path, tiny_dataset: Path) -> None:
         from threedq.stages.base import EncoderStage
 
         torch.manual_seed(0)
@@ -82,11 +82,10 @@ class TestScoreCheckpoints:
         torch.save(EncoderStage().encoder.state_dict(), ckpt)  # an encoder state dict is a checkpoint too
         out = tmp_path / "rows.jsonl"
         feature_recipes.score_checkpoints([f"enc={ckpt}"], str(tiny_dataset), out, probe=False,
-                                          crop_shapes=("hull", "cube"))
+                                          channels=slice(0, 8))
         rows = [json.loads(line) for line in out.read_text().splitlines()]
-        assert [(r["variant"], r["crop"]) for r in rows] == [("enc", "hull"), ("enc, cube crop", "cube")]
-
-        assert rows[0]["cosine/paper"] != rows[1]["cosine/paper"] or rows[0]["raw/top1"] != rows[1]["raw/top1"]
+        assert [r["variant"] for r in rows] == ["enc", "enc, channels 0:8"]
+        assert rows[0]["raw/top1"] == rows[1]["raw/top1"]  # the raw crops are not sliced
 
 
 class TestChannels:

@@ -8,8 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from threedq.geometry import (CROP_SHAPES, VoxelGridSpec, box_mask, crop_boxes, crop_region, occupancy_weighted,
-                              paste_boxes, sample_volume)
+from threedq.geometry import VoxelGridSpec, box_mask, crop_boxes, occupancy_weighted, paste_boxes, sample_volume
 from threedq.geometry.crop import _gather_crops, _sampled_crops
 
 GRID = VoxelGridSpec((-1.0, -0.5, 0.0), (1.0, 0.5, 0.75), (8, 4, 3))  # 0.25 m voxels, volume (3, 4, 8)
@@ -239,69 +238,6 @@ class TestCropBoxesImplementations:
         out = crop_boxes(volume, boxes, GRID, size=3)
         assert out.requires_grad
         assert torch.autograd.gradcheck(lambda v: crop_boxes(v, boxes, GRID, size=2), (volume,))
-
-
-def crop_region_naive(box: list[float], shape: str) -> list[float]:
-    """One box's region, axis by axis in plain Python floats."""
-    lo, hi = box[:3], box[3:]
-    ext = [h - l for l, h in zip(lo, hi)]
-    sides = {"hull": ext, "square": [max(ext[:2])] * 2 + ext[2:], "cube": [max(ext)] * 3}[shape]
-    centre = [(l + h) / 2 for l, h in zip(lo, hi)]
-    return [c - s / 2 for c, s in zip(centre, sides)] + [c + s / 2 for c, s in zip(centre, sides)]
-
-
-class TestCropRegion:
-    def test_smoke(self) -> None:
-        boxes = random_boxes(2, 3, torch.float32)
-        for shape in CROP_SHAPES:
-            out = crop_region(boxes, shape)
-            assert out.shape == boxes.shape and out.dtype == boxes.dtype
-
-    def test_exception(self) -> None:
-        with pytest.raises(ValueError, match="crop shape must be one of .*'hull', 'square', 'cube'.*got 'sphere'"):
-            crop_region(random_boxes(1, 2), "sphere")
-        with pytest.raises(ValueError, match=r"boxes must have shape \[..., 6\].*got \(2, 4\)"):
-            crop_region(torch.zeros(2, 4), "cube")
-
-    @pytest.mark.parametrize("lead", [(), (5,), (2, 3)])
-    def test_cardinality(self, lead: tuple[int, ...]) -> None:
-        boxes = torch.rand(*lead, 6)
-        assert crop_region(boxes, "square").shape == (*lead, 6)
-
-    def test_feature_hand_computed(self) -> None:
-        box = torch.tensor([0.0, 0.0, 0.0, 0.2, 0.6, 0.4])  # 0.2 x 0.6 m footprint, 0.4 m tall
-        assert crop_region(box, "hull") is box
-        torch.testing.assert_close(crop_region(box, "square"), torch.tensor([-0.2, 0.0, 0.0, 0.4, 0.6, 0.4]))
-        torch.testing.assert_close(crop_region(box, "cube"), torch.tensor([-0.2, 0.0, -0.1, 0.4, 0.6, 0.5]))
-
-    @pytest.mark.parametrize("shape", CROP_SHAPES)
-    def test_feature_matches_naive_and_contains_the_box(self, shape: str) -> None:
-        boxes = random_boxes(3, 4)
-        out = crop_region(boxes, shape)
-        want = torch.tensor([[crop_region_naive(b.tolist(), shape) for b in row] for row in boxes], dtype=boxes.dtype)
-        torch.testing.assert_close(out, want)
-        assert (out[..., :3] <= boxes[..., :3] + 1e-12).all() and (out[..., 3:] >= boxes[..., 3:] - 1e-12).all()
-        torch.testing.assert_close(out[..., :3] + out[..., 3:], boxes[..., :3] + boxes[..., 3:])  # same centre
-
-    def test_feature_square_crop_keeps_the_ground_aspect(self) -> None:
-        """An object twice as long in x as in y fills a hull crop's whole footprint (stretched to a square) but
-        half of a square crop's y rows, as it fills half of the square region."""
-        grid = VoxelGridSpec((-1.0, -1.0, 0.0), (1.0, 1.0, 0.5), (40, 40, 10))
-        centres = grid.voxel_centres(dtype=torch.float64)
-        x, y, z = centres.unbind(-1)
-        volume = ((x.abs() < 0.4) & (y.abs() < 0.2) & (z < 0.3)).to(torch.float64)[None, None]
-        box = torch.tensor([[[-0.4, -0.2, 0.0, 0.4, 0.2, 0.3]]], dtype=torch.float64)
-        hull = crop_boxes(volume, crop_region(box, "hull"), grid, 16)[0, 0, 0]
-        square = crop_boxes(volume, crop_region(box, "square"), grid, 16)[0, 0, 0]
-        filled = lambda crop: (crop[8] > 0.5).float()  # noqa: E731 - the middle z slice, [y, x]
-        assert filled(hull).sum() == 16 * 16
-        assert filled(square).sum() == 8 * 16 and filled(square)[4:12].all() and not filled(square)[:3].any()
-
-    def test_gradcheck(self) -> None:
-        boxes = torch.tensor([[0.0, 0.1, 0.0, 0.3, 0.7, 0.2], [0.1, 0.0, 0.0, 0.5, 0.2, 0.9]], dtype=torch.float64,
-                             requires_grad=True)  # distinct extents: no tie at the max
-        for shape in CROP_SHAPES:
-            assert torch.autograd.gradcheck(lambda b: crop_region(b, shape), (boxes,))
 
 
 class TestPasteBoxes:

@@ -12,7 +12,6 @@ from threedq.pipeline.tables import (
     fmt,
     method_rows,
     precision_label,
-    retrieval_markdown,
     size_band_lines,
     yaw_cell,
 )
@@ -78,18 +77,6 @@ def test_cluster_search_label_names_the_similarity() -> None:
     assert "weighted" not in plain and "inscribed cylinder" in plain
     assert "weighted by their input occupancy (empty space 0.2, voxels at or next to observed surface 1.2" in weighted
     assert "cosine over the full cube" in cluster_search_label("exact", 0.0)
-
-
-def test_tables_name_a_crop_region_other_than_the_hull() -> None:
-    assert "crops of a cube of each box's largest extent" in cluster_search_label("fast", 0.2, "cube")
-    assert "horizontal square" in cluster_search_label("fast", None, "square")
-    assert "crops of" not in cluster_search_label("fast", 0.2, "hull")
-    r = {"k": 10, "num_angles": 36, "search": "fast", "num_objects": 3,
-         "precision_at_k": {"learned": 0.5}, "protocols": {"strict": {"pool": 3, "precision_at_k": {"learned": 0.5}}}}
-    assert "largest extent" not in retrieval_markdown(r)[0]  # written before the field, or the paper's hull
-    assert "largest extent" not in retrieval_markdown({**r, "crop_shape": "hull"})[0]
-    assert "crops of a cube of each box's largest extent" in retrieval_markdown({**r, "crop_shape": "cube"})[0]
-
 
 
 def test_em_report_names_where_the_pairs_came_from() -> None:

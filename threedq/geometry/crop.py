@@ -14,12 +14,7 @@ from torch import Tensor
 
 from .grid import VoxelGridSpec, _check_grid, _desc
 
-__all__ = ["CROP_SHAPES", "box_mask", "crop_boxes", "crop_region", "occupancy_weighted", "paste_boxes", "sample_volume"]
-
-#: The regions :func:`crop_region` crops around a box: ``hull`` the box itself (the paper's), ``square`` a horizontal
-#: square of the larger horizontal extent with the height as is, ``cube`` a cube of the largest extent.
-CROP_SHAPES = ("hull", "square", "cube")
-
+__all__ = ["box_mask", "crop_boxes", "occupancy_weighted", "paste_boxes", "sample_volume"]
 
 def _check_boxes(boxes: Tensor) -> None:
     if not isinstance(boxes, Tensor) or boxes.ndim != 3 or boxes.shape[-1] != 6:
@@ -226,34 +221,6 @@ def _gather_crops(volume: Tensor, boxes: Tensor, index: Tensor, grid: VoxelGridS
             else:
                 acc += v.mul_(w[start:end])  # two roundings, as grid_sample (not a fused multiply-add)
     return out.view(n_crops, *size, channels).permute(0, 4, 1, 2, 3).contiguous()
-
-
-def crop_region(boxes: Tensor, shape: str = "hull") -> Tensor:
-    """The region cropped around each box: the box, or a square or cube about its centre.
-
-    Args:
-        boxes: ``[..., 6]`` boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` in R.
-        shape: one of :data:`CROP_SHAPES`.
-
-    Returns:
-        ``[..., 6]`` regions, same dtype: ``hull`` the boxes unchanged; ``square`` each box's x and y intervals widened
-        about its centre to ``max(dx, dy)``, z as is; ``cube`` all three widened to ``max(dx, dy, dz)``.
-
-    Convention:
-        Axis-aligned boxes in R (metres, z up); a region contains its box and shares its centre.
-    """
-    if shape not in CROP_SHAPES:
-        raise ValueError(f"crop shape must be one of {CROP_SHAPES}, got {shape!r}")
-    if not isinstance(boxes, Tensor) or boxes.ndim < 1 or boxes.shape[-1] != 6:
-        raise ValueError(f"boxes must have shape [..., 6] (xmin, ymin, zmin, xmax, ymax, zmax), got {_desc(boxes)}")
-    if shape == "hull":
-        return boxes
-    lo, hi = boxes[..., :3], boxes[..., 3:]
-    centre, extent = (lo + hi) / 2, hi - lo
-    axes = 2 if shape == "square" else 3
-    side = extent[..., :axes].amax(-1, keepdim=True)
-    half = torch.cat([side.expand(*side.shape[:-1], axes), extent[..., axes:]], dim=-1) / 2
-    return torch.cat([centre - half, centre + half], dim=-1)
 
 
 def box_mask(boxes: Tensor, grid: VoxelGridSpec) -> Tensor:

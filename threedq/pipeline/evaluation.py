@@ -16,7 +16,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from threedq.baselines.descriptor import colour_size_descriptor, descriptor_similarity
-from threedq.geometry import CROP_SHAPES, crop_boxes, crop_region, yaw_angles
+from threedq.geometry import crop_boxes, yaw_angles
 from threedq.metrics import cluster_confusion, few_shot_accuracy, hungarian_accuracy, linear_probe, relative_yaw_error
 from threedq.metrics.retrieval import precision_ceiling, retrieval_precision_at_k, same_object_top1
 from threedq.nets import UNet3D
@@ -41,39 +41,28 @@ GALLERY_VIEW = "each scene's second fixed view (the first view after the input v
 
 
 def _random_encoder_crops(stage: EncoderStage, random_enc: UNet3D, batch: dict[str, Tensor], v: int, crop_size: int,
-                          cache: CropCache | None, crop_shape: str = "hull") -> Tensor:
+                          cache: CropCache | None) -> Tensor:
     """Crops of ``batch``'s valid boxes from ``random_enc``'s features (view mean, L2-normalised), on the CPU."""
     mask = batch["box_mask"]
     B = mask.shape[0]
     if cache is not None:
         prefix, fp = stage.crop_cache_prefix(), cache.fingerprint(random_enc)
-        keys = [("random", prefix, fp, sample_key(batch, b, v, crop_size, crop_shape)) for b in range(B)]
+        keys = [("random", prefix, fp, sample_key(batch, b, v, crop_size)) for b in range(B)]
         hit = cache.get_many(keys)
         if hit is not None:
             return torch.cat(hit)
     x, _ = stage.views_input(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
     rf = random_enc(x).view(B, v, -1, *stage.feature_grid.volume_shape).mean(1)
-    rand = crop_boxes(F.normalize(rf, dim=1), crop_region(batch["aabb"], crop_shape), stage.feature_grid, crop_size,
-                      mask=mask)
+    rand = crop_boxes(F.normalize(rf, dim=1), batch["aabb"], stage.feature_grid, crop_size, mask=mask)
     if cache is not None:
         for b, r in enumerate(rand.split(mask.sum(1).tolist())):
             cache.put(keys[b], r)
     return rand.cpu()
 
 
-def _hull_raw_crops(stage: EncoderStage, batch: dict[str, Tensor], v: int, crop_size: int) -> Tensor:
-    """Raw input crops of ``batch``'s valid boxes cut as their hulls (the descriptor's), on the CPU."""
-    x, _ = stage.views_input(*(batch[k][:, :v] for k in ("rgb", "depth", "K", "R_T_cam")))
-    B = batch["box_mask"].shape[0]
-    raw = crop_boxes(x.view(B, v, *x.shape[1:]).amax(1), batch["aabb"].to(x.dtype), stage.grid, crop_size,
-                     mask=batch["box_mask"])
-    return raw.cpu()
-
-
 def _descriptor(crops: dict[str, Tensor], prefix: str = "") -> Tensor:
     """The colour + size descriptor of ``crops``' objects (of ``gallery_`` ones with that ``prefix``)."""
-    raw = crops.get(f"{prefix}descriptor_raw", crops[f"{prefix}raw"])
-    return colour_size_descriptor(raw, crops["aabb"])
+    return colour_size_descriptor(crops[f"{prefix}raw"], crops["aabb"])
 
 
 def _single_view(batch: dict[str, Tensor], view: int) -> dict[str, Tensor]:
@@ -88,7 +77,7 @@ def _single_view(batch: dict[str, Tensor], view: int) -> dict[str, Tensor]:
 @torch.no_grad()
 def collect_object_crops(stage: EncoderStage, loader: torch.utils.data.DataLoader, num_input_views: int = 1,
                          crop_size: int = 16, random_encoder_seed: int | None = 0, progress: bool = True,
-                         gallery: bool = False, crop_shape: str = "hull") -> dict[str, Tensor]:
+                         gallery: bool = False) -> dict[str, Tensor]:
     """Crop every GT object of every scene of ``loader`` out of three volumes.
 
     Args:
@@ -99,8 +88,6 @@ def collect_object_crops(stage: EncoderStage, loader: torch.utils.data.DataLoade
         random_encoder_seed: seed of the randomly initialised reference encoder (None: skip it).
         gallery: also crop the same boxes out of the grid of each scene's view ``num_input_views`` alone (the paper
             protocol's gallery, row ``i`` the twin of query ``i``).
-        crop_shape: the region cropped around each box (:func:`threedq.geometry.crop_region`): ``hull``, ``square``
-            or ``cube``; ``aabb`` is returned as given either way.
 
     Returns:
         ``learned`` ``[N, C, s, s, s]``, ``raw`` ``[N, 4, s, s, s]``, ``random`` ``[N, C, s, s, s]`` (if
@@ -108,10 +95,8 @@ def collect_object_crops(stage: EncoderStage, loader: torch.utils.data.DataLoade
         boxes (GT hulls, or the given boxes), ``scene`` ``[N]`` (index in the split); with ``gallery`` also
         ``gallery_learned``, ``gallery_raw`` and ``gallery_random`` (if requested) of the second view.
 
-    Convention: boxes axis-aligned in R (z up), cropped as their tight hull (or the ``crop_shape`` region about it).
+    Convention: boxes axis-aligned in R (z up), cropped as their tight hull.
     """
-    if crop_shape not in CROP_SHAPES:
-        raise ValueError(f"crop_shape must be one of {CROP_SHAPES}, got {crop_shape!r}")
     was_training = stage.training
     stage.eval()
     random_enc = None
@@ -121,36 +106,30 @@ def collect_object_crops(stage: EncoderStage, loader: torch.utils.data.DataLoade
             random_enc = UNet3D(in_channels=4, out_channels=stage.encoder.out_channels, channels=stage.encoder.channels,
                                 output_stride=stage.encoder.output_stride).to(stage.device).eval()
     keys = ("learned", "raw", "random", "labels", "boxes", "aabb", "scene", "gallery_learned", "gallery_raw",
-            "gallery_random", "descriptor_raw", "gallery_descriptor_raw")
-    hull = crop_shape == "hull"
+            "gallery_random")
     out: dict[str, list[Tensor]] = {k: [] for k in keys}
     cache = stage.crop_cache if random_enc is not None and stage.crops_cacheable() else None
     v = num_input_views
     for batch in tqdm(loader, desc="object crops", disable=not progress, leave=False):
         batch = {k: t.to(stage.device) if isinstance(t, Tensor) else t for k, t in batch.items()}
         with stage.precision_context():
-            crops = stage.object_crops(batch, v, crop_size, crop_shape)
+            crops = stage.object_crops(batch, v, crop_size)
             if gallery:
                 if batch["rgb"].shape[1] <= v:
                     raise ValueError(f"gallery: the loader's samples hold {batch['rgb'].shape[1]} view(s), the paper "
                                      f"protocol needs a view after the {v} input view(s) (split_loader(gallery=True))")
                 other = _single_view(batch, v)
-                g = stage.object_crops(other, 1, crop_size, crop_shape)
+                g = stage.object_crops(other, 1, crop_size)
                 out["gallery_learned"].append(g["features"].float().cpu())
                 out["gallery_raw"].append(g["raw"].cpu())
-                if not hull:
-                    out["gallery_descriptor_raw"].append(_hull_raw_crops(stage, other, 1, crop_size))
-            if not hull:
-                out["descriptor_raw"].append(_hull_raw_crops(stage, batch, v, crop_size))
         out["learned"].append(crops["features"].float().cpu())
         out["raw"].append(crops["raw"].cpu())
         for k in ("labels", "boxes", "aabb", "scene"):
             out[k].append(crops[k].cpu())
         if random_enc is not None:
-            out["random"].append(_random_encoder_crops(stage, random_enc, batch, v, crop_size, cache, crop_shape))
+            out["random"].append(_random_encoder_crops(stage, random_enc, batch, v, crop_size, cache))
             if gallery:
-                out["gallery_random"].append(_random_encoder_crops(stage, random_enc, other, 1, crop_size, cache,
-                                                                   crop_shape))
+                out["gallery_random"].append(_random_encoder_crops(stage, random_enc, other, 1, crop_size, cache))
     stage.train(was_training)
     return {k: torch.cat(v) for k, v in out.items() if v}
 

@@ -337,8 +337,6 @@ def evaluate_quantizer(model: Any, dm: Any, out: str | Path, test_metrics: dict[
     labels = test["labels"]
     retrieval, sims = retrieval_table(test, k=10, num_angles=A, search=search,
                                       coarse_labels=coarse_labels(cats, labels))
-    shape = "hull"
-    retrieval["crop_shape"] = shape
     probe = probe_table(train, test) if baselines and int((train["labels"] >= 0).sum()) > 0 else None
     quant = {"threedq": _threedq_row(test_metrics, labels.shape[0])}
     floor = getattr(model.hparams, "occupancy_floor", None)
@@ -357,7 +355,7 @@ def evaluate_quantizer(model: Any, dm: Any, out: str | Path, test_metrics: dict[
            "num_test_objects": int(labels.shape[0]), "num_test_categories": int(labels.unique().numel()),
            "num_input_views": nv, "num_prototypes": K, "retrieval": retrieval, "probe": probe,
            "baselines_not_run": no_train, "paper_protocol_not_run": no_paper, "quantization": quant, "curve": curve,
-           "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast"), floor, shape),
+           "cluster_search": cluster_search_label(getattr(model.hparams, "search_method", "fast"), floor),
            "resnet": resnet_res, "not_run": {**({} if q25d is not None else {"q25d": Q25D_HOWTO}),
                                              **({} if resnet is not None else {"resnet": RESNET_HOWTO})}}
     _write_outputs(out, res, t0, cats, index.files("test"), test, sims, assignments["threedq"], res_bank.score.cpu(),

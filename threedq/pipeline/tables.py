@@ -11,7 +11,7 @@ from threedq.metrics.retrieval import PROTOCOL_LABELS
 from threedq.pipeline.baselines2d import Q25D_HOWTO, RESNET_HOWTO
 from threedq.pipeline.evaluation import DESCRIPTOR, SEARCH_LABELS
 
-__all__ = ["METHOD_LABELS", "RETRIEVAL_ROWS", "CROP_LABELS", "cluster_search_label", "em_markdown", "eval_markdown",
+__all__ = ["METHOD_LABELS", "RETRIEVAL_ROWS", "cluster_search_label", "em_markdown", "eval_markdown",
            "feature_cells", "feature_sets_markdown", "fewshot_cell", "fmt", "method_rows", "precision_label",
            "retrieval_markdown", "size_band_lines"]
 
@@ -27,30 +27,14 @@ def method_rows(quantization: dict[str, Any]) -> list[tuple[str, Any]]:
     return sorted(quantization.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0]))
 
 
-#: How a table names a crop region other than the paper's hull (:func:`threedq.geometry.crop_region`).
-CROP_LABELS = {
-    "square": "crops of a horizontal square of each box's larger horizontal extent, height as is (aspect kept in the "
-              "ground plane; the paper crops the box's hull)",
-    "cube": "crops of a cube of each box's largest extent (aspect kept; the paper crops the box's hull)",
-}
-
-
-def _crop_note(retrieval: dict[str, Any]) -> str:
-    """``; <the crop region>`` for a retrieval table whose crops are not the paper's hulls, else empty."""
-    shape = retrieval.get("crop_shape")
-    return f"; {CROP_LABELS[shape]}" if shape in CROP_LABELS else ""
-
-
-def cluster_search_label(method: str = "fast", occupancy_floor: float | None = None, crop_shape: str = "hull") -> str:
+def cluster_search_label(method: str = "fast", occupancy_floor: float | None = None) -> str:
     """How each clustering row searches rotations: the stage's bank (threedq) with ``method``, on crops weighted by
-    ``occupancy_floor`` (None: plain crops) and cut from ``crop_shape``; the banks fitted here with the fast search."""
+    ``occupancy_floor`` (None: plain crops); the banks fitted here with the fast search."""
     own = ("exact search over 36 yaw steps (cosine over the full cube)" if method == "exact"
            else "fast search over 36 yaw steps (cosine over the inscribed cylinder)")
     if occupancy_floor is not None:
         own += (f", of crops weighted by their input occupancy (empty space {occupancy_floor:g}, voxels at or next to "
                 f"observed surface {1 + occupancy_floor:g}; not the paper's plain crops)")
-    if crop_shape in CROP_LABELS:
-        own += f", on {CROP_LABELS[crop_shape]}"
     return (f"Prototype assignment: threedq by the {own}; no-rot-3DQ by the same bank EM with 1 yaw step (no search); "
             "2.5DQ-Nets by the fast search on one-slice crops, i.e. over 36 in-plane angles (cosine over the inscribed "
             "disc); point-cloud registration by its occupancy-only similarity over 36 yaw steps.")
@@ -93,8 +77,8 @@ def retrieval_markdown(r: dict[str, Any], probe: dict[str, Any] | None = None, l
     pk = precision_label(r)
     prot = r.get("protocols") or {"strict": {"pool": r["num_objects"], "precision_at_k": r["precision_at_k"]}}
     st, pa = prot.get("strict", {}), prot.get("paper")
-    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}"
-             f"{_crop_note(r)}.", ""]
+    lines = [f"Rotation-max {pk}, {r['num_angles']} yaw steps, macro over categories; {SEARCH_LABELS[r['search']]}.",
+             ""]
     for name in ("strict", "paper"):
         if name in prot:
             c = prot[name]
@@ -321,7 +305,7 @@ def _em_round_lines(summary: dict[str, Any]) -> list[str]:
         return []
     pk = precision_label(rounds[0]["retrieval"])
     lines = [f"## Per EM round (threedq, {_boxes_word(summary)} boxes, held-out objects)", "",
-             f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}{_crop_note(rounds[0]['retrieval'])}; strict: "
+             f"{pk}: {SEARCH_LABELS[rounds[0]['retrieval']['search']]}; strict: "
              f"{PROTOCOL_LABELS['strict']}; paper: {PROTOCOL_LABELS['paper']}. Round 0 is the view-prediction encoder "
              "and a bank fitted on it, on round 1's boxes (the paper's iteration 0).", "",
              f"| round | {pk}, strict | {pk}, paper | same object nearest (paper) | pool (ceiling strict / paper) | "
