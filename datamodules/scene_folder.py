@@ -26,6 +26,7 @@ from threedq.data.box_files import load_boxes_file
 from threedq.data.proposal_cache import propose_dataset
 from threedq.data.samplers import ContiguousDistributedSampler, EpochShuffleSampler
 from threedq.metrics.detection import assign_detections
+from threedq.data.view_colour import apply_gains, floor_colour_gains
 from threedq.geometry.floor_alignment import align_to_floor
 from threedq.proposals import ProposalParams
 from threedq.scene import DatasetIndex, SceneRecord, SceneValidationError, load_index, load_scene
@@ -89,18 +90,20 @@ RENDER_PROPOSALS = ProposalParams(view_stride=2)
 #: the pseudo-boxes of sensor captures: floor-corrected poses, a voxel seen by 3 views, a per-scene ground margin
 SENSOR_PROPOSALS = ProposalParams(view_stride=2, min_views=3, ground_margin=None, min_ground_margin=0.015,
                                   align_floor=True)
-#: (resolved path, mtime, size) -> a scene's floor-aligned poses ``[V, 4, 4]`` (a few KB a scene)
-_FLOOR_POSES: dict[tuple[str, int, int], np.ndarray] = {}
+#: (resolved path, mtime, size) -> a scene's floor-aligned poses ``[V, 4, 4]`` and colour gains ``[V, 3]`` (a few KB)
+_SENSOR_CORRECTIONS: dict[tuple[str, int, int], tuple[np.ndarray, np.ndarray]] = {}
 
 
-def floor_aligned_poses(path: Path, rec: SceneRecord) -> np.ndarray:
-    """A scene's poses corrected by its floor (:func:`~threedq.geometry.floor_alignment.align_to_floor`), once per
-    scene file and process."""
+def sensor_corrections(path: Path, rec: SceneRecord) -> tuple[np.ndarray, np.ndarray]:
+    """A scene's poses corrected by its floor (:func:`~threedq.geometry.floor_alignment.align_to_floor`) and each
+    view's colour gains from that floor (:func:`~threedq.data.view_colour.floor_colour_gains`), once per scene file
+    and process."""
     st = path.stat()
     key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
-    if key not in _FLOOR_POSES:
-        _FLOOR_POSES[key] = align_to_floor(rec.depth, rec.K, rec.world_T_cam).world_T_cam
-    return _FLOOR_POSES[key]
+    if key not in _SENSOR_CORRECTIONS:
+        poses = align_to_floor(rec.depth, rec.K, rec.world_T_cam).world_T_cam
+        _SENSOR_CORRECTIONS[key] = poses, floor_colour_gains(rec.rgb, rec.depth, rec.K, poses)
+    return _SENSOR_CORRECTIONS[key]
 
 
 def _cores(most: int) -> int:
@@ -134,7 +137,8 @@ class SceneDataset(Dataset):
         match_iou: a box takes the category and oriented box of the GT object it matches at this IoU.
         keep_unmatched: keep boxes that match no GT object (category -1); ``False`` keeps only matched ones.
         max_boxes: boxes per scene are padded to this many when ``box_sets`` is given (highest scores kept).
-        align_floor: correct each scene's poses by the floor its views see (:func:`floor_aligned_poses`).
+        align_floor: correct each scene's poses by the floor its views see, and each view's colours by that floor's
+            (:func:`sensor_corrections`).
     """
 
     def __init__(
@@ -247,9 +251,9 @@ class SceneDataset(Dataset):
             raise SceneValidationError(str(path), "boxes",
                                        f"{rec.num_objects} objects but max_objects is {self.max_objects}")
         views = self._choose_views(i, rec.num_views, path, epoch)
-        poses = floor_aligned_poses(path, rec) if self.align_floor else rec.world_T_cam
+        poses, gains = sensor_corrections(path, rec) if self.align_floor else (rec.world_T_cam, None)
         v = _SceneViews(
-            rgb=rec.rgb[views], depth=rec.depth[views].astype(np.float32), K=rec.K[views].astype(np.float32),
+            rgb=rec.rgb[views] if gains is None else apply_gains(rec.rgb[views], gains[views]), depth=rec.depth[views].astype(np.float32), K=rec.K[views].astype(np.float32),
             world_T_cam=poses[views].astype(np.float32), view_ids=views.astype(np.int64),
             instance=None if rec.instance is None else rec.instance[views], boxes=rec.boxes, categories=rec.categories,
         )
@@ -315,7 +319,8 @@ class SceneFolderDataModule(L.LightningDataModule):
         max_boxes: proposed/detected boxes per scene (highest scores kept).
         train_random_views: draw the train split's views at random per epoch (else the fixed per-scene choice).
         proposal_workers: processes computing a split's pseudo-boxes (``None``: one per usable CPU core, at most 8).
-        sensor_captures: poses corrected by the floor and pseudo-boxes with :data:`SENSOR_PROPOSALS` (sensor data).
+        sensor_captures: poses and colours corrected by the floor and pseudo-boxes with :data:`SENSOR_PROPOSALS`
+            (sensor data).
 
     With boxes other than GT, the train split keeps every box; val and test keep only the boxes matched to a GT object.
     """

@@ -65,6 +65,31 @@ class TestSceneFolderDataModule:
         assert abs(floor_tilt(False) - 3.0) < 0.3 and floor_tilt(True) < 0.3
         assert not ClevrVeggieDataModule(str(data)).sensor_captures and SceneFolderDataModule(str(data)).sensor_captures
 
+    def test_sensor_captures_even_out_exposure(self, tiny_dataset: Path, tmp_path: Path) -> None:
+        """A copy whose views were given other exposure and white-balance gains: with ``sensor_captures`` the floor
+        takes one colour in every view of a sample again; without, the gains stay."""
+        from threedq.geometry.camera import depth_to_points
+        from threedq.scene import save_scene
+
+        data = tmp_path / "exposed"
+        shutil.copytree(tiny_dataset, data)
+        for f in load_index(data).files("test"):
+            rec = load_scene(data / f)
+            gains = np.random.default_rng(0).uniform(0.7, 1.3, (rec.num_views, 1, 1, 3))
+            rec.rgb = np.clip(np.round(rec.rgb * gains), 0, 255).astype(np.uint8)
+            save_scene(data / f, rec)
+
+        def floor_spread(sensor: bool) -> float:
+            dm = SceneFolderDataModule(str(data), num_input_views=4, num_target_views=0, sensor_captures=sensor)
+            sample = dm.fixed_view_dataset("test", with_boxes=False)[0]
+            pts, valid = depth_to_points(sample["depth"], sample["K"], sample["R_T_cam"])
+            floor = valid & (pts[..., 2].abs() < 0.01)
+            rgb = sample["rgb"].permute(0, 2, 3, 1).reshape(4, -1, 3)
+            med = torch.stack([rgb[i][floor[i].reshape(-1)].median(0).values for i in range(4)])
+            return float((med / med.median(0).values).log().std())
+
+        assert floor_spread(False) > 0.05 and floor_spread(True) < 0.02
+
     def test_matches_record(self, tiny_dataset: Path) -> None:
         index = load_index(tiny_dataset)
         ds = SceneDataset(tiny_dataset, index, "val", num_input_views=1, num_target_views=1, seed=3)

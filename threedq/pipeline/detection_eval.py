@@ -128,14 +128,14 @@ def single_view_pseudo_boxes(data_dir: str | Path, views: dict[str, list[int]], 
     """The label-free pseudo-boxes (:func:`~threedq.box_refinement.observed_boxes`) of each scene from only the views
     a detector sees (``{file -> view indices}``); ``align_floor``: poses corrected by the floor (sensor captures).
     """
-    from threedq.datamodules.scene_folder import floor_aligned_poses
+    from threedq.datamodules.scene_folder import sensor_corrections
 
     out = {}
     for f, v in tqdm(sorted(views.items()), desc="single-view pseudo-boxes", disable=not progress, leave=False):
         path = Path(data_dir) / f
         rec = load_scene(path, validate=False)
         idx = np.asarray(v, dtype=np.int64)
-        poses = floor_aligned_poses(path, rec) if align_floor else rec.world_T_cam
+        poses = sensor_corrections(path, rec)[0] if align_floor else rec.world_T_cam
         out[f] = observed_boxes(rec.depth[idx], rec.K[idx], poses[idx], bounds)
     return out
 

@@ -19,7 +19,8 @@ from tqdm import tqdm
 
 from threedq.atomic_io import atomic_write_bytes, atomic_write_json
 from threedq.data.box_files import load_boxes_file
-from threedq.datamodules.scene_folder import floor_aligned_poses
+from threedq.data.view_colour import apply_gains
+from threedq.datamodules.scene_folder import sensor_corrections
 from threedq.errors import InputError
 from threedq.locks import hold_folder
 from threedq.pipeline.parse import (
@@ -102,7 +103,8 @@ def _load_batch(root: Path, batch: list[str], views: list[int] | int,
                 raise SceneValidationError(str(boxes), f, "the boxes file has no boxes for this scene")
             rec = load_scene(src)
             if align_floor:
-                rec.world_T_cam = floor_aligned_poses(src, rec)
+                rec.world_T_cam, gains = sensor_corrections(src, rec)
+                rec.rgb = apply_gains(rec.rgb, gains)
             chosen.append(check_views(spread_views(rec.num_views, views) if isinstance(views, int) else list(views),
                                       rec, str(src)))
             recs.append(rec)
@@ -174,9 +176,9 @@ def run_parse(scenes: str, out: str, run: str | None = None, encoder: str | None
             per scene ``<scene>_replaced.png`` (a view that was not an input: real, decoded, and decoded with the
             objects replaced by their prototypes at the inferred yaw).
         appearance_scenes: training scenes used once to picture the prototypes in the bird's-eye view (0: none).
-        sensor_captures: correct each scene's poses by the floor its views see first, as a DataModule reading sensor
-            captures does (:func:`~threedq.geometry.floor_alignment.align_to_floor`); default: as the run's data
-            was read (its final quantizer's ``config.yaml``), else off.
+        sensor_captures: correct each scene's poses and colours by the floor its views see first, as a DataModule
+            reading sensor captures does (:func:`~threedq.datamodules.scene_folder.sensor_corrections`); default: as
+            the run's data was read (its final quantizer's ``config.yaml``), else off.
         view: open the parse in Rerun's viewer when done (:func:`threedq.pipeline.view.run_view`; ``threedq view
             --run OUT --save FILE`` writes it to a file instead).
         progress: show a progress bar.
