@@ -253,7 +253,8 @@ class SceneDataset(Dataset):
         views = self._choose_views(i, rec.num_views, path, epoch)
         poses, gains = sensor_corrections(path, rec) if self.align_floor else (rec.world_T_cam, None)
         v = _SceneViews(
-            rgb=rec.rgb[views] if gains is None else apply_gains(rec.rgb[views], gains[views]), depth=rec.depth[views].astype(np.float32), K=rec.K[views].astype(np.float32),
+            rgb=rec.rgb[views] if gains is None else apply_gains(rec.rgb[views], gains[views]),
+            depth=rec.depth[views].astype(np.float32), K=rec.K[views].astype(np.float32),
             world_T_cam=poses[views].astype(np.float32), view_ids=views.astype(np.int64),
             instance=None if rec.instance is None else rec.instance[views], boxes=rec.boxes, categories=rec.categories,
         )

@@ -22,7 +22,8 @@ def _coloured(rec, gains: np.ndarray | None = None):
     for i in range(V):
         d = rec.depth[i].astype(np.float64)
         K, T = rec.K[i].astype(np.float64), rec.world_T_cam[i].astype(np.float64)
-        z = (np.stack([(u - K[0, 2]) / K[0, 0] * d, (v - K[1, 2]) / K[1, 1] * d, d], -1) @ T[:3, :3].T + T[:3, 3])[..., 2]
+        cam = np.stack([(u - K[0, 2]) / K[0, 0] * d, (v - K[1, 2]) / K[1, 1] * d, d], -1)
+        z = (cam @ T[:3, :3].T + T[:3, 3])[..., 2]
         rgb[i] = np.where((np.abs(z) < 1e-3)[..., None], FLOOR, BOX) * (d > 0)[..., None]
     if gains is not None:
         rgb = rgb * gains[:, None, None, :]
@@ -72,7 +73,8 @@ class TestFloorColourGains:
 
     def test_exception(self, scene) -> None:
         rec = _coloured(scene)
-        with pytest.raises(ValueError, match=r"rgb \[V,H,W,3\].*got \[8, 96, 96, 3\], \[8, 96, 96\], \[8, 3, 3\], \[3, 4, 4\]"):
+        shapes = r"got \[8, 96, 96, 3\], \[8, 96, 96\], \[8, 3, 3\], \[3, 4, 4\]"
+        with pytest.raises(ValueError, match=r"rgb \[V,H,W,3\].*" + shapes):
             floor_colour_gains(rec.rgb, rec.depth, rec.K, rec.world_T_cam[:3])
         with pytest.raises(ValueError, match="rgb"):
             floor_colour_gains(rec.rgb[..., :2], rec.depth, rec.K, rec.world_T_cam)

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from threedq.geometry.floor_alignment import view_pixels_in_world
+
 __all__ = ["apply_gains", "floor_colour_gains"]
 
 
@@ -44,20 +46,12 @@ def floor_colour_gains(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, world_
     if (depth.ndim != 3 or rgb.shape != (*depth.shape, 3) or K.shape != (V, 3, 3) or poses.shape != (V, 4, 4)):
         raise ValueError(f"rgb [V,H,W,3], depth [V,H,W], K [V,3,3], world_T_cam [V,4,4]: got {list(rgb.shape)}, "
                          f"{list(depth.shape)}, {list(K.shape)}, {list(poses.shape)}")
-    H, W = depth.shape[1:]
-    ys, xs = np.mgrid[0:H:stride, 0:W:stride].astype(np.float64)
+    sampled = len(range(0, depth.shape[1], stride)) * len(range(0, depth.shape[2], stride))
     med = np.full((V, 3), np.nan)
-    for v in range(V):
-        d = depth[v, ::stride, ::stride].astype(np.float64)
-        ok = np.isfinite(d) & (d > 0)
-        d = np.where(ok, d, 0.0)
-        R, t = poses[v, :3, :3].astype(np.float64), poses[v, :3, 3].astype(np.float64)
-        x = (xs - K[v, 0, 2]) * d / K[v, 0, 0]
-        y = (ys - K[v, 1, 2]) * d / K[v, 1, 1]
-        z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * d + t[2]  # world height of each pixel's point
-        floor = ok & (np.abs(z) <= band)
-        if floor.sum() >= max(min_floor * floor.size, 1):
-            med[v] = np.median(rgb[v, ::stride, ::stride][floor].astype(np.float64), axis=0)
+    for v, (points, rows, cols) in enumerate(view_pixels_in_world(depth, K, poses, stride)):
+        floor = np.abs(points[:, 2]) <= band
+        if floor.sum() >= max(min_floor * sampled, 1):
+            med[v] = np.median(rgb[v, rows[floor], cols[floor]].astype(np.float64), axis=0)
     seen = np.isfinite(med[:, 0]) & (med > 0).all(1)
     gains = np.ones((V, 3))
     if seen.sum() >= 2:

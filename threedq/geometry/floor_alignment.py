@@ -24,7 +24,7 @@ import numpy as np
 
 from threedq.geometry.ground import fit_ground_plane
 
-__all__ = ["FloorAlignment", "align_to_floor"]
+__all__ = ["FloorAlignment", "align_to_floor", "view_pixels_in_world"]
 
 
 @dataclass(frozen=True)
@@ -67,8 +67,10 @@ def _rigid(R: np.ndarray, centre: np.ndarray, lift: float) -> np.ndarray:
     return T
 
 
-def _view_points(depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, stride: int) -> list[np.ndarray]:
-    """Each view's valid depth pixels (every ``stride``-th row and column) in the world frame, float64."""
+def view_pixels_in_world(depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray,
+                         stride: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Each view's valid depth pixels (every ``stride``-th row and column) back-projected: per view ``(points [N, 3]
+    in the world frame, float64; their rows [N]; their columns [N])``."""
     out = []
     for d, k, T in zip(depth, K, world_T_cam):
         z = d[::stride, ::stride].astype(np.float64)
@@ -78,8 +80,13 @@ def _view_points(depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, stri
         x = (u - k[0, 2] - k[0, 1] * (v - k[1, 2]) / k[1, 1]) / k[0, 0] * z
         y = (v - k[1, 2]) / k[1, 1] * z
         cam = np.stack([x, y, z], axis=1)
-        out.append(cam @ T[:3, :3].T.astype(np.float64) + T[:3, 3].astype(np.float64))
+        out.append((cam @ T[:3, :3].T.astype(np.float64) + T[:3, 3].astype(np.float64), v, u))
     return out
+
+
+def _view_points(depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, stride: int) -> list[np.ndarray]:
+    """Each view's valid depth pixels (every ``stride``-th row and column) in the world frame, float64."""
+    return [p for p, _, _ in view_pixels_in_world(depth, K, world_T_cam, stride)]
 
 
 def align_to_floor(depth: np.ndarray, K: np.ndarray, world_T_cam: np.ndarray, *, stride: int = 2, band: float = 0.15,
